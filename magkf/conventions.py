@@ -1,0 +1,155 @@
+"""Frames, rotations, units and column names: the conventions every part of magkf uses.
+
+Frames
+    Navigation frame NED (north, east, down); body frame FRD (forward, right, down).
+Attitude
+    Aerospace ZYX Euler angles in degrees: yaw (from true north, clockwise), pitch, roll.
+    ``C_nb = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` maps body vectors to NED; the body-frame field is
+    ``B_b = C_nb.T @ B_ned``.
+Units
+    Magnetic field in nanotesla inside magkf; angles in degrees at the interfaces, radians inside
+    trigonometric code; time in UNIX seconds (UTC).
+Arrays
+    A single vector has shape ``(3,)``; ``N`` epochs of vectors have shape ``(N, 3)``; ``N`` rotation
+    matrices have shape ``(N, 3, 3)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# ---------------------------------------------------------------- column names (data contract)
+TIME = "time"
+MAG = ("mag_x", "mag_y", "mag_z")
+ROLL, PITCH, YAW = "roll", "pitch", "yaw"
+ATTITUDE = (ROLL, PITCH, YAW)
+LAT, LON, ALT = "lat", "lon", "alt"
+DOP, PDOP, HDOP, VDOP = "dop", "pdop", "hdop", "vdop"
+REF = ("ref_n", "ref_e", "ref_d")
+#: Columns of the canonical drive log that have a fixed meaning; every other numeric column is auxiliary.
+CORE_COLUMNS = (TIME, *MAG, *ATTITUDE, LAT, LON, ALT, DOP, PDOP, HDOP, VDOP, *REF)
+
+# Turntable run (sine fit)
+PLANE, ANGLE = "plane", "angle_deg"
+
+# ---------------------------------------------------------------- units
+#: Nanotesla per unit of each accepted magnetic unit.
+NT_PER_UNIT = {"nT": 1.0, "uT": 1.0e3, "mG": 1.0e2, "G": 1.0e5}
+
+#: The range of the geomagnetic field magnitude at the Earth's surface, nT (about 22 000 to 67 000).
+EARTH_FIELD_RANGE_NT = (15_000.0, 80_000.0)
+
+
+def to_nanotesla(values, unit: str) -> np.ndarray:
+    """Convert ``values`` (any shape) from ``unit`` (one of ``nT, uT, mG, G``) to nanotesla."""
+    try:
+        factor = NT_PER_UNIT[unit]
+    except KeyError:
+        raise ValueError(f"unknown magnetic unit {unit!r}; use one of {', '.join(NT_PER_UNIT)}") from None
+    return np.asarray(values, dtype=float) * factor
+
+
+def from_nanotesla(values_nt, unit: str) -> np.ndarray:
+    """Convert ``values_nt`` (nT, any shape) to ``unit`` (one of ``nT, uT, mG, G``)."""
+    return np.asarray(values_nt, dtype=float) / to_nanotesla(1.0, unit)
+
+
+def likely_unit(median_magnitude: float) -> str | None:
+    """The unit in which a median field magnitude looks like the Earth's field, or None.
+
+    ``median_magnitude`` is in the unit the data were written in. A value of 48 000 suggests nT,
+    48 suggests uT, 480 suggests mG and 0.48 suggests G.
+    """
+    lo, hi = EARTH_FIELD_RANGE_NT
+    for unit, factor in NT_PER_UNIT.items():
+        if lo <= median_magnitude * factor <= hi:
+            return unit
+    return None
+
+
+# ---------------------------------------------------------------- rotations
+def rot_x(angle_rad) -> np.ndarray:
+    """Rotation matrices about x, shape ``angle.shape + (3, 3)``; ``rot_x(a) @ v`` turns ``v`` by ``a``."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([one, zero, zero], -1),
+                     np.stack([zero, c, -s], -1),
+                     np.stack([zero, s, c], -1)], -2)
+
+
+def rot_y(angle_rad) -> np.ndarray:
+    """Rotation matrices about y, shape ``angle.shape + (3, 3)``."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, zero, s], -1),
+                     np.stack([zero, one, zero], -1),
+                     np.stack([-s, zero, c], -1)], -2)
+
+
+def rot_z(angle_rad) -> np.ndarray:
+    """Rotation matrices about z, shape ``angle.shape + (3, 3)``."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, -s, zero], -1),
+                     np.stack([s, c, zero], -1),
+                     np.stack([zero, zero, one], -1)], -2)
+
+
+def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
+    """``C_nb`` (body FRD to NED) from ZYX Euler angles in degrees; shape ``yaw.shape + (3, 3)``."""
+    yaw, pitch, roll = (np.radians(np.asarray(a, dtype=float)) for a in (yaw_deg, pitch_deg, roll_deg))
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def dcm_to_euler(c_nb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ZYX Euler angles ``(yaw, pitch, roll)`` in degrees from ``C_nb`` of shape ``(..., 3, 3)``.
+
+    Yaw is returned in ``[0, 360)``, pitch in ``[-90, 90]``, roll in ``(-180, 180]``.
+    """
+    c = np.asarray(c_nb, dtype=float)
+    yaw = np.degrees(np.arctan2(c[..., 1, 0], c[..., 0, 0])) % 360.0
+    pitch = np.degrees(np.arcsin(np.clip(-c[..., 2, 0], -1.0, 1.0)))
+    roll = np.degrees(np.arctan2(c[..., 2, 1], c[..., 2, 2]))
+    return yaw, pitch, roll
+
+
+def ned_to_body(c_nb, v_ned) -> np.ndarray:
+    """``C_nb^T v_ned``: NED vectors ``(N, 3)`` expressed in the body frame, ``(N, 3)``."""
+    return np.einsum("...ji,...j->...i", c_nb, v_ned)
+
+
+def body_to_ned(c_nb, v_body) -> np.ndarray:
+    """``C_nb v_body``: body vectors ``(N, 3)`` expressed in NED, ``(N, 3)``."""
+    return np.einsum("...ij,...j->...i", c_nb, v_body)
+
+
+# ---------------------------------------------------------------- field angles and heading
+def declination_deg(field_ned) -> np.ndarray:
+    """Magnetic declination (east of true north, degrees) of NED field vectors ``(..., 3)``."""
+    f = np.asarray(field_ned, dtype=float)
+    return np.degrees(np.arctan2(f[..., 1], f[..., 0]))
+
+
+def inclination_deg(field_ned) -> np.ndarray:
+    """Magnetic inclination (dip, positive downwards, degrees) of NED field vectors ``(..., 3)``."""
+    f = np.asarray(field_ned, dtype=float)
+    return np.degrees(np.arctan2(f[..., 2], np.hypot(f[..., 0], f[..., 1])))
+
+
+def magnetic_heading_deg(field_body, roll_deg, pitch_deg) -> np.ndarray:
+    """Tilt-compensated magnetic heading in ``[0, 360)`` degrees.
+
+    ``field_body`` is the calibrated body-frame field ``(N, 3)`` in any unit; roll and pitch ``(N,)``
+    are in degrees. The field is levelled with ``Ry(pitch) Rx(roll)`` and the heading is the angle,
+    clockwise from magnetic north, of the body's forward axis.
+    """
+    level = np.einsum("...ij,...j->...i",
+                      rot_y(np.radians(np.asarray(pitch_deg, float))) @ rot_x(np.radians(np.asarray(roll_deg, float))),
+                      np.asarray(field_body, float))
+    return np.degrees(np.arctan2(-level[..., 1], level[..., 0])) % 360.0
+
+
+def wrap_deg(angle_deg) -> np.ndarray:
+    """Angles wrapped into ``(-180, 180]`` degrees."""
+    a = np.asarray(angle_deg, dtype=float)
+    return 180.0 - (180.0 - a) % 360.0

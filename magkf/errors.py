@@ -1,0 +1,23 @@
+"""The one exception magkf raises for bad input, so the command line can print it on one line."""
+
+from __future__ import annotations
+
+
+class InputError(ValueError):
+    """Bad input data, a malformed file or geometry that cannot determine a fit.
+
+    ``source`` names the file (or what was passed), ``row`` is the line number in that file counting
+    the header as row 1, ``column`` the column name; each may be None where it does not apply.
+    ``str(error)`` is a single line such as ``log.csv, row 7, column 'mag_x': not a number: 'abc'``.
+    """
+
+    def __init__(self, message: str, source: str | None = None, row: int | None = None,
+                 column: str | None = None):
+        self.message, self.source, self.row, self.column = message, source, row, column
+        where = [str(source)] if source is not None else []
+        if row is not None:
+            where.append(f"row {row}")
+        if column is not None:
+            where.append(f"column {column!r}")
+        text = f"{', '.join(where)}: {message}" if where else message
+        super().__init__(" ".join(text.split()))
