@@ -94,7 +94,7 @@ class Calibration:
         for key in ("parameters", "standard_errors", "quality"):
             value = getattr(self, key)
             if value:
-                out[key] = _plain(value)
+                out[key] = jsonable(value)
         if self.source is not None:
             out["source"] = self.source
         return out
@@ -160,14 +160,14 @@ def _matrix(data: dict, key: str, shape: tuple, source: str) -> np.ndarray:
     return value
 
 
-def _plain(value):
+def jsonable(value):
     """Numpy scalars and arrays turned into JSON-serialisable Python values (NaN becomes None)."""
     if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
+        return jsonable(value.tolist())
     if isinstance(value, (np.floating, float)):
         return None if not math.isfinite(float(value)) else float(value)
     if isinstance(value, (np.integer,)):

@@ -393,3 +393,28 @@ def read_turntable(path, mag_unit: str = "nT") -> pd.DataFrame:
     for c in MAG:
         table[c] = to_nanotesla(table[c].to_numpy(), mag_unit)
     return table
+
+
+def read_curves(path) -> tuple[dict, dict]:
+    """Fitted curves from JSON ``{"xy": {"x": [A, C_deg, D], "y": ..., "z": ...}, "xz": {"x": ..., "z": ...}}``."""
+    import json
+
+    name = str(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except OSError as exc:
+        raise InputError(f"cannot read the curves file ({exc.strerror})", name) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}", name) from None
+    out = []
+    for plane, axes in (("xy", "xyz"), ("xz", "xz")):
+        curves = {}
+        for a in axes:
+            try:
+                amplitude, phase, offset = (float(v) for v in data[plane][a])
+            except (KeyError, TypeError, ValueError):
+                raise InputError(f"key {plane}.{a} must be a list [amplitude, phase_deg, offset]", name) from None
+            curves[a] = SineCurve(amplitude, phase, offset)
+        out.append(curves)
+    return out[0], out[1]

@@ -1,0 +1,284 @@
+"""The ``magkf`` command line: a thin layer over the Python API.
+
+Exit status 0 on success, 2 on bad usage or bad input (one line on standard error naming the file,
+row and column where it applies).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from datetime import datetime, timezone
+
+import numpy as np
+
+from . import __version__
+from .calibration import Calibration, jsonable
+from .conventions import NT_PER_UNIT
+from .errors import InputError
+
+
+# ---------------------------------------------------------------- helpers
+def _print_json(data) -> None:
+    print(json.dumps(jsonable(data), indent=2))
+
+
+def _timestamp(date: str) -> float:
+    """UNIX seconds of an ISO date or date-time (UTC)."""
+    try:
+        d = datetime.fromisoformat(date)
+    except ValueError:
+        raise InputError(f"--date {date!r} is not an ISO date such as 2026-05-01") from None
+    return (d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp()
+
+
+def _igrf_field(args) -> dict:
+    """IGRF magnitude and inclination at ``--lat --lon [--alt] --date``."""
+    from .reference import field_at
+
+    if args.lat is None or args.lon is None:
+        raise InputError("the IGRF field needs --lat and --lon (and --date, default today)")
+    date = args.date or datetime.now(timezone.utc).date().isoformat()
+    return field_at(args.lat, args.lon, args.alt, _timestamp(date))
+
+
+def _add_igrf_options(p) -> None:
+    g = p.add_argument_group("field from IGRF-14")
+    g.add_argument("--lat", type=float, help="latitude, degrees")
+    g.add_argument("--lon", type=float, help="longitude, degrees")
+    g.add_argument("--alt", type=float, default=0.0, help="height above the ellipsoid, m (default 0)")
+    g.add_argument("--date", help="ISO date, UTC (default today)")
+
+
+def _add_output_options(p, what: str = "calibration file") -> None:
+    p.add_argument("--json", action="store_true", help="print the result as JSON on standard output")
+    p.add_argument("-o", "--output", metavar="FILE", help=f"write the {what}")
+
+
+def _add_mag_unit(p) -> None:
+    p.add_argument("--mag-unit", choices=list(NT_PER_UNIT), default="nT",
+                   help="unit of the magnetometer columns (default nT)")
+
+
+# ---------------------------------------------------------------- sinefit
+def cmd_sinefit(args) -> int:
+    from .sinefit import SineFitCalibrator, paper_from_curves, read_curves, read_turntable
+
+    if args.field is None or args.inclination is None:
+        igrf = _igrf_field(args)
+        field = args.field if args.field is not None else igrf["magnitude_nt"]
+        inclination = args.inclination if args.inclination is not None else igrf["inclination_deg"]
+    else:
+        field, inclination = args.field, args.inclination
+    if (args.file is None) == (args.curves is None):
+        raise InputError("give either a turntable CSV or --curves FILE.json")
+    if args.curves:
+        if args.method != "paper":
+            raise InputError("--curves holds fitted curves, not samples: only --method paper applies to them")
+        result = paper_from_curves(*read_curves(args.curves), field, inclination)
+    else:
+        table = read_turntable(args.file, args.mag_unit)
+        result = SineFitCalibrator(field, inclination, args.method).fit(table, args.file).result_
+    if args.output:
+        result.to_calibration(source=args.file or args.curves).save(args.output)
+    if args.json:
+        _print_json(result.summary())
+    else:
+        p, se = result.parameters.as_dict(), result.standard_errors
+        print(f"sine-fit calibration ({result.method}) of {args.file or args.curves}: B = {field:.1f} nT, I = {inclination:.3f} deg")
+        for name, value in p.items():
+            err = se.get(name, float("nan"))
+            print(f"  {name:10s} {value:14.6f}" + (f"  +- {err:.6f}" if np.isfinite(err) else ""))
+        print(f"  {'phi_deg':10s} {result.parameters.phi_deg:14.6f}")
+        if np.isfinite(result.residual_rms_nt):
+            print(f"  residual RMS {result.residual_rms_nt:.3f} nT")
+    return 0
+
+
+# ---------------------------------------------------------------- ellipsoid
+def cmd_ellipsoid(args) -> int:
+    from .ellipsoid import EllipsoidCalibrator
+    from .tables import read_csv, require_complete
+
+    columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
+    columns = columns[: args.axes]
+    if len(columns) != args.axes:
+        raise InputError(f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}")
+    table = read_csv(args.file, required=columns)
+    require_complete(table, columns, args.file)
+    if args.field == "igrf":
+        field = _igrf_field(args)["magnitude_nt"]
+        if args.axes == 2:
+            field = field * np.cos(np.radians(_igrf_field(args)["inclination_deg"]))
+    elif args.field is None:
+        field = 1.0
+    else:
+        try:
+            field = float(args.field)
+        except ValueError:
+            raise InputError(f"--field {args.field!r} is neither a number nor 'igrf'") from None
+    X = table[columns].to_numpy()
+    result = EllipsoidCalibrator(args.axes, field, refine=not args.algebraic).fit(X, args.file).result_
+    if args.output:
+        result.to_calibration(source=args.file).save(args.output)
+    for w in result.warnings:
+        print(f"magkf: warning: {args.file}: {w}", file=sys.stderr)
+    if args.json:
+        _print_json({**result.summary(), "columns": columns})
+    else:
+        kind = "ellipsoid" if args.axes == 3 else "ellipse"
+        print(f"{kind} calibration of {args.file} ({result.n_samples} samples, columns {', '.join(columns)}), "
+              f"field magnitude {field:g}")
+        for name, value in result.parameters.items():
+            print(f"  {name:10s} {value:14.6g}  +- {result.standard_errors[name]:.3g}")
+        print(f"  residual RMS {result.residual_rms:.4g}; magnitude spread {100 * result.magnitude_spread_before:.2f}% "
+              f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%")
+    return 0
+
+
+# ---------------------------------------------------------------- apply
+def cmd_apply(args) -> int:
+    from .apply import apply_calibration
+    from .drivelog import read_drive_log, write_drive_log
+
+    cal = Calibration.load(args.cal)
+    log = read_drive_log(args.file, args.mag_unit)
+    out = apply_calibration(log, cal)
+    if args.output:
+        write_drive_log(out, args.output)
+    counts = out["status"].value_counts().to_dict()
+    summary = {"n_epochs": len(out), "status_counts": counts,
+               "magnitude_nt": {"mean": float(out["magnitude_nt"].mean()), "std": float(out["magnitude_nt"].std())},
+               "output": args.output}
+    if args.json:
+        _print_json(summary)
+    else:
+        print(f"applied {args.cal} to {args.file}: {len(out)} epochs "
+              f"({', '.join(f'{k} {v}' for k, v in counts.items())}); calibrated magnitude "
+              f"{summary['magnitude_nt']['mean']:.1f} +- {summary['magnitude_nt']['std']:.1f} nT"
+              + (f"; written to {args.output}" if args.output else ""))
+    return 0
+
+
+# ---------------------------------------------------------------- simulate
+def cmd_simulate(args) -> int:
+    from .sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
+
+    truth = Calibration.load(args.truth_cal) if args.truth_cal else None
+    if args.kind == "turntable":
+        from .sinefit import SineFitParameters
+
+        params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
+        table = simulate_turntable(params, args.field, args.inclination, args.step, args.noise,
+                                   np.random.default_rng(args.seed))
+        table.to_csv(args.output, index=False, float_format="%.10g")
+        info = {"output": args.output, "rows": len(table), "truth": params.as_dict()}
+        if args.truth:
+            with open(args.truth, "w", encoding="utf-8") as f:
+                json.dump(jsonable({"format": "magkf-truth", "version": 1, "R": params.matrix(), "b": params.b,
+                                    "sinefit_parameters": params.as_dict(), "field_nt": args.field,
+                                    "inclination_deg": args.inclination, "noise_nt": args.noise}), f, indent=2)
+    else:
+        config = DriveConfig(duration_s=args.duration, rate_hz=args.rate, motion=args.motion, noise_nt=args.noise,
+                             seed=args.seed, mounting=args.mounting, disturbances=args.disturbances,
+                             dop_bad_stretches=args.dop_bad, lat0=args.lat, lon0=args.lon,
+                             start_time=_timestamp(args.date))
+        sim = simulate_drive(config, truth)
+        sim.write(args.output, args.truth)
+        info = {"output": args.output, "rows": len(sim.table), "truth_file": args.truth,
+                "R": sim.R, "b": sim.b}
+    if args.json:
+        _print_json(info)
+    else:
+        print(f"wrote {info['rows']} rows to {args.output}" + (f" and the truth to {args.truth}" if args.truth else ""))
+    return 0
+
+
+# ---------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="magkf", description="Magnetometer calibration for vehicles.")
+    parser.add_argument("--version", action="version", version=f"magkf {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("sinefit", help="offline sine-fit calibration of a two-plane turntable run",
+                       description="Sine-fit calibration (nine parameters) of a turntable CSV with columns "
+                                   "plane, angle_deg, mag_x, mag_y, mag_z. Give --field and --inclination, "
+                                   "or --lat/--lon/--date for IGRF.")
+    p.add_argument("file", nargs="?", help="turntable CSV")
+    p.add_argument("--curves", help="JSON of fitted curves instead of samples: "
+                                    '{"xy": {"x": [A, C_deg, D], "y": [...], "z": [...]}, "xz": {"x": [...], "z": [...]}}')
+    p.add_argument("--field", type=float, help="field magnitude B, nT")
+    p.add_argument("--inclination", type=float, help="field inclination I, degrees (positive down)")
+    p.add_argument("--method", choices=["exact", "paper"], default="exact",
+                   help="exact: all samples, vertical-field leak removed (default); paper: the published equations")
+    _add_igrf_options(p)
+    _add_mag_unit(p)
+    _add_output_options(p)
+    p.set_defaults(func=cmd_sinefit)
+
+    p = sub.add_parser("ellipsoid", help="offline ellipsoid (3-axis) or ellipse (2-axis) calibration",
+                       description="Ellipsoid or ellipse fit of any vector sensor; the result is in the data's "
+                                   "units. Field magnitude: a number, 'igrf' (with --lat/--lon/--date; the "
+                                   "horizontal part for --axes 2), or a unit sphere by default.")
+    p.add_argument("file", help="CSV with the sensor columns")
+    p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
+    p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
+    p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
+    p.add_argument("--algebraic", action="store_true", help="stop after the algebraic fit (biased with noise)")
+    _add_igrf_options(p)
+    _add_output_options(p)
+    p.set_defaults(func=cmd_ellipsoid)
+
+    p = sub.add_parser("apply", help="calibrated field, magnitude and headings for every epoch of a log",
+                       description="Apply a calibration file to a drive log; every epoch is written with a status.")
+    p.add_argument("file", help="drive-log CSV")
+    p.add_argument("--cal", required=True, help="calibration JSON")
+    _add_mag_unit(p)
+    _add_output_options(p, "calibrated CSV")
+    p.set_defaults(func=cmd_apply)
+
+    p = sub.add_parser("simulate", help="synthetic turntable runs and drive logs with known truth",
+                       description="Simulate a turntable run (sine fit) or a drive log, with a truth JSON.")
+    p.add_argument("kind", choices=["drive", "turntable"])
+    p.add_argument("-o", "--output", required=True, help="CSV to write")
+    p.add_argument("--truth", help="truth JSON to write")
+    p.add_argument("--truth-cal", help="calibration JSON used as the truth (default: a built-in one; for "
+                                       "turntable runs its R must be lower triangular; default the paper's example)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--noise", type=float, default=None, help="sensor noise, nT (default 30 drive, 0 turntable)")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    g = p.add_argument_group("drive")
+    g.add_argument("--motion", choices=["3d", "planar"], default="3d", help="3d (drone/aircraft) or planar (car)")
+    g.add_argument("--duration", type=float, default=600.0, help="seconds (default 600)")
+    g.add_argument("--rate", type=float, default=50.0, help="Hz (default 50)")
+    g.add_argument("--mounting", default="x,y,z", help="sensor axes along body axes, e.g. '-y,x,z'")
+    g.add_argument("--disturbances", type=int, default=6, help="number of disturbance events (default 6)")
+    g.add_argument("--dop-bad", type=int, default=3, help="number of bad-DOP stretches (default 3)")
+    g.add_argument("--lat", type=float, default=48.1, help="start latitude, deg")
+    g.add_argument("--lon", type=float, default=11.6, help="start longitude, deg")
+    g.add_argument("--date", default="2026-06-01T10:00:00", help="start, ISO UTC")
+    g = p.add_argument_group("turntable")
+    g.add_argument("--field", type=float, default=50_000.0, help="field magnitude, nT (default 50000)")
+    g.add_argument("--inclination", type=float, default=43.0, help="inclination, deg (default 43)")
+    g.add_argument("--step", type=float, default=5.0, help="table step, deg (default 5)")
+    p.set_defaults(func=cmd_simulate)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "noise", 0) is None:
+        args.noise = 30.0 if args.kind == "drive" else 0.0
+    warnings.showwarning = lambda message, category, *a, **k: print(f"magkf: warning: {message}", file=sys.stderr)
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"magkf: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

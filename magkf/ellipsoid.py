@@ -1,0 +1,315 @@
+"""Ellipsoid (3-axis) and ellipse (2-axis) calibration of vector sensors (method 2, CN101887068A).
+
+Model: raw ``S_m = K S_e + S_0`` with ``K = K1 K2``, ``K1 = diag(k)``. For three axes the rows of
+``K2`` are the unit sensor axes in an orthogonal frame whose z axis is the sensor's z axis and whose
+x axis lies in the plane of the sensor's x and z axes:
+
+    x = (cos alpha, 0, sin alpha),  y = (sin beta cos gamma, cos beta cos gamma, sin gamma),  z = (0, 0, 1)
+
+For two axes ``K2 = [[1, 0], [sin alpha, cos alpha]]``. Wherever ``|S_e|`` equals a known magnitude
+``F`` the samples lie on an ellipsoid (ellipse) ``|K^-1 (S_m - S_0)| = F``.
+
+Two steps:
+
+1. **Algebraic fit** of the quadric (conic) by the smallest singular vector of the design matrix, the
+   patent's procedure: ``S_0`` is the centre and ``K K^T = F^2 A^-1``.
+2. **Refinement** by nonlinear least squares on the magnitude residual
+   ``|K^-1 (S_m - S_0)| - F``, with the second-order noise bias that both fits share estimated by a
+   seeded parametric bootstrap and removed (see ``_refine``).
+
+Any unit works: results are in the units of the data; ``F = 1`` normalises to a unit sphere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .calibration import Calibration
+from .errors import InputError
+
+#: Smallest ratio sqrt(lambda_min / lambda_max) of the centred sample scatter for a 3-axis fit.
+MIN_THICKNESS = 0.05
+#: Cells of the equal-area direction grid used for the coverage figure (3-axis) and bins (2-axis).
+SPHERE_CELLS = 200
+CIRCLE_BINS = 36
+#: A parameter is reported as poorly determined when its standard error exceeds this share of its scale
+#: (the field magnitude for offsets, 1 for sensitivities, 1 rad for angles).
+POORLY_DETERMINED = 0.05
+#: Copies of the data simulated to estimate the second-order noise bias of the refined fit, and their seed.
+BOOTSTRAP_COPIES = 8
+BOOTSTRAP_SEED = 20240601
+
+
+# ---------------------------------------------------------------- K parameterisations
+def patent_matrix(k, angles_rad) -> np.ndarray:
+    """``K = diag(k) K2`` for 3 axes (``k`` of 3, angles alpha, beta, gamma) or 2 axes (``k`` of 2, alpha)."""
+    k = np.asarray(k, float)
+    if k.size == 3:
+        a, be, g = angles_rad
+        K2 = np.array([[np.cos(a), 0.0, np.sin(a)],
+                       [np.sin(be) * np.cos(g), np.cos(be) * np.cos(g), np.sin(g)],
+                       [0.0, 0.0, 1.0]])
+    else:
+        (a,) = np.atleast_1d(angles_rad)[:1]
+        K2 = np.array([[1.0, 0.0], [np.sin(a), np.cos(a)]])
+    return k[:, None] * K2
+
+
+def patent_parameters(S) -> tuple[np.ndarray, np.ndarray]:
+    """Sensitivities and angles (radians) of ``K`` from ``S = K K^T`` (2x2 or 3x3, positive definite)."""
+    S = np.asarray(S, float)
+    k = np.sqrt(np.diag(S))
+    C = S / np.outer(k, k)
+    if len(k) == 2:
+        return k, np.array([np.arcsin(np.clip(C[0, 1], -1, 1))])
+    sa, sg = C[0, 2], C[1, 2]
+    a, g = np.arcsin(np.clip(sa, -1, 1)), np.arcsin(np.clip(sg, -1, 1))
+    sb = (C[0, 1] - sa * sg) / (np.cos(a) * np.cos(g))
+    return k, np.array([a, np.arcsin(np.clip(sb, -1, 1)), g])
+
+
+def parameter_names(axes: int) -> tuple[str, ...]:
+    if axes == 3:
+        return ("kx", "ky", "kz", "alpha_deg", "beta_deg", "gamma_deg", "S0_x", "S0_y", "S0_z")
+    return ("kx", "ky", "alpha_deg", "S0_x", "S0_y")
+
+
+# ---------------------------------------------------------------- algebraic fit
+def algebraic_fit(X: np.ndarray, field: float) -> tuple[np.ndarray, np.ndarray]:
+    """Quadric (conic) least-squares fit; returns ``(K K^T, S_0)`` for samples ``X`` of shape (N, d).
+
+    The data are centred and scaled before the fit for conditioning. Raises InputError when the
+    fitted surface is not an ellipsoid (ellipse).
+    """
+    d = X.shape[1]
+    mean = X.mean(axis=0)
+    scale = np.sqrt(np.mean(np.sum((X - mean) ** 2, axis=1)))
+    Y = (X - mean) / scale
+    iu = np.triu_indices(d)
+    quad = Y[:, iu[0]] * Y[:, iu[1]] * np.where(iu[0] == iu[1], 1.0, 2.0)
+    D = np.column_stack([quad, 2 * Y, np.ones(len(Y))])
+    v = np.linalg.svd(D, full_matrices=False)[2][-1]
+    A = np.zeros((d, d))
+    A[iu] = v[: len(iu[0])]
+    A = A + np.triu(A, 1).T
+    p, g = v[len(iu[0]): len(iu[0]) + d], v[-1]
+    try:
+        centre = -np.linalg.solve(A, p)
+    except np.linalg.LinAlgError:
+        raise InputError("the samples do not lie on an ellipsoid: the algebraic fit found another quadric") from None
+    k = centre @ A @ centre - g
+    M = A / k
+    w = np.linalg.eigvalsh(M)
+    if w.min() <= 0:
+        raise InputError("the samples do not lie on an ellipsoid: the algebraic fit found another quadric")
+    S = field**2 * np.linalg.inv(M) * scale**2
+    return S, centre * scale + mean
+
+
+# ---------------------------------------------------------------- coverage
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` nearly equal-area cell centres on the unit sphere, shape (n, 3)."""
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    r = np.sqrt(1 - z**2)
+    t = np.pi * (1 + 5**0.5) * i
+    return np.column_stack([r * np.cos(t), r * np.sin(t), z])
+
+
+def coverage(directions: np.ndarray) -> float:
+    """Share (0 to 1) of the sphere (3-D) or circle (2-D) that the unit ``directions`` (N, d) visit."""
+    if directions.shape[1] == 3:
+        cells = fibonacci_sphere(SPHERE_CELLS)
+        hit = np.zeros(SPHERE_CELLS, bool)
+        for chunk in np.array_split(directions, max(1, len(directions) // 20000 + 1)):
+            hit[np.argmax(chunk @ cells.T, axis=1)] = True
+        return float(hit.mean())
+    angle = np.arctan2(directions[:, 1], directions[:, 0])
+    bins = np.floor((angle + np.pi) / (2 * np.pi) * CIRCLE_BINS).astype(int) % CIRCLE_BINS
+    return float(np.unique(bins).size / CIRCLE_BINS)
+
+
+# ---------------------------------------------------------------- result
+@dataclass(frozen=True)
+class EllipsoidResult:
+    """Outcome of an ellipsoid (``axes=3``) or ellipse (``axes=2``) fit.
+
+    ``R`` (d, d) and ``b`` (d,) are in ``S_m = R S_e + b`` (data units); ``parameters`` and
+    ``standard_errors`` use the patent's names (``kx, ..., alpha_deg, ..., S0_x, ...``);
+    ``algebraic`` holds the unrefined parameters; ``residual_rms`` is the RMS of
+    ``|R^-1 (S_m - b)| - field`` (data units after calibration); ``magnitude_spread_before`` and
+    ``_after`` are the standard deviations of the magnitude divided by its mean, raw and calibrated;
+    ``coverage`` the visited share of the sphere or circle; ``poorly_determined`` lists parameters
+    whose standard error is large.
+    """
+
+    axes: int
+    field: float
+    R: np.ndarray
+    b: np.ndarray
+    parameters: dict
+    standard_errors: dict
+    algebraic: dict
+    residual_rms: float
+    magnitude_spread_before: float
+    magnitude_spread_after: float
+    coverage: float
+    n_samples: int
+    poorly_determined: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    def to_calibration(self, source: str | None = None) -> Calibration:
+        """A 3x3 calibration; for two axes the z row and offset are identity and zero (not calibrated)."""
+        R, b = np.eye(3), np.zeros(3)
+        R[: self.axes, : self.axes], b[: self.axes] = self.R, self.b
+        quality = {k: v for k, v in self.summary().items() if k not in ("R", "b", "parameters", "standard_errors")}
+        return Calibration(R=R, b=b, method="ellipsoid" if self.axes == 3 else "ellipse",
+                           parameters=self.parameters, standard_errors=self.standard_errors,
+                           quality=quality, source=source)
+
+    def summary(self) -> dict:
+        return {"axes": self.axes, "field": self.field, "R": self.R.tolist(), "b": self.b.tolist(),
+                "parameters": self.parameters, "standard_errors": self.standard_errors,
+                "algebraic": self.algebraic, "residual_rms": self.residual_rms,
+                "magnitude_spread_before": self.magnitude_spread_before,
+                "magnitude_spread_after": self.magnitude_spread_after,
+                "coverage": self.coverage, "n_samples": self.n_samples,
+                "poorly_determined": self.poorly_determined, "warnings": self.warnings}
+
+
+# ---------------------------------------------------------------- calibrator
+class EllipsoidCalibrator:
+    """Ellipsoid (``axes=3``) or ellipse (``axes=2``) calibration of a vector sensor.
+
+    ``field`` is the true magnitude in data units (1.0 for a unit sphere, 9.80665 for an
+    accelerometer in m/s^2, an IGRF magnitude in nT for a magnetometer). ``refine=False`` stops after
+    the algebraic fit. ``fit(X)`` takes samples of shape (N, axes) and returns ``self``; the result is
+    ``result_``.
+    """
+
+    def __init__(self, axes: int = 3, field: float = 1.0, refine: bool = True):
+        if axes not in (2, 3):
+            raise ValueError("axes must be 2 or 3")
+        if not field > 0:
+            raise ValueError("the field magnitude must be positive")
+        self.axes, self.field, self.refine = axes, float(field), refine
+
+    @property
+    def result_(self) -> EllipsoidResult:
+        try:
+            return self._result
+        except AttributeError:
+            raise RuntimeError("EllipsoidCalibrator is not fitted yet: call fit() first") from None
+
+    def fit(self, X, source: str = "data") -> "EllipsoidCalibrator":
+        X = np.asarray(X, float)
+        d, F = self.axes, self.field
+        if X.ndim != 2 or X.shape[1] != d:
+            raise ValueError(f"expected samples of shape (N, {d}), got {X.shape}")
+        n_min = 4 * (len(parameter_names(d)) + 1)
+        if len(X) < n_min:
+            raise InputError(f"too few samples: {len(X)}, an {'ellipsoid' if d == 3 else 'ellipse'} fit needs "
+                             f"at least {n_min}", source)
+        self._check_geometry(X, source)
+        S, centre = algebraic_fit(X, F)
+        k, ang = patent_parameters(S)
+        x_alg = np.concatenate([k, ang, centre])
+        names = parameter_names(d)
+        algebraic = dict(zip(names, _readable(x_alg, d)))
+        warnings = []
+        if self.refine:
+            x, se, resid = _refine(X, x_alg, F, d)
+        else:
+            x = x_alg
+            resid = _magnitudes(X, x, d) - F
+            se = np.full(x.size, np.nan)
+        K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
+        calibrated = np.linalg.solve(K, (X - b).T).T
+        mags = np.linalg.norm(calibrated, axis=1)
+        raw = np.linalg.norm(X, axis=1)
+        cov = coverage(calibrated / mags[:, None])
+        poorly = [n for n, s, sc in zip(names, se, _scales(d, F)) if not np.isfinite(s) or s > POORLY_DETERMINED * sc]
+        if self.refine and poorly:
+            warnings.append("poorly determined: " + ", ".join(poorly) + "; add samples with other orientations")
+        if cov < 0.3:
+            warnings.append(f"the data cover only {100 * cov:.0f}% of the {'sphere' if d == 3 else 'circle'}")
+        self._result = EllipsoidResult(
+            axes=d, field=F, R=K, b=b, parameters=dict(zip(names, _readable(x, d))),
+            standard_errors=dict(zip(names, _readable(se, d, offsets=False))), algebraic=algebraic,
+            residual_rms=float(np.sqrt(np.mean((mags - F) ** 2))),
+            magnitude_spread_before=float(raw.std() / raw.mean()),
+            magnitude_spread_after=float(mags.std() / mags.mean()),
+            coverage=cov, n_samples=len(X), poorly_determined=poorly, warnings=warnings)
+        return self
+
+    def _check_geometry(self, X: np.ndarray, source: str) -> None:
+        """Refuse samples that cannot determine the fit (all in a plane for 3 axes, on a line for 2)."""
+        w, v = np.linalg.eigh(np.cov(X.T))
+        thickness = np.sqrt(max(w[0], 0) / w[-1]) if w[-1] > 0 else 0.0
+        if thickness < MIN_THICKNESS:
+            normal = ", ".join(f"{c:+.2f}" for c in v[:, 0])
+            if self.axes == 3:
+                raise InputError(
+                    f"degenerate geometry: the samples lie close to a plane (normal ({normal}) in sensor axes, "
+                    f"thickness {thickness:.3f}); a 3-axis fit cannot determine the sensitivity, offset and "
+                    "tilt along that normal: use --axes 2 for planar data or add samples with that axis turned",
+                    source)
+            raise InputError(f"degenerate geometry: the samples lie close to a line (thickness {thickness:.3f}); "
+                             "turn the sensor through a wider arc", source)
+
+
+def _magnitudes(X, x, d) -> np.ndarray:
+    K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
+    return np.linalg.norm(np.linalg.solve(K, (X - b).T), axis=0)
+
+
+def _least_squares(X, x0, F, d):
+    scale = np.concatenate([np.abs(x0[:d]), np.full(len(x0) - 2 * d, 1e-2), np.full(d, F)])
+    return least_squares(lambda p: _magnitudes(X, p, d) - F, x0, method="lm", x_scale=scale)
+
+
+def _refine(X, x0, F, d):
+    """Nonlinear least squares on the magnitude residual, with its noise bias removed.
+
+    Least squares on ``|K^-1 (S_m - S_0)| - F`` is biased at second order in the noise (the noise
+    across the radius lengthens every sample, and the residual's gradient grows with the noise). The
+    bias is estimated by a parametric bootstrap and subtracted: the fitted surface is sampled at the
+    observed directions, ``BOOTSTRAP_COPIES`` times, with isotropic raw noise of the estimated
+    variance (fixed seed, so a fit is repeatable), refitted, and the shift of the estimate is the bias.
+    The standard errors include the bootstrap's own scatter.
+    """
+    fit = _least_squares(X, x0, F, d)
+    x = fit.x
+    K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
+    L = np.linalg.inv(K)
+    u = (X - b) @ L.T
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    radial = np.einsum("ni,ij,nj->n", u, L @ L.T, u)  # radial variance per unit raw noise variance
+    s2 = float(np.mean(fit.fun**2 / radial))
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    clean = np.tile(F * u @ K.T + b, (BOOTSTRAP_COPIES, 1))
+    copies = clean + rng.normal(scale=np.sqrt(s2), size=clean.shape)
+    shift = _least_squares(copies, x, F, d).x - x
+    J = fit.jac
+    dof = max(len(X) - len(x), 1)
+    try:
+        cov = np.linalg.inv(J.T @ J) * (2 * fit.cost / dof) * (1 + 1 / BOOTSTRAP_COPIES)
+        se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        se = np.full(len(x), np.nan)
+    return x - shift, se, fit.fun
+
+
+def _scales(d, F):
+    return [1.0] * d + [1.0] * (1 if d == 2 else 3) + [F] * d
+
+
+def _readable(x, d, offsets=True) -> list:
+    """Parameter vector with angles turned into degrees."""
+    x = np.asarray(x, float).copy()
+    n_ang = 1 if d == 2 else 3
+    x[d: d + n_ang] = np.degrees(x[d: d + n_ang])
+    return [float(v) for v in x]
