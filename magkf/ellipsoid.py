@@ -266,33 +266,44 @@ def _magnitudes(X, x, d) -> np.ndarray:
     return np.linalg.norm(np.linalg.solve(K, (X - b).T), axis=0)
 
 
-def _least_squares(X, x0, F, d):
+def _least_squares(X, x0, F, d, weight=None):
     scale = np.concatenate([np.abs(x0[:d]), np.full(len(x0) - 2 * d, 1e-2), np.full(d, F)])
-    return least_squares(lambda p: _magnitudes(X, p, d) - F, x0, method="lm", x_scale=scale)
+    w = 1.0 if weight is None else weight
+    return least_squares(lambda p: (_magnitudes(X, p, d) - F) * w, x0, method="lm", x_scale=scale)
+
+
+def _radial_variance(X, x, d) -> np.ndarray:
+    """Variance (N,) of each sample's calibrated magnitude per unit isotropic raw noise variance."""
+    L = np.linalg.inv(patent_matrix(x[:d], x[d:-d]))
+    u = (X - x[-d:]) @ L.T
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    return np.einsum("ni,ij,nj->n", u, L @ L.T, u)
 
 
 def _refine(X, x0, F, d):
-    """Nonlinear least squares on the magnitude residual, with its noise bias removed.
+    """Weighted nonlinear least squares on the magnitude residual, with its noise bias removed.
 
-    Least squares on ``|K^-1 (S_m - S_0)| - F`` is biased at second order in the noise (the noise
-    across the radius lengthens every sample, and the residual's gradient grows with the noise). The
-    bias is estimated by a parametric bootstrap and subtracted: the fitted surface is sampled at the
-    observed directions, ``BOOTSTRAP_COPIES`` times, with isotropic raw noise of the estimated
-    variance (fixed seed, so a fit is repeatable), refitted, and the shift of the estimate is the bias.
-    The standard errors include the bootstrap's own scatter.
+    Isotropic raw noise gives each sample's calibrated magnitude a variance proportional to
+    ``u^T L L^T u`` (``L = K^-1``, ``u`` its direction); residuals are weighted by its inverse square
+    root, so the standard errors from the Jacobian hold. Least squares on ``|K^-1 (S_m - S_0)| - F`` is
+    biased at second order in the noise (the noise across the radius lengthens every sample, and the
+    residual's gradient grows with the noise). The bias is estimated by a parametric bootstrap and
+    subtracted: the fitted surface is sampled at the observed directions, ``BOOTSTRAP_COPIES`` times,
+    with raw noise of the estimated variance (fixed seed, so a fit is repeatable), refitted, and the
+    shift of the estimate is the bias. The standard errors include the bootstrap's own scatter.
     """
-    fit = _least_squares(X, x0, F, d)
+    x = _least_squares(X, x0, F, d).x
+    radial = _radial_variance(X, x, d)
+    fit = _least_squares(X, x, F, d, 1 / np.sqrt(radial))
     x = fit.x
     K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
-    L = np.linalg.inv(K)
-    u = (X - b) @ L.T
+    u = np.linalg.solve(K, (X - b).T).T
     u /= np.linalg.norm(u, axis=1)[:, None]
-    radial = np.einsum("ni,ij,nj->n", u, L @ L.T, u)  # radial variance per unit raw noise variance
-    s2 = float(np.mean(fit.fun**2 / radial))
+    s2 = float(np.mean(fit.fun**2))
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     clean = np.tile(F * u @ K.T + b, (BOOTSTRAP_COPIES, 1))
     copies = clean + rng.normal(scale=np.sqrt(s2), size=clean.shape)
-    shift = _least_squares(copies, x, F, d).x - x
+    shift = _least_squares(copies, x, F, d, np.tile(1 / np.sqrt(radial), BOOTSTRAP_COPIES)).x - x
     J = fit.jac
     dof = max(len(X) - len(x), 1)
     try:
@@ -300,7 +311,7 @@ def _refine(X, x0, F, d):
         se = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         se = np.full(len(x), np.nan)
-    return x - shift, se, fit.fun
+    return x - shift, se, fit.fun * np.sqrt(radial)
 
 
 def _scales(d, F):

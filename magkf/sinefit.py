@@ -43,6 +43,17 @@ from .tables import read_csv, require_complete, require_rows
 PLANES = ("xy", "xz")
 PARAMETER_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "kx", "ky", "kz", "b_x", "b_y", "b_z")
 MIN_SAMPLES_PER_PLANE = 8
+#: Smallest arc of table angle per plane that determines phase, amplitude and offset apart.
+MIN_ARC_DEG = 180.0
+
+
+def arc_span_deg(angle_deg) -> float:
+    """Degrees of the circle spanned by the angles: 360 minus the largest gap between neighbours."""
+    a = np.sort(np.asarray(angle_deg, float) % 360.0)
+    if a.size < 2:
+        return 0.0
+    gaps = np.diff(np.concatenate([a, [a[0] + 360.0]]))
+    return float(360.0 - gaps.max())
 
 
 # ---------------------------------------------------------------- the nine parameters
@@ -282,10 +293,11 @@ class SineFitCalibrator:
         planes = {p: table[table[PLANE] == p] for p in PLANES}
         for p, rows in planes.items():
             require_rows(rows, MIN_SAMPLES_PER_PLANE, source, f"plane {p!r}")
-            spread = np.ptp(np.radians(rows[ANGLE].to_numpy()) % (2 * np.pi)) if len(rows) else 0
-            if spread < np.radians(90):
-                raise InputError(f"degenerate geometry: plane {p!r} spans only {np.degrees(spread):.0f} deg of "
-                                 "table angle; turn the table through at least a half turn", source, column=ANGLE)
+        for p, rows in planes.items():
+            span = arc_span_deg(rows[ANGLE].to_numpy())
+            if span < MIN_ARC_DEG:
+                raise InputError(f"degenerate geometry: plane {p!r} spans only {span:.0f} deg of table angle; "
+                                 f"turn the table through at least {MIN_ARC_DEG:.0f} deg", source, column=ANGLE)
         curves = {p: {a: fit_sine(rows[ANGLE], rows[f"mag_{a}"]) for a in "xyz"} for p, rows in planes.items()}
         first = planes["xy"][list(MAG)].to_numpy()[0]
         paper = paper_equations(curves["xy"], curves["xz"], self.field_nt, sample_xy=first)

@@ -1,0 +1,108 @@
+import numpy as np
+import pandas as pd
+import pytest
+
+from magkf.calibration import Calibration
+from magkf.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix, patent_parameters
+from magkf.errors import InputError
+
+from .conftest import DATA, cli_json, run_cli
+from .stats import assert_biased, assert_standard_normal
+
+TRUTH3 = (np.array([1.1, 0.9, 1.05]), np.radians([2.0, -3.0, 1.5]), np.array([0.2, -0.1, 0.3]))
+TRUTH2 = (np.array([1.1, 0.9]), np.radians([3.0]), np.array([0.2, -0.1]))
+
+
+def _sample(truth, n, noise, rng):
+    k, ang, b = truth
+    if k.size == 3:
+        u = rng.normal(size=(n, 3))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+    else:
+        th = rng.uniform(0, 2 * np.pi, n)
+        u = np.column_stack([np.cos(th), np.sin(th)])
+    return u @ patent_matrix(k, ang).T + b + rng.normal(scale=noise, size=u.shape)
+
+
+def _vector(truth):
+    k, ang, b = truth
+    return np.concatenate([k, np.degrees(ang), b])
+
+
+@pytest.mark.parametrize("truth", [TRUTH3, TRUTH2])
+def test_patent_decomposition_round_trip(truth):
+    k, ang, _ = truth
+    K = patent_matrix(k, ang)
+    k2, ang2 = patent_parameters(K @ K.T)
+    assert np.allclose(k2, k) and np.allclose(ang2, ang)
+
+
+@pytest.mark.parametrize("truth", [TRUTH3, TRUTH2])
+def test_noiseless_fit_is_exact(truth):
+    X = _sample(truth, 500, 0.0, np.random.default_rng(5))
+    r = EllipsoidCalibrator(len(truth[0]), 1.0).fit(X).result_
+    names = parameter_names(len(truth[0]))
+    assert np.allclose([r.algebraic[n] for n in names], _vector(truth), atol=1e-9)
+    assert np.allclose([r.parameters[n] for n in names], _vector(truth), atol=1e-9)
+    assert r.residual_rms < 1e-9
+
+
+@pytest.mark.parametrize("truth,runs", [(TRUTH3, 100), (TRUTH2, 100)])
+def test_refined_fit_unbiased_algebraic_biased(truth, runs):
+    """Monte Carlo (seeded): refined errors are N(0, SE^2); the algebraic sensitivities are biased."""
+    rng = np.random.default_rng(6)
+    d = len(truth[0])
+    names = parameter_names(d)
+    z, alg_err = [], []
+    for _ in range(runs):
+        r = EllipsoidCalibrator(d, 1.0).fit(_sample(truth, 300, 0.05, rng)).result_
+        est = np.array([r.parameters[n] for n in names])
+        se = np.array([r.standard_errors[n] for n in names])
+        z.append((est - _vector(truth)) / se)
+        alg_err.append(r.algebraic["kx"] - truth[0][0])
+    assert_standard_normal(z, label=f"{d}-axis refined")
+    assert_biased(alg_err, label=f"{d}-axis algebraic kx")
+
+
+def test_planar_data_refused_for_three_axes(tmp):
+    rng = np.random.default_rng(8)
+    X2 = _sample(TRUTH2, 400, 0.01, rng)
+    X = np.column_stack([X2, np.full(len(X2), 0.4) + rng.normal(scale=0.001, size=len(X2))])
+    with pytest.raises(InputError, match="plane") as err:
+        EllipsoidCalibrator(3, 1.0).fit(X, "planar.csv")
+    assert "--axes 2" in str(err.value)
+    pd.DataFrame(X, columns=["mag_x", "mag_y", "mag_z"]).to_csv(tmp / "planar.csv", index=False)
+    proc = run_cli("ellipsoid", tmp / "planar.csv")
+    assert proc.returncode == 2 and "degenerate geometry" in proc.stderr and proc.stderr.count("\n") == 1
+    r = cli_json("ellipsoid", tmp / "planar.csv", "--axes", "2")
+    assert r["axes"] == 2 and r["coverage"] > 0.9
+
+
+def test_partial_coverage_is_reported():
+    """A cap of the sphere: the fit runs, reports its coverage and names the poorly determined parameters."""
+    rng = np.random.default_rng(9)
+    k, ang, b = TRUTH3
+    u = rng.normal(size=(600, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    u = u[u[:, 2] > 0.6]
+    X = u @ patent_matrix(k, ang).T + b + rng.normal(scale=0.02, size=u.shape)
+    r = EllipsoidCalibrator(3, 1.0).fit(X).result_
+    assert r.coverage < 0.3
+    assert r.poorly_determined and any("cover only" in w for w in r.warnings)
+
+
+def test_real_data_magnetometer_and_accelerometer(tmp):
+    """CK-Explorer IMU log: both sensors calibrated; the magnetometer's magnitude spread falls a lot."""
+    mag = cli_json("ellipsoid", DATA / "ckexplorer_acc_mag_log.csv", "--columns", "mx,my,mz", "-o", tmp / "mag.json")
+    acc = cli_json("ellipsoid", DATA / "ckexplorer_acc_mag_log.csv", "--columns", "ax,ay,az", "--field", "1")
+    assert mag["coverage"] > 0.8 and acc["coverage"] > 0.8
+    assert mag["magnitude_spread_after"] < mag["magnitude_spread_before"] / 10
+    assert acc["magnitude_spread_after"] <= acc["magnitude_spread_before"]
+    assert not mag["poorly_determined"] and not acc["poorly_determined"]
+    cal = Calibration.load(tmp / "mag.json")
+    assert cal.method == "ellipsoid" and np.allclose(cal.R, mag["R"])
+
+
+def test_too_few_samples():
+    with pytest.raises(InputError, match="too few samples"):
+        EllipsoidCalibrator(3).fit(np.random.default_rng(0).normal(size=(20, 3)))
