@@ -100,7 +100,8 @@ class Calibration:
         return out
 
     def save(self, path) -> None:
-        """Write the calibration file ``path`` (JSON, UTF-8)."""
+        """Write the calibration file ``path`` (JSON, UTF-8), creating its folder if needed."""
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
 
     @classmethod

@@ -6,7 +6,7 @@ Model (the paper's eq. 1): raw ``m = K B_o + b0`` with the lower-triangular
          [ky sin a,           ky cos a,           0       ],
          [kz cos b sin g,     kz sin b sin g,     kz cos g]]
 
-Turntable geometry (see ``docs/turntable.md``): in plane ``xy`` the sensor is level (roll 0, Z down);
+Turntable geometry (see ``docs/data-contract-notes.md``): in plane ``xy`` the sensor is level (roll 0, Z down);
 in plane ``xz`` it is rolled +90 deg about X (Y down). ``angle_deg`` turns the table clockwise seen from
 above. With horizontal field ``H = B cos I`` and vertical ``V = B sin I`` the field in the sensor's
 orthogonal frame at table angle ``psi`` is ``(H cos psi, -H sin psi, V)`` in plane ``xy`` and
