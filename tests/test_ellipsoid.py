@@ -106,3 +106,17 @@ def test_real_data_magnetometer_and_accelerometer(tmp):
 def test_too_few_samples():
     with pytest.raises(InputError, match="too few samples"):
         EllipsoidCalibrator(3).fit(np.random.default_rng(0).normal(size=(20, 3)))
+
+
+def test_field_from_igrf(tmp):
+    """--field igrf scales the sphere to the IGRF magnitude (the horizontal part for --axes 2)."""
+    from magkf.reference import field_at
+    from datetime import datetime, timezone
+
+    f = field_at(48.1, 11.6, 0.0, datetime(2026, 6, 1, tzinfo=timezone.utc).timestamp())
+    rng = np.random.default_rng(10)
+    X = _sample(TRUTH3, 400, 0.0, rng) * f["magnitude_nt"]
+    pd.DataFrame(X, columns=["mag_x", "mag_y", "mag_z"]).to_csv(tmp / "s.csv", index=False)
+    r = cli_json("ellipsoid", tmp / "s.csv", "--field", "igrf", "--lat", 48.1, "--lon", 11.6, "--date", "2026-06-01")
+    assert r["field"] == pytest.approx(f["magnitude_nt"])
+    assert np.allclose([r["parameters"][n] for n in ("kx", "ky", "kz")], TRUTH3[0], rtol=1e-9)
