@@ -12,7 +12,8 @@ For two axes ``K2 = [[1, 0], [sin alpha, cos alpha]]``. Wherever ``|S_e|`` equal
 Two steps:
 
 1. **Algebraic fit** of the quadric (conic) by the smallest singular vector of the design matrix, the
-   patent's procedure: ``S_0`` is the centre and ``K K^T = F^2 A^-1``.
+   patent's procedure: ``S_0`` is the centre and, writing the surface ``(X - S_0)^T A (X - S_0) = 1``,
+   ``K K^T = A^-1 / F^2`` (the restatement's ``F^2 A^-1`` holds only for ``F = 1``).
 2. **Refinement** by nonlinear least squares on the magnitude residual
    ``|K^-1 (S_m - S_0)| - F``, with the second-order noise bias that both fits share estimated by a
    seeded parametric bootstrap and removed (see ``_refine``).
@@ -105,7 +106,7 @@ def algebraic_fit(X: np.ndarray, field: float) -> tuple[np.ndarray, np.ndarray]:
     w = np.linalg.eigvalsh(M)
     if w.min() <= 0:
         raise InputError("the samples do not lie on an ellipsoid: the algebraic fit found another quadric")
-    S = field**2 * np.linalg.inv(M) * scale**2
+    S = np.linalg.inv(M) * scale**2 / field**2  # (X - S0)^T A (X - S0) = 1 with |K^-1 (X - S0)| = F
     return S, centre * scale + mean
 
 
