@@ -1,0 +1,93 @@
+"""The physical-effect interface: one block of parameters and its contribution to the raw field.
+
+Every part of magkf that models the magnetometer (the Kalman filters, the batch solver, the simulator,
+the diagnostics) sees the sensor as a sum of effects:
+
+    m = sum over effects of contribution(theta_effect, data) + noise      (nT, sensor axes)
+
+The core effect (``magkf.effects.core.SoftHardIron``) contributes ``R B_b + b`` and is always the first
+block of the state; any further effect adds its own block without a change to the filter code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Relative and absolute step of the finite-difference Jacobian default.
+FD_STEP = 1e-6
+
+
+@dataclass(frozen=True)
+class EpochData:
+    """What an effect may use at N epochs.
+
+    ``time`` (N,) UNIX s; ``field_body`` (N, 3) nT, the reference field in the body frame (NaN where
+    there is no attitude); ``field_ned`` (N, 3) nT, the reference field; ``columns`` maps auxiliary
+    column names to (N,) arrays.
+    """
+
+    time: np.ndarray
+    field_body: np.ndarray
+    field_ned: np.ndarray
+    columns: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def take(self, index) -> "EpochData":
+        """The same data at the epochs ``index`` (an integer array, a slice or a boolean mask)."""
+        return EpochData(self.time[index], self.field_body[index], self.field_ned[index],
+                         {k: v[index] for k, v in self.columns.items()})
+
+
+class Effect:
+    """Base class of a physical effect (subclass it in a file of its own).
+
+    Class attributes
+    ----------------
+    name : the name accepted by ``--effect``.
+    parameter_names : names of the parameters, in state order.
+    columns : log columns the effect needs.
+    units : unit of each parameter, for reports.
+    linear : True when ``contribution`` is linear in the effect's own parameters and independent of the
+        other blocks; the filters then compute its Jacobian once per log.
+
+    Methods to implement: ``contribution``; optionally ``jacobian`` (finite differences by default),
+    ``prior`` and ``random_walk``.
+    """
+
+    name: str = "effect"
+    parameter_names: tuple = ()
+    columns: tuple = ()
+    units: tuple = ()
+    linear: bool = True
+
+    @property
+    def size(self) -> int:
+        return len(self.parameter_names)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """Prior mean and standard deviation of the parameters, each (k,)."""
+        return np.zeros(self.size), np.ones(self.size)
+
+    def random_walk(self) -> np.ndarray:
+        """Random-walk standard deviation of each parameter per square root of a second, (k,)."""
+        return np.zeros(self.size)
+
+    def contribution(self, theta, data: EpochData) -> np.ndarray:
+        """Raw-field contribution in nT: (N, 3) for ``theta`` of shape (k,), (S, N, 3) for (S, k)."""
+        raise NotImplementedError
+
+    def jacobian(self, theta, data: EpochData) -> np.ndarray:
+        """Derivative of ``contribution`` with respect to ``theta``: (N, 3, k). Finite differences by default."""
+        theta = np.asarray(theta, float)
+        step = FD_STEP * np.maximum(np.abs(theta), 1.0)
+        plus = theta + np.diag(step)
+        minus = theta - np.diag(step)
+        diff = self.contribution(plus, data) - self.contribution(minus, data)  # (k, N, 3)
+        return np.moveaxis(diff / (2 * step)[:, None, None], 0, -1)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "parameters": list(self.parameter_names), "columns": list(self.columns)}

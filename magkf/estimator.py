@@ -1,0 +1,286 @@
+"""Gates and Kalman updates for blocks of epochs. Shared by logs (blocks of several epochs) and real
+time (blocks of one).
+
+``Estimator.process_block`` takes k consecutive epochs. The random walk's process noise for the block
+is added first; then every epoch is gated on its own against the estimate before the block (magnitude
+gate, then normalised innovation squared), and all accepted epochs update the state together as one
+stacked measurement. For the linear vector measurement this is exactly the same as updating epoch by
+epoch (the process noise is merely added at the block's start instead of spread over it); it lets the
+per-log loop pay numpy's per-call cost once per block instead of once per epoch.
+
+Statuses, in order of precedence:
+
+``missing_mag``        a magnetometer value is missing: no update.
+``missing_position``   no reference field (no position and no ``ref_*``): no update.
+``gated_dop``          ``dop > dop_max``: no update.
+``missing_column``     a column an added effect needs is empty at this epoch: no update.
+``gated_magnitude``    ``| |calibrated m| - |B_ref| | > gate_nt``: no update.
+``gated_innovation``   normalised innovation squared above the chi-square bound: no update.
+``missing_attitude``   no attitude: a magnitude-only update (``updated`` tells whether it was made).
+``used``               updated with the configured measurement.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from .config import FilterConfig
+from .kalman import RandomWalkEKF, RandomWalkUKF
+from .measurements import magnitude_jacobian, magnitude_noise
+from .state import StateLayout
+
+STATUSES = ("used", "gated_dop", "gated_magnitude", "gated_innovation", "missing_attitude",
+            "missing_position", "missing_mag", "missing_column")
+(USED, GATED_DOP, GATED_MAGNITUDE, GATED_INNOVATION, MISSING_ATTITUDE, MISSING_POSITION, MISSING_MAG,
+ MISSING_COLUMN) = range(8)
+
+
+class Estimator:
+    """The filter and its gates for one calibration run.
+
+    ``layout`` gives the state blocks; ``x0`` (n,), ``P0`` (n, n) the initial estimate. Linear effects
+    enter through the per-epoch Jacobian ``H`` (k, 3, n) that the caller supplies (``m = H x`` for the
+    vector model); nonlinear effects (``Effect.linear`` False) are evaluated here.
+    """
+
+    def __init__(self, layout: StateLayout, config: FilterConfig, x0, P0):
+        self.layout, self.config = layout, config
+        filter_class = RandomWalkEKF if config.filter == "ekf" else RandomWalkUKF
+        self.kf = filter_class(x0, P0, layout.q_rate())
+        self.P0 = np.array(P0, float)
+        self.chi2_vector = float(stats.chi2.ppf(config.innovation_prob, 3))
+        self.chi2_scalar = float(stats.chi2.ppf(config.innovation_prob, 1))
+        self.nonlinear = [(e, layout.slices[e.name]) for e in layout.extra() if not e.linear]
+        self.extra = layout.size > 12
+        self.magnitude_only = config.measure == "magnitude"
+        self.information = np.zeros((layout.size, layout.size))  # of magnitude rows; see _update
+        self.reacquisitions = 0
+        self._gated_since = None
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.kf.x
+
+    @property
+    def P(self) -> np.ndarray:
+        return self.kf.P
+
+    # ------------------------------------------------------------ a block of epochs
+    def process_block(self, t, dt_total: float, m, ref_mag, H, R_noise, base, data=None):
+        """Process k epochs; returns ``(status (k,) int, updated (k,) bool, nis (k,) float)``.
+
+        ``t`` (k,) s; ``dt_total`` seconds since the previous block's last epoch; ``m`` (k, 3) raw nT;
+        ``ref_mag`` (k,) reference magnitude nT; ``H`` (k, 3, n) Jacobian of the linear blocks (NaN rows
+        without attitude); ``R_noise`` (k, 3, 3) sensor-frame noise of the vector measurement; ``base``
+        (k,) status known before filtering (``USED`` for a candidate with attitude, ``MISSING_ATTITUDE``
+        for one without); ``data`` the block's ``EpochData`` when nonlinear effects are present.
+        """
+        kf = self.kf
+        if dt_total > 0:
+            kf.predict_dt(dt_total)
+        status = np.array(base, dtype=np.int8)
+        k = len(status)
+        updated = np.zeros(k, bool)
+        nis = np.full(k, np.nan)
+        vector = (status == USED) & (not self.magnitude_only)
+        scalar = (status == MISSING_ATTITUDE) | ((status == USED) & self.magnitude_only)
+        if self.config.measure == "vector":
+            scalar &= status != MISSING_ATTITUDE
+        cand = vector | scalar
+        if not cand.any():
+            return status, updated, nis
+        x = kf.x
+        m_clean = m - self._extra_terms(x, H, data) if self.extra else m
+        R, b = x[:9].reshape(3, 3), x[9:12]
+        c = np.linalg.solve(R, (m_clean - b).T).T
+        off = np.abs(np.sqrt(np.einsum("ki,ki->k", c, c)) - ref_mag) > self.config.gate_nt
+        gated_mag = cand & off
+        status[gated_mag] = GATED_MAGNITUDE
+        vector &= ~off
+        scalar &= ~off
+        if not (vector.any() or scalar.any()):
+            return status, updated, nis
+        if isinstance(kf, RandomWalkEKF):
+            rows = self._ekf_rows(x, m, m_clean, ref_mag, H, R_noise, vector, scalar, data)
+        else:
+            rows = self._ukf_rows(m, m_clean, ref_mag, H, R_noise, vector, scalar, data)
+        nis[vector | scalar] = rows["nis"]
+        bound = np.where(vector, self.chi2_vector, self.chi2_scalar)
+        gated = (vector | scalar) & (nis > bound)
+        accept = (vector | scalar) & ~gated
+        self._reacquire(t, gated, accept)
+        status[gated] = GATED_INNOVATION
+        if accept.any():
+            self._update(rows, accept[vector | scalar])
+            updated[accept] = True
+        return status, updated, nis
+
+    # ------------------------------------------------------------ rows of the stacked measurement
+    def _extra_terms(self, x, H, data):
+        """Raw-field terms (k, 3) of the effects after the core block at state ``x``."""
+        e = np.einsum("kij,j->ki", H[:, :, 12:], x[12:])
+        if self.nonlinear:
+            e = e + self._nonlinear(x, data)
+        return e
+
+    def _nonlinear(self, x, data):
+        total = 0.0
+        for effect, sl in self.nonlinear:
+            total = total + effect.contribution(x[..., sl], data)
+        return total
+
+    def _ekf_rows(self, x, m, m_clean, ref_mag, H, R_noise, vector, scalar, data):
+        """Linearised rows for every candidate epoch: per-epoch NIS, and what the update needs."""
+        P = self.kf.P
+        parts = []  # (epoch order) list of (y, Hrows, Rblock)
+        idx = np.flatnonzero(vector | scalar)
+        nis = np.empty(len(idx))
+        if vector.any():
+            Hv = H[vector]
+            if self.nonlinear:
+                Hv = Hv.copy()
+                dv = data.take(vector)
+                for effect, sl in self.nonlinear:
+                    Hv[:, :, sl] = effect.jacobian(x[sl], dv)
+                yv = m[vector] - np.einsum("kij,j->ki", Hv, x) - self._nonlinear(x, dv)
+            else:
+                yv = m[vector] - np.einsum("kij,j->ki", Hv, x)
+            Rv = R_noise[vector]
+            S = Hv @ P @ Hv.transpose(0, 2, 1) + Rv
+            SI = np.linalg.inv(S)
+            nis[vector[idx]] = np.einsum("ki,kij,kj->k", yv, SI, yv)
+        if scalar.any():
+            h, Hs_core, w = magnitude_jacobian(x[:12], m_clean[scalar])
+            Hs = np.zeros((len(h), self.layout.size))
+            Hs[:, :12] = Hs_core
+            if self.extra:
+                Hs[:, 12:] = -np.einsum("ki,kij->kj", w, H[scalar][:, :, 12:])
+            ys = ref_mag[scalar] - h
+            var = magnitude_noise(w, self.config)
+            s = np.einsum("ki,ij,kj->k", Hs, P, Hs) + var
+            nis[scalar[idx]] = ys**2 / s
+        rows = {"nis": nis, "order": idx}
+        if vector.any():
+            rows["vector"] = (yv, Hv, Rv)
+        if scalar.any():
+            rows["scalar"] = (ys, Hs, var)
+            rows["scalar_H"], rows["scalar_var"] = Hs, var
+        rows["vector_mask"], rows["scalar_mask"] = vector[idx], scalar[idx]
+        return rows
+
+    def _ukf_rows(self, m, m_clean, ref_mag, H, R_noise, vector, scalar, data):
+        """Sigma-point predictions for every candidate epoch (one set of fresh sigma points per block)."""
+        kf = self.kf
+        sigmas = kf.points_fn.sigma_points(kf.x, kf.P)
+        idx = np.flatnonzero(vector | scalar)
+        nis = np.empty(len(idx))
+        rows = {"sigmas": sigmas, "order": idx, "vector_mask": vector[idx], "scalar_mask": scalar[idx]}
+        Wm, Wc = kf.Wm, kf.Wc
+        if vector.any():
+            Hv = H[vector]
+            hv = np.einsum("kij,sj->ski", Hv, sigmas)  # (S, k, 3)
+            if self.nonlinear:
+                hv = hv + self._nonlinear(sigmas, data.take(vector))
+            zp = np.einsum("s,ski->ki", Wm, hv)
+            dz = hv - zp
+            S = np.einsum("s,ski,skj->kij", Wc, dz, dz) + R_noise[vector]
+            yv = m[vector] - zp
+            nis[vector[idx]] = np.einsum("ki,kij,kj->k", yv, np.linalg.inv(S), yv)
+            rows["vector"] = (yv, hv, R_noise[vector])
+        if scalar.any():
+            mc = m_clean[scalar]
+            if self.extra:  # the other effects' terms move with the sigma points too
+                mc = mc[None] - np.einsum("kij,sj->ski", H[scalar][:, :, 12:], sigmas[:, 12:] - kf.x[12:])
+            Rs = sigmas[:, :9].reshape(-1, 1, 3, 3)
+            cs = np.linalg.solve(Rs, (mc - sigmas[:, None, 9:12])[..., None])[..., 0]
+            hs = np.linalg.norm(cs, axis=2)  # (S, k)
+            zp = Wm @ hs
+            _, H_core, w = magnitude_jacobian(kf.x[:12], m_clean[scalar])
+            var = magnitude_noise(w, self.config)
+            H_lin = np.zeros((len(var), self.layout.size))
+            H_lin[:, :12] = H_core
+            if self.extra:
+                H_lin[:, 12:] = -np.einsum("ki,kij->kj", w, H[scalar][:, :, 12:])
+            rows["scalar_H"], rows["scalar_var"] = H_lin, var
+            s = np.einsum("s,sk->k", Wc, (hs - zp) ** 2) + var
+            ys = ref_mag[scalar] - zp
+            nis[scalar[idx]] = ys**2 / s
+            rows["scalar"] = (ys, hs, var)
+        rows["nis"] = nis
+        return rows
+
+    # ------------------------------------------------------------ the stacked update
+    def _update(self, rows, accept):
+        """Update with the accepted epochs' rows, all at once."""
+        vmask = rows["vector_mask"]
+        smask = rows["scalar_mask"]
+        va = accept[vmask] if vmask.any() else np.zeros(0, bool)
+        sa = accept[smask] if smask.any() else np.zeros(0, bool)
+        kf = self.kf
+        if isinstance(kf, RandomWalkEKF):
+            ys, Hs, blocks = [], [], []
+            if va.any():
+                y, Hv, Rv = rows["vector"]
+                ys.append(y[va].ravel())
+                Hs.append(Hv[va].reshape(-1, Hv.shape[2]))
+                blocks.append(Rv[va])
+            if sa.any():
+                y, Hsc, var = rows["scalar"]
+                ys.append(y[sa])
+                Hs.append(Hsc[sa])
+                blocks.append(var[sa])
+            y, Hst, Rst = np.concatenate(ys), np.vstack(Hs), _block_diagonal(blocks)
+            kf.correct_stacked(y, Hst, Rst)
+        else:
+            hs, ys, blocks = [], [], []
+            if va.any():
+                y, hv, Rv = rows["vector"]
+                hs.append(hv[:, va].reshape(hv.shape[0], -1))
+                ys.append(y[va].ravel())
+                blocks.append(Rv[va])
+            if sa.any():
+                y, hsc, var = rows["scalar"]
+                hs.append(hsc[:, sa])
+                ys.append(y[sa])
+                blocks.append(var[sa])
+            kf.correct_sigmas(rows["sigmas"], np.hstack(hs), np.concatenate(ys), _block_diagonal(blocks))
+        if sa.any():  # the vector epochs' information is summed after the run, in one vectorised pass
+            Hsc, var = rows["scalar_H"][sa], rows["scalar_var"][sa]
+            self.information += (Hsc / var[:, None]).T @ Hsc
+
+    def _reacquire(self, t, gated, accept) -> None:
+        """After ``max_gated_s`` of innovation gating with nothing accepted, widen P so the filter can recover."""
+        if accept.any():
+            self._gated_since = None
+            return
+        if not gated.any():
+            return
+        t_g = float(np.asarray(t)[gated][0])
+        if self._gated_since is None:
+            self._gated_since = t_g
+        if self.config.max_gated_s > 0 and float(np.asarray(t)[gated][-1]) - self._gated_since > self.config.max_gated_s:
+            self.kf.P = self.kf.P + self.P0
+            self._gated_since = None
+            self.reacquisitions += 1
+
+
+def _block_diagonal(blocks) -> np.ndarray:
+    """Block-diagonal noise matrix from a list of (k, 3, 3) arrays and (k,) variances."""
+    sizes = []
+    for blk in blocks:
+        sizes += [3] * len(blk) if blk.ndim == 3 else [1] * len(blk)
+    n = sum(sizes)
+    out = np.zeros((n, n))
+    pos = 0
+    for blk in blocks:
+        if blk.ndim == 3:
+            k = len(blk)
+            view = out[pos:pos + 3 * k, pos:pos + 3 * k].reshape(k, 3, k, 3)
+            view[np.arange(k), :, np.arange(k), :] = blk
+            pos += 3 * k
+        else:
+            k = len(blk)
+            out[np.arange(pos, pos + k), np.arange(pos, pos + k)] = blk
+            pos += k
+    return out

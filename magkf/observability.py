@@ -1,0 +1,80 @@
+"""Which parameter directions the used epochs determined, and which stayed at their prior.
+
+The information the used epochs carried, ``I = sum H^T R^-1 H``, is compared with the prior's,
+``P0^-1``, direction by direction: with ``P0 = L L^T``, the eigenvalues of ``L^T I L`` are the data's
+information in units of the prior's. A direction whose ratio is below ``UNDETERMINED_RATIO`` is
+reported as undetermined (it "remains at its prior"), and its eigenvector, mapped back to the
+parameters, says which parameters trade off in words.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Data-to-prior information ratio below which a direction counts as undetermined.
+UNDETERMINED_RATIO = 1.0
+#: Share of a direction's (prior-scaled) weight a group must carry to be named.
+GROUP_SHARE = 0.1
+
+ORDINAL = ("first", "second", "third")
+
+
+def parameter_groups(names) -> list[tuple[str, list[int]]]:
+    """Groups of state indices with a readable name: columns of R, the offset b, each effect."""
+    groups = [(f"the {ORDINAL[j]} column of R", [3 * i + j for i in range(3)]) for j in range(3)]
+    groups.append(("b", [9, 10, 11]))
+    extra = {}
+    for k, name in enumerate(names[12:], start=12):
+        extra.setdefault(name.split(".")[0], []).append(k)
+    groups += [(f"the {effect} parameters", idx) for effect, idx in extra.items()]
+    return groups
+
+
+def analyse(P0, information, names) -> dict:
+    """Undetermined directions: ``{"undetermined": [{"ratio", "groups", "loadings", "text"}], "text"}``."""
+    P0 = np.asarray(P0, float)
+    L = np.linalg.cholesky(P0)
+    W = L.T @ information @ L
+    w, v = np.linalg.eigh(0.5 * (W + W.T))
+    findings = []
+    for ratio, vec in zip(w, v.T):
+        if ratio >= UNDETERMINED_RATIO:
+            continue
+        direction = L @ vec  # in parameter units
+        share = (vec**2)  # weights in prior-scaled coordinates sum to 1
+        groups = [g for g, idx in parameter_groups(names) if share[idx].sum() >= GROUP_SHARE]
+        top = np.argsort(-np.abs(direction / np.sqrt(np.diag(P0))))[:6]
+        findings.append({"ratio": float(ratio), "groups": groups,
+                         "loadings": {names[i]: float(direction[i]) for i in top}})
+    merged = _merge(findings)
+    return {"undetermined": merged, "text": describe(merged)}
+
+
+def _merge(findings: list) -> list:
+    """One entry per distinct set of groups, keeping the smallest ratio and counting directions."""
+    out = {}
+    for f in findings:
+        key = tuple(f["groups"])
+        if key not in out:
+            out[key] = {**f, "directions": 1}
+        else:
+            out[key]["directions"] += 1
+            out[key]["ratio"] = min(out[key]["ratio"], f["ratio"])
+    for entry in out.values():
+        entry["text"] = _sentence(entry["groups"], entry["ratio"])
+    return list(out.values())
+
+
+def _sentence(groups, ratio) -> str:
+    if not groups:
+        return "a combination of parameters remains at its prior"
+    if len(groups) == 1:
+        return f"{groups[0]} remains at its prior (data carried {ratio:.2g} of the prior's information)"
+    joined = ", ".join(groups[:-1]) + " and " + groups[-1]
+    return f"{joined} trade off; they remain at their prior (data carried {ratio:.2g} of the prior's information)"
+
+
+def describe(findings) -> str:
+    if not findings:
+        return "all parameters are determined by the data"
+    return "; ".join(f["text"] for f in findings)
