@@ -55,15 +55,21 @@ def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     c_nb = euler_to_dcm(att[:, 2], att[:, 1], att[:, 0])
     field_body = ned_to_body(c_nb, ref)
     dop = log.dop
-    base = np.full(len(t), USED, dtype=np.int8)
-    base[~has_att] = MISSING_ATTITUDE
-    base[dop > config.dop_max] = GATED_DOP
-    base[~np.all(np.isfinite(ref), axis=1)] = MISSING_POSITION
-    base[~np.all(np.isfinite(m), axis=1)] = MISSING_MAG
+    base = base_status(m, ref, has_att, dop, config.dop_max)
     dt = np.concatenate([[0.0], np.diff(t)])
     columns = {c: log.column(c) for c in log.auxiliary}
     ref_mag = np.linalg.norm(ref, axis=1)
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, dt, base, EpochData(t, field_body, ref, columns))
+
+
+def base_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
+    """Statuses (N,) known before filtering: missing values and the DOP gate, in order of precedence."""
+    base = np.full(len(m), USED, dtype=np.int8)
+    base[~has_attitude] = MISSING_ATTITUDE
+    base[dop > dop_max] = GATED_DOP
+    base[~np.all(np.isfinite(ref), axis=1)] = MISSING_POSITION
+    base[~np.all(np.isfinite(m), axis=1)] = MISSING_MAG
+    return base
 
 
 def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | None):

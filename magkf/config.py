@@ -21,7 +21,8 @@ class FilterConfig:
         ``r_walk``: of each element of ``R``, per sqrt(s); ``b_walk``: of each offset, nT per sqrt(s).
     Gates
         ``dop_max``: no update where ``dop > dop_max``.
-        ``gate_nt``: no update where ``| |calibrated m| - |B_ref| | > gate_nt``.
+        ``gate_nt``: no update where ``| |calibrated m| - |B_ref| | > gate_nt + 3 sigma`` (sigma: the
+        calibrated magnitude's standard deviation implied by the estimate's covariance).
         ``innovation_prob``: no update where the normalised innovation squared exceeds the chi-square
         quantile of this probability (degrees of freedom = measurement size).
         ``max_gated_s``: after this many seconds of consecutive innovation gating with good DOP and

@@ -96,9 +96,17 @@ def rot_z(angle_rad) -> np.ndarray:
 
 
 def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
-    """``C_nb`` (body FRD to NED) from ZYX Euler angles in degrees; shape ``yaw.shape + (3, 3)``."""
+    """``C_nb`` (body FRD to NED) from ZYX Euler angles in degrees; shape ``yaw.shape + (3, 3)``.
+
+    ``C_nb = Rz(yaw) Ry(pitch) Rx(roll)``, written out element by element.
+    """
     yaw, pitch, roll = (np.radians(np.asarray(a, dtype=float)) for a in (yaw_deg, pitch_deg, roll_deg))
-    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    out = np.empty(np.shape(cy) + (3, 3))
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = -sp, cp * sr, cp * cr
+    return out
 
 
 def dcm_to_euler(c_nb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -143,10 +151,12 @@ def magnetic_heading_deg(field_body, roll_deg, pitch_deg) -> np.ndarray:
     are in degrees. The field is levelled with ``Ry(pitch) Rx(roll)`` and the heading is the angle,
     clockwise from magnetic north, of the body's forward axis.
     """
-    level = np.einsum("...ij,...j->...i",
-                      rot_y(np.radians(np.asarray(pitch_deg, float))) @ rot_x(np.radians(np.asarray(roll_deg, float))),
-                      np.asarray(field_body, float))
-    return np.degrees(np.arctan2(-level[..., 1], level[..., 0])) % 360.0
+    f = np.asarray(field_body, float)
+    p, r = np.radians(np.asarray(pitch_deg, float)), np.radians(np.asarray(roll_deg, float))
+    cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    north = f[..., 0] * cp + (f[..., 1] * sr + f[..., 2] * cr) * sp  # first row of Ry(pitch) Rx(roll) f
+    east = f[..., 1] * cr - f[..., 2] * sr                             # second row
+    return np.degrees(np.arctan2(-east, north)) % 360.0
 
 
 def wrap_deg(angle_deg) -> np.ndarray:

@@ -14,7 +14,8 @@ Statuses, in order of precedence:
 ``missing_position``   no reference field (no position and no ``ref_*``): no update.
 ``gated_dop``          ``dop > dop_max``: no update.
 ``missing_column``     a column an added effect needs is empty at this epoch: no update.
-``gated_magnitude``    ``| |calibrated m| - |B_ref| | > gate_nt``: no update.
+``gated_magnitude``    ``| |calibrated m| - |B_ref| | > gate_nt + 3 sigma``, sigma the standard deviation of the
+                       calibrated magnitude that the estimate's covariance implies: no update.
 ``gated_innovation``   normalised innovation squared above the chi-square bound: no update.
 ``missing_attitude``   no attitude: a magnitude-only update (``updated`` tells whether it was made).
 ``used``               updated with the configured measurement.
@@ -55,6 +56,13 @@ class Estimator:
         self.extra = layout.size > 12
         self.magnitude_only = config.measure == "magnitude"
         self.information = np.zeros((layout.size, layout.size))  # of magnitude rows; see _update
+        # Magnitude-only: a rotation R -> R Q changes no magnitude. Keep the EKF from gaining spurious
+        # information along it (observability-constrained EKF): project the magnitude Jacobians off the
+        # rotation directions of the initial R.
+        self._rotation_projector = None
+        if self.magnitude_only:
+            N = rotation_directions(np.asarray(x0)[:9].reshape(3, 3), layout.size)
+            self._rotation_projector = np.eye(layout.size) - N @ np.linalg.solve(N.T @ N, N.T)
         self.reacquisitions = 0
         self._gated_since = None
 
@@ -92,9 +100,10 @@ class Estimator:
             return status, updated, nis
         x = kf.x
         m_clean = m - self._extra_terms(x, H, data) if self.extra else m
-        R, b = x[:9].reshape(3, 3), x[9:12]
-        c = np.linalg.solve(R, (m_clean - b).T).T
-        off = np.abs(np.sqrt(np.einsum("ki,ki->k", c, c)) - ref_mag) > self.config.gate_nt
+        h, H_mag, _ = magnitude_jacobian(x[:12], m_clean)
+        # The gate widens with the estimate's own uncertainty of the calibrated magnitude (3 sigma).
+        spread = 3.0 * np.sqrt(np.einsum("ki,ij,kj->k", H_mag, self.kf.P[:12, :12], H_mag))
+        off = np.abs(h - ref_mag) > self.config.gate_nt + spread
         gated_mag = cand & off
         status[gated_mag] = GATED_MAGNITUDE
         vector &= ~off
@@ -156,6 +165,8 @@ class Estimator:
             Hs[:, :12] = Hs_core
             if self.extra:
                 Hs[:, 12:] = -np.einsum("ki,kij->kj", w, H[scalar][:, :, 12:])
+            if self._rotation_projector is not None:
+                Hs = Hs @ self._rotation_projector
             ys = ref_mag[scalar] - h
             var = magnitude_noise(w, self.config)
             s = np.einsum("ki,ij,kj->k", Hs, P, Hs) + var
@@ -263,6 +274,17 @@ class Estimator:
             self.kf.P = self.kf.P + self.P0
             self._gated_since = None
             self.reacquisitions += 1
+
+
+def rotation_directions(R: np.ndarray, size: int) -> np.ndarray:
+    """State directions (size, 3) of ``R -> R (I + Omega)`` for the three infinitesimal rotations Omega."""
+    out = np.zeros((size, 3))
+    for k in range(3):
+        omega = np.zeros((3, 3))
+        i, j = [(1, 2), (2, 0), (0, 1)][k]
+        omega[i, j], omega[j, i] = -1.0, 1.0
+        out[:9, k] = (R @ omega).ravel()
+    return out
 
 
 def _block_diagonal(blocks) -> np.ndarray:

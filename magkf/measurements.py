@@ -36,7 +36,7 @@ def vector_noise(field_body: np.ndarray, R: np.ndarray, config: FilterConfig, me
     else:
         A = (att**2 * b2)[:, None, None] * eye
     A = A + config.reference_nt**2 * eye
-    return config.sensor_noise_nt**2 * eye + np.einsum("ij,njk,lk->nil", R, A, R)
+    return config.sensor_noise_nt**2 * eye + R @ A @ R.T
 
 
 def magnitude_jacobian(x_core: np.ndarray, m_minus_e: np.ndarray):

@@ -30,8 +30,11 @@ def parameter_groups(names) -> list[tuple[str, list[int]]]:
     return groups
 
 
-def analyse(P0, information, names) -> dict:
-    """Undetermined directions: ``{"undetermined": [{"ratio", "groups", "loadings", "text"}], "text"}``."""
+def analyse(P0, information, names, R=None) -> dict:
+    """Undetermined directions: ``{"undetermined": [{"ratio", "groups", "loadings", "text"}], "text"}``.
+
+    With ``R`` (3, 3) given, a direction that is mostly a rotation ``R -> R Q`` is named as such.
+    """
     P0 = np.asarray(P0, float)
     L = np.linalg.cholesky(P0)
     W = L.T @ information @ L
@@ -43,11 +46,25 @@ def analyse(P0, information, names) -> dict:
         direction = L @ vec  # in parameter units
         share = (vec**2)  # weights in prior-scaled coordinates sum to 1
         groups = [g for g, idx in parameter_groups(names) if share[idx].sum() >= GROUP_SHARE]
+        if R is not None and _is_rotation(direction, R):
+            groups = ["the orientation of R (a rotation R -> R Q, which no magnitude can see)"]
         top = np.argsort(-np.abs(direction / np.sqrt(np.diag(P0))))[:6]
         findings.append({"ratio": float(ratio), "groups": groups,
                          "loadings": {names[i]: float(direction[i]) for i in top}})
     merged = _merge(findings)
     return {"undetermined": merged, "text": describe(merged)}
+
+
+def _is_rotation(direction: np.ndarray, R: np.ndarray) -> bool:
+    """True when ``direction``'s R part lies (90 %) in the span of ``R Omega`` and b is untouched."""
+    from .estimator import rotation_directions
+
+    N = rotation_directions(R, 9)
+    d = direction[:9]
+    if np.linalg.norm(d) == 0:
+        return False
+    proj = N @ np.linalg.lstsq(N, d, rcond=None)[0]
+    return bool(np.linalg.norm(proj) >= 0.9 * np.linalg.norm(d))
 
 
 def _merge(findings: list) -> list:

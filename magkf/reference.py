@@ -20,6 +20,7 @@ or the UTC date has changed.
 
 from __future__ import annotations
 
+import math
 import warnings
 from datetime import datetime, timezone
 
@@ -160,20 +161,19 @@ class ReferenceFieldCache:
 
     def ned(self, time_s: float, lat: float, lon: float, alt_m: float = 0.0) -> np.ndarray:
         day = int(time_s // 86400)
-        p = np.array([lat, lon, alt_m], float)
-        if self._key is None or self._key[0] != day or self._distance(p) > self.max_distance_m:
+        if self._key is None or self._key[0] != day or self._distance(lat, lon, alt_m) > self.max_distance_m:
+            p = np.array([lat, lon, alt_m], float)
             _check_times(np.array([time_s]))
             places = np.vstack([p] + [p + np.eye(3)[i] * GRADIENT_STEP for i in range(3)])
             f = _ppigrf_at_dates(places[:, 0], places[:, 1], places[:, 2], [day * 86400.0 + 43200.0])[0]
             self._key = (day, p, f[0], ((f[1:] - f[0]) / GRADIENT_STEP[:, None]).T)
             self.evaluations += 1
         _, p0, f0, grad = self._key
-        d = p - p0
-        d[1] = (d[1] + 180.0) % 360.0 - 180.0
+        d = np.array([lat - p0[0], (lon - p0[1] + 180.0) % 360.0 - 180.0, alt_m - p0[2]])
         return f0 + grad @ d
 
-    def _distance(self, p: np.ndarray) -> float:
-        p0 = self._key[1]
-        dn = np.radians(p[0] - p0[0]) * EARTH_RADIUS_M
-        de = np.radians((p[1] - p0[1] + 180.0) % 360.0 - 180.0) * EARTH_RADIUS_M * np.cos(np.radians(p[0]))
-        return float(np.sqrt(dn**2 + de**2 + (p[2] - p0[2]) ** 2))
+    def _distance(self, lat: float, lon: float, alt_m: float) -> float:
+        lat0, lon0, alt0 = self._key[1].tolist()
+        dn = math.radians(lat - lat0) * EARTH_RADIUS_M
+        de = math.radians((lon - lon0 + 180.0) % 360.0 - 180.0) * EARTH_RADIUS_M * math.cos(math.radians(lat))
+        return math.sqrt(dn * dn + de * de + (alt_m - alt0) ** 2)

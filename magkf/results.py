@@ -72,9 +72,10 @@ def _rms(a) -> float:
 
 
 def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, nis, x_final, P_final,
-              information, init_how, smoothed, reacquisitions, elapsed_s) -> CalibrationRun:
+              information, init_how, smoothed, reacquisitions, elapsed_s, method=None) -> CalibrationRun:
     names = layout.names
-    prior_x = np.vstack([x0, xs[:-1]]) if not smoothed else xs
+    method = method or config.filter
+    prior_x = np.vstack([x0, xs[:-1]]) if not (smoothed or method == "batch") else xs
     ned_i, mag_i = residuals(prep, layout, prior_x)
     ned_f, mag_f = residuals(prep, layout, x_final)
     used = (status == USED) & updated
@@ -91,7 +92,7 @@ def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, n
 
     counts = {s: int(np.sum(status == k)) for k, s in enumerate(STATUSES)}
     std = np.sqrt(np.diag(P_final))
-    obs = observability.analyse(P0, information, names)
+    obs = observability.analyse(P0, information, names, x_final[:9].reshape(3, 3))
     effects = {}
     for effect, sl in list(zip(layout.effects, layout.slices.values()))[1:]:
         effects[effect.name] = {p: {"value": float(x_final[sl][j]), "std": float(std[sl][j]),
@@ -105,14 +106,14 @@ def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, n
         "residual_rms_axis_nt": axis_rms,
         "residual_rms_magnitude_nt": _rms(mag_f[used]),
         "innovation_rms_nt": _rms(np.linalg.norm(ned_i[vec_used], axis=1)),
-        "nis_mean": float(np.nanmean(nis[used])) if used.any() else float("nan"),
+        "nis_mean": float(np.mean(nis[used])) if np.isfinite(nis[used]).any() else float("nan"),
         "n_epochs": int(len(status)), "n_updates": int(updated.sum()), "status_counts": counts,
         "run_time_s": float(elapsed_s), "epochs_per_second": float(len(status) / elapsed_s),
-        "filter": config.filter, "measure": config.measure, "smoothed": bool(smoothed), "init": init_how,
+        "filter": method, "measure": config.measure, "smoothed": bool(smoothed), "init": init_how,
         "reacquisitions": int(reacquisitions), "observability": obs, "effects": effects,
         "config": config.as_dict(),
     }
-    cal = Calibration(R=x_final[:9].reshape(3, 3), b=x_final[9:12], method=f"{config.filter}-{config.measure}",
+    cal = Calibration(R=x_final[:9].reshape(3, 3), b=x_final[9:12], method=f"{method}-{config.measure}",
                       covariance=P_final[:12, :12],
                       parameters={"effects": effects} if effects else {},
                       standard_errors=dict(zip(names[:12], std[:12].tolist())),
