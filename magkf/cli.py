@@ -162,6 +162,68 @@ def cmd_apply(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- calibrate
+def _filter_config(args):
+    from .config import FilterConfig
+
+    changes = {k: v for k, v in {
+        "filter": args.filter, "measure": args.measure, "dop_max": args.dop_max, "gate_nt": args.gate_nt,
+        "sensor_noise_nt": args.sensor_noise, "attitude_deg": args.attitude_deg, "reference_nt": args.reference_nt,
+        "r_walk": args.r_walk, "b_walk": args.b_walk, "innovation_prob": args.innovation_prob,
+        "block_epochs": args.block}.items() if v is not None}
+    try:
+        return FilterConfig(**changes)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def _print_run(summary: dict, names) -> None:
+    s = summary
+    print(f"{s['filter']} calibration ({s['measure']}), {s['n_epochs']} epochs in {s['run_time_s']:.2f} s "
+          f"({s['epochs_per_second']:,.0f} epochs/s); start: {s['init']}")
+    std = s["std"]
+    R, b = s["R"], s["b"]
+    for i in range(3):
+        row = "  ".join(f"{R[i][j]:+.6f} +- {std[names[3 * i + j]]:.1e}" for j in range(3))
+        print(f"  R[{i + 1}]  {row}")
+    print("  b     " + "  ".join(f"{v:+9.2f} +- {std[n]:.2f} nT" for v, n in zip(b, names[9:12])))
+    for effect, params in s.get("effects", {}).items():
+        print(f"  {effect}: " + ", ".join(f"{p} = {v['value']:.4g} +- {v['std']:.2g} {v['unit']}".rstrip()
+                                         for p, v in params.items()))
+    ax = s["residual_rms_axis_nt"]
+    print(f"  residual RMS {s['residual_rms_nt']:.2f} nT (vector norm; N {ax['north']:.2f}, E {ax['east']:.2f}, "
+          f"D {ax['down']:.2f}), magnitude {s['residual_rms_magnitude_nt']:.2f} nT, mean NIS {s['nis_mean']:.2f}")
+    print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
+    print(f"  observability: {s['observability']['text']}")
+
+
+def cmd_calibrate(args) -> int:
+    from .calibrate import calibrate_log, terminal_progress
+    from .drivelog import read_drive_log, write_drive_log
+
+    config = _filter_config(args)
+    init = Calibration.load(args.init) if args.init else None
+    log = read_drive_log(args.file, args.mag_unit)
+    if args.batch:
+        from .batch import solve_batch
+
+        run = solve_batch(log, config, init)
+    else:
+        progress = None if args.quiet else terminal_progress()
+        run = calibrate_log(log, config, init, smooth=args.smooth, progress=progress)
+    if args.output:
+        run.calibration.save(args.output)
+    if args.states:
+        write_drive_log(run.states, args.states)
+    if args.json:
+        _print_json(run.summary)
+    else:
+        _print_run(run.summary, run.names)
+        if args.output:
+            print(f"  calibration written to {args.output}")
+    return 0
+
+
 # ---------------------------------------------------------------- simulate
 def cmd_simulate(args) -> int:
     from .sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
@@ -230,6 +292,33 @@ def build_parser() -> argparse.ArgumentParser:
     _add_igrf_options(p)
     _add_output_options(p)
     p.set_defaults(func=cmd_ellipsoid)
+
+    p = sub.add_parser("calibrate", help="online (Kalman filter) calibration of a drive log",
+                       description="Calibrate R and b (m = R B + b) over a drive log with an EKF or UKF against "
+                                   "IGRF (or the log's ref_n/e/d), gated by DOP, field magnitude and innovation. "
+                                   "Every epoch gets a status. Without --init the start is bootstrapped from "
+                                   "the first stretch of the log.")
+    p.add_argument("file", help="drive-log CSV")
+    p.add_argument("--init", help="offline calibration JSON to start from (sinefit, ellipsoid, or an earlier run)")
+    p.add_argument("--filter", choices=["ekf", "ukf"], help="filter (default ekf)")
+    p.add_argument("--measure", choices=["magnitude", "vector", "both"], help="measurement model (default both)")
+    p.add_argument("--batch", action="store_true", help="batch least squares over the whole log instead of the filter")
+    p.add_argument("--smooth", action="store_true", help="Rauch-Tung-Striebel smoothing of the per-epoch estimates")
+    p.add_argument("--states", metavar="CSV", help="write per-epoch estimates, standard deviations, statuses, residuals")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("noise and gates (defaults in magkf.config.FilterConfig)")
+    g.add_argument("--sensor-noise", type=float, help="magnetometer noise per axis, nT (default 30)")
+    g.add_argument("--attitude-deg", type=float, help="attitude uncertainty, deg (default 0.1)")
+    g.add_argument("--reference-nt", type=float, help="reference field uncertainty per component, nT (default 10)")
+    g.add_argument("--r-walk", type=float, help="random walk of R per sqrt(s) (default 1e-7)")
+    g.add_argument("--b-walk", type=float, help="random walk of b, nT per sqrt(s) (default 0.01)")
+    g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
+    g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
+    g.add_argument("--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)")
+    g.add_argument("--block", type=int, help="epochs per filter update (default 10; 1 = every epoch)")
+    _add_mag_unit(p)
+    _add_output_options(p)
+    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("apply", help="calibrated field, magnitude and headings for every epoch of a log",
                        description="Apply a calibration file to a drive log; every epoch is written with a status.")

@@ -312,12 +312,11 @@ class SineFitCalibrator:
         return self
 
     def _exact(self, planes, curves, paper: SineFitParameters) -> SineFitResult:
-        best = None
-        for sign in (1, -1):
-            fit = _solve_exact(planes, curves, paper, self.field_nt, self.inclination_deg, sign)
-            if best is None or fit.cost < best[0].cost:
-                best = (fit, sign)
-        fit, sign = best
+        # Turning the sensor 180 deg about z (kx, ky -> -kx, -ky) with both table headings + 180 deg and
+        # the opposite roll in plane xz fits the data equally well; positive sensitivities pick the branch.
+        fits = [(_solve_exact(planes, curves, paper, self.field_nt, self.inclination_deg, sign), sign)
+                for sign in (1, -1)]
+        fit, sign = min(fits, key=lambda f: (not np.all(f[0].x[3:6] > 0), f[0].cost))
         n, p = fit.fun.size, fit.x.size
         s2 = 2 * fit.cost / max(n - p, 1)
         J = fit.jac

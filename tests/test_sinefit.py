@@ -100,3 +100,16 @@ def test_bad_turntable_input(tmp):
     table.iloc[:10].to_csv(tmp / "few.csv", index=False)
     proc = run_cli("sinefit", tmp / "few.csv", "--field", B, "--inclination", INC)
     assert proc.returncode == 2 and "too few samples" in proc.stderr
+
+
+def test_positive_sensitivities_resolve_the_flip_symmetry():
+    """Sensor turned 180 deg about z with table headings + 180 deg fits equally: kx, ky, kz > 0 decide."""
+    from magkf.sinefit import SineFitParameters
+
+    truth = SineFitParameters(1.2, 20.0, 0.8, 1.03, 0.98, 1.01, (250.0, -140.0, 320.0))
+    table = simulate_turntable(truth, 48_000.0, 64.0, 5.0, 20.0, np.random.default_rng(1))
+    r = SineFitCalibrator(48_000.0, 64.0).fit(table).result_
+    p = r.parameters
+    assert p.kx > 0 and p.ky > 0 and p.kz > 0
+    z = (p.as_vector() - truth.as_vector()) / np.array([r.standard_errors[k] for k in PARAMETER_NAMES])
+    assert np.all(np.abs(z) < 4.5)  # 9 parameters, |z| < 4.5 fails by chance with probability < 1e-4

@@ -41,7 +41,8 @@ class DriveConfig:
     ``motion`` is ``"3d"`` or ``"planar"``; ``mounting`` a signed permutation such as ``"-y,x,z"``
     (sensor axis i along the named body axis); ``disturbances`` the number of disturbance events and
     ``disturbance_peak_nt`` their peak range; ``dop_bad_stretches`` the number of bad-DOP stretches;
-    ``write_reference`` adds the ``ref_n, ref_e, ref_d`` columns.
+    ``write_reference`` adds the ``ref_n, ref_e, ref_d`` columns; ``tilt_deg`` is the roll and pitch
+    standard deviation of planar motion.
     """
 
     duration_s: float = 600.0
@@ -59,6 +60,7 @@ class DriveConfig:
     disturbance_duration_s: tuple = (2.0, 8.0)
     dop_bad_stretches: int = 3
     write_reference: bool = False
+    tilt_deg: float = 0.8
 
 
 @dataclass(frozen=True)
@@ -128,7 +130,8 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     K, b = true_matrix(truth)
     R = K @ mounting_matrix(config.mounting)
     t = config.start_time + np.arange(n) / config.rate_hz
-    motion = simulate_motion(config.motion, n, config.rate_hz, rng, config.lat0, config.lon0, config.alt0)
+    motion = simulate_motion(config.motion, n, config.rate_hz, rng, config.lat0, config.lon0, config.alt0,
+                             config.tilt_deg)
     dop, stretches = simulate_dop(n, config.rate_hz, rng, config.dop_bad_stretches)
     disturbance, events = simulate_disturbances(n, config.rate_hz, rng, config.disturbances,
                                                 config.disturbance_peak_nt, config.disturbance_duration_s,

@@ -2,7 +2,7 @@
 
 Two kinds: ``"3d"`` (drone or aircraft-like: all headings, roll up to about 40 deg, pitch up to about
 30 deg, height changes) and ``"planar"`` (car-like: all headings, roll and pitch within about 1 deg,
-constant height). Angles in degrees, speed in m/s, positions in degrees and metres.
+constant height; ``tilt_deg`` sets how flat). Angles in degrees, speed in m/s, positions in degrees and metres.
 """
 
 from __future__ import annotations
@@ -23,8 +23,11 @@ def _smooth_noise(n: int, rate_hz: float, timescale_s: float, rng: np.random.Gen
 
 
 def simulate_motion(kind: str, n: int, rate_hz: float, rng: np.random.Generator, lat0: float = 48.1,
-                    lon0: float = 11.6, alt0: float = 500.0) -> dict:
-    """Arrays (n,) ``roll, pitch, yaw, speed_mps, lat, lon, alt`` for ``n`` epochs at ``rate_hz``."""
+                    lon0: float = 11.6, alt0: float = 500.0, tilt_deg: float = 0.8) -> dict:
+    """Arrays (n,) ``roll, pitch, yaw, speed_mps, lat, lon, alt`` for ``n`` epochs at ``rate_hz``.
+
+    ``tilt_deg`` is the standard deviation of roll and pitch of the planar motion (road camber and slope).
+    """
     if kind not in MOTIONS:
         raise ValueError(f"unknown motion {kind!r}; use one of {', '.join(MOTIONS)}")
     t = np.arange(n) / rate_hz
@@ -36,8 +39,8 @@ def simulate_motion(kind: str, n: int, rate_hz: float, rng: np.random.Generator,
         alt = alt0 + 100.0 * np.sin(2 * np.pi * t / 300.0)
     else:
         yaw_rate = 10.0 * _smooth_noise(n, rate_hz, 15.0, rng) + 3.0
-        roll = 0.8 * _smooth_noise(n, rate_hz, 10.0, rng)
-        pitch = 0.8 * _smooth_noise(n, rate_hz, 20.0, rng)
+        roll = tilt_deg * _smooth_noise(n, rate_hz, 10.0, rng)
+        pitch = tilt_deg * _smooth_noise(n, rate_hz, 20.0, rng)
         speed = np.clip(14.0 + 4.0 * _smooth_noise(n, rate_hz, 40.0, rng), 0.0, None)
         alt = np.full(n, alt0)
     yaw = np.cumsum(yaw_rate) / rate_hz % 360.0
