@@ -8,7 +8,7 @@ sensor is just another ``R``. Disturbances are down-weighted by iteratively rewe
 right-handed, orthogonal-like matrix, ``b`` near zero.
 
 Without attitude, the ellipsoid fit gives ``R`` up to a rotation; magkf takes the patent's
-``K = K1 K2`` form.
+``K = K1 K2`` form, with the fit's uncertainty for ``R R^T`` and ``b`` and a weak prior for the rotation.
 """
 
 from __future__ import annotations
@@ -120,7 +120,8 @@ def _heading_spread(field_body: np.ndarray) -> float:
 
 def bootstrap_magnitude(m, reference_magnitude, time, span_s: float) -> Bootstrap:
     """Bootstrap without attitude: an ellipsoid fit to ``m`` (N, 3) with the median reference magnitude."""
-    from .ellipsoid import EllipsoidCalibrator, parameter_names
+    from .ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix
+    from .estimator import rotation_directions
 
     stretch = time <= time[0] + span_s
     if stretch.sum() < 200:
@@ -132,8 +133,22 @@ def bootstrap_magnitude(m, reference_magnitude, time, span_s: float) -> Bootstra
         fit = EllipsoidCalibrator(3, field).fit(m, "log").result_
         stretch = np.ones(len(m), bool)
     x = np.concatenate([fit.R.ravel(), fit.b])
-    se = np.array([fit.standard_errors[n] for n in parameter_names(3)])
-    b_std = np.maximum(se[6:], 10.0)
-    # R's elements: a rotation of R is not observable from the magnitude; give it room.
-    P = np.diag(np.concatenate([np.full(9, PRIOR_R_STD**2), (b_std**2) * INFLATION]))
+    names = parameter_names(3)
+    p = np.array([fit.parameters[n] for n in names])
+    se = np.array([fit.standard_errors[n] for n in names])
+    p[3:6], se[3:6] = np.radians(p[3:6]), np.radians(se[3:6])
+    # R R^T is what the fit knows (its standard errors, mapped to R's elements); a rotation R -> R Q is
+    # what no magnitude can see: give that, and only that, the weak prior.
+    J = np.empty((9, 6))
+    for j in range(6):
+        step = 1e-6 * max(abs(p[j]), 1.0)
+        hi, lo = p.copy(), p.copy()
+        hi[j] += step
+        lo[j] -= step
+        J[:, j] = (patent_matrix(hi[:3], hi[3:6]) - patent_matrix(lo[:3], lo[3:6])).ravel() / (2 * step)
+    N = rotation_directions(fit.R, 9)
+    N /= np.linalg.norm(N, axis=0)
+    P = np.zeros((12, 12))
+    P[:9, :9] = INFLATION * (J * se[:6] ** 2) @ J.T + PRIOR_R_STD**2 * N @ N.T
+    P[9:, 9:] = np.diag(INFLATION * np.maximum(se[6:], 1.0) ** 2)
     return Bootstrap(x, P, "bootstrap-ellipsoid", int(stretch.sum()), float(time[stretch][-1] - time[stretch][0]))
