@@ -23,7 +23,7 @@ from .effects.core import SoftHardIron
 from .errors import InputError
 from .estimator import (GATED_DOP, MISSING_ATTITUDE, MISSING_COLUMN, MISSING_MAG, MISSING_POSITION, USED,
                         Estimator)
-from .measurements import vector_noise
+from .measurements import vector_noise, whitening
 from .results import CalibrationRun, build_run
 from .state import StateLayout
 
@@ -72,6 +72,17 @@ def base_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
     return base
 
 
+def sample_status(m, ref, has_attitude: bool, dop: float, dop_max: float) -> int:
+    """``base_status`` of one epoch (``m``, ``ref`` (3,)), for the real-time path."""
+    if not np.isfinite(m).all():
+        return MISSING_MAG
+    if not np.isfinite(ref).all():
+        return MISSING_POSITION
+    if dop > dop_max:
+        return GATED_DOP
+    return USED if has_attitude else MISSING_ATTITUDE
+
+
 def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | None):
     """Initial ``(x (12,), P (12, 12), how)`` of the core block: from ``init`` or bootstrapped."""
     if init is not None:
@@ -111,8 +122,8 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
 
     ``init`` is an offline calibration (else a bootstrap from the log); ``effects`` are extra
     ``Effect`` blocks; ``smooth`` adds a Rauch-Tung-Striebel pass; ``progress(fraction)`` is called now
-    and then. Epochs are processed in blocks of ``config.block_epochs`` (see ``magkf.estimator``); the
-    per-epoch estimates are those after each epoch's block. Returns an immutable ``CalibrationRun``.
+    and then. Epochs are processed in blocks of ``config.block_s`` seconds (see ``magkf.estimator``);
+    the per-epoch estimates are those after each epoch's block. Returns an immutable ``CalibrationRun``.
     """
     started = _time.perf_counter()
     prep = prepare(log, config)
@@ -129,15 +140,14 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
     est = Estimator(layout, config, x0, P0)
     H_all = linear_jacobian(layout, prep.data)
     R_hat = x_core[:9].reshape(3, 3)
-    noise = vector_noise(np.nan_to_num(prep.data.field_body), R_hat, config, config.measure)
+    W = whitening(vector_noise(np.nan_to_num(prep.data.field_body), R_hat, config, config.measure))
     n_ep, n = len(prep.m), layout.size
     base = prep.base.copy()
     for effect in effects:
         for c in effect.columns:
             base[(base == USED) & ~np.isfinite(prep.data.columns[c])] = MISSING_COLUMN
-    starts = np.arange(0, n_ep, config.block_epochs)
-    stops = np.minimum(starts + config.block_epochs, n_ep)
     t = prep.data.time
+    starts, stops = blocks(t, config.block_s)
     block_dt = np.diff(np.concatenate([[t[0]], t[stops - 1]]))
     xs_b = np.empty((len(starts), n))
     Ps_b = np.empty((len(starts), n, n))
@@ -146,14 +156,16 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
     nis = np.full(n_ep, np.nan)
     nonlinear = any(not e.linear for e in effects)
     every = max(len(starts) // 100, 1)
+    loop_started = _time.perf_counter()
     for j, (i0, i1) in enumerate(zip(starts.tolist(), stops.tolist())):
         data = prep.data.take(slice(i0, i1)) if nonlinear else None
         status[i0:i1], updated[i0:i1], nis[i0:i1] = est.process_block(
-            t[i0:i1], block_dt[j], prep.m[i0:i1], prep.ref_mag[i0:i1], H_all[i0:i1], noise[i0:i1], base[i0:i1], data)
+            t[i0:i1], block_dt[j], prep.m[i0:i1], prep.ref_mag[i0:i1], H_all[i0:i1], W[i0:i1], base[i0:i1], data)
         xs_b[j] = est.kf.x
         Ps_b[j] = est.kf.P
         if progress is not None and j % every == 0:
             progress(j / len(starts))
+    loop_s = _time.perf_counter() - loop_started
     if progress is not None:
         progress(1.0)
     if smooth:
@@ -164,24 +176,21 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
     block_of = np.repeat(np.arange(len(starts)), stops - starts)
     xs = xs_b[block_of]
     stds = np.sqrt(np.einsum("bii->bi", Ps_b))[block_of]
-    vector_used = updated & (status == USED) & (config.measure != "magnitude")
-    information = est.information + _vector_information(H_all, noise, vector_used)
     return build_run(log=log, prep=prep, config=config, layout=layout, x0=x0, P0=P0, xs=xs, stds=stds,
                      status=status, updated=updated, nis=nis, x_final=x_final, P_final=P_final,
-                     information=information, init_how=how, smoothed=smooth, reacquisitions=est.reacquisitions,
-                     elapsed_s=_time.perf_counter() - started)
+                     information=est.information, init_how=how, smoothed=smooth, reacquisitions=est.reacquisitions,
+                     elapsed_s=_time.perf_counter() - started, loop_s=loop_s)
 
 
-def _vector_information(H_all, noise, used) -> np.ndarray:
-    """Sum of ``H^T R^-1 H`` over the epochs updated with the vector measurement, (n, n)."""
-    n = H_all.shape[2]
-    info = np.zeros((n, n))
-    idx = np.flatnonzero(used)
-    for chunk in np.array_split(idx, max(1, len(idx) // 50_000 + 1)):
-        if chunk.size:
-            H = H_all[chunk]
-            info += np.tensordot(H, np.linalg.solve(noise[chunk], H), axes=([0, 1], [0, 1]))
-    return info
+def blocks(time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """First and one-past-last epoch (each (K,)) of consecutive blocks of at most ``block_s`` seconds."""
+    n = len(time_s)
+    if block_s <= 0 or n == 0:
+        starts = np.arange(n)
+    else:
+        block_id = np.floor((time_s - time_s[0]) / block_s).astype(np.int64)
+        starts = np.flatnonzero(np.diff(np.concatenate([[-1], block_id])))
+    return starts, np.append(starts[1:], n)
 
 
 def rts_smooth(xs, Ps, dt, q_rate):

@@ -170,7 +170,7 @@ def _filter_config(args):
         "filter": args.filter, "measure": args.measure, "dop_max": args.dop_max, "gate_nt": args.gate_nt,
         "sensor_noise_nt": args.sensor_noise, "attitude_deg": args.attitude_deg, "reference_nt": args.reference_nt,
         "r_walk": args.r_walk, "b_walk": args.b_walk, "innovation_prob": args.innovation_prob,
-        "block_epochs": args.block}.items() if v is not None}
+        "block_s": args.block_s}.items() if v is not None}
     try:
         return FilterConfig(**changes)
     except ValueError as exc:
@@ -315,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
     g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
     g.add_argument("--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)")
-    g.add_argument("--block", type=int, help="epochs per filter update (default 10; 1 = every epoch)")
+    g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 0.25; 0 = every epoch)")
     _add_mag_unit(p)
     _add_output_options(p)
     p.set_defaults(func=cmd_calibrate)

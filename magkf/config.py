@@ -34,8 +34,9 @@ class FilterConfig:
     Other
         ``filter``: ``ekf`` or ``ukf``. ``measure``: ``magnitude``, ``vector`` or ``both``.
         ``reference_refresh_m``: distance after which the real-time path re-evaluates IGRF, m.
-        ``block_epochs``: epochs per filter update when post-processing a log (each still gated on its
-        own; see ``magkf.estimator``). 1 updates epoch by epoch, as the real-time path does.
+        ``block_s``: duration of the blocks of epochs that update the filter together when
+        post-processing a log, s (each epoch is still gated on its own; see ``magkf.estimator``).
+        0 updates epoch by epoch, as the real-time path does.
     """
 
     filter: str = "ekf"
@@ -53,7 +54,7 @@ class FilterConfig:
     init_r_std: float = 0.02
     init_b_std: float = 300.0
     reference_refresh_m: float = 2000.0
-    block_epochs: int = 10
+    block_s: float = 0.25
 
     def __post_init__(self):
         if self.filter not in FILTERS:
@@ -63,8 +64,8 @@ class FilterConfig:
         for name in ("sensor_noise_nt", "bootstrap_s", "gate_nt", "dop_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
-        if self.block_epochs < 1:
-            raise ValueError("block_epochs must be at least 1")
+        if self.block_s < 0:
+            raise ValueError("block_s must not be negative")
         if not 0 < self.innovation_prob < 1:
             raise ValueError("innovation_prob must lie between 0 and 1")
 

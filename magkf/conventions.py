@@ -16,6 +16,8 @@ Arrays
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 # ---------------------------------------------------------------- column names (data contract)
@@ -100,8 +102,13 @@ def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
 
     ``C_nb = Rz(yaw) Ry(pitch) Rx(roll)``, written out element by element.
     """
-    yaw, pitch, roll = (np.radians(np.asarray(a, dtype=float)) for a in (yaw_deg, pitch_deg, roll_deg))
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    if np.ndim(yaw_deg) == 0 and np.ndim(pitch_deg) == 0 and np.ndim(roll_deg) == 0:
+        yaw, pitch, roll = math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg)
+        cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+        cr, sr = math.cos(roll), math.sin(roll)
+    else:
+        yaw, pitch, roll = (np.radians(np.asarray(a, dtype=float)) for a in (yaw_deg, pitch_deg, roll_deg))
+        cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
     out = np.empty(np.shape(cy) + (3, 3))
     out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
     out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr

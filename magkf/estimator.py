@@ -27,7 +27,7 @@ import numpy as np
 from scipy import stats
 
 from .config import FilterConfig
-from .kalman import RandomWalkEKF, RandomWalkUKF
+from .kalman import RandomWalkEKF, RandomWalkUKF, inv_small
 from .measurements import magnitude_jacobian, magnitude_noise
 from .state import StateLayout
 
@@ -55,7 +55,7 @@ class Estimator:
         self.nonlinear = [(e, layout.slices[e.name]) for e in layout.extra() if not e.linear]
         self.extra = layout.size > 12
         self.magnitude_only = config.measure == "magnitude"
-        self.information = np.zeros((layout.size, layout.size))  # of magnitude rows; see _update
+        self.information = np.zeros((layout.size, layout.size))  # sum of whitened H^T H over updates
         # Magnitude-only: a rotation R -> R Q changes no magnitude. Keep the EKF from gaining spurious
         # information along it (observability-constrained EKF): project the magnitude Jacobians off the
         # rotation directions of the initial R.
@@ -75,12 +75,13 @@ class Estimator:
         return self.kf.P
 
     # ------------------------------------------------------------ a block of epochs
-    def process_block(self, t, dt_total: float, m, ref_mag, H, R_noise, base, data=None):
+    def process_block(self, t, dt_total: float, m, ref_mag, H, W, base, data=None):
         """Process k epochs; returns ``(status (k,) int, updated (k,) bool, nis (k,) float)``.
 
         ``t`` (k,) s; ``dt_total`` seconds since the previous block's last epoch; ``m`` (k, 3) raw nT;
         ``ref_mag`` (k,) reference magnitude nT; ``H`` (k, 3, n) Jacobian of the linear blocks (NaN rows
-        without attitude); ``R_noise`` (k, 3, 3) sensor-frame noise of the vector measurement; ``base``
+        without attitude); ``W`` (k, 3, 3) whitening of the vector measurement (``W R W^T = I`` for its
+        sensor-frame noise ``R``, see ``magkf.measurements.whitening``); ``base``
         (k,) status known before filtering (``USED`` for a candidate with attitude, ``MISSING_ATTITUDE``
         for one without); ``data`` the block's ``EpochData`` when nonlinear effects are present.
         """
@@ -96,31 +97,38 @@ class Estimator:
         if self.config.measure == "vector":
             scalar &= status != MISSING_ATTITUDE
         cand = vector | scalar
-        if not cand.any():
+        if not np.count_nonzero(cand):
             return status, updated, nis
         x = kf.x
         m_clean = m - self._extra_terms(x, H, data) if self.extra else m
-        h, H_mag, _ = magnitude_jacobian(x[:12], m_clean)
-        # The gate widens with the estimate's own uncertainty of the calibrated magnitude (3 sigma).
-        spread = 3.0 * np.sqrt(np.einsum("ki,ij,kj->k", H_mag, self.kf.P[:12, :12], H_mag))
-        off = np.abs(h - ref_mag) > self.config.gate_nt + spread
+        Rinv = inv_small(x[:9].reshape(3, 3))
+        c = (m_clean - x[9:12]) @ Rinv.T
+        h = np.sqrt(np.einsum("ki,ki->k", c, c))
+        off = np.abs(h - ref_mag) > self.config.gate_nt
+        if np.count_nonzero(cand & off):
+            # The gate widens with the estimate's own uncertainty of the calibrated magnitude (3 sigma),
+            # evaluated at the block's first candidate (it changes little within a block).
+            i0 = int(np.argmax(cand))
+            w0 = (c[i0] / h[i0]) @ Rinv
+            H0 = np.concatenate([-np.outer(w0, c[i0]).ravel(), -w0])
+            off = np.abs(h - ref_mag) > self.config.gate_nt + 3.0 * np.sqrt(H0 @ self.kf.P[:12, :12] @ H0)
         gated_mag = cand & off
         status[gated_mag] = GATED_MAGNITUDE
         vector &= ~off
         scalar &= ~off
-        if not (vector.any() or scalar.any()):
+        if not (np.count_nonzero(vector) or np.count_nonzero(scalar)):
             return status, updated, nis
         if isinstance(kf, RandomWalkEKF):
-            rows = self._ekf_rows(x, m, m_clean, ref_mag, H, R_noise, vector, scalar, data)
+            rows = self._ekf_rows(x, m, m_clean, ref_mag, H, W, vector, scalar, data)
         else:
-            rows = self._ukf_rows(m, m_clean, ref_mag, H, R_noise, vector, scalar, data)
+            rows = self._ukf_rows(m, m_clean, ref_mag, H, W, vector, scalar, data)
         nis[vector | scalar] = rows["nis"]
         bound = np.where(vector, self.chi2_vector, self.chi2_scalar)
         gated = (vector | scalar) & (nis > bound)
         accept = (vector | scalar) & ~gated
         self._reacquire(t, gated, accept)
         status[gated] = GATED_INNOVATION
-        if accept.any():
+        if np.count_nonzero(accept):
             self._update(rows, accept[vector | scalar])
             updated[accept] = True
         return status, updated, nis
@@ -139,27 +147,29 @@ class Estimator:
             total = total + effect.contribution(x[..., sl], data)
         return total
 
-    def _ekf_rows(self, x, m, m_clean, ref_mag, H, R_noise, vector, scalar, data):
-        """Linearised rows for every candidate epoch: per-epoch NIS, and what the update needs."""
+    def _ekf_rows(self, x, m, m_clean, ref_mag, H, W, vector, scalar, data):
+        """Whitened, linearised rows of every candidate epoch: per-epoch NIS, and what the update needs."""
         P = self.kf.P
-        parts = []  # (epoch order) list of (y, Hrows, Rblock)
         idx = np.flatnonzero(vector | scalar)
         nis = np.empty(len(idx))
-        if vector.any():
+        rows = {"order": idx, "vector_mask": vector[idx], "scalar_mask": scalar[idx]}
+        if np.count_nonzero(vector):
             Hv = H[vector]
             if self.nonlinear:
                 Hv = Hv.copy()
                 dv = data.take(vector)
                 for effect, sl in self.nonlinear:
                     Hv[:, :, sl] = effect.jacobian(x[sl], dv)
-                yv = m[vector] - np.einsum("kij,j->ki", Hv, x) - self._nonlinear(x, dv)
+                yv = m[vector] - Hv @ x - self._nonlinear(x, dv)
             else:
-                yv = m[vector] - np.einsum("kij,j->ki", Hv, x)
-            Rv = R_noise[vector]
-            S = Hv @ P @ Hv.transpose(0, 2, 1) + Rv
-            SI = np.linalg.inv(S)
-            nis[vector[idx]] = np.einsum("ki,kij,kj->k", yv, SI, yv)
-        if scalar.any():
+                yv = m[vector] - Hv @ x
+            Wv = W[vector]
+            Hv = Wv @ Hv
+            yv = np.einsum("kij,kj->ki", Wv, yv)
+            S = Hv @ P @ Hv.transpose(0, 2, 1) + np.eye(3)
+            nis[vector[idx]] = np.einsum("ki,kij,kj->k", yv, inv_small(S), yv)
+            rows["vector"] = (yv, Hv)
+        if np.count_nonzero(scalar):
             h, Hs_core, w = magnitude_jacobian(x[:12], m_clean[scalar])
             Hs = np.zeros((len(h), self.layout.size))
             Hs[:, :12] = Hs_core
@@ -167,20 +177,15 @@ class Estimator:
                 Hs[:, 12:] = -np.einsum("ki,kij->kj", w, H[scalar][:, :, 12:])
             if self._rotation_projector is not None:
                 Hs = Hs @ self._rotation_projector
-            ys = ref_mag[scalar] - h
-            var = magnitude_noise(w, self.config)
-            s = np.einsum("ki,ij,kj->k", Hs, P, Hs) + var
-            nis[scalar[idx]] = ys**2 / s
-        rows = {"nis": nis, "order": idx}
-        if vector.any():
-            rows["vector"] = (yv, Hv, Rv)
-        if scalar.any():
-            rows["scalar"] = (ys, Hs, var)
-            rows["scalar_H"], rows["scalar_var"] = Hs, var
-        rows["vector_mask"], rows["scalar_mask"] = vector[idx], scalar[idx]
+            sd = np.sqrt(magnitude_noise(w, self.config))
+            Hs, ys = Hs / sd[:, None], (ref_mag[scalar] - h) / sd
+            nis[scalar[idx]] = ys**2 / (np.einsum("ki,ij,kj->k", Hs, P, Hs) + 1.0)
+            rows["scalar"] = (ys, Hs)
+            rows["scalar_H"] = Hs
+        rows["nis"] = nis
         return rows
 
-    def _ukf_rows(self, m, m_clean, ref_mag, H, R_noise, vector, scalar, data):
+    def _ukf_rows(self, m, m_clean, ref_mag, H, W, vector, scalar, data):
         """Sigma-point predictions for every candidate epoch (one set of fresh sigma points per block)."""
         kf = self.kf
         sigmas = kf.points_fn.sigma_points(kf.x, kf.P)
@@ -188,84 +193,78 @@ class Estimator:
         nis = np.empty(len(idx))
         rows = {"sigmas": sigmas, "order": idx, "vector_mask": vector[idx], "scalar_mask": scalar[idx]}
         Wm, Wc = kf.Wm, kf.Wc
-        if vector.any():
+        if np.count_nonzero(vector):
             Hv = H[vector]
             hv = np.einsum("kij,sj->ski", Hv, sigmas)  # (S, k, 3)
             if self.nonlinear:
                 hv = hv + self._nonlinear(sigmas, data.take(vector))
+            Wv = W[vector]
+            hv = np.einsum("kij,skj->ski", Wv, hv)  # whitened: unit noise
+            rows["vector_H"] = Wv @ Hv
             zp = np.einsum("s,ski->ki", Wm, hv)
             dz = hv - zp
-            S = np.einsum("s,ski,skj->kij", Wc, dz, dz) + R_noise[vector]
-            yv = m[vector] - zp
-            nis[vector[idx]] = np.einsum("ki,kij,kj->k", yv, np.linalg.inv(S), yv)
-            rows["vector"] = (yv, hv, R_noise[vector])
-        if scalar.any():
+            S = np.einsum("s,ski,skj->kij", Wc, dz, dz) + np.eye(3)
+            yv = np.einsum("kij,kj->ki", Wv, m[vector]) - zp
+            nis[vector[idx]] = np.einsum("ki,kij,kj->k", yv, inv_small(S), yv)
+            rows["vector"] = (yv, hv)
+        if np.count_nonzero(scalar):
             mc = m_clean[scalar]
             if self.extra:  # the other effects' terms move with the sigma points too
                 mc = mc[None] - np.einsum("kij,sj->ski", H[scalar][:, :, 12:], sigmas[:, 12:] - kf.x[12:])
             Rs = sigmas[:, :9].reshape(-1, 1, 3, 3)
             cs = np.linalg.solve(Rs, (mc - sigmas[:, None, 9:12])[..., None])[..., 0]
             hs = np.linalg.norm(cs, axis=2)  # (S, k)
-            zp = Wm @ hs
             _, H_core, w = magnitude_jacobian(kf.x[:12], m_clean[scalar])
-            var = magnitude_noise(w, self.config)
-            H_lin = np.zeros((len(var), self.layout.size))
+            sd = np.sqrt(magnitude_noise(w, self.config))
+            H_lin = np.zeros((len(sd), self.layout.size))
             H_lin[:, :12] = H_core
             if self.extra:
                 H_lin[:, 12:] = -np.einsum("ki,kij->kj", w, H[scalar][:, :, 12:])
-            rows["scalar_H"], rows["scalar_var"] = H_lin, var
-            s = np.einsum("s,sk->k", Wc, (hs - zp) ** 2) + var
-            ys = ref_mag[scalar] - zp
-            nis[scalar[idx]] = ys**2 / s
-            rows["scalar"] = (ys, hs, var)
+            rows["scalar_H"] = H_lin / sd[:, None]  # for the information only
+            hs = hs / sd  # whitened
+            zp = Wm @ hs
+            ys = ref_mag[scalar] / sd - zp
+            nis[scalar[idx]] = ys**2 / (np.einsum("s,sk->k", Wc, (hs - zp) ** 2) + 1.0)
+            rows["scalar"] = (ys, hs)
         rows["nis"] = nis
         return rows
 
     # ------------------------------------------------------------ the stacked update
     def _update(self, rows, accept):
-        """Update with the accepted epochs' rows, all at once."""
-        vmask = rows["vector_mask"]
-        smask = rows["scalar_mask"]
-        va = accept[vmask] if vmask.any() else np.zeros(0, bool)
-        sa = accept[smask] if smask.any() else np.zeros(0, bool)
+        """Update with the accepted epochs' whitened rows, all at once (unit noise)."""
+        vmask, smask = rows["vector_mask"], rows["scalar_mask"]
+        va, sa = accept[vmask], accept[smask]
         kf = self.kf
+        ys, Hs = [], []
+        if np.count_nonzero(va):
+            y, Hv = rows["vector"]
+            ys.append(y[va].ravel())
+            Hs.append(Hv[va].reshape(-1, Hv.shape[2]) if isinstance(kf, RandomWalkEKF)
+                      else Hv[:, va].reshape(Hv.shape[0], -1))
+        if np.count_nonzero(sa):
+            y, Hsc = rows["scalar"]
+            ys.append(y[sa])
+            Hs.append(Hsc[sa] if isinstance(kf, RandomWalkEKF) else Hsc[:, sa])
+        y = np.concatenate(ys)
         if isinstance(kf, RandomWalkEKF):
-            ys, Hs, blocks = [], [], []
-            if va.any():
-                y, Hv, Rv = rows["vector"]
-                ys.append(y[va].ravel())
-                Hs.append(Hv[va].reshape(-1, Hv.shape[2]))
-                blocks.append(Rv[va])
-            if sa.any():
-                y, Hsc, var = rows["scalar"]
-                ys.append(y[sa])
-                Hs.append(Hsc[sa])
-                blocks.append(var[sa])
-            y, Hst, Rst = np.concatenate(ys), np.vstack(Hs), _block_diagonal(blocks)
-            kf.correct_stacked(y, Hst, Rst)
+            Hst = np.vstack(Hs)
+            kf.correct_stacked(y, Hst)
+            self.information += Hst.T @ Hst
         else:
-            hs, ys, blocks = [], [], []
-            if va.any():
-                y, hv, Rv = rows["vector"]
-                hs.append(hv[:, va].reshape(hv.shape[0], -1))
-                ys.append(y[va].ravel())
-                blocks.append(Rv[va])
-            if sa.any():
-                y, hsc, var = rows["scalar"]
-                hs.append(hsc[:, sa])
-                ys.append(y[sa])
-                blocks.append(var[sa])
-            kf.correct_sigmas(rows["sigmas"], np.hstack(hs), np.concatenate(ys), _block_diagonal(blocks))
-        if sa.any():  # the vector epochs' information is summed after the run, in one vectorised pass
-            Hsc, var = rows["scalar_H"][sa], rows["scalar_var"][sa]
-            self.information += (Hsc / var[:, None]).T @ Hsc
+            kf.correct_sigmas(rows["sigmas"], np.hstack(Hs), y)
+            if np.count_nonzero(va):  # information of the (linear) vector rows: H_whitened^T H_whitened
+                Hl = rows["vector_H"][va].reshape(-1, self.layout.size)
+                self.information += Hl.T @ Hl
+            if np.count_nonzero(sa):
+                Hl = rows["scalar_H"][sa]
+                self.information += Hl.T @ Hl
 
     def _reacquire(self, t, gated, accept) -> None:
         """After ``max_gated_s`` of innovation gating with nothing accepted, widen P so the filter can recover."""
-        if accept.any():
+        if np.count_nonzero(accept):
             self._gated_since = None
             return
-        if not gated.any():
+        if not np.count_nonzero(gated):
             return
         t_g = float(np.asarray(t)[gated][0])
         if self._gated_since is None:
@@ -284,25 +283,4 @@ def rotation_directions(R: np.ndarray, size: int) -> np.ndarray:
         i, j = [(1, 2), (2, 0), (0, 1)][k]
         omega[i, j], omega[j, i] = -1.0, 1.0
         out[:9, k] = (R @ omega).ravel()
-    return out
-
-
-def _block_diagonal(blocks) -> np.ndarray:
-    """Block-diagonal noise matrix from a list of (k, 3, 3) arrays and (k,) variances."""
-    sizes = []
-    for blk in blocks:
-        sizes += [3] * len(blk) if blk.ndim == 3 else [1] * len(blk)
-    n = sum(sizes)
-    out = np.zeros((n, n))
-    pos = 0
-    for blk in blocks:
-        if blk.ndim == 3:
-            k = len(blk)
-            view = out[pos:pos + 3 * k, pos:pos + 3 * k].reshape(k, 3, k, 3)
-            view[np.arange(k), :, np.arange(k), :] = blk
-            pos += 3 * k
-        else:
-            k = len(blk)
-            out[np.arange(pos, pos + k), np.arange(pos, pos + k)] = blk
-            pos += k
     return out

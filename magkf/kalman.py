@@ -18,6 +18,25 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 
+def inv_small(A: np.ndarray) -> np.ndarray:
+    """Inverse of a matrix (or a stack of them); a single 3x3 by cofactors, which for one small
+    matrix is several times cheaper than numpy's general call."""
+    if A.shape == (3, 3):
+        return _inv3(A)
+    if A.shape == (1, 3, 3):
+        return _inv3(A[0])[None]
+    return np.linalg.inv(A)
+
+
+def _inv3(A: np.ndarray) -> np.ndarray:
+    (a, b, c), (d, e, f), (g, h, i) = A.tolist()
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * c00 + b * c01 + c * c02
+    return np.array([[c00, c * h - b * i, b * f - c * e],
+                     [c01, a * i - c * g, c * d - a * f],
+                     [c02, b * g - a * h, a * e - b * d]]) / det
+
+
 def _guard(P: np.ndarray) -> np.ndarray:
     """``P`` (symmetric) with its eigenvalues clipped if a diagonal element is not positive."""
     if P.ravel()[:: P.shape[0] + 1].min() <= 0:
@@ -44,16 +63,21 @@ class RandomWalkEKF(ExtendedKalmanFilter):
         """Random-walk prediction over ``dt`` seconds: ``P += Q dt`` (``x`` unchanged)."""
         self.P.ravel()[:: self._stride] += self.q_rate * dt
 
-    def correct_stacked(self, y, H, R) -> None:
-        """Update with innovation ``y`` (r,), Jacobian ``H`` (r, n) and noise ``R`` (r, r).
+    def correct_stacked(self, y, H, R=None) -> None:
+        """Update with innovation ``y`` (r,), Jacobian ``H`` (r, n) and noise ``R`` (r, r; default the
+        identity, for whitened rows).
 
         Joseph form ``(I - K H) P (I - K H)^T + K R K^T``, expanded as ``P + M + M^T`` with
         ``M = K S K^T / 2 - K (P H^T)^T``: the same expression, valid for any gain, in two products
         instead of four and exactly symmetric by construction.
         """
         PHt = self.P @ H.T
-        S = H @ PHt + R
-        K = np.linalg.solve(S, PHt.T).T
+        S = H @ PHt
+        if R is None:
+            S.ravel()[:: len(S) + 1] += 1.0
+        else:
+            S += R
+        K = PHt @ inv_small(S) if S.shape == (3, 3) else np.linalg.solve(S, PHt.T).T
         self.x = self.x + K @ y
         M = (0.5 * (K @ S)) @ K.T - K @ PHt.T
         self.P = _guard(self.P + (M + M.T))
@@ -81,12 +105,14 @@ class RandomWalkUKF(UnscentedKalmanFilter):
         """Random-walk prediction over ``dt`` seconds: ``P += Q dt`` (``x`` unchanged, exact)."""
         self.P.ravel()[:: self._stride] += self.q_rate * dt
 
-    def correct_sigmas(self, sigmas, h, y, R) -> None:
+    def correct_sigmas(self, sigmas, h, y, R=None) -> None:
         """Update from ``sigmas`` (2n+1, n) drawn from the current ``(x, P)``, their measurements ``h``
-        (2n+1, r), the innovation ``y = z - zp`` (r,) and the noise ``R`` (r, r)."""
+        (2n+1, r), the innovation ``y = z - zp`` (r,) and the noise ``R`` (r, r; default the identity,
+        for whitened rows)."""
         zp = self.Wm @ h
         dz = h - zp
-        S = (dz.T * self.Wc) @ dz + R
+        S = (dz.T * self.Wc) @ dz
+        S = S + (np.eye(len(S)) if R is None else R)
         Pxz = ((sigmas - self.x).T * self.Wc) @ dz
         K = np.linalg.solve(S, Pxz.T).T
         self.x = self.x + K @ y

@@ -24,19 +24,41 @@ import numpy as np
 
 from .config import FilterConfig
 
+_EYE = np.eye(3)
+
 
 def vector_noise(field_body: np.ndarray, R: np.ndarray, config: FilterConfig, measure: str) -> np.ndarray:
     """Sensor-frame noise covariance (N, 3, 3) of the vector measurement at N epochs (body field in nT)."""
     B = np.asarray(field_body, float)
-    att = np.radians(config.attitude_deg)
+    att2 = np.radians(config.attitude_deg) ** 2
     b2 = np.einsum("ni,ni->n", B, B)
-    eye = np.eye(3)
+    diagonal = att2 * b2 + config.reference_nt**2  # (N,)
+    A = _EYE * diagonal[:, None, None]
     if measure == "both":
-        A = att**2 * (b2[:, None, None] * eye - np.einsum("ni,nj->nij", B, B))
-    else:
-        A = (att**2 * b2)[:, None, None] * eye
-    A = A + config.reference_nt**2 * eye
-    return config.sensor_noise_nt**2 * eye + R @ A @ R.T
+        A = A - att2 * B[:, :, None] * B[:, None, :]
+    return config.sensor_noise_nt**2 * _EYE + R @ A @ R.T
+
+
+def whitening(noise: np.ndarray) -> np.ndarray:
+    """``W = L^-1`` (N, 3, 3) with ``noise = L L^T``: ``W y`` has unit, uncorrelated noise."""
+    if len(noise) == 1:  # one epoch (real time): the 3x3 algebra written out beats numpy's call overhead
+        return _whitening3(noise[0])[None]
+    return np.linalg.inv(np.linalg.cholesky(noise))
+
+
+def _whitening3(N: np.ndarray) -> np.ndarray:
+    """Inverse Cholesky factor of one symmetric positive-definite 3x3 matrix."""
+    (a, b, c), (_, d, e), (_, _, f) = N.tolist()
+    l11 = a**0.5
+    l21, l31 = b / l11, c / l11
+    l22 = (d - l21 * l21) ** 0.5
+    l32 = (e - l31 * l21) / l22
+    l33 = (f - l31 * l31 - l32 * l32) ** 0.5
+    i11, i22, i33 = 1 / l11, 1 / l22, 1 / l33
+    i21 = -l21 * i11 * i22
+    i32 = -l32 * i22 * i33
+    i31 = -(l31 * i11 + l32 * i21) * i33
+    return np.array([[i11, 0.0, 0.0], [i21, i22, 0.0], [i31, i32, i33]])
 
 
 def magnitude_jacobian(x_core: np.ndarray, m_minus_e: np.ndarray):

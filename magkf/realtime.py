@@ -18,16 +18,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibrate import base_status
+from .calibrate import sample_status
 from .calibration import Calibration
 from .config import FilterConfig
 from .conventions import (ATTITUDE, MAG, REF, declination_deg, euler_to_dcm, magnetic_heading_deg, ned_to_body)
 from .effects.base import EpochData
 from .effects.core import SoftHardIron
-from .estimator import STATUSES, Estimator
-from .measurements import vector_noise
+from .estimator import STATUSES, USED, Estimator
+from .kalman import inv_small
+from .measurements import vector_noise, whitening
 from .reference import ReferenceFieldCache
 from .state import StateLayout
+
+
+_IDENTITY = np.eye(3)[None]
+_NAN33 = np.full((3, 3), np.nan)
 
 
 @dataclass(frozen=True)
@@ -95,27 +100,30 @@ class OnlineCalibrator:
         roll, pitch, yaw = (get(c) for c in ATTITUDE)
         ref = self._reference(t, get)
         has_att = bool(np.isfinite(roll) and np.isfinite(pitch) and np.isfinite(yaw))
-        c_nb = euler_to_dcm(yaw, pitch, roll) if has_att else np.full((3, 3), np.nan)
+        c_nb = euler_to_dcm(yaw, pitch, roll) if has_att else _NAN33
         field_body = ned_to_body(c_nb, ref)
         dop = get("dop")
         if not np.isfinite(dop):
             dop = get("pdop") if np.isfinite(get("pdop")) else get("hdop")
-        base = base_status(m[None], ref[None], np.array([has_att]), np.array([dop]), self.config.dop_max)
+        base = np.array([sample_status(m, ref, has_att, dop, self.config.dop_max)], dtype=np.int8)
         columns = {c: np.array([get(c)]) for e in self.layout.extra() for c in e.columns}
         data = EpochData(np.array([t]), field_body[None], ref[None], columns)
         H = np.concatenate([e.jacobian(self.estimator.x[sl], data) if e.linear else np.zeros((1, 3, e.size))
                             for e, sl in zip(self.layout.effects, self.layout.slices.values())], axis=2)
         x = self.estimator.x
-        noise = vector_noise(np.nan_to_num(field_body)[None], x[:9].reshape(3, 3), self.config, self.config.measure)
+        if base[0] == USED and self.config.measure != "magnitude":
+            W = whitening(vector_noise(field_body[None], x[:9].reshape(3, 3), self.config, self.config.measure))
+        else:
+            W = _IDENTITY  # not used: the sample has no vector update
         dt = 0.0 if self._last_time is None else t - self._last_time
         self._last_time = t
         status, updated, nis = self.estimator.process_block(
-            np.array([t]), dt, m[None], np.array([np.linalg.norm(ref)]), H, noise, base,
+            np.array([t]), dt, m[None], np.array([np.linalg.norm(ref)]), H, W, base,
             data if self.estimator.nonlinear else None)
         x = self.estimator.x
         R, b = x[:9].reshape(3, 3), x[9:12]
         e = np.einsum("kij,j->ki", H[:, :, 12:], x[12:])[0] if self.layout.size > 12 else 0.0
-        field = np.linalg.solve(R, m - b - e)
+        field = inv_small(R) @ (m - b - e)
         heading = float(magnetic_heading_deg(field, roll, pitch)) if has_att else float("nan")
         return EpochResult(time=t, field_body=field, magnitude_nt=float(np.linalg.norm(field)),
                            heading_mag_deg=heading,

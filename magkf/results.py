@@ -72,7 +72,8 @@ def _rms(a) -> float:
 
 
 def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, nis, x_final, P_final,
-              information, init_how, smoothed, reacquisitions, elapsed_s, method=None) -> CalibrationRun:
+              information, init_how, smoothed, reacquisitions, elapsed_s, method=None,
+              loop_s=float("nan")) -> CalibrationRun:
     names = layout.names
     method = method or config.filter
     prior_x = np.vstack([x0, xs[:-1]]) if not (smoothed or method == "batch") else xs
@@ -109,6 +110,7 @@ def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, n
         "nis_mean": float(np.mean(nis[used])) if np.isfinite(nis[used]).any() else float("nan"),
         "n_epochs": int(len(status)), "n_updates": int(updated.sum()), "status_counts": counts,
         "run_time_s": float(elapsed_s), "epochs_per_second": float(len(status) / elapsed_s),
+        "filter_loop_s": float(loop_s),
         "filter": method, "measure": config.measure, "smoothed": bool(smoothed), "init": init_how,
         "reacquisitions": int(reacquisitions), "observability": obs, "effects": effects,
         "config": config.as_dict(),

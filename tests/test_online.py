@@ -148,7 +148,7 @@ def test_batch_agrees_with_filter(constant_log, measure):
 def test_block_updates_match_epoch_by_epoch(constant_log):
     _, log = constant_log
     blocks = calibrate_log(log, MATCHED)
-    single = calibrate_log(log, MATCHED.replace(block_epochs=1))
+    single = calibrate_log(log, MATCHED.replace(block_s=0))
     assert np.all(np.abs(blocks.x - single.x) < 0.1 * single.std)
     assert (blocks.states["status"] != single.states["status"]).mean() < 0.002
 
@@ -215,7 +215,7 @@ def test_smoothing_improves_the_early_estimates():
 def test_realtime_matches_post_processing_epoch_by_epoch():
     sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=20, noise_nt=NOISE, seed=14))
     init = Calibration(R=sim.R + 0.003, b=sim.b + 50.0)
-    config = MATCHED.replace(block_epochs=1)
+    config = MATCHED.replace(block_s=0)
     post = calibrate_log(DriveLog(sim.table), config, init=init)
     online = OnlineCalibrator(init, config)
     rows = sim.table.reset_index().to_dict("records")
