@@ -23,7 +23,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .bootstrap import vector_least_squares
-from .calibrate import initial_core, prepare
+from .calibrate import initial_core, prepare, with_initial_R
 from .calibration import Calibration
 from .config import FilterConfig
 from .conventions import body_to_ned
@@ -53,6 +53,7 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     started = _time.perf_counter()
     prep = prepare(log, config)
     x_core, P_core, how = initial_core(prep, config, init)
+    prep = with_initial_R(prep, x_core)
     core = SoftHardIron(x_core, np.sqrt(np.diag(P_core)), config.r_walk, config.b_walk)
     layout = StateLayout((core, *effects))
     x0, P0 = layout.prior()

@@ -39,40 +39,36 @@ class Bootstrap:
     span_s: float
 
 
-def vector_least_squares(m, field_body, noise_nt: float, prior_mean=None, prior_std=None):
-    """Weighted, robust least squares of ``m = R B + b``; returns ``(x (12,), cov (12, 12), weights (N,))``.
+def vector_least_squares(m, field_body, noise_nt: float, prior_mean=None, prior_std=None, extra=None):
+    """Robust least squares of ``m = R B + b + G theta``; returns ``(x (12+k,), cov, weights (N,))``.
 
-    ``m`` and ``field_body`` are (N, 3) nT. A Gaussian prior (12,) mean and std may be given.
+    ``m`` and ``field_body`` are (N, 3) nT; ``extra`` (N, 3, k) holds the regressors of added linear
+    effects. A Gaussian prior (mean, std over all 12 + k parameters) may be given. Epochs are
+    re-weighted with Huber weights on their residual norm.
     """
-    m, B = np.asarray(m, float), np.asarray(field_body, float)
-    n = len(m)
-    X = np.column_stack([B, np.ones(n)])  # one design for the three rows of [R | b]
-    w = np.ones(n)
+    from .effects.core import core_jacobian
+
+    m = np.asarray(m, float)
+    A = core_jacobian(field_body)
+    if extra is not None:
+        A = np.concatenate([A, extra], axis=2)
+    p = A.shape[2]
     if prior_mean is None:
-        prior_mean, prior_std = np.zeros(12), np.full(12, np.inf)
-    order = np.r_[0:3, 9, 3:6, 10, 6:9, 11]  # state index of [R_i1, R_i2, R_i3, b_i] for i = 1..3
-    mu, info_prior = prior_mean[order].reshape(3, 4), (1.0 / np.asarray(prior_std, float)[order] ** 2).reshape(3, 4)
+        prior_mean, prior_std = np.zeros(p), np.full(p, np.inf)
+    info_prior = 1.0 / np.asarray(prior_std, float) ** 2
+    w = np.ones(len(m))
     for _ in range(8):
-        A = (X * w[:, None]).T @ X / noise_nt**2
-        coef = np.empty((3, 4))
-        covs = []
-        for i in range(3):
-            Ai = A + np.diag(info_prior[i])
-            rhs = (X * w[:, None]).T @ m[:, i] / noise_nt**2 + info_prior[i] * mu[i]
-            coef[i] = np.linalg.solve(Ai, rhs)
-            covs.append(np.linalg.inv(Ai))
-        r = np.linalg.norm(m - X @ coef.T, axis=1) / (noise_nt * np.sqrt(3))
+        Aw = A * w[:, None, None]
+        info = np.einsum("nki,nkj->ij", Aw, A) / noise_nt**2 + np.diag(info_prior)
+        rhs = np.einsum("nki,nk->i", Aw, m) / noise_nt**2 + info_prior * prior_mean
+        cov = np.linalg.inv(info)
+        x = cov @ rhs
+        r = np.linalg.norm(m - np.einsum("nki,i->nk", A, x), axis=1) / (noise_nt * np.sqrt(3))
         w_new = np.minimum(1.0, HUBER_K / np.maximum(r, 1e-12))
         if np.allclose(w_new, w, atol=1e-4):
             break
         w = w_new
-    x = np.empty(12)
-    cov = np.zeros((12, 12))
-    for i in range(3):
-        idx = order[4 * i:4 * i + 4]
-        x[idx] = coef[i]
-        cov[np.ix_(idx, idx)] = covs[i]
-    return x, cov, w
+    return x, 0.5 * (cov + cov.T), w
 
 
 def completion_prior(x: np.ndarray) -> np.ndarray:
@@ -85,11 +81,15 @@ def completion_prior(x: np.ndarray) -> np.ndarray:
     return prior
 
 
-def bootstrap_vector(m, field_body, time, noise_nt: float, span_s: float) -> Bootstrap:
+def bootstrap_vector(m, field_body, time, noise_nt: float, span_s: float, extra=None,
+                     extra_prior=None) -> Bootstrap:
     """Bootstrap from good epochs with attitude: ``m``, ``field_body`` (N, 3) nT, ``time`` (N,) s.
 
     Uses the first ``span_s`` seconds; the whole log if that stretch has too few epochs or does not
-    turn the sensor through enough headings to fix the first two columns of ``R``.
+    turn the sensor through enough headings to fix the first two columns of ``R``. ``extra`` (N, 3, k)
+    are the regressors of added linear effects, fitted jointly (so that a direction they share with
+    ``R`` or ``b`` is not pinned by a fit that ignored them), with ``extra_prior`` (mean, std) (k,).
+    The result's ``x`` and ``P`` cover the core and those effects.
     """
     if len(m) < MIN_EPOCHS:
         raise InputError(f"too few usable epochs ({len(m)}) to bootstrap a calibration; give --init CAL.json")
@@ -97,12 +97,15 @@ def bootstrap_vector(m, field_body, time, noise_nt: float, span_s: float) -> Boo
     if stretch.sum() < MIN_EPOCHS or _heading_spread(field_body[stretch]) < 120.0:
         stretch = np.ones(len(m), bool)
     m_s, B_s = m[stretch], field_body[stretch]
-    flat = np.full(12, np.inf)
-    flat[:9], flat[9:] = 1e3, 1e7  # nearly flat prior: only keeps the first solve well posed
+    G = None if extra is None else extra[stretch]
+    e_mean, e_std = (np.zeros(0), np.zeros(0)) if extra is None else extra_prior
+    # First the core alone (with a nearly flat prior that only keeps the solve well posed): its R columns
+    # give the prior's right-handed completion. Then the core and the effects together.
+    flat = np.concatenate([np.full(9, 1e3), np.full(3, 1e7)])
     x1, _, _ = vector_least_squares(m_s, B_s, noise_nt, np.zeros(12), flat)
-    prior = completion_prior(x1)
-    std = np.concatenate([np.full(9, PRIOR_R_STD), np.full(3, PRIOR_B_STD)])
-    x, cov, _ = vector_least_squares(m_s, B_s, noise_nt, prior, std)
+    prior = np.concatenate([completion_prior(x1), e_mean])
+    std = np.concatenate([np.full(9, PRIOR_R_STD), np.full(3, PRIOR_B_STD), e_std])
+    x, cov, _ = vector_least_squares(m_s, B_s, noise_nt, prior, std, G)
     info_prior = np.diag(1.0 / std**2)
     info_data = np.linalg.inv(cov) - info_prior
     P = np.linalg.inv(info_data / INFLATION + info_prior)  # the data's information counted 1/INFLATION

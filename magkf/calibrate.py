@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from .calibration import Calibration
 from .config import FilterConfig
 from .conventions import euler_to_dcm, ned_to_body
 from .drivelog import DriveLog
-from .effects.base import EpochData
+from .effects.base import EpochData, rate_of_change
 from .effects.core import SoftHardIron
 from .errors import InputError
 from .estimator import (GATED_DOP, MISSING_ATTITUDE, MISSING_COLUMN, MISSING_MAG, MISSING_POSITION, USED,
@@ -59,7 +59,13 @@ def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     dt = np.concatenate([[0.0], np.diff(t)])
     columns = {c: log.column(c) for c in log.auxiliary}
     ref_mag = np.linalg.norm(ref, axis=1)
-    return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, dt, base, EpochData(t, field_body, ref, columns))
+    data = EpochData(t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate_of_change(t, field_body))
+    return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, dt, base, data)
+
+
+def with_initial_R(prep: PreparedLog, x_core) -> PreparedLog:
+    """``prep`` whose effect data carry the initial calibration's ``R`` (see ``EpochData.R0``)."""
+    return replace(prep, data=replace(prep.data, R0=np.asarray(x_core[:9], float).reshape(3, 3)))
 
 
 def base_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
@@ -83,8 +89,9 @@ def sample_status(m, ref, has_attitude: bool, dop: float, dop_max: float) -> int
     return USED if has_attitude else MISSING_ATTITUDE
 
 
-def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | None):
-    """Initial ``(x (12,), P (12, 12), how)`` of the core block: from ``init`` or bootstrapped."""
+def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
+    """Initial ``(x, P, how)`` of the core block (and of ``effects``, when the bootstrap fitted them with
+    it: then ``x`` and ``P`` cover 12 + their parameters): from ``init`` or bootstrapped."""
     if init is not None:
         x = init.state
         if init.covariance is not None:
@@ -93,9 +100,19 @@ def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | No
             P = np.diag(np.concatenate([np.full(9, config.init_r_std**2), np.full(3, config.init_b_std**2)]))
         return x, P, f"file ({init.method})"
     good = prep.base == USED
+    linear = [e for e in effects if e.linear]
+    if linear:
+        good &= np.all([np.isfinite(prep.data.columns[c]) for e in linear for c in e.columns] or [True], axis=0)
     if good.sum() >= 50 and config.measure != "magnitude":
+        extra = extra_prior = None
+        if linear and len(linear) == len(effects):
+            d = prep.data.take(good)
+            d = replace(d, R0=bootstrap_vector(prep.m[good], d.field_body, d.time, config.sensor_noise_nt,
+                                               config.bootstrap_s).x[:9].reshape(3, 3))
+            extra = np.concatenate([e.jacobian(e.prior()[0], d) for e in effects], axis=2)
+            extra_prior = tuple(np.concatenate(v) for v in zip(*(e.prior() for e in effects)))
         boot = bootstrap_vector(prep.m[good], prep.data.field_body[good], prep.data.time[good],
-                                config.sensor_noise_nt, config.bootstrap_s)
+                                config.sensor_noise_nt, config.bootstrap_s, extra, extra_prior)
     else:
         cand = (prep.base == USED) | (prep.base == MISSING_ATTITUDE)
         if cand.sum() < 200:
@@ -132,14 +149,16 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
         if missing:
             raise InputError(f"effect {effect.name!r} needs column {missing[0]!r}, which the log lacks "
                              f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})", log.source)
-    x_core, P_core, how = initial_core(prep, config, init)
-    core = SoftHardIron(x_core, np.sqrt(np.diag(P_core)), config.r_walk, config.b_walk)
+    x_init, P_init, how = initial_core(prep, config, init, effects)
+    prep = with_initial_R(prep, x_init)
+    core = SoftHardIron(x_init[:12], np.sqrt(np.diag(P_init)[:12]), config.r_walk, config.b_walk)
     layout = StateLayout((core, *effects))
     x0, P0 = layout.prior()
-    P0[:12, :12] = P_core
+    x0[:len(x_init)] = x_init
+    P0[:len(x_init), :len(x_init)] = P_init
     est = Estimator(layout, config, x0, P0)
     H_all = linear_jacobian(layout, prep.data)
-    R_hat = x_core[:9].reshape(3, 3)
+    R_hat = x_init[:9].reshape(3, 3)
     W = whitening(vector_noise(np.nan_to_num(prep.data.field_body), R_hat, config, config.measure))
     n_ep, n = len(prep.m), layout.size
     base = prep.base.copy()

@@ -78,7 +78,9 @@ def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, n
     method = method or config.filter
     prior_x = np.vstack([x0, xs[:-1]]) if not (smoothed or method == "batch") else xs
     ned_i, mag_i = residuals(prep, layout, prior_x)
-    ned_f, mag_f = residuals(prep, layout, x_final)
+    # With smoothing the per-epoch states are the estimate at every epoch (a drift is followed);
+    # otherwise the final estimate is the best for every epoch.
+    ned_f, mag_f = residuals(prep, layout, xs if smoothed else x_final)
     used = (status == USED) & updated
     vec_used = used & prep.has_attitude
     table = {"status": np.array(STATUSES, dtype=object)[status], "updated": updated, "nis": nis}

@@ -19,18 +19,10 @@ import pandas as pd
 from magkf.calibrate import calibrate_log
 from magkf.config import FilterConfig
 from magkf.drivelog import DriveLog
+from magkf.effects import BiasDrift
 from magkf.sim import DriveConfig, simulate_drive
 
 DRIFT_NT = 0.5  # nT per sqrt(s)
-
-
-class DriftingOffset:
-    """Simulator effect: an offset (3,) that follows a random walk of DRIFT_NT nT per sqrt(s)."""
-
-    def simulate(self, table, rng):
-        dt = np.diff(table.index.to_numpy(), prepend=table.index[0])
-        self.path = np.cumsum(rng.normal(size=(len(table), 3)) * DRIFT_NT * np.sqrt(dt)[:, None], axis=0)
-        return self.path
 
 
 SETTINGS = ([{"b_walk": w} for w in (0.0, 0.05, 0.2, 0.5, 2.0)]
@@ -42,10 +34,9 @@ def run(seeds: int) -> pd.DataFrame:
     rows = []
     base = FilterConfig(sensor_noise_nt=30.0, attitude_deg=0.0, reference_nt=0.0, r_walk=0.0)
     for seed in range(seeds):
-        drift = DriftingOffset()
         sim = simulate_drive(DriveConfig(duration_s=600, rate_hz=20, motion="3d", noise_nt=30.0, seed=500 + seed),
-                             effects=[drift])
-        truth_b = sim.b + drift.path  # (N, 3)
+                             effects=[(BiasDrift(), [DRIFT_NT])])
+        truth_b = sim.b + sim.contributions[0]  # (N, 3)
         truth_final = np.concatenate([sim.R.ravel(), truth_b[-1]])
         log = DriveLog(sim.table)
         for setting in SETTINGS:

@@ -44,14 +44,14 @@ def test_truth_and_mounting(tmp):
 
 
 def test_effects_plug_in():
-    class ConstantOffset:
-        def simulate(self, table, rng):
-            return np.tile([300.0, 0.0, 0.0], (len(table), 1))
+    from magkf.effects import CurrentField
 
     base = simulate_drive(DriveConfig(duration_s=5, rate_hz=10, seed=6))
-    with_effect = simulate_drive(DriveConfig(duration_s=5, rate_hz=10, seed=6), effects=[ConstantOffset()])
-    diff = with_effect.table["mag_x"] - base.table["mag_x"]
-    assert np.allclose(diff, 300.0)
+    with_effect = simulate_drive(DriveConfig(duration_s=5, rate_hz=10, seed=6),
+                                 effects=[(CurrentField(), [10.0, 0.0, -5.0])])
+    diff = (with_effect.table[["mag_x", "mag_z"]] - base.table[["mag_x", "mag_z"]]).to_numpy()
+    current = base.table["current_a"].to_numpy()
+    assert np.allclose(diff, np.column_stack([10.0 * current, -5.0 * current]))
 
 
 def test_bad_mounting():

@@ -25,21 +25,38 @@ class EpochData:
 
     ``time`` (N,) UNIX s; ``field_body`` (N, 3) nT, the reference field in the body frame (NaN where
     there is no attitude); ``field_ned`` (N, 3) nT, the reference field; ``columns`` maps auxiliary
-    column names to (N,) arrays.
+    column names to (N,) arrays; ``mag`` (N, 3) the raw reading, nT; ``c_nb`` (N, 3, 3) the attitude;
+    ``field_body_rate`` (N, 3) nT/s, the rate of change of ``field_body``; ``R0`` (3, 3) the initial
+    calibration's ``R`` (effects acting through the sensor's axes use it to stay linear).
     """
 
     time: np.ndarray
     field_body: np.ndarray
     field_ned: np.ndarray
     columns: dict = field(default_factory=dict)
+    mag: np.ndarray | None = None
+    c_nb: np.ndarray | None = None
+    field_body_rate: np.ndarray | None = None
+    R0: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def __len__(self) -> int:
         return len(self.time)
 
     def take(self, index) -> "EpochData":
         """The same data at the epochs ``index`` (an integer array, a slice or a boolean mask)."""
+        def cut(a):
+            return None if a is None else a[index]
+
         return EpochData(self.time[index], self.field_body[index], self.field_ned[index],
-                         {k: v[index] for k, v in self.columns.items()})
+                         {k: v[index] for k, v in self.columns.items()}, cut(self.mag), cut(self.c_nb),
+                         cut(self.field_body_rate), self.R0)
+
+
+def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Time derivative (N, 3) of ``values`` (N, 3) by central differences (one-sided at the ends)."""
+    if len(time_s) < 2:
+        return np.zeros_like(values)
+    return np.gradient(values, time_s, axis=0)
 
 
 class Effect:
@@ -63,6 +80,11 @@ class Effect:
     columns: tuple = ()
     units: tuple = ()
     linear: bool = True
+
+    @property
+    def label(self) -> str:
+        """The name as ``--effect`` accepts it: ``name``, or ``name:COLUMN`` for an effect of a column."""
+        return f"{self.name}:{self.columns[0]}" if self.columns else self.name
 
     @property
     def size(self) -> int:
@@ -89,5 +111,17 @@ class Effect:
         diff = self.contribution(plus, data) - self.contribution(minus, data)  # (k, N, 3)
         return np.moveaxis(diff / (2 * step)[:, None, None], 0, -1)
 
+    def regressors(self, data: EpochData) -> np.ndarray:
+        """What the diagnostics test for this effect: (N, 3, q) columns the residual would follow.
+
+        By default the Jacobian at the prior mean (exact for an effect linear in its parameters); an
+        effect whose Jacobian cannot be told apart from the core offset (a slow drift) overrides it.
+        """
+        return self.jacobian(self.prior()[0], data)
+
+    def simulate(self, theta, data: EpochData, rng: np.random.Generator) -> np.ndarray:
+        """Raw-field contribution (N, 3) nT the simulator adds for true parameters ``theta``."""
+        return self.contribution(np.asarray(theta, float), data)
+
     def describe(self) -> dict:
-        return {"name": self.name, "parameters": list(self.parameter_names), "columns": list(self.columns)}
+        return {"name": self.label, "parameters": list(self.parameter_names), "columns": list(self.columns)}

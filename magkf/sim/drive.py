@@ -6,9 +6,9 @@ the truth behind it. The raw field is
     m = R (C_nb^T B_ref + d) + b + sum(effect contributions) + noise
 
 with ``B_ref`` the IGRF field along the track, ``d`` the body-frame disturbances, and ``R`` the sensor
-matrix times the mounting. Physical effects plug in through ``effects``: any object with a method
-``simulate(table, rng) -> (N, 3)`` returning its raw-field contribution in nT (``table`` is the log
-table built so far, with the auxiliary channels).
+matrix times the mounting. Physical effects plug in through ``effects``: pairs ``(effect, theta)`` of an
+``Effect`` (the same class the filter, batch solver and diagnostics use) and its true parameters; the
+effect's ``simulate`` adds its contribution, evaluated on the reading without effects.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import pandas as pd
 from ..calibration import Calibration
 from ..conventions import ATTITUDE, MAG, REF, TIME, euler_to_dcm, ned_to_body
 from ..drivelog import write_drive_log
+from ..effects.base import EpochData, rate_of_change
 from ..reference import igrf_ned
 from ..sinefit import SineFitParameters
 from .disturbance import simulate_disturbances
@@ -70,7 +71,8 @@ class SimulatedDrive:
     ``table`` is the canonical log indexed by time; ``R`` (3, 3) and ``b`` (3,) the true calibration
     (mounting included); ``reference_ned`` (N, 3) the true field; ``field_body`` (N, 3) the true body
     field without disturbances; ``disturbance`` (N, 3) the body-frame disturbance; ``dop_bad`` (N,)
-    marks the bad-DOP stretches; ``events`` lists the disturbance events.
+    marks the bad-DOP stretches; ``events`` lists the disturbance events; ``effects`` the simulated
+    ``(effect, theta)`` pairs and ``contributions`` their raw-field contributions (N, 3).
     """
 
     table: pd.DataFrame
@@ -84,6 +86,7 @@ class SimulatedDrive:
     events: list = field(default_factory=list)
     dop_stretches: list = field(default_factory=list)
     effects: list = field(default_factory=list)
+    contributions: list = field(default_factory=list)
 
     @property
     def calibration(self) -> Calibration:
@@ -100,7 +103,7 @@ class SimulatedDrive:
                 "config": asdict(self.config),
                 "disturbances": [{**span(e["start"], e["stop"]), "peak_nt": e["peak_nt"]} for e in self.events],
                 "dop_bad": [span(a, z) for a, z in self.dop_stretches],
-                "effects": [getattr(e, "describe", lambda: {"name": type(e).__name__})() for e in self.effects]}
+                "effects": [{**e.describe(), "truth": np.asarray(theta, float).tolist()} for e, theta in self.effects]}
 
     def write(self, csv_path, truth_path=None) -> None:
         """Write the canonical CSV and, if ``truth_path`` is given, the truth JSON."""
@@ -121,7 +124,8 @@ def true_matrix(truth) -> tuple[np.ndarray, np.ndarray]:
 
 def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) -> SimulatedDrive:
     """Simulate a log. ``truth`` is a Calibration, SineFitParameters or ``(R, b)``; by default a
-    realistic soft- and hard-iron calibration. The mounting of ``config`` is applied after it."""
+    realistic soft- and hard-iron calibration. The mounting of ``config`` is applied after it.
+    ``effects`` are ``(Effect, theta)`` pairs added to the raw field."""
     rng = np.random.default_rng(config.seed)
     n = int(round(config.duration_s * config.rate_hz))
     if truth is None:
@@ -151,8 +155,11 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
         for i, name in enumerate(REF):
             table[name] = ref[:, i]
     mag = (field_body + disturbance) @ R.T + b + rng.normal(scale=config.noise_nt, size=(n, 3))
-    for effect in effects:
-        mag = mag + effect.simulate(table, rng)
+    data = EpochData(t, field_body, ref, {c: table[c].to_numpy() for c in table.columns if c not in ATTITUDE},
+                     mag=mag.copy(), c_nb=c_nb, field_body_rate=rate_of_change(t, field_body), R0=R)
+    contributions = [effect.simulate(np.asarray(theta, float), data, rng) for effect, theta in effects]
+    for c in contributions:
+        mag = mag + c
     for i, name in enumerate(MAG):
         table.insert(1 + i, name, mag[:, i])
     dop_bad = np.zeros(n, bool)
@@ -160,4 +167,4 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
         dop_bad[a:z] = True
     return SimulatedDrive(table=table.set_index(TIME), R=R, b=b, config=config, reference_ned=ref,
                           field_body=field_body, disturbance=disturbance, dop_bad=dop_bad, events=events,
-                          dop_stretches=stretches, effects=list(effects))
+                          dop_stretches=stretches, effects=list(effects), contributions=contributions)

@@ -1,0 +1,310 @@
+"""Compare the model with the measurements, and find which physical effect is missing.
+
+For a log and a calibration (the filter's, the batch solver's, or a file's), on the epochs the
+calibration used:
+
+* **Residuals** in NED and magnitude (nT), and against every candidate explanatory signal (heading,
+  roll, pitch, time, each auxiliary column, yaw rate, rate of change of the body field): binned means
+  with 95 % confidence bands and a one-way analysis of variance per signal; the stretches where the
+  residual is largest.
+* **Which effect is missing.** The vector measurement is linear in the parameters in the sensor
+  frame, so adding an effect is a linear regression on the whitened residual ``y = W (m - H x)``
+  (``W`` from the noise settings). For each candidate with regressors ``G`` (its ``regressors``), the
+  model with the core parameters (and effects already added) re-fitted jointly is compared with the
+  model without it: the likelihood-ratio statistic ``LR = n ln(RSS0 / RSS1)`` (Gaussian noise of
+  unknown variance) is chi-square with ``q`` degrees of freedom (the candidate's parameters, less any
+  the core already spans) when the effect is absent. Reported with it: the p-value, the change of
+  AIC (``2q - LR``) and BIC (``q ln n - LR``), and the residual RMS expected after adding the effect.
+  Candidates are ranked by the change of BIC, so that an effect with more parameters (the nine-term
+  eddy current contains the one-term time lag) ranks first only when it explains more than its extra
+  parameters would by chance. A candidate is significant when its p-value is below ``alpha`` divided
+  by the number of candidates
+  (Bonferroni), so on data with no missing effect nothing is reported at the stated level
+  ``alpha`` but by chance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from .calibrate import calibrate_log, initial_core, linear_jacobian, prepare, with_initial_R
+from .calibration import Calibration
+from .config import FilterConfig
+from .conventions import body_to_ned, wrap_deg
+from .drivelog import DriveLog
+from .effects import candidates as default_candidates
+from .effects.core import SoftHardIron
+from .estimator import USED
+from .measurements import vector_noise, whitening
+from .results import CalibrationRun
+from .state import StateLayout
+
+#: Bins of the binned residual means; stretch length of the "largest residual" search, s.
+BINS = 12
+WINDOW_S = 10.0
+#: Whitened residual beyond which an epoch is left out as an outlier (when no run gave statuses).
+OUTLIER_SIGMA = 5.0
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate effect's test. ``effect`` is the name as ``--effect`` accepts it."""
+
+    effect: str
+    statistic: float
+    dof: int
+    p_value: float
+    delta_aic: float
+    delta_bic: float
+    residual_rms_after_nt: float
+    significant: bool
+    estimate: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"effect": self.effect, "statistic": self.statistic, "test": "likelihood ratio (chi-square)",
+                "dof": self.dof, "p_value": self.p_value, "delta_aic": self.delta_aic, "delta_bic": self.delta_bic,
+                "residual_rms_after_nt": self.residual_rms_after_nt, "significant": self.significant,
+                "estimate": self.estimate}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Outcome of ``diagnose``: residual figures, ranked candidates, signals the residual follows."""
+
+    residual_rms_nt: float
+    residual_rms_axis_nt: dict
+    n_epochs_used: int
+    alpha: float
+    candidates: list
+    signals: list
+    largest: list
+    text: str
+    binned: dict = field(default_factory=dict)
+    residuals: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        return {"residual_rms_nt": self.residual_rms_nt, "residual_rms_axis_nt": self.residual_rms_axis_nt,
+                "n_epochs_used": self.n_epochs_used, "alpha": self.alpha,
+                "candidates": [c.as_dict() for c in self.candidates],
+                "signals": self.signals, "largest_residuals": self.largest, "text": self.text}
+
+
+def _state_from_calibration(cal: Calibration, layout: StateLayout) -> np.ndarray:
+    x, _ = layout.prior()
+    x[:12] = cal.state
+    return x
+
+
+def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibration | None = None,
+             effects=(), candidates=None, alpha: float = 0.01, run: CalibrationRun | None = None):
+    """Diagnose ``log``; returns ``(Diagnosis, run)``.
+
+    The model is the calibration ``cal`` (used as it is when no ``effects`` are added), or the online
+    filter's estimate with ``effects`` added (started from ``cal`` if given), or an existing ``run``.
+    ``candidates`` are the effects to test (default: every built-in that the log's columns allow);
+    those already in the model are skipped.
+    """
+    if run is None and (cal is None or effects):
+        run = calibrate_log(log, config, init=cal, effects=effects)
+    prep = prepare(log, config)
+    if run is not None:
+        x = run.x
+        x0_core = run.calibration.state if cal is None else cal.state
+        layout = StateLayout((SoftHardIron(), *effects))
+        used = ((run.states["status"] == "used") & run.states["updated"]).to_numpy() & prep.has_attitude
+    else:
+        layout = StateLayout((SoftHardIron(),))
+        x = _state_from_calibration(cal, layout)
+        x0_core = cal.state
+        used = prep.base == USED
+    prep = with_initial_R(prep, x0_core if run is None else initial_core(prep, config, cal)[0])
+    data = prep.data.take(used)
+    m = prep.m[used]
+    H = linear_jacobian(layout, data)  # (n, 3, p) nuisance: core and added effects
+    W = whitening(vector_noise(data.field_body, x[:9].reshape(3, 3), config, "both"))
+    resid_raw = m - np.einsum("nij,j->ni", H, x)
+    y = np.einsum("nij,nj->ni", W, resid_raw)
+    if run is None:  # no statuses from a filter: leave the gross outliers out, as the batch solver does
+        keep = np.abs(y).max(axis=1) <= OUTLIER_SIGMA
+        used_idx = np.flatnonzero(used)[keep]
+        used = np.zeros_like(used)
+        used[used_idx] = True
+        data, m, H, W, resid_raw, y = data.take(keep), m[keep], H[keep], W[keep], resid_raw[keep], y[keep]
+    n = len(y)
+    if n < 10:
+        raise ValueError(f"too few usable epochs ({n}) to diagnose; the log needs attitude and a reference")
+    Hw = (W @ H).reshape(3 * n, -1)
+    yw = y.ravel()
+    Q, _ = np.linalg.qr(Hw)
+    r0 = yw - Q @ (Q.T @ yw)
+    rss0 = float(r0 @ r0)
+    nrows = 3 * n
+
+    # residuals in nT (NED and magnitude), with the model as it is
+    c = np.linalg.solve(x[:9].reshape(3, 3), (resid_raw + np.einsum("nij,j->ni", H[:, :, :12], x[:12])
+                                              - x[9:12]).T).T
+    ned = body_to_ned(data.c_nb, c) - data.field_ned
+    mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
+    rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
+    axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
+
+    present = {e.label for e in effects} | {e.name for e in effects}
+    pool = [e for e in (candidates if candidates is not None else default_candidates(list(data.columns)))
+            if e.label not in present and all(col in data.columns for col in e.columns)]
+    results = []
+    for effect in pool:
+        G = effect.regressors(data)
+        finite = np.all(np.isfinite(G), axis=(1, 2))
+        if not finite.all():
+            G = np.where(finite[:, None, None], G, 0.0)
+        Gw = (W @ G).reshape(nrows, -1)
+        Gt = Gw - Q @ (Q.T @ Gw)
+        u, s, vt = np.linalg.svd(Gt, full_matrices=False)
+        rank = int(np.sum(s > 1e-9 * max(s.max(), 1e-300))) if s.size else 0
+        if rank == 0:
+            continue
+        proj = u[:, :rank].T @ r0
+        rss1 = rss0 - float(proj @ proj)
+        lr = float(nrows * np.log(rss0 / rss1))
+        p = float(stats.chi2.sf(lr, rank))
+        theta = vt[:rank].T @ (proj / s[:rank])
+        sigma2 = rss1 / (nrows - Q.shape[1] - rank)
+        cov = (vt[:rank].T / s[:rank] ** 2) @ vt[:rank] * sigma2
+        names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
+        estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in
+                    zip(names, theta, np.sqrt(np.clip(np.diag(cov), 0, None)))}
+        results.append(Candidate(effect=effect.label, statistic=lr, dof=rank, p_value=p,
+                                 delta_aic=2 * rank - lr, delta_bic=rank * np.log(nrows) - lr,
+                                 residual_rms_after_nt=rms * float(np.sqrt(rss1 / rss0)), significant=False,
+                                 estimate=estimate))
+    level = alpha / max(len(results), 1)
+    results = [Candidate(**{**vars(r), "significant": r.p_value < level}) for r in results]
+    results.sort(key=lambda r: (r.delta_bic, r.p_value))  # BIC: a richer effect must earn its parameters
+
+    signals, binned = _signals(data, ned, mag, alpha)
+    largest = _largest(data.time, ned)
+    text = _describe(results, signals, level)
+    return Diagnosis(residual_rms_nt=rms, residual_rms_axis_nt=axis_rms, n_epochs_used=n, alpha=alpha,
+                     candidates=results, signals=signals, largest=largest, text=text, binned=binned,
+                     residuals={"time": data.time, "ned": ned, "magnitude": mag}), run
+
+
+# ---------------------------------------------------------------- residual against signals
+def signal_values(data) -> dict:
+    """Candidate explanatory signals (N,) at the used epochs: name -> values."""
+    c = data.c_nb
+    yaw = np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0
+    pitch = np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1)))
+    roll = np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))
+    t = data.time
+    out = {"heading_deg": yaw, "roll_deg": roll, "pitch_deg": pitch, "time_s": t - t[0]}
+    if len(t) > 2:
+        out["yaw_rate_dps"] = np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi
+    out["field_rate_nt_s"] = np.linalg.norm(data.field_body_rate, axis=1)
+    for name, values in data.columns.items():
+        out[name] = values
+    return out
+
+
+def _bins(name: str, v: np.ndarray) -> np.ndarray:
+    if name == "heading_deg":
+        return np.floor(v / (360.0 / BINS)).astype(int) % BINS
+    edges = np.unique(np.nanquantile(v, np.linspace(0, 1, BINS + 1)))
+    if len(edges) < 3:
+        return np.zeros(len(v), int)
+    return np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 2)
+
+
+def _signals(data, ned, mag, alpha):
+    """One-way ANOVA of each residual component over bins of each signal; binned means for plots."""
+    components = {"north": ned[:, 0], "east": ned[:, 1], "down": ned[:, 2], "magnitude": mag}
+    values = signal_values(data)
+    tests = len(values) * len(components)
+    out, binned = [], {}
+    for name, v in values.items():
+        ok = np.isfinite(v)
+        if ok.sum() < 2 * BINS:
+            continue
+        b = _bins(name, v[ok])
+        best = None
+        binned[name] = {}
+        for comp, r in components.items():
+            groups = [r[ok][b == k] for k in np.unique(b)]
+            groups = [g for g in groups if len(g) > 1]
+            if len(groups) < 2:
+                continue
+            f, p = stats.f_oneway(*groups)
+            centres = np.array([np.mean(v[ok][b == k]) for k in np.unique(b)])
+            means = np.array([g.mean() for g in groups])
+            half = np.array([1.96 * g.std(ddof=1) / np.sqrt(len(g)) for g in groups])
+            binned[name][comp] = {"centre": centres[:len(means)].tolist(), "mean": means.tolist(),
+                                  "ci95": half.tolist()}
+            if best is None or p < best[1]:
+                best = (comp, float(p), float(np.ptp(means)))
+        if best is not None:
+            out.append({"signal": name, "component": best[0], "p_value": best[1], "binned_range_nt": best[2],
+                        "significant": best[1] < alpha / tests})
+    out.sort(key=lambda s: s["p_value"])
+    return out, binned
+
+
+def _largest(t: np.ndarray, ned: np.ndarray, count: int = 3) -> list:
+    """The ``count`` stretches of ``WINDOW_S`` seconds with the largest RMS residual norm."""
+    window = np.floor((t - t[0]) / WINDOW_S).astype(int)
+    norm2 = np.sum(ned**2, axis=1)
+    sums = np.bincount(window, norm2)
+    counts = np.bincount(window)
+    rms = np.sqrt(sums / np.maximum(counts, 1))
+    out = []
+    for w in np.argsort(-rms)[:count]:
+        idx = np.flatnonzero(window == w)
+        if idx.size == 0:
+            continue
+        worst = idx[np.argmax(norm2[idx])]
+        out.append({"start": float(t[idx[0]]), "stop": float(t[idx[-1]]), "rms_nt": float(rms[w]),
+                    "max_nt": float(np.sqrt(norm2[worst])), "max_time": float(t[worst])})
+    return out
+
+
+def _describe(results, signals, level) -> str:
+    significant = [r for r in results if r.significant]
+    following = [s for s in signals if s["significant"]]
+    if significant:
+        best = significant[0]
+        text = (f"{best.effect} explains most of the residual (LR {best.statistic:.1f} on {best.dof} dof, "
+                f"p = {best.p_value:.2g}); adding it should bring the residual RMS to "
+                f"{best.residual_rms_after_nt:.1f} nT")
+        if len(significant) > 1:
+            text += "; also significant: " + ", ".join(r.effect for r in significant[1:])
+        return text
+    if following:
+        return ("no candidate effect explains the residual; it still follows "
+                + ", ".join(f"{s['signal']} ({s['component']}, p = {s['p_value']:.2g})" for s in following[:4]))
+    return f"nothing significant at the stated level (each candidate tested at p < {level:.2g})"
+
+
+def compare_runs(log: DriveLog, config: FilterConfig, before: CalibrationRun, after: CalibrationRun) -> dict:
+    """Before and after adding effects, on the epochs both used: residual RMS (nT), mean NIS, AIC, BIC."""
+    both = ((before.states["status"] == "used") & (after.states["status"] == "used")).to_numpy()
+    out = {}
+    for label, run in (("before", before), ("after", after)):
+        ned = run.states[["residual_n", "residual_e", "residual_d"]].to_numpy()[both]
+        ned = ned[np.all(np.isfinite(ned), axis=1)]
+        k = len(run.x)
+        nrows = ned.size
+        rss = float(np.sum(ned**2))
+        out[label] = {"residual_rms_nt": float(np.sqrt(rss / max(len(ned), 1))),
+                      "nis_mean": float(np.nanmean(run.states["nis"].to_numpy()[both])),
+                      "aic": float(nrows * np.log(rss / nrows) + 2 * k),
+                      "bic": float(nrows * np.log(rss / nrows) + k * np.log(nrows)),
+                      "n_parameters": k}
+    out["n_epochs"] = int(both.sum())
+    return out
+
+
+def heading_of(data) -> np.ndarray:
+    """Heading (deg) of the used epochs, for plots."""
+    return wrap_deg(signal_values(data)["heading_deg"])
