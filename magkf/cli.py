@@ -57,6 +57,41 @@ def _add_output_options(p, what: str = "calibration file") -> None:
     p.add_argument("-o", "--output", metavar="FILE", help=f"write the {what}")
 
 
+def _add_filter_options(p) -> None:
+    g = p.add_argument_group("noise and gates (defaults in magkf.config.FilterConfig)")
+    g.add_argument("--sensor-noise", type=float, help="magnetometer noise per axis, nT (default 30)")
+    g.add_argument("--attitude-deg", type=float, help="attitude uncertainty, deg (default 0.1)")
+    g.add_argument("--reference-nt", type=float, help="reference field uncertainty per component, nT (default 10)")
+    g.add_argument("--r-walk", type=float, help="random walk of R per sqrt(s) (default 1e-7)")
+    g.add_argument("--b-walk", type=float, help="random walk of b, nT per sqrt(s) (default 0.01)")
+    g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
+    g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
+    g.add_argument("--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)")
+    g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 0.25; 0 = every epoch)")
+    for name in ("filter", "measure"):
+        if not any(a.dest == name for a in p._actions):
+            p.set_defaults(**{name: None})
+
+
+def _add_effect_options(p, what: str) -> None:
+    g = p.add_argument_group("physical effects")
+    g.add_argument("--effect", action="append", default=[], metavar="NAME[:COLUMN]",
+                   help=f"{what}: temperature_bias, temperature_scale, current_field, time_lag, field_anomaly, "
+                        "bias_drift, eddy_current, or one from --effect-file")
+    g.add_argument("--effect-file", action="append", default=[], metavar="FILE.py",
+                   help="a Python file defining Effect subclasses (their names become usable with --effect)")
+
+
+def _effects(args) -> tuple[list, dict]:
+    """The effects named with --effect, and the registry of user effects from --effect-file."""
+    from .effects import load_effect_file, make_effect
+
+    registry = {}
+    for path in args.effect_file:
+        registry.update(load_effect_file(path))
+    return [make_effect(spec, registry) for spec in args.effect], registry
+
+
 def _add_mag_unit(p) -> None:
     p.add_argument("--mag-unit", choices=list(NT_PER_UNIT), default="nT",
                    help="unit of the magnetometer columns (default nT)")
@@ -202,25 +237,79 @@ def cmd_calibrate(args) -> int:
     from .drivelog import read_drive_log, write_drive_log
 
     config = _filter_config(args)
+    effects, _ = _effects(args)
     init = Calibration.load(args.init) if args.init else None
     log = read_drive_log(args.file, args.mag_unit)
-    if args.batch:
-        from .batch import solve_batch
 
-        run = solve_batch(log, config, init)
-    else:
+    def run_with(effect_list):
+        if args.batch:
+            from .batch import solve_batch
+
+            return solve_batch(log, config, init, effect_list)
         progress = None if args.quiet else terminal_progress()
-        run = calibrate_log(log, config, init, smooth=args.smooth, progress=progress)
+        return calibrate_log(log, config, init, effects=effect_list, smooth=args.smooth, progress=progress)
+
+    run = run_with(effects)
+    summary = dict(run.summary)
+    if effects:
+        from .diagnose import compare_runs
+
+        summary["before_after"] = compare_runs(log, config, run_with([]), run)
     if args.output:
         run.calibration.save(args.output)
     if args.states:
         write_drive_log(run.states, args.states)
     if args.json:
-        _print_json(run.summary)
+        _print_json(summary)
     else:
-        _print_run(run.summary, run.names)
+        _print_run(summary, run.names)
+        if effects:
+            ba = summary["before_after"]
+            print(f"  before / after adding {', '.join(e.label for e in effects)} (on the {ba['n_epochs']} epochs "
+                  "both used):")
+            for key, unit in (("residual_rms_nt", " nT"), ("nis_mean", ""), ("aic", ""), ("bic", "")):
+                print(f"    {key:16s} {ba['before'][key]:12.2f} -> {ba['after'][key]:12.2f}{unit}")
         if args.output:
             print(f"  calibration written to {args.output}")
+    return 0
+
+
+def cmd_diagnose(args) -> int:
+    from .diagnose import diagnose
+    from .drivelog import read_drive_log
+    from .effects import candidates
+
+    config = _filter_config(args)
+    effects, registry = _effects(args)
+    cal = Calibration.load(args.cal) if args.cal else None
+    log = read_drive_log(args.file, args.mag_unit)
+    pool = candidates(log.auxiliary, registry)
+    try:
+        result, _ = diagnose(log, config, cal, effects, pool, alpha=args.alpha)
+    except ValueError as exc:
+        raise InputError(str(exc), args.file) from None
+    summary = result.summary()
+    if args.output:
+        with open(args.output, "w", encoding="utf-8") as f:
+            json.dump(jsonable(summary), f, indent=2)
+    if args.json:
+        _print_json(summary)
+        return 0
+    ax = result.residual_rms_axis_nt
+    print(f"diagnosis of {args.file}: {result.n_epochs_used} epochs used; residual RMS {result.residual_rms_nt:.2f} nT "
+          f"(N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f})")
+    print(f"  {'candidate':28s} {'LR':>10s} {'dof':>4s} {'p-value':>9s} {'dBIC':>10s} {'RMS after':>10s}")
+    for c in result.candidates:
+        print(f"  {c.effect:28s} {c.statistic:10.1f} {c.dof:4d} {c.p_value:9.2g} {c.delta_bic:10.1f} "
+              f"{c.residual_rms_after_nt:8.2f} nT" + ("  *" if c.significant else ""))
+    print(f"  (* significant: p < {args.alpha:g} / {len(result.candidates)} candidates)")
+    follows = [sgn for sgn in result.signals if sgn["significant"]][:5]
+    if follows:
+        print("  the residual follows: " + ", ".join(f"{sg['signal']} ({sg['component']}, range "
+                                                    f"{sg['binned_range_nt']:.0f} nT)" for sg in follows))
+    for w in result.largest[:3]:
+        print(f"  largest residual: {w['rms_nt']:.0f} nT RMS from t = {w['start']:.1f} to {w['stop']:.1f} s")
+    print(f"  {result.text}")
     return 0
 
 
@@ -306,19 +395,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--smooth", action="store_true", help="Rauch-Tung-Striebel smoothing of the per-epoch estimates")
     p.add_argument("--states", metavar="CSV", help="write per-epoch estimates, standard deviations, statuses, residuals")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    g = p.add_argument_group("noise and gates (defaults in magkf.config.FilterConfig)")
-    g.add_argument("--sensor-noise", type=float, help="magnetometer noise per axis, nT (default 30)")
-    g.add_argument("--attitude-deg", type=float, help="attitude uncertainty, deg (default 0.1)")
-    g.add_argument("--reference-nt", type=float, help="reference field uncertainty per component, nT (default 10)")
-    g.add_argument("--r-walk", type=float, help="random walk of R per sqrt(s) (default 1e-7)")
-    g.add_argument("--b-walk", type=float, help="random walk of b, nT per sqrt(s) (default 0.01)")
-    g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
-    g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
-    g.add_argument("--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)")
-    g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 0.25; 0 = every epoch)")
+    _add_filter_options(p)
+    _add_effect_options(p, "effects to estimate with R and b (repeat the option)")
     _add_mag_unit(p)
     _add_output_options(p)
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("diagnose", help="where the model fails and which physical effect is missing",
+                       description="Compare the calibrated model with the measurements (residuals against time, "
+                                   "attitude, auxiliary channels, rates) and rank every candidate effect by a "
+                                   "likelihood-ratio test of adding it. Without --cal the online filter runs first.")
+    p.add_argument("file", help="drive-log CSV")
+    p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
+    p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
+    _add_filter_options(p)
+    _add_effect_options(p, "effects already in the model")
+    _add_mag_unit(p)
+    _add_output_options(p, "diagnosis (JSON)")
+    p.set_defaults(func=cmd_diagnose)
 
     p = sub.add_parser("apply", help="calibrated field, magnitude and headings for every epoch of a log",
                        description="Apply a calibration file to a drive log; every epoch is written with a status.")

@@ -45,7 +45,7 @@ from .state import StateLayout
 #: Bins of the binned residual means; stretch length of the "largest residual" search, s.
 BINS = 12
 WINDOW_S = 10.0
-#: Whitened residual beyond which an epoch is left out as an outlier (when no run gave statuses).
+#: Whitened residual, in units of its robust (MAD) scale, beyond which an epoch is an outlier.
 OUTLIER_SIGMA = 5.0
 
 
@@ -114,7 +114,9 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
         x = run.x
         x0_core = run.calibration.state if cal is None else cal.state
         layout = StateLayout((SoftHardIron(), *effects))
-        used = ((run.states["status"] == "used") & run.states["updated"]).to_numpy() & prep.has_attitude
+        # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
+        # the epochs where it is largest, and leaving them out would bias the diagnosis.
+        used = run.states["status"].isin(["used", "gated_innovation"]).to_numpy() & prep.has_attitude
     else:
         layout = StateLayout((SoftHardIron(),))
         x = _state_from_calibration(cal, layout)
@@ -127,8 +129,10 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     W = whitening(vector_noise(data.field_body, x[:9].reshape(3, 3), config, "both"))
     resid_raw = m - np.einsum("nij,j->ni", H, x)
     y = np.einsum("nij,nj->ni", W, resid_raw)
-    if run is None:  # no statuses from a filter: leave the gross outliers out, as the batch solver does
-        keep = np.abs(y).max(axis=1) <= OUTLIER_SIGMA
+    # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the residual's robust scale.
+    scale = max(1.4826 * float(np.median(np.abs(y - np.median(y, axis=0)))), 1.0)
+    keep = np.abs(y).max(axis=1) <= OUTLIER_SIGMA * scale
+    if not keep.all():
         used_idx = np.flatnonzero(used)[keep]
         used = np.zeros_like(used)
         used[used_idx] = True
@@ -154,35 +158,37 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     present = {e.label for e in effects} | {e.name for e in effects}
     pool = [e for e in (candidates if candidates is not None else default_candidates(list(data.columns)))
             if e.label not in present and all(col in data.columns for col in e.columns)]
-    results = []
+    regressors = {}
     for effect in pool:
         G = effect.regressors(data)
-        finite = np.all(np.isfinite(G), axis=(1, 2))
-        if not finite.all():
-            G = np.where(finite[:, None, None], G, 0.0)
-        Gw = (W @ G).reshape(nrows, -1)
-        Gt = Gw - Q @ (Q.T @ Gw)
-        u, s, vt = np.linalg.svd(Gt, full_matrices=False)
-        rank = int(np.sum(s > 1e-9 * max(s.max(), 1e-300))) if s.size else 0
-        if rank == 0:
-            continue
-        proj = u[:, :rank].T @ r0
-        rss1 = rss0 - float(proj @ proj)
-        lr = float(nrows * np.log(rss0 / rss1))
-        p = float(stats.chi2.sf(lr, rank))
-        theta = vt[:rank].T @ (proj / s[:rank])
-        sigma2 = rss1 / (nrows - Q.shape[1] - rank)
-        cov = (vt[:rank].T / s[:rank] ** 2) @ vt[:rank] * sigma2
-        names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-        estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in
-                    zip(names, theta, np.sqrt(np.clip(np.diag(cov), 0, None)))}
-        results.append(Candidate(effect=effect.label, statistic=lr, dof=rank, p_value=p,
-                                 delta_aic=2 * rank - lr, delta_bic=rank * np.log(nrows) - lr,
-                                 residual_rms_after_nt=rms * float(np.sqrt(rss1 / rss0)), significant=False,
-                                 estimate=estimate))
-    level = alpha / max(len(results), 1)
-    results = [Candidate(**{**vars(r), "significant": r.p_value < level}) for r in results]
-    results.sort(key=lambda r: (r.delta_bic, r.p_value))  # BIC: a richer effect must earn its parameters
+        G = np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+        regressors[effect.label] = (effect, G, (W @ G).reshape(nrows, -1))
+    L = np.linalg.inv(W)  # un-whitening, to express fitted corrections in nT
+    Rinv = np.linalg.inv(x[:9].reshape(3, 3))
+
+    def rms_after(residual_w):
+        """RMS residual norm (nT, NED) of what a fit leaves: the whitened residual, un-whitened."""
+        raw = np.einsum("nij,nj->ni", L, residual_w.reshape(n, 3))
+        return float(np.sqrt(np.mean(np.sum(body_to_ned(data.c_nb, raw @ Rinv.T) ** 2, axis=1))))
+
+    # Forward selection: test every candidate; take the best significant one into the model; test the
+    # rest again given it; until none is significant. Effects found later are conditional on earlier ones.
+    level = alpha / max(len(regressors), 1)
+    basis, residual = Q, r0
+    results, remaining = [], dict(regressors)
+    while remaining:
+        tests = [_lr_test(label, *remaining[label], basis, residual, nrows, rms_after) for label in remaining]
+        tests = [t for t in tests if t is not None]
+        if not tests:
+            break
+        tests.sort(key=lambda r: (r[0].delta_bic, r[0].p_value))
+        best, new_basis, new_residual = tests[0]
+        if best.p_value >= level:
+            results += [Candidate(**{**vars(t), "significant": False}) for t, _, _ in tests]
+            break
+        results.append(Candidate(**{**vars(best), "significant": True}))
+        basis, residual = new_basis, new_residual
+        del remaining[best.effect]
 
     signals, binned = _signals(data, ned, mag, alpha)
     largest = _largest(data.time, ned)
@@ -193,6 +199,32 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
 
 
 # ---------------------------------------------------------------- residual against signals
+def _lr_test(label, effect, G, Gw, basis, r0, nrows, rms_after):
+    """Likelihood-ratio test of adding regressors ``Gw`` (whitened) to the model spanned by ``basis``;
+    returns ``(Candidate, basis with them, residual with them)`` or None when they add nothing."""
+    Gt = Gw - basis @ (basis.T @ Gw)
+    u, s, vt = np.linalg.svd(Gt, full_matrices=False)
+    rank = int(np.sum(s > 1e-9 * max(s.max(), 1e-300))) if s.size else 0
+    if rank == 0:
+        return None
+    proj = u[:, :rank].T @ r0
+    rss0 = float(r0 @ r0)
+    rss1 = rss0 - float(proj @ proj)
+    lr = float(nrows * np.log(rss0 / rss1))
+    residual = r0 - u[:, :rank] @ proj
+    theta = vt[:rank].T @ (proj / s[:rank])
+    sigma2 = rss1 / (nrows - basis.shape[1] - rank)
+    cov = (vt[:rank].T / s[:rank] ** 2) @ vt[:rank] * sigma2
+    names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
+    estimate = {nm: {"value": float(v), "std": float(sd)}
+                for nm, v, sd in zip(names, theta, np.sqrt(np.clip(np.diag(cov), 0, None)))}
+    candidate = Candidate(effect=label, statistic=lr, dof=rank, p_value=float(stats.chi2.sf(lr, rank)),
+                          delta_aic=2 * rank - lr, delta_bic=rank * np.log(nrows) - lr,
+                          residual_rms_after_nt=rms_after(residual), significant=False,
+                          estimate=estimate)
+    return candidate, np.hstack([basis, u[:, :rank]]), residual
+
+
 def signal_values(data) -> dict:
     """Candidate explanatory signals (N,) at the used epochs: name -> values."""
     c = data.c_nb
