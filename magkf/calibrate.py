@@ -189,9 +189,8 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
         progress(1.0)
     if smooth:
         xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, layout.q_rate())
-        x_final, P_final = xs_b[0], Ps_b[0]
-    else:
-        x_final, P_final = est.kf.x, est.kf.P
+    # The calibration at the end of the log (smoothing leaves the last estimate as it is).
+    x_final, P_final = est.kf.x, est.kf.P
     block_of = np.repeat(np.arange(len(starts)), stops - starts)
     xs = xs_b[block_of]
     stds = np.sqrt(np.einsum("bii->bi", Ps_b))[block_of]

@@ -21,7 +21,9 @@ class CalibrationRun:
     the final state over every block. ``states``: DataFrame indexed by time with ``status``, ``updated``,
     ``nis``, every state and its ``std_`` column, and the residuals ``residual_n, residual_e,
     residual_d`` (NED, nT) and ``residual_mag`` (nT) computed with the estimate before each epoch.
-    ``summary``: JSON-ready figures (see ``summary`` keys). ``names``: state names.
+    ``summary``: JSON-ready figures (see ``summary`` keys). ``names``: state names. ``fit``: DataFrame
+    indexed by time of the residuals with the final estimate (with the smoothed per-epoch estimate when
+    smoothed): ``fit_n, fit_e, fit_d`` (NED, nT) and ``fit_mag`` (nT).
     """
 
     calibration: Calibration
@@ -31,6 +33,7 @@ class CalibrationRun:
     states: pd.DataFrame
     summary: dict
     effects: dict = field(default_factory=dict)
+    fit: pd.DataFrame | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -125,5 +128,7 @@ def build_run(*, log, prep, config, layout, x0, P0, xs, stds, status, updated, n
                                                        "residual_rms_magnitude_nt", "nis_mean", "n_epochs",
                                                        "status_counts")} | {"undetermined": obs["text"]},
                       source=log.source)
+    fit = pd.DataFrame({"fit_n": ned_f[:, 0], "fit_e": ned_f[:, 1], "fit_d": ned_f[:, 2], "fit_mag": mag_f},
+                       index=log.table.index)
     return CalibrationRun(calibration=cal, x=x_final, P=P_final, names=names, states=states, summary=summary,
-                          effects=effects)
+                          effects=effects, fit=fit)

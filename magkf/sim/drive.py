@@ -29,7 +29,7 @@ from ..reference import igrf_ned
 from ..sinefit import SineFitParameters
 from .disturbance import simulate_disturbances
 from .gnss import simulate_dop
-from .motion import simulate_motion
+from .motion import smooth_noise, simulate_motion
 from .mounting import mounting_matrix
 
 DEFAULT_START = datetime(2026, 6, 1, 10, 0, tzinfo=timezone.utc).timestamp()
@@ -148,7 +148,9 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
         table[name] = motion[name]
     table["dop"] = dop
     table["speed_mps"] = motion["speed_mps"]
-    table["temp_c"] = 20.0 + 12.0 * (1 - np.exp(-(t - t[0]) / 900.0)) + 0.1 * rng.normal(size=n)
+    # Warm-up, a slow wander (sun and shade, heater cycles), sensor noise: degC.
+    table["temp_c"] = (20.0 + 10.0 * (1 - np.exp(-(t - t[0]) / 900.0))
+                       + 3.0 * smooth_noise(n, config.rate_hz, 120.0, rng) + 0.1 * rng.normal(size=n))
     load = (np.cumsum(rng.random(n) < 1.0 / (20.0 * config.rate_hz)) % 2).astype(float)
     table["current_a"] = 2.0 + 25.0 * load + 0.3 * rng.normal(size=n)
     if config.write_reference:

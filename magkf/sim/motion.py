@@ -14,7 +14,7 @@ from ..reference import EARTH_RADIUS_M
 MOTIONS = ("3d", "planar")
 
 
-def _smooth_noise(n: int, rate_hz: float, timescale_s: float, rng: np.random.Generator) -> np.ndarray:
+def smooth_noise(n: int, rate_hz: float, timescale_s: float, rng: np.random.Generator) -> np.ndarray:
     """Zero-mean, unit-variance noise (n,) with correlation time about ``timescale_s``."""
     k = max(int(timescale_s * rate_hz), 1)
     coarse = rng.normal(size=n // k + 3)
@@ -32,16 +32,16 @@ def simulate_motion(kind: str, n: int, rate_hz: float, rng: np.random.Generator,
         raise ValueError(f"unknown motion {kind!r}; use one of {', '.join(MOTIONS)}")
     t = np.arange(n) / rate_hz
     if kind == "3d":
-        yaw_rate = 12.0 + 10.0 * _smooth_noise(n, rate_hz, 20.0, rng)  # deg/s, mostly turning one way
-        roll = 35.0 * np.sin(2 * np.pi * t / 23.0) + 8.0 * _smooth_noise(n, rate_hz, 5.0, rng)
-        pitch = 25.0 * np.sin(2 * np.pi * t / 31.0 + 1.0) + 5.0 * _smooth_noise(n, rate_hz, 5.0, rng)
-        speed = 15.0 + 3.0 * _smooth_noise(n, rate_hz, 30.0, rng)
+        yaw_rate = 12.0 + 10.0 * smooth_noise(n, rate_hz, 20.0, rng)  # deg/s, mostly turning one way
+        roll = 35.0 * np.sin(2 * np.pi * t / 23.0) + 8.0 * smooth_noise(n, rate_hz, 5.0, rng)
+        pitch = 25.0 * np.sin(2 * np.pi * t / 31.0 + 1.0) + 5.0 * smooth_noise(n, rate_hz, 5.0, rng)
+        speed = 15.0 + 3.0 * smooth_noise(n, rate_hz, 30.0, rng)
         alt = alt0 + 100.0 * np.sin(2 * np.pi * t / 300.0)
     else:
-        yaw_rate = 10.0 * _smooth_noise(n, rate_hz, 15.0, rng) + 3.0
-        roll = tilt_deg * _smooth_noise(n, rate_hz, 10.0, rng)
-        pitch = tilt_deg * _smooth_noise(n, rate_hz, 20.0, rng)
-        speed = np.clip(14.0 + 4.0 * _smooth_noise(n, rate_hz, 40.0, rng), 0.0, None)
+        yaw_rate = 10.0 * smooth_noise(n, rate_hz, 15.0, rng) + 3.0
+        roll = tilt_deg * smooth_noise(n, rate_hz, 10.0, rng)
+        pitch = tilt_deg * smooth_noise(n, rate_hz, 20.0, rng)
+        speed = np.clip(14.0 + 4.0 * smooth_noise(n, rate_hz, 40.0, rng), 0.0, None)
         alt = np.full(n, alt0)
     yaw = np.cumsum(yaw_rate) / rate_hz % 360.0
     north = np.cumsum(speed * np.cos(np.radians(yaw))) / rate_hz
