@@ -313,6 +313,28 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    from pathlib import Path
+
+    from .drivelog import read_drive_log
+    from .report import build_report
+
+    if not args.output:
+        raise InputError("give -o REPORT.html")
+    config = _filter_config(args)
+    effects, registry = _effects(args)
+    cal = Calibration.load(args.cal) if args.cal else None
+    log = read_drive_log(args.file, args.mag_unit)
+    try:
+        page = build_report(log, config, cal, effects, registry, alpha=args.alpha)
+    except ValueError as exc:
+        raise InputError(str(exc), args.file) from None
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(page, encoding="utf-8")
+    print(f"report written to {args.output}")
+    return 0
+
+
 # ---------------------------------------------------------------- simulate
 def cmd_simulate(args) -> int:
     from .sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
@@ -413,6 +435,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mag_unit(p)
     _add_output_options(p, "diagnosis (JSON)")
     p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser("report", help="self-contained HTML report with plots",
+                       description="Calibrate (with any --effect), diagnose, and write one HTML file with the plots "
+                                   "embedded: gates, estimates over time, residuals, ranking, before/after.")
+    p.add_argument("file", help="drive-log CSV")
+    p.add_argument("--cal", help="calibration JSON to start from")
+    p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
+    p.add_argument("-o", "--output", help="HTML file to write")
+    _add_filter_options(p)
+    _add_effect_options(p, "effects to add (the report shows before and after)")
+    _add_mag_unit(p)
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("apply", help="calibrated field, magnitude and headings for every epoch of a log",
                        description="Apply a calibration file to a drive log; every epoch is written with a status.")
