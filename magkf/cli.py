@@ -358,7 +358,21 @@ def cmd_simulate(args) -> int:
                              seed=args.seed, mounting=args.mounting, disturbances=args.disturbances,
                              dop_bad_stretches=args.dop_bad, lat0=args.lat, lon0=args.lon,
                              start_time=_timestamp(args.date))
-        sim = simulate_drive(config, truth)
+        from .effects import make_effect
+
+        hidden = []
+        for spec in args.effect:
+            name, _, values = spec.partition("=")
+            try:
+                theta = [float(v) for v in values.split(",")]
+            except ValueError:
+                raise InputError(f"--effect {spec!r}: give NAME[:COLUMN]=v1,v2,... with numbers") from None
+            effect = make_effect(name)
+            if len(theta) != effect.size and not (effect.name == "bias_drift" and len(theta) == 1):
+                raise InputError(f"--effect {spec!r}: {effect.name} has {effect.size} parameters "
+                                 f"({', '.join(effect.parameter_names)})")
+            hidden.append((effect, theta))
+        sim = simulate_drive(config, truth, hidden)
         sim.write(args.output, args.truth)
         info = {"output": args.output, "rows": len(sim.table), "truth_file": args.truth,
                 "R": sim.R, "b": sim.b}
@@ -476,6 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--lat", type=float, default=48.1, help="start latitude, deg")
     g.add_argument("--lon", type=float, default=11.6, help="start longitude, deg")
     g.add_argument("--date", default="2026-06-01T10:00:00", help="start, ISO UTC")
+    g.add_argument("--effect", action="append", default=[], metavar="NAME[:COLUMN]=v1,v2,...",
+                   help="a physical effect to put in the data, with its true parameters (bias_drift: the walk, "
+                        "nT per sqrt(s)); repeat the option for several")
     g = p.add_argument_group("turntable")
     g.add_argument("--field", type=float, default=50_000.0, help="field magnitude, nT (default 50000)")
     g.add_argument("--inclination", type=float, default=43.0, help="inclination, deg (default 43)")

@@ -128,3 +128,21 @@ def test_unknown_effect_and_bad_effect_file(tmp):
     (tmp / "broken.py").write_text("raise RuntimeError('boom')\n")
     with pytest.raises(InputError, match="failed to load"):
         load_effect_file(tmp / "broken.py")
+
+
+def test_diagnose_json_and_self_contained_report(tmp):
+    sim = _sim([(BUILTIN["current_field"](), [12.0, -8.0, 5.0])], duration=300.0)
+    sim.write(tmp / "log.csv")
+    d = cli_json("diagnose", tmp / "log.csv")
+    assert d["candidates"][0]["effect"] == "current_field:current_a"
+    for key in ("effect", "statistic", "dof", "p_value", "delta_aic", "delta_bic", "residual_rms_after_nt", "significant"):
+        assert key in d["candidates"][0]
+    assert d["residual_rms_nt"] > d["candidates"][0]["residual_rms_after_nt"]
+    from .conftest import run_cli
+
+    proc = run_cli("report", tmp / "log.csv", "--effect", "current_field", "-o", tmp / "r.html")
+    assert proc.returncode == 0, proc.stderr
+    page = (tmp / "r.html").read_text()
+    assert page.count('src="data:image/png;base64,') >= 5
+    assert "http://" not in page and "https://" not in page
+    assert "Before and after adding current_field:current_a" in page
