@@ -254,7 +254,7 @@ def cmd_calibrate(args) -> int:
     if effects:
         from .diagnose import compare_runs
 
-        summary["before_after"] = compare_runs(log, config, run_with([]), run)
+        summary["before_after"] = compare_runs(run_with([]), run)
     if args.output:
         run.calibration.save(args.output)
     if args.states:

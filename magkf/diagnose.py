@@ -33,7 +33,7 @@ from scipy import stats
 from .calibrate import calibrate_log, initial_core, linear_jacobian, prepare, with_initial_R
 from .calibration import Calibration
 from .config import FilterConfig
-from .conventions import body_to_ned, wrap_deg
+from .conventions import body_to_ned
 from .drivelog import DriveLog
 from .effects import candidates as default_candidates
 from .effects.core import SoftHardIron
@@ -144,7 +144,6 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     yw = y.ravel()
     Q, _ = np.linalg.qr(Hw)
     r0 = yw - Q @ (Q.T @ yw)
-    rss0 = float(r0 @ r0)
     nrows = 3 * n
 
     # residuals in nT (NED and magnitude), with the model as it is
@@ -318,7 +317,7 @@ def _describe(results, signals, level) -> str:
     return f"nothing significant at the stated level (each candidate tested at p < {level:.2g})"
 
 
-def compare_runs(log: DriveLog, config: FilterConfig, before: CalibrationRun, after: CalibrationRun) -> dict:
+def compare_runs(before: CalibrationRun, after: CalibrationRun) -> dict:
     """Before and after adding effects, on the epochs both used: residual RMS (nT), mean NIS, AIC, BIC."""
     both = ((before.states["status"] == "used") & (after.states["status"] == "used")).to_numpy()
     out = {}
@@ -335,8 +334,3 @@ def compare_runs(log: DriveLog, config: FilterConfig, before: CalibrationRun, af
                       "n_parameters": k}
     out["n_epochs"] = int(both.sum())
     return out
-
-
-def heading_of(data) -> np.ndarray:
-    """Heading (deg) of the used epochs, for plots."""
-    return wrap_deg(signal_values(data)["heading_deg"])

@@ -222,11 +222,9 @@ class EllipsoidCalibrator:
         algebraic = dict(zip(names, _readable(x_alg, d)))
         warnings = []
         if self.refine:
-            x, se, resid = _refine(X, x_alg, F, d)
+            x, se = _refine(X, x_alg, F, d)
         else:
-            x = x_alg
-            resid = _magnitudes(X, x, d) - F
-            se = np.full(x.size, np.nan)
+            x, se = x_alg, np.full(x_alg.size, np.nan)
         K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
         calibrated = np.linalg.solve(K, (X - b).T).T
         mags = np.linalg.norm(calibrated, axis=1)
@@ -312,7 +310,7 @@ def _refine(X, x0, F, d):
         se = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         se = np.full(len(x), np.nan)
-    return x - shift, se, fit.fun * np.sqrt(radial)
+    return x - shift, se
 
 
 def _scales(d, F):

@@ -155,7 +155,7 @@ def build_report(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Cali
     if effects:
         before = calibrate_log(log, config, init=cal)
         diag0, _ = diagnose(log, config, cal, (), pool, alpha=alpha, run=before)
-        ba = compare_runs(log, config, before, run)
+        ba = compare_runs(before, run)
         signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
         parts += ["<h2>Before and after adding " + html.escape(", ".join(e.label for e in effects)) + "</h2>",
                   _table([(k, f"{ba['before'][k]:.3f}", f"{ba['after'][k]:.3f}")

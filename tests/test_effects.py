@@ -1,8 +1,5 @@
 """Physical effects on data with a hidden effect: found, added, estimated, and the error falls (seeded)."""
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy import stats
@@ -11,7 +8,7 @@ from magkf.calibrate import calibrate_log
 from magkf.config import FilterConfig
 from magkf.diagnose import diagnose
 from magkf.drivelog import DriveLog
-from magkf.effects import BUILTIN, EpochData, LinearEffect, load_effect_file
+from magkf.effects import BUILTIN, EpochData, load_effect_file
 from magkf.sim import DriveConfig, simulate_drive
 
 from .conftest import ROOT, cli_json

@@ -11,7 +11,7 @@ from magkf.calibrate import calibrate_log
 from magkf.calibration import Calibration
 from magkf.config import FilterConfig
 from magkf.conventions import wrap_deg
-from magkf.drivelog import DriveLog, read_drive_log
+from magkf.drivelog import DriveLog
 from magkf.effects.base import Effect, EpochData
 from magkf.effects.core import SoftHardIron, core_jacobian
 from magkf.measurements import magnitude_jacobian
