@@ -226,8 +226,9 @@ def _print_run(summary: dict, names) -> None:
         print(f"  {effect}: " + ", ".join(f"{p} = {v['value']:.4g} +- {v['std']:.2g} {v['unit']}".rstrip()
                                          for p, v in params.items()))
     ax = s["residual_rms_axis_nt"]
+    nis = f", mean NIS {s['nis_mean']:.2f}" if np.isfinite(s["nis_mean"]) else ""
     print(f"  residual RMS {s['residual_rms_nt']:.2f} nT (vector norm; N {ax['north']:.2f}, E {ax['east']:.2f}, "
-          f"D {ax['down']:.2f}), magnitude {s['residual_rms_magnitude_nt']:.2f} nT, mean NIS {s['nis_mean']:.2f}")
+          f"D {ax['down']:.2f}), magnitude {s['residual_rms_magnitude_nt']:.2f} nT{nis}")
     print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
     print(f"  observability: {s['observability']['text']}")
 

@@ -72,7 +72,11 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """Outcome of ``diagnose``: residual figures, ranked candidates, signals the residual follows."""
+    """Outcome of ``diagnose``: residual figures, ranked candidates, signals the residual follows.
+
+    ``residual_rms_axis_nt`` holds the RMS per NED axis, per body axis (``body_x`` ...), of the
+    magnitude, and the filter's mean normalised innovation squared (``nis_mean``) when a run was made.
+    """
 
     residual_rms_nt: float
     residual_rms_axis_nt: dict
@@ -150,9 +154,15 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     c = np.linalg.solve(x[:9].reshape(3, 3), (resid_raw + np.einsum("nij,j->ni", H[:, :, :12], x[:12])
                                               - x[9:12]).T).T
     ned = body_to_ned(data.c_nb, c) - data.field_ned
+    body = c - data.field_body
     mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
     rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
     axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
+    axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}
+    axis_rms["magnitude"] = float(np.sqrt(np.mean(mag**2)))
+    if run is not None:  # normalised innovations of the filter, on the epochs it updated with
+        nis = run.states["nis"].to_numpy()[(run.states["status"] == "used").to_numpy()]
+        axis_rms["nis_mean"] = float(np.nanmean(nis)) if np.isfinite(nis).any() else float("nan")
 
     present = {e.label for e in effects} | {e.name for e in effects}
     pool = [e for e in (candidates if candidates is not None else default_candidates(list(data.columns)))
@@ -194,7 +204,7 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     text = _describe(results, signals, level)
     return Diagnosis(residual_rms_nt=rms, residual_rms_axis_nt=axis_rms, n_epochs_used=n, alpha=alpha,
                      candidates=results, signals=signals, largest=largest, text=text, binned=binned,
-                     residuals={"time": data.time, "ned": ned, "magnitude": mag}), run
+                     residuals={"time": data.time, "ned": ned, "body": body, "magnitude": mag}), run
 
 
 # ---------------------------------------------------------------- residual against signals

@@ -75,10 +75,11 @@ def plot(df: pd.DataFrame, path: Path) -> None:
                 title="consistency")
     axes[1].legend()
     gates = df.copy()
-    labels = [f"p={r.innovation_prob:g}\ngate={r.gate_nt:g} nT" for r in gates.itertuples()]
+    labels = [f"p={r.innovation_prob:g}, {r.gate_nt:g} nT" for r in gates.itertuples()]
     sel = gates.b_walk == 0.5
     axes[2].bar(np.arange(sel.sum()), 100 * gates.gated_share[sel])
-    axes[2].set_xticks(np.arange(sel.sum()), [lab for lab, s in zip(labels, sel) if s], fontsize=7)
+    axes[2].set_xticks(np.arange(sel.sum()), [lab for lab, s in zip(labels, sel) if s], fontsize=7, rotation=25,
+                       ha="right")
     axes[2].set(ylabel="epochs gated, %", title="gates (b walk 0.5)")
     fig.savefig(path, dpi=110)
 

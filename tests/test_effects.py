@@ -143,3 +143,12 @@ def test_diagnose_json_and_self_contained_report(tmp):
     assert page.count('src="data:image/png;base64,') >= 5
     assert "http://" not in page and "https://" not in page
     assert "Before and after adding current_field:current_a" in page
+
+
+def test_batch_solver_estimates_an_added_effect():
+    from magkf.batch import solve_batch
+
+    sim = _sim([(BUILTIN["current_field"](), TRUTH["current_field"])], duration=300.0)
+    run = solve_batch(DriveLog(sim.table), MATCHED, effects=[BUILTIN["current_field"]()])
+    z = (run.x[12:] - np.asarray(TRUTH["current_field"])) / run.std[12:]
+    assert np.all(np.abs(z) < 3), z
