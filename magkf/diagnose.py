@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from .calibrate import calibrate_log, initial_core, linear_jacobian, prepare, with_initial_R
+from .calibrate import calibrate_log, linear_jacobian, prepare, with_initial_R
 from .calibration import Calibration
 from .config import FilterConfig
 from .conventions import body_to_ned
@@ -116,7 +116,6 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     prep = prepare(log, config)
     if run is not None:
         x = run.x
-        x0_core = run.calibration.state if cal is None else cal.state
         layout = StateLayout((SoftHardIron(), *effects))
         # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
         # the epochs where it is largest, and leaving them out would bias the diagnosis.
@@ -124,9 +123,8 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     else:
         layout = StateLayout((SoftHardIron(),))
         x = _state_from_calibration(cal, layout)
-        x0_core = cal.state
         used = prep.base == USED
-    prep = with_initial_R(prep, x0_core if run is None else initial_core(prep, config, cal)[0])
+    prep = with_initial_R(prep, x[:12])  # effects acting through R (time lag, anomaly) use the estimate's
     data = prep.data.take(used)
     m = prep.m[used]
     H = linear_jacobian(layout, data)  # (n, 3, p) nuisance: core and added effects
