@@ -371,20 +371,56 @@ def _solve_exact(planes, curves, paper: SineFitParameters, field_nt, inclination
         raise InputError("degenerate geometry: the fitted curves do not determine the parameters")
 
     names = list(MAG)
-    data = [(turntable_field, p, planes[p][ANGLE].to_numpy(), planes[p][names].to_numpy()) for p in PLANES]
+    data = [(p, planes[p][ANGLE].to_numpy(), planes[p][names].to_numpy()) for p in PLANES]
 
     def residuals(x):
         params = _unpack(x)
         K, b = params.matrix(), np.array(params.b)
         out = []
-        for i, (fn, plane, angle, m) in enumerate(data):
-            B = fn(plane, angle, field_nt, inclination_deg, np.degrees(x[9 + i]), sign)
+        for i, (plane, angle, m) in enumerate(data):
+            B = turntable_field(plane, angle, field_nt, inclination_deg, np.degrees(x[9 + i]), sign)
             out.append((m - (B @ K.T + b)).ravel())
         return np.concatenate(out)
 
+    def jacobian(x):
+        return exact_jacobian(x, data, field_nt, inclination_deg, sign)
+
     scale = np.array([1e-2] * 3 + [1e-2] * 3 + [1.0] * 3 + [1e-2] * 2)
-    return least_squares(residuals, x0, method="lm", x_scale=scale, xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                         max_nfev=2000)
+    return least_squares(residuals, x0, jac=jacobian, method="lm", x_scale=scale, xtol=1e-12, ftol=1e-12,
+                         gtol=1e-12, max_nfev=2000)
+
+
+def exact_jacobian(x, data, field_nt, inclination_deg, sign) -> np.ndarray:
+    """Analytic Jacobian (n_residuals, 11) of the exact method's residual ``m - (K B(psi) + b0)``.
+
+    ``x`` = (alpha, beta, gamma in radians, kx, ky, kz, b0 (3), heading offsets of the two planes in
+    radians); ``data`` lists ``(plane, angle_deg, m)`` per plane.
+    """
+    a, be, g, kx, ky, kz = x[:6]
+    sa, ca, sb, cb, sg, cg = np.sin(a), np.cos(a), np.sin(be), np.cos(be), np.sin(g), np.cos(g)
+    dK = np.zeros((6, 3, 3))  # dK / d(alpha, beta, gamma, kx, ky, kz)
+    dK[0, 1] = ky * np.array([ca, -sa, 0.0])
+    dK[1, 2] = kz * np.array([-sb * sg, cb * sg, 0.0])
+    dK[2, 2] = kz * np.array([cb * cg, sb * cg, -sg])
+    dK[3, 0] = [1.0, 0.0, 0.0]
+    dK[4, 1] = [sa, ca, 0.0]
+    dK[5, 2] = [cb * sg, sb * sg, cg]
+    K = _unpack(x).matrix()
+    h = field_nt * np.cos(np.radians(inclination_deg))
+    blocks = []
+    for i, (plane, angle, _) in enumerate(data):
+        psi = np.radians(angle) + x[9 + i]
+        B = turntable_field(plane, angle, field_nt, inclination_deg, np.degrees(x[9 + i]), sign)
+        if plane == "xy":
+            dB = np.column_stack([-h * np.sin(psi), -h * np.cos(psi), np.zeros_like(psi)])
+        else:
+            dB = np.column_stack([-h * np.sin(psi), np.zeros_like(psi), sign * h * np.cos(psi)])
+        J = np.zeros((len(angle), 3, 11))
+        J[:, :, :6] = -np.einsum("pij,nj->nip", dK, B)
+        J[:, :, 6:9] = -np.eye(3)
+        J[:, :, 9 + i] = -dB @ K.T
+        blocks.append(J.reshape(-1, 11))
+    return np.vstack(blocks)
 
 
 # ---------------------------------------------------------------- files

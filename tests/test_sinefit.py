@@ -113,3 +113,24 @@ def test_positive_sensitivities_resolve_the_flip_symmetry():
     assert p.kx > 0 and p.ky > 0 and p.kz > 0
     z = (p.as_vector() - truth.as_vector()) / np.array([r.standard_errors[k] for k in PARAMETER_NAMES])
     assert np.all(np.abs(z) < 4.5)  # 9 parameters, |z| < 4.5 fails by chance with probability < 1e-4
+
+
+def test_exact_jacobian_matches_finite_differences():
+    from magkf.sinefit import PLANES, exact_jacobian
+
+    table = simulate_turntable(PAPER_EXAMPLE, B, INC, 30.0, 5.0, np.random.default_rng(2))
+    data = [(p, table[table.plane == p].angle_deg.to_numpy(), table[table.plane == p][["mag_x", "mag_y", "mag_z"]]
+             .to_numpy()) for p in PLANES]
+    x = np.concatenate([np.radians(TRUTH[:3]), TRUTH[3:], np.radians([10.0, -20.0])])
+
+    def resid(x):
+        from magkf.sinefit import _unpack, turntable_field
+
+        K, b0 = _unpack(x).matrix(), np.array(_unpack(x).b)
+        return np.concatenate([(m - (turntable_field(p, a, B, INC, np.degrees(x[9 + i]), -1) @ K.T + b0)).ravel()
+                               for i, (p, a, m) in enumerate(data)])
+
+    step = 1e-7 * np.maximum(np.abs(x), 1.0)
+    fd = np.column_stack([(resid(x + np.eye(11)[j] * step[j]) - resid(x - np.eye(11)[j] * step[j])) / (2 * step[j])
+                          for j in range(11)])
+    assert np.allclose(exact_jacobian(x, data, B, INC, -1), fd, rtol=1e-5, atol=1e-3)
