@@ -301,20 +301,20 @@ class SineFitCalibrator:
         curves = {p: {a: fit_sine(rows[ANGLE], rows[f"mag_{a}"]) for a in "xyz"} for p, rows in planes.items()}
         first = planes["xy"][list(MAG)].to_numpy()[0]
         paper = paper_equations(curves["xy"], curves["xz"], self.field_nt, sample_xy=first)
+        data = [(p, planes[p][ANGLE].to_numpy(), planes[p][list(MAG)].to_numpy()) for p in PLANES]
         if self.method == "paper":
-            resid = _residuals_for(paper, planes, self.field_nt, self.inclination_deg,
-                                   _heading_offsets(curves), 1)
+            resid = model_residuals(paper, data, self.field_nt, self.inclination_deg, _heading_offsets(curves), 1)
             self._result = SineFitResult(paper, {k: float("nan") for k in PARAMETER_NAMES}, curves, "paper",
                                          self.field_nt, self.inclination_deg,
                                          residual_rms_nt=float(np.sqrt(np.mean(resid**2))))
         else:
-            self._result = self._exact(planes, curves, paper)
+            self._result = self._exact(data, curves, paper)
         return self
 
-    def _exact(self, planes, curves, paper: SineFitParameters) -> SineFitResult:
+    def _exact(self, data, curves, paper: SineFitParameters) -> SineFitResult:
         # Turning the sensor 180 deg about z (kx, ky -> -kx, -ky) with both table headings + 180 deg and
         # the opposite roll in plane xz fits the data equally well; positive sensitivities pick the branch.
-        fits = [(_solve_exact(planes, curves, paper, self.field_nt, self.inclination_deg, sign), sign)
+        fits = [(_solve_exact(data, curves, paper, self.field_nt, self.inclination_deg, sign), sign)
                 for sign in (1, -1)]
         fit, sign = min(fits, key=lambda f: (not np.all(f[0].x[3:6] > 0), f[0].cost))
         n, p = fit.fun.size, fit.x.size
@@ -344,17 +344,20 @@ def _unpack(x) -> SineFitParameters:
     return SineFitParameters(*np.degrees(x[:3]), *x[3:6], b=tuple(x[6:9]))
 
 
-def _residuals_for(params: SineFitParameters, planes, field_nt, inclination_deg, offsets, sign) -> np.ndarray:
+def model_residuals(params: SineFitParameters, data, field_nt, inclination_deg, offsets_deg, sign) -> np.ndarray:
+    """Residuals ``m - (K B(psi) + b0)`` (nT, flattened per sample and axis) of both planes.
+
+    ``data`` lists ``(plane, angle_deg (N,), m (N, 3))``; ``offsets_deg`` are the planes' heading offsets.
+    """
     K, b = params.matrix(), np.array(params.b)
     out = []
-    for plane, offset in zip(PLANES, offsets):
-        rows = planes[plane]
-        B = turntable_field(plane, rows[ANGLE].to_numpy(), field_nt, inclination_deg, offset, sign)
-        out.append((rows[list(MAG)].to_numpy() - (B @ K.T + b)).ravel())
+    for (plane, angle, m), offset in zip(data, offsets_deg):
+        B = turntable_field(plane, angle, field_nt, inclination_deg, offset, sign)
+        out.append((m - (B @ K.T + b)).ravel())
     return np.concatenate(out)
 
 
-def _solve_exact(planes, curves, paper: SineFitParameters, field_nt, inclination_deg, sign):
+def _solve_exact(data, curves, paper: SineFitParameters, field_nt, inclination_deg, sign):
     """Nonlinear least squares over all samples, started from the closed form with the leak removed."""
     a, be, g = np.radians([paper.alpha_deg, paper.beta_deg, paper.gamma_deg])
     v = field_nt * np.sin(np.radians(inclination_deg))
@@ -370,17 +373,8 @@ def _solve_exact(planes, curves, paper: SineFitParameters, field_nt, inclination
     if not np.isfinite(x0).all():
         raise InputError("degenerate geometry: the fitted curves do not determine the parameters")
 
-    names = list(MAG)
-    data = [(p, planes[p][ANGLE].to_numpy(), planes[p][names].to_numpy()) for p in PLANES]
-
     def residuals(x):
-        params = _unpack(x)
-        K, b = params.matrix(), np.array(params.b)
-        out = []
-        for i, (plane, angle, m) in enumerate(data):
-            B = turntable_field(plane, angle, field_nt, inclination_deg, np.degrees(x[9 + i]), sign)
-            out.append((m - (B @ K.T + b)).ravel())
-        return np.concatenate(out)
+        return model_residuals(_unpack(x), data, field_nt, inclination_deg, np.degrees(x[9:11]), sign)
 
     def jacobian(x):
         return exact_jacobian(x, data, field_nt, inclination_deg, sign)

@@ -116,7 +116,7 @@ def test_positive_sensitivities_resolve_the_flip_symmetry():
 
 
 def test_exact_jacobian_matches_finite_differences():
-    from magkf.sinefit import PLANES, exact_jacobian
+    from magkf.sinefit import PLANES, _unpack, exact_jacobian, model_residuals
 
     table = simulate_turntable(PAPER_EXAMPLE, B, INC, 30.0, 5.0, np.random.default_rng(2))
     data = [(p, table[table.plane == p].angle_deg.to_numpy(), table[table.plane == p][["mag_x", "mag_y", "mag_z"]]
@@ -124,11 +124,7 @@ def test_exact_jacobian_matches_finite_differences():
     x = np.concatenate([np.radians(TRUTH[:3]), TRUTH[3:], np.radians([10.0, -20.0])])
 
     def resid(x):
-        from magkf.sinefit import _unpack, turntable_field
-
-        K, b0 = _unpack(x).matrix(), np.array(_unpack(x).b)
-        return np.concatenate([(m - (turntable_field(p, a, B, INC, np.degrees(x[9 + i]), -1) @ K.T + b0)).ravel()
-                               for i, (p, a, m) in enumerate(data)])
+        return model_residuals(_unpack(x), data, B, INC, np.degrees(x[9:11]), -1)
 
     step = 1e-7 * np.maximum(np.abs(x), 1.0)
     fd = np.column_stack([(resid(x + np.eye(11)[j] * step[j]) - resid(x - np.eye(11)[j] * step[j])) / (2 * step[j])
