@@ -23,16 +23,14 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .bootstrap import vector_least_squares
-from .calibrate import initial_core, prepare, with_initial_R
+from .calibrate import initial_state, prepare
 from .calibration import Calibration
 from .config import FilterConfig
 from .conventions import body_to_ned
 from .drivelog import DriveLog
-from .effects.core import SoftHardIron
 from .errors import InputError
 from .estimator import GATED_INNOVATION, GATED_MAGNITUDE, MISSING_ATTITUDE, USED
 from .results import build_run
-from .state import StateLayout
 
 OUTLIER_SIGMA = 5.0
 LOSS_SCALE = 3.0
@@ -52,12 +50,7 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     """Batch calibration of ``log``; returns a ``CalibrationRun`` (states constant over the log)."""
     started = _time.perf_counter()
     prep = prepare(log, config)
-    x_core, P_core, how = initial_core(prep, config, init)
-    prep = with_initial_R(prep, x_core)
-    core = SoftHardIron(x_core, np.sqrt(np.diag(P_core)), config.r_walk, config.b_walk)
-    layout = StateLayout((core, *effects))
-    x0, P0 = layout.prior()
-    P0[:12, :12] = P_core
+    prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
     status = prep.base.copy()
     use_vector = config.measure != "magnitude"
     cand = (status == USED) if use_vector else ((status == USED) | (status == MISSING_ATTITUDE))
@@ -67,22 +60,22 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         raise InputError(f"too few usable epochs ({int(cand.sum())}) for a batch calibration", log.source)
     data = prep.data
 
-    def calibrated(x, idx):
-        e = np.zeros((len(idx), 3))
-        d = data.take(idx)
+    def calibrated(x, d, m):
+        """Calibrated field (N, 3) of the epochs in ``d`` (EpochData) with raw readings ``m``."""
+        e = np.zeros((len(m), 3))
         for effect, sl in list(zip(layout.effects, layout.slices.values()))[1:]:
             e += effect.contribution(x[sl], d)
         R, b = x[:9].reshape(3, 3), x[9:12]
-        return np.linalg.solve(R, (prep.m[idx] - b - e).T).T
+        return np.linalg.solve(R, (m - b - e).T).T
 
     # Linear start in the sensor frame where attitude exists, then the magnitude gate with it.
     att = np.flatnonzero(cand & prep.has_attitude)
     x_start = x0.copy()
     if init is None and len(att) >= 3 * 12 and not effects:
         x_start[:12], _, _ = vector_least_squares(prep.m[att], data.field_body[att], config.sensor_noise_nt,
-                                                  x0[:12], np.sqrt(np.diag(P_core)))
+                                                  x0[:12], np.sqrt(np.diag(P0)[:12]))
     idx = np.flatnonzero(cand)
-    c0 = calibrated(x_start, idx)
+    c0 = calibrated(x_start, data.take(idx), prep.m[idx])
     off = np.abs(np.linalg.norm(c0, axis=1) - prep.ref_mag[idx]) > config.gate_nt
     status[idx[off]] = GATED_MAGNITUDE
     idx = idx[~off]
@@ -94,9 +87,10 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     basis = _cross_basis(ref)
     att_idx = np.flatnonzero(has_att) if use_vector else np.zeros(0, int)
     prior_std = np.sqrt(np.diag(P0))
+    data_used, m_used = data.take(idx), prep.m[idx]  # taken once, not at every evaluation
 
     def residuals(x, keep=None):
-        c = calibrated(x, idx)
+        c = calibrated(x, data_used, m_used)
         parts = []
         if config.measure != "vector":
             parts.append((np.linalg.norm(c, axis=1) - prep.ref_mag[idx]) / sigma_total)

@@ -122,6 +122,21 @@ def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | No
     return boot.x, boot.P, f"{boot.method} ({boot.n_epochs} epochs, {boot.span_s:.0f} s)"
 
 
+def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
+    """The start of a run: ``(prep, layout, x0, P0, how)``.
+
+    The core block (and the effects, when the bootstrap fitted them jointly) from ``initial_core``;
+    the other effects from their priors; ``prep`` with the initial ``R`` for the effects that use it.
+    """
+    x_init, P_init, how = initial_core(prep, config, init, effects)
+    core = SoftHardIron(x_init[:12], np.sqrt(np.diag(P_init)[:12]), config.r_walk, config.b_walk)
+    layout = StateLayout((core, *effects))
+    x0, P0 = layout.prior()
+    x0[:len(x_init)] = x_init
+    P0[:len(x_init), :len(x_init)] = P_init
+    return with_initial_R(prep, x_init), layout, x0, P0, how
+
+
 def linear_jacobian(layout: StateLayout, data: EpochData) -> np.ndarray:
     """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), computed once per log."""
     n_ep = len(data)
@@ -149,16 +164,10 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
         if missing:
             raise InputError(f"effect {effect.name!r} needs column {missing[0]!r}, which the log lacks "
                              f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})", log.source)
-    x_init, P_init, how = initial_core(prep, config, init, effects)
-    prep = with_initial_R(prep, x_init)
-    core = SoftHardIron(x_init[:12], np.sqrt(np.diag(P_init)[:12]), config.r_walk, config.b_walk)
-    layout = StateLayout((core, *effects))
-    x0, P0 = layout.prior()
-    x0[:len(x_init)] = x_init
-    P0[:len(x_init), :len(x_init)] = P_init
+    prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
     est = Estimator(layout, config, x0, P0)
     H_all = linear_jacobian(layout, prep.data)
-    R_hat = x_init[:9].reshape(3, 3)
+    R_hat = x0[:9].reshape(3, 3)
     W = whitening(vector_noise(np.nan_to_num(prep.data.field_body), R_hat, config, config.measure))
     n_ep, n = len(prep.m), layout.size
     base = prep.base.copy()
