@@ -11,11 +11,11 @@ seconds (UTC), calibration model ``m = R B_b + b``. Arrays of N epochs have shap
 
 __version__ = "0.1.0"
 
-from .calibration import Calibration
-from .drivelog import DriveLog, read_drive_log
-from .ellipsoid import EllipsoidCalibrator
 from .errors import InputError
-from .sinefit import SineFitCalibrator, SineFitParameters
+from .io.calibration import Calibration
+from .io.drivelog import DriveLog, read_drive_log
+from .offline.ellipsoid import EllipsoidCalibrator
+from .offline.sinefit import SineFitCalibrator, SineFitParameters
 
 __all__ = ["Calibration", "DriveLog", "read_drive_log", "EllipsoidCalibrator", "InputError",
            "SineFitCalibrator", "SineFitParameters", "__version__"]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .calibration import Calibration
 from .conventions import declination_deg, magnetic_heading_deg
-from .drivelog import DriveLog
+from .io.calibration import Calibration
+from .io.drivelog import DriveLog
 
 #: Output columns of ``apply_calibration`` besides the time index.
 COLUMNS = ("field_x", "field_y", "field_z", "magnitude_nt", "heading_mag_deg", "declination_deg",

@@ -15,9 +15,9 @@ from datetime import datetime, timezone
 import numpy as np
 
 from . import __version__
-from .calibration import Calibration, jsonable
 from .conventions import NT_PER_UNIT
 from .errors import InputError
+from .io.calibration import Calibration, jsonable
 
 
 # ---------------------------------------------------------------- helpers
@@ -99,7 +99,12 @@ def _add_mag_unit(p) -> None:
 
 # ---------------------------------------------------------------- sinefit
 def cmd_sinefit(args) -> int:
-    from .sinefit import SineFitCalibrator, paper_from_curves, read_curves, read_turntable
+    from .offline.sinefit import (
+        SineFitCalibrator,
+        paper_from_curves,
+        read_curves,
+        read_turntable,
+    )
 
     if args.field is None or args.inclination is None:
         igrf = _igrf_field(args)
@@ -134,8 +139,8 @@ def cmd_sinefit(args) -> int:
 
 # ---------------------------------------------------------------- ellipsoid
 def cmd_ellipsoid(args) -> int:
-    from .ellipsoid import EllipsoidCalibrator
-    from .tables import read_csv, require_complete
+    from .io.tables import read_csv, require_complete
+    from .offline.ellipsoid import EllipsoidCalibrator
 
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
     columns = columns[: args.axes]
@@ -176,7 +181,7 @@ def cmd_ellipsoid(args) -> int:
 # ---------------------------------------------------------------- apply
 def cmd_apply(args) -> int:
     from .apply import apply_calibration
-    from .drivelog import read_drive_log, write_drive_log
+    from .io.drivelog import read_drive_log, write_drive_log
 
     cal = Calibration.load(args.cal)
     log = read_drive_log(args.file, args.mag_unit)
@@ -234,8 +239,8 @@ def _print_run(summary: dict, names) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from .calibrate import calibrate_log, terminal_progress
-    from .drivelog import read_drive_log, write_drive_log
+    from .io.drivelog import read_drive_log, write_drive_log
+    from .online.run import calibrate_log, terminal_progress
 
     config = _filter_config(args)
     effects, _ = _effects(args)
@@ -244,7 +249,7 @@ def cmd_calibrate(args) -> int:
 
     def run_with(effect_list):
         if args.batch:
-            from .batch import solve_batch
+            from .online.batch import solve_batch
 
             return solve_batch(log, config, init, effect_list)
         progress = None if args.quiet else terminal_progress()
@@ -253,7 +258,7 @@ def cmd_calibrate(args) -> int:
     run = run_with(effects)
     summary = dict(run.summary)
     if effects:
-        from .diagnose import compare_runs
+        from .diagnostics.diagnose import compare_runs
 
         summary["before_after"] = compare_runs(run_with([]), run)
     if args.output:
@@ -276,9 +281,9 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
-    from .diagnose import diagnose
-    from .drivelog import read_drive_log
+    from .diagnostics.diagnose import diagnose
     from .effects import candidates
+    from .io.drivelog import read_drive_log
 
     config = _filter_config(args)
     effects, registry = _effects(args)
@@ -317,8 +322,8 @@ def cmd_diagnose(args) -> int:
 def cmd_report(args) -> int:
     from pathlib import Path
 
-    from .drivelog import read_drive_log
-    from .report import build_report
+    from .diagnostics.report import build_report
+    from .io.drivelog import read_drive_log
 
     if not args.output:
         raise InputError("give -o REPORT.html")
@@ -342,7 +347,7 @@ def cmd_simulate(args) -> int:
 
     truth = Calibration.load(args.truth_cal) if args.truth_cal else None
     if args.kind == "turntable":
-        from .sinefit import SineFitParameters
+        from .offline.sinefit import SineFitParameters
 
         params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
         table = simulate_turntable(params, args.field, args.inclination, args.step, args.noise,

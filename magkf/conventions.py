@@ -128,6 +128,21 @@ def dcm_to_euler(c_nb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return yaw, pitch, roll
 
 
+def quaternion_to_euler(q_wxyz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ZYX Euler angles ``(yaw, pitch, roll)`` in degrees of unit quaternions ``(..., 4)``, scalar first.
+
+    The quaternion rotates body (FRD) vectors into NED, as PX4's ``vehicle_attitude.q`` does; the result
+    equals ``dcm_to_euler`` of the same rotation (yaw in ``[0, 360)``).
+    """
+    q = np.asarray(q_wxyz, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    yaw = np.degrees(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))) % 360.0
+    pitch = np.degrees(np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0)))
+    roll = np.degrees(np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
+    return yaw, pitch, roll
+
+
 def ned_to_body(c_nb, v_ned) -> np.ndarray:
     """``C_nb^T v_ned``: NED vectors ``(N, 3)`` expressed in the body frame, ``(N, 3)``."""
     return np.einsum("...ji,...j->...i", c_nb, v_ned)

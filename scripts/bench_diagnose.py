@@ -11,9 +11,9 @@ import statistics
 import time
 
 from magkf.config import FilterConfig
-from magkf.diagnose import diagnose
-from magkf.drivelog import DriveLog
+from magkf.diagnostics.diagnose import diagnose
 from magkf.effects import TemperatureBias
+from magkf.io.drivelog import DriveLog
 from magkf.sim import DriveConfig, simulate_drive
 
 

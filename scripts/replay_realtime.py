@@ -13,11 +13,11 @@ from collections import Counter
 
 import numpy as np
 
-from magkf.calibrate import calibrate_log
-from magkf.calibration import Calibration
 from magkf.config import FilterConfig
-from magkf.drivelog import DriveLog, read_drive_log
-from magkf.realtime import OnlineCalibrator
+from magkf.io.calibration import Calibration
+from magkf.io.drivelog import DriveLog, read_drive_log
+from magkf.online.realtime import OnlineCalibrator
+from magkf.online.run import calibrate_log
 
 
 def main() -> int:

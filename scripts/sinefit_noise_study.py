@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from magkf.offline.sinefit import PARAMETER_NAMES, SineFitCalibrator
 from magkf.sim import PAPER_EXAMPLE, simulate_turntable
-from magkf.sinefit import PARAMETER_NAMES, SineFitCalibrator
 
 B, INC, NOISE_LEVELS = 50_000.0, 43.0, (5.0, 15.0, 25.0, 40.0)
 

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from magkf.calibrate import calibrate_log
 from magkf.config import FilterConfig
-from magkf.drivelog import DriveLog
 from magkf.effects import BiasDrift
+from magkf.io.drivelog import DriveLog
+from magkf.online.run import calibrate_log
 from magkf.sim import DriveConfig, simulate_drive
 
 DRIFT_NT = 0.5  # nT per sqrt(s)

@@ -4,7 +4,7 @@ import pytest
 
 from magkf.apply import apply_calibration
 from magkf.conventions import wrap_deg
-from magkf.drivelog import read_drive_log
+from magkf.io.drivelog import read_drive_log
 from magkf.sim import DriveConfig, simulate_drive
 
 from .conftest import DATA, cli_json

@@ -1,9 +1,19 @@
 import numpy as np
 import pytest
 
-from magkf.conventions import (body_to_ned, dcm_to_euler, declination_deg, euler_to_dcm, from_nanotesla,
-                               inclination_deg, likely_unit, magnetic_heading_deg, ned_to_body, to_nanotesla,
-                               wrap_deg)
+from magkf.conventions import (
+    body_to_ned,
+    dcm_to_euler,
+    declination_deg,
+    euler_to_dcm,
+    from_nanotesla,
+    inclination_deg,
+    likely_unit,
+    magnetic_heading_deg,
+    ned_to_body,
+    to_nanotesla,
+    wrap_deg,
+)
 
 RNG = np.random.default_rng(1)
 

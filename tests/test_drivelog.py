@@ -3,8 +3,8 @@ import warnings
 import numpy as np
 import pytest
 
-from magkf.drivelog import UnitWarning, read_drive_log
 from magkf.errors import InputError
+from magkf.io.drivelog import UnitWarning, read_drive_log
 from magkf.sim import DriveConfig, simulate_drive
 
 from .conftest import DATA, run_cli

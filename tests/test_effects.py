@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from magkf.calibrate import calibrate_log
 from magkf.config import FilterConfig
-from magkf.diagnose import diagnose
-from magkf.drivelog import DriveLog
+from magkf.diagnostics.diagnose import diagnose
 from magkf.effects import BUILTIN, EpochData, load_effect_file
+from magkf.io.drivelog import DriveLog
+from magkf.online.run import calibrate_log
 from magkf.sim import DriveConfig, simulate_drive
 
 from .conftest import ROOT, cli_json
@@ -105,7 +105,7 @@ def test_user_effect_through_the_command_line(tmp):
 def test_finite_difference_jacobian_default_matches_analytic():
     """Every built-in's analytic Jacobian equals the base class's finite differences."""
     sim = _sim([], duration=30.0)
-    from magkf.calibrate import prepare
+    from magkf.online.run import prepare
 
     data = prepare(DriveLog(sim.table), MATCHED).data
     for cls in BUILTIN.values():
@@ -117,8 +117,8 @@ def test_finite_difference_jacobian_default_matches_analytic():
 
 
 def test_unknown_effect_and_bad_effect_file(tmp):
-    from magkf.errors import InputError
     from magkf.effects import make_effect
+    from magkf.errors import InputError
 
     with pytest.raises(InputError, match="unknown effect"):
         make_effect("magic_field")
@@ -146,7 +146,7 @@ def test_diagnose_json_and_self_contained_report(tmp):
 
 
 def test_batch_solver_estimates_an_added_effect():
-    from magkf.batch import solve_batch
+    from magkf.online.batch import solve_batch
 
     sim = _sim([(BUILTIN["current_field"](), TRUTH["current_field"])], duration=300.0)
     run = solve_batch(DriveLog(sim.table), MATCHED, effects=[BUILTIN["current_field"]()])

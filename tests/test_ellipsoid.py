@@ -2,9 +2,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from magkf.calibration import Calibration
-from magkf.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix, patent_parameters
 from magkf.errors import InputError
+from magkf.io.calibration import Calibration
+from magkf.offline.ellipsoid import (
+    EllipsoidCalibrator,
+    parameter_names,
+    patent_matrix,
+    patent_parameters,
+)
 
 from .conftest import DATA, cli_json, run_cli
 from .stats import assert_biased, assert_standard_normal
@@ -110,8 +115,9 @@ def test_too_few_samples():
 
 def test_field_from_igrf(tmp):
     """--field igrf scales the sphere to the IGRF magnitude (the horizontal part for --axes 2)."""
-    from magkf.reference import field_at
     from datetime import datetime, timezone
+
+    from magkf.reference import field_at
 
     f = field_at(48.1, 11.6, 0.0, datetime(2026, 6, 1, tzinfo=timezone.utc).timestamp())
     rng = np.random.default_rng(10)

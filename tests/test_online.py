@@ -6,18 +6,18 @@ import pytest
 from scipy import stats
 
 from magkf.apply import apply_calibration
-from magkf.batch import solve_batch
-from magkf.calibrate import calibrate_log
-from magkf.calibration import Calibration
 from magkf.config import FilterConfig
 from magkf.conventions import wrap_deg
-from magkf.drivelog import DriveLog
 from magkf.effects.base import Effect, EpochData
 from magkf.effects.core import SoftHardIron, core_jacobian
-from magkf.measurements import magnitude_jacobian
-from magkf.realtime import OnlineCalibrator
+from magkf.io.calibration import Calibration
+from magkf.io.drivelog import DriveLog
+from magkf.offline.sinefit import SineFitCalibrator, SineFitParameters
+from magkf.online.batch import solve_batch
+from magkf.online.measurements import magnitude_jacobian
+from magkf.online.realtime import OnlineCalibrator
+from magkf.online.run import calibrate_log
 from magkf.sim import DriveConfig, simulate_drive, simulate_turntable
-from magkf.sinefit import SineFitCalibrator, SineFitParameters
 
 from .conftest import DATA, cli_json, run_cli
 

@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from magkf.drivelog import DriveLog
 from magkf.errors import InputError
+from magkf.io.drivelog import DriveLog
 from magkf.reference import ReferenceFieldCache, field_at, igrf_ned, ppigrf_ned
 from magkf.sim.motion import simulate_motion
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from magkf.conventions import ATTITUDE
-from magkf.drivelog import read_drive_log
+from magkf.io.drivelog import read_drive_log
 from magkf.sim import DriveConfig, mounting_matrix, simulate_drive
 
 from .conftest import cli_json, run_cli

@@ -2,8 +2,13 @@ import numpy as np
 import pytest
 
 from magkf.errors import InputError
+from magkf.offline.sinefit import (
+    PARAMETER_NAMES,
+    SineFitCalibrator,
+    fit_sine,
+    read_turntable,
+)
 from magkf.sim import PAPER_EXAMPLE, simulate_turntable
-from magkf.sinefit import PARAMETER_NAMES, SineFitCalibrator, fit_sine, read_turntable
 
 from .conftest import DATA, cli_json, run_cli
 from .stats import assert_standard_normal
@@ -75,7 +80,7 @@ def test_human_output_and_calibration_file(tmp):
                    "-o", tmp / "cal.json")
     assert proc.returncode == 0, proc.stderr
     assert "alpha_deg" in proc.stdout and "residual RMS" in proc.stdout
-    from magkf.calibration import Calibration
+    from magkf.io.calibration import Calibration
 
     cal = Calibration.load(tmp / "cal.json")
     assert cal.method == "sinefit-exact"
@@ -104,7 +109,7 @@ def test_bad_turntable_input(tmp):
 
 def test_positive_sensitivities_resolve_the_flip_symmetry():
     """Sensor turned 180 deg about z with table headings + 180 deg fits equally: kx, ky, kz > 0 decide."""
-    from magkf.sinefit import SineFitParameters
+    from magkf.offline.sinefit import SineFitParameters
 
     truth = SineFitParameters(1.2, 20.0, 0.8, 1.03, 0.98, 1.01, (250.0, -140.0, 320.0))
     table = simulate_turntable(truth, 48_000.0, 64.0, 5.0, 20.0, np.random.default_rng(1))
@@ -116,7 +121,7 @@ def test_positive_sensitivities_resolve_the_flip_symmetry():
 
 
 def test_exact_jacobian_matches_finite_differences():
-    from magkf.sinefit import PLANES, _unpack, exact_jacobian, model_residuals
+    from magkf.offline.sinefit import PLANES, _unpack, exact_jacobian, model_residuals
 
     table = simulate_turntable(PAPER_EXAMPLE, B, INC, 30.0, 5.0, np.random.default_rng(2))
     data = [(p, table[table.plane == p].angle_deg.to_numpy(), table[table.plane == p][["mag_x", "mag_y", "mag_z"]]

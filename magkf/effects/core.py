@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..calibration import PARAMETER_NAMES
+from ..io.calibration import PARAMETER_NAMES
 from .base import Effect, EpochData
 
 #: Default random walks: R per sqrt(s) (dimensionless) and b in nT per sqrt(s).

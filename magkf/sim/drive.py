@@ -21,15 +21,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..calibration import Calibration
 from ..conventions import ATTITUDE, MAG, REF, TIME, euler_to_dcm, ned_to_body
-from ..drivelog import write_drive_log
 from ..effects.base import EpochData, rate_of_change
+from ..io.calibration import Calibration
+from ..io.drivelog import write_drive_log
+from ..offline.sinefit import SineFitParameters
 from ..reference import igrf_ned
-from ..sinefit import SineFitParameters
 from .disturbance import simulate_disturbances
 from .gnss import simulate_dop
-from .motion import smooth_noise, simulate_motion
+from .motion import simulate_motion, smooth_noise
 from .mounting import mounting_matrix
 
 DEFAULT_START = datetime(2026, 6, 1, 10, 0, tzinfo=timezone.utc).timestamp()

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 
 from ..conventions import ANGLE, MAG, PLANE
-from ..sinefit import PLANES, SineFitParameters, turntable_field
+from ..offline.sinefit import PLANES, SineFitParameters, turntable_field
 
 
 def simulate_turntable(truth: SineFitParameters, field_nt: float = 50_000.0, inclination_deg: float = 43.0,

@@ -30,17 +30,17 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from .calibrate import calibrate_log, linear_jacobian, prepare, with_initial_R
-from .calibration import Calibration
-from .config import FilterConfig
-from .conventions import body_to_ned
-from .drivelog import DriveLog
-from .effects import candidates as default_candidates
-from .effects.core import SoftHardIron
-from .estimator import USED
-from .measurements import vector_noise, whitening
-from .results import CalibrationRun
-from .state import StateLayout
+from ..config import FilterConfig
+from ..conventions import body_to_ned
+from ..effects import candidates as default_candidates
+from ..effects.core import SoftHardIron
+from ..io.calibration import Calibration
+from ..io.drivelog import DriveLog
+from ..online.estimator import USED
+from ..online.measurements import vector_noise, whitening
+from ..online.results import CalibrationRun
+from ..online.run import calibrate_log, linear_jacobian, prepare, with_initial_R
+from ..online.state import StateLayout
 
 #: Bins of the binned residual means; stretch length of the "largest residual" search, s.
 BINS = 12

@@ -26,8 +26,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from .config import FilterConfig
-from .kalman import RandomWalkEKF, RandomWalkUKF, inv_small
+from ..config import FilterConfig
+from .filters import RandomWalkEKF, RandomWalkUKF, inv_small
 from .measurements import magnitude_jacobian, magnitude_noise
 from .state import StateLayout
 

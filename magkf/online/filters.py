@@ -15,7 +15,11 @@ attributes (``x, P, Q, K, y, S``) and replace the hot steps:
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+from filterpy.kalman import (
+    ExtendedKalmanFilter,
+    MerweScaledSigmaPoints,
+    UnscentedKalmanFilter,
+)
 
 
 def inv_small(A: np.ndarray) -> np.ndarray:

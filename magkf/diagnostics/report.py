@@ -12,12 +12,12 @@ import io
 
 import numpy as np
 
-from .calibrate import calibrate_log
-from .calibration import Calibration
-from .config import FilterConfig
+from ..config import FilterConfig
+from ..effects import candidates as default_candidates
+from ..io.calibration import Calibration
+from ..io.drivelog import DriveLog
+from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
-from .drivelog import DriveLog
-from .effects import candidates as default_candidates
 
 COMPONENT_COLOURS = {"north": "tab:blue", "east": "tab:orange", "down": "tab:green", "magnitude": "tab:red"}
 

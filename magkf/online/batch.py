@@ -22,15 +22,15 @@ import time as _time
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..config import FilterConfig
+from ..conventions import body_to_ned
+from ..errors import InputError
+from ..io.calibration import Calibration
+from ..io.drivelog import DriveLog
 from .bootstrap import vector_least_squares
-from .calibrate import initial_state, prepare
-from .calibration import Calibration
-from .config import FilterConfig
-from .conventions import body_to_ned
-from .drivelog import DriveLog
-from .errors import InputError
 from .estimator import GATED_INNOVATION, GATED_MAGNITUDE, MISSING_ATTITUDE, USED
 from .results import build_run
+from .run import initial_state, prepare
 
 OUTLIER_SIGMA = 5.0
 LOSS_SCALE = 3.0

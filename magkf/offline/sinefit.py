@@ -35,10 +35,10 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from .calibration import Calibration
-from .conventions import ANGLE, MAG, PLANE, wrap_deg
-from .errors import InputError
-from .tables import read_csv, require_complete, require_rows
+from ..conventions import ANGLE, MAG, PLANE, wrap_deg
+from ..errors import InputError
+from ..io.calibration import Calibration
+from ..io.tables import read_csv, require_complete, require_rows
 
 PLANES = ("xy", "xz")
 PARAMETER_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "kx", "ky", "kz", "b_x", "b_y", "b_z")
@@ -420,7 +420,7 @@ def exact_jacobian(x, data, field_nt, inclination_deg, sign) -> np.ndarray:
 # ---------------------------------------------------------------- files
 def read_turntable(path, mag_unit: str = "nT") -> pd.DataFrame:
     """Read a turntable CSV (``plane, angle_deg, mag_x, mag_y, mag_z``), converting the field to nT."""
-    from .conventions import to_nanotesla
+    from ..conventions import to_nanotesla
 
     name = str(path)
     table = read_csv(path, required=(PLANE, ANGLE, *MAG), text_columns=(PLANE,))

@@ -13,16 +13,23 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..config import FilterConfig
+from ..conventions import euler_to_dcm, ned_to_body
+from ..effects.base import EpochData, rate_of_change
+from ..effects.core import SoftHardIron
+from ..errors import InputError
+from ..io.calibration import Calibration
+from ..io.drivelog import DriveLog
 from .bootstrap import bootstrap_magnitude, bootstrap_vector
-from .calibration import Calibration
-from .config import FilterConfig
-from .conventions import euler_to_dcm, ned_to_body
-from .drivelog import DriveLog
-from .effects.base import EpochData, rate_of_change
-from .effects.core import SoftHardIron
-from .errors import InputError
-from .estimator import (GATED_DOP, MISSING_ATTITUDE, MISSING_COLUMN, MISSING_MAG, MISSING_POSITION, USED,
-                        Estimator)
+from .estimator import (
+    GATED_DOP,
+    MISSING_ATTITUDE,
+    MISSING_COLUMN,
+    MISSING_MAG,
+    MISSING_POSITION,
+    USED,
+    Estimator,
+)
 from .measurements import vector_noise, whitening
 from .results import CalibrationRun, build_run
 from .state import StateLayout

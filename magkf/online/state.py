@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .effects.base import Effect
-from .effects.core import SoftHardIron
+from ..effects.base import Effect
+from ..effects.core import SoftHardIron
 
 
 @dataclass(frozen=True)

@@ -18,18 +18,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibrate import sample_status
-from .calibration import Calibration
-from .config import FilterConfig
-from .conventions import (ATTITUDE, MAG, REF, declination_deg, euler_to_dcm, magnetic_heading_deg, ned_to_body)
-from .effects.base import EpochData
-from .effects.core import SoftHardIron
+from ..config import FilterConfig
+from ..conventions import (
+    ATTITUDE,
+    MAG,
+    REF,
+    declination_deg,
+    euler_to_dcm,
+    magnetic_heading_deg,
+    ned_to_body,
+)
+from ..effects.base import EpochData
+from ..effects.core import SoftHardIron
+from ..io.calibration import Calibration
+from ..reference import ReferenceFieldCache
 from .estimator import STATUSES, USED, Estimator
-from .kalman import inv_small
+from .filters import inv_small
 from .measurements import vector_noise, whitening
-from .reference import ReferenceFieldCache
+from .run import sample_status
 from .state import StateLayout
-
 
 _IDENTITY = np.eye(3)[None]
 _NAN33 = np.full((3, 3), np.nan)

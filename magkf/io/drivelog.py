@@ -15,9 +15,26 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .conventions import (ALT, ATTITUDE, CORE_COLUMNS, DOP, HDOP, LAT, LON, MAG, NT_PER_UNIT, PDOP, PITCH, REF,
-                          ROLL, TIME, YAW, likely_unit, to_nanotesla)
-from .errors import InputError
+from ..conventions import (
+    ALT,
+    ATTITUDE,
+    CORE_COLUMNS,
+    DOP,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    NT_PER_UNIT,
+    PDOP,
+    PITCH,
+    REF,
+    ROLL,
+    TIME,
+    YAW,
+    likely_unit,
+    to_nanotesla,
+)
+from ..errors import InputError
 from .tables import file_row, read_csv, require_complete
 
 MIN_EPOCHS = 2
@@ -99,7 +116,7 @@ class DriveLog:
         """(N, 3) reference field in NED, nT: the log's ``ref_*`` columns, else IGRF at each epoch."""
         if self.has_reference:
             return self.table[list(REF)].to_numpy(dtype=float)
-        from .reference import igrf_ned
+        from ..reference import igrf_ned
 
         return igrf_ned(self.time, *self.position.T, **kwargs)
 

@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from ..conventions import body_to_ned
+from ..io.calibration import Calibration
 from . import observability
-from .calibration import Calibration
-from .conventions import body_to_ned
 from .estimator import STATUSES, USED
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 #: Weak prior of the bootstrap: standard deviation of each element of R and of each offset (nT).
 PRIOR_R_STD = 0.1
@@ -46,7 +46,7 @@ def vector_least_squares(m, field_body, noise_nt: float, prior_mean=None, prior_
     effects. A Gaussian prior (mean, std over all 12 + k parameters) may be given. Epochs are
     re-weighted with Huber weights on their residual norm.
     """
-    from .effects.core import core_jacobian
+    from ..effects.core import core_jacobian
 
     m = np.asarray(m, float)
     A = core_jacobian(field_body)
@@ -123,7 +123,7 @@ def _heading_spread(field_body: np.ndarray) -> float:
 
 def bootstrap_magnitude(m, reference_magnitude, time, span_s: float) -> Bootstrap:
     """Bootstrap without attitude: an ellipsoid fit to ``m`` (N, 3) with the median reference magnitude."""
-    from .ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix
+    from ..offline.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix
     from .estimator import rotation_directions
 
     stretch = time <= time[0] + span_s

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import FilterConfig
+from ..config import FilterConfig
 
 _EYE = np.eye(3)
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from .calibration import Calibration
-from .errors import InputError
+from ..errors import InputError
+from ..io.calibration import Calibration
 
 #: Smallest ratio sqrt(lambda_min / lambda_max) of the centred sample scatter for a 3-axis fit.
 MIN_THICKNESS = 0.05
