@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
-FILTERS = ("ekf", "ukf")
-MEASURES = ("magnitude", "vector", "both")
 
 
 @dataclass(frozen=True)
@@ -32,10 +30,11 @@ class FilterConfig:
         given, s. ``init_r_std`` and ``init_b_std``: standard deviations given to an offline calibration
         that carries no covariance.
     Other
-        ``filter``: ``ekf`` or ``ukf``. ``measure``: ``magnitude``, ``vector`` or ``both``.
+        ``filter``: ``ekf`` or ``ukf`` (``magkf.online.filters``). ``measure``: ``magnitude``, ``vector``,
+        ``both`` or a registered model's name (``magkf.online.measurements``).
         ``reference_refresh_m``: distance after which the real-time path re-evaluates IGRF, m.
         ``block_s``: duration of the blocks of epochs that update the filter together when
-        post-processing a log, s (each epoch is still gated on its own; see ``magkf.estimator``).
+        post-processing a log, s (each epoch is still gated on its own; see ``magkf.online.estimator``).
         0 updates epoch by epoch, as the real-time path does.
     """
 
@@ -57,10 +56,12 @@ class FilterConfig:
     block_s: float = 0.25
 
     def __post_init__(self):
-        if self.filter not in FILTERS:
-            raise ValueError(f"filter must be one of {FILTERS}, got {self.filter!r}")
-        if self.measure not in MEASURES:
-            raise ValueError(f"measure must be one of {MEASURES}, got {self.measure!r}")
+        from .online.filters import FILTERS
+        from .online.measurements import MEASUREMENTS
+
+        for name, known in (("filter", FILTERS), ("measure", MEASUREMENTS)):
+            if getattr(self, name) not in known:
+                raise ValueError(f"{name} must be one of {', '.join(known)}, got {getattr(self, name)!r}")
         for name in ("sensor_noise_nt", "bootstrap_s", "gate_nt", "dop_max"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")

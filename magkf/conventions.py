@@ -153,6 +153,37 @@ def body_to_ned(c_nb, v_body) -> np.ndarray:
     return np.einsum("...ij,...j->...i", c_nb, v_body)
 
 
+# ---------------------------------------------------------------- the calibration model
+def inverse3(A) -> np.ndarray:
+    """Inverse of a 3x3 matrix ``(3, 3)`` or of a stack ``(N, 3, 3)``. A single matrix is inverted by
+    cofactors, which for one small matrix is several times cheaper than numpy's general call."""
+    A = np.asarray(A, dtype=float)
+    if A.shape == (1, 3, 3):
+        return inverse3(A[0])[None]
+    if A.shape != (3, 3):
+        return np.linalg.inv(A)
+    (a, b, c), (d, e, f), (g, h, i) = A.tolist()
+    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * c00 + b * c01 + c * c02
+    return np.array([[c00, c * h - b * i, b * f - c * e],
+                     [c01, a * i - c * g, c * d - a * f],
+                     [c02, b * g - a * h, a * e - b * d]]) / det
+
+
+def calibrated_field(R, b, m, e=0.0) -> np.ndarray:
+    """The correction ``B_b = R^-1 (m - b - e)`` of the calibration model, nT.
+
+    ``R`` (3, 3) and ``b`` (3,) one calibration, or (N, 3, 3) and (N, 3) one per epoch; ``m`` raw readings
+    (3,) or (N, 3), nT; ``e`` (N, 3) the raw-field terms of added physical effects (or 0). Returns the
+    calibrated body field with the shape of ``m``.
+    """
+    rhs = np.asarray(m, dtype=float) - b - e
+    R = np.asarray(R, dtype=float)
+    if R.ndim == 2:
+        return rhs @ inverse3(R).T
+    return np.linalg.solve(R, rhs[..., None])[..., 0]
+
+
 # ---------------------------------------------------------------- field angles and heading
 def declination_deg(field_ned) -> np.ndarray:
     """Magnetic declination (east of true north, degrees) of NED field vectors ``(..., 3)``."""

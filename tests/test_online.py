@@ -90,7 +90,7 @@ def test_residual_on_undisturbed_epochs_is_the_noise(monte_carlo):
         resid = body_to_ned(c_nb, field) - sim.reference_ned
         per_axis = np.sqrt(np.mean(resid[used] ** 2))
         assert per_axis <= 1.05 * NOISE, per_axis
-        assert run.summary["residual_rms_nt"] / np.sqrt(3) <= 1.05 * NOISE
+        assert run.summary.residual_rms_nt / np.sqrt(3) <= 1.05 * NOISE
 
 
 def test_disturbances_are_gated(monte_carlo):
@@ -117,7 +117,7 @@ def test_planar_drive_heading_and_observability():
         return np.sqrt(np.mean(wrap_deg(h - yaw)[quiet] ** 2))
 
     assert heading_rms(run.calibration) <= 1.1 * heading_rms(sim.calibration)
-    text = run.summary["observability"]["text"]
+    text = run.summary.observability["text"]
     assert "the third column of R and b trade off; they remain at their prior" in text
 
 
@@ -156,7 +156,7 @@ def test_block_updates_match_epoch_by_epoch(constant_log):
 def test_magnitude_only_reports_the_unseen_rotation(constant_log):
     sim, log = constant_log
     run = calibrate_log(log, MATCHED.replace(measure="magnitude"))
-    assert "the orientation of R" in run.summary["observability"]["text"]
+    assert "the orientation of R" in run.summary.observability["text"]
     RRt = run.x[:9].reshape(3, 3) @ run.x[:9].reshape(3, 3).T
     assert np.allclose(RRt, sim.R @ sim.R.T, atol=2e-3)
 

@@ -33,14 +33,14 @@ from scipy import stats
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import candidates as default_candidates
-from ..effects.core import SoftHardIron
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
-from ..online.estimator import USED
-from ..online.measurements import vector_noise, whitening
+from ..online.measurements import Both
+from ..online.prepare import prepare, with_initial_R
 from ..online.results import CalibrationRun
-from ..online.run import calibrate_log, linear_jacobian, prepare, with_initial_R
+from ..online.run import calibrate_log
 from ..online.state import StateLayout
+from ..status import Status
 
 #: Bins of the binned residual means; stretch length of the "largest residual" search, s.
 BINS = 12
@@ -98,7 +98,7 @@ class Diagnosis:
 
 def _state_from_calibration(cal: Calibration, layout: StateLayout) -> np.ndarray:
     x, _ = layout.prior()
-    x[:12] = cal.state
+    x[layout.CORE] = cal.state
     return x
 
 
@@ -116,19 +116,19 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     prep = prepare(log, config)
     if run is not None:
         x = run.x
-        layout = StateLayout((SoftHardIron(), *effects))
+        layout = StateLayout.with_core(effects)
         # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
         # the epochs where it is largest, and leaving them out would bias the diagnosis.
         used = run.states["status"].isin(["used", "gated_innovation"]).to_numpy() & prep.has_attitude
     else:
-        layout = StateLayout((SoftHardIron(),))
+        layout = StateLayout.with_core()
         x = _state_from_calibration(cal, layout)
-        used = prep.base == USED
-    prep = with_initial_R(prep, x[:12])  # effects acting through R (time lag, anomaly) use the estimate's
+        used = prep.base == Status.USED
+    prep = with_initial_R(prep, x)  # effects acting through R (time lag, anomaly) use the estimate's
     data = prep.data.take(used)
     m = prep.m[used]
-    H = linear_jacobian(layout, data)  # (n, 3, p) nuisance: core and added effects
-    W = whitening(vector_noise(data.field_body, x[:9].reshape(3, 3), config, "both"))
+    H = layout.linear_jacobian(data)  # (n, 3, p) nuisance: core and added effects
+    W = Both(config, layout, x).whitening(data.field_body, layout.R(x))
     resid_raw = m - np.einsum("nij,j->ni", H, x)
     y = np.einsum("nij,nj->ni", W, resid_raw)
     # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the residual's robust scale.
@@ -149,8 +149,7 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     nrows = 3 * n
 
     # residuals in nT (NED and magnitude), with the model as it is
-    c = np.linalg.solve(x[:9].reshape(3, 3), (resid_raw + np.einsum("nij,j->ni", H[:, :, :12], x[:12])
-                                              - x[9:12]).T).T
+    c = layout.calibrated(x, m, layout.extra_terms(x, H, data))
     ned = body_to_ned(data.c_nb, c) - data.field_ned
     body = c - data.field_body
     mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
@@ -171,7 +170,7 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
         G = np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
         regressors[effect.label] = (effect, G, (W @ G).reshape(nrows, -1))
     L = np.linalg.inv(W)  # un-whitening, to express fitted corrections in nT
-    Rinv = np.linalg.inv(x[:9].reshape(3, 3))
+    Rinv = np.linalg.inv(layout.R(x))
 
     def rms_after(residual_w):
         """RMS residual norm (nT, NED) of what a fit leaves: the whitened residual, un-whitened."""

@@ -104,7 +104,7 @@ def _states_plot(run, t0):
 def _status_plot(run, t0):
     import matplotlib.pyplot as plt
 
-    status = run.states["status"]
+    status = run.states.status
     counts = status.value_counts()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 2.8), constrained_layout=True,
                                    gridspec_kw={"width_ratios": [1, 2]})
@@ -129,13 +129,13 @@ def build_report(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Cali
     t0 = log.time[0]
     s = run.summary
     parts = [f"<h1>magkf report: {html.escape(log.source)}</h1>",
-             f"<p>{s['n_epochs']} epochs, {s['filter']} ({s['measure']}), start: {html.escape(s['init'])}; "
-             f"residual RMS {s['residual_rms_nt']:.2f} nT (vector norm), magnitude "
-             f"{s['residual_rms_magnitude_nt']:.2f} nT, mean NIS {s['nis_mean']:.2f}.</p>",
+             f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; "
+             f"residual RMS {s.residual_rms_nt:.2f} nT (vector norm), magnitude "
+             f"{s.residual_rms_magnitude_nt:.2f} nT, mean NIS {s.nis_mean:.2f}.</p>",
              f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
-             f"<p><b>Observability:</b> {html.escape(s['observability']['text'])}.</p>",
+             f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
              "<h2>Gates</h2>", _status_plot(run, t0),
-             _table([(k, v) for k, v in s["status_counts"].items()], ["status", "epochs"]),
+             _table([(k, v) for k, v in s.status_counts.items()], ["status", "epochs"]),
              "<h2>Estimate</h2>",
              _table([(n, f"{v:.6g}", f"{sd:.2g}") for n, v, sd in zip(run.names, run.x, run.std)],
                     ["parameter", "value", "standard deviation"]),

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..conventions import calibrated_field
 from ..errors import InputError
 
 FORMAT = "magkf-calibration"
@@ -72,8 +73,7 @@ class Calibration:
     # ------------------------------------------------------------ use
     def correct(self, mag_nt) -> np.ndarray:
         """Calibrated body field ``R^-1 (m - b)`` (nT) of raw readings ``(N, 3)`` or ``(3,)``."""
-        m = np.asarray(mag_nt, dtype=float)
-        return np.linalg.solve(self.R, (m - self.b).T).T
+        return calibrated_field(self.R, self.b, mag_nt)
 
     def distort(self, field_body_nt) -> np.ndarray:
         """Raw reading ``R B + b`` (nT) of body-frame fields ``(N, 3)`` or ``(3,)``."""

@@ -35,9 +35,62 @@ from ..conventions import (
     to_nanotesla,
 )
 from ..errors import InputError
+from ..status import Status
 from .tables import file_row, read_csv, require_complete
 
 MIN_EPOCHS = 2
+
+
+def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
+    """Statuses (N,) known before filtering, the epoch rules of every log and of the real-time step.
+
+    ``m`` (N, 3) raw magnetometer, ``ref`` (N, 3) reference field (NaN where there is none), ``has_attitude``
+    (N,) bool, ``dop`` (N,) (NaN when not logged, which passes the gate). In order of precedence (the last
+    rule that applies wins): ``missing_attitude``, ``gated_dop``, ``missing_position``, ``missing_mag``;
+    otherwise ``used``. Codes from ``magkf.status.Status``.
+    """
+    base = np.full(len(m), Status.USED, dtype=np.int8)
+    base[~np.asarray(has_attitude, bool)] = Status.MISSING_ATTITUDE
+    base[np.asarray(dop, float) > dop_max] = Status.GATED_DOP
+    base[~np.all(np.isfinite(ref), axis=1)] = Status.MISSING_POSITION
+    base[~np.all(np.isfinite(m), axis=1)] = Status.MISSING_MAG
+    return base
+
+
+def select_dop(columns) -> np.ndarray | None:
+    """The DOP the gate uses from a mapping of column arrays: ``dop``, else ``pdop``, else ``hdop`` (None if
+    none is present). Where the chosen column is NaN at an epoch, the next one is taken there."""
+    out = None
+    for name in (DOP, PDOP, HDOP):
+        if name in columns:
+            v = np.asarray(columns[name], float)
+            out = v if out is None else np.where(np.isfinite(out), out, v)
+    return out
+
+
+def read_sample(sample, names, time=None) -> dict[str, float]:
+    """The values of ``names`` in one sample, as floats (NaN where absent, empty, None or not a number).
+
+    ``sample`` is a mapping of column names to values: a dict, or a pandas row (``Series``). ``time`` (UNIX
+    s) is taken from the argument if given, else from the sample's ``time`` entry, else from a pandas
+    row's name (``DataFrame.iterrows`` and ``DriveLog.table`` rows carry the time as their index).
+    """
+    def number(name) -> float:
+        try:
+            return float(sample[name])
+        except (KeyError, IndexError, TypeError, ValueError):
+            return float("nan")
+
+    out = {name: number(name) for name in names}
+    if time is None:
+        time = number(TIME)
+        if not np.isfinite(time):
+            time = getattr(sample, "name", None)
+    try:
+        out[TIME] = float(time)
+    except (TypeError, ValueError):
+        out[TIME] = float("nan")
+    return out
 
 
 class UnitWarning(UserWarning):
@@ -101,11 +154,9 @@ class DriveLog:
 
     @property
     def dop(self) -> np.ndarray:
-        """(N,) DOP for the gate: ``dop``, else ``pdop``, else ``hdop``; NaN when none is logged."""
-        for name in (DOP, PDOP, HDOP):
-            if name in self.table:
-                return self.column(name)
-        return np.full(len(self), np.nan)
+        """(N,) DOP for the gate (``select_dop``); NaN when none is logged."""
+        dop = select_dop({c: self.table[c] for c in (DOP, PDOP, HDOP) if c in self.table})
+        return np.full(len(self), np.nan) if dop is None else dop
 
     @property
     def auxiliary(self) -> list[str]:

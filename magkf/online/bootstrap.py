@@ -124,7 +124,7 @@ def _heading_spread(field_body: np.ndarray) -> float:
 def bootstrap_magnitude(m, reference_magnitude, time, span_s: float) -> Bootstrap:
     """Bootstrap without attitude: an ellipsoid fit to ``m`` (N, 3) with the median reference magnitude."""
     from ..offline.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix
-    from .estimator import rotation_directions
+    from .measurements import rotation_directions
 
     stretch = time <= time[0] + span_s
     if stretch.sum() < 200:

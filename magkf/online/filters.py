@@ -1,44 +1,50 @@
-"""FilterPy's EKF and UKF, specialised for random-walk parameter states.
+"""Kalman filters over a random-walk parameter state, behind one small interface.
 
-The parameters follow a random walk (``F = I``), so the prediction is exact and cheap: ``x``
-unchanged, ``P += Q dt``. FilterPy's generic steps pay for ``F`` products, a ``deepcopy`` of the
-measurement and (UKF) one Python call of ``hx`` per sigma point; these subclasses keep FilterPy's
-attributes (``x, P, Q, K, y, S``) and replace the hot steps:
+The parameters follow a random walk (``F = I``), so the prediction is exact and cheap: ``x`` unchanged,
+``P += Q dt``. An update takes the measurement models' linearisation of a block of epochs, already
+whitened (unit noise):
 
-* ``RandomWalkEKF.correct_stacked(y, H, R)``: Joseph-form update (expanded, exactly symmetric),
-  positive-definiteness checked, for a measurement stacked from several epochs.
-* ``RandomWalkUKF.correct_sigmas(sigmas, h, y, R)``: the update from sigma points drawn fresh from the
-  current ``(x, P)`` for this update (never stale ones from an earlier prediction), whose measurements
-  ``h`` the caller computed in one vectorised call.
+    lin = kf.linearise([(model, block), ...])     # per-epoch innovations, Jacobians and NIS
+    kf.update(lin, [accept, ...])                  # the accepted epochs, stacked into one update
+
+``EKF`` linearises each model at the estimate and updates in the Joseph form (expanded so that it is
+exactly symmetric), with a positive-definiteness guard. ``UKF`` draws sigma points fresh from the
+current ``(x, P)`` at every update (never stale ones from an earlier prediction) with FilterPy's
+``MerweScaledSigmaPoints``, and the models predict all of them in one vectorised call. Both expose
+``x``, ``P``, ``predict(dt)``, ``linearise``, ``update``, ``inflate`` and ``copy``; nothing else.
+``FILTERS`` maps a name to its class.
 """
 
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass
+
 import numpy as np
-from filterpy.kalman import (
-    ExtendedKalmanFilter,
-    MerweScaledSigmaPoints,
-    UnscentedKalmanFilter,
-)
+
+from ..conventions import inverse3
+
+__all__ = ["EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
 
 
-def inv_small(A: np.ndarray) -> np.ndarray:
-    """Inverse of a matrix (or a stack of them); a single 3x3 by cofactors, which for one small
-    matrix is several times cheaper than numpy's general call."""
-    if A.shape == (3, 3):
-        return _inv3(A)
-    if A.shape == (1, 3, 3):
-        return _inv3(A[0])[None]
-    return np.linalg.inv(A)
+@dataclass
+class Rows:
+    """One model's whitened rows for k epochs: innovation ``y`` (k, r), Jacobian ``H`` (k, r, n) at the
+    estimate (the information they carry), normalised innovation squared ``nis`` (k,) and, for the UKF,
+    the whitened predictions at the sigma points ``h`` (S, k, r)."""
+
+    y: np.ndarray
+    H: np.ndarray
+    nis: np.ndarray
+    h: np.ndarray | None = None
 
 
-def _inv3(A: np.ndarray) -> np.ndarray:
-    (a, b, c), (d, e, f), (g, h, i) = A.tolist()
-    c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * c00 + b * c01 + c * c02
-    return np.array([[c00, c * h - b * i, b * f - c * e],
-                     [c01, a * i - c * g, c * d - a * f],
-                     [c02, b * g - a * h, a * e - b * d]]) / det
+@dataclass
+class Linearisation:
+    """Every model's rows for one update, and the UKF's sigma points (S, n) they were predicted at."""
+
+    rows: list
+    sigmas: np.ndarray | None = None
 
 
 def _guard(P: np.ndarray) -> np.ndarray:
@@ -49,25 +55,62 @@ def _guard(P: np.ndarray) -> np.ndarray:
     return P
 
 
-class RandomWalkEKF(ExtendedKalmanFilter):
-    """Extended Kalman filter over a random-walk state (FilterPy ``ExtendedKalmanFilter``).
+def _nis(y: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with covariances (k, r, r)."""
+    if S.shape[1] == 1:
+        return y[:, 0] ** 2 / S[:, 0, 0]
+    return np.einsum("ki,kij,kj->k", y, inverse3(S) if S.shape[1:] == (3, 3) else np.linalg.inv(S), y)
 
-    ``x0`` (n,), ``P0`` (n, n), ``q_rate`` (n,) random-walk variance per second.
-    """
+
+class _RandomWalkFilter:
+    """What the EKF and the UKF share: the state, the exact random-walk prediction, inflation, a copy."""
+
+    name = "filter"
 
     def __init__(self, x0, P0, q_rate):
-        super().__init__(dim_x=len(x0), dim_z=3)
         self.x = np.array(x0, float)
         self.P = np.array(P0, float)
         self.q_rate = np.asarray(q_rate, float)
-        self.Q = np.diag(self.q_rate)
-        self._stride = len(x0) + 1
+        self._stride = len(self.x) + 1
 
-    def predict_dt(self, dt: float) -> None:
-        """Random-walk prediction over ``dt`` seconds: ``P += Q dt`` (``x`` unchanged)."""
+    def predict(self, dt: float) -> None:
+        """Random-walk prediction over ``dt`` seconds: ``P += Q dt`` (``x`` unchanged, exact)."""
         self.P.ravel()[:: self._stride] += self.q_rate * dt
 
-    def correct_stacked(self, y, H, R=None) -> None:
+    def inflate(self, P_add) -> None:
+        """``P += P_add`` (n, n): widen the covariance so that the filter can re-acquire."""
+        self.P = self.P + P_add
+
+    def copy(self):
+        """An independent copy (state, covariance and settings)."""
+        return copy.deepcopy(self)
+
+
+class EKF(_RandomWalkFilter):
+    """Extended Kalman filter: ``x0`` (n,), ``P0`` (n, n), ``q_rate`` (n,) random-walk variance per second."""
+
+    name = "ekf"
+
+    def linearise(self, parts) -> Linearisation:
+        """Rows of each ``(model, block)`` at the estimate, with per-epoch NIS ``y^T (H P H^T + I)^-1 y``."""
+        rows = []
+        for model, blk in parts:
+            y, H = model.linearise(self.x, blk)
+            S = H @ self.P @ H.transpose(0, 2, 1)
+            S[:, np.arange(H.shape[1]), np.arange(H.shape[1])] += 1.0
+            rows.append(Rows(y, H, _nis(y, S)))
+        return Linearisation(rows)
+
+    def update(self, lin: Linearisation, accept) -> np.ndarray:
+        """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
+        of the rows used. ``accept`` holds one boolean mask (k,) per part."""
+        ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
+        Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
+        y, H = np.concatenate(ys), np.vstack(Hs)
+        self.correct(y, H)
+        return H
+
+    def correct(self, y, H, R=None) -> None:
         """Update with innovation ``y`` (r,), Jacobian ``H`` (r, n) and noise ``R`` (r, r; default the
         identity, for whitened rows).
 
@@ -81,45 +124,64 @@ class RandomWalkEKF(ExtendedKalmanFilter):
             S.ravel()[:: len(S) + 1] += 1.0
         else:
             S += R
-        K = PHt @ inv_small(S) if S.shape == (3, 3) else np.linalg.solve(S, PHt.T).T
+        K = PHt @ inverse3(S) if S.shape == (3, 3) else np.linalg.solve(S, PHt.T).T
         self.x = self.x + K @ y
         M = (0.5 * (K @ S)) @ K.T - K @ PHt.T
         self.P = _guard(self.P + (M + M.T))
-        self.K, self.y, self.S = K, y, S
 
 
-class RandomWalkUKF(UnscentedKalmanFilter):
-    """Unscented Kalman filter over a random-walk state (FilterPy ``UnscentedKalmanFilter``).
+class UKF(_RandomWalkFilter):
+    """Unscented Kalman filter with Van der Merwe's scaled sigma points (FilterPy's
+    ``MerweScaledSigmaPoints``; ``alpha=1, beta=2, kappa=0``: all mean weights equal and positive).
+    The prediction of a random walk is exact without sigma points."""
 
-    Van der Merwe's scaled sigma points (``alpha=1, beta=2, kappa=0``: all mean weights equal and
-    positive). The prediction of a random walk is exact without sigma points.
-    """
+    name = "ukf"
 
     def __init__(self, x0, P0, q_rate, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
-        n = len(x0)
-        points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
-        super().__init__(dim_x=n, dim_z=3, dt=1.0, hx=None, fx=lambda x, dt: x, points=points)
-        self.x = np.array(x0, float)
-        self.P = np.array(P0, float)
-        self.q_rate = np.asarray(q_rate, float)
-        self.Q = np.diag(self.q_rate)
-        self._stride = n + 1
+        from filterpy.kalman import MerweScaledSigmaPoints
 
-    def predict_dt(self, dt: float) -> None:
-        """Random-walk prediction over ``dt`` seconds: ``P += Q dt`` (``x`` unchanged, exact)."""
-        self.P.ravel()[:: self._stride] += self.q_rate * dt
+        super().__init__(x0, P0, q_rate)
+        self.points = MerweScaledSigmaPoints(len(self.x), alpha=alpha, beta=beta, kappa=kappa)
+        self.Wm, self.Wc = self.points.Wm, self.points.Wc
 
-    def correct_sigmas(self, sigmas, h, y, R=None) -> None:
-        """Update from ``sigmas`` (2n+1, n) drawn from the current ``(x, P)``, their measurements ``h``
-        (2n+1, r), the innovation ``y = z - zp`` (r,) and the noise ``R`` (r, r; default the identity,
-        for whitened rows)."""
+    def linearise(self, parts) -> Linearisation:
+        """Sigma-point predictions of each ``(model, block)`` from one fresh set of sigma points."""
+        sigmas = self.points.sigma_points(self.x, self.P)
+        rows = []
+        for model, blk in parts:
+            h, z, H = model.sigma_predict(sigmas, self.x, blk)
+            zp = np.einsum("s,ski->ki", self.Wm, h)
+            dz = h - zp
+            S = np.einsum("s,ski,skj->kij", self.Wc, dz, dz)
+            S[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
+            y = z - zp
+            rows.append(Rows(y, H, _nis(y, S), h))
+        return Linearisation(rows, sigmas)
+
+    def update(self, lin: Linearisation, accept) -> np.ndarray:
+        """Update with the accepted epochs of every part at once; returns the whitened linear Jacobian
+        (r, n) of the rows used (the information they carry)."""
+        S_count = len(lin.sigmas)
+        y = np.concatenate([r.y[a].ravel() for r, a in zip(lin.rows, accept)])
+        h = np.hstack([r.h[:, a].reshape(S_count, -1) for r, a in zip(lin.rows, accept)])
         zp = self.Wm @ h
         dz = h - zp
-        S = (dz.T * self.Wc) @ dz
-        S = S + (np.eye(len(S)) if R is None else R)
-        Pxz = ((sigmas - self.x).T * self.Wc) @ dz
+        S = (dz.T * self.Wc) @ dz + np.eye(len(y))
+        Pxz = ((lin.sigmas - self.x).T * self.Wc) @ dz
         K = np.linalg.solve(S, Pxz.T).T
         self.x = self.x + K @ y
         P = self.P - (K @ S) @ K.T
         self.P = _guard(0.5 * (P + P.T))
-        self.K, self.y, self.S = K, y, S
+        return np.vstack([r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)])
+
+
+FILTERS = {cls.name: cls for cls in (EKF, UKF)}
+
+
+def make_filter(name: str, x0, P0, q_rate):
+    """The filter ``name`` (``ekf`` or ``ukf``) started at ``x0`` (n,), ``P0`` (n, n)."""
+    try:
+        cls = FILTERS[name]
+    except KeyError:
+        raise ValueError(f"unknown filter {name!r}; known: {', '.join(FILTERS)}") from None
+    return cls(x0, P0, q_rate)

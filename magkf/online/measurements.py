@@ -1,10 +1,16 @@
-"""Measurement models of the online calibration: the NED vector and the field magnitude.
+"""Measurement models of the online calibration, one class each: ``magnitude``, ``vector`` and ``both``.
 
-**Vector.** The NED components of the calibrated field, ``C_nb R^-1 (m - b - e)``, against the reference
-``B_ref``. The same equation, multiplied through by ``R C_nb^T``, reads ``m = R C_nb^T B_ref + b + e``:
-in the sensor frame it is *linear* in ``R``, ``b`` and every linear effect, so magkf processes it there
-(the Kalman update is then exact, and its Jacobian is the effects' Jacobians evaluated once per log).
-Residuals are reported in NED. Noise covariance in the sensor frame:
+A model knows which epochs it can use (``needs_attitude``, and ``fallback``: the model for the epochs it
+cannot use), its noise, its linearisation of a block of epochs for the EKF (whitened innovation and
+Jacobian), its prediction at sigma points for the UKF, and its normalised residuals for the batch
+solver. The filters, the estimator, the batch solver and the real-time path call these methods and never
+look at a model's name; ``MEASUREMENTS`` maps a name to its class, and ``register_measurement`` adds one.
+
+**Vector** (``vector``, ``both``). The NED components of the calibrated field, ``C_nb R^-1 (m - b - e)``,
+against the reference ``B_ref``. The same equation, multiplied through by ``R C_nb^T``, reads
+``m = R C_nb^T B_ref + b + e``: in the sensor frame it is *linear* in ``R``, ``b`` and every linear effect,
+so magkf processes it there (the Kalman update is then exact, and its Jacobian is the effects' Jacobians
+evaluated once per log). Residuals are reported in NED. Noise covariance in the sensor frame:
 
     sensor_noise^2 I + R (reference^2 I + A) R^T
 
@@ -12,29 +18,112 @@ with the attitude term ``A = att^2 (|B|^2 I - B B^T)`` for ``both``: an attitude
 but does not change its length, so the along-field (total-field) component keeps sensor-level noise and
 only the two cross-field (inter-axis) components carry the attitude noise; this is the patent's
 total-field plus inter-axis residual pair without counting the magnitude twice. For ``vector``,
-``A = att^2 |B|^2 I`` on every component.
+``A = att^2 |B|^2 I`` on every component. ``both`` falls back to the magnitude for epochs without attitude.
 
 **Magnitude.** ``|R^-1 (m - b - e)|`` against ``|B_ref|``; needs no attitude. Variance
-``sensor_noise^2 u^T R^-1 R^-T u + reference^2`` with ``u`` the unit calibrated field.
+``sensor_noise^2 u^T R^-1 R^-T u + reference^2`` with ``u`` the unit calibrated field. As the only
+measurement of a run, it cannot see a rotation ``R -> R Q``: its Jacobian is projected off those
+directions (an observability-constrained EKF), so the filter gains no spurious information there.
+
+Shapes: a block of k epochs; ``r`` rows per epoch (``Model.rows``); n states; S sigma points.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..config import FilterConfig
+from ..conventions import body_to_ned, inverse3
+from ..effects.base import EpochData
+from .state import StateLayout
+
+__all__ = ["Block", "MeasurementModel", "Magnitude", "Vector", "Both", "MEASUREMENTS", "register_measurement",
+           "measurement_model", "vector_noise", "whitening", "magnitude_jacobian", "rotation_directions"]
 
 _EYE = np.eye(3)
 
 
-def vector_noise(field_body: np.ndarray, R: np.ndarray, config: FilterConfig, measure: str) -> np.ndarray:
-    """Sensor-frame noise covariance (N, 3, 3) of the vector measurement at N epochs (body field in nT)."""
+@dataclass
+class Block:
+    """k consecutive epochs as the models see them.
+
+    ``m`` (k, 3) raw nT; ``ref_mag`` (k,) reference magnitude nT; ``H`` (k, 3, n) Jacobian of the linear
+    blocks (``StateLayout.linear_jacobian``); ``W`` (k, 3, 3) whitening of the vector measurement (or None
+    for a model that needs none); ``data`` the epochs' ``EpochData`` (needed by nonlinear effects and the
+    batch residuals); ``e`` (k, 3) raw-field terms of the added effects at the current estimate.
+    """
+
+    m: np.ndarray
+    ref_mag: np.ndarray
+    H: np.ndarray
+    W: np.ndarray | None = None
+    data: EpochData | None = None
+    e: np.ndarray | float = 0.0
+
+    def take(self, index) -> "Block":
+        """The same block at the epochs ``index`` (integer array or boolean mask)."""
+        def cut(a):
+            return a[index] if isinstance(a, np.ndarray) else a
+
+        return Block(self.m[index], self.ref_mag[index], self.H[index], cut(self.W),
+                     None if self.data is None else self.data.take(index), cut(self.e))
+
+
+class MeasurementModel:
+    """Base class of a measurement model (subclass it and ``register_measurement`` it).
+
+    Class attributes: ``name``; ``rows`` per epoch; ``needs_attitude``. Constructed with the run's
+    ``config``, ``layout`` and initial state ``x0``; ``fallback`` is the model for the epochs this one
+    cannot use (epochs without attitude), or None.
+    """
+
+    name: str = "measurement"
+    rows: int = 1
+    needs_attitude: bool = False
+
+    def __init__(self, config: FilterConfig, layout: StateLayout, x0):
+        self.config, self.layout = config, layout
+        self.fallback: MeasurementModel | None = None
+
+    def whitening(self, field_body, R) -> np.ndarray | None:
+        """Whitening (k, 3, 3) of the epochs' vector noise at calibration ``R`` (None: not needed)."""
+        return None
+
+    def linearise(self, x, blk: Block) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened innovation ``y`` (k, r) and Jacobian ``H`` (k, r, n) at state ``x`` (n,)."""
+        raise NotImplementedError
+
+    def sigma_predict(self, sigmas, x, blk: Block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whitened predictions ``h`` (S, k, r) at ``sigmas`` (S, n), the whitened measurement ``z`` (k, r),
+        and the whitened Jacobian (k, r, n) at ``x`` (for the information the update carries)."""
+        raise NotImplementedError
+
+    def batch_residuals(self, ref, c_nb, ref_mag):
+        """A function ``f(c) -> (k, q)``: residuals in units of their standard deviations of calibrated
+        fields ``c`` (k, 3) nT at epochs with reference ``ref`` (k, 3), attitude ``c_nb`` (k, 3, 3), nT."""
+        raise NotImplementedError
+
+    # Noise of the batch solver's residuals: the same settings as the filter's.
+    def _sigma_total(self) -> float:
+        return float(np.sqrt(self.config.sensor_noise_nt**2 + self.config.reference_nt**2))
+
+    def _sigma_cross(self, ref_mag) -> np.ndarray:
+        c = self.config
+        return np.sqrt(c.sensor_noise_nt**2 + c.reference_nt**2 + (np.radians(c.attitude_deg) * ref_mag) ** 2)
+
+
+# ---------------------------------------------------------------- vector
+def vector_noise(field_body: np.ndarray, R: np.ndarray, config: FilterConfig, field_aligned: bool) -> np.ndarray:
+    """Sensor-frame noise covariance (N, 3, 3) of the vector measurement at N epochs (body field in nT);
+    ``field_aligned``: attitude noise only across the field (``both``), else on every component."""
     B = np.asarray(field_body, float)
     att2 = np.radians(config.attitude_deg) ** 2
     b2 = np.einsum("ni,ni->n", B, B)
     diagonal = att2 * b2 + config.reference_nt**2  # (N,)
     A = _EYE * diagonal[:, None, None]
-    if measure == "both":
+    if field_aligned:
         A = A - att2 * B[:, :, None] * B[:, None, :]
     return config.sensor_noise_nt**2 * _EYE + R @ A @ R.T
 
@@ -61,21 +150,178 @@ def _whitening3(N: np.ndarray) -> np.ndarray:
     return np.array([[i11, 0.0, 0.0], [i21, i22, 0.0], [i31, i32, i33]])
 
 
+class Vector(MeasurementModel):
+    """The NED field vector, processed in the sensor frame where it is linear; attitude noise on every
+    component. Epochs without attitude are not used."""
+
+    name = "vector"
+    rows = 3
+    needs_attitude = True
+    field_aligned = False
+
+    def whitening(self, field_body, R):
+        return whitening(vector_noise(field_body, R, self.config, self.field_aligned))
+
+    def _jacobian(self, x, blk: Block) -> np.ndarray:
+        """(k, 3, n) Jacobian of ``m``: the linear blocks' with the nonlinear effects' filled in."""
+        if not self.layout.nonlinear:
+            return blk.H
+        H = blk.H.copy()
+        for effect, sl in self.layout.nonlinear:
+            H[:, :, sl] = effect.jacobian(x[sl], blk.data)
+        return H
+
+    def linearise(self, x, blk):
+        h = np.einsum("kij,j->ki", blk.H, x)
+        if self.layout.nonlinear:
+            h = h + self.layout.nonlinear_terms(x, blk.data)
+        y = np.einsum("kij,kj->ki", blk.W, blk.m - h)
+        return y, blk.W @ self._jacobian(x, blk)
+
+    def sigma_predict(self, sigmas, x, blk):
+        WH = blk.W @ blk.H
+        h = np.einsum("kin,sn->ski", WH, sigmas)
+        if self.layout.nonlinear:
+            h = h + np.einsum("kij,skj->ski", blk.W, self.layout.nonlinear_terms(sigmas, blk.data))
+        z = np.einsum("kij,kj->ki", blk.W, blk.m)
+        return h, z, blk.W @ self._jacobian(x, blk)
+
+    def batch_residuals(self, ref, c_nb, ref_mag):
+        sigma = self._sigma_cross(ref_mag)[:, None]
+        return lambda c: (body_to_ned(c_nb, c) - ref) / sigma
+
+
+class Both(Vector):
+    """The total field and the two inter-axis components across it (``vector`` with field-aligned noise);
+    epochs without attitude fall back to the magnitude."""
+
+    name = "both"
+    field_aligned = True
+
+    def __init__(self, config, layout, x0):
+        super().__init__(config, layout, x0)
+        self.fallback = Magnitude(config, layout, x0, primary=False)
+
+    def batch_residuals(self, ref, c_nb, ref_mag):
+        total = self.fallback.batch_residuals(ref, c_nb, ref_mag)
+        basis = _cross_basis(ref)
+        sigma = self._sigma_cross(ref_mag)[:, None]
+
+        def residuals(c):
+            cross = np.einsum("nki,ni->nk", basis, body_to_ned(c_nb, c) - ref) / sigma
+            return np.concatenate([total(c), cross], axis=1)
+
+        return residuals
+
+
+def _cross_basis(ref: np.ndarray) -> np.ndarray:
+    """Two unit vectors (N, 2, 3) spanning the plane across each reference field (N, 3)."""
+    u = ref / np.linalg.norm(ref, axis=1)[:, None]
+    helper = np.where(np.abs(u[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1)[:, None]
+    return np.stack([e1, np.cross(u, e1)], axis=1)
+
+
+# ---------------------------------------------------------------- magnitude
 def magnitude_jacobian(x_core: np.ndarray, m_minus_e: np.ndarray):
     """Magnitude model at k epochs: ``h`` (k,), ``H`` (k, 12) and ``w = u^T R^-1`` (k, 3).
 
     ``x_core`` (12,) is ``R`` row-major and ``b``; ``m_minus_e`` (k, 3) the raw readings less the other
     effects. ``h = |c|`` with ``c = R^-1 (m - e - b)``; ``dh/db = -w`` and ``dh/dR_ij = -w_i c_j``.
     """
-    R = x_core[:9].reshape(3, 3)
-    Rinv = np.linalg.inv(R)
-    c = (m_minus_e - x_core[9:12]) @ Rinv.T
+    R, b = StateLayout.R_b(x_core)
+    Rinv = inverse3(R)
+    c = (m_minus_e - b) @ Rinv.T
     h = np.linalg.norm(c, axis=1)
     w = (c / h[:, None]) @ Rinv
     H = np.concatenate([-(w[:, :, None] * c[:, None, :]).reshape(-1, 9), -w], axis=1)
     return h, H, w
 
 
-def magnitude_noise(w: np.ndarray, config: FilterConfig) -> np.ndarray:
-    """Variance (k,) of the magnitude measurement: ``sensor^2 |w|^2 + reference^2``, nT^2."""
-    return config.sensor_noise_nt**2 * np.einsum("ki,ki->k", w, w) + config.reference_nt**2
+def rotation_directions(R: np.ndarray, size: int) -> np.ndarray:
+    """State directions (size, 3) of ``R -> R (I + Omega)`` for the three infinitesimal rotations Omega."""
+    out = np.zeros((size, 3))
+    for k in range(3):
+        omega = np.zeros((3, 3))
+        i, j = [(1, 2), (2, 0), (0, 1)][k]
+        omega[i, j], omega[j, i] = -1.0, 1.0
+        out[StateLayout.R_INDEX, k] = (R @ omega).ravel()
+    return out
+
+
+class Magnitude(MeasurementModel):
+    """The calibrated field magnitude against the reference's; needs no attitude.
+
+    ``primary``: the run's only measurement, whose Jacobian is then projected off the rotations of the
+    initial ``R`` (no magnitude can see them); False when it serves as another model's fallback.
+    """
+
+    name = "magnitude"
+    rows = 1
+    needs_attitude = False
+
+    def __init__(self, config, layout, x0, primary: bool = True):
+        super().__init__(config, layout, x0)
+        self._projector = None
+        if primary:
+            N = rotation_directions(layout.R(x0), layout.size)
+            self._projector = np.eye(layout.size) - N @ np.linalg.solve(N.T @ N, N.T)
+
+    def _noise_sd(self, w) -> np.ndarray:
+        """Standard deviation (k,) of the magnitude: ``sqrt(sensor^2 |w|^2 + reference^2)``, nT."""
+        c = self.config
+        return np.sqrt(c.sensor_noise_nt**2 * np.einsum("ki,ki->k", w, w) + c.reference_nt**2)
+
+    def _linear(self, x, blk):
+        """Magnitude ``h`` (k,), Jacobian (k, n) and noise sd (k,) at ``x``."""
+        layout = self.layout
+        h, H_core, w = magnitude_jacobian(layout.core_of(x), blk.m - blk.e)
+        H = np.zeros((len(h), layout.size))
+        H[:, layout.CORE] = H_core
+        if layout.has_extra:
+            H[:, layout.EXTRA] = -np.einsum("ki,kij->kj", w, blk.H[:, :, layout.EXTRA])
+        return h, H, self._noise_sd(w)
+
+    def linearise(self, x, blk):
+        h, H, sd = self._linear(x, blk)
+        if self._projector is not None:
+            H = H @ self._projector
+        return ((blk.ref_mag - h) / sd)[:, None], (H / sd[:, None])[:, None, :]
+
+    def sigma_predict(self, sigmas, x, blk):
+        layout = self.layout
+        mc = blk.m - blk.e
+        if layout.has_extra:  # the other effects' terms move with the sigma points too
+            mc = mc[None] - np.einsum("kij,sj->ski", blk.H[:, :, layout.EXTRA],
+                                      sigmas[:, layout.EXTRA] - np.asarray(x)[layout.EXTRA])
+        R, b = layout.R_b(sigmas)
+        c = np.linalg.solve(R[:, None], (mc - b[:, None, :])[..., None])[..., 0]
+        _, H, sd = self._linear(x, blk)
+        h = np.linalg.norm(c, axis=2) / sd  # (S, k), whitened
+        return h[..., None], (blk.ref_mag / sd)[:, None], (H / sd[:, None])[:, None, :]
+
+    def batch_residuals(self, ref, c_nb, ref_mag):
+        sigma = self._sigma_total()
+        return lambda c: ((np.linalg.norm(c, axis=1) - ref_mag) / sigma)[:, None]
+
+
+# ---------------------------------------------------------------- registry
+MEASUREMENTS: dict[str, type[MeasurementModel]] = {cls.name: cls for cls in (Magnitude, Vector, Both)}
+
+
+def register_measurement(cls: type[MeasurementModel]) -> type[MeasurementModel]:
+    """Make a measurement model available by its ``name`` (for ``FilterConfig(measure=...)``); a decorator."""
+    if not (isinstance(cls, type) and issubclass(cls, MeasurementModel)):
+        raise TypeError("a measurement model is a subclass of MeasurementModel")
+    MEASUREMENTS[cls.name] = cls
+    return cls
+
+
+def measurement_model(config: FilterConfig, layout: StateLayout, x0) -> MeasurementModel:
+    """The model ``config.measure`` names, for this layout and initial state."""
+    try:
+        cls = MEASUREMENTS[config.measure]
+    except KeyError:
+        raise ValueError(f"unknown measurement model {config.measure!r}; known: {', '.join(MEASUREMENTS)}") from None
+    return cls(config, layout, x0)

@@ -57,7 +57,7 @@ def analyse(P0, information, names, R=None) -> dict:
 
 def _is_rotation(direction: np.ndarray, R: np.ndarray) -> bool:
     """True when ``direction``'s R part lies (90 %) in the span of ``R Omega`` and b is untouched."""
-    from .estimator import rotation_directions
+    from .measurements import rotation_directions
 
     N = rotation_directions(R, 9)
     d = direction[:9]

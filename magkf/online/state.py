@@ -1,23 +1,46 @@
-"""The filter state: blocks of parameters, one per physical effect, the core (R, b) block first."""
+"""The filter state: blocks of parameters, one per physical effect, the core ``(R, b)`` block first.
+
+``StateLayout`` owns every index into the state vector: the core (``R`` row-major in 0..8, ``b`` in
+9..11), each effect's block after it, and the calibrated field ``R^-1 (m - b - e)`` of a state. Nothing
+else in magkf slices a state vector by number.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from ..effects.base import Effect
+from ..conventions import calibrated_field
+from ..effects.base import Effect, EpochData
 from ..effects.core import SoftHardIron
+
+__all__ = ["StateLayout", "CORE_SIZE"]
+
+#: Size of the core block: the nine elements of ``R`` and the three of ``b``.
+CORE_SIZE = 12
+_R = slice(0, 9)
+_B = slice(9, 12)
+_CORE = slice(0, CORE_SIZE)
+_EXTRA = slice(CORE_SIZE, None)
 
 
 @dataclass(frozen=True)
 class StateLayout:
     """Where each effect's parameters sit in the state vector.
 
-    ``effects[0]`` is always the core ``SoftHardIron`` block (state indices 0 to 11).
+    ``effects[0]`` is always the core ``SoftHardIron`` block (state indices 0 to 11). State vectors are
+    (n,) or stacks (..., n); every accessor works on both.
     """
 
     effects: tuple
+
+    #: Slices of the core block, of ``R``, of ``b`` and of everything after the core.
+    CORE = _CORE
+    R_INDEX = _R
+    B_INDEX = _B
+    EXTRA = _EXTRA
 
     def __post_init__(self):
         if not self.effects or not isinstance(self.effects[0], SoftHardIron):
@@ -26,15 +49,26 @@ class StateLayout:
         if len(set(names)) != len(names):
             raise ValueError(f"an effect appears twice: {names}")
 
+    @classmethod
+    def with_core(cls, effects=()) -> "StateLayout":
+        """A layout of a default core block followed by ``effects``."""
+        return cls((SoftHardIron(), *effects))
+
+    # ------------------------------------------------------------ blocks
     @property
     def core(self) -> SoftHardIron:
         return self.effects[0]
 
-    @property
+    @cached_property
     def size(self) -> int:
         return sum(e.size for e in self.effects)
 
-    @property
+    @cached_property
+    def has_extra(self) -> bool:
+        """True when effects follow the core block."""
+        return len(self.effects) > 1
+
+    @cached_property
     def slices(self) -> dict:
         """Effect name -> slice of the state vector."""
         out, start = {}, 0
@@ -42,6 +76,20 @@ class StateLayout:
             out[e.name] = slice(start, start + e.size)
             start += e.size
         return out
+
+    def blocks(self, include_core: bool = False) -> list[tuple[Effect, slice]]:
+        """``(effect, slice)`` of every effect after the core (and the core first, if asked)."""
+        pairs = list(zip(self.effects, self.slices.values()))
+        return pairs if include_core else pairs[1:]
+
+    def extra(self) -> tuple[Effect, ...]:
+        """The effects after the core block."""
+        return tuple(self.effects[1:])
+
+    @cached_property
+    def nonlinear(self) -> tuple[tuple[Effect, slice], ...]:
+        """``(effect, slice)`` of the effects whose contribution is not linear (``Effect.linear`` False)."""
+        return tuple((e, sl) for e, sl in self.blocks() if not e.linear)
 
     @property
     def names(self) -> list[str]:
@@ -60,12 +108,64 @@ class StateLayout:
         """Random-walk variance per second of every state, (n,)."""
         return np.concatenate([e.random_walk() for e in self.effects]) ** 2
 
-    def extra(self) -> tuple[Effect, ...]:
-        """The effects after the core block."""
-        return tuple(self.effects[1:])
-
+    # ------------------------------------------------------------ parts of a state
     @staticmethod
     def R_b(x) -> tuple[np.ndarray, np.ndarray]:
-        """The core ``R`` (3, 3) and ``b`` (3,) of a state vector (or ``(..., 3, 3)``, ``(..., 3)`` of a stack)."""
+        """The core ``R`` (3, 3) and ``b`` (3,) of a state (n,), or ``(..., 3, 3)``, ``(..., 3)`` of a stack."""
         x = np.asarray(x)
-        return x[..., :9].reshape(x.shape[:-1] + (3, 3)), x[..., 9:12]
+        return x[..., _R].reshape(x.shape[:-1] + (3, 3)), x[..., _B]
+
+    @staticmethod
+    def R(x) -> np.ndarray:
+        """The core ``R`` (3, 3) of a state (n,) (or a stack)."""
+        x = np.asarray(x)
+        return x[..., _R].reshape(x.shape[:-1] + (3, 3))
+
+    @staticmethod
+    def core_of(x) -> np.ndarray:
+        """The 12 core parameters of a state (or a stack)."""
+        return np.asarray(x)[..., _CORE]
+
+    # ------------------------------------------------------------ the model
+    def linear_jacobian(self, data: EpochData) -> np.ndarray:
+        """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), computed once per log."""
+        H = np.zeros((len(data), 3, self.size))
+        x0, _ = self.prior()
+        for effect, sl in self.blocks(include_core=True):
+            if effect.linear:
+                H[:, :, sl] = effect.jacobian(x0[sl], data)
+        return H
+
+    def nonlinear_terms(self, x, data: EpochData):
+        """Raw-field contribution of the nonlinear effects: (N, 3) for a state (n,), (S, N, 3) for (S, n)."""
+        total = 0.0
+        for effect, sl in self.nonlinear:
+            total = total + effect.contribution(np.asarray(x)[..., sl], data)
+        return total
+
+    def extra_terms(self, x, H, data: EpochData | None = None) -> np.ndarray:
+        """Raw-field terms (N, 3) of the effects after the core at state ``x`` (n,), with the linear blocks'
+        Jacobian ``H`` (N, 3, n) from ``linear_jacobian`` (``data`` is needed only for nonlinear effects)."""
+        e = np.einsum("kij,j->ki", H[:, :, _EXTRA], np.asarray(x)[_EXTRA])
+        if self.nonlinear:
+            e = e + self.nonlinear_terms(x, data)
+        return e
+
+    def effect_terms(self, x, data: EpochData) -> np.ndarray:
+        """Raw-field terms (N, 3) of the effects after the core for a state (n,) or per-epoch states (N, n),
+        evaluated from the effects themselves (no precomputed Jacobian); missing inputs count as 0."""
+        x = np.asarray(x)
+        total = np.zeros((len(data), 3))
+        for effect, sl in self.blocks():
+            theta = x[..., sl]
+            if theta.ndim == 1 or not effect.linear:
+                total += effect.contribution(theta if theta.ndim == 1 else theta[-1], data)
+            else:
+                total += np.einsum("nij,nj->ni", effect.jacobian(theta[-1], data), theta)
+        return np.nan_to_num(total)
+
+    def calibrated(self, x, m, e=0.0) -> np.ndarray:
+        """The calibrated body field ``R^-1 (m - b - e)`` (N, 3) nT of raw readings ``m`` (N, 3) with the
+        state ``x`` (n,) or per-epoch states (N, n), and effect terms ``e`` (N, 3) (see ``extra_terms``)."""
+        R, b = self.R_b(x)
+        return calibrated_field(R, b, m, e)

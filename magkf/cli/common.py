@@ -1,0 +1,108 @@
+"""Options and helpers shared by the commands. Imports nothing heavy: each command imports the library
+parts it uses when it runs, so that ``magkf --help`` starts at once."""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+
+from ..conventions import NT_PER_UNIT
+from ..errors import InputError
+
+
+def print_json(data) -> None:
+    """Print ``data`` as JSON (numpy values converted; NaN as null)."""
+    from ..io.calibration import jsonable
+
+    print(json.dumps(jsonable(data), indent=2))
+
+
+def timestamp(date: str) -> float:
+    """UNIX seconds of an ISO date or date-time (UTC)."""
+    try:
+        d = datetime.fromisoformat(date)
+    except ValueError:
+        raise InputError(f"--date {date!r} is not an ISO date such as 2026-05-01") from None
+    return (d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp()
+
+
+def igrf_field(args) -> dict:
+    """IGRF magnitude and inclination at ``--lat --lon [--alt] --date``."""
+    from ..reference import field_at
+
+    if args.lat is None or args.lon is None:
+        raise InputError("the IGRF field needs --lat and --lon (and --date, default today)")
+    date = args.date or datetime.now(timezone.utc).date().isoformat()
+    return field_at(args.lat, args.lon, args.alt, timestamp(date))
+
+
+def add_igrf_options(p) -> None:
+    g = p.add_argument_group("field from IGRF-14")
+    g.add_argument("--lat", type=float, help="latitude, degrees")
+    g.add_argument("--lon", type=float, help="longitude, degrees")
+    g.add_argument("--alt", type=float, default=0.0, help="height above the ellipsoid, m (default 0)")
+    g.add_argument("--date", help="ISO date, UTC (default today)")
+
+
+def add_output_options(p, what: str = "calibration file") -> None:
+    p.add_argument("--json", action="store_true", help="print the result as JSON on standard output")
+    p.add_argument("-o", "--output", metavar="FILE", help=f"write the {what}")
+
+
+def add_filter_options(p) -> None:
+    g = p.add_argument_group("noise and gates (defaults in magkf.FilterConfig)")
+    g.add_argument("--sensor-noise", type=float, help="magnetometer noise per axis, nT (default 30)")
+    g.add_argument("--attitude-deg", type=float, help="attitude uncertainty, deg (default 0.1)")
+    g.add_argument("--reference-nt", type=float, help="reference field uncertainty per component, nT (default 10)")
+    g.add_argument("--r-walk", type=float, help="random walk of R per sqrt(s) (default 1e-7)")
+    g.add_argument("--b-walk", type=float, help="random walk of b, nT per sqrt(s) (default 0.01)")
+    g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
+    g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
+    g.add_argument("--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)")
+    g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 0.25; 0 = every epoch)")
+    for name in ("filter", "measure"):
+        if not any(a.dest == name for a in p._actions):
+            p.set_defaults(**{name: None})
+
+
+def filter_config(args):
+    """The ``FilterConfig`` of the command-line options (defaults where an option is not given)."""
+    from ..config import FilterConfig
+
+    changes = {k: v for k, v in {
+        "filter": args.filter, "measure": args.measure, "dop_max": args.dop_max, "gate_nt": args.gate_nt,
+        "sensor_noise_nt": args.sensor_noise, "attitude_deg": args.attitude_deg, "reference_nt": args.reference_nt,
+        "r_walk": args.r_walk, "b_walk": args.b_walk, "innovation_prob": args.innovation_prob,
+        "block_s": args.block_s}.items() if v is not None}
+    return FilterConfig(**changes)
+
+
+def add_effect_options(p, what: str) -> None:
+    g = p.add_argument_group("physical effects")
+    g.add_argument("--effect", action="append", default=[], metavar="NAME[:COLUMN]",
+                   help=f"{what}: temperature_bias, temperature_scale, current_field, time_lag, field_anomaly, "
+                        "bias_drift, eddy_current, or one from --effect-file")
+    g.add_argument("--effect-file", action="append", default=[], metavar="FILE.py",
+                   help="a Python file defining Effect subclasses (their names become usable with --effect)")
+
+
+def effects(args) -> tuple[list, dict]:
+    """The effects named with --effect, and the registry of user effects from --effect-file."""
+    from ..effects import load_effect_file, make_effect
+
+    registry = {}
+    for path in args.effect_file:
+        registry.update(load_effect_file(path))
+    return [make_effect(spec, registry) for spec in args.effect], registry
+
+
+def add_mag_unit(p) -> None:
+    p.add_argument("--mag-unit", choices=list(NT_PER_UNIT), default="nT",
+                   help="unit of the magnetometer columns (default nT)")
+
+
+def load_calibration(path):
+    """The calibration file ``path``, or None."""
+    from ..io.calibration import Calibration
+
+    return Calibration.load(path) if path else None

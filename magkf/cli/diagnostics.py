@@ -1,0 +1,103 @@
+"""``magkf diagnose`` and ``magkf report``: where the model fails and which effect is missing."""
+
+from __future__ import annotations
+
+import json
+
+from ..errors import InputError
+from .common import (
+    add_effect_options,
+    add_filter_options,
+    add_mag_unit,
+    add_output_options,
+    effects,
+    filter_config,
+    load_calibration,
+    print_json,
+)
+
+
+def add_parsers(sub) -> None:
+    """Register ``diagnose`` and ``report``."""
+    p = sub.add_parser("diagnose", help="where the model fails and which physical effect is missing",
+                       description="Compare the calibrated model with the measurements (residuals against time, "
+                                   "attitude, auxiliary channels, rates) and rank every candidate effect by a "
+                                   "likelihood-ratio test of adding it. Without --cal the online filter runs first.")
+    p.add_argument("file", help="drive-log CSV")
+    p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
+    p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
+    add_filter_options(p)
+    add_effect_options(p, "effects already in the model")
+    add_mag_unit(p)
+    add_output_options(p, "diagnosis (JSON)")
+    p.set_defaults(func=run_diagnose)
+
+    p = sub.add_parser("report", help="self-contained HTML report with plots",
+                       description="Calibrate (with any --effect), diagnose, and write one HTML file with the plots "
+                                   "embedded: gates, estimates over time, residuals, ranking, before/after.")
+    p.add_argument("file", help="drive-log CSV")
+    p.add_argument("--cal", help="calibration JSON to start from")
+    p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
+    p.add_argument("-o", "--output", help="HTML file to write")
+    add_filter_options(p)
+    add_effect_options(p, "effects to add (the report shows before and after)")
+    add_mag_unit(p)
+    p.set_defaults(func=run_report)
+
+
+def run_diagnose(args) -> int:
+    from ..io.calibration import jsonable
+    from ..diagnostics.diagnose import diagnose
+    from ..effects import candidates
+    from ..io.drivelog import read_drive_log
+
+    config = filter_config(args)
+    added, registry = effects(args)
+    cal = load_calibration(args.cal)
+    log = read_drive_log(args.file, args.mag_unit)
+    pool = candidates(log.auxiliary, registry)
+    result, _ = diagnose(log, config, cal, added, pool, alpha=args.alpha)
+    summary = result.summary()
+    if args.output:
+        with open(args.output, "w", encoding="utf-8") as f:
+            json.dump(jsonable(summary), f, indent=2)
+    if args.json:
+        print_json(summary)
+        return 0
+    ax = result.residual_rms_axis_nt
+    print(f"diagnosis of {args.file}: {result.n_epochs_used} epochs used; residual RMS {result.residual_rms_nt:.2f} nT "
+          f"(N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f})")
+    print(f"  {'candidate':28s} {'LR':>10s} {'dof':>4s} {'p-value':>9s} {'dBIC':>10s} {'RMS after':>10s}")
+    for c in result.candidates:
+        print(f"  {c.effect:28s} {c.statistic:10.1f} {c.dof:4d} {c.p_value:9.2g} {c.delta_bic:10.1f} "
+              f"{c.residual_rms_after_nt:8.2f} nT" + ("  *" if c.significant else ""))
+    print(f"  (* significant: p < {args.alpha:g} / {len(result.candidates)} candidates)")
+    follows = [sgn for sgn in result.signals if sgn["significant"]][:5]
+    if follows:
+        print("  the residual follows: " + ", ".join(f"{sg['signal']} ({sg['component']}, range "
+                                                    f"{sg['binned_range_nt']:.0f} nT)" for sg in follows))
+    for w in result.largest[:3]:
+        print(f"  largest residual: {w['rms_nt']:.0f} nT RMS from t = {w['start']:.1f} to {w['stop']:.1f} s")
+    print(f"  {result.text}")
+    return 0
+
+
+def run_report(args) -> int:
+    from pathlib import Path
+
+    from ..diagnostics.report import build_report
+    from ..io.drivelog import read_drive_log
+
+    if not args.output:
+        raise InputError("give -o REPORT.html")
+    config = filter_config(args)
+    added, registry = effects(args)
+    cal = load_calibration(args.cal)
+    log = read_drive_log(args.file, args.mag_unit)
+    page = build_report(log, config, cal, added, registry, alpha=args.alpha)
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(page, encoding="utf-8")
+    print(f"report written to {args.output}")
+    return 0
+
+

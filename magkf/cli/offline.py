@@ -1,0 +1,129 @@
+"""``magkf sinefit`` and ``magkf ellipsoid``: the offline calibrations."""
+
+from __future__ import annotations
+
+import sys
+
+from ..errors import InputError
+from .common import (
+    add_igrf_options,
+    add_mag_unit,
+    add_output_options,
+    igrf_field,
+    print_json,
+)
+
+
+def add_parsers(sub) -> None:
+    """Register ``sinefit``, ``ellipsoid``."""
+    p = sub.add_parser("sinefit", help="offline sine-fit calibration of a two-plane turntable run",
+                       description="Sine-fit calibration (nine parameters) of a turntable CSV with columns "
+                                   "plane, angle_deg, mag_x, mag_y, mag_z. Give --field and --inclination, "
+                                   "or --lat/--lon/--date for IGRF.")
+    p.add_argument("file", nargs="?", help="turntable CSV")
+    p.add_argument("--curves", help="JSON of fitted curves instead of samples: "
+                                    '{"xy": {"x": [A, C_deg, D], "y": [...], "z": [...]}, "xz": {"x": [...], "z": [...]}}')
+    p.add_argument("--field", type=float, help="field magnitude B, nT")
+    p.add_argument("--inclination", type=float, help="field inclination I, degrees (positive down)")
+    p.add_argument("--method", choices=["exact", "paper"], default="exact",
+                   help="exact: all samples, vertical-field leak removed (default); paper: the published equations")
+    add_igrf_options(p)
+    add_mag_unit(p)
+    add_output_options(p)
+    p.set_defaults(func=run_sinefit)
+    p = sub.add_parser("ellipsoid", help="offline ellipsoid (3-axis) or ellipse (2-axis) calibration",
+                       description="Ellipsoid or ellipse fit of any vector sensor; the result is in the data's "
+                                   "units. Field magnitude: a number, 'igrf' (with --lat/--lon/--date; the "
+                                   "horizontal part for --axes 2), or a unit sphere by default.")
+    p.add_argument("file", help="CSV with the sensor columns")
+    p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
+    p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
+    p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
+    p.add_argument("--algebraic", action="store_true", help="stop after the algebraic fit (biased with noise)")
+    add_igrf_options(p)
+    add_output_options(p)
+    p.set_defaults(func=run_ellipsoid)
+
+
+def run_sinefit(args) -> int:
+    import numpy as np
+    from ..offline.sinefit import (
+        SineFitCalibrator,
+        paper_from_curves,
+        read_curves,
+        read_turntable,
+    )
+
+    if args.field is None or args.inclination is None:
+        igrf = igrf_field(args)
+        field = args.field if args.field is not None else igrf["magnitude_nt"]
+        inclination = args.inclination if args.inclination is not None else igrf["inclination_deg"]
+    else:
+        field, inclination = args.field, args.inclination
+    if (args.file is None) == (args.curves is None):
+        raise InputError("give either a turntable CSV or --curves FILE.json")
+    if args.curves:
+        if args.method != "paper":
+            raise InputError("--curves holds fitted curves, not samples: only --method paper applies to them")
+        result = paper_from_curves(*read_curves(args.curves), field, inclination)
+    else:
+        table = read_turntable(args.file, args.mag_unit)
+        result = SineFitCalibrator(field, inclination, args.method).fit(table, args.file).result_
+    if args.output:
+        result.to_calibration(source=args.file or args.curves).save(args.output)
+    if args.json:
+        print_json(result.summary())
+    else:
+        p, se = result.parameters.as_dict(), result.standard_errors
+        print(f"sine-fit calibration ({result.method}) of {args.file or args.curves}: B = {field:.1f} nT, I = {inclination:.3f} deg")
+        for name, value in p.items():
+            err = se.get(name, float("nan"))
+            print(f"  {name:10s} {value:14.6f}" + (f"  +- {err:.6f}" if np.isfinite(err) else ""))
+        print(f"  {'phi_deg':10s} {result.parameters.phi_deg:14.6f}")
+        if np.isfinite(result.residual_rms_nt):
+            print(f"  residual RMS {result.residual_rms_nt:.3f} nT")
+    return 0
+
+
+# ---------------------------------------------------------------- ellipsoid
+def run_ellipsoid(args) -> int:
+    import numpy as np
+    from ..io.tables import read_csv, require_complete
+    from ..offline.ellipsoid import EllipsoidCalibrator
+
+    columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
+    columns = columns[: args.axes]
+    if len(columns) != args.axes:
+        raise InputError(f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}")
+    table = read_csv(args.file, required=columns)
+    require_complete(table, columns, args.file)
+    if args.field == "igrf":
+        field = igrf_field(args)["magnitude_nt"]
+        if args.axes == 2:
+            field = field * np.cos(np.radians(igrf_field(args)["inclination_deg"]))
+    elif args.field is None:
+        field = 1.0
+    else:
+        try:
+            field = float(args.field)
+        except ValueError:
+            raise InputError(f"--field {args.field!r} is neither a number nor 'igrf'") from None
+    X = table[columns].to_numpy()
+    result = EllipsoidCalibrator(args.axes, field, refine=not args.algebraic).fit(X, args.file).result_
+    if args.output:
+        result.to_calibration(source=args.file).save(args.output)
+    for w in result.warnings:
+        print(f"magkf: warning: {args.file}: {w}", file=sys.stderr)
+    if args.json:
+        print_json({**result.summary(), "columns": columns})
+    else:
+        kind = "ellipsoid" if args.axes == 3 else "ellipse"
+        print(f"{kind} calibration of {args.file} ({result.n_samples} samples, columns {', '.join(columns)}), "
+              f"field magnitude {field:g}")
+        for name, value in result.parameters.items():
+            print(f"  {name:10s} {value:14.6g}  +- {result.standard_errors[name]:.3g}")
+        print(f"  residual RMS {result.residual_rms:.4g}; magnitude spread {100 * result.magnitude_spread_before:.2f}% "
+              f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%")
+    return 0
+
+

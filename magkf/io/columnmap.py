@@ -1,0 +1,685 @@
+"""Any numeric table read as a drive log through a column map (a small TOML file).
+
+A column map says how one user table (CSV, tab-separated, whitespace-separated or Parquet) becomes the
+canonical drive log of the data contract: which file column holds each canonical column, and in which
+units. Its three tables (see ``docs/column-maps.md`` for a complete example):
+
+``[file]``
+    ``format`` (``csv``, ``tsv``, ``whitespace`` or ``parquet``; by default from the data file's
+    extension), ``delimiter`` (one character, csv only), ``comment`` (one character: a line whose
+    first non-blank character it is is skipped, and the rest of any line after it is ignored),
+    ``header`` (the line number of the header in the file; by default the first line that is neither
+    blank nor a comment; ``0`` for a file without a header, whose columns are then called
+    ``column_1, column_2, ...``), ``skip_rows`` (lines at the top of the file skipped before anything
+    else), ``decimal`` (``"."`` or ``","``), ``encoding`` (default ``utf-8``) and ``missing`` (cell
+    texts that mean a missing value; default ``[""]``, the empty cell).
+``[columns]``
+    canonical name = the file's column name (or its 1-based position, an integer). ``time`` and
+    ``mag_x, mag_y, mag_z`` are required; ``roll, pitch, yaw`` or the quaternion ``q0, q1, q2, q3``
+    give the attitude; ``lat, lon, alt, dop, pdop, hdop, vdop, ref_n, ref_e, ref_d`` as in the
+    contract; any other name is an auxiliary channel (``temp_c = "T_board"``). ``keep_unmapped``
+    (default true) carries every unmapped numeric file column as an auxiliary channel of the same name.
+``[units]``
+    ``mag`` (``nT``, ``uT``, ``mG``, ``G`` or ``counts`` with ``mag_scale_nt_per_count``), ``ref``
+    (unit of ``ref_*``; default the ``mag`` unit), ``angles`` (``deg`` or ``rad``, for roll, pitch,
+    yaw), ``latlon`` (``deg`` or ``rad``), ``time`` (``s``, ``ms``, ``us``, ``ns``), ``time_epoch``
+    (``unix``; ``start`` with ``start_utc``; ``seconds_of_day`` with ``date_utc``),
+    ``quaternion_order`` and ``quaternion_frame``. ``start_utc`` and ``date_utc`` may be left out of a
+    map shared by many files and set per file with ``dataclasses.replace``; reading needs them.
+
+Conventions
+    ``q0, q1, q2, q3`` name the four quaternion columns in the order the file stores them;
+    ``quaternion_order`` says where the scalar is: ``wxyz`` (scalar first, as PX4's
+    ``vehicle_attitude.q``) or ``xyzw`` (scalar last, SciPy's ``Rotation.from_quat`` default and ROS).
+    ``quaternion_frame = "body_to_ned"`` is magkf's meaning (the rotation of FRD body vectors into NED,
+    PX4's "rotation from the FRD body frame to the NED earth frame"); ``ned_to_body`` is its inverse and
+    is conjugated. The quaternion becomes ZYX Euler angles with ``conventions.quaternion_to_euler``.
+    Seconds of day start at midnight UTC of ``date_utc``; a decrease of more than half a day (midnight
+    gives one of about 86 400 s) starts the next day, any other decrease is an error.
+
+Rows in error messages are line numbers in the file, counting every line (comments, skipped and blank
+lines too), so the header of an ordinary file is row 1. A Parquet file has no lines: its record ``i``
+(from 0) is reported as row ``i + 2``, the row it would have in the same table written as CSV.
+
+Cells: an empty cell (or one of the ``missing`` texts) is a missing value, kept as NaN; any other cell
+must be a finite number, so ``NaN`` and ``inf`` are errors unless listed in ``missing``. A value that
+overflows when converted (``1e308`` uT) is an error too. One record per line: a quoted cell spanning
+lines is rejected.
+
+Text is parsed with pandas' C engine (``sep="\\t"`` for tsv, ``sep=r"\\s+"`` for whitespace), each
+record's line number kept. Its default float converter has been the high-precision one since pandas 1.2
+(pandas-dev/pandas#17154; the ``float_precision`` argument is deprecated in pandas 3), and it reads
+printed decimals exactly as Python's ``float`` does. Parquet is read with ``pyarrow.parquet.read_table``.
+The map is parsed with the standard library's ``tomllib`` (Python 3.11+).
+"""
+
+from __future__ import annotations
+
+import codecs
+import io
+import math
+import re
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from datetime import date, datetime, timezone
+from datetime import time as clock_time
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+import pandas as pd
+
+from ..conventions import (
+    ALT,
+    ATTITUDE,
+    CORE_COLUMNS,
+    DOP,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    NT_PER_UNIT,
+    PDOP,
+    REF,
+    ROLL,
+    TIME,
+    VDOP,
+    likely_unit,
+    quaternion_to_euler,
+)
+from ..errors import InputError
+from .drivelog import UnitWarning
+
+__all__ = ["ColumnMap", "load_column_map", "read_mapped"]
+
+QUATERNION = ("q0", "q1", "q2", "q3")
+FORMATS = ("csv", "tsv", "whitespace", "parquet")
+#: Data-file extensions and the format they imply when the map does not say.
+EXTENSION_FORMATS = {".csv": "csv", ".tsv": "tsv", ".tab": "tsv", ".txt": "whitespace", ".dat": "whitespace",
+                     ".xyz": "whitespace", ".parquet": "parquet", ".pq": "parquet"}
+MAG_UNITS = (*NT_PER_UNIT, "counts")
+#: Time units and how many of them make one second.
+PER_SECOND = {"s": 1.0, "ms": 1.0e3, "us": 1.0e6, "ns": 1.0e9}
+TIME_EPOCHS = ("unix", "start", "seconds_of_day")
+SECONDS_PER_DAY = 86_400.0
+#: Layout keys that only apply to text files, with their defaults.
+TEXT_DEFAULTS = {"delimiter": None, "comment": None, "header": None, "skip_rows": 0, "decimal": ".",
+                 "encoding": "utf-8", "missing": ("",)}
+SECTIONS = {"file": ("format", *TEXT_DEFAULTS),
+            "units": ("mag", "mag_scale_nt_per_count", "ref", "angles", "latlon", "time", "time_epoch",
+                      "start_utc", "date_utc", "quaternion_order", "quaternion_frame")}
+TOP_LEVEL = ("description", "file", "columns", "units")
+
+
+def _key(name: str) -> str:
+    """How a ColumnMap field (not a column) is written in the TOML file, e.g. ``[units] mag``."""
+    section = next((s for s, keys in SECTIONS.items() if name in keys), "columns")
+    return f"[{section}] {name}"
+
+
+@dataclass(frozen=True)
+class ColumnMap:
+    """A parsed and validated column map; each field is the TOML key of the same name.
+
+    ``columns`` maps a canonical (or auxiliary) column name to the file's column name, or to its
+    1-based position (int). Construction validates everything and raises InputError naming ``source``
+    (the map file) and the key. ``start_utc`` is stored as an aware UTC datetime, ``date_utc`` as a date.
+    """
+
+    columns: Mapping[str, str | int]
+    source: str = "column map"
+    keep_unmapped: bool = True
+    format: str | None = None
+    delimiter: str | None = None
+    comment: str | None = None
+    header: int | None = None
+    skip_rows: int = 0
+    decimal: str = "."
+    encoding: str = "utf-8"
+    missing: tuple[str, ...] = ("",)
+    mag: str = "nT"
+    mag_scale_nt_per_count: float | None = None
+    ref: str | None = None
+    angles: str = "deg"
+    latlon: str = "deg"
+    time: str = "s"
+    time_epoch: str = "unix"
+    start_utc: datetime | None = None
+    date_utc: date | None = None
+    quaternion_order: str = "wxyz"
+    quaternion_frame: str = "body_to_ned"
+    description: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        def bad(name: str, message: str, key: str | None = None):
+            raise InputError(f"{key or _key(name)}: {message}", self.source)
+
+        def bad_column(name: str, message: str):
+            bad(name, message, f"[columns] {name}")
+
+        def one_of(name: str, allowed):
+            value = getattr(self, name)
+            if value not in allowed:
+                bad(name, f"unknown value {value!r}; use one of {', '.join(map(str, allowed))}")
+
+        columns = dict(self.columns)
+        for name, spec in columns.items():
+            if isinstance(spec, bool) or not isinstance(spec, (str, int)) or spec == "" or (
+                    isinstance(spec, int) and spec < 1):
+                bad_column(name, f"{spec!r} is neither a column name nor a 1-based column position")
+        object.__setattr__(self, "columns", MappingProxyType(columns))
+        for name in (TIME, *MAG):
+            if name not in columns:
+                bad_column(name, "required: say which file column holds it")
+        for group in (ATTITUDE, QUATERNION, REF, (LAT, LON)):
+            given = [c for c in group if c in columns]
+            if 0 < len(given) < len(group):
+                bad_column(next(c for c in group if c not in columns), f"give all of {', '.join(group)} or none")
+        if ROLL in columns and QUATERNION[0] in columns:
+            bad_column(QUATERNION[0], "the attitude is given twice: map roll, pitch, yaw or q0..q3, not both")
+        if not isinstance(self.keep_unmapped, bool):
+            bad("keep_unmapped", f"{self.keep_unmapped!r} is not true or false")
+
+        if self.format is not None:
+            one_of("format", FORMATS)
+        for name in ("delimiter", "comment"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or len(value) != 1 or value in "\r\n"):
+                bad(name, f"{value!r} is not a single character")
+        if self.comment is not None and self.comment in (self.delimiter, self.decimal, " ", "\t"):
+            bad("comment", f"{self.comment!r} cannot also be the delimiter, the decimal mark or blank")
+        for name, minimum in (("header", 0), ("skip_rows", 0)):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < minimum):
+                bad(name, f"{value!r} is not a line count (an integer >= {minimum})")
+        if self.header and self.header <= self.skip_rows:
+            bad("header", f"line {self.header} is among the {self.skip_rows} skipped lines ([file] skip_rows)")
+        one_of("decimal", (".", ","))
+        if self.decimal == self.delimiter:
+            bad("decimal", "the decimal mark is also the delimiter")
+        try:
+            codecs.lookup(self.encoding)
+        except (LookupError, TypeError):
+            bad("encoding", f"unknown text encoding {self.encoding!r}")
+        missing = self.missing
+        if isinstance(missing, str) or not all(isinstance(m, str) for m in missing):
+            bad("missing", f"{missing!r} is not a list of strings")
+        object.__setattr__(self, "missing", tuple(missing))
+        if self.format is not None:
+            _check_layout(self, self.format, "this map")
+
+        one_of("mag", MAG_UNITS)
+        scale = self.mag_scale_nt_per_count
+        if self.mag == "counts":
+            if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (
+                    math.isfinite(scale) and scale != 0):
+                bad("mag_scale_nt_per_count", f"{scale!r}: [units] mag = \"counts\" needs a finite, "
+                                              "non-zero number of nT per count")
+            if self.ref is None and REF[0] in columns:
+                bad("ref", "say the unit of ref_n, ref_e, ref_d (nT, uT, mG or G): they cannot be counts")
+        elif scale is not None:
+            bad("mag_scale_nt_per_count", f"only applies with [units] mag = \"counts\", not {self.mag!r}")
+        if self.ref is not None:
+            one_of("ref", tuple(NT_PER_UNIT))
+        one_of("angles", ("deg", "rad"))
+        one_of("latlon", ("deg", "rad"))
+        one_of("time", tuple(PER_SECOND))
+        one_of("time_epoch", TIME_EPOCHS)
+        one_of("quaternion_order", ("wxyz", "xyzw"))
+        one_of("quaternion_frame", ("body_to_ned", "ned_to_body"))
+
+        needed = {"start": "start_utc", "seconds_of_day": "date_utc"}.get(self.time_epoch)
+        for name in ("start_utc", "date_utc"):
+            if name != needed and getattr(self, name) is not None:
+                bad(name, f"only applies with [units] time_epoch = "
+                          f"\"{'start' if name == 'start_utc' else 'seconds_of_day'}\"")
+        if needed == "start_utc" and self.start_utc is not None:
+            object.__setattr__(self, "start_utc", _utc_datetime(self.start_utc, lambda m: bad("start_utc", m)))
+        elif needed == "date_utc" and self.date_utc is not None:
+            object.__setattr__(self, "date_utc", _utc_date(self.date_utc, lambda m: bad("date_utc", m)))
+
+    @property
+    def mag_nt_per_unit(self) -> float:
+        """nT per unit of the file's magnetometer values."""
+        return float(self.mag_scale_nt_per_count) if self.mag == "counts" else NT_PER_UNIT[self.mag]
+
+    @property
+    def ref_unit(self) -> str:
+        """Unit of the file's ``ref_*`` columns."""
+        return self.ref or self.mag
+
+
+def _utc_datetime(value, bad) -> datetime:
+    """An aware UTC datetime from a TOML date-time or an ISO 8601 string; naive values are UTC."""
+    if isinstance(value, str):
+        try:
+            value = datetime.fromisoformat(value.strip())
+        except ValueError:
+            bad(f"{value!r} is not an ISO 8601 date-time such as 2024-05-01T12:00:00Z")
+    if isinstance(value, date) and not isinstance(value, datetime):
+        value = datetime.combine(value, clock_time())
+    if not isinstance(value, datetime):
+        bad(f"{value!r} is not a date-time (required by time_epoch = \"start\")")
+    return value.replace(tzinfo=timezone.utc) if value.tzinfo is None else value.astimezone(timezone.utc)
+
+
+def _utc_date(value, bad) -> date:
+    """A date from a TOML date or an ISO 8601 string (``YYYY-MM-DD``)."""
+    if isinstance(value, str):
+        try:
+            value = date.fromisoformat(value.strip())
+        except ValueError:
+            bad(f"{value!r} is not an ISO 8601 date such as 2023-06-14")
+    if not isinstance(value, date) or isinstance(value, datetime):
+        bad(f"{value!r} is not a date (required by time_epoch = \"seconds_of_day\")")
+    return value
+
+
+def _check_layout(cmap: ColumnMap, fmt: str, what: str) -> None:
+    """Raise InputError when the map sets a ``[file]`` key that does not apply to ``fmt`` files."""
+    if fmt == "parquet":
+        for name, default in TEXT_DEFAULTS.items():
+            if getattr(cmap, name) != default:
+                raise InputError(f"{_key(name)} does not apply to {what}, a Parquet file", cmap.source)
+    elif fmt != "csv" and cmap.delimiter is not None:
+        raise InputError(f"{_key('delimiter')} does not apply to {what}, a {fmt} file (only to csv)", cmap.source)
+
+
+def load_column_map(path) -> ColumnMap:
+    """Read and validate a column map (TOML). Raises InputError naming the map file and the key for a
+    missing or unreadable file, malformed TOML, an unknown table or key, or a bad value."""
+    import tomllib
+
+    source = str(path)
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError("no such column map file", source) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the column map ({exc})", source) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", source) from None
+    for name in data:
+        if name not in TOP_LEVEL:
+            raise InputError(f"unknown key {name!r}; a column map has [file], [columns] and [units]", source)
+    kwargs = {}
+    for section in ("file", "columns", "units"):
+        table = data.get(section, {})
+        if not isinstance(table, dict):
+            raise InputError(f"{section!r} must be a table ([{section}])", source)
+        for name, value in table.items():
+            if section == "columns":
+                continue
+            if name not in SECTIONS[section]:
+                raise InputError(f"[{section}] {name}: unknown key; use one of {', '.join(SECTIONS[section])}",
+                                 source)
+            kwargs[name] = value
+    columns = dict(data.get("columns", {}))
+    if "keep_unmapped" in columns:
+        kwargs["keep_unmapped"] = columns.pop("keep_unmapped")
+    if "missing" in kwargs and isinstance(kwargs["missing"], list):
+        kwargs["missing"] = tuple(kwargs["missing"])
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise InputError("description: must be a string", source)
+    return ColumnMap(columns=columns, source=source, description=description, **kwargs)
+
+
+# ---------------------------------------------------------------- reading the table
+@dataclass(frozen=True)
+class _RawTable:
+    """A table as read: cells by position, the file's column names, and each record's row (line) number."""
+
+    frame: pd.DataFrame   # columns 0..n-1
+    names: list[str]
+    rows: np.ndarray      # (N,) int
+    header_row: int       # the row reported for a column missing from the header
+
+
+def _split_lines(text: str) -> list[str]:
+    """Lines as the C tokenizer sees them: ``\\r\\n``, ``\\r`` and ``\\n`` end a line."""
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+
+def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
+    """Read a csv, tsv or whitespace table, keeping the file line number of every record."""
+    name = str(path)
+    raw = path.read_bytes()
+    encoding = "utf-8-sig" if codecs.lookup(cmap.encoding).name == "utf-8" else cmap.encoding
+    try:
+        text = raw.decode(encoding)
+    except UnicodeDecodeError as exc:
+        line_start = raw.rfind(b"\n", 0, exc.start) + 1
+        raise InputError(f"not {cmap.encoding} text (byte {exc.start - line_start + 1} of the line)", name,
+                         raw[:exc.start].count(b"\n") + 1) from None
+    blank = " \t" if fmt == "whitespace" else " "
+    comment = cmap.comment
+    header_line, header_text = None, None
+    data_lines, rows = [], []
+    for number, line in enumerate(_split_lines(text), start=1):
+        if number <= cmap.skip_rows or (cmap.header and number < cmap.header):
+            continue
+        content = line.strip(blank)
+        if number == cmap.header:
+            if comment and content.startswith(comment):
+                content = content[1:].strip(blank)
+            if not content:
+                raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source} is an empty line", name,
+                                 number)
+            header_line, header_text = number, content
+            continue
+        if not content or (comment and content.startswith(comment)):
+            continue
+        if cmap.header is None and header_line is None:
+            header_line, header_text = number, line
+            continue
+        data_lines.append(line)
+        rows.append(number)
+    if cmap.header and header_line is None:
+        raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source}, but the file has fewer lines", name)
+    if header_line is None and cmap.header != 0:
+        raise InputError("the file has no header and no data", name)
+    if not rows:
+        raise InputError("the file has no data rows", name, header_line)
+
+    sep = {"csv": cmap.delimiter or ",", "tsv": "\t", "whitespace": r"\s+"}[fmt]
+    options = {"sep": sep, "engine": "c", "comment": comment, "decimal": cmap.decimal, "keep_default_na": False,
+               "skip_blank_lines": False, "skipinitialspace": fmt != "whitespace", "low_memory": False}
+    if header_line is None:
+        fed_rows = np.asarray(rows)
+        names = None
+    else:
+        fed_rows = np.asarray([header_line, *rows])
+        first = pd.read_csv(io.StringIO(header_text), header=None, na_filter=False, dtype=str, **options)
+        names = [str(v).strip() or f"column_{k + 1}" for k, v in enumerate(first.iloc[0].tolist())]
+        for k, column in enumerate(names):
+            if column in names[:k]:
+                raise InputError("the column appears twice in the header", name, header_line, column)
+        data_lines.insert(0, header_text)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", pd.errors.ParserWarning)
+            frame = pd.read_csv(io.StringIO("\n".join(data_lines)), header=None if names is None else 0,
+                                index_col=False, na_values=list(cmap.missing), **options)
+    except pd.errors.ParserWarning:
+        raise InputError("more fields than the header has columns", name, rows[0]) from None
+    except pd.errors.ParserError as exc:
+        found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
+        if found is None:
+            raise InputError(f"not a readable table ({' '.join(str(exc).split())})", name) from None
+        expected, line, saw = map(int, found.groups())
+        raise InputError(f"{saw} fields where {'the header has' if names else 'the first row has'} {expected}",
+                         name, int(fed_rows[line - 1])) from None
+    if len(frame) != len(rows):
+        raise InputError("a quoted cell spans several lines; magkf reads one record per line", name)
+    if names is None:
+        names = [f"column_{k + 1}" for k in range(frame.shape[1])]
+    frame.columns = range(frame.shape[1])
+    return _RawTable(frame=frame, names=names, rows=np.asarray(rows), header_row=header_line or 1)
+
+
+def _read_parquet(path: Path) -> _RawTable:
+    """Read a Parquet file with pyarrow; record ``i`` is reported as row ``i + 2``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    name = str(path)
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowException, OSError) as exc:
+        raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())})", name) from None
+    names = [str(c) for c in table.column_names]
+    for k, column in enumerate(names):
+        if column in names[:k]:
+            raise InputError("the column appears twice in the Parquet schema", name, 1, column)
+    if table.num_rows == 0:
+        raise InputError("the file has no data rows", name)
+    frame = pd.DataFrame({k: table.column(k).to_pandas() for k in range(table.num_columns)})
+    return _RawTable(frame=frame, names=names, rows=np.arange(table.num_rows) + 2, header_row=1)
+
+
+def _numeric(values: pd.Series, raw: _RawTable, source: str, column: str, decimal: str,
+             note: str = "") -> np.ndarray:
+    """(N,) floats of one column; InputError (ending with ``note``) at the first cell that is not a finite
+    number. A missing cell (one of the map's ``missing`` texts; NaN or null in Parquet) becomes NaN.
+    """
+    dtype = values.dtype
+    if pd.api.types.is_bool_dtype(dtype) or pd.api.types.is_numeric_dtype(dtype):
+        out = values.to_numpy(dtype=float, na_value=np.nan)
+    elif pd.api.types.is_object_dtype(dtype) or pd.api.types.is_string_dtype(dtype):
+        text = values.astype("str") if decimal == "." else values.astype("str").str.replace(",", ".")
+        present = values.notna().to_numpy()
+        try:
+            out = pd.to_numeric(text.where(present), errors="coerce").to_numpy(dtype=float, na_value=np.nan)
+        except (TypeError, ValueError):
+            out = np.full(len(values), np.nan)
+        bad = np.flatnonzero(np.isnan(out) & present)
+        if bad.size:
+            i = int(bad[0])
+            raise InputError(f"not a number: {values.iloc[i]!r}{note}", source, int(raw.rows[i]), column)
+    else:
+        raise InputError(f"a column of type {dtype} is not numeric", source, raw.header_row, column)
+    infinite = np.flatnonzero(np.isinf(out))
+    if infinite.size:
+        i = int(infinite[0])
+        raise InputError(f"not a finite number: {float(out[i])!r}{note}", source, int(raw.rows[i]), column)
+    return out
+
+
+def _is_numeric_column(values: pd.Series) -> bool:
+    """Whether an unmapped column looks numeric: a numeric type, or text of which at least one cell is a number."""
+    if pd.api.types.is_bool_dtype(values.dtype) or pd.api.types.is_numeric_dtype(values.dtype):
+        return True
+    if not (pd.api.types.is_object_dtype(values.dtype) or pd.api.types.is_string_dtype(values.dtype)):
+        return False
+    try:
+        return bool(pd.to_numeric(values.dropna().astype("str"), errors="coerce").notna().any())
+    except (TypeError, ValueError):
+        return False
+
+
+# ---------------------------------------------------------------- conversions
+def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, column: str) -> tuple[np.ndarray, str]:
+    """(N,) UNIX seconds from the file's time values, and a sentence saying how they were read."""
+    empty = np.flatnonzero(np.isnan(t))
+    if empty.size:
+        raise InputError("empty time cell: every record needs a time", source, int(raw.rows[empty[0]]), column)
+    needed = {"start": "start_utc", "seconds_of_day": "date_utc"}.get(cmap.time_epoch)
+    if needed and getattr(cmap, needed) is None:
+        raise InputError(f"{_key(needed)}: [units] time_epoch = {cmap.time_epoch!r} needs it (the UTC "
+                         f"{'date-time of time 0' if needed == 'start_utc' else 'date of the first record'})",
+                         cmap.source)
+    seconds = t / PER_SECOND[cmap.time]
+    unit = {"s": "seconds", "ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[cmap.time]
+    if cmap.time_epoch == "unix":
+        return seconds, f"UNIX {unit} (UTC)"
+    if cmap.time_epoch == "start":
+        start = cmap.start_utc.timestamp()
+        return start + seconds, f"{unit} since {cmap.start_utc.isoformat().replace('+00:00', 'Z')}"
+    midnight = datetime.combine(cmap.date_utc, clock_time(), tzinfo=timezone.utc).timestamp()
+    step = np.diff(seconds)
+    rollover = step < -SECONDS_PER_DAY / 2
+    days = np.concatenate([[0], np.cumsum(rollover)])
+    base = f"{unit} of day from 00:00 UTC on {cmap.date_utc.isoformat()}"
+    if rollover.any():
+        base += f"; {int(days[-1])} midnight rollover{'s' if days[-1] > 1 else ''}, the first at row " \
+                f"{int(raw.rows[np.flatnonzero(rollover)[0] + 1])}"
+    return midnight + seconds + SECONDS_PER_DAY * days, base
+
+
+def _quaternion_attitude(q: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str,
+                         column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(roll, pitch, yaw)`` in degrees, each (N,), from the file's quaternions (N, 4) in file order.
+
+    A record with any component missing gets NaN angles; an all-zero quaternion is an error.
+    """
+    q_wxyz = q if cmap.quaternion_order == "wxyz" else q[:, [3, 0, 1, 2]]
+    if cmap.quaternion_frame == "ned_to_body":
+        q_wxyz = q_wxyz * np.array([1.0, -1.0, -1.0, -1.0])
+    norm = np.linalg.norm(q_wxyz, axis=1)
+    zero = np.flatnonzero(norm == 0)
+    if zero.size:
+        raise InputError("the quaternion is zero (not a rotation)", source, int(raw.rows[zero[0]]), column)
+    yaw, pitch, roll = quaternion_to_euler(q_wxyz)
+    return roll, pitch, yaw
+
+
+def _convert(name: str, values: np.ndarray, cmap: ColumnMap) -> tuple[np.ndarray, str]:
+    """A canonical or auxiliary column in magkf's units, and the conversion in words."""
+    if name in MAG or name in REF:
+        unit = cmap.mag if name in MAG else cmap.ref_unit
+        factor = cmap.mag_nt_per_unit if name in MAG else NT_PER_UNIT[unit]
+        if unit == "counts":
+            return values * factor, f"counts x {factor:g} nT/count"
+        return (values, "nT") if unit == "nT" else (values * factor, f"{unit} x {factor:g} -> nT")
+    if name in ATTITUDE or name in (LAT, LON):
+        unit = cmap.angles if name in ATTITUDE else cmap.latlon
+        return (values, "deg") if unit == "deg" else (np.degrees(values), "rad -> deg")
+    if name == ALT:
+        return values, "m"
+    if name in (DOP, PDOP, HDOP, VDOP):
+        return values, "as is"
+    return values, "auxiliary, as is"
+
+
+def _resolve(spec: str | int, key: str, raw: _RawTable, cmap: ColumnMap, source: str) -> int:
+    """The position of the file column that ``[columns] key = spec`` names."""
+    if isinstance(spec, int):
+        if spec > len(raw.names):
+            raise InputError(f"no such column: [columns] {key} = {spec} in {cmap.source}, but the file has "
+                             f"{len(raw.names)} columns", source, raw.header_row, f"#{spec}")
+        return spec - 1
+    if spec not in raw.names:
+        raise InputError(f"no such column, asked for by [columns] {key} in {cmap.source} (the file has: "
+                         f"{', '.join(raw.names)})", source, raw.header_row, spec)
+    return raw.names.index(spec)
+
+
+def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame, dict]:
+    """Read a table through a column map into the canonical drive log.
+
+    Parameters
+    ----------
+    path : str or Path
+        The data file (csv, tsv, whitespace-separated text or Parquet). It is only read.
+    column_map : ColumnMap, or the path of a TOML column map.
+
+    Returns
+    -------
+    table : DataFrame, one row per record of the file (N rows, none dropped), with ``time`` (UNIX s,
+        UTC, strictly increasing) first, then the canonical columns present (``mag_*`` and ``ref_*``
+        in nT, ``roll, pitch, yaw, lat, lon`` in degrees), then the auxiliary channels. Missing values
+        are NaN.
+    provenance : dict
+        ``{"format": "mapped-table", "file", "map", "columns": {output column: "file column
+        (conversion)"}, "units": {...}, "time_base": "...", "ignored": {file column: reason}}``.
+
+    Raises
+    ------
+    InputError
+        naming the file, row (line number) and column: a missing file, a mapped column missing from the
+        file, a non-numeric or non-finite cell, an empty or non-increasing time, a zero quaternion; or
+        naming the map file and key for anything wrong in the map.
+
+    Warns
+    -----
+    UnitWarning
+        when the field magnitudes, once converted to nT, look like another unit than the map says.
+    """
+    cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise InputError("no such file", source)
+    fmt = cmap.format or EXTENSION_FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise InputError(f"cannot tell the format from the extension {path.suffix!r}: set {_key('format')} "
+                         f"({', '.join(FORMATS)}) in {cmap.source}", source)
+    _check_layout(cmap, fmt, source)
+    raw = _read_parquet(path) if fmt == "parquet" else _read_text(path, cmap, fmt)
+
+    positions = {key: _resolve(spec, key, raw, cmap, source) for key, spec in cmap.columns.items()}
+
+    def cells(key: str) -> np.ndarray:
+        k = positions[key]
+        return _numeric(raw.frame[k], raw, source, raw.names[k], cmap.decimal)
+
+    def out_of_range(key: str, file_values: np.ndarray, values: np.ndarray, conversion: str) -> None:
+        overflow = np.flatnonzero(~np.isfinite(values) & np.isfinite(file_values))
+        if overflow.size:
+            i = int(overflow[0])
+            raise InputError(f"{float(file_values[i])!r} is out of range once converted ({conversion})", source,
+                             int(raw.rows[i]), raw.names[positions[key]])
+
+    out, described = {}, {}
+    file_time = cells(TIME)
+    time_values, time_base = _unix_time(file_time, cmap, raw, source, raw.names[positions[TIME]])
+    out_of_range(TIME, file_time, time_values, time_base)
+    back = np.flatnonzero(np.diff(time_values) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        hint = " (a midnight rollover is a decrease of more than 43 200 s)" if cmap.time_epoch == "seconds_of_day" \
+            else ""
+        raise InputError(f"time not strictly increasing ({float(file_time[i])!r} after {float(file_time[i - 1])!r})"
+                         f"{hint}", source, int(raw.rows[i]), raw.names[positions[TIME]])
+    out[TIME], described[TIME] = time_values, f"{raw.names[positions[TIME]]} ({time_base})"
+
+    if QUATERNION[0] in positions:
+        q = np.column_stack([cells(k) for k in QUATERNION])
+        quaternion_columns = [raw.names[positions[k]] for k in QUATERNION]
+        angles = _quaternion_attitude(q, cmap, raw, source, quaternion_columns[0])
+        for name, values in zip(ATTITUDE, angles):
+            out[name] = values
+            described[name] = (f"{', '.join(quaternion_columns)} (quaternion {cmap.quaternion_order}, "
+                               f"{cmap.quaternion_frame} -> ZYX Euler {name}, deg)")
+    for key in cmap.columns:
+        if key in (TIME, *QUATERNION):
+            continue
+        file_values = cells(key)
+        with np.errstate(over="ignore"):
+            out[key], conversion = _convert(key, file_values, cmap)
+        out_of_range(key, file_values, out[key], conversion)
+        described[key] = f"{raw.names[positions[key]]} ({conversion})"
+
+    ignored = {}
+    used = set(positions.values())
+    for k, column in enumerate(raw.names):
+        if k in used:
+            continue
+        if not cmap.keep_unmapped:
+            ignored[column] = "unmapped (keep_unmapped = false)"
+        elif column in out or column in CORE_COLUMNS or column in QUATERNION:
+            ignored[column] = "unmapped, and its name is a canonical column"
+        elif not _is_numeric_column(raw.frame[k]):
+            ignored[column] = "unmapped text column"
+        else:
+            out[column] = _numeric(raw.frame[k], raw, source, column, cmap.decimal,
+                                   f" (an unmapped column; set [columns] keep_unmapped = false in {cmap.source} "
+                                   "to leave such columns out)")
+            described[column] = f"{column} (unmapped, auxiliary, as is)"
+
+    mag = np.column_stack([out[c] for c in MAG])
+    complete = np.all(np.isfinite(mag), axis=1)
+    if complete.any():
+        with np.errstate(over="ignore"):
+            median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
+        guess = likely_unit(median)
+        if guess not in (None, "nT"):
+            warnings.warn(f"{source}: the magnetometer magnitudes (median {median:.4g} nT after conversion) look "
+                          f"like {guess}, not {cmap.mag}; check {_key('mag')} in {cmap.source}", UnitWarning,
+                          stacklevel=2)
+
+    order = [c for c in CORE_COLUMNS if c in out] + [c for c in out if c not in CORE_COLUMNS]
+    table = pd.DataFrame({c: out[c] for c in order})
+    units = {f.name: getattr(cmap, f.name) for f in fields(cmap) if f.name in SECTIONS["units"]}
+    units = {k: (v.isoformat() if isinstance(v, (date, datetime)) else v) for k, v in units.items() if v is not None}
+    if REF[0] in cmap.columns:
+        units["ref"] = cmap.ref_unit
+    if QUATERNION[0] not in cmap.columns:
+        del units["quaternion_order"], units["quaternion_frame"]
+    provenance = {"format": "mapped-table", "file": source, "map": cmap.source, "file_format": fmt,
+                  "columns": {c: described[c] for c in order}, "units": units, "time_base": time_base,
+                  "ignored": ignored}
+    return table, provenance

@@ -1,0 +1,574 @@
+"""ArduPilot DataFlash (``.bin``) logs read into the canonical drive log.
+
+Format
+    A DataFlash log is a stream of binary messages, each ``0xA3 0x95 <type id>`` followed by a packed
+    little-endian body whose layout is declared in the log itself by ``FMT`` messages (name, length,
+    format characters, column names). pymavlink's ``DFReader_binary`` indexes where each message type
+    sits in the file; this module then decodes only the types it needs, all messages of a type at
+    once, with the field types and scale factors of pymavlink's ``FORMAT_TO_STRUCT`` (for example
+    ``c`` = int16 x 0.01, ``L`` = int32 x 1e-7 degrees). Message and field meanings: ArduPilot's log
+    message documentation (https://ardupilot.org/copter/docs/logmessages.html) and the
+    ``LogStructure.h`` files of ArduPilot's libraries.
+
+Streams (every one has ``TimeUS``, microseconds since boot)
+    ``MAG`` (``MAG2``, ``MAG3`` in logs before 4.0; one ``MAG`` with instance field ``I`` since):
+    ``MagX/Y/Z`` the corrected field and ``OfsX/Y/Z`` the offsets, in milligauss (units ``G`` with
+    multiplier ``C`` = 1e-3 in ``libraries/AP_Compass/LogStructure.h``), written as ``(int16_t)`` of
+    the float, i.e. truncated towards zero; ``MOX/Y/Z`` the motor compensation. 1 mG = 100 nT.
+    ``ATT`` ``Roll, Pitch, Yaw`` in degrees (ZYX Euler angles of the body FRD frame in NED, yaw from
+    true north in [0, 360)). ``GPS`` ``Status`` (``AP_GPS::GPS_Status``: 3 = 3-D fix, 4 DGPS, 5/6 RTK),
+    ``GWk, GMS`` (GPS week and milliseconds of week), ``Lat, Lng`` (deg), ``Alt`` (m above mean sea
+    level), ``HDop``. ``GPA`` ``VDop``, ``SMS`` and either ``AEl`` (height above the WGS-84 ellipsoid,
+    newer logs) or ``Und`` (``MSL - ellipsoid height``, as the u-blox and DroneCAN drivers of
+    ``libraries/AP_GPS`` compute it). ``BARO.Temp`` / ``IMU.T`` degC; ``BAT.Curr`` (``CURR.Curr`` before
+    4.1) A; ``CTUN.ThO`` throttle output, 0..1 in Copter and Sub, percent in Plane
+    (``SRV_Channels::get_output_scaled``). ``PARM`` parameters, ``VER``/``MSG`` the firmware string.
+
+Time
+    ``TimeUS`` is mapped to UTC with the GPS week and milliseconds (``timebase.gps_to_unix``, leap
+    seconds of the date): the offset UTC - boot time is the median over ``GPS`` samples with a week
+    (those with a 3-D fix if there are any), so the log-write latency of single samples does not bias it.
+
+Raw reconstruction
+    ArduPilot 4.x (``AP_Compass_Backend::accumulate_sample``) rotates each sensor sample into the
+    vehicle frame (``rotate_field``: the driver's own rotation, then ``COMPASS_ORIENTn`` for an external
+    compass or ``AHRS_ORIENTATION`` for an internal one), hands this to the calibrator
+    (``publish_raw_field``) and then corrects it (``correct_field``)::
+
+        field = M ((raw + OFS) * SCALE) + motor,  M = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z],
+                                                       [ODI_Y, ODI_Z, DIA_Z]]
+
+    ``SCALE`` only where ``Compass::have_scale_factor`` accepts it (1/1.5 <= SCALE <= 1.5; added in
+    4.0, ArduPilot pull request 12899); all-zero diagonals count as ones. The logged ``MagX`` is the
+    mean of such samples, truncated. With ``raw=True`` this module inverts that model with the
+    ``PARM`` values in effect at each epoch, giving the raw reading in the vehicle-aligned frame after
+    the firmware's rotation (before offsets, scale and soft-iron matrix), which is what the autopilot's
+    own compass calibration fits.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import re
+import warnings
+
+import numpy as np
+
+from ..conventions import MAG, quaternion_to_euler
+from ..errors import InputError
+from .streams import bracket, interpolate_linear, interpolate_quaternions
+from .timebase import gps_to_unix
+
+__all__ = ["NT_PER_MILLIGAUSS", "compass_correct", "compass_uncorrect", "magnetometer_instances", "read_dataflash"]
+
+NT_PER_MILLIGAUSS = 100.0
+#: The first bytes of every DataFlash log: the header and the type id of ``FMT`` (128).
+MAGIC = b"\xa3\x95\x80"
+#: ``COMPASS_MAX_SCALE_FACTOR`` of ``libraries/AP_Compass/CompassCalibrator.h``; the minimum is its inverse.
+MAX_SCALE_FACTOR = 1.5
+#: numpy codes of the struct codes pymavlink gives each format character.
+_NUMPY_CODE = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "q": "<i8", "Q": "<u8",
+               "f": "<f4", "d": "<f8", "e": "<f2", "4s": "S4", "16s": "S16", "64s": "S64"}
+#: Compass parameters per state index (0, 1, 2 -> suffix "", "2", "3").
+_CAL_PARAMS = ("OFS_X", "OFS_Y", "OFS_Z", "DIA_X", "DIA_Y", "DIA_Z", "ODI_X", "ODI_Y", "ODI_Z", "SCALE")
+
+
+# ------------------------------------------------------------------ calibration model
+def _matrix(diagonals, offdiagonals) -> np.ndarray:
+    """ArduPilot's soft-iron matrices (N, 3, 3) from diagonals and off-diagonals (N, 3)."""
+    d, o = np.atleast_2d(np.asarray(diagonals, float)), np.atleast_2d(np.asarray(offdiagonals, float))
+    d = np.where(np.all(d == 0, axis=-1, keepdims=True), 1.0, d)   # correct_field: zero diagonals mean ones
+    return np.stack([np.stack([d[:, 0], o[:, 0], o[:, 1]], -1),
+                     np.stack([o[:, 0], d[:, 1], o[:, 2]], -1),
+                     np.stack([o[:, 1], o[:, 2], d[:, 2]], -1)], -2)
+
+
+def _effective_scale(scale) -> np.ndarray:
+    """``COMPASS_SCALE`` as applied: 1 outside [1/1.5, 1.5] (``Compass::have_scale_factor``)."""
+    s = np.asarray(scale, float)
+    return np.where((s >= 1.0 / MAX_SCALE_FACTOR) & (s <= MAX_SCALE_FACTOR), s, 1.0)
+
+
+def _model(n: int, diagonals, offdiagonals, scale) -> tuple[np.ndarray, np.ndarray]:
+    """Soft-iron matrices (n, 3, 3) and applied scale factors (n, 1) for ``n`` epochs."""
+    m = _matrix(np.broadcast_to(diagonals, (n, 3)), np.broadcast_to(offdiagonals, (n, 3)))
+    return m, np.broadcast_to(_effective_scale(scale), (n,))[:, None]
+
+
+def compass_correct(raw, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0) -> np.ndarray:
+    """ArduPilot 4.x ``correct_field``: ``M ((raw + offsets) * scale) + motor``.
+
+    ``raw`` (N, 3) in the vehicle-aligned frame after the firmware's rotation; ``offsets``, ``diagonals``,
+    ``offdiagonals`` (3,) or (N, 3) (``COMPASS_OFS``, ``COMPASS_DIA``, ``COMPASS_ODI``); ``scale``
+    scalar or (N,) (``COMPASS_SCALE``, ignored outside [1/1.5, 1.5] as the firmware does); ``motor``
+    (3,) or (N, 3) motor compensation. Any one field unit (ArduPilot: milligauss). Returns (N, 3).
+    """
+    raw = np.atleast_2d(np.asarray(raw, float))
+    m, s = _model(len(raw), diagonals, offdiagonals, scale)
+    return np.einsum("nij,nj->ni", m, (raw + offsets) * s) + motor
+
+
+def compass_uncorrect(field, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0) -> np.ndarray:
+    """The inverse of ``compass_correct``: the raw reading (N, 3) whose corrected value is ``field`` (N, 3).
+
+    ``raw = M^-1 (field - motor) / scale - offsets``; arguments as for ``compass_correct``.
+    """
+    field = np.atleast_2d(np.asarray(field, float))
+    m, s = _model(len(field), diagonals, offdiagonals, scale)
+    unmixed = np.linalg.solve(m, (field - motor)[..., None])[..., 0]
+    return unmixed / s - offsets
+
+
+def _untruncate(values) -> np.ndarray:
+    """The mean of the floats that ``(int16_t)`` truncates to ``values``: +-0.5 away from zero (0 stays 0)."""
+    v = np.asarray(values, float)
+    return v + 0.5 * np.sign(v)
+
+
+# ------------------------------------------------------------------ reading
+@contextlib.contextmanager
+def _captured_output():
+    """Capture what is printed to standard output and error, by Python or by compiled code (pymavlink's
+    indexer reports damaged bytes with C ``printf``), into the ``StringIO`` this yields."""
+    import sys
+    import tempfile
+
+    text = io.StringIO()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile("w+") as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            with contextlib.redirect_stdout(text), contextlib.redirect_stderr(text):
+                yield text
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            text.write(sink.read())
+
+
+class _Log:
+    """An indexed DataFlash file: ``table(name)`` decodes all messages of one type at once."""
+
+    def __init__(self, path):
+        from pymavlink import DFReader
+
+        class _Reader(DFReader.DFReader_binary):
+            def init_clock(self):   # magkf maps time itself; skip pymavlink's pass over the log
+                pass
+
+        self.path = str(path)
+        try:
+            with open(path, "rb") as f:
+                head = f.read(len(MAGIC))
+        except OSError as exc:
+            raise InputError(f"cannot read the file: {exc.strerror}", source=self.path) from None
+        if head != MAGIC:
+            raise InputError("not an ArduPilot DataFlash log (it does not start with an FMT message)",
+                             source=self.path)
+        try:
+            with _captured_output() as chatter:
+                self.reader = _Reader(self.path)
+        except Exception as exc:  # noqa: BLE001 - pymavlink raises plain Exception on a malformed FMT
+            raise InputError(f"not a readable DataFlash log ({exc})", source=self.path) from None
+        #: Bytes between messages that are not a message (pymavlink's indexer reports each as a "bad header").
+        self.skipped_bytes = chatter.getvalue().count("bad header")
+        self.buffer = np.frombuffer(self.reader.data_map, np.uint8)
+        self.truncated = False
+
+    def close(self) -> None:
+        """Release the memory map and the file (decoded tables are copies and stay valid)."""
+        self.buffer = None
+        self.reader.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def has(self, name: str) -> bool:
+        tid = self.reader.name_to_id.get(name)
+        return tid is not None and len(self.reader.offsets[tid]) > 0
+
+    def columns(self, name: str) -> list[str]:
+        return list(self.reader.formats[self.reader.name_to_id[name]].columns) if self.has(name) else []
+
+    def table(self, name: str) -> dict[str, np.ndarray]:
+        """All messages ``name`` as ``{column: (N,) array}``, scaled as pymavlink scales them (strings as
+        ``str`` arrays). Messages cut off by the end of the file are dropped (``truncated`` is set)."""
+        if not self.has(name):
+            return {}
+        fmt = self.reader.formats[self.reader.name_to_id[name]]
+        try:
+            dtype = np.dtype({"names": fmt.columns, "formats": [self._code(c, name) for c in fmt.format]})
+        except ValueError:
+            raise InputError(f"message {name} has a malformed FMT (columns {fmt.columns}, format {fmt.format!r})",
+                             source=self.path) from None
+        offsets = np.asarray(self.reader.offsets[fmt.type], np.int64)
+        whole = offsets + fmt.len <= len(self.buffer)
+        if not whole.all():
+            self.truncated = True
+            offsets = offsets[whole]
+        if dtype.itemsize != fmt.len - 3:
+            raise InputError(f"message {name} declares {fmt.len - 3} bytes but its format has {dtype.itemsize}",
+                             source=self.path)
+        body = self.buffer[offsets[:, None] + 3 + np.arange(dtype.itemsize)]
+        records = np.ascontiguousarray(body).view(dtype).ravel()
+        out = {}
+        for col, char, mult in zip(fmt.columns, fmt.format, fmt.msg_mults):
+            v = records[col]
+            if v.dtype.kind == "S":
+                out[col] = np.char.decode(np.char.rstrip(v, b"\x00"), "latin-1")
+                continue
+            v = v.astype(float) if char not in "qQ" else v.astype(np.int64)
+            if mult is not None:   # divide by 1e2, 1e7 rather than multiply by 1e-2, 1e-7, as pymavlink does
+                v = v / (1.0 / mult) if 0.0 < mult < 1.0 else v * mult
+            out[col] = v
+        return out
+
+    def _code(self, char: str, name: str) -> str:
+        from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+        try:
+            return _NUMPY_CODE[FORMAT_TO_STRUCT[char][0]]
+        except KeyError:
+            raise InputError(f"message {name} has an unknown format character {char!r}", source=self.path) from None
+
+    def end_damaged(self) -> bool:
+        """True if the last message of the file runs past its end."""
+        ends = [self.reader.offsets[t][-1] + f.len for t, f in self.reader.formats.items()
+                if 0 <= t < len(self.reader.offsets) and len(self.reader.offsets[t])]
+        return bool(ends) and max(ends) > len(self.buffer)
+
+
+def _select(table: dict, instance: int | None, field: str = "I") -> dict:
+    """Rows of ``table`` with instance ``instance`` (all rows if the message has no instance field)."""
+    if not table or instance is None or field not in table:
+        return table
+    keep = table[field] == instance
+    return {k: v[keep] for k, v in table.items()}
+
+
+def _by_time(table: dict) -> dict:
+    """``table`` sorted by ``TimeUS``, keeping the first of samples with the same ``TimeUS`` (interpolation
+    needs strictly increasing times)."""
+    if not table:
+        return table
+    order = np.argsort(table["TimeUS"], kind="stable")
+    keep = order[np.concatenate(([True], np.diff(table["TimeUS"][order]) > 0))]
+    return table if np.array_equal(keep, np.arange(len(order))) else {k: v[keep] for k, v in table.items()}
+
+
+def _mag_streams(log: _Log) -> list[dict]:
+    """Each magnetometer stream: ``{instance, message, table}`` in instance order."""
+    streams = []
+    if "I" in log.columns("MAG"):
+        table = log.table("MAG")
+        for i in np.unique(table["I"]).astype(int):
+            streams.append({"instance": int(i), "message": "MAG", "table": _select(table, i)})
+    else:
+        for i, name in enumerate(("MAG", "MAG2", "MAG3")):
+            if log.has(name):
+                streams.append({"instance": i, "message": name, "table": log.table(name)})
+    return streams
+
+
+def _summary(stream: dict) -> dict:
+    t = stream["table"]["TimeUS"] * 1e-6
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    return {"instance": stream["instance"], "message": stream["message"], "samples": len(t),
+            "rate_hz": round((len(t) - 1) / span, 3) if span > 0 else None}
+
+
+def magnetometer_instances(path) -> list[dict]:
+    """The magnetometers of a DataFlash log: one dict per instance with ``instance`` (0-based),
+    ``message`` (``MAG``, ``MAG2``, ``MAG3``), ``samples`` and ``rate_hz`` (mean logging rate, Hz)."""
+    with _Log(path) as log:
+        return [_summary(s) for s in _mag_streams(log)]
+
+
+def _parameters(log: _Log) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{name: (TimeUS (M,), value (M,))}`` of every ``PARM`` message, in log order."""
+    table = log.table("PARM")
+    out: dict[str, tuple[list, list]] = {}
+    for name, t, v in zip(table.get("Name", []), table.get("TimeUS", []), table.get("Value", [])):
+        ts, vs = out.setdefault(str(name), ([], []))
+        ts.append(t)
+        vs.append(v)
+    return {k: (np.array(ts), np.array(vs)) for k, (ts, vs) in out.items()}
+
+
+def _param_at(params: dict, name: str, time_us: np.ndarray, default: float) -> np.ndarray:
+    """Value of parameter ``name`` in effect at each ``time_us`` (N,): the last logged before it, the first
+    one before the first logging, ``default`` if never logged."""
+    if name not in params:
+        return np.full(len(time_us), float(default))
+    t, v = params[name]
+    return v[np.clip(np.searchsorted(t, time_us, side="right") - 1, 0, len(v) - 1)]
+
+
+def _firmware(log: _Log) -> str:
+    ver = log.table("VER")
+    if "FWS" in ver and len(ver["FWS"]):
+        return str(ver["FWS"][0])
+    for text in log.table("MSG").get("Message", []):
+        if re.match(r"(Ardu\w+|APM:\w+|Blimp|AntennaTracker)\b.*V\d", str(text)):
+            return str(text)
+    return "unknown"
+
+
+def _state_index(params: dict, instance: int) -> int:
+    """The compass parameter set (0, 1, 2) of logged instance ``instance``.
+
+    Since 4.0 ``MAG.I`` is the priority index (``Compass::get_field(i)`` reads ``_get_state(Priority(i))``);
+    the state whose ``COMPASS_DEV_IDn`` equals ``COMPASS_PRIOn_ID`` of that priority holds its calibration.
+    """
+    prio = params.get(f"COMPASS_PRIO{instance + 1}_ID")
+    if prio is not None and prio[1][-1] != 0:
+        for k, suffix in enumerate(("", "2", "3")):
+            dev = params.get(f"COMPASS_DEV_ID{suffix}")
+            if dev is not None and dev[1][-1] == prio[1][-1]:
+                return k
+    return instance
+
+
+def _param_name(quantity: str, suffix: str) -> str:
+    """``COMPASS_OFS2_X`` from ``OFS_X`` and suffix ``2``; ``COMPASS_SCALE2`` from ``SCALE``."""
+    base, _, axis = quantity.partition("_")
+    return f"COMPASS_{base}{suffix}" + (f"_{axis}" if axis else "")
+
+
+def _reconstruct_raw(table: dict, params: dict, instance: int, firmware: str, notes: list) -> tuple[np.ndarray, str]:
+    """Raw field (N, 3) in mG of one ``MAG`` stream, and the text describing what was undone."""
+    time_us = table["TimeUS"]
+    k = _state_index(params, instance)
+    suffix = ("", "2", "3")[k] if k < 3 else None
+    if suffix is None:
+        notes.append(f"magnetometer instance {instance} has no calibration parameters; raw = logged field")
+        return _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")])), "nothing (no parameters)"
+    defaults = dict.fromkeys(_CAL_PARAMS, 0.0) | {"DIA_X": 1.0, "DIA_Y": 1.0, "DIA_Z": 1.0, "SCALE": 1.0}
+    p = {q: _param_at(params, _param_name(q, suffix), time_us, defaults[q]) for q in _CAL_PARAMS}
+    offsets = np.column_stack([p["OFS_X"], p["OFS_Y"], p["OFS_Z"]])
+    logged_ofs = np.column_stack([table.get(c, np.full(len(time_us), np.nan)) for c in ("OfsX", "OfsY", "OfsZ")])
+    differs = np.abs(np.trunc(offsets) - logged_ofs) > 1.0      # False where no offsets are logged
+    if differs.any():
+        offsets = np.where(differs, _untruncate(logged_ofs), offsets)
+        notes.append(f"{int(differs.any(axis=1).sum())} epochs log offsets (MAG.Ofs) other than COMPASS_OFS{suffix} "
+                     "(e.g. learnt in flight); the logged offsets were used there")
+    diagonals = np.column_stack([p["DIA_X"], p["DIA_Y"], p["DIA_Z"]])
+    offdiagonals = np.column_stack([p["ODI_X"], p["ODI_Y"], p["ODI_Z"]])
+    motor = _untruncate(np.column_stack([table.get(c, np.zeros(len(time_us))) for c in ("MOX", "MOY", "MOZ")]))
+    field = _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")]))
+    raw = compass_uncorrect(field, offsets, diagonals, offdiagonals, p["SCALE"], motor)
+    version = re.search(r"V(\d+)\.(\d+)", firmware)
+    if version is None or int(version.group(1)) < 4:
+        notes.append(f"firmware {firmware!r}: the ArduPilot 4.x correction model was assumed; before 4.0 there was "
+                     "no COMPASS_SCALE and motor compensation was added before the soft-iron matrix")
+    scale_used = bool(np.any(_effective_scale(p["SCALE"]) != 1.0))
+    text = (f"ArduPilot 4.x AP_Compass_Backend::correct_field assumed (firmware {firmware}): logged MAG = "
+            f"trunc(M ((raw + COMPASS_OFS{suffix}) * COMPASS_SCALE{suffix}) + MO), M from COMPASS_DIA{suffix}/"
+            f"COMPASS_ODI{suffix} (PARM values in effect at each epoch"
+            f"{'' if scale_used else '; SCALE outside [1/1.5, 1.5] or 1, not applied'}). Undone: motor "
+            "compensation MO, soft-iron matrix, scale and offsets; the int16 truncation of MagX/MO is "
+            "taken as +-0.5 mG away from zero. Raw is in the vehicle-aligned frame after the firmware's "
+            f"rotation (driver rotation, then COMPASS_ORIENT{suffix} if external, AHRS_ORIENTATION if "
+            "internal), not in the chip's own axes.")
+    return raw, text
+
+
+def _euler_to_quaternion(roll, pitch, yaw) -> np.ndarray:
+    """Quaternions (N, 4), scalar first, of ZYX Euler angles in degrees (N,) (body FRD to NED)."""
+    r, p, y = (np.radians(np.asarray(a, float)) / 2 for a in (roll, pitch, yaw))
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.column_stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+
+
+def _time_offset(gps: dict, path: str) -> tuple[float, str]:
+    """UTC - boot time (s) from the GPS week and milliseconds, and a description."""
+    if not gps or "GWk" not in gps:
+        raise InputError("time since boot and no GNSS week/ms to map it to UTC", source=path)
+    week = gps["GWk"] > 0
+    good = week & (gps["Status"] >= 3)
+    use = good if good.any() else week
+    if not use.any():
+        raise InputError("time since boot and no GNSS week/ms to map it to UTC", source=path)
+    offsets = gps_to_unix(gps["GWk"][use], gps["GMS"][use]) - gps["TimeUS"][use] * 1e-6
+    offset = float(np.median(offsets))
+    spread = float(np.median(np.abs(offsets - offset)))
+    return offset, (f"UTC = TimeUS * 1e-6 + {offset:.6f} s: median over {int(use.sum())} GPS samples "
+                    f"({'3-D fix' if good.any() else 'with a GPS week, no 3-D fix'}) of "
+                    f"gps_to_unix(GWk, GMS) - TimeUS (leap seconds of the date; median absolute deviation "
+                    f"{spread * 1e3:.1f} ms, mostly log-write latency)")
+
+
+def read_dataflash(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5):
+    """Read an ArduPilot DataFlash log into the canonical drive log.
+
+    ``mag`` picks the magnetometer instance (0-based; default the first logged). With ``raw`` the
+    autopilot's calibration is undone (see the module docstring); otherwise the logged, corrected field
+    is returned (only its int16 truncation is centred). ``max_gap_s`` (s): an epoch between two samples
+    of a stream further apart than this gets NaN for that stream.
+
+    Returns ``(frame, provenance)``: a DataFrame with one row per epoch of the magnetometer (N rows):
+    ``time`` (UNIX s, UTC), ``mag_x, mag_y, mag_z`` (nT), ``roll, pitch, yaw`` (deg), ``lat, lon``
+    (deg), ``alt`` (m above the ellipsoid), ``hdop``, ``vdop``, ``fix_type`` (GPS status) where
+    logged, and the auxiliary channels ``temp_c``, ``current_a``, ``throttle`` (0..1), ``mag_health``
+    (0/1) where logged; and a JSON-able dict saying where each column came from.
+    """
+    import pandas as pd
+
+    with _Log(path) as log:
+        frame, provenance = _read(log, mag, raw, max_gap_s)
+    return pd.DataFrame(frame), provenance
+
+
+def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict, dict]:
+    """The columns ``{name: (N,) array}`` and the provenance of ``read_dataflash``."""
+    source = log.path
+    notes: list[str] = []
+    if log.end_damaged():
+        log.truncated = True
+    streams = _mag_streams(log)
+    if not streams:
+        raise InputError("no MAG message (no magnetometer logged)", source=source)
+    instances = [s["instance"] for s in streams]
+    chosen = instances[0] if mag is None else int(mag)
+    if chosen not in instances:
+        raise InputError(f"no magnetometer instance {chosen}; the log has {instances}", source=source)
+    stream = next(s for s in streams if s["instance"] == chosen)
+    table = _by_time(stream["table"])
+    if len(table["TimeUS"]) < len(stream["table"]["TimeUS"]):
+        notes.append(f"{len(stream['table']['TimeUS']) - len(table['TimeUS'])} MAG samples with a repeated "
+                     "TimeUS dropped")
+    t_us = table["TimeUS"]
+
+    gps = _by_time(_select(log.table("GPS"), 0))
+    offset, time_base = _time_offset(gps, source)
+    t = t_us * 1e-6 + offset
+    params = _parameters(log)
+    firmware = _firmware(log)
+    columns: dict[str, str] = {"time": f"{stream['message']}.TimeUS (boot us -> UTC s via GPS GWk/GMS)"}
+    frame = {"time": t}
+
+    if raw:
+        field, raw_text = _reconstruct_raw(table, params, chosen, firmware, notes)
+        for axis, name in zip("XYZ", MAG):
+            columns[name] = f"{stream['message']}.Mag{axis} (mG, calibration undone -> raw, x100 -> nT)"
+    else:
+        field = _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")]))
+        raw_text = "not done (raw=False): the field as the autopilot corrected it"
+        for axis, name in zip("XYZ", MAG):
+            columns[name] = f"{stream['message']}.Mag{axis} (mG, as logged, calibrated, x100 -> nT)"
+    for i, name in enumerate(MAG):
+        frame[name] = field[:, i] * NT_PER_MILLIGAUSS
+    if "Health" in table:
+        frame["mag_health"] = table["Health"]
+        columns["mag_health"] = f"{stream['message']}.Health (1 healthy)"
+
+    def stream_time(tab):
+        return tab["TimeUS"] * 1e-6 + offset
+
+    att = _by_time(log.table("ATT"))
+    if att:
+        q = _euler_to_quaternion(att["Roll"], att["Pitch"], att["Yaw"])
+        q_t, _ = interpolate_quaternions(t, stream_time(att), q, max_gap_s)
+        yaw, pitch, roll = quaternion_to_euler(q_t)
+        frame.update(roll=roll, pitch=pitch, yaw=yaw)
+        for name, field_name in (("roll", "Roll"), ("pitch", "Pitch"), ("yaw", "Yaw")):
+            columns[name] = f"ATT.{field_name} (deg; slerp of quaternions from Roll/Pitch/Yaw)"
+    else:
+        notes.append("no ATT message: no attitude")
+
+    if gps and {"Status", "Lat", "Lng"} <= gps.keys():
+        fix = gps["Status"] >= 3
+        t_gps = stream_time(gps)
+        lat = np.where(fix, gps["Lat"], np.nan)
+        lon = np.where(fix, gps["Lng"], np.nan)
+        alt_msl = np.where(fix, gps.get("Alt", np.nan), np.nan)
+        gpa = _by_time(_select(log.table("GPA"), 0))
+        alt, alt_text = alt_msl, "GPS.Alt (m above MSL: no undulation logged, not above the ellipsoid)"
+        if gpa:
+            idx = np.clip(np.searchsorted(gps["TimeUS"], gpa["TimeUS"]), 0, len(gps["TimeUS"]) - 1)
+            gpa_fix = (gps["TimeUS"][idx] == gpa["TimeUS"]) & fix[idx]
+            if "AEl" in gpa:
+                ell = np.where(gpa_fix & (gpa["AEl"] > -2.1e7), gpa["AEl"], np.nan)
+                alt, alt_text = interpolate_linear(t_gps, stream_time(gpa), ell)[0], "GPA.AEl (m above WGS-84)"
+            elif "Und" in gpa:
+                und = interpolate_linear(t_gps, stream_time(gpa), np.where(gpa_fix, gpa["Und"], np.nan))[0]
+                alt, alt_text = alt_msl - und, "GPS.Alt - GPA.Und (MSL + geoid height -> m above WGS-84)"
+            vdop = np.where(gpa_fix, gpa["VDop"], np.nan)
+            frame["vdop"] = interpolate_linear(t, stream_time(gpa), vdop, max_gap_s)[0]
+            columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
+        for name, values, text in (("lat", lat, "GPS.Lat (deg)"), ("lon", lon, "GPS.Lng (deg)"),
+                                   ("alt", alt, alt_text), ("hdop", np.where(fix, gps.get("HDop", np.nan), np.nan),
+                                                            "GPS.HDop")):
+            frame[name] = interpolate_linear(t, t_gps, values, max_gap_s)[0]
+            columns[name] = f"{text}, only GPS Status >= 3 (3-D fix), linear"
+        i, _, valid = bracket(t, t_gps, max_gap_s)
+        frame["fix_type"] = np.where(valid, gps["Status"][i], np.nan)
+        columns["fix_type"] = "GPS.Status of the sample at or before the epoch (0 none, 1 no fix, 2 2-D, 3 3-D, ...)"
+        if not fix.any():
+            notes.append("the GNSS never had a 3-D fix: no position")
+    else:
+        notes.append("no GPS position logged")
+
+    _auxiliary(log, t, offset, max_gap_s, firmware, frame, columns)
+    if log.truncated:
+        warnings.warn(f"{source}: the log is truncated or damaged at its end; read up to the damage", stacklevel=3)
+        notes.append("truncated: messages cut off by the end of the file were dropped")
+    if log.skipped_bytes:
+        notes.append(f"{log.skipped_bytes} bytes between messages were not valid messages and were skipped")
+
+    summaries = [_summary(s) for s in streams]
+    magnetometer = dict(next(s for s in summaries if s["instance"] == chosen))
+    k = _state_index(params, chosen)
+    if k < 3:
+        suffix = ("", "2", "3")[k]
+        magnetometer["parameter_set"] = f"COMPASS_OFS{suffix}, COMPASS_DIA{suffix}, COMPASS_ODI{suffix}, " \
+                                        f"COMPASS_SCALE{suffix}"
+        for key, name in (("dev_id", f"COMPASS_DEV_ID{suffix}"), ("external", f"COMPASS_EXTERN{suffix or 'AL'}"),
+                          ("orientation", f"COMPASS_ORIENT{suffix}")):
+            if name in params:
+                magnetometer[key] = int(params[name][1][-1])
+    wanted = ("COMPASS_", "AHRS_ORIENTATION")
+    provenance = {
+        "format": "ardupilot-dataflash", "file": source, "columns": columns,
+        "magnetometer": magnetometer, "magnetometers": summaries,
+        "parameters": {k: float(v[-1]) for k, (_, v) in sorted(params.items()) if k.startswith(wanted)},
+        "firmware": firmware, "raw_reconstruction": raw_text, "time_base": time_base, "notes": notes,
+    }
+    changed = sorted(k for k, (_, v) in params.items() if k.startswith(wanted) and np.ptp(v) > 0)
+    if changed:
+        notes.append(f"parameters changed during the log (last values listed): {', '.join(changed)}")
+    return frame, provenance
+
+
+def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, frame: dict, columns: dict) -> None:
+    """Add ``temp_c``, ``current_a``, ``throttle`` to ``frame`` (and their sources to ``columns``) where logged."""
+    candidates = {
+        "temp_c": [("BARO", "Temp", 1.0, "degC"), ("IMU", "T", 1.0, "degC"), ("IMU", "Temp", 1.0, "degC")],
+        "current_a": [("BAT", "Curr", 1.0, "A"), ("CURR", "Curr", 1.0, "A")],
+        "throttle": [("CTUN", "ThO", 0.01 if firmware.startswith("ArduPlane") else 1.0,
+                      "percent / 100" if firmware.startswith("ArduPlane") else "0..1")],
+    }
+    for name, options in candidates.items():
+        for message, field, factor, unit in options:
+            if field not in log.columns(message):
+                continue
+            tab = _by_time(_select(log.table(message), 0))
+            if not tab or not len(tab["TimeUS"]):
+                continue
+            frame[name] = interpolate_linear(t, tab["TimeUS"] * 1e-6 + offset, tab[field] * factor, max_gap_s)[0]
+            columns[name] = f"{message}.{field} ({unit}, instance 0, linear)"
+            break

@@ -1,0 +1,570 @@
+"""PX4 ULog files: the magnetometer, attitude, GNSS and auxiliary streams as a canonical drive log.
+
+Format
+    ULog (https://docs.px4.io/main/en/dev_log/ulog_file_format.html) is PX4's binary log: a 16-byte
+    header (magic ``ULog\\x01\\x12\\x35``, version, start time), definitions (flag bits ``B``, message
+    formats ``F``, information ``I``/``M`` and parameters ``P``) and a data section of subscriptions ``A``
+    and samples ``D`` of uORB topics, each sample starting with its ``uint64 timestamp``. Every message
+    has a 3-byte header: ``uint16`` payload size and a ``uint8`` type. Files are parsed with pyulog.
+
+Time
+    Timestamps are microseconds since boot. UTC comes from the GNSS topic: ``time_utc_usec`` is the
+    receiver's UTC time of the instant ``timestamp + timestamp_time_relative`` (PX4 msg/SensorGps.msg);
+    the offset is the median of ``time_utc_usec - (timestamp + timestamp_time_relative)`` over samples
+    with a fix (``fix_type >= 2``) and a non-zero UTC time.
+
+Topics and units (PX4 msg/*.msg)
+    * ``sensor_mag`` (one instance per magnetometer): ``x, y, z`` in Gauss (``[Gauss]`` in
+      SensorMag.msg), ``temperature`` in degC, ``device_id``. Converted to nT with 1 G = 1e5 nT.
+    * ``vehicle_magnetometer``: ``magnetometer_ga[3]``, Gauss, the calibrated field of the selected
+      magnetometer in the body FRD frame.
+    * ``vehicle_attitude.q``: Hamilton quaternion, scalar first, rotating body FRD into NED.
+    * ``vehicle_gps_position`` (else ``sensor_gps``): ``lat, lon`` as int32 1e-7 deg and ``alt`` /
+      ``alt_ellipsoid`` as int32 mm (PX4 up to v1.13), or ``latitude_deg, longitude_deg`` as double deg and
+      ``altitude_msl_m`` / ``altitude_ellipsoid_m`` in m (newer); ``eph`` (m), ``hdop``, ``vdop``,
+      ``fix_type`` (0-1 none, 2 2-D, 3 3-D, >3 differential/RTK).
+    * ``battery_status.current_a`` in A (-1 if unknown); ``actuator_controls_0.control[3]`` (throttle,
+      0..1), else the magnitude of ``vehicle_thrust_setpoint.xyz`` (normalised thrust).
+
+Frames of the magnetometer
+    ``sensor_mag`` is published by the driver after its fixed chip-to-board rotation, never rotated by
+    ``SENS_BOARD_ROT`` (internal magnetometers) or ``CAL_MAGn_ROT`` (external ones): PX4 applies those,
+    with the ``CAL_MAGn`` offsets and scales, when it forms ``vehicle_magnetometer``
+    (``calibration::Magnetometer::Correct``: ``rotation * (scale * (m - offset))``, src/lib/sensor_calibration).
+    Up to PX4 v1.11 the sensors module instead loaded the ``CAL_MAGn`` offsets and scales into the driver
+    (``apply_mag_calibration``, ioctl ``MAGIOCSSCALE`` in src/modules/sensors/voted_sensors_update.cpp), which
+    applied them before publishing ``sensor_mag``, and rotated the result itself. The sample log of magkf's
+    tests (PX4 v1.11.2) agrees: its ``vehicle_magnetometer`` equals ``sensor_mag`` of the external
+    magnetometer (``CAL_MAG1_ROT`` = 0) although ``CAL_MAG1_YOFF`` is 0.56 G. magkf's ``R`` absorbs the
+    rotation, so ``sensor_mag`` is the measurement it wants; the reader reports the parameters, applies none.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import struct
+import warnings
+
+import numpy as np
+import pandas as pd
+
+from ..conventions import (
+    ALT,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    NT_PER_UNIT,
+    PITCH,
+    ROLL,
+    TIME,
+    VDOP,
+    YAW,
+    quaternion_to_euler,
+)
+from ..errors import InputError
+from .streams import bracket, interpolate_linear, interpolate_quaternions
+
+__all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
+
+NT_PER_GAUSS = NT_PER_UNIT["G"]
+#: Auxiliary streams (battery, throttle) are logged slowly; a gap counts when it exceeds this many of
+#: the stream's median sample intervals (or ``max_gap_s``, whichever is longer).
+AUX_GAP_INTERVALS = 3.0
+#: The topics read; pyulog is told to skip the others.
+TOPICS = ("sensor_mag", "vehicle_magnetometer", "vehicle_attitude", "vehicle_gps_position", "sensor_gps",
+          "battery_status", "actuator_controls_0", "vehicle_thrust_setpoint")
+_MAG_TOPICS = ("sensor_mag", "vehicle_magnetometer")
+_GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+
+
+# ---------------------------------------------------------------- loading
+class _ReadTracker:
+    """A binary file wrapper that records whether a read returned fewer bytes than asked for, which is
+    how a file cut inside a message shows (pyulog stops there silently)."""
+
+    def __init__(self, handle):
+        self._handle = handle
+        self.short_read = False
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._handle.read(size)
+        if 0 < len(data) < size:
+            self.short_read = True
+        return data
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._handle.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._handle.tell()
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+def _load(path, topics=TOPICS):
+    """Parse ``path`` with pyulog (only ``topics``); InputError if it is not a ULog, a warning if damaged."""
+    from pyulog import ULog
+    from pyulog.exceptions import ULogException
+
+    name = str(path)
+    chatter = io.StringIO()
+    try:
+        with open(path, "rb") as handle, contextlib.redirect_stdout(chatter):
+            tracker = _ReadTracker(handle)
+            ulog = ULog(tracker, list(topics))
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", name) from None
+    except ULogException as exc:
+        raise InputError(f"not a PX4 ULog file ({exc})", name) from None
+    except (UnicodeDecodeError, ValueError, KeyError, IndexError, OverflowError, struct.error) as exc:
+        raise InputError(f"unreadable ULog file ({type(exc).__name__}: {exc})", name) from None
+    if tracker.short_read or ulog.file_corruption:
+        said = " ".join(chatter.getvalue().split())
+        warnings.warn(f"{name}: the ULog file is truncated or damaged; read up to the damage"
+                      + (f" ({said})" if said else ""), stacklevel=3)
+    return ulog
+
+
+def _datasets(ulog, topic: str) -> dict[int, dict[str, np.ndarray]]:
+    """``{instance: {field: array}}`` of a topic (empty if not logged)."""
+    return {d.multi_id: d.data for d in ulog.data_list if d.name == topic}
+
+
+def _sample_us(data: dict) -> np.ndarray:
+    """Sample times (us since boot, int64): ``timestamp_sample`` where logged and non-zero, else ``timestamp``."""
+    t = data["timestamp"].astype(np.int64)
+    if "timestamp_sample" in data:
+        ts = data["timestamp_sample"].astype(np.int64)
+        if np.all(ts > 0):
+            return ts
+    return t
+
+
+def _rate_hz(t_us: np.ndarray) -> float | None:
+    span = (t_us[-1] - t_us[0]) * 1e-6 if len(t_us) > 1 else 0.0
+    return float((len(t_us) - 1) / span) if span > 0 else None
+
+
+def _instances(ulog) -> list[dict]:
+    out = []
+    for topic in _MAG_TOPICS:
+        for instance, data in sorted(_datasets(ulog, topic).items()):
+            t = _sample_us(data)
+            ident = int(data["device_id"][0]) if "device_id" in data else None
+            item = {"topic": topic, "instance": int(instance), "device_id": ident, "rate_hz": _rate_hz(t),
+                    "samples": len(t)}
+            if "is_external" in data:
+                item["is_external"] = bool(data["is_external"][0])
+            out.append(item)
+    return out
+
+
+def magnetometer_instances(path) -> list[dict]:
+    """The magnetometers a ULog file holds: one dict per topic instance with ``topic`` (``sensor_mag`` or
+    ``vehicle_magnetometer``), ``instance`` (uORB multi-instance index, what ``read_ulog(mag=...)`` takes),
+    ``device_id`` (None where not logged), ``rate_hz`` (mean logged rate), ``samples`` and, where logged,
+    ``is_external``."""
+    return _instances(_load(path, _MAG_TOPICS))
+
+
+# ---------------------------------------------------------------- streams
+def _utc_offset_us(gnss: dict, fix: np.ndarray, topic: str, name: str) -> tuple[float, str]:
+    """Median of UTC minus boot time (us) over samples with a fix and a UTC time, and how it was found."""
+    utc = gnss["time_utc_usec"].astype(np.int64) if "time_utc_usec" in gnss else None
+    if utc is None:
+        raise InputError(f"ULog timestamps are time since boot and no GNSS UTC time: {topic} has no "
+                         f"time_utc_usec field", name)
+    at = gnss["timestamp"].astype(np.int64)
+    if "timestamp_time_relative" in gnss:
+        at = at + gnss["timestamp_time_relative"].astype(np.int64)
+    ok = (utc > 0) & (fix >= 2)
+    if not ok.any():
+        raise InputError(f"ULog timestamps are time since boot and no GNSS UTC time: no {topic} sample has "
+                         f"a fix and a non-zero time_utc_usec", name)
+    diff = utc[ok] - at[ok]
+    offset = float(np.median(diff))
+    spread_ms = float(np.max(np.abs(diff - offset))) * 1e-3
+    text = (f"UTC = boot time + median({topic}.time_utc_usec - timestamp - timestamp_time_relative) over "
+            f"{int(ok.sum())} samples with fix_type >= 2 (largest deviation {spread_ms:.3f} ms)")
+    return offset, text
+
+
+def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarray]:
+    """Position, DOP and fix of the GNSS samples (lat/lon NaN below a 2-D fix, alt below a 3-D fix), their
+    provenance and ``fix_type`` (float)."""
+    n = len(g["timestamp"])
+    fix = g["fix_type"].astype(float) if "fix_type" in g else np.full(n, 3.0)
+    if "fix_type" not in g:
+        notes.append(f"{topic} has no fix_type; every sample is taken as a 3-D fix")
+    values, source = {}, {}
+    if "latitude_deg" in g:
+        values[LAT], values[LON] = g["latitude_deg"].astype(float), g["longitude_deg"].astype(float)
+        source[LAT], source[LON] = f"{topic}.latitude_deg (deg)", f"{topic}.longitude_deg (deg)"
+    else:
+        values[LAT], values[LON] = g["lat"] * 1e-7, g["lon"] * 1e-7
+        source[LAT], source[LON] = f"{topic}.lat (x 1e-7 deg)", f"{topic}.lon (x 1e-7 deg)"
+    for field, scale, unit in (("altitude_ellipsoid_m", 1.0, "m"), ("alt_ellipsoid", 1e-3, "mm -> m"),
+                               ("altitude_msl_m", 1.0, "m"), ("alt", 1e-3, "mm -> m")):
+        if field in g:
+            values[ALT], source[ALT] = g[field] * scale, f"{topic}.{field} ({unit})"
+            if "ellipsoid" not in field:
+                notes.append(f"alt is the height above mean sea level ({topic}.{field}): no ellipsoidal "
+                             "height was logged")
+            break
+    values[LAT][fix < 2] = np.nan
+    values[LON][fix < 2] = np.nan
+    if ALT in values:
+        values[ALT][fix < 3] = np.nan
+    for field, column in (("hdop", HDOP), ("vdop", VDOP), ("eph", "eph")):
+        if field in g:
+            values[column], source[column] = g[field].astype(float), f"{topic}.{field}"
+    return values, source, fix
+
+
+def _aux_gap(t_s: np.ndarray, max_gap_s: float) -> float:
+    if len(t_s) < 2:
+        return max_gap_s
+    return max(max_gap_s, AUX_GAP_INTERVALS * float(np.median(np.diff(t_s))))
+
+
+def _battery(ulog, t, ref_us, max_gap_s) -> tuple[np.ndarray, str] | None:
+    for instance, b in sorted(_datasets(ulog, "battery_status").items()):
+        current = b["current_a"].astype(float)
+        current[current == -1.0] = np.nan
+        if np.isfinite(current).any():
+            t_src = (b["timestamp"].astype(np.int64) - ref_us) * 1e-6
+            values, _ = interpolate_linear(t, t_src, current, _aux_gap(t_src, max_gap_s))
+            return values, f"battery_status[{instance}].current_a (A; -1 = unknown -> missing)"
+    return None
+
+
+def _throttle(ulog, t, ref_us, max_gap_s) -> tuple[np.ndarray, str] | None:
+    controls = _datasets(ulog, "actuator_controls_0")
+    thrust = _datasets(ulog, "vehicle_thrust_setpoint")
+    if 0 in controls and "control[3]" in controls[0]:
+        data, values = controls[0], controls[0]["control[3]"].astype(float)
+        text = "actuator_controls_0.control[3] (throttle, 0..1)"
+    elif 0 in thrust:
+        data = thrust[0]
+        values = np.linalg.norm(np.column_stack([data[f"xyz[{k}]"].astype(float) for k in range(3)]), axis=1)
+        text = "|vehicle_thrust_setpoint.xyz| (normalised thrust, 0..1)"
+    else:
+        return None
+    t_src = (_sample_us(data) - ref_us) * 1e-6
+    out, _ = interpolate_linear(t, t_src, values, _aux_gap(t_src, max_gap_s))
+    return out, text
+
+
+def _version(ulog) -> str | None:
+    version = ulog.get_version_info()
+    return None if version is None else f"{version[0]}.{version[1]}.{version[2]}"
+
+
+def _calibration_index(params: dict, device_id: int | None) -> int | None:
+    for n in range(8):
+        if device_id is not None and params.get(f"CAL_MAG{n}_ID") == device_id:
+            return n
+    return None
+
+
+def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str, int, dict]:
+    sensor, vehicle = _datasets(ulog, "sensor_mag"), _datasets(ulog, "vehicle_magnetometer")
+    if raw and sensor:
+        topic, sets = "sensor_mag", sensor
+    elif vehicle:
+        topic, sets = "vehicle_magnetometer", vehicle
+    elif not raw:
+        raise InputError("no vehicle_magnetometer (calibrated magnetometer) topic; read with raw=True", name)
+    else:
+        raise InputError("no magnetometer topic (sensor_mag or vehicle_magnetometer) in the log", name)
+    instance = min(sets) if mag is None else mag
+    if instance not in sets:
+        raise InputError(f"{topic} has no instance {mag}; instances: {sorted(sets)}", name)
+    return topic, instance, sets[instance]
+
+
+def read_ulog(path, *, mag: int | None = None, raw: bool = True,
+              max_gap_s: float = 0.5) -> tuple[pd.DataFrame, dict]:
+    """Read a PX4 ULog file as a canonical drive log.
+
+    Rows are the epochs of the chosen magnetometer (``timestamp_sample``), with ``time`` in UNIX seconds
+    (UTC), ``mag_x, mag_y, mag_z`` in nT, ``roll, pitch, yaw`` in degrees (ZYX, body FRD to NED; yaw in
+    [0, 360)), ``lat, lon`` (deg), ``alt`` (m above the ellipsoid where logged, else above MSL with a
+    note), ``hdop, vdop`` and the auxiliary ``eph`` (m), ``fix_type`` (the lower of the two bracketing
+    GNSS samples), ``current_a`` (A), ``throttle`` (0..1) and ``temp_c`` (degC), each where logged.
+
+    ``raw=True`` (default) returns ``sensor_mag`` instance ``mag`` (default the lowest instance):
+    the measurement in the magnetometer's own sensor frame, not rotated by
+    ``SENS_BOARD_ROT`` / ``CAL_MAGn_ROT`` (see the module docstring; up to PX4 v1.11 the ``CAL_MAGn`` offsets
+    and scales may already be subtracted). Without ``sensor_mag``, or with ``raw=False``, the calibrated
+    ``vehicle_magnetometer`` is returned instead: body FRD frame, PX4's calibration applied
+    (``provenance["magnetometer"]["calibrated"]`` True, and a note).
+
+    Attitude is interpolated by slerp, GNSS and DOP linearly; an epoch outside a stream's span or across a
+    gap longer than ``max_gap_s`` (s) gets NaN (auxiliary streams use the longer of ``max_gap_s`` and
+    ``AUX_GAP_INTERVALS`` of their own sample intervals). Rows with a repeated time are dropped (noted).
+
+    Returns ``(table, provenance)``; the provenance is JSON-able: ``format``, ``file``, ``px4_version``,
+    ``columns`` (canonical column -> ``topic.field (conversion)``), ``magnetometer`` (topic, instance,
+    device_id, rate_hz, calibrated, calibration_index), ``magnetometers`` (all, as
+    ``magnetometer_instances``), ``parameters`` (the logged ``CAL_MAG*``), ``rotation`` (``SENS_BOARD_*``,
+    ``CAL_MAGn_ROT`` of the chosen magnetometer, whether it is applied), ``time_base`` and ``notes``.
+
+    Raises InputError for a file that is not a ULog, has no magnetometer topic or no GNSS UTC time; warns
+    (and reads up to the damage) for a truncated or damaged file.
+    """
+    name = str(path)
+    ulog = _load(path)
+    notes: list[str] = []
+    topic, instance, m = _pick_magnetometer(ulog, mag, raw, name)
+    calibrated = topic == "vehicle_magnetometer"
+    if calibrated:
+        notes.append("the magnetometer is PX4's calibrated vehicle_magnetometer (offsets, scales and rotation "
+                     "to the body FRD frame applied by PX4), not the raw sensor_mag"
+                     + ("" if raw else " (raw=False)"))
+    mag_us = _sample_us(m)
+    fields = ("x", "y", "z") if topic == "sensor_mag" else tuple(f"magnetometer_ga[{k}]" for k in range(3))
+    mag_g = np.column_stack([m[f].astype(float) for f in fields])
+    order = np.argsort(mag_us, kind="stable")
+    keep = np.r_[True, np.diff(mag_us[order]) > 0]
+    if not keep.all():
+        notes.append(f"{int((~keep).sum())} {topic} samples with a repeated timestamp were dropped")
+    rows = order[keep]
+    mag_us, mag_g = mag_us[rows], mag_g[rows]
+
+    gnss_topic = next((tp for tp in _GNSS_TOPICS if _datasets(ulog, tp)), None)
+    if gnss_topic is None:
+        raise InputError("ULog timestamps are time since boot and no GNSS UTC time: no vehicle_gps_position "
+                         "or sensor_gps topic", name)
+    gnss_sets = _datasets(ulog, gnss_topic)
+    gnss_instance = min(gnss_sets)
+    g = gnss_sets[gnss_instance]
+    gnss_values, gnss_source, fix = _gnss_fields(g, gnss_topic, notes)
+    offset_us, time_base = _utc_offset_us(g, fix, gnss_topic, name)
+
+    ref_us = int(mag_us[0])
+    t = (mag_us - ref_us) * 1e-6
+    table = {TIME: (mag_us.astype(float) + offset_us) / 1e6}
+    field_text = ", ".join(f"{topic}.{f}" for f in fields)
+    columns = {TIME: f"{topic}.timestamp_sample (us since boot) + GNSS UTC offset"}
+    for k, column in enumerate(MAG):
+        table[column] = mag_g[:, k] * NT_PER_GAUSS
+        columns[column] = f"{topic}.{fields[k]} (G x 1e5 -> nT)"
+
+    att = _datasets(ulog, "vehicle_attitude")
+    if 0 in att:
+        a = att[0]
+        q_src = np.column_stack([a[f"q[{k}]"].astype(float) for k in range(4)])
+        q, _ = interpolate_quaternions(t, (_sample_us(a) - ref_us) * 1e-6, q_src, max_gap_s)
+        yaw, pitch, roll = quaternion_to_euler(q)
+        table[ROLL], table[PITCH], table[YAW] = roll, pitch, yaw
+        for column in (ROLL, PITCH, YAW):
+            columns[column] = "vehicle_attitude.q (scalar first, FRD -> NED; slerp; ZYX Euler, deg)"
+    else:
+        notes.append("no vehicle_attitude topic: roll, pitch and yaw are absent")
+
+    t_gnss = (g["timestamp"].astype(np.int64) - ref_us) * 1e-6
+    gap = float(np.median(np.diff(t_gnss))) if len(t_gnss) > 1 else 0.0
+    if gap > max_gap_s:
+        notes.append(f"{gnss_topic} is logged every {gap:.2f} s, more than max_gap_s = {max_gap_s} s: "
+                     "positions are missing; raise max_gap_s")
+    for column, values in gnss_values.items():
+        table[column], _ = interpolate_linear(t, t_gnss, values, max_gap_s)
+        columns[column] = gnss_source[column] + " (linear)"
+    i, _, valid = bracket(t, t_gnss, max_gap_s)
+    table["fix_type"] = np.where(valid, np.minimum(fix[i], fix[np.minimum(i + 1, len(fix) - 1)]), np.nan)
+    columns["fix_type"] = f"{gnss_topic}.fix_type (lower of the bracketing samples)"
+
+    for column, found in (("current_a", _battery(ulog, t, ref_us, max_gap_s)),
+                          ("throttle", _throttle(ulog, t, ref_us, max_gap_s))):
+        if found is not None:
+            table[column], columns[column] = found
+    if "temperature" in m:
+        temp = m["temperature"].astype(float)[rows]
+        if np.isfinite(temp).any():
+            table["temp_c"], columns["temp_c"] = temp, f"{topic}.temperature (degC)"
+        else:
+            notes.append(f"{topic}.temperature is not logged (NaN): no temp_c")
+
+    for column in (HDOP, VDOP, "eph"):
+        if column in table and not np.isfinite(table[column]).any():
+            del table[column], columns[column]
+    frame = pd.DataFrame(table)
+
+    params = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("CAL_MAG")}
+    device_id = int(m["device_id"][0]) if "device_id" in m else None
+    cal_index = _calibration_index(params, device_id)
+    rotation = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("SENS_BOARD_")}
+    if cal_index is not None:
+        rotation[f"CAL_MAG{cal_index}_ROT"] = params.get(f"CAL_MAG{cal_index}_ROT")
+        if params.get(f"CAL_MAG{cal_index}_EN") == 0:
+            notes.append(f"the chosen magnetometer is disabled in PX4 (CAL_MAG{cal_index}_EN = 0)")
+    if "CAL_MAG_PRIME" in params and device_id is not None and params["CAL_MAG_PRIME"] != device_id:
+        notes.append(f"the chosen magnetometer (device_id {device_id}) is not PX4's primary one "
+                     f"(CAL_MAG_PRIME = {params['CAL_MAG_PRIME']})")
+    rotation["applied"] = calibrated
+    rotation["meaning"] = ("CAL_MAGn_ROT (external) or SENS_BOARD_ROT (internal, -1 in CAL_MAGn_ROT) rotate "
+                           "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer only")
+    version = _version(ulog)
+    if topic == "sensor_mag" and version is not None and tuple(map(int, version.split("."))) < (1, 12):
+        notes.append(f"PX4 {version}: up to v1.11 the driver applied the CAL_MAGn offsets and scales before "
+                     "publishing sensor_mag, so the values may already be offset-corrected (not rotated)")
+    changed = sorted({k for _, k, _ in ulog.changed_parameters if k.startswith(("CAL_MAG", "SENS_BOARD"))})
+    if changed:
+        notes.append(f"parameters changed during the log (initial values reported): {', '.join(changed)}")
+
+    provenance = {
+        "format": "px4-ulog",
+        "file": name,
+        "px4_version": version,
+        "columns": columns,
+        "magnetometer": {"topic": topic, "instance": int(instance), "device_id": device_id,
+                         "rate_hz": _rate_hz(mag_us), "calibrated": calibrated, "fields": field_text,
+                         "calibration_index": cal_index},
+        "magnetometers": _instances(ulog),
+        "gnss": {"topic": gnss_topic, "instance": int(gnss_instance)},
+        "parameters": params,
+        "rotation": rotation,
+        "time_base": time_base,
+        "notes": notes,
+    }
+    return frame.reset_index(drop=True), provenance
+
+
+# ---------------------------------------------------------------- writing
+_HEADER = b"ULog\x01\x12\x35"
+_NUMPY = {"uint64_t": "<u8", "int32_t": "<i4", "uint32_t": "<u4", "float": "<f4", "uint8_t": "u1", "bool": "u1"}
+
+
+def _topic_fields(table: pd.DataFrame) -> dict[str, list[tuple[str, int, str]]]:
+    """The topics (name -> [(type, array length or 0, field)]) that a table's columns fill."""
+    topics = {"sensor_mag": [("uint64_t", 0, "timestamp"), ("uint64_t", 0, "timestamp_sample"),
+                             ("uint32_t", 0, "device_id"), ("float", 0, "x"), ("float", 0, "y"), ("float", 0, "z"),
+                             ("float", 0, "temperature"), ("uint32_t", 0, "error_count"),
+                             ("bool", 0, "is_external")]}
+    if all(c in table for c in (ROLL, PITCH, YAW)):
+        topics["vehicle_attitude"] = [("uint64_t", 0, "timestamp"), ("uint64_t", 0, "timestamp_sample"),
+                                      ("float", 4, "q")]
+    if LAT in table and LON in table:
+        topics["vehicle_gps_position"] = [
+            ("uint64_t", 0, "timestamp"), ("uint64_t", 0, "time_utc_usec"), ("int32_t", 0, "lat"),
+            ("int32_t", 0, "lon"), ("int32_t", 0, "alt"), ("int32_t", 0, "alt_ellipsoid"), ("float", 0, "eph"),
+            ("float", 0, "epv"), ("float", 0, "hdop"), ("float", 0, "vdop"),
+            ("int32_t", 0, "timestamp_time_relative"), ("uint8_t", 0, "fix_type"),
+            ("uint8_t", 0, "satellites_used")]
+    if "current_a" in table:
+        topics["battery_status"] = [("uint64_t", 0, "timestamp"), ("float", 0, "voltage_v"),
+                                    ("float", 0, "current_a"), ("bool", 0, "connected")]
+    if "throttle" in table:
+        topics["actuator_controls_0"] = [("uint64_t", 0, "timestamp"), ("uint64_t", 0, "timestamp_sample"),
+                                         ("float", 8, "control")]
+    return topics
+
+
+def _euler_to_quaternion(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
+    """Scalar-first quaternions (N, 4) of ZYX Euler angles (deg): ``q = qz(yaw) * qy(pitch) * qx(roll)``."""
+    y, p, r = (np.radians(np.asarray(a, float)) / 2 for a in (yaw_deg, pitch_deg, roll_deg))
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    return np.column_stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+
+
+def _column(table: pd.DataFrame, column: str, default: float = np.nan) -> np.ndarray:
+    return table[column].to_numpy(float) if column in table else np.full(len(table), default)
+
+
+def _fill(record: np.ndarray, topic: str, table: pd.DataFrame, boot_us: np.ndarray, utc0_us: int) -> None:
+    """Write the payload fields of ``topic`` for every row into the structured ``record``."""
+    def f(field: str) -> str:
+        return f"{topic}.{field}"
+
+    record[f("timestamp")] = boot_us
+    if topic == "sensor_mag":
+        record[f("timestamp_sample")] = boot_us
+        for axis, column in zip("xyz", MAG):
+            record[f(axis)] = table[column].to_numpy(float) / NT_PER_GAUSS
+        record[f("temperature")] = _column(table, "temp_c")
+    elif topic == "vehicle_attitude":
+        record[f("timestamp_sample")] = boot_us
+        q = _euler_to_quaternion(table[YAW], table[PITCH], table[ROLL])
+        for k in range(4):
+            record[f(f"q[{k}]")] = q[:, k]
+    elif topic == "vehicle_gps_position":
+        lat, lon, alt = _column(table, LAT), _column(table, LON), _column(table, ALT)
+        has_fix, has_alt = np.isfinite(lat) & np.isfinite(lon), np.isfinite(alt)
+        record[f("time_utc_usec")] = utc0_us + (boot_us - boot_us[0])
+        record[f("lat")] = np.where(has_fix, np.round(np.nan_to_num(lat) * 1e7), 0)
+        record[f("lon")] = np.where(has_fix, np.round(np.nan_to_num(lon) * 1e7), 0)
+        alt_mm = np.where(has_fix & has_alt, np.round(np.nan_to_num(alt) * 1e3), 0)
+        record[f("alt")], record[f("alt_ellipsoid")] = alt_mm, alt_mm
+        for field in ("eph", "hdop", "vdop"):
+            record[f(field)] = _column(table, field)
+        record[f("epv")] = np.nan
+        record[f("fix_type")] = np.where(has_fix, np.where(has_alt, 3, 2), 0)
+        record[f("satellites_used")] = np.where(has_fix, 12, 0)
+    elif topic == "battery_status":
+        current = _column(table, "current_a")
+        record[f("current_a")] = np.where(np.isfinite(current), current, -1.0)
+        record[f("connected")] = 1
+    elif topic == "actuator_controls_0":
+        record[f("timestamp_sample")] = boot_us
+        record[f("control[3]")] = _column(table, "throttle")
+
+
+def _message(kind: bytes, payload: bytes) -> bytes:
+    return struct.pack("<HB", len(payload), kind[0]) + payload
+
+
+def write_ulog(table: pd.DataFrame, path, *, start_boot_us: int = 10_000_000) -> None:
+    """Write a canonical drive-log table as a ULog file (for tests and simulations).
+
+    Every row becomes one sample, at the same boot time, of each topic its columns fill:
+    ``sensor_mag`` instance 0 (``mag_*`` nT -> Gauss float32, ``temp_c`` -> ``temperature``, NaN if absent;
+    ``device_id`` 0); ``vehicle_attitude`` (``roll, pitch, yaw`` -> float32 ``q``, scalar first, body FRD to
+    NED); ``vehicle_gps_position`` if ``lat, lon`` are present (int32 1e-7 deg, ``alt`` -> int32 mm in both
+    ``alt`` and ``alt_ellipsoid`` since the table has no geoid height; ``eph, hdop, vdop``; ``fix_type`` 3,
+    2 without ``alt``, 0 where lat/lon are NaN; ``time_utc_usec`` from ``time``); ``battery_status``
+    (``current_a``, -1 where NaN) and ``actuator_controls_0.control[3]`` (``throttle``) where present.
+
+    Boot time starts at ``start_boot_us`` (us) at the first row and follows ``time`` (UNIX s) rounded to
+    1 us. Without ``lat, lon`` the file has no UTC time, as a log without GNSS. Messages follow the ULog
+    file format (docs.px4.io, "ULog File Format"): header, flag bits, formats, info, subscriptions, data.
+    (pyulog 1.3's ``ULog.write_ulog`` only re-serialises a parsed log, one ``struct.pack`` per field and
+    sample; here all records are laid out at once in a numpy structured array.)
+    """
+    name = str(path)
+    for column in (TIME, *MAG):
+        if column not in table:
+            raise InputError(f"missing column {column!r}", name)
+    time_s = table[TIME].to_numpy(float)
+    if len(time_s) == 0 or not np.all(np.isfinite(time_s)) or np.any(np.diff(time_s) <= 0):
+        raise InputError("time must be finite and strictly increasing", name, column=TIME)
+    boot_us = start_boot_us + np.round((time_s - time_s[0]) * 1e6).astype(np.int64)
+    utc0_us = round(time_s[0] * 1e6)
+    topics = _topic_fields(table)
+
+    definitions = [_HEADER + struct.pack("<BQ", 1, start_boot_us),
+                   _message(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0))]
+    for topic, fields in topics.items():
+        text = "".join(f"{kind}[{size}] {field};" if size else f"{kind} {field};" for kind, size, field in fields)
+        definitions.append(_message(b"F", f"{topic}:{text}".encode()))
+    key = b"char[5] sys_name"
+    definitions.append(_message(b"I", bytes([len(key)]) + key + b"magkf"))
+    dtype = []
+    for msg_id, (topic, fields) in enumerate(topics.items()):
+        definitions.append(_message(b"A", struct.pack("<BH", 0, msg_id) + topic.encode()))
+        dtype += [(f"{topic}._size", "<u2"), (f"{topic}._type", "u1"), (f"{topic}._id", "<u2")]
+        for kind, size, field in fields:
+            names = [f"{field}[{k}]" for k in range(size)] if size else [field]
+            dtype += [(f"{topic}.{n}", _NUMPY[kind]) for n in names]
+    record = np.zeros(len(table), dtype=np.dtype(dtype))
+    for msg_id, (topic, fields) in enumerate(topics.items()):
+        payload = sum(np.dtype(_NUMPY[kind]).itemsize * max(size, 1) for kind, size, _ in fields)
+        record[f"{topic}._size"], record[f"{topic}._type"], record[f"{topic}._id"] = 2 + payload, ord("D"), msg_id
+        _fill(record, topic, table, boot_us, utc0_us)
+    with open(path, "wb") as out:
+        out.write(b"".join(definitions))
+        out.write(record.tobytes())

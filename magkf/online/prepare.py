@@ -1,0 +1,141 @@
+"""Per-log work done once and vectorised, and the start of a run.
+
+``prepare`` evaluates, for every epoch of a ``DriveLog``, the reference field (IGRF or ``ref_*``), the
+attitude matrices, the body-frame reference and its rate, and the statuses known before filtering (the
+epoch rules of ``magkf.io.drivelog.epoch_status``). ``initial_state`` gives the state layout and the
+initial estimate: from an offline calibration, or bootstrapped from the log itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..config import FilterConfig
+from ..conventions import euler_to_dcm, ned_to_body
+from ..effects.base import EpochData, rate_of_change
+from ..effects.core import SoftHardIron
+from ..errors import InputError
+from ..io.calibration import Calibration
+from ..io.drivelog import DriveLog, epoch_status
+from ..status import Status
+from .bootstrap import bootstrap_magnitude, bootstrap_vector
+from .measurements import MEASUREMENTS, Block
+from .state import CORE_SIZE, StateLayout
+
+__all__ = ["PreparedLog", "prepare", "initial_state", "initial_covariance", "with_initial_R"]
+
+
+@dataclass(frozen=True)
+class PreparedLog:
+    """Per-epoch arrays of a log, computed once: ``m`` (N, 3) nT, ``ref`` (N, 3) NED nT, ``ref_mag`` (N,),
+    ``c_nb`` (N, 3, 3), ``has_attitude`` (N,), ``dop`` (N,), ``base`` (N,) status before filtering (codes of
+    ``magkf.status.Status``), and ``data`` (``EpochData`` for the effects and the models)."""
+
+    m: np.ndarray
+    ref: np.ndarray
+    ref_mag: np.ndarray
+    c_nb: np.ndarray
+    has_attitude: np.ndarray
+    dop: np.ndarray
+    base: np.ndarray
+    data: EpochData
+
+    def __len__(self) -> int:
+        return len(self.m)
+
+    @property
+    def time(self) -> np.ndarray:
+        """(N,) UNIX seconds."""
+        return self.data.time
+
+    def block(self, index, H, W=None, with_data: bool = False) -> Block:
+        """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement models,
+        with the linear Jacobian ``H`` (N, 3, n) and whitening ``W`` (N, 3, 3) of the whole log."""
+        return Block(self.m[index], self.ref_mag[index], H[index], None if W is None else W[index],
+                     self.data.take(index) if with_data else None)
+
+
+def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
+    """Reference field, attitude and the statuses known before filtering, for every epoch."""
+    t = log.time
+    m = log.mag
+    ref = log.reference_ned(knot_spacing_m=config.reference_refresh_m)
+    att = log.attitude
+    has_att = np.all(np.isfinite(att), axis=1)
+    c_nb = euler_to_dcm(att[:, 2], att[:, 1], att[:, 0])
+    field_body = ned_to_body(c_nb, ref)
+    dop = log.dop
+    base = epoch_status(m, ref, has_att, dop, config.dop_max)
+    columns = {c: log.column(c) for c in log.auxiliary}
+    ref_mag = np.linalg.norm(ref, axis=1)
+    data = EpochData(t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate_of_change(t, field_body))
+    return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data)
+
+
+def with_initial_R(prep: PreparedLog, x) -> PreparedLog:
+    """``prep`` whose effect data carry the calibration ``R`` of state ``x`` (see ``EpochData.R0``)."""
+    return replace(prep, data=replace(prep.data, R0=StateLayout.R(np.asarray(x, float)[:CORE_SIZE])))
+
+
+def mark_missing_columns(prep: PreparedLog, effects, source: str) -> np.ndarray:
+    """The base statuses with ``missing_column`` where an added effect's channel is empty; raises InputError
+    when the log lacks a channel an effect needs altogether."""
+    base = prep.base.copy()
+    for effect in effects:
+        for c in effect.columns:
+            if c not in prep.data.columns:
+                raise InputError(f"effect {effect.name!r} needs column {c!r}, which the log lacks "
+                                 f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})", source)
+            base[(base == Status.USED) & ~np.isfinite(prep.data.columns[c])] = Status.MISSING_COLUMN
+    return base
+
+
+def initial_covariance(init: Calibration, config: FilterConfig) -> np.ndarray:
+    """Covariance (12, 12) of an offline calibration: its own, or ``init_r_std`` and ``init_b_std``."""
+    if init.covariance is not None:
+        return np.array(init.covariance)
+    return np.diag(np.concatenate([np.full(9, config.init_r_std**2), np.full(3, config.init_b_std**2)]))
+
+
+def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
+    """Initial ``(x, P, how)`` of the core block (and of ``effects``, when the bootstrap fitted them with
+    it: then ``x`` and ``P`` cover 12 + their parameters): from ``init`` or bootstrapped."""
+    if init is not None:
+        return init.state, initial_covariance(init, config), f"file ({init.method})"
+    good = prep.base == Status.USED
+    linear = [e for e in effects if e.linear]
+    if linear:
+        good &= np.all([np.isfinite(prep.data.columns[c]) for e in linear for c in e.columns] or [True], axis=0)
+    if good.sum() >= 50 and MEASUREMENTS[config.measure].needs_attitude:
+        extra = extra_prior = None
+        if linear and len(linear) == len(effects):
+            d = prep.data.take(good)
+            d = replace(d, R0=StateLayout.R(bootstrap_vector(prep.m[good], d.field_body, d.time,
+                                                             config.sensor_noise_nt, config.bootstrap_s).x))
+            extra = np.concatenate([e.jacobian(e.prior()[0], d) for e in effects], axis=2)
+            extra_prior = tuple(np.concatenate(v) for v in zip(*(e.prior() for e in effects)))
+        boot = bootstrap_vector(prep.m[good], prep.data.field_body[good], prep.time[good],
+                                config.sensor_noise_nt, config.bootstrap_s, extra, extra_prior)
+    else:
+        cand = (prep.base == Status.USED) | (prep.base == Status.MISSING_ATTITUDE)
+        if cand.sum() < 200:
+            raise InputError(f"too few usable epochs ({int(cand.sum())}) to bootstrap a calibration; give --init")
+        boot = bootstrap_magnitude(prep.m[cand], prep.ref_mag[cand], prep.time[cand], config.bootstrap_s)
+    return boot.x, boot.P, f"{boot.method} ({boot.n_epochs} epochs, {boot.span_s:.0f} s)"
+
+
+def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
+    """The start of a run: ``(prep, layout, x0, P0, how)``.
+
+    The core block (and the effects, when the bootstrap fitted them jointly) from ``initial_core``;
+    the other effects from their priors; ``prep`` with the initial ``R`` for the effects that use it.
+    """
+    x_init, P_init, how = initial_core(prep, config, init, effects)
+    core = SoftHardIron(x_init[:CORE_SIZE], np.sqrt(np.diag(P_init)[:CORE_SIZE]), config.r_walk, config.b_walk)
+    layout = StateLayout((core, *effects))
+    x0, P0 = layout.prior()
+    x0[:len(x_init)] = x_init
+    P0[:len(x_init), :len(x_init)] = P_init
+    return with_initial_R(prep, x_init), layout, x0, P0, how

@@ -1,0 +1,366 @@
+"""ArduPilot DataFlash reader: GPS time, the raw reconstruction, the two real logs and synthetic logs."""
+
+import struct
+import warnings
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from magkf.conventions import EARTH_FIELD_RANGE_NT, wrap_deg
+from magkf.errors import InputError
+from magkf.io.dataflash import (
+    compass_correct,
+    compass_uncorrect,
+    magnetometer_instances,
+    read_dataflash,
+)
+from magkf.io.timebase import GPS_EPOCH_UNIX, gps_to_unix, leap_seconds
+
+REAL = Path(__file__).resolve().parents[2] / "data" / "real"
+CENTER = REAL / "ardupilot_box_center_0003.bin"
+PILOT = REAL / "ardupilot_box_pilot_0004.bin"
+LAT, LON = 51.64, -2.53
+UTC = timezone.utc
+
+
+def unix(*args) -> float:
+    return datetime(*args, tzinfo=UTC).timestamp()
+
+
+# ------------------------------------------------------------------ GPS time
+def test_gps_epoch_and_week_2347():
+    """Week 2347 starts on Sunday 2024-12-29 (2347 * 7 days after 1980-01-06); 12:00 UTC on Friday
+    2025-01-03 is 5.5 days into it, plus the 18 leap seconds GPS time is ahead of UTC since 2017."""
+    assert GPS_EPOCH_UNIX == unix(1980, 1, 6)
+    week_start = datetime(1980, 1, 6, tzinfo=UTC).toordinal() + 2347 * 7
+    assert datetime.fromordinal(week_start).date().isoformat() == "2024-12-29"
+    ms = (5 * 86_400 + 12 * 3_600 + 18) * 1000
+    assert ms == 475_218_000
+    assert gps_to_unix(2347, ms) == unix(2025, 1, 3, 12)
+    # Vectorised, and the sample log's first GPS time (13:45:59.8 UTC on 2025-01-03).
+    t = gps_to_unix(np.array([2347, 2347]), np.array([ms, 481_577_800]))
+    assert t[1] == pytest.approx(unix(2025, 1, 3, 13, 45, 59, 800_000), abs=1e-6)
+
+
+def test_leap_second_2017_boundary():
+    """GPS - UTC was 17 s through 2016-12-31 23:59:60 UTC and 18 s from 2017-01-01 00:00:00 UTC."""
+    midnight_gps = unix(2017, 1, 1) - GPS_EPOCH_UNIX        # UTC midnight, counted without leap seconds
+    assert leap_seconds(midnight_gps + 18) == 18
+    assert leap_seconds(midnight_gps + 18 - 1e-3) == 17      # inside the inserted second
+    assert leap_seconds(midnight_gps + 17 - 1e-3) == 17      # 23:59:59.999
+    before = midnight_gps + 17 - 1.0                         # 23:59:59 UTC
+    assert gps_to_unix(before // 604_800, (before % 604_800) * 1000) == unix(2016, 12, 31, 23, 59, 59)
+    after = midnight_gps + 18                                # 00:00:00 UTC
+    assert gps_to_unix(after // 604_800, (after % 604_800) * 1000) == unix(2017, 1, 1)
+    assert leap_seconds(0.0) == 0 and leap_seconds(unix(1981, 7, 1) - GPS_EPOCH_UNIX + 1) == 1
+
+
+# ------------------------------------------------------------------ calibration model
+def random_calibration(rng, n=None):
+    shape = (3,) if n is None else (n, 3)
+    return {"offsets": rng.uniform(-500, 500, shape), "diagonals": rng.uniform(0.8, 1.2, shape),
+            "offdiagonals": rng.uniform(-0.2, 0.2, shape),
+            "scale": rng.uniform(0.9, 1.3) if n is None else rng.uniform(0.9, 1.3, n)}
+
+
+def test_compass_model_round_trip_exact():
+    """Without the logger's truncation the inverse is exact to double precision (values of order 1e3 mG:
+    a few products and a 3x3 solve lose well under 1e-12 mG; 1e-9 mG is generous)."""
+    rng = np.random.default_rng(11)
+    raw = rng.normal(0, 400, (200, 3))
+    motor = rng.normal(0, 20, 3)
+    for cal in (random_calibration(rng), random_calibration(rng, 200)):
+        field = compass_correct(raw, **cal, motor=motor)
+        np.testing.assert_allclose(compass_uncorrect(field, **cal, motor=motor), raw, rtol=0, atol=1e-9)
+
+
+def test_compass_model_order_and_scale_rules():
+    """mat * ((raw + ofs) * scale) + motor; zero diagonals count as ones; scale outside [1/1.5, 1.5] is ignored."""
+    raw, ofs = np.array([[100.0, -50.0, 300.0]]), np.array([10.0, 20.0, -30.0])
+    dia, odi = np.array([1.1, 0.9, 1.0]), np.array([0.05, -0.02, 0.03])
+    mat = np.array([[1.1, 0.05, -0.02], [0.05, 0.9, 0.03], [-0.02, 0.03, 1.0]])
+    np.testing.assert_allclose(compass_correct(raw, ofs, dia, odi, 1.2, [1.0, 2.0, 3.0]),
+                               (mat @ ((raw[0] + ofs) * 1.2) + [1.0, 2.0, 3.0])[None], rtol=1e-12)
+    np.testing.assert_allclose(compass_correct(raw, ofs, np.zeros(3), np.zeros(3), 0.0), raw + ofs, rtol=1e-12)
+    np.testing.assert_allclose(compass_correct(raw, ofs, dia, odi, 1.6), compass_correct(raw, ofs, dia, odi, 1.0))
+
+
+# ------------------------------------------------------------------ a synthetic DataFlash writer
+HEAD = b"\xa3\x95"
+STRUCT = {"Q": "Q", "B": "B", "h": "h", "H": "H", "I": "I", "i": "i", "f": "f", "c": "h", "C": "H", "e": "i",
+          "L": "i", "N": "16s", "Z": "64s"}
+SCALE = {"c": 100, "C": 100, "e": 100, "L": 1e7}
+
+
+class DataFlashWriter:
+    """Just enough of the DataFlash format for tests: FMT messages, then messages of the declared types."""
+
+    def __init__(self):
+        self.chunks, self.formats = [], {}
+
+    def define(self, type_id, name, fmt, columns):
+        body = "<" + "".join(STRUCT[c] for c in fmt)
+        self.formats[name] = (type_id, fmt, body)
+        self.chunks.append(HEAD + bytes([128]) + struct.pack("<BB4s16s64s", type_id, 3 + struct.calcsize(body),
+                                                             name.encode(), fmt.encode(), columns.encode()))
+
+    def write(self, name, *values):
+        type_id, fmt, body = self.formats[name]
+        packed = []
+        for c, v in zip(fmt, values):
+            if c in SCALE:
+                v = round(v * SCALE[c])
+            elif c in "NZ":
+                v = v.encode()
+            elif c != "f":
+                v = int(v)
+            packed.append(v)
+        self.chunks.append(HEAD + bytes([type_id]) + struct.pack(body, *packed))
+
+    def save(self, path):
+        Path(path).write_bytes(b"".join(self.chunks))
+        return path
+
+
+BOOT_TO_UTC = unix(2025, 1, 3, 12) - 100.0      # UTC of TimeUS = 0 in the synthetic logs
+WEEK, WEEK_START = 2347, unix(2024, 12, 29)
+
+
+def synthetic_log(path, rng, *, gps_week=True, mag=True, yaw0=350.0):
+    """A 20 s log at 10 Hz: two MAG instances (fields from known raw values through ArduPilot's correction),
+    ATT turning through north, GPS with a 3-D fix after 5 s, GPA, BARO, BAT, CTUN; Copter firmware."""
+    w = DataFlashWriter()
+    w.define(129, "MSG", "QZ", "TimeUS,Message")
+    w.define(130, "PARM", "QNf", "TimeUS,Name,Value")
+    w.define(131, "MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
+    w.define(132, "ATT", "QccC", "TimeUS,Roll,Pitch,Yaw")
+    w.define(133, "GPS", "QBBIHBCLLe", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt")
+    w.define(134, "GPA", "QBCIe", "TimeUS,I,VDop,SMS,AEl")
+    w.define(135, "BARO", "QBfc", "TimeUS,I,Alt,Temp")
+    w.define(136, "BAT", "QBfff", "TimeUS,I,Volt,VoltR,Curr")
+    w.define(137, "CTUN", "Qf", "TimeUS,ThO")
+    w.write("MSG", 1000, "ArduCopter V4.5.7 (2a3dc4b7)")
+    cals = []
+    for k, suffix in enumerate(("", "2")):
+        cal = random_calibration(rng)
+        cal = {key: np.float32(v).astype(float) for key, v in cal.items()}   # PARM values are float32
+        for key, name in (("offsets", "OFS"), ("diagonals", "DIA"), ("offdiagonals", "ODI")):
+            for axis, value in zip("XYZ", cal[key]):
+                w.write("PARM", 2000 + k, f"COMPASS_{name}{suffix}_{axis}", value)
+        w.write("PARM", 2000 + k, f"COMPASS_SCALE{suffix}", cal["scale"])
+        cals.append(cal)
+    raw = {k: rng.normal([200.0, -100.0, 400.0], 150.0, (200, 3)) for k in (0, 1)}
+    for j in range(200):
+        t_us = 1_000_000 + j * 100_000
+        if mag:
+            for k in (0, 1):
+                field = compass_correct(raw[k][j], **cals[k])[0]
+                w.write("MAG", t_us + 10 * k, k, *np.trunc(field), *np.trunc(cals[k]["offsets"]), 0, 0, 0, 1, t_us)
+        w.write("ATT", t_us + 50_000, 2.0, -1.0, (yaw0 + 0.5 * j) % 360)
+        if j % 2 == 0:
+            fix = 3 if j >= 50 else 1
+            utc = BOOT_TO_UTC + (t_us + 20_000) * 1e-6
+            ms = (utc + 18 - WEEK_START) * 1000 if gps_week else (utc - WEEK_START) * 1000
+            w.write("GPS", t_us + 20_000, 0, fix, round(ms), WEEK if gps_week else 0, 8, 1.2,
+                    LAT + 1e-5 * j if fix == 3 else 0.0, LON, 100.0)
+            w.write("GPA", t_us + 20_000, 0, 1.8, (t_us + 20_000) // 1000, 150.0)
+            w.write("BARO", t_us + 30_000, 0, 5.0, 20.0 + 0.01 * j)
+            w.write("BAT", t_us + 40_000, 0, 16.0, 16.1, 3.0 + 0.1 * j)
+            w.write("CTUN", t_us + 45_000, 0.5)
+    return w.save(path), {"raw": raw, "cals": cals}
+
+
+def test_synthetic_raw_reconstruction_and_channels(tmp_path):
+    rng = np.random.default_rng(7)
+    path, truth = synthetic_log(tmp_path / "synthetic.bin", rng)
+    assert [(m["instance"], m["samples"]) for m in magnetometer_instances(path)] == [(0, 200), (1, 200)]
+    for k in (0, 1):
+        df, prov = read_dataflash(path, mag=k)
+        got_mg = df[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0
+        # The logged field is truncated to whole mG; the reader takes the middle of that 1 mG interval, so
+        # each corrected component is off by at most 0.5 mG and the raw error is bounded by
+        # ||M^-1||_inf * 0.5 / scale.
+        cal = truth["cals"][k]
+        m_inv = np.linalg.inv(np.array([[cal["diagonals"][0], cal["offdiagonals"][0], cal["offdiagonals"][1]],
+                                        [cal["offdiagonals"][0], cal["diagonals"][1], cal["offdiagonals"][2]],
+                                        [cal["offdiagonals"][1], cal["offdiagonals"][2], cal["diagonals"][2]]]))
+        bound = np.abs(m_inv).sum(axis=1).max() * 0.5 / cal["scale"] + 1e-6
+        err = np.abs(got_mg - truth["raw"][k])
+        assert err.max() <= bound
+        assert err.mean() < 0.6 * bound       # centred: no systematic half-count bias
+        assert prov["magnetometer"]["instance"] == k
+        assert f"COMPASS_OFS{'' if k == 0 else '2'}" in prov["raw_reconstruction"]
+    # Time: TimeUS + the boot-to-UTC offset, exactly (GPS ms are whole; 1 ms rounding at most).
+    np.testing.assert_allclose(df["time"], BOOT_TO_UTC + (1_000_000 + np.arange(200) * 100_000 + 10) * 1e-6, atol=1e-3)
+    # Position only with a 3-D fix (GPS samples from j = 50 on); aux channels linear.
+    fix = df["fix_type"].to_numpy()
+    lat = df["lat"].to_numpy()
+    assert np.isnan(lat[fix < 3]).all() and np.isfinite(lat[51:199]).all()
+    assert df["alt"].iloc[100] == pytest.approx(150.0) and df["vdop"].iloc[100] == pytest.approx(1.8)
+    assert df["temp_c"].iloc[100] == pytest.approx(20.0 + 0.01 * (100 - (30_000 - 10) / 100_000), abs=1e-6)
+    assert df["throttle"].iloc[100] == 0.5
+    assert df["current_a"].iloc[100] == pytest.approx(3.0 + 0.1 * (100 - (40_000 - 10) / 100_000), abs=1e-6)
+    assert prov["firmware"].startswith("ArduCopter V4.5.7")
+
+
+def test_yaw_interpolated_across_north(tmp_path):
+    """ATT yaw runs 350 -> 360 -> 0 -> 89.5 deg in 0.5 deg steps with constant roll and pitch; the epochs of
+    MAG instance 0 sit halfway between two ATT samples (MAG at +0, ATT at +50 ms of each 100 ms). Slerp
+    between two attitudes that differ only in yaw changes only yaw, linearly."""
+    path, _ = synthetic_log(tmp_path / "yaw.bin", np.random.default_rng(3))
+    df, _ = read_dataflash(path, raw=False)
+    j = np.arange(1, 200)
+    expected = 350.0 + 0.5 * (j - 1) + 0.25
+    got = df["yaw"].to_numpy()[1:]
+    assert np.abs(wrap_deg(got - expected)).max() < 1e-3   # never the 180 deg of averaging 359.5 and 0
+    np.testing.assert_allclose(df["roll"].to_numpy()[1:], 2.0, atol=1e-9)
+    np.testing.assert_allclose(df["pitch"].to_numpy()[1:], -1.0, atol=1e-9)
+    assert np.isnan(df["yaw"].iloc[0])                      # before the first ATT sample
+
+
+def test_synthetic_errors(tmp_path):
+    rng = np.random.default_rng(5)
+    path, _ = synthetic_log(tmp_path / "noweek.bin", rng, gps_week=False)
+    with pytest.raises(InputError, match="no GNSS week/ms to map it to UTC") as err:
+        read_dataflash(path)
+    assert "noweek.bin" in str(err.value) and "\n" not in str(err.value)
+    path, _ = synthetic_log(tmp_path / "nomag.bin", rng, mag=False)
+    with pytest.raises(InputError, match="no MAG message") as err:
+        read_dataflash(path)
+    assert "nomag.bin" in str(err.value)
+    path, _ = synthetic_log(tmp_path / "ok.bin", rng)
+    with pytest.raises(InputError, match="no magnetometer instance 2"):
+        read_dataflash(path, mag=2)
+
+
+def test_not_dataflash(tmp_path):
+    for name, content in (("log.csv", b"time,mag_x\n1,2\n"), ("empty.bin", b"")):
+        path = tmp_path / name
+        path.write_bytes(content)
+        with pytest.raises(InputError, match="not an ArduPilot DataFlash log") as err:
+            read_dataflash(path)
+        assert name in str(err.value) and "\n" not in str(err.value)
+
+
+# ------------------------------------------------------------------ the real logs
+@pytest.fixture(scope="module")
+def real():
+    return {p.name: (read_dataflash(p), read_dataflash(p, raw=False)) for p in (CENTER, PILOT)}
+
+
+@pytest.mark.parametrize("path", [CENTER, PILOT], ids=["center_0003", "pilot_0004"])
+def test_real_logs_date_place_field(real, path):
+    (df, prov), (cal, _) = real[path.name]
+    days = {datetime.fromtimestamp(t, UTC).date().isoformat() for t in df["time"]}
+    assert days == {"2025-01-03"}
+    assert np.all(np.diff(df["time"]) > 0)
+    assert abs(np.nanmedian(df["lat"]) - LAT) < 0.05 and abs(np.nanmedian(df["lon"]) - LON) < 0.05
+    assert prov["firmware"] == "ArduPlane V4.2.3 (55685c43)"
+    magnetometer = prov["magnetometer"]
+    assert {k: magnetometer[k] for k in ("instance", "message", "samples", "dev_id", "external", "orientation")} \
+        == {"instance": 0, "message": "MAG", "samples": len(df), "dev_id": 855297, "external": 1, "orientation": 8}
+    assert prov["magnetometers"] == [{k: magnetometer[k] for k in ("instance", "message", "samples", "rate_hz")}]
+    assert 9.0 < prov["magnetometer"]["rate_hz"] < 10.5
+    # The autopilot's calibration sets COMPASS_SCALE so the corrected sphere has the WMM intensity of the
+    # place (CompassCalibrator: scale = expected intensity / fitted radius); IGRF-14 there is 49 023 nT.
+    # The on-board intensity table is a coarse grid (about 1 % interpolation error in Europe) and the
+    # hand-held box adds local disturbance, so 2 % (980 nT); measured 49 278 and 49 251 nT (0.5 %).
+    calibrated = np.linalg.norm(cal[["mag_x", "mag_y", "mag_z"]].to_numpy(), axis=1)
+    assert abs(np.median(calibrated) - 49_023.0) < 0.02 * 49_023.0
+    # Raw readings are nT too (an Earth-field magnitude, not mG or G), and much less spherical than the
+    # calibrated ones (std of the magnitude 5 188 / 8 418 nT raw against 390 / 578 nT calibrated).
+    raw_norm = np.linalg.norm(df[["mag_x", "mag_y", "mag_z"]].to_numpy(), axis=1)
+    assert EARTH_FIELD_RANGE_NT[0] < np.median(raw_norm) < EARTH_FIELD_RANGE_NT[1]
+    assert raw_norm.std() > 5 * calibrated.std()
+    assert json_roundtrips(prov)
+
+
+def json_roundtrips(obj) -> bool:
+    import json
+
+    return json.loads(json.dumps(obj)) == obj
+
+
+@pytest.mark.parametrize("path", [CENTER, PILOT], ids=["center_0003", "pilot_0004"])
+def test_real_logs_forward_model_reproduces_logged_field(real, path):
+    """The forward model applied to the reconstructed raw field gives back exactly the logged integers."""
+    (df, prov), (cal, _) = real[path.name]
+    p = prov["parameters"]
+    ofs = [p[f"COMPASS_OFS_{a}"] for a in "XYZ"]
+    dia = [p[f"COMPASS_DIA_{a}"] for a in "XYZ"]
+    odi = [p[f"COMPASS_ODI_{a}"] for a in "XYZ"]
+    raw_mg = df[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0
+    forward = compass_correct(raw_mg, ofs, dia, odi, p["COMPASS_SCALE"])
+    logged_centred = cal[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0     # logged +- 0.5 mG
+    np.testing.assert_allclose(forward, logged_centred, atol=1e-9)
+    np.testing.assert_array_equal(np.trunc(forward), np.trunc(logged_centred))
+    assert "COMPASS_OFS" in prov["raw_reconstruction"] and "4.2.3" in prov["raw_reconstruction"]
+
+
+def test_real_decoder_matches_pymavlink():
+    """The vectorised decoding of MAG and GPS equals pymavlink's message-by-message decoding."""
+    from pymavlink import DFReader
+
+    mags, gps = [], []
+    with DFReader.DFReader_binary(str(CENTER)) as reader:
+        while (m := reader.recv_match(type=["MAG", "GPS"])) is not None:
+            (mags if m.get_type() == "MAG" else gps).append(m)
+    df, _ = read_dataflash(CENTER, raw=False)
+    logged = np.array([[m.MagX, m.MagY, m.MagZ] for m in mags], float)
+    np.testing.assert_array_equal(np.trunc(df[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0), logged)
+    np.testing.assert_allclose(np.diff(df["time"]), np.diff([m.TimeUS for m in mags]) * 1e-6,
+                               atol=1e-6)   # float64 resolution of UNIX seconds near 1.7e9 is 2.4e-7 s
+    fixes = [m for m in gps if m.Status >= 3]
+    assert np.nanmax(df["lat"]) <= max(m.Lat for m in fixes) and np.nanmin(df["lat"]) >= min(m.Lat for m in fixes)
+
+
+def test_old_style_mag2_instances(tmp_path):
+    """Logs before 4.0 have MAG, MAG2, MAG3 without an instance field."""
+    w = DataFlashWriter()
+    w.define(130, "MAG", "Qhhh", "TimeUS,MagX,MagY,MagZ")
+    w.define(131, "MAG2", "Qhhh", "TimeUS,MagX,MagY,MagZ")
+    w.define(132, "GPS", "QBIH", "TimeUS,Status,GMS,GWk")
+    for j in range(50):
+        w.write("MAG", 1_000_000 + j * 50_000, 100, 200, 300)
+        w.write("MAG2", 1_000_000 + j * 100_000, -100, 0, 300)
+        w.write("GPS", 1_000_000 + j * 200_000, 3, 400_000_000 + j * 200, WEEK)
+    path = w.save(tmp_path / "old.bin")
+    assert [(m["instance"], m["message"], m["samples"]) for m in magnetometer_instances(path)] == \
+        [(0, "MAG", 50), (1, "MAG2", 50)]
+    assert magnetometer_instances(path)[0]["rate_hz"] == pytest.approx(20.0)
+    df, prov = read_dataflash(path, mag=1, raw=False)
+    np.testing.assert_array_equal(df[["mag_x", "mag_y", "mag_z"]].iloc[0], [-10_050.0, 0.0, 30_050.0])
+    assert prov["magnetometer"]["message"] == "MAG2"
+    df, prov = read_dataflash(path, mag=1)   # no PARM: the default calibration (identity) is undone
+    np.testing.assert_array_equal(df[["mag_x", "mag_y", "mag_z"]].iloc[0], [-10_050.0, 0.0, 30_050.0])
+    assert "COMPASS_OFS2" in prov["raw_reconstruction"]
+
+
+def test_pilot_no_fix_epochs_have_no_position(real):
+    (df, _), _ = real[PILOT.name]
+    fix = df["fix_type"].to_numpy()
+    no_fix = ~(fix >= 3)                        # status 1 (or no GPS sample yet: NaN)
+    assert no_fix.sum() > 500 and (fix >= 3).sum() > 100
+    for column in ("lat", "lon", "alt", "hdop", "vdop"):
+        assert np.isnan(df[column].to_numpy()[no_fix]).all()
+    assert np.isfinite(df["lat"].to_numpy()[fix >= 3]).mean() > 0.95
+
+
+def test_truncated_copy_warns_and_reads_to_the_damage(tmp_path):
+    data = CENTER.read_bytes()
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes(data[: len(data) // 2 + 7])
+    with pytest.warns(UserWarning, match="cut.bin.*truncated"):
+        df, prov = read_dataflash(cut)
+    full, _ = read_dataflash(CENTER)
+    assert 0.3 * len(full) < len(df) < len(full)
+    # Same epochs; the boot-to-UTC offset is a median over fewer GPS samples, so it may move by the
+    # log-write jitter of the GPS messages (median absolute deviation 21 ms in this log).
+    np.testing.assert_allclose(np.diff(df["time"]), np.diff(full["time"][: len(df)]), atol=1e-6)
+    assert abs(df["time"].iloc[0] - full["time"].iloc[0]) < 0.05
+    assert any("truncated" in n for n in prov["notes"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_dataflash(CENTER)                  # the intact log does not warn

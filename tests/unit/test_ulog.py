@@ -1,0 +1,193 @@
+"""PX4 ULog reader and writer: the real sample log, a seeded round trip and bad files."""
+
+import json
+import warnings
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from magkf.conventions import euler_to_dcm, wrap_deg
+from magkf.errors import InputError
+from magkf.io.ulog import magnetometer_instances, read_ulog, write_ulog
+from magkf.reference import field_at
+
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "real" / "px4_cubeorange_vtol_sample_log_small.ulg"
+
+# Round-trip bounds, from the storage types of write_ulog:
+#   float32 (mag in G, hdop, vdop, current_a): round to nearest, |error| <= 2^-24 |value|, plus a few double
+#   roundings (1e5 scaling) far below 1e-15 relative;
+#   time: boot and UTC times are whole microseconds, so <= 0.5 us + 0.5 us, plus half a double ulp at 1.7e9 s;
+#   lat/lon: int32 1e-7 deg, <= 0.5e-7 deg; alt: int32 mm, <= 0.5 mm;
+#   attitude: each float32 quaternion component is off by <= 2^-25, so |dq| <= 2^-24 and the rotation angle
+#   by <= 2 |dq| = 2^-23 rad; an Euler angle moves by at most (1 + tan|pitch| + 1/cos(pitch)) times that,
+#   <= 4.74 * 2^-23 rad for |pitch| <= 60 deg.
+FLOAT32_RTOL = 2.0**-24 + 1e-15
+TIME_ATOL_S = 1e-6 + 2.0**-23
+LATLON_ATOL_DEG = 0.5e-7 + 1e-12
+ALT_ATOL_M = 0.5e-3 + 1e-9
+ROTATION_ATOL_RAD = 2.0**-23 * (1 + 1e-6)
+EULER_ATOL_DEG = np.degrees(4.74 * 2.0**-23)
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return read_ulog(SAMPLE)
+
+
+def test_sample_log_time_position_and_attitude(sample):
+    table, _ = sample
+    days = pd.to_datetime(table["time"], unit="s", utc=True).dt.date
+    assert (days == date(2021, 4, 21)).all()
+    assert np.all(np.diff(table["time"]) > 0)
+    assert np.all(np.abs(table["lat"] - 63.4) < 0.1)
+    assert np.all(np.isfinite(table[["roll", "pitch", "yaw", "lat", "lon", "alt", "hdop", "vdop"]]))
+    assert (table["fix_type"] >= 3).all()
+    assert np.all(np.isfinite(table["current_a"]))
+
+
+@pytest.mark.parametrize("instance", [0, 1])
+def test_sample_log_field_magnitude_within_logged_calibration(instance):
+    """|m| of raw sensor_mag lies where PX4's own model B = S (m - off), |B| = |IGRF|, puts it:
+    F / max(S) - |off| <= |m| <= F / min(S) + |off| (rotations keep the norm)."""
+    table, prov = read_ulog(SAMPLE, mag=instance)
+    params, n = prov["parameters"], prov["magnetometer"]["calibration_index"]
+    assert params[f"CAL_MAG{n}_ID"] == prov["magnetometer"]["device_id"]
+    off_nt = 1e5 * np.linalg.norm([params[f"CAL_MAG{n}_{a}OFF"] for a in "XYZ"])
+    scales = np.array([params[f"CAL_MAG{n}_{a}SCALE"] for a in "XYZ"])
+    row = table.iloc[0]
+    igrf = field_at(row["lat"], row["lon"], row["alt"], row["time"])["magnitude_nt"]
+    assert 52_000 < igrf < 53_000
+    magnitude = np.linalg.norm(table[["mag_x", "mag_y", "mag_z"]], axis=1)
+    assert np.all(magnitude >= igrf / scales.max() - off_nt)
+    assert np.all(magnitude <= igrf / scales.min() + off_nt)
+
+
+def test_sample_log_provenance(sample):
+    table, prov = sample
+    json.dumps(prov)
+    assert prov["format"] == "px4-ulog" and prov["file"] == str(SAMPLE)
+    assert prov["columns"]["mag_x"].startswith("sensor_mag.x")
+    assert prov["columns"]["roll"].startswith("vehicle_attitude.q")
+    assert prov["columns"]["lat"].startswith("vehicle_gps_position.lat")
+    assert prov["columns"]["alt"].startswith("vehicle_gps_position.alt_ellipsoid")
+    assert prov["columns"]["current_a"].startswith("battery_status")
+    assert set(prov["columns"]) == set(table.columns)
+    assert "device_id" not in table.columns
+    assert prov["magnetometer"] | {"rate_hz": None} == {
+        "topic": "sensor_mag", "instance": 0, "device_id": 589858, "rate_hz": None, "calibrated": False,
+        "fields": "sensor_mag.x, sensor_mag.y, sensor_mag.z", "calibration_index": 0}
+    assert prov["rotation"]["SENS_BOARD_ROT"] == 4 and prov["rotation"]["CAL_MAG0_ROT"] == -1
+    assert prov["rotation"]["applied"] is False
+    assert prov["parameters"]["CAL_MAG1_ID"] == 592905
+    assert "time_utc_usec" in prov["time_base"]
+    assert [(m["topic"], m["instance"], m["samples"]) for m in prov["magnetometers"]] == [
+        ("sensor_mag", 0, 6), ("sensor_mag", 1, 6), ("vehicle_magnetometer", 0, 319)]
+    assert magnetometer_instances(SAMPLE) == prov["magnetometers"]
+
+
+def test_calibrated_magnetometer_on_request():
+    from pyulog import ULog
+
+    table, prov = read_ulog(SAMPLE, raw=False)
+    assert prov["magnetometer"]["calibrated"] is True and prov["rotation"]["applied"] is True
+    assert any("vehicle_magnetometer" in note for note in prov["notes"])
+    logged = ULog(str(SAMPLE), ["vehicle_magnetometer"]).get_dataset("vehicle_magnetometer").data
+    assert len(table) == len(logged["timestamp"])
+    np.testing.assert_array_equal(table["mag_x"], logged["magnetometer_ga[0]"].astype(float) * 1e5)
+
+
+def test_missing_instance_is_input_error():
+    with pytest.raises(InputError, match="no instance 7"):
+        read_ulog(SAMPLE, mag=7)
+
+
+def _synthetic(n: int, seed: int) -> pd.DataFrame:
+    rng = np.random.default_rng(seed)
+    yaw = wrap_deg(170.0 + np.cumsum(rng.normal(0.0, 4.0, n)))  # wanders across +-180 deg
+    return pd.DataFrame({
+        "time": 1.7e9 + np.cumsum(rng.uniform(0.015, 0.025, n)),
+        "mag_x": rng.normal(2e4, 2e4, n), "mag_y": rng.normal(0.0, 2e4, n), "mag_z": rng.normal(4e4, 1e4, n),
+        "roll": rng.uniform(-180.0, 180.0, n), "pitch": rng.uniform(-60.0, 60.0, n), "yaw": yaw,
+        "lat": rng.uniform(-80.0, 80.0, n), "lon": rng.uniform(-180.0, 180.0, n),
+        "alt": rng.uniform(-100.0, 3000.0, n), "hdop": rng.uniform(0.5, 3.0, n), "vdop": rng.uniform(0.5, 3.0, n),
+        "current_a": rng.uniform(0.0, 30.0, n)})
+
+
+def test_round_trip_within_storage_precision(tmp_path):
+    table = _synthetic(2000, seed=7)
+    assert np.any(np.abs(np.diff(table["yaw"])) > 180.0)  # the wrap is crossed
+    path = tmp_path / "synthetic.ulg"
+    write_ulog(table, path)
+    out, prov = read_ulog(path)
+    assert len(out) == len(table)
+    assert np.max(np.abs(out["time"] - table["time"])) <= TIME_ATOL_S
+    for column in ("mag_x", "mag_y", "mag_z", "hdop", "vdop", "current_a"):
+        assert np.all(np.abs(out[column] - table[column]) <= FLOAT32_RTOL * np.abs(table[column])), column
+    assert np.max(np.abs(out[["lat", "lon"]].to_numpy() - table[["lat", "lon"]].to_numpy())) <= LATLON_ATOL_DEG
+    assert np.max(np.abs(out["alt"] - table["alt"])) <= ALT_ATOL_M
+    for column in ("roll", "pitch", "yaw"):
+        assert np.max(np.abs(wrap_deg(out[column] - table[column]))) <= EULER_ATOL_DEG, column
+    c_in = euler_to_dcm(table["yaw"], table["pitch"], table["roll"])
+    c_out = euler_to_dcm(out["yaw"], out["pitch"], out["roll"])
+    angle = np.linalg.norm(c_out - c_in, axis=(1, 2)) / np.sqrt(2.0)  # |dC|_F = 2 sqrt(2) sin(angle / 2)
+    assert np.max(angle) <= ROTATION_ATOL_RAD
+    assert prov["magnetometer"]["topic"] == "sensor_mag" and prov["magnetometer"]["calibrated"] is False
+
+
+def test_not_a_ulog_is_one_line_input_error(tmp_path):
+    path = tmp_path / "notes.ulg"
+    path.write_text("time,mag_x\n1,2\n")
+    with pytest.raises(InputError, match="not a PX4 ULog") as info:
+        read_ulog(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_truncated_log_reads_up_to_the_damage(tmp_path, sample):
+    data = SAMPLE.read_bytes()
+    path = tmp_path / "truncated.ulg"
+    path.write_bytes(data[: len(data) * 2 // 3 + 7])  # cut inside a message
+    with pytest.warns(UserWarning, match="truncated") as record:
+        table, _ = read_ulog(path)
+    assert str(path) in str(record[0].message)
+    full, _ = sample
+    assert 0 < len(table) < len(full)
+    np.testing.assert_array_equal(table[["mag_x", "mag_y", "mag_z"]], full[["mag_x", "mag_y", "mag_z"]][: len(table)])
+
+
+def test_log_without_magnetometer_is_input_error(tmp_path):
+    from pyulog import ULog
+
+    ulog = ULog(str(SAMPLE), ["vehicle_attitude", "vehicle_gps_position"])
+    path = tmp_path / "no_mag.ulg"
+    ulog.write_ulog(str(path))
+    with pytest.raises(InputError, match="no magnetometer topic"):
+        read_ulog(path)
+
+
+def test_log_without_gnss_utc_is_input_error(tmp_path):
+    table = _synthetic(50, seed=3)
+    path = tmp_path / "no_gnss.ulg"
+    write_ulog(table.drop(columns=["lat", "lon", "alt", "hdop", "vdop"]), path)
+    with pytest.raises(InputError, match="time since boot and no GNSS UTC time"):
+        read_ulog(path)
+    no_fix = table.assign(lat=np.nan, lon=np.nan)
+    write_ulog(no_fix, path)
+    with pytest.raises(InputError, match="time since boot and no GNSS UTC time"):
+        read_ulog(path)
+
+
+def test_gnss_gaps_and_span_give_missing_positions(tmp_path):
+    table = _synthetic(200, seed=11)
+    table.loc[100:119, ["lat", "lon"]] = np.nan  # no fix for 20 samples
+    path = tmp_path / "gap.ulg"
+    write_ulog(table, path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out, _ = read_ulog(path)
+    # Linear interpolation needs both bracketing samples: rows 100..119 and row 99 (bracket 99-100) are missing.
+    missing = np.isnan(out["lat"].to_numpy())
+    assert np.array_equal(np.flatnonzero(missing), np.arange(99, 120))
+    assert np.all(out["fix_type"][99:120] == 0) and np.all(out["fix_type"][120:] == 3)
