@@ -10,8 +10,16 @@ from .io.calibration import Calibration
 from .io.drivelog import DriveLog
 
 #: Output columns of ``apply_calibration`` besides the time index.
-COLUMNS = ("field_x", "field_y", "field_z", "magnitude_nt", "heading_mag_deg", "declination_deg",
-           "heading_true_deg", "status")
+COLUMNS = (
+    "field_x",
+    "field_y",
+    "field_z",
+    "magnitude_nt",
+    "heading_mag_deg",
+    "declination_deg",
+    "heading_true_deg",
+    "status",
+)
 
 
 def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
@@ -30,11 +38,22 @@ def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
     true_heading = (heading + declination) % 360.0
     has_mag = np.all(np.isfinite(log.mag), axis=1)
     has_att = np.all(np.isfinite(att[:, :2]), axis=1)
-    status = np.where(~has_mag, "missing_mag",
-                      np.where(~has_att, "missing_attitude",
-                               np.where(~np.isfinite(declination), "missing_position", "ok")))
-    out = pd.DataFrame({"field_x": field[:, 0], "field_y": field[:, 1], "field_z": field[:, 2],
-                        "magnitude_nt": np.linalg.norm(field, axis=1), "heading_mag_deg": heading,
-                        "declination_deg": declination, "heading_true_deg": true_heading, "status": status},
-                       index=log.table.index)
+    status = np.where(
+        ~has_mag,
+        "missing_mag",
+        np.where(~has_att, "missing_attitude", np.where(~np.isfinite(declination), "missing_position", "ok")),
+    )
+    out = pd.DataFrame(
+        {
+            "field_x": field[:, 0],
+            "field_y": field[:, 1],
+            "field_z": field[:, 2],
+            "magnitude_nt": np.linalg.norm(field, axis=1),
+            "heading_mag_deg": heading,
+            "declination_deg": declination,
+            "heading_true_deg": true_heading,
+            "status": status,
+        },
+        index=log.table.index,
+    )
     return out

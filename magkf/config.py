@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 
 
-
 @dataclass(frozen=True)
 class FilterConfig:
     """Settings of ``magkf calibrate`` and ``OnlineCalibrator``.
@@ -70,7 +69,7 @@ class FilterConfig:
         if not 0 < self.innovation_prob < 1:
             raise ValueError("innovation_prob must lie between 0 and 1")
 
-    def replace(self, **changes) -> "FilterConfig":
+    def replace(self, **changes) -> FilterConfig:
         return replace(self, **changes)
 
     def as_dict(self) -> dict:

@@ -74,27 +74,21 @@ def rot_x(angle_rad) -> np.ndarray:
     """Rotation matrices about x, shape ``angle.shape + (3, 3)``; ``rot_x(a) @ v`` turns ``v`` by ``a``."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)
     one, zero = np.ones_like(c), np.zeros_like(c)
-    return np.stack([np.stack([one, zero, zero], -1),
-                     np.stack([zero, c, -s], -1),
-                     np.stack([zero, s, c], -1)], -2)
+    return np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c, -s], -1), np.stack([zero, s, c], -1)], -2)
 
 
 def rot_y(angle_rad) -> np.ndarray:
     """Rotation matrices about y, shape ``angle.shape + (3, 3)``."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)
     one, zero = np.ones_like(c), np.zeros_like(c)
-    return np.stack([np.stack([c, zero, s], -1),
-                     np.stack([zero, one, zero], -1),
-                     np.stack([-s, zero, c], -1)], -2)
+    return np.stack([np.stack([c, zero, s], -1), np.stack([zero, one, zero], -1), np.stack([-s, zero, c], -1)], -2)
 
 
 def rot_z(angle_rad) -> np.ndarray:
     """Rotation matrices about z, shape ``angle.shape + (3, 3)``."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)
     one, zero = np.ones_like(c), np.zeros_like(c)
-    return np.stack([np.stack([c, -s, zero], -1),
-                     np.stack([s, c, zero], -1),
-                     np.stack([zero, zero, one], -1)], -2)
+    return np.stack([np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1), np.stack([zero, zero, one], -1)], -2)
 
 
 def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
@@ -165,9 +159,16 @@ def inverse3(A) -> np.ndarray:
     (a, b, c), (d, e, f), (g, h, i) = A.tolist()
     c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
     det = a * c00 + b * c01 + c * c02
-    return np.array([[c00, c * h - b * i, b * f - c * e],
-                     [c01, a * i - c * g, c * d - a * f],
-                     [c02, b * g - a * h, a * e - b * d]]) / det
+    return (
+        np.array(
+            [
+                [c00, c * h - b * i, b * f - c * e],
+                [c01, a * i - c * g, c * d - a * f],
+                [c02, b * g - a * h, a * e - b * d],
+            ]
+        )
+        / det
+    )
 
 
 def calibrated_field(R, b, m, e=0.0) -> np.ndarray:
@@ -208,7 +209,7 @@ def magnetic_heading_deg(field_body, roll_deg, pitch_deg) -> np.ndarray:
     p, r = np.radians(np.asarray(pitch_deg, float)), np.radians(np.asarray(roll_deg, float))
     cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
     north = f[..., 0] * cp + (f[..., 1] * sr + f[..., 2] * cr) * sp  # first row of Ry(pitch) Rx(roll) f
-    east = f[..., 1] * cr - f[..., 2] * sr                             # second row
+    east = f[..., 1] * cr - f[..., 2] * sr  # second row
     return np.degrees(np.arctan2(-east, north)) % 360.0
 
 

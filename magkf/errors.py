@@ -11,8 +11,7 @@ class InputError(ValueError):
     ``str(error)`` is a single line such as ``log.csv, row 7, column 'mag_x': not a number: 'abc'``.
     """
 
-    def __init__(self, message: str, source: str | None = None, row: int | None = None,
-                 column: str | None = None):
+    def __init__(self, message: str, source: str | None = None, row: int | None = None, column: str | None = None):
         self.message, self.source, self.row, self.column = message, source, row, column
         where = [str(source)] if source is not None else []
         if row is not None:

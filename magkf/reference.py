@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 import ppigrf
@@ -33,7 +33,7 @@ from .errors import InputError
 #: Mean Earth radius (m), used only to turn degree offsets into metres for the knot spacing.
 EARTH_RADIUS_M = 6_371_000.0
 #: Model epochs of IGRF-14 (ppigrf's default coefficient file), as UNIX seconds.
-IGRF_EPOCHS_S = np.array([datetime(y, 1, 1, tzinfo=timezone.utc).timestamp() for y in range(1900, 2031, 5)])
+IGRF_EPOCHS_S = np.array([datetime(y, 1, 1, tzinfo=UTC).timestamp() for y in range(1900, 2031, 5)])
 VALID_RANGE_S = (IGRF_EPOCHS_S[0], IGRF_EPOCHS_S[-1])
 #: Offsets used for the gradient: degrees of latitude and longitude, metres of height.
 GRADIENT_STEP = np.array([0.01, 0.01, 1000.0])
@@ -41,14 +41,16 @@ GRADIENT_STEP = np.array([0.01, 0.01, 1000.0])
 
 def _datetime(t: float) -> datetime:
     """A naive UTC datetime (ppigrf compares with naive timestamps)."""
-    return datetime.fromtimestamp(float(t), tz=timezone.utc).replace(tzinfo=None)
+    return datetime.fromtimestamp(float(t), tz=UTC).replace(tzinfo=None)
 
 
 def _check_times(time_s: np.ndarray) -> None:
     lo, hi = VALID_RANGE_S
     if np.nanmin(time_s) < lo or np.nanmax(time_s) > hi:
-        raise InputError("time outside the validity of IGRF-14 (1900-01-01 to 2030-01-01); "
-                         "check that 'time' is in UNIX seconds, or give ref_n, ref_e, ref_d")
+        raise InputError(
+            "time outside the validity of IGRF-14 (1900-01-01 to 2030-01-01); "
+            "check that 'time' is in UNIX seconds, or give ref_n, ref_e, ref_d"
+        )
 
 
 def ppigrf_ned(time_s, lat_deg, lon_deg, alt_m, date_resolution_s: float = 0.0) -> np.ndarray:
@@ -71,8 +73,12 @@ def _ppigrf_at_dates(lat, lon, alt_m, dates_s) -> np.ndarray:
     """ppigrf at places (M,) for dates (D,): NED array of shape (D, M, 3)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        be, bn, bu = ppigrf.igrf(np.asarray(lon, float), np.asarray(lat, float), np.asarray(alt_m, float) / 1000.0,
-                                 [_datetime(t) for t in dates_s])
+        be, bn, bu = ppigrf.igrf(
+            np.asarray(lon, float),
+            np.asarray(lat, float),
+            np.asarray(alt_m, float) / 1000.0,
+            [_datetime(t) for t in dates_s],
+        )
     return np.stack([bn, be, -bu], axis=-1).reshape(len(dates_s), -1, 3)
 
 
@@ -114,8 +120,13 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
         return out
     t, la, lo, al = time_s[ok], lat[ok], lon[ok], alt[ok]
     _check_times(t)
-    dates = np.concatenate([[t.min()], IGRF_EPOCHS_S[(IGRF_EPOCHS_S > t.min()) & (IGRF_EPOCHS_S < t.max())],
-                            [t.max()] if t.max() > t.min() else []])
+    dates = np.concatenate(
+        [
+            [t.min()],
+            IGRF_EPOCHS_S[(IGRF_EPOCHS_S > t.min()) & (IGRF_EPOCHS_S < t.max())],
+            [t.max()] if t.max() > t.min() else [],
+        ]
+    )
     knot = _knots(la, lo, al, knot_spacing_m)
     first = np.flatnonzero(np.diff(np.concatenate([[-1], knot])))  # first epoch of each knot
     group = np.cumsum(np.diff(np.concatenate([[-1], knot])) != 0) - 1  # knot number of each epoch
@@ -125,7 +136,7 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
     field = _ppigrf_at_dates(places[:, 0], places[:, 1], places[:, 2], dates)  # (D, 4K, 3)
     k = len(first)
     base = field[:, :k]
-    grad = np.stack([(field[:, (i + 1) * k:(i + 2) * k] - base) / GRADIENT_STEP[i] for i in range(3)], axis=-1)
+    grad = np.stack([(field[:, (i + 1) * k : (i + 2) * k] - base) / GRADIENT_STEP[i] for i in range(3)], axis=-1)
     offset = np.column_stack([la - kp[group, 0], (lo - kp[group, 1] + 180.0) % 360.0 - 180.0, al - kp[group, 2]])
     lo_i, w = _time_weights(t, dates)
     hi_i = np.minimum(lo_i + 1, len(dates) - 1)
@@ -141,8 +152,12 @@ def field_at(lat_deg: float, lon_deg: float, alt_m: float, time_s: float) -> dic
     """IGRF at one place and time: NED vector (nT), magnitude (nT), declination and inclination (deg)."""
     _check_times(np.array([time_s]))
     ned = _ppigrf_at_dates([lat_deg], [lon_deg], [alt_m], [time_s])[0, 0]
-    return {"ned_nt": ned, "magnitude_nt": float(np.linalg.norm(ned)),
-            "declination_deg": float(declination_deg(ned)), "inclination_deg": float(inclination_deg(ned))}
+    return {
+        "ned_nt": ned,
+        "magnitude_nt": float(np.linalg.norm(ned)),
+        "declination_deg": float(declination_deg(ned)),
+        "inclination_deg": float(inclination_deg(ned)),
+    }
 
 
 class ReferenceFieldCache:
@@ -151,7 +166,8 @@ class ReferenceFieldCache:
     ``ned(time_s, lat, lon, alt_m)`` returns the field (3,) nT. ppigrf is called only when the position
     has moved more than ``max_distance_m`` from the last evaluation or the UTC date has changed; in
     between the cached value is corrected with the cached gradient. The field is evaluated at noon UTC
-    of the day, which is within 0.2 nT of any time that day (secular variation is below 100 nT/year). ``evaluations`` counts ppigrf calls.
+    of the day, which is within 0.2 nT of any time that day (secular variation is below 100 nT/year).
+    ``evaluations`` counts ppigrf calls.
     """
 
     def __init__(self, max_distance_m: float = 2000.0):

@@ -21,8 +21,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
-    sim = simulate_drive(DriveConfig(duration_s=1200, rate_hz=50, motion="3d", seed=3),
-                         effects=[(TemperatureBias(), [8.0, -5.0, 6.0])])
+    sim = simulate_drive(
+        DriveConfig(duration_s=1200, rate_hz=50, motion="3d", seed=3), effects=[(TemperatureBias(), [8.0, -5.0, 6.0])]
+    )
     log = DriveLog(sim.table, "bench")
     times = []
     for _ in range(args.repeat):
@@ -30,8 +31,10 @@ def main() -> int:
         result, _ = diagnose(log, FilterConfig())
         times.append(time.perf_counter() - start)
     median = statistics.median(times)
-    print(f"diagnose, {len(log)} epochs (20 min at 50 Hz), {len(result.candidates)} candidates: median {median:.2f} s "
-          f"over {args.repeat} runs {[round(t, 2) for t in times]} (target < 10 s)")
+    print(
+        f"diagnose, {len(log)} epochs (20 min at 50 Hz), {len(result.candidates)} candidates: median {median:.2f} s "
+        f"over {args.repeat} runs {[round(t, 2) for t in times]} (target < 10 s)"
+    )
     print(f"top candidate: {result.candidates[0].effect} (p = {result.candidates[0].p_value:.2g})")
     print("PASS" if median < 10 else "FAIL")
     return 0 if median < 10 else 1

@@ -11,7 +11,7 @@ times of several runs, and checks the targets: within 0.5 nT, at least 20 times 
 import argparse
 import statistics
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -29,7 +29,7 @@ def main() -> int:
     args = parser.parse_args()
     n = int(args.hours * 3600 * args.rate)
     # Crosses midnight UTC, so the date changes inside the log; an aircraft-like track at 15 m/s.
-    start = datetime(2026, 3, 1, 23, 30, tzinfo=timezone.utc).timestamp()
+    start = datetime(2026, 3, 1, 23, 30, tzinfo=UTC).timestamp()
     m = simulate_motion("3d", n, args.rate, np.random.default_rng(0), lat0=63.4, lon0=10.4)
     t = start + np.arange(n) / args.rate
     lat, lon, alt = m["lat"], m["lon"], m["alt"]
@@ -46,8 +46,14 @@ def main() -> int:
     fast_med, base_med = statistics.median(fast_times), statistics.median(base_times)
     speedup = statistics.median(b / f for b, f in zip(base_times, fast_times))
     print(f"log: {n} epochs ({args.hours:g} h at {args.rate:g} Hz), crossing midnight UTC")
-    print(f"igrf_ned        median {fast_med:8.3f} s  ({n / fast_med:,.0f} epochs/s)  runs {[round(x, 3) for x in fast_times]}")
-    print(f"ppigrf, each    median {base_med:8.3f} s  ({n / base_med:,.0f} epochs/s)  runs {[round(x, 3) for x in base_times]}")
+    print(
+        f"igrf_ned        median {fast_med:8.3f} s  ({n / fast_med:,.0f} epochs/s)  "
+        f"runs {[round(x, 3) for x in fast_times]}"
+    )
+    print(
+        f"ppigrf, each    median {base_med:8.3f} s  ({n / base_med:,.0f} epochs/s)  "
+        f"runs {[round(x, 3) for x in base_times]}"
+    )
     print(f"median speed-up {speedup:.1f}x (target >= {TARGET_SPEEDUP:g}x)")
     print(f"max |difference| over all epochs {err:.4f} nT (target <= {TARGET_NT} nT)")
     ok = err <= TARGET_NT and speedup >= TARGET_SPEEDUP

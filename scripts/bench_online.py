@@ -57,8 +57,9 @@ def bare_filterpy_ukf(n: int) -> float:
     """Seconds per epoch of FilterPy's UKF with a trivial linear hx (one Python call per sigma point)."""
     rng = np.random.default_rng(0)
     H = rng.normal(size=(3, 12))
-    ukf = UnscentedKalmanFilter(12, 3, 1.0, lambda x: H @ x, lambda x, dt: x,
-                                MerweScaledSigmaPoints(12, alpha=1.0, beta=2.0, kappa=0.0))
+    ukf = UnscentedKalmanFilter(
+        12, 3, 1.0, lambda x: H @ x, lambda x, dt: x, MerweScaledSigmaPoints(12, alpha=1.0, beta=2.0, kappa=0.0)
+    )
     ukf.Q, ukf.R = np.eye(12) * 1e-9, np.eye(3)
     zs = rng.normal(size=(n, 3))
     start = time.perf_counter()
@@ -79,9 +80,11 @@ def end_to_end(log_path: Path, out: Path, filter_name: str) -> dict:
 
 def peak_memory_mb(log_path: Path, out: Path) -> float:
     """Maximum resident set (MB) of a fresh process running ``magkf calibrate`` on the log."""
-    code = ("import resource, sys; from magkf.cli import main; "
-            f"main(['calibrate', {str(log_path)!r}, '-o', {str(out)!r}, '--quiet']); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    code = (
+        "import resource, sys; from magkf.cli import main; "
+        f"main(['calibrate', {str(log_path)!r}, '-o', {str(out)!r}, '--quiet']); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return int(proc.stdout.strip().splitlines()[-1]) / 1024.0
 
@@ -118,10 +121,14 @@ def main() -> int:
         loop_per_epoch = statistics.median(r["summary"]["filter_loop_s"] / n for r in ekf_runs)
         ratio = statistics.median(r["summary"]["filter_loop_s"] / n / b for r, b in zip(ekf_runs, bare))
         eps = statistics.median(n / r["wall_s"] for r in ekf_runs)
-        print(f"EKF filter loop     median {1e6 * loop_per_epoch:6.1f} us/epoch; bare FilterPy EKF "
-              f"{1e6 * statistics.median(bare):6.1f} us/epoch; ratio {ratio:.2f} (target <= 1.5)")
-        print(f"EKF end to end      median {eps:,.0f} epochs/s (target >= 20,000); runs "
-              f"{[round(r['wall_s'], 2) for r in ekf_runs]} s")
+        print(
+            f"EKF filter loop     median {1e6 * loop_per_epoch:6.1f} us/epoch; bare FilterPy EKF "
+            f"{1e6 * statistics.median(bare):6.1f} us/epoch; ratio {ratio:.2f} (target <= 1.5)"
+        )
+        print(
+            f"EKF end to end      median {eps:,.0f} epochs/s (target >= 20,000); runs "
+            f"{[round(r['wall_s'], 2) for r in ekf_runs]} s"
+        )
         ok &= ratio <= 1.5 and eps >= 20_000
 
         ukf_runs, bare_u = [], []
@@ -130,8 +137,10 @@ def main() -> int:
             bare_u.append(bare_filterpy_ukf(3_000))
         eps_u = statistics.median(n / r["wall_s"] for r in ukf_runs)
         ratio_u = statistics.median(r["summary"]["filter_loop_s"] / n / b for r, b in zip(ukf_runs, bare_u))
-        print(f"UKF end to end      median {eps_u:,.0f} epochs/s (target >= 3,000); filter loop / FilterPy UKF "
-              f"with trivial hx ({1e6 * statistics.median(bare_u):.0f} us/epoch) = {ratio_u:.2f}")
+        print(
+            f"UKF end to end      median {eps_u:,.0f} epochs/s (target >= 3,000); filter loop / FilterPy UKF "
+            f"with trivial hx ({1e6 * statistics.median(bare_u):.0f} us/epoch) = {ratio_u:.2f}"
+        )
         ok &= eps_u >= 3_000
 
         lat = np.concatenate([step_latency(sim, 20_000) for _ in range(args.repeat)]) * 1e3

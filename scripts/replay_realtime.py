@@ -47,14 +47,25 @@ def main() -> int:
         statuses[result.status] += 1
     lat = np.array(latency) * 1e3
     late = (time.perf_counter() - wall0) - (rows[-1]["time"] - t0) / args.speed
-    print(f"replayed {len(rows)} samples ({args.seconds:g} s of log at {args.speed:g}x); finished {late * 1e3:.1f} ms "
-          "after the last sample was due")
-    print(f"step latency: median {np.median(lat):.3f} ms, 99th percentile {np.percentile(lat, 99):.3f} ms, "
-          f"max {lat.max():.3f} ms")
+    print(
+        f"replayed {len(rows)} samples ({args.seconds:g} s of log at {args.speed:g}x); finished {late * 1e3:.1f} ms "
+        "after the last sample was due"
+    )
+    print(
+        f"step latency: median {np.median(lat):.3f} ms, 99th percentile {np.percentile(lat, 99):.3f} ms, "
+        f"max {lat.max():.3f} ms"
+    )
     print("statuses: " + ", ".join(f"{k} {v}" for k, v in statuses.most_common()))
     print(f"IGRF evaluations: {online.reference.evaluations}")
-    print("R =", np.array2string(result.R, precision=5), "\nb =", np.array2string(result.b, precision=2), "nT",
-          "+-", np.array2string(result.std[9:12], precision=2))
+    print(
+        "R =",
+        np.array2string(result.R, precision=5),
+        "\nb =",
+        np.array2string(result.b, precision=2),
+        "nT",
+        "+-",
+        np.array2string(result.std[9:12], precision=2),
+    )
     return 0
 
 

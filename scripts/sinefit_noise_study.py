@@ -41,9 +41,17 @@ def study(runs: int, seed: int = 2024) -> pd.DataFrame:
         for method, e in errors.items():
             e = np.array(e)
             for i, name in enumerate(PARAMETER_NAMES):
-                rows.append({"noise_nt": noise, "method": method, "parameter": name, "truth": truth[i],
-                             "mean_error": e[:, i].mean(), "rms_error": np.sqrt(np.mean(e[:, i] ** 2)),
-                             "mean_standard_error": se[i] if method == "exact" else np.nan})
+                rows.append(
+                    {
+                        "noise_nt": noise,
+                        "method": method,
+                        "parameter": name,
+                        "truth": truth[i],
+                        "mean_error": e[:, i].mean(),
+                        "rms_error": np.sqrt(np.mean(e[:, i] ** 2)),
+                        "mean_standard_error": se[i] if method == "exact" else np.nan,
+                    }
+                )
     return pd.DataFrame(rows)
 
 

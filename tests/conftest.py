@@ -13,8 +13,7 @@ DATA = ROOT / "data"
 
 def run_cli(*args, cwd=None):
     """Run ``magkf`` in a subprocess; returns the CompletedProcess (text mode)."""
-    return subprocess.run([sys.executable, "-m", "magkf", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "magkf", *map(str, args)], capture_output=True, text=True, cwd=cwd)
 
 
 def cli_json(*args):

@@ -11,8 +11,11 @@ from .common import (
 
 def add_parsers(sub) -> None:
     """Register ``apply``."""
-    p = sub.add_parser("apply", help="calibrated field, magnitude and headings for every epoch of a log",
-                       description="Apply a calibration file to a drive log; every epoch is written with a status.")
+    p = sub.add_parser(
+        "apply",
+        help="calibrated field, magnitude and headings for every epoch of a log",
+        description="Apply a calibration file to a drive log; every epoch is written with a status.",
+    )
     p.add_argument("file", help="drive-log CSV")
     p.add_argument("--cal", required=True, help="calibration JSON")
     add_mag_unit(p)
@@ -21,8 +24,8 @@ def add_parsers(sub) -> None:
 
 
 def run_apply(args) -> int:
-    from ..io.calibration import Calibration
     from ..apply import apply_calibration
+    from ..io.calibration import Calibration
     from ..io.drivelog import read_drive_log, write_drive_log
 
     cal = Calibration.load(args.cal)
@@ -31,16 +34,19 @@ def run_apply(args) -> int:
     if args.output:
         write_drive_log(out, args.output)
     counts = out["status"].value_counts().to_dict()
-    summary = {"n_epochs": len(out), "status_counts": counts,
-               "magnitude_nt": {"mean": float(out["magnitude_nt"].mean()), "std": float(out["magnitude_nt"].std())},
-               "output": args.output}
+    summary = {
+        "n_epochs": len(out),
+        "status_counts": counts,
+        "magnitude_nt": {"mean": float(out["magnitude_nt"].mean()), "std": float(out["magnitude_nt"].std())},
+        "output": args.output,
+    }
     if args.json:
         print_json(summary)
     else:
-        print(f"applied {args.cal} to {args.file}: {len(out)} epochs "
-              f"({', '.join(f'{k} {v}' for k, v in counts.items())}); calibrated magnitude "
-              f"{summary['magnitude_nt']['mean']:.1f} +- {summary['magnitude_nt']['std']:.1f} nT"
-              + (f"; written to {args.output}" if args.output else ""))
+        print(
+            f"applied {args.cal} to {args.file}: {len(out)} epochs "
+            f"({', '.join(f'{k} {v}' for k, v in counts.items())}); calibrated magnitude "
+            f"{summary['magnitude_nt']['mean']:.1f} +- {summary['magnitude_nt']['std']:.1f} nT"
+            + (f"; written to {args.output}" if args.output else "")
+        )
     return 0
-
-

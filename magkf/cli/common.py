@@ -4,7 +4,7 @@ parts it uses when it runs, so that ``magkf --help`` starts at once."""
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from ..conventions import NT_PER_UNIT
 from ..errors import InputError
@@ -23,7 +23,7 @@ def timestamp(date: str) -> float:
         d = datetime.fromisoformat(date)
     except ValueError:
         raise InputError(f"--date {date!r} is not an ISO date such as 2026-05-01") from None
-    return (d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp()
+    return (d if d.tzinfo else d.replace(tzinfo=UTC)).timestamp()
 
 
 def igrf_field(args) -> dict:
@@ -32,7 +32,7 @@ def igrf_field(args) -> dict:
 
     if args.lat is None or args.lon is None:
         raise InputError("the IGRF field needs --lat and --lon (and --date, default today)")
-    date = args.date or datetime.now(timezone.utc).date().isoformat()
+    date = args.date or datetime.now(UTC).date().isoformat()
     return field_at(args.lat, args.lon, args.alt, timestamp(date))
 
 
@@ -58,7 +58,9 @@ def add_filter_options(p) -> None:
     g.add_argument("--b-walk", type=float, help="random walk of b, nT per sqrt(s) (default 0.01)")
     g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
     g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
-    g.add_argument("--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)")
+    g.add_argument(
+        "--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)"
+    )
     g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 0.25; 0 = every epoch)")
     for name in ("filter", "measure"):
         if not any(a.dest == name for a in p._actions):
@@ -69,21 +71,43 @@ def filter_config(args):
     """The ``FilterConfig`` of the command-line options (defaults where an option is not given)."""
     from ..config import FilterConfig
 
-    changes = {k: v for k, v in {
-        "filter": args.filter, "measure": args.measure, "dop_max": args.dop_max, "gate_nt": args.gate_nt,
-        "sensor_noise_nt": args.sensor_noise, "attitude_deg": args.attitude_deg, "reference_nt": args.reference_nt,
-        "r_walk": args.r_walk, "b_walk": args.b_walk, "innovation_prob": args.innovation_prob,
-        "block_s": args.block_s}.items() if v is not None}
+    changes = {
+        k: v
+        for k, v in {
+            "filter": args.filter,
+            "measure": args.measure,
+            "dop_max": args.dop_max,
+            "gate_nt": args.gate_nt,
+            "sensor_noise_nt": args.sensor_noise,
+            "attitude_deg": args.attitude_deg,
+            "reference_nt": args.reference_nt,
+            "r_walk": args.r_walk,
+            "b_walk": args.b_walk,
+            "innovation_prob": args.innovation_prob,
+            "block_s": args.block_s,
+        }.items()
+        if v is not None
+    }
     return FilterConfig(**changes)
 
 
 def add_effect_options(p, what: str) -> None:
     g = p.add_argument_group("physical effects")
-    g.add_argument("--effect", action="append", default=[], metavar="NAME[:COLUMN]",
-                   help=f"{what}: temperature_bias, temperature_scale, current_field, time_lag, field_anomaly, "
-                        "bias_drift, eddy_current, or one from --effect-file")
-    g.add_argument("--effect-file", action="append", default=[], metavar="FILE.py",
-                   help="a Python file defining Effect subclasses (their names become usable with --effect)")
+    g.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="NAME[:COLUMN]",
+        help=f"{what}: temperature_bias, temperature_scale, current_field, time_lag, field_anomaly, "
+        "bias_drift, eddy_current, or one from --effect-file",
+    )
+    g.add_argument(
+        "--effect-file",
+        action="append",
+        default=[],
+        metavar="FILE.py",
+        help="a Python file defining Effect subclasses (their names become usable with --effect)",
+    )
 
 
 def effects(args) -> tuple[list, dict]:
@@ -97,8 +121,9 @@ def effects(args) -> tuple[list, dict]:
 
 
 def add_mag_unit(p) -> None:
-    p.add_argument("--mag-unit", choices=list(NT_PER_UNIT), default="nT",
-                   help="unit of the magnetometer columns (default nT)")
+    p.add_argument(
+        "--mag-unit", choices=list(NT_PER_UNIT), default="nT", help="unit of the magnetometer columns (default nT)"
+    )
 
 
 def load_calibration(path):

@@ -19,10 +19,13 @@ from .common import (
 
 def add_parsers(sub) -> None:
     """Register ``diagnose`` and ``report``."""
-    p = sub.add_parser("diagnose", help="where the model fails and which physical effect is missing",
-                       description="Compare the calibrated model with the measurements (residuals against time, "
-                                   "attitude, auxiliary channels, rates) and rank every candidate effect by a "
-                                   "likelihood-ratio test of adding it. Without --cal the online filter runs first.")
+    p = sub.add_parser(
+        "diagnose",
+        help="where the model fails and which physical effect is missing",
+        description="Compare the calibrated model with the measurements (residuals against time, "
+        "attitude, auxiliary channels, rates) and rank every candidate effect by a "
+        "likelihood-ratio test of adding it. Without --cal the online filter runs first.",
+    )
     p.add_argument("file", help="drive-log CSV")
     p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
     p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
@@ -32,9 +35,12 @@ def add_parsers(sub) -> None:
     add_output_options(p, "diagnosis (JSON)")
     p.set_defaults(func=run_diagnose)
 
-    p = sub.add_parser("report", help="self-contained HTML report with plots",
-                       description="Calibrate (with any --effect), diagnose, and write one HTML file with the plots "
-                                   "embedded: gates, estimates over time, residuals, ranking, before/after.")
+    p = sub.add_parser(
+        "report",
+        help="self-contained HTML report with plots",
+        description="Calibrate (with any --effect), diagnose, and write one HTML file with the plots "
+        "embedded: gates, estimates over time, residuals, ranking, before/after.",
+    )
     p.add_argument("file", help="drive-log CSV")
     p.add_argument("--cal", help="calibration JSON to start from")
     p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
@@ -46,9 +52,9 @@ def add_parsers(sub) -> None:
 
 
 def run_diagnose(args) -> int:
-    from ..io.calibration import jsonable
     from ..diagnostics.diagnose import diagnose
     from ..effects import candidates
+    from ..io.calibration import jsonable
     from ..io.drivelog import read_drive_log
 
     config = filter_config(args)
@@ -65,17 +71,23 @@ def run_diagnose(args) -> int:
         print_json(summary)
         return 0
     ax = result.residual_rms_axis_nt
-    print(f"diagnosis of {args.file}: {result.n_epochs_used} epochs used; residual RMS {result.residual_rms_nt:.2f} nT "
-          f"(N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f})")
+    print(
+        f"diagnosis of {args.file}: {result.n_epochs_used} epochs used; residual RMS {result.residual_rms_nt:.2f} nT "
+        f"(N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f})"
+    )
     print(f"  {'candidate':28s} {'LR':>10s} {'dof':>4s} {'p-value':>9s} {'dBIC':>10s} {'RMS after':>10s}")
     for c in result.candidates:
-        print(f"  {c.effect:28s} {c.statistic:10.1f} {c.dof:4d} {c.p_value:9.2g} {c.delta_bic:10.1f} "
-              f"{c.residual_rms_after_nt:8.2f} nT" + ("  *" if c.significant else ""))
+        print(
+            f"  {c.effect:28s} {c.statistic:10.1f} {c.dof:4d} {c.p_value:9.2g} {c.delta_bic:10.1f} "
+            f"{c.residual_rms_after_nt:8.2f} nT" + ("  *" if c.significant else "")
+        )
     print(f"  (* significant: p < {args.alpha:g} / {len(result.candidates)} candidates)")
     follows = [sgn for sgn in result.signals if sgn["significant"]][:5]
     if follows:
-        print("  the residual follows: " + ", ".join(f"{sg['signal']} ({sg['component']}, range "
-                                                    f"{sg['binned_range_nt']:.0f} nT)" for sg in follows))
+        print(
+            "  the residual follows: "
+            + ", ".join(f"{sg['signal']} ({sg['component']}, range {sg['binned_range_nt']:.0f} nT)" for sg in follows)
+        )
     for w in result.largest[:3]:
         print(f"  largest residual: {w['rms_nt']:.0f} nT RMS from t = {w['start']:.1f} to {w['stop']:.1f} s")
     print(f"  {result.text}")
@@ -99,5 +111,3 @@ def run_report(args) -> int:
     Path(args.output).write_text(page, encoding="utf-8")
     print(f"report written to {args.output}")
     return 0
-
-

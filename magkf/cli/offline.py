@@ -16,25 +16,38 @@ from .common import (
 
 def add_parsers(sub) -> None:
     """Register ``sinefit``, ``ellipsoid``."""
-    p = sub.add_parser("sinefit", help="offline sine-fit calibration of a two-plane turntable run",
-                       description="Sine-fit calibration (nine parameters) of a turntable CSV with columns "
-                                   "plane, angle_deg, mag_x, mag_y, mag_z. Give --field and --inclination, "
-                                   "or --lat/--lon/--date for IGRF.")
+    p = sub.add_parser(
+        "sinefit",
+        help="offline sine-fit calibration of a two-plane turntable run",
+        description="Sine-fit calibration (nine parameters) of a turntable CSV with columns "
+        "plane, angle_deg, mag_x, mag_y, mag_z. Give --field and --inclination, "
+        "or --lat/--lon/--date for IGRF.",
+    )
     p.add_argument("file", nargs="?", help="turntable CSV")
-    p.add_argument("--curves", help="JSON of fitted curves instead of samples: "
-                                    '{"xy": {"x": [A, C_deg, D], "y": [...], "z": [...]}, "xz": {"x": [...], "z": [...]}}')
+    p.add_argument(
+        "--curves",
+        help="JSON of fitted curves instead of samples: "
+        '{"xy": {"x": [A, C_deg, D], "y": [...], "z": [...]}, "xz": {"x": [...], "z": [...]}}',
+    )
     p.add_argument("--field", type=float, help="field magnitude B, nT")
     p.add_argument("--inclination", type=float, help="field inclination I, degrees (positive down)")
-    p.add_argument("--method", choices=["exact", "paper"], default="exact",
-                   help="exact: all samples, vertical-field leak removed (default); paper: the published equations")
+    p.add_argument(
+        "--method",
+        choices=["exact", "paper"],
+        default="exact",
+        help="exact: all samples, vertical-field leak removed (default); paper: the published equations",
+    )
     add_igrf_options(p)
     add_mag_unit(p)
     add_output_options(p)
     p.set_defaults(func=run_sinefit)
-    p = sub.add_parser("ellipsoid", help="offline ellipsoid (3-axis) or ellipse (2-axis) calibration",
-                       description="Ellipsoid or ellipse fit of any vector sensor; the result is in the data's "
-                                   "units. Field magnitude: a number, 'igrf' (with --lat/--lon/--date; the "
-                                   "horizontal part for --axes 2), or a unit sphere by default.")
+    p = sub.add_parser(
+        "ellipsoid",
+        help="offline ellipsoid (3-axis) or ellipse (2-axis) calibration",
+        description="Ellipsoid or ellipse fit of any vector sensor; the result is in the data's "
+        "units. Field magnitude: a number, 'igrf' (with --lat/--lon/--date; the "
+        "horizontal part for --axes 2), or a unit sphere by default.",
+    )
     p.add_argument("file", help="CSV with the sensor columns")
     p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
     p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
@@ -47,6 +60,7 @@ def add_parsers(sub) -> None:
 
 def run_sinefit(args) -> int:
     import numpy as np
+
     from ..offline.sinefit import (
         SineFitCalibrator,
         paper_from_curves,
@@ -75,7 +89,10 @@ def run_sinefit(args) -> int:
         print_json(result.summary())
     else:
         p, se = result.parameters.as_dict(), result.standard_errors
-        print(f"sine-fit calibration ({result.method}) of {args.file or args.curves}: B = {field:.1f} nT, I = {inclination:.3f} deg")
+        print(
+            f"sine-fit calibration ({result.method}) of {args.file or args.curves}: "
+            f"B = {field:.1f} nT, I = {inclination:.3f} deg"
+        )
         for name, value in p.items():
             err = se.get(name, float("nan"))
             print(f"  {name:10s} {value:14.6f}" + (f"  +- {err:.6f}" if np.isfinite(err) else ""))
@@ -88,6 +105,7 @@ def run_sinefit(args) -> int:
 # ---------------------------------------------------------------- ellipsoid
 def run_ellipsoid(args) -> int:
     import numpy as np
+
     from ..io.tables import read_csv, require_complete
     from ..offline.ellipsoid import EllipsoidCalibrator
 
@@ -118,12 +136,14 @@ def run_ellipsoid(args) -> int:
         print_json({**result.summary(), "columns": columns})
     else:
         kind = "ellipsoid" if args.axes == 3 else "ellipse"
-        print(f"{kind} calibration of {args.file} ({result.n_samples} samples, columns {', '.join(columns)}), "
-              f"field magnitude {field:g}")
+        print(
+            f"{kind} calibration of {args.file} ({result.n_samples} samples, columns {', '.join(columns)}), "
+            f"field magnitude {field:g}"
+        )
         for name, value in result.parameters.items():
             print(f"  {name:10s} {value:14.6g}  +- {result.standard_errors[name]:.3g}")
-        print(f"  residual RMS {result.residual_rms:.4g}; magnitude spread {100 * result.magnitude_spread_before:.2f}% "
-              f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%")
+        print(
+            f"  residual RMS {result.residual_rms:.4g}; magnitude spread {100 * result.magnitude_spread_before:.2f}% "
+            f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%"
+        )
     return 0
-
-

@@ -18,18 +18,23 @@ from .common import (
 
 def add_parsers(sub) -> None:
     """Register ``calibrate``."""
-    p = sub.add_parser("calibrate", help="online (Kalman filter) calibration of a drive log",
-                       description="Calibrate R and b (m = R B + b) over a drive log with an EKF or UKF against "
-                                   "IGRF (or the log's ref_n/e/d), gated by DOP, field magnitude and innovation. "
-                                   "Every epoch gets a status. Without --init the start is bootstrapped from "
-                                   "the first stretch of the log.")
+    p = sub.add_parser(
+        "calibrate",
+        help="online (Kalman filter) calibration of a drive log",
+        description="Calibrate R and b (m = R B + b) over a drive log with an EKF or UKF against "
+        "IGRF (or the log's ref_n/e/d), gated by DOP, field magnitude and innovation. "
+        "Every epoch gets a status. Without --init the start is bootstrapped from "
+        "the first stretch of the log.",
+    )
     p.add_argument("file", help="drive-log CSV")
     p.add_argument("--init", help="offline calibration JSON to start from (sinefit, ellipsoid, or an earlier run)")
     p.add_argument("--filter", choices=["ekf", "ukf"], help="filter (default ekf)")
     p.add_argument("--measure", choices=["magnitude", "vector", "both"], help="measurement model (default both)")
     p.add_argument("--batch", action="store_true", help="batch least squares over the whole log instead of the filter")
     p.add_argument("--smooth", action="store_true", help="Rauch-Tung-Striebel smoothing of the per-epoch estimates")
-    p.add_argument("--states", metavar="CSV", help="write per-epoch estimates, standard deviations, statuses, residuals")
+    p.add_argument(
+        "--states", metavar="CSV", help="write per-epoch estimates, standard deviations, statuses, residuals"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_filter_options(p)
     add_effect_options(p, "effects to estimate with R and b (repeat the option)")
@@ -40,8 +45,10 @@ def add_parsers(sub) -> None:
 
 def _print_run(summary: dict, names) -> None:
     s = summary
-    print(f"{s['filter']} calibration ({s['measure']}), {s['n_epochs']} epochs in {s['run_time_s']:.2f} s "
-          f"({s['epochs_per_second']:,.0f} epochs/s); start: {s['init']}")
+    print(
+        f"{s['filter']} calibration ({s['measure']}), {s['n_epochs']} epochs in {s['run_time_s']:.2f} s "
+        f"({s['epochs_per_second']:,.0f} epochs/s); start: {s['init']}"
+    )
     std = s["std"]
     R, b = s["R"], s["b"]
     for i in range(3):
@@ -49,12 +56,16 @@ def _print_run(summary: dict, names) -> None:
         print(f"  R[{i + 1}]  {row}")
     print("  b     " + "  ".join(f"{v:+9.2f} +- {std[n]:.2f} nT" for v, n in zip(b, names[9:12])))
     for effect, params in s.get("effects", {}).items():
-        print(f"  {effect}: " + ", ".join(f"{p} = {v['value']:.4g} +- {v['std']:.2g} {v['unit']}".rstrip()
-                                         for p, v in params.items()))
+        print(
+            f"  {effect}: "
+            + ", ".join(f"{p} = {v['value']:.4g} +- {v['std']:.2g} {v['unit']}".rstrip() for p, v in params.items())
+        )
     ax = s["residual_rms_axis_nt"]
     nis = f", mean NIS {s['nis_mean']:.2f}" if math.isfinite(s["nis_mean"]) else ""
-    print(f"  residual RMS {s['residual_rms_nt']:.2f} nT (vector norm; N {ax['north']:.2f}, E {ax['east']:.2f}, "
-          f"D {ax['down']:.2f}), magnitude {s['residual_rms_magnitude_nt']:.2f} nT{nis}")
+    print(
+        f"  residual RMS {s['residual_rms_nt']:.2f} nT (vector norm; N {ax['north']:.2f}, E {ax['east']:.2f}, "
+        f"D {ax['down']:.2f}), magnitude {s['residual_rms_magnitude_nt']:.2f} nT{nis}"
+    )
     print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
     print(f"  observability: {s['observability']['text']}")
 
@@ -92,12 +103,12 @@ def run_calibrate(args) -> int:
         _print_run(summary, run.names)
         if added:
             ba = summary["before_after"]
-            print(f"  before / after adding {', '.join(e.label for e in added)} (on the {ba['n_epochs']} epochs "
-                  "both used):")
+            print(
+                f"  before / after adding {', '.join(e.label for e in added)} (on the {ba['n_epochs']} epochs "
+                "both used):"
+            )
             for key, unit in (("residual_rms_nt", " nT"), ("nis_mean", ""), ("aic", ""), ("bic", "")):
                 print(f"    {key:16s} {ba['before'][key]:12.2f} -> {ba['after'][key]:12.2f}{unit}")
         if args.output:
             print(f"  calibration written to {args.output}")
     return 0
-
-

@@ -10,13 +10,19 @@ from .common import print_json, timestamp
 
 def add_parsers(sub) -> None:
     """Register ``simulate``."""
-    p = sub.add_parser("simulate", help="synthetic turntable runs and drive logs with known truth",
-                       description="Simulate a turntable run (sine fit) or a drive log, with a truth JSON.")
+    p = sub.add_parser(
+        "simulate",
+        help="synthetic turntable runs and drive logs with known truth",
+        description="Simulate a turntable run (sine fit) or a drive log, with a truth JSON.",
+    )
     p.add_argument("kind", choices=["drive", "turntable"])
     p.add_argument("-o", "--output", required=True, help="CSV to write")
     p.add_argument("--truth", help="truth JSON to write")
-    p.add_argument("--truth-cal", help="calibration JSON used as the truth (default: a built-in one; for "
-                                       "turntable runs its R must be lower triangular; default the paper's example)")
+    p.add_argument(
+        "--truth-cal",
+        help="calibration JSON used as the truth (default: a built-in one; for "
+        "turntable runs its R must be lower triangular; default the paper's example)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--noise", type=float, default=None, help="sensor noise, nT (default 30 drive, 0 turntable)")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
@@ -30,9 +36,14 @@ def add_parsers(sub) -> None:
     g.add_argument("--lat", type=float, default=48.1, help="start latitude, deg")
     g.add_argument("--lon", type=float, default=11.6, help="start longitude, deg")
     g.add_argument("--date", default="2026-06-01T10:00:00", help="start, ISO UTC")
-    g.add_argument("--effect", action="append", default=[], metavar="NAME[:COLUMN]=v1,v2,...",
-                   help="a physical effect to put in the data, with its true parameters (bias_drift: the walk, "
-                        "nT per sqrt(s)); repeat the option for several")
+    g.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="NAME[:COLUMN]=v1,v2,...",
+        help="a physical effect to put in the data, with its true parameters (bias_drift: the walk, "
+        "nT per sqrt(s)); repeat the option for several",
+    )
     g = p.add_argument_group("turntable")
     g.add_argument("--field", type=float, default=50_000.0, help="field magnitude, nT (default 50000)")
     g.add_argument("--inclination", type=float, default=43.0, help="inclination, deg (default 43)")
@@ -42,8 +53,8 @@ def add_parsers(sub) -> None:
 
 def run_simulate(args) -> int:
     import numpy as np
-    from ..io.calibration import Calibration
-    from ..io.calibration import jsonable
+
+    from ..io.calibration import Calibration, jsonable
     from ..sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
 
     truth = Calibration.load(args.truth_cal) if args.truth_cal else None
@@ -51,20 +62,43 @@ def run_simulate(args) -> int:
         from ..offline.sinefit import SineFitParameters
 
         params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
-        table = simulate_turntable(params, args.field, args.inclination, args.step, args.noise,
-                                   np.random.default_rng(args.seed))
+        table = simulate_turntable(
+            params, args.field, args.inclination, args.step, args.noise, np.random.default_rng(args.seed)
+        )
         table.to_csv(args.output, index=False, float_format="%.10g")
         info = {"output": args.output, "rows": len(table), "truth": params.as_dict()}
         if args.truth:
             with open(args.truth, "w", encoding="utf-8") as f:
-                json.dump(jsonable({"format": "magkf-truth", "version": 1, "R": params.matrix(), "b": params.b,
-                                    "sinefit_parameters": params.as_dict(), "field_nt": args.field,
-                                    "inclination_deg": args.inclination, "noise_nt": args.noise}), f, indent=2)
+                json.dump(
+                    jsonable(
+                        {
+                            "format": "magkf-truth",
+                            "version": 1,
+                            "R": params.matrix(),
+                            "b": params.b,
+                            "sinefit_parameters": params.as_dict(),
+                            "field_nt": args.field,
+                            "inclination_deg": args.inclination,
+                            "noise_nt": args.noise,
+                        }
+                    ),
+                    f,
+                    indent=2,
+                )
     else:
-        config = DriveConfig(duration_s=args.duration, rate_hz=args.rate, motion=args.motion, noise_nt=args.noise,
-                             seed=args.seed, mounting=args.mounting, disturbances=args.disturbances,
-                             dop_bad_stretches=args.dop_bad, lat0=args.lat, lon0=args.lon,
-                             start_time=timestamp(args.date))
+        config = DriveConfig(
+            duration_s=args.duration,
+            rate_hz=args.rate,
+            motion=args.motion,
+            noise_nt=args.noise,
+            seed=args.seed,
+            mounting=args.mounting,
+            disturbances=args.disturbances,
+            dop_bad_stretches=args.dop_bad,
+            lat0=args.lat,
+            lon0=args.lon,
+            start_time=timestamp(args.date),
+        )
         from ..effects import make_effect
 
         hidden = []
@@ -76,17 +110,16 @@ def run_simulate(args) -> int:
                 raise InputError(f"--effect {spec!r}: give NAME[:COLUMN]=v1,v2,... with numbers") from None
             effect = make_effect(name)
             if len(theta) != effect.size and not (effect.name == "bias_drift" and len(theta) == 1):
-                raise InputError(f"--effect {spec!r}: {effect.name} has {effect.size} parameters "
-                                 f"({', '.join(effect.parameter_names)})")
+                raise InputError(
+                    f"--effect {spec!r}: {effect.name} has {effect.size} parameters "
+                    f"({', '.join(effect.parameter_names)})"
+                )
             hidden.append((effect, theta))
         sim = simulate_drive(config, truth, hidden)
         sim.write(args.output, args.truth)
-        info = {"output": args.output, "rows": len(sim.table), "truth_file": args.truth,
-                "R": sim.R, "b": sim.b}
+        info = {"output": args.output, "rows": len(sim.table), "truth_file": args.truth, "R": sim.R, "b": sim.b}
     if args.json:
         print_json(info)
     else:
         print(f"wrote {info['rows']} rows to {args.output}" + (f" and the truth to {args.truth}" if args.truth else ""))
     return 0
-
-

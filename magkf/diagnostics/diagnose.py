@@ -64,10 +64,18 @@ class Candidate:
     estimate: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        return {"effect": self.effect, "statistic": self.statistic, "test": "likelihood ratio (chi-square)",
-                "dof": self.dof, "p_value": self.p_value, "delta_aic": self.delta_aic, "delta_bic": self.delta_bic,
-                "residual_rms_after_nt": self.residual_rms_after_nt, "significant": self.significant,
-                "estimate": self.estimate}
+        return {
+            "effect": self.effect,
+            "statistic": self.statistic,
+            "test": "likelihood ratio (chi-square)",
+            "dof": self.dof,
+            "p_value": self.p_value,
+            "delta_aic": self.delta_aic,
+            "delta_bic": self.delta_bic,
+            "residual_rms_after_nt": self.residual_rms_after_nt,
+            "significant": self.significant,
+            "estimate": self.estimate,
+        }
 
 
 @dataclass(frozen=True)
@@ -90,10 +98,16 @@ class Diagnosis:
     residuals: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
-        return {"residual_rms_nt": self.residual_rms_nt, "residual_rms_axis_nt": self.residual_rms_axis_nt,
-                "n_epochs_used": self.n_epochs_used, "alpha": self.alpha,
-                "candidates": [c.as_dict() for c in self.candidates],
-                "signals": self.signals, "largest_residuals": self.largest, "text": self.text}
+        return {
+            "residual_rms_nt": self.residual_rms_nt,
+            "residual_rms_axis_nt": self.residual_rms_axis_nt,
+            "n_epochs_used": self.n_epochs_used,
+            "alpha": self.alpha,
+            "candidates": [c.as_dict() for c in self.candidates],
+            "signals": self.signals,
+            "largest_residuals": self.largest,
+            "text": self.text,
+        }
 
 
 def _state_from_calibration(cal: Calibration, layout: StateLayout) -> np.ndarray:
@@ -102,8 +116,15 @@ def _state_from_calibration(cal: Calibration, layout: StateLayout) -> np.ndarray
     return x
 
 
-def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibration | None = None,
-             effects=(), candidates=None, alpha: float = 0.01, run: CalibrationRun | None = None):
+def diagnose(
+    log: DriveLog,
+    config: FilterConfig = FilterConfig(),
+    cal: Calibration | None = None,
+    effects=(),
+    candidates=None,
+    alpha: float = 0.01,
+    run: CalibrationRun | None = None,
+):
     """Diagnose ``log``; returns ``(Diagnosis, run)``.
 
     The model is the calibration ``cal`` (used as it is when no ``effects`` are added), or the online
@@ -162,8 +183,11 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
         axis_rms["nis_mean"] = float(np.nanmean(nis)) if np.isfinite(nis).any() else float("nan")
 
     present = {e.label for e in effects} | {e.name for e in effects}
-    pool = [e for e in (candidates if candidates is not None else default_candidates(list(data.columns)))
-            if e.label not in present and all(col in data.columns for col in e.columns)]
+    pool = [
+        e
+        for e in (candidates if candidates is not None else default_candidates(list(data.columns)))
+        if e.label not in present and all(col in data.columns for col in e.columns)
+    ]
     regressors = {}
     for effect in pool:
         G = effect.regressors(data)
@@ -199,9 +223,18 @@ def diagnose(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibrat
     signals, binned = _signals(data, ned, mag, alpha)
     largest = _largest(data.time, ned)
     text = _describe(results, signals, level)
-    return Diagnosis(residual_rms_nt=rms, residual_rms_axis_nt=axis_rms, n_epochs_used=n, alpha=alpha,
-                     candidates=results, signals=signals, largest=largest, text=text, binned=binned,
-                     residuals={"time": data.time, "ned": ned, "body": body, "magnitude": mag}), run
+    return Diagnosis(
+        residual_rms_nt=rms,
+        residual_rms_axis_nt=axis_rms,
+        n_epochs_used=n,
+        alpha=alpha,
+        candidates=results,
+        signals=signals,
+        largest=largest,
+        text=text,
+        binned=binned,
+        residuals={"time": data.time, "ned": ned, "body": body, "magnitude": mag},
+    ), run
 
 
 # ---------------------------------------------------------------- residual against signals
@@ -222,12 +255,21 @@ def _lr_test(label, effect, G, Gw, basis, r0, nrows, rms_after):
     sigma2 = rss1 / (nrows - basis.shape[1] - rank)
     cov = (vt[:rank].T / s[:rank] ** 2) @ vt[:rank] * sigma2
     names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-    estimate = {nm: {"value": float(v), "std": float(sd)}
-                for nm, v, sd in zip(names, theta, np.sqrt(np.clip(np.diag(cov), 0, None)))}
-    candidate = Candidate(effect=label, statistic=lr, dof=rank, p_value=float(stats.chi2.sf(lr, rank)),
-                          delta_aic=2 * rank - lr, delta_bic=rank * np.log(nrows) - lr,
-                          residual_rms_after_nt=rms_after(residual), significant=False,
-                          estimate=estimate)
+    estimate = {
+        nm: {"value": float(v), "std": float(sd)}
+        for nm, v, sd in zip(names, theta, np.sqrt(np.clip(np.diag(cov), 0, None)))
+    }
+    candidate = Candidate(
+        effect=label,
+        statistic=lr,
+        dof=rank,
+        p_value=float(stats.chi2.sf(lr, rank)),
+        delta_aic=2 * rank - lr,
+        delta_bic=rank * np.log(nrows) - lr,
+        residual_rms_after_nt=rms_after(residual),
+        significant=False,
+        estimate=estimate,
+    )
     return candidate, np.hstack([basis, u[:, :rank]]), residual
 
 
@@ -278,13 +320,23 @@ def _signals(data, ned, mag, alpha):
             centres = np.array([np.mean(v[ok][b == k]) for k in np.unique(b)])
             means = np.array([g.mean() for g in groups])
             half = np.array([1.96 * g.std(ddof=1) / np.sqrt(len(g)) for g in groups])
-            binned[name][comp] = {"centre": centres[:len(means)].tolist(), "mean": means.tolist(),
-                                  "ci95": half.tolist()}
+            binned[name][comp] = {
+                "centre": centres[: len(means)].tolist(),
+                "mean": means.tolist(),
+                "ci95": half.tolist(),
+            }
             if best is None or p < best[1]:
                 best = (comp, float(p), float(np.ptp(means)))
         if best is not None:
-            out.append({"signal": name, "component": best[0], "p_value": best[1], "binned_range_nt": best[2],
-                        "significant": best[1] < alpha / tests})
+            out.append(
+                {
+                    "signal": name,
+                    "component": best[0],
+                    "p_value": best[1],
+                    "binned_range_nt": best[2],
+                    "significant": best[1] < alpha / tests,
+                }
+            )
     out.sort(key=lambda s: s["p_value"])
     return out, binned
 
@@ -302,8 +354,15 @@ def _largest(t: np.ndarray, ned: np.ndarray, count: int = 3) -> list:
         if idx.size == 0:
             continue
         worst = idx[np.argmax(norm2[idx])]
-        out.append({"start": float(t[idx[0]]), "stop": float(t[idx[-1]]), "rms_nt": float(rms[w]),
-                    "max_nt": float(np.sqrt(norm2[worst])), "max_time": float(t[worst])})
+        out.append(
+            {
+                "start": float(t[idx[0]]),
+                "stop": float(t[idx[-1]]),
+                "rms_nt": float(rms[w]),
+                "max_nt": float(np.sqrt(norm2[worst])),
+                "max_time": float(t[worst]),
+            }
+        )
     return out
 
 
@@ -312,15 +371,18 @@ def _describe(results, signals, level) -> str:
     following = [s for s in signals if s["significant"]]
     if significant:
         best = significant[0]
-        text = (f"{best.effect} explains most of the residual (LR {best.statistic:.1f} on {best.dof} dof, "
-                f"p = {best.p_value:.2g}); adding it should bring the residual RMS to "
-                f"{best.residual_rms_after_nt:.1f} nT")
+        text = (
+            f"{best.effect} explains most of the residual (LR {best.statistic:.1f} on {best.dof} dof, "
+            f"p = {best.p_value:.2g}); adding it should bring the residual RMS to "
+            f"{best.residual_rms_after_nt:.1f} nT"
+        )
         if len(significant) > 1:
             text += "; also significant: " + ", ".join(r.effect for r in significant[1:])
         return text
     if following:
-        return ("no candidate effect explains the residual; it still follows "
-                + ", ".join(f"{s['signal']} ({s['component']}, p = {s['p_value']:.2g})" for s in following[:4]))
+        return "no candidate effect explains the residual; it still follows " + ", ".join(
+            f"{s['signal']} ({s['component']}, p = {s['p_value']:.2g})" for s in following[:4]
+        )
     return f"nothing significant at the stated level (each candidate tested at p < {level:.2g})"
 
 
@@ -334,10 +396,12 @@ def compare_runs(before: CalibrationRun, after: CalibrationRun) -> dict:
         k = len(run.x)
         nrows = ned.size
         rss = float(np.sum(ned**2))
-        out[label] = {"residual_rms_nt": float(np.sqrt(rss / max(len(ned), 1))),
-                      "nis_mean": float(np.nanmean(run.states["nis"].to_numpy()[both])),
-                      "aic": float(nrows * np.log(rss / nrows) + 2 * k),
-                      "bic": float(nrows * np.log(rss / nrows) + k * np.log(nrows)),
-                      "n_parameters": k}
+        out[label] = {
+            "residual_rms_nt": float(np.sqrt(rss / max(len(ned), 1))),
+            "nis_mean": float(np.nanmean(run.states["nis"].to_numpy()[both])),
+            "aic": float(nrows * np.log(rss / nrows) + 2 * k),
+            "bic": float(nrows * np.log(rss / nrows) + k * np.log(nrows)),
+            "n_parameters": k,
+        }
     out["n_epochs"] = int(both.sum())
     return out

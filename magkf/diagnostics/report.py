@@ -60,8 +60,9 @@ def _binned_plot(diag, names, title, other=None):
     names = [n for n in names if n in diag.binned]
     if not names:
         return ""
-    fig, axes = plt.subplots(1, len(names), figsize=(max(4.2 * len(names), 8.0), 3.2), constrained_layout=True,
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(names), figsize=(max(4.2 * len(names), 8.0), 3.2), constrained_layout=True, squeeze=False
+    )
     for ax, name in zip(axes[0], names):
         for label, d, style in (("", diag, "-"), (" after", other, "--")):
             if d is None or name not in d.binned:
@@ -90,7 +91,7 @@ def _states_plot(run, t0):
     for ax, (title, names) in zip(axes[:, 0], groups):
         for name in names:
             v, sd = s[name].to_numpy(), s[f"std_{name}"].to_numpy()
-            line, = ax.plot(t, v, lw=1, label=name)
+            (line,) = ax.plot(t, v, lw=1, label=name)
             ax.fill_between(t, v - sd, v + sd, color=line.get_color(), alpha=0.2)
         final = np.array([s[n].to_numpy()[-1] for n in names])
         spread = np.max([3 * s[f"std_{n}"].to_numpy()[len(t) // 10] for n in names]) + 1e-12
@@ -106,8 +107,9 @@ def _status_plot(run, t0):
 
     status = run.states.status
     counts = status.value_counts()
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 2.8), constrained_layout=True,
-                                   gridspec_kw={"width_ratios": [1, 2]})
+    fig, (ax1, ax2) = plt.subplots(
+        1, 2, figsize=(10, 2.8), constrained_layout=True, gridspec_kw={"width_ratios": [1, 2]}
+    )
     ax1.barh(counts.index, counts.to_numpy())
     ax1.set(xlabel="epochs", title="epoch statuses")
     t = run.states.index.to_numpy() - t0
@@ -117,8 +119,14 @@ def _status_plot(run, t0):
     return _png(fig)
 
 
-def build_report(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Calibration | None = None,
-                 effects=(), registry=None, alpha: float = 0.01) -> str:
+def build_report(
+    log: DriveLog,
+    config: FilterConfig = FilterConfig(),
+    cal: Calibration | None = None,
+    effects=(),
+    registry=None,
+    alpha: float = 0.01,
+) -> str:
     """The report as an HTML string (self-contained)."""
     import matplotlib
 
@@ -128,43 +136,78 @@ def build_report(log: DriveLog, config: FilterConfig = FilterConfig(), cal: Cali
     diag, _ = diagnose(log, config, cal, effects, pool, alpha=alpha, run=run)
     t0 = log.time[0]
     s = run.summary
-    parts = [f"<h1>magkf report: {html.escape(log.source)}</h1>",
-             f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; "
-             f"residual RMS {s.residual_rms_nt:.2f} nT (vector norm), magnitude "
-             f"{s.residual_rms_magnitude_nt:.2f} nT, mean NIS {s.nis_mean:.2f}.</p>",
-             f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
-             f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
-             "<h2>Gates</h2>", _status_plot(run, t0),
-             _table([(k, v) for k, v in s.status_counts.items()], ["status", "epochs"]),
-             "<h2>Estimate</h2>",
-             _table([(n, f"{v:.6g}", f"{sd:.2g}") for n, v, sd in zip(run.names, run.x, run.std)],
-                    ["parameter", "value", "standard deviation"]),
-             _states_plot(run, t0),
-             "<h2>Residuals</h2>", _residual_plot(t0, diag, "residuals of the used epochs, final estimate"),
-             _binned_plot(diag, [x["signal"] for x in diag.signals[:4]],
-                          "residual against the signals it follows most (binned means, 95 % bands)"),
-             _table([(w["start"] - t0, w["stop"] - t0, f"{w['rms_nt']:.1f}", f"{w['max_nt']:.1f}")
-                     for w in diag.largest], ["from, s", "to, s", "RMS, nT", "max, nT"]),
-             "<h2>Which effect is missing</h2>",
-             _table([(c.effect, f"{c.statistic:.1f}", c.dof, f"{c.p_value:.2g}", f"{c.delta_bic:.1f}",
-                      f"{c.residual_rms_after_nt:.2f}", "yes" if c.significant else "")
-                     for c in diag.candidates],
-                    ["candidate", "LR", "dof", "p-value", "change of BIC", "RMS after, nT", "significant"]),
-             _table([(x["signal"], x["component"], f"{x['p_value']:.2g}", f"{x['binned_range_nt']:.1f}")
-                     for x in diag.signals], ["signal", "component", "p-value", "range of binned means, nT"])]
+    parts = [
+        f"<h1>magkf report: {html.escape(log.source)}</h1>",
+        f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; "
+        f"residual RMS {s.residual_rms_nt:.2f} nT (vector norm), magnitude "
+        f"{s.residual_rms_magnitude_nt:.2f} nT, mean NIS {s.nis_mean:.2f}.</p>",
+        f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
+        f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
+        "<h2>Gates</h2>",
+        _status_plot(run, t0),
+        _table([(k, v) for k, v in s.status_counts.items()], ["status", "epochs"]),
+        "<h2>Estimate</h2>",
+        _table(
+            [(n, f"{v:.6g}", f"{sd:.2g}") for n, v, sd in zip(run.names, run.x, run.std)],
+            ["parameter", "value", "standard deviation"],
+        ),
+        _states_plot(run, t0),
+        "<h2>Residuals</h2>",
+        _residual_plot(t0, diag, "residuals of the used epochs, final estimate"),
+        _binned_plot(
+            diag,
+            [x["signal"] for x in diag.signals[:4]],
+            "residual against the signals it follows most (binned means, 95 % bands)",
+        ),
+        _table(
+            [(w["start"] - t0, w["stop"] - t0, f"{w['rms_nt']:.1f}", f"{w['max_nt']:.1f}") for w in diag.largest],
+            ["from, s", "to, s", "RMS, nT", "max, nT"],
+        ),
+        "<h2>Which effect is missing</h2>",
+        _table(
+            [
+                (
+                    c.effect,
+                    f"{c.statistic:.1f}",
+                    c.dof,
+                    f"{c.p_value:.2g}",
+                    f"{c.delta_bic:.1f}",
+                    f"{c.residual_rms_after_nt:.2f}",
+                    "yes" if c.significant else "",
+                )
+                for c in diag.candidates
+            ],
+            ["candidate", "LR", "dof", "p-value", "change of BIC", "RMS after, nT", "significant"],
+        ),
+        _table(
+            [(x["signal"], x["component"], f"{x['p_value']:.2g}", f"{x['binned_range_nt']:.1f}") for x in diag.signals],
+            ["signal", "component", "p-value", "range of binned means, nT"],
+        ),
+    ]
     if effects:
         before = calibrate_log(log, config, init=cal)
         diag0, _ = diagnose(log, config, cal, (), pool, alpha=alpha, run=before)
         ba = compare_runs(before, run)
         signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
-        parts += ["<h2>Before and after adding " + html.escape(", ".join(e.label for e in effects)) + "</h2>",
-                  _table([(k, f"{ba['before'][k]:.3f}", f"{ba['after'][k]:.3f}")
-                          for k in ("residual_rms_nt", "nis_mean", "aic", "bic", "n_parameters")],
-                         ["on the epochs both used", "before", "after"]),
-                  _binned_plot(diag0, signal_of[:3], "residual before (solid) and after (dashed) adding the effects",
-                               other=diag),
-                  _residual_plot(t0, diag0, "residuals before adding the effects")]
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
-             "td,th{border:1px solid #bbb;padding:2px 8px;font-size:13px}img{max-width:100%}")
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>magkf report</title><style>{style}</style>"
-            f"</head><body>{''.join(parts)}</body></html>")
+        parts += [
+            "<h2>Before and after adding " + html.escape(", ".join(e.label for e in effects)) + "</h2>",
+            _table(
+                [
+                    (k, f"{ba['before'][k]:.3f}", f"{ba['after'][k]:.3f}")
+                    for k in ("residual_rms_nt", "nis_mean", "aic", "bic", "n_parameters")
+                ],
+                ["on the epochs both used", "before", "after"],
+            ),
+            _binned_plot(
+                diag0, signal_of[:3], "residual before (solid) and after (dashed) adding the effects", other=diag
+            ),
+            _residual_plot(t0, diag0, "residuals before adding the effects"),
+        ]
+    style = (
+        "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
+        "td,th{border:1px solid #bbb;padding:2px 8px;font-size:13px}img{max-width:100%}"
+    )
+    return (
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>magkf report</title><style>{style}</style>"
+        f"</head><body>{''.join(parts)}</body></html>"
+    )

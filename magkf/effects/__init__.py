@@ -23,8 +23,10 @@ from .temperature_bias import TemperatureBias
 from .temperature_scale import TemperatureScale
 from .time_lag import TimeLag
 
-BUILTIN = {cls.name: cls for cls in (TemperatureBias, TemperatureScale, CurrentField, TimeLag, FieldAnomaly,
-                                     BiasDrift, EddyCurrent)}
+BUILTIN = {
+    cls.name: cls
+    for cls in (TemperatureBias, TemperatureScale, CurrentField, TimeLag, FieldAnomaly, BiasDrift, EddyCurrent)
+}
 
 
 def make_effect(spec: str, registry: dict | None = None) -> Effect:
@@ -51,9 +53,14 @@ def load_effect_file(path) -> dict:
         spec.loader.exec_module(module)
     except Exception as exc:  # the user's code: report it on one line
         raise InputError(f"the effect file failed to load: {type(exc).__name__}: {exc}", str(path)) from None
-    found = {obj.name: obj for obj in vars(module).values()
-             if inspect.isclass(obj) and issubclass(obj, Effect) and obj.__module__ == module.__name__
-             and obj.name not in ("effect", "core")}
+    found = {
+        obj.name: obj
+        for obj in vars(module).values()
+        if inspect.isclass(obj)
+        and issubclass(obj, Effect)
+        and obj.__module__ == module.__name__
+        and obj.name not in ("effect", "core")
+    }
     if not found:
         raise InputError("the file defines no Effect subclass with a name", str(path))
     return found
@@ -83,5 +90,13 @@ def _default_column(cls):
     return None if parameter is None else parameter.default
 
 
-__all__ = ["Effect", "EpochData", "LinearEffect", "SoftHardIron", "BUILTIN", "make_effect", "load_effect_file",
-           "candidates"]
+__all__ = [
+    "Effect",
+    "EpochData",
+    "LinearEffect",
+    "SoftHardIron",
+    "BUILTIN",
+    "make_effect",
+    "load_effect_file",
+    "candidates",
+]

@@ -42,14 +42,22 @@ class EpochData:
     def __len__(self) -> int:
         return len(self.time)
 
-    def take(self, index) -> "EpochData":
+    def take(self, index) -> EpochData:
         """The same data at the epochs ``index`` (an integer array, a slice or a boolean mask)."""
+
         def cut(a):
             return None if a is None else a[index]
 
-        return EpochData(self.time[index], self.field_body[index], self.field_ned[index],
-                         {k: v[index] for k, v in self.columns.items()}, cut(self.mag), cut(self.c_nb),
-                         cut(self.field_body_rate), self.R0)
+        return EpochData(
+            self.time[index],
+            self.field_body[index],
+            self.field_ned[index],
+            {k: v[index] for k, v in self.columns.items()},
+            cut(self.mag),
+            cut(self.c_nb),
+            cut(self.field_body_rate),
+            self.R0,
+        )
 
 
 def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:

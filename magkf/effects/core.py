@@ -24,12 +24,13 @@ class SoftHardIron(Effect):
     units = ("",) * 9 + ("nT",) * 3
     linear = True
 
-    def __init__(self, prior_mean=None, prior_std=None, r_walk: float = DEFAULT_R_WALK,
-                 b_walk: float = DEFAULT_B_WALK):
-        self.prior_mean = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if prior_mean is None \
-            else np.asarray(prior_mean, float)
-        self.prior_std = np.concatenate([np.full(9, 0.1), np.full(3, 1000.0)]) if prior_std is None \
-            else np.asarray(prior_std, float)
+    def __init__(self, prior_mean=None, prior_std=None, r_walk: float = DEFAULT_R_WALK, b_walk: float = DEFAULT_B_WALK):
+        self.prior_mean = (
+            np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if prior_mean is None else np.asarray(prior_mean, float)
+        )
+        self.prior_std = (
+            np.concatenate([np.full(9, 0.1), np.full(3, 1000.0)]) if prior_std is None else np.asarray(prior_std, float)
+        )
         self.r_walk, self.b_walk = float(r_walk), float(b_walk)
 
     def prior(self):
@@ -56,6 +57,6 @@ def core_jacobian(field_body) -> np.ndarray:
     n = len(B)
     J = np.zeros((n, 3, 12))
     for i in range(3):
-        J[:, i, 3 * i:3 * i + 3] = B
+        J[:, i, 3 * i : 3 * i + 3] = B
         J[:, i, 9 + i] = 1.0
     return J

@@ -18,5 +18,5 @@ class EddyCurrent(LinearEffect):
         rate = data.field_body_rate
         G = np.zeros((len(rate), 3, 9))
         for i in range(3):
-            G[:, i, 3 * i:3 * i + 3] = rate
+            G[:, i, 3 * i : 3 * i + 3] = rate
         return G

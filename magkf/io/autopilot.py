@@ -62,8 +62,15 @@ from ..conventions import NT_PER_UNIT
 from ..errors import InputError
 from .calibration import jsonable
 
-__all__ = ["ParameterSet", "apply_ardupilot", "apply_px4", "read_param_file", "to_ardupilot", "to_px4",
-           "write_param_file"]
+__all__ = [
+    "ParameterSet",
+    "apply_ardupilot",
+    "apply_px4",
+    "read_param_file",
+    "to_ardupilot",
+    "to_px4",
+    "write_param_file",
+]
 
 ARDUPILOT = "ArduPilot"
 PX4 = "PX4"
@@ -114,8 +121,15 @@ class ParameterSet:
 
     def summary(self) -> dict:
         """A JSON-ready dictionary of every field."""
-        return jsonable({"autopilot": self.autopilot, "instance": self.instance, "values": dict(self.values),
-                         "residual_rotation_deg": self.residual_rotation_deg, "notes": list(self.notes)})
+        return jsonable(
+            {
+                "autopilot": self.autopilot,
+                "instance": self.instance,
+                "values": dict(self.values),
+                "residual_rotation_deg": self.residual_rotation_deg,
+                "notes": list(self.notes),
+            }
+        )
 
 
 # ---------------------------------------------------------------- export
@@ -135,9 +149,11 @@ def to_ardupilot(cal, instance: int = 1, field_unit: str = "mG") -> ParameterSet
     common = float(np.linalg.det(S)) ** (1.0 / 3.0)
     scale = min(max(common, AP_SCALE_SAFE[0]), AP_SCALE_SAFE[1])
     if scale != common:
-        notes.append(f"the common scale {common:.4g} is outside {AP_SCALE_SAFE[0]}..{AP_SCALE_SAFE[1]}, where "
-                     f"every ArduPilot applies COMPASS_SCALE{suffix}: SCALE is {scale:.4g} and DIA/ODI carry the "
-                     f"rest")
+        notes.append(
+            f"the common scale {common:.4g} is outside {AP_SCALE_SAFE[0]}..{AP_SCALE_SAFE[1]}, where "
+            f"every ArduPilot applies COMPASS_SCALE{suffix}: SCALE is {scale:.4g} and DIA/ODI carry the "
+            f"rest"
+        )
     D = S / scale
     ofs = -cal.b / per_unit
     values = {f"COMPASS_OFS{suffix}_{a}": float(v) for a, v in zip(AXES, ofs)}
@@ -153,12 +169,16 @@ def to_ardupilot(cal, instance: int = 1, field_unit: str = "mG") -> ParameterSet
             notes.append(f"COMPASS_MOT{suffix} exceeds the documented range of +-{AP_MOT_MAX_MG_PER_A:.0f} mG/A")
     dia, odi = np.diag(D), _offdiagonal(D)
     if dia.min() <= AP_DIA_RANGE[0] or dia.max() >= AP_DIA_RANGE[1] or np.abs(odi).max() >= AP_ODI_MAX:
-        notes.append(f"DIA {np.round(dia, 4).tolist()} / ODI {np.round(odi, 4).tolist()} lie outside what "
-                     f"ArduPilot's own calibrator accepts ({AP_DIA_RANGE[0]} < DIA < {AP_DIA_RANGE[1]}, "
-                     f"|ODI| < {AP_ODI_MAX:g}); the firmware applies them, but the scale is far from the sensor's")
+        notes.append(
+            f"DIA {np.round(dia, 4).tolist()} / ODI {np.round(odi, 4).tolist()} lie outside what "
+            f"ArduPilot's own calibrator accepts ({AP_DIA_RANGE[0]} < DIA < {AP_DIA_RANGE[1]}, "
+            f"|ODI| < {AP_ODI_MAX:g}); the firmware applies them, but the scale is far from the sensor's"
+        )
     if np.abs(cal.b).max() > AP_OFFS_MAX_MG * NT_PER_UNIT["mG"]:
-        notes.append(f"an offset exceeds the default COMPASS_OFFS_MAX of {AP_OFFS_MAX_MG:.0f} mG: arming "
-                     f"checks fail unless COMPASS_OFFS_MAX is raised")
+        notes.append(
+            f"an offset exceeds the default COMPASS_OFFS_MAX of {AP_OFFS_MAX_MG:.0f} mG: arming "
+            f"checks fail unless COMPASS_OFFS_MAX is raised"
+        )
     if field_unit != "mG":
         notes.append(f"offsets are in {field_unit}, not the milligauss ArduPilot's drivers deliver")
     return ParameterSet(ARDUPILOT, instance, values, angle, tuple(notes))
@@ -211,20 +231,26 @@ def _split(cal):
 
     M = np.linalg.inv(cal.R)
     if np.linalg.det(M) <= 0:
-        raise InputError("R has a negative determinant (a mirrored axis): no autopilot's symmetric matrix and "
-                         "rotation can express it; check the sensor axes")
+        raise InputError(
+            "R has a negative determinant (a mirrored axis): no autopilot's symmetric matrix and "
+            "rotation can express it; check the sensor axes"
+        )
     Q, S = polar(M, side="right")
     S = (S + S.T) / 2.0
     angle = _rotation_angle_deg(Q)
     notes = []
     error = 2.0 * math.sin(math.radians(angle) / 2.0) * REFERENCE_FIELD_NT
     if error > ROTATION_NOTE_NT:
-        notes.append(f"the rotation part of R^-1 ({angle:.6g} deg) cannot be expressed by the symmetric matrix: "
-                     f"the corrected field is turned by that angle, an error of up to {error:.6g} nT at a "
-                     f"{REFERENCE_FIELD_NT:.0f} nT field")
+        notes.append(
+            f"the rotation part of R^-1 ({angle:.6g} deg) cannot be expressed by the symmetric matrix: "
+            f"the corrected field is turned by that angle, an error of up to {error:.6g} nT at a "
+            f"{REFERENCE_FIELD_NT:.0f} nT field"
+        )
         if angle > 45.0:
-            notes.append("a rotation this large is probably the sensor's mounting, which belongs in the "
-                         "autopilot's orientation setting (COMPASS_ORIENT, CAL_MAGn_ROT) before calibrating")
+            notes.append(
+                "a rotation this large is probably the sensor's mounting, which belongs in the "
+                "autopilot's orientation setting (COMPASS_ORIENT, CAL_MAGn_ROT) before calibrating"
+            )
     return S, angle, notes
 
 
@@ -302,14 +328,22 @@ def _symmetric(diagonal: np.ndarray, offdiagonal: np.ndarray) -> np.ndarray:
 def write_param_file(params: ParameterSet, path) -> None:
     """Write ``params`` as the file its ground station loads: ArduPilot ``NAME,VALUE`` lines, PX4
     QGroundControl tab-separated lines (vehicle 1, component 1, with MAV_PARAM_TYPE)."""
-    header = [f"magkf calibration for {params.autopilot} magnetometer instance {params.instance}",
-              f"residual rotation {params.residual_rotation_deg:.6g} deg", *params.notes]
+    header = [
+        f"magkf calibration for {params.autopilot} magnetometer instance {params.instance}",
+        f"residual rotation {params.residual_rotation_deg:.6g} deg",
+        *params.notes,
+    ]
     if params.autopilot == ARDUPILOT:
         lines = [f"# {h}" for h in header]
         lines += [f"{name},{_number(value)}" for name, value in params.values.items()]
     elif params.autopilot == PX4:
-        lines = ["# Onboard parameters for Vehicle 1", "#", *(f"# {h}" for h in header), "#",
-                 "# Vehicle-Id Component-Id Name Value Type"]
+        lines = [
+            "# Onboard parameters for Vehicle 1",
+            "#",
+            *(f"# {h}" for h in header),
+            "#",
+            "# Vehicle-Id Component-Id Name Value Type",
+        ]
         for name, value in params.values.items():
             kind = MAV_PARAM_TYPE_INT32 if name in INTEGER_PARAMETERS else MAV_PARAM_TYPE_REAL32
             lines.append(f"1\t1\t{name}\t{_number(value)}\t{kind}")

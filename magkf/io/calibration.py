@@ -87,8 +87,7 @@ class Calibration:
     # ------------------------------------------------------------ file
     def to_dict(self) -> dict:
         """A JSON-ready dictionary with the contract's keys."""
-        out = {"format": FORMAT, "version": VERSION, "method": self.method,
-               "R": self.R.tolist(), "b": self.b.tolist()}
+        out = {"format": FORMAT, "version": VERSION, "method": self.method, "R": self.R.tolist(), "b": self.b.tolist()}
         if self.covariance is not None:
             out["covariance"] = self.covariance.tolist()
         for key in ("parameters", "standard_errors", "quality"):
@@ -105,7 +104,7 @@ class Calibration:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
 
     @classmethod
-    def from_dict(cls, data, source: str = "calibration") -> "Calibration":
+    def from_dict(cls, data, source: str = "calibration") -> Calibration:
         """Build a calibration from a parsed JSON object, raising InputError if it is malformed."""
         if not isinstance(data, dict):
             raise InputError("a calibration file must hold one JSON object", source)
@@ -133,7 +132,7 @@ class Calibration:
             raise InputError(str(exc), source) from None
 
     @classmethod
-    def load(cls, path) -> "Calibration":
+    def load(cls, path) -> Calibration:
         """Read a calibration file, raising InputError (naming the file) if it is missing or malformed."""
         name = str(path)
         try:

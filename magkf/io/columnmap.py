@@ -62,7 +62,7 @@ import re
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from datetime import date, datetime, timezone
+from datetime import UTC, date, datetime
 from datetime import time as clock_time
 from pathlib import Path
 from types import MappingProxyType
@@ -96,19 +96,47 @@ __all__ = ["ColumnMap", "load_column_map", "read_mapped"]
 QUATERNION = ("q0", "q1", "q2", "q3")
 FORMATS = ("csv", "tsv", "whitespace", "parquet")
 #: Data-file extensions and the format they imply when the map does not say.
-EXTENSION_FORMATS = {".csv": "csv", ".tsv": "tsv", ".tab": "tsv", ".txt": "whitespace", ".dat": "whitespace",
-                     ".xyz": "whitespace", ".parquet": "parquet", ".pq": "parquet"}
+EXTENSION_FORMATS = {
+    ".csv": "csv",
+    ".tsv": "tsv",
+    ".tab": "tsv",
+    ".txt": "whitespace",
+    ".dat": "whitespace",
+    ".xyz": "whitespace",
+    ".parquet": "parquet",
+    ".pq": "parquet",
+}
 MAG_UNITS = (*NT_PER_UNIT, "counts")
 #: Time units and how many of them make one second.
 PER_SECOND = {"s": 1.0, "ms": 1.0e3, "us": 1.0e6, "ns": 1.0e9}
 TIME_EPOCHS = ("unix", "start", "seconds_of_day")
 SECONDS_PER_DAY = 86_400.0
 #: Layout keys that only apply to text files, with their defaults.
-TEXT_DEFAULTS = {"delimiter": None, "comment": None, "header": None, "skip_rows": 0, "decimal": ".",
-                 "encoding": "utf-8", "missing": ("",)}
-SECTIONS = {"file": ("format", *TEXT_DEFAULTS),
-            "units": ("mag", "mag_scale_nt_per_count", "ref", "angles", "latlon", "time", "time_epoch",
-                      "start_utc", "date_utc", "quaternion_order", "quaternion_frame")}
+TEXT_DEFAULTS = {
+    "delimiter": None,
+    "comment": None,
+    "header": None,
+    "skip_rows": 0,
+    "decimal": ".",
+    "encoding": "utf-8",
+    "missing": ("",),
+}
+SECTIONS = {
+    "file": ("format", *TEXT_DEFAULTS),
+    "units": (
+        "mag",
+        "mag_scale_nt_per_count",
+        "ref",
+        "angles",
+        "latlon",
+        "time",
+        "time_epoch",
+        "start_utc",
+        "date_utc",
+        "quaternion_order",
+        "quaternion_frame",
+    ),
+}
 TOP_LEVEL = ("description", "file", "columns", "units")
 
 
@@ -165,8 +193,12 @@ class ColumnMap:
 
         columns = dict(self.columns)
         for name, spec in columns.items():
-            if isinstance(spec, bool) or not isinstance(spec, (str, int)) or spec == "" or (
-                    isinstance(spec, int) and spec < 1):
+            if (
+                isinstance(spec, bool)
+                or not isinstance(spec, (str, int))
+                or spec == ""
+                or (isinstance(spec, int) and spec < 1)
+            ):
                 bad_column(name, f"{spec!r} is neither a column name nor a 1-based column position")
         object.__setattr__(self, "columns", MappingProxyType(columns))
         for name in (TIME, *MAG):
@@ -212,14 +244,19 @@ class ColumnMap:
         one_of("mag", MAG_UNITS)
         scale = self.mag_scale_nt_per_count
         if self.mag == "counts":
-            if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (
-                    math.isfinite(scale) and scale != 0):
-                bad("mag_scale_nt_per_count", f"{scale!r}: [units] mag = \"counts\" needs a finite, "
-                                              "non-zero number of nT per count")
+            if (
+                isinstance(scale, bool)
+                or not isinstance(scale, (int, float))
+                or not (math.isfinite(scale) and scale != 0)
+            ):
+                bad(
+                    "mag_scale_nt_per_count",
+                    f'{scale!r}: [units] mag = "counts" needs a finite, non-zero number of nT per count',
+                )
             if self.ref is None and REF[0] in columns:
                 bad("ref", "say the unit of ref_n, ref_e, ref_d (nT, uT, mG or G): they cannot be counts")
         elif scale is not None:
-            bad("mag_scale_nt_per_count", f"only applies with [units] mag = \"counts\", not {self.mag!r}")
+            bad("mag_scale_nt_per_count", f'only applies with [units] mag = "counts", not {self.mag!r}')
         if self.ref is not None:
             one_of("ref", tuple(NT_PER_UNIT))
         one_of("angles", ("deg", "rad"))
@@ -232,8 +269,10 @@ class ColumnMap:
         needed = {"start": "start_utc", "seconds_of_day": "date_utc"}.get(self.time_epoch)
         for name in ("start_utc", "date_utc"):
             if name != needed and getattr(self, name) is not None:
-                bad(name, f"only applies with [units] time_epoch = "
-                          f"\"{'start' if name == 'start_utc' else 'seconds_of_day'}\"")
+                bad(
+                    name,
+                    f'only applies with [units] time_epoch = "{"start" if name == "start_utc" else "seconds_of_day"}"',
+                )
         if needed == "start_utc" and self.start_utc is not None:
             object.__setattr__(self, "start_utc", _utc_datetime(self.start_utc, lambda m: bad("start_utc", m)))
         elif needed == "date_utc" and self.date_utc is not None:
@@ -260,8 +299,8 @@ def _utc_datetime(value, bad) -> datetime:
     if isinstance(value, date) and not isinstance(value, datetime):
         value = datetime.combine(value, clock_time())
     if not isinstance(value, datetime):
-        bad(f"{value!r} is not a date-time (required by time_epoch = \"start\")")
-    return value.replace(tzinfo=timezone.utc) if value.tzinfo is None else value.astimezone(timezone.utc)
+        bad(f'{value!r} is not a date-time (required by time_epoch = "start")')
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
 
 
 def _utc_date(value, bad) -> date:
@@ -272,7 +311,7 @@ def _utc_date(value, bad) -> date:
         except ValueError:
             bad(f"{value!r} is not an ISO 8601 date such as 2023-06-14")
     if not isinstance(value, date) or isinstance(value, datetime):
-        bad(f"{value!r} is not a date (required by time_epoch = \"seconds_of_day\")")
+        bad(f'{value!r} is not a date (required by time_epoch = "seconds_of_day")')
     return value
 
 
@@ -313,8 +352,7 @@ def load_column_map(path) -> ColumnMap:
             if section == "columns":
                 continue
             if name not in SECTIONS[section]:
-                raise InputError(f"[{section}] {name}: unknown key; use one of {', '.join(SECTIONS[section])}",
-                                 source)
+                raise InputError(f"[{section}] {name}: unknown key; use one of {', '.join(SECTIONS[section])}", source)
             kwargs[name] = value
     columns = dict(data.get("columns", {}))
     if "keep_unmapped" in columns:
@@ -332,10 +370,10 @@ def load_column_map(path) -> ColumnMap:
 class _RawTable:
     """A table as read: cells by position, the file's column names, and each record's row (line) number."""
 
-    frame: pd.DataFrame   # columns 0..n-1
+    frame: pd.DataFrame  # columns 0..n-1
     names: list[str]
-    rows: np.ndarray      # (N,) int
-    header_row: int       # the row reported for a column missing from the header
+    rows: np.ndarray  # (N,) int
+    header_row: int  # the row reported for a column missing from the header
 
 
 def _split_lines(text: str) -> list[str]:
@@ -352,8 +390,11 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         text = raw.decode(encoding)
     except UnicodeDecodeError as exc:
         line_start = raw.rfind(b"\n", 0, exc.start) + 1
-        raise InputError(f"not {cmap.encoding} text (byte {exc.start - line_start + 1} of the line)", name,
-                         raw[:exc.start].count(b"\n") + 1) from None
+        raise InputError(
+            f"not {cmap.encoding} text (byte {exc.start - line_start + 1} of the line)",
+            name,
+            raw[: exc.start].count(b"\n") + 1,
+        ) from None
     blank = " \t" if fmt == "whitespace" else " "
     comment = cmap.comment
     header_line, header_text = None, None
@@ -366,8 +407,7 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
             if comment and content.startswith(comment):
                 content = content[1:].strip(blank)
             if not content:
-                raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source} is an empty line", name,
-                                 number)
+                raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source} is an empty line", name, number)
             header_line, header_text = number, content
             continue
         if not content or (comment and content.startswith(comment)):
@@ -385,8 +425,16 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         raise InputError("the file has no data rows", name, header_line)
 
     sep = {"csv": cmap.delimiter or ",", "tsv": "\t", "whitespace": r"\s+"}[fmt]
-    options = {"sep": sep, "engine": "c", "comment": comment, "decimal": cmap.decimal, "keep_default_na": False,
-               "skip_blank_lines": False, "skipinitialspace": fmt != "whitespace", "low_memory": False}
+    options = {
+        "sep": sep,
+        "engine": "c",
+        "comment": comment,
+        "decimal": cmap.decimal,
+        "keep_default_na": False,
+        "skip_blank_lines": False,
+        "skipinitialspace": fmt != "whitespace",
+        "low_memory": False,
+    }
     if header_line is None:
         fed_rows = np.asarray(rows)
         names = None
@@ -401,8 +449,13 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", pd.errors.ParserWarning)
-            frame = pd.read_csv(io.StringIO("\n".join(data_lines)), header=None if names is None else 0,
-                                index_col=False, na_values=list(cmap.missing), **options)
+            frame = pd.read_csv(
+                io.StringIO("\n".join(data_lines)),
+                header=None if names is None else 0,
+                index_col=False,
+                na_values=list(cmap.missing),
+                **options,
+            )
     except pd.errors.ParserWarning:
         raise InputError("more fields than the header has columns", name, rows[0]) from None
     except pd.errors.ParserError as exc:
@@ -410,8 +463,11 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         if found is None:
             raise InputError(f"not a readable table ({' '.join(str(exc).split())})", name) from None
         expected, line, saw = map(int, found.groups())
-        raise InputError(f"{saw} fields where {'the header has' if names else 'the first row has'} {expected}",
-                         name, int(fed_rows[line - 1])) from None
+        raise InputError(
+            f"{saw} fields where {'the header has' if names else 'the first row has'} {expected}",
+            name,
+            int(fed_rows[line - 1]),
+        ) from None
     if len(frame) != len(rows):
         raise InputError("a quoted cell spans several lines; magkf reads one record per line", name)
     if names is None:
@@ -440,8 +496,7 @@ def _read_parquet(path: Path) -> _RawTable:
     return _RawTable(frame=frame, names=names, rows=np.arange(table.num_rows) + 2, header_row=1)
 
 
-def _numeric(values: pd.Series, raw: _RawTable, source: str, column: str, decimal: str,
-             note: str = "") -> np.ndarray:
+def _numeric(values: pd.Series, raw: _RawTable, source: str, column: str, decimal: str, note: str = "") -> np.ndarray:
     """(N,) floats of one column; InputError (ending with ``note``) at the first cell that is not a finite
     number. A missing cell (one of the map's ``missing`` texts; NaN or null in Parquet) becomes NaN.
     """
@@ -488,9 +543,11 @@ def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, colu
         raise InputError("empty time cell: every record needs a time", source, int(raw.rows[empty[0]]), column)
     needed = {"start": "start_utc", "seconds_of_day": "date_utc"}.get(cmap.time_epoch)
     if needed and getattr(cmap, needed) is None:
-        raise InputError(f"{_key(needed)}: [units] time_epoch = {cmap.time_epoch!r} needs it (the UTC "
-                         f"{'date-time of time 0' if needed == 'start_utc' else 'date of the first record'})",
-                         cmap.source)
+        raise InputError(
+            f"{_key(needed)}: [units] time_epoch = {cmap.time_epoch!r} needs it (the UTC "
+            f"{'date-time of time 0' if needed == 'start_utc' else 'date of the first record'})",
+            cmap.source,
+        )
     seconds = t / PER_SECOND[cmap.time]
     unit = {"s": "seconds", "ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[cmap.time]
     if cmap.time_epoch == "unix":
@@ -498,19 +555,22 @@ def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, colu
     if cmap.time_epoch == "start":
         start = cmap.start_utc.timestamp()
         return start + seconds, f"{unit} since {cmap.start_utc.isoformat().replace('+00:00', 'Z')}"
-    midnight = datetime.combine(cmap.date_utc, clock_time(), tzinfo=timezone.utc).timestamp()
+    midnight = datetime.combine(cmap.date_utc, clock_time(), tzinfo=UTC).timestamp()
     step = np.diff(seconds)
     rollover = step < -SECONDS_PER_DAY / 2
     days = np.concatenate([[0], np.cumsum(rollover)])
     base = f"{unit} of day from 00:00 UTC on {cmap.date_utc.isoformat()}"
     if rollover.any():
-        base += f"; {int(days[-1])} midnight rollover{'s' if days[-1] > 1 else ''}, the first at row " \
-                f"{int(raw.rows[np.flatnonzero(rollover)[0] + 1])}"
+        base += (
+            f"; {int(days[-1])} midnight rollover{'s' if days[-1] > 1 else ''}, the first at row "
+            f"{int(raw.rows[np.flatnonzero(rollover)[0] + 1])}"
+        )
     return midnight + seconds + SECONDS_PER_DAY * days, base
 
 
-def _quaternion_attitude(q: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str,
-                         column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _quaternion_attitude(
+    q: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, column: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(roll, pitch, yaw)`` in degrees, each (N,), from the file's quaternions (N, 4) in file order.
 
     A record with any component missing gets NaN angles; an all-zero quaternion is an error.
@@ -548,12 +608,20 @@ def _resolve(spec: str | int, key: str, raw: _RawTable, cmap: ColumnMap, source:
     """The position of the file column that ``[columns] key = spec`` names."""
     if isinstance(spec, int):
         if spec > len(raw.names):
-            raise InputError(f"no such column: [columns] {key} = {spec} in {cmap.source}, but the file has "
-                             f"{len(raw.names)} columns", source, raw.header_row, f"#{spec}")
+            raise InputError(
+                f"no such column: [columns] {key} = {spec} in {cmap.source}, but the file has {len(raw.names)} columns",
+                source,
+                raw.header_row,
+                f"#{spec}",
+            )
         return spec - 1
     if spec not in raw.names:
-        raise InputError(f"no such column, asked for by [columns] {key} in {cmap.source} (the file has: "
-                         f"{', '.join(raw.names)})", source, raw.header_row, spec)
+        raise InputError(
+            f"no such column, asked for by [columns] {key} in {cmap.source} (the file has: {', '.join(raw.names)})",
+            source,
+            raw.header_row,
+            spec,
+        )
     return raw.names.index(spec)
 
 
@@ -595,8 +663,11 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         raise InputError("no such file", source)
     fmt = cmap.format or EXTENSION_FORMATS.get(path.suffix.lower())
     if fmt is None:
-        raise InputError(f"cannot tell the format from the extension {path.suffix!r}: set {_key('format')} "
-                         f"({', '.join(FORMATS)}) in {cmap.source}", source)
+        raise InputError(
+            f"cannot tell the format from the extension {path.suffix!r}: set {_key('format')} "
+            f"({', '.join(FORMATS)}) in {cmap.source}",
+            source,
+        )
     _check_layout(cmap, fmt, source)
     raw = _read_parquet(path) if fmt == "parquet" else _read_text(path, cmap, fmt)
 
@@ -610,8 +681,12 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         overflow = np.flatnonzero(~np.isfinite(values) & np.isfinite(file_values))
         if overflow.size:
             i = int(overflow[0])
-            raise InputError(f"{float(file_values[i])!r} is out of range once converted ({conversion})", source,
-                             int(raw.rows[i]), raw.names[positions[key]])
+            raise InputError(
+                f"{float(file_values[i])!r} is out of range once converted ({conversion})",
+                source,
+                int(raw.rows[i]),
+                raw.names[positions[key]],
+            )
 
     out, described = {}, {}
     file_time = cells(TIME)
@@ -620,10 +695,15 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
     back = np.flatnonzero(np.diff(time_values) <= 0)
     if back.size:
         i = int(back[0]) + 1
-        hint = " (a midnight rollover is a decrease of more than 43 200 s)" if cmap.time_epoch == "seconds_of_day" \
-            else ""
-        raise InputError(f"time not strictly increasing ({float(file_time[i])!r} after {float(file_time[i - 1])!r})"
-                         f"{hint}", source, int(raw.rows[i]), raw.names[positions[TIME]])
+        hint = (
+            " (a midnight rollover is a decrease of more than 43 200 s)" if cmap.time_epoch == "seconds_of_day" else ""
+        )
+        raise InputError(
+            f"time not strictly increasing ({float(file_time[i])!r} after {float(file_time[i - 1])!r}){hint}",
+            source,
+            int(raw.rows[i]),
+            raw.names[positions[TIME]],
+        )
     out[TIME], described[TIME] = time_values, f"{raw.names[positions[TIME]]} ({time_base})"
 
     if QUATERNION[0] in positions:
@@ -632,8 +712,10 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         angles = _quaternion_attitude(q, cmap, raw, source, quaternion_columns[0])
         for name, values in zip(ATTITUDE, angles):
             out[name] = values
-            described[name] = (f"{', '.join(quaternion_columns)} (quaternion {cmap.quaternion_order}, "
-                               f"{cmap.quaternion_frame} -> ZYX Euler {name}, deg)")
+            described[name] = (
+                f"{', '.join(quaternion_columns)} (quaternion {cmap.quaternion_order}, "
+                f"{cmap.quaternion_frame} -> ZYX Euler {name}, deg)"
+            )
     for key in cmap.columns:
         if key in (TIME, *QUATERNION):
             continue
@@ -655,9 +737,15 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         elif not _is_numeric_column(raw.frame[k]):
             ignored[column] = "unmapped text column"
         else:
-            out[column] = _numeric(raw.frame[k], raw, source, column, cmap.decimal,
-                                   f" (an unmapped column; set [columns] keep_unmapped = false in {cmap.source} "
-                                   "to leave such columns out)")
+            out[column] = _numeric(
+                raw.frame[k],
+                raw,
+                source,
+                column,
+                cmap.decimal,
+                f" (an unmapped column; set [columns] keep_unmapped = false in {cmap.source} "
+                "to leave such columns out)",
+            )
             described[column] = f"{column} (unmapped, auxiliary, as is)"
 
     mag = np.column_stack([out[c] for c in MAG])
@@ -667,9 +755,12 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
             median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
         guess = likely_unit(median)
         if guess not in (None, "nT"):
-            warnings.warn(f"{source}: the magnetometer magnitudes (median {median:.4g} nT after conversion) look "
-                          f"like {guess}, not {cmap.mag}; check {_key('mag')} in {cmap.source}", UnitWarning,
-                          stacklevel=2)
+            warnings.warn(
+                f"{source}: the magnetometer magnitudes (median {median:.4g} nT after conversion) look "
+                f"like {guess}, not {cmap.mag}; check {_key('mag')} in {cmap.source}",
+                UnitWarning,
+                stacklevel=2,
+            )
 
     order = [c for c in CORE_COLUMNS if c in out] + [c for c in out if c not in CORE_COLUMNS]
     table = pd.DataFrame({c: out[c] for c in order})
@@ -679,7 +770,14 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         units["ref"] = cmap.ref_unit
     if QUATERNION[0] not in cmap.columns:
         del units["quaternion_order"], units["quaternion_frame"]
-    provenance = {"format": "mapped-table", "file": source, "map": cmap.source, "file_format": fmt,
-                  "columns": {c: described[c] for c in order}, "units": units, "time_base": time_base,
-                  "ignored": ignored}
+    provenance = {
+        "format": "mapped-table",
+        "file": source,
+        "map": cmap.source,
+        "file_format": fmt,
+        "columns": {c: described[c] for c in order},
+        "units": units,
+        "time_base": time_base,
+        "ignored": ignored,
+    }
     return table, provenance

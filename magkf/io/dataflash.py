@@ -69,8 +69,22 @@ MAGIC = b"\xa3\x95\x80"
 #: ``COMPASS_MAX_SCALE_FACTOR`` of ``libraries/AP_Compass/CompassCalibrator.h``; the minimum is its inverse.
 MAX_SCALE_FACTOR = 1.5
 #: numpy codes of the struct codes pymavlink gives each format character.
-_NUMPY_CODE = {"b": "i1", "B": "u1", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "q": "<i8", "Q": "<u8",
-               "f": "<f4", "d": "<f8", "e": "<f2", "4s": "S4", "16s": "S16", "64s": "S64"}
+_NUMPY_CODE = {
+    "b": "i1",
+    "B": "u1",
+    "h": "<i2",
+    "H": "<u2",
+    "i": "<i4",
+    "I": "<u4",
+    "q": "<i8",
+    "Q": "<u8",
+    "f": "<f4",
+    "d": "<f8",
+    "e": "<f2",
+    "4s": "S4",
+    "16s": "S16",
+    "64s": "S64",
+}
 #: Compass parameters per state index (0, 1, 2 -> suffix "", "2", "3").
 _CAL_PARAMS = ("OFS_X", "OFS_Y", "OFS_Z", "DIA_X", "DIA_Y", "DIA_Z", "ODI_X", "ODI_Y", "ODI_Z", "SCALE")
 
@@ -79,10 +93,15 @@ _CAL_PARAMS = ("OFS_X", "OFS_Y", "OFS_Z", "DIA_X", "DIA_Y", "DIA_Z", "ODI_X", "O
 def _matrix(diagonals, offdiagonals) -> np.ndarray:
     """ArduPilot's soft-iron matrices (N, 3, 3) from diagonals and off-diagonals (N, 3)."""
     d, o = np.atleast_2d(np.asarray(diagonals, float)), np.atleast_2d(np.asarray(offdiagonals, float))
-    d = np.where(np.all(d == 0, axis=-1, keepdims=True), 1.0, d)   # correct_field: zero diagonals mean ones
-    return np.stack([np.stack([d[:, 0], o[:, 0], o[:, 1]], -1),
-                     np.stack([o[:, 0], d[:, 1], o[:, 2]], -1),
-                     np.stack([o[:, 1], o[:, 2], d[:, 2]], -1)], -2)
+    d = np.where(np.all(d == 0, axis=-1, keepdims=True), 1.0, d)  # correct_field: zero diagonals mean ones
+    return np.stack(
+        [
+            np.stack([d[:, 0], o[:, 0], o[:, 1]], -1),
+            np.stack([o[:, 0], d[:, 1], o[:, 2]], -1),
+            np.stack([o[:, 1], o[:, 2], d[:, 2]], -1),
+        ],
+        -2,
+    )
 
 
 def _effective_scale(scale) -> np.ndarray:
@@ -163,7 +182,7 @@ class _Log:
         from pymavlink import DFReader
 
         class _Reader(DFReader.DFReader_binary):
-            def init_clock(self):   # magkf maps time itself; skip pymavlink's pass over the log
+            def init_clock(self):  # magkf maps time itself; skip pymavlink's pass over the log
                 pass
 
         self.path = str(path)
@@ -173,8 +192,7 @@ class _Log:
         except OSError as exc:
             raise InputError(f"cannot read the file: {exc.strerror}", source=self.path) from None
         if head != MAGIC:
-            raise InputError("not an ArduPilot DataFlash log (it does not start with an FMT message)",
-                             source=self.path)
+            raise InputError("not an ArduPilot DataFlash log (it does not start with an FMT message)", source=self.path)
         try:
             with _captured_output() as chatter:
                 self.reader = _Reader(self.path)
@@ -212,16 +230,18 @@ class _Log:
         try:
             dtype = np.dtype({"names": fmt.columns, "formats": [self._code(c, name) for c in fmt.format]})
         except ValueError:
-            raise InputError(f"message {name} has a malformed FMT (columns {fmt.columns}, format {fmt.format!r})",
-                             source=self.path) from None
+            raise InputError(
+                f"message {name} has a malformed FMT (columns {fmt.columns}, format {fmt.format!r})", source=self.path
+            ) from None
         offsets = np.asarray(self.reader.offsets[fmt.type], np.int64)
         whole = offsets + fmt.len <= len(self.buffer)
         if not whole.all():
             self.truncated = True
             offsets = offsets[whole]
         if dtype.itemsize != fmt.len - 3:
-            raise InputError(f"message {name} declares {fmt.len - 3} bytes but its format has {dtype.itemsize}",
-                             source=self.path)
+            raise InputError(
+                f"message {name} declares {fmt.len - 3} bytes but its format has {dtype.itemsize}", source=self.path
+            )
         body = self.buffer[offsets[:, None] + 3 + np.arange(dtype.itemsize)]
         records = np.ascontiguousarray(body).view(dtype).ravel()
         out = {}
@@ -231,7 +251,7 @@ class _Log:
                 out[col] = np.char.decode(np.char.rstrip(v, b"\x00"), "latin-1")
                 continue
             v = v.astype(float) if char not in "qQ" else v.astype(np.int64)
-            if mult is not None:   # divide by 1e2, 1e7 rather than multiply by 1e-2, 1e-7, as pymavlink does
+            if mult is not None:  # divide by 1e2, 1e7 rather than multiply by 1e-2, 1e-7, as pymavlink does
                 v = v / (1.0 / mult) if 0.0 < mult < 1.0 else v * mult
             out[col] = v
         return out
@@ -246,8 +266,11 @@ class _Log:
 
     def end_damaged(self) -> bool:
         """True if the last message of the file runs past its end."""
-        ends = [self.reader.offsets[t][-1] + f.len for t, f in self.reader.formats.items()
-                if 0 <= t < len(self.reader.offsets) and len(self.reader.offsets[t])]
+        ends = [
+            self.reader.offsets[t][-1] + f.len
+            for t, f in self.reader.formats.items()
+            if 0 <= t < len(self.reader.offsets) and len(self.reader.offsets[t])
+        ]
         return bool(ends) and max(ends) > len(self.buffer)
 
 
@@ -286,8 +309,12 @@ def _mag_streams(log: _Log) -> list[dict]:
 def _summary(stream: dict) -> dict:
     t = stream["table"]["TimeUS"] * 1e-6
     span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    return {"instance": stream["instance"], "message": stream["message"], "samples": len(t),
-            "rate_hz": round((len(t) - 1) / span, 3) if span > 0 else None}
+    return {
+        "instance": stream["instance"],
+        "message": stream["message"],
+        "samples": len(t),
+        "rate_hz": round((len(t) - 1) / span, 3) if span > 0 else None,
+    }
 
 
 def magnetometer_instances(path) -> list[dict]:
@@ -360,11 +387,13 @@ def _reconstruct_raw(table: dict, params: dict, instance: int, firmware: str, no
     p = {q: _param_at(params, _param_name(q, suffix), time_us, defaults[q]) for q in _CAL_PARAMS}
     offsets = np.column_stack([p["OFS_X"], p["OFS_Y"], p["OFS_Z"]])
     logged_ofs = np.column_stack([table.get(c, np.full(len(time_us), np.nan)) for c in ("OfsX", "OfsY", "OfsZ")])
-    differs = np.abs(np.trunc(offsets) - logged_ofs) > 1.0      # False where no offsets are logged
+    differs = np.abs(np.trunc(offsets) - logged_ofs) > 1.0  # False where no offsets are logged
     if differs.any():
         offsets = np.where(differs, _untruncate(logged_ofs), offsets)
-        notes.append(f"{int(differs.any(axis=1).sum())} epochs log offsets (MAG.Ofs) other than COMPASS_OFS{suffix} "
-                     "(e.g. learnt in flight); the logged offsets were used there")
+        notes.append(
+            f"{int(differs.any(axis=1).sum())} epochs log offsets (MAG.Ofs) other than COMPASS_OFS{suffix} "
+            "(e.g. learnt in flight); the logged offsets were used there"
+        )
     diagonals = np.column_stack([p["DIA_X"], p["DIA_Y"], p["DIA_Z"]])
     offdiagonals = np.column_stack([p["ODI_X"], p["ODI_Y"], p["ODI_Z"]])
     motor = _untruncate(np.column_stack([table.get(c, np.zeros(len(time_us))) for c in ("MOX", "MOY", "MOZ")]))
@@ -372,17 +401,21 @@ def _reconstruct_raw(table: dict, params: dict, instance: int, firmware: str, no
     raw = compass_uncorrect(field, offsets, diagonals, offdiagonals, p["SCALE"], motor)
     version = re.search(r"V(\d+)\.(\d+)", firmware)
     if version is None or int(version.group(1)) < 4:
-        notes.append(f"firmware {firmware!r}: the ArduPilot 4.x correction model was assumed; before 4.0 there was "
-                     "no COMPASS_SCALE and motor compensation was added before the soft-iron matrix")
+        notes.append(
+            f"firmware {firmware!r}: the ArduPilot 4.x correction model was assumed; before 4.0 there was "
+            "no COMPASS_SCALE and motor compensation was added before the soft-iron matrix"
+        )
     scale_used = bool(np.any(_effective_scale(p["SCALE"]) != 1.0))
-    text = (f"ArduPilot 4.x AP_Compass_Backend::correct_field assumed (firmware {firmware}): logged MAG = "
-            f"trunc(M ((raw + COMPASS_OFS{suffix}) * COMPASS_SCALE{suffix}) + MO), M from COMPASS_DIA{suffix}/"
-            f"COMPASS_ODI{suffix} (PARM values in effect at each epoch"
-            f"{'' if scale_used else '; SCALE outside [1/1.5, 1.5] or 1, not applied'}). Undone: motor "
-            "compensation MO, soft-iron matrix, scale and offsets; the int16 truncation of MagX/MO is "
-            "taken as +-0.5 mG away from zero. Raw is in the vehicle-aligned frame after the firmware's "
-            f"rotation (driver rotation, then COMPASS_ORIENT{suffix} if external, AHRS_ORIENTATION if "
-            "internal), not in the chip's own axes.")
+    text = (
+        f"ArduPilot 4.x AP_Compass_Backend::correct_field assumed (firmware {firmware}): logged MAG = "
+        f"trunc(M ((raw + COMPASS_OFS{suffix}) * COMPASS_SCALE{suffix}) + MO), M from COMPASS_DIA{suffix}/"
+        f"COMPASS_ODI{suffix} (PARM values in effect at each epoch"
+        f"{'' if scale_used else '; SCALE outside [1/1.5, 1.5] or 1, not applied'}). Undone: motor "
+        "compensation MO, soft-iron matrix, scale and offsets; the int16 truncation of MagX/MO is "
+        "taken as +-0.5 mG away from zero. Raw is in the vehicle-aligned frame after the firmware's "
+        f"rotation (driver rotation, then COMPASS_ORIENT{suffix} if external, AHRS_ORIENTATION if "
+        "internal), not in the chip's own axes."
+    )
     return raw, text
 
 
@@ -390,8 +423,14 @@ def _euler_to_quaternion(roll, pitch, yaw) -> np.ndarray:
     """Quaternions (N, 4), scalar first, of ZYX Euler angles in degrees (N,) (body FRD to NED)."""
     r, p, y = (np.radians(np.asarray(a, float)) / 2 for a in (roll, pitch, yaw))
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.column_stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    return np.column_stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
 
 
 def _time_offset(gps: dict, path: str) -> tuple[float, str]:
@@ -406,10 +445,12 @@ def _time_offset(gps: dict, path: str) -> tuple[float, str]:
     offsets = gps_to_unix(gps["GWk"][use], gps["GMS"][use]) - gps["TimeUS"][use] * 1e-6
     offset = float(np.median(offsets))
     spread = float(np.median(np.abs(offsets - offset)))
-    return offset, (f"UTC = TimeUS * 1e-6 + {offset:.6f} s: median over {int(use.sum())} GPS samples "
-                    f"({'3-D fix' if good.any() else 'with a GPS week, no 3-D fix'}) of "
-                    f"gps_to_unix(GWk, GMS) - TimeUS (leap seconds of the date; median absolute deviation "
-                    f"{spread * 1e3:.1f} ms, mostly log-write latency)")
+    return offset, (
+        f"UTC = TimeUS * 1e-6 + {offset:.6f} s: median over {int(use.sum())} GPS samples "
+        f"({'3-D fix' if good.any() else 'with a GPS week, no 3-D fix'}) of "
+        f"gps_to_unix(GWk, GMS) - TimeUS (leap seconds of the date; median absolute deviation "
+        f"{spread * 1e3:.1f} ms, mostly log-write latency)"
+    )
 
 
 def read_dataflash(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5):
@@ -449,8 +490,9 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     stream = next(s for s in streams if s["instance"] == chosen)
     table = _by_time(stream["table"])
     if len(table["TimeUS"]) < len(stream["table"]["TimeUS"]):
-        notes.append(f"{len(stream['table']['TimeUS']) - len(table['TimeUS'])} MAG samples with a repeated "
-                     "TimeUS dropped")
+        notes.append(
+            f"{len(stream['table']['TimeUS']) - len(table['TimeUS'])} MAG samples with a repeated TimeUS dropped"
+        )
     t_us = table["TimeUS"]
 
     gps = _by_time(_select(log.table("GPS"), 0))
@@ -510,9 +552,12 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
             vdop = np.where(gpa_fix, gpa["VDop"], np.nan)
             frame["vdop"] = interpolate_linear(t, stream_time(gpa), vdop, max_gap_s)[0]
             columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
-        for name, values, text in (("lat", lat, "GPS.Lat (deg)"), ("lon", lon, "GPS.Lng (deg)"),
-                                   ("alt", alt, alt_text), ("hdop", np.where(fix, gps.get("HDop", np.nan), np.nan),
-                                                            "GPS.HDop")):
+        for name, values, text in (
+            ("lat", lat, "GPS.Lat (deg)"),
+            ("lon", lon, "GPS.Lng (deg)"),
+            ("alt", alt, alt_text),
+            ("hdop", np.where(fix, gps.get("HDop", np.nan), np.nan), "GPS.HDop"),
+        ):
             frame[name] = interpolate_linear(t, t_gps, values, max_gap_s)[0]
             columns[name] = f"{text}, only GPS Status >= 3 (3-D fix), linear"
         i, _, valid = bracket(t, t_gps, max_gap_s)
@@ -535,18 +580,28 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     k = _state_index(params, chosen)
     if k < 3:
         suffix = ("", "2", "3")[k]
-        magnetometer["parameter_set"] = f"COMPASS_OFS{suffix}, COMPASS_DIA{suffix}, COMPASS_ODI{suffix}, " \
-                                        f"COMPASS_SCALE{suffix}"
-        for key, name in (("dev_id", f"COMPASS_DEV_ID{suffix}"), ("external", f"COMPASS_EXTERN{suffix or 'AL'}"),
-                          ("orientation", f"COMPASS_ORIENT{suffix}")):
+        magnetometer["parameter_set"] = (
+            f"COMPASS_OFS{suffix}, COMPASS_DIA{suffix}, COMPASS_ODI{suffix}, COMPASS_SCALE{suffix}"
+        )
+        for key, name in (
+            ("dev_id", f"COMPASS_DEV_ID{suffix}"),
+            ("external", f"COMPASS_EXTERN{suffix or 'AL'}"),
+            ("orientation", f"COMPASS_ORIENT{suffix}"),
+        ):
             if name in params:
                 magnetometer[key] = int(params[name][1][-1])
     wanted = ("COMPASS_", "AHRS_ORIENTATION")
     provenance = {
-        "format": "ardupilot-dataflash", "file": source, "columns": columns,
-        "magnetometer": magnetometer, "magnetometers": summaries,
+        "format": "ardupilot-dataflash",
+        "file": source,
+        "columns": columns,
+        "magnetometer": magnetometer,
+        "magnetometers": summaries,
         "parameters": {k: float(v[-1]) for k, (_, v) in sorted(params.items()) if k.startswith(wanted)},
-        "firmware": firmware, "raw_reconstruction": raw_text, "time_base": time_base, "notes": notes,
+        "firmware": firmware,
+        "raw_reconstruction": raw_text,
+        "time_base": time_base,
+        "notes": notes,
     }
     changed = sorted(k for k, (_, v) in params.items() if k.startswith(wanted) and np.ptp(v) > 0)
     if changed:
@@ -559,8 +614,14 @@ def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, fra
     candidates = {
         "temp_c": [("BARO", "Temp", 1.0, "degC"), ("IMU", "T", 1.0, "degC"), ("IMU", "Temp", 1.0, "degC")],
         "current_a": [("BAT", "Curr", 1.0, "A"), ("CURR", "Curr", 1.0, "A")],
-        "throttle": [("CTUN", "ThO", 0.01 if firmware.startswith("ArduPlane") else 1.0,
-                      "percent / 100" if firmware.startswith("ArduPlane") else "0..1")],
+        "throttle": [
+            (
+                "CTUN",
+                "ThO",
+                0.01 if firmware.startswith("ArduPlane") else 1.0,
+                "percent / 100" if firmware.startswith("ArduPlane") else "0..1",
+            )
+        ],
     }
     for name, options in candidates.items():
         for message, field, factor, unit in options:

@@ -75,6 +75,7 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
     s) is taken from the argument if given, else from the sample's ``time`` entry, else from a pandas
     row's name (``DataFrame.iterrows`` and ``DriveLog.table`` rows carry the time as their index).
     """
+
     def number(name) -> float:
         try:
             return float(sample[name])
@@ -198,8 +199,7 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
         raise InputError("attitude needs all of roll, pitch and yaw (or none of them)", name, 1, missing)
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
-        raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field",
-                         name, 1, missing)
+        raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
     for column, lo, hi in ((PITCH, -90, 90), (ROLL, -180, 360), (YAW, -360, 360), (LAT, -90, 90), (LON, -180, 360)):
         if column in table:
             v = table[column].to_numpy()
@@ -213,8 +213,12 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
         median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
         guess = likely_unit(median)
         if guess is not None and guess != mag_unit:
-            warnings.warn(f"{name}: the magnetometer magnitudes (median {median:.4g}) look like {guess}, not "
-                          f"{mag_unit}; pass --mag-unit {guess} if they are", UnitWarning, stacklevel=2)
+            warnings.warn(
+                f"{name}: the magnetometer magnitudes (median {median:.4g}) look like {guess}, not "
+                f"{mag_unit}; pass --mag-unit {guess} if they are",
+                UnitWarning,
+                stacklevel=2,
+            )
     for c in MAG:
         table[c] = to_nanotesla(table[c].to_numpy(), mag_unit)
     table = table.set_index(TIME)

@@ -6,8 +6,8 @@ An empty cell is a missing value (NaN); any other cell must be a finite number.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 import pandas as pd
@@ -42,8 +42,9 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     if not path.is_file():
         raise InputError("no such file", name)
     try:
-        table = pd.read_csv(path, keep_default_na=False, na_values=[""], skipinitialspace=True,
-                            dtype={c: str for c in text_columns})
+        table = pd.read_csv(
+            path, keep_default_na=False, na_values=[""], skipinitialspace=True, dtype={c: str for c in text_columns}
+        )
     except pd.errors.EmptyDataError:
         raise InputError("the file is empty", name) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
@@ -56,8 +57,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         seen.add(column)
     missing = [c for c in required if c not in table.columns]
     if missing:
-        raise InputError(f"required column missing (the header has: {', '.join(table.columns)})",
-                         name, 1, missing[0])
+        raise InputError(f"required column missing (the header has: {', '.join(table.columns)})", name, 1, missing[0])
     if len(table) == 0:
         raise InputError("the file has a header but no data rows", name)
     text = set(text_columns)
@@ -77,13 +77,16 @@ def numeric_column(values: pd.Series, source: str, column: str) -> np.ndarray:
         bad = np.isnan(out) & values.notna().to_numpy()
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise InputError(f"not a number: {values.iloc[i]!r} (leave the cell empty for a missing value)",
-                             source, file_row(i), column)
+            raise InputError(
+                f"not a number: {values.iloc[i]!r} (leave the cell empty for a missing value)",
+                source,
+                file_row(i),
+                column,
+            )
     infinite = np.isinf(out)
     if infinite.any():
         i = int(np.flatnonzero(infinite)[0])
-        raise InputError("not a finite number (leave the cell empty for a missing value)",
-                         source, file_row(i), column)
+        raise InputError("not a finite number (leave the cell empty for a missing value)", source, file_row(i), column)
     return out
 
 

@@ -19,7 +19,7 @@ no such second: GPS instants inside an inserted second map onto the first second
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -31,10 +31,24 @@ SECONDS_PER_WEEK = 604_800.0
 
 #: (first UTC date with the new offset, GPS - UTC in seconds from that date on); IERS Bulletin C.
 LEAP_SECONDS = (
-    ("1981-07-01", 1), ("1982-07-01", 2), ("1983-07-01", 3), ("1985-07-01", 4), ("1988-01-01", 5),
-    ("1990-01-01", 6), ("1991-01-01", 7), ("1992-07-01", 8), ("1993-07-01", 9), ("1994-07-01", 10),
-    ("1996-01-01", 11), ("1997-07-01", 12), ("1999-01-01", 13), ("2006-01-01", 14), ("2009-01-01", 15),
-    ("2012-07-01", 16), ("2015-07-01", 17), ("2017-01-01", 18),
+    ("1981-07-01", 1),
+    ("1982-07-01", 2),
+    ("1983-07-01", 3),
+    ("1985-07-01", 4),
+    ("1988-01-01", 5),
+    ("1990-01-01", 6),
+    ("1991-01-01", 7),
+    ("1992-07-01", 8),
+    ("1993-07-01", 9),
+    ("1994-07-01", 10),
+    ("1996-01-01", 11),
+    ("1997-07-01", 12),
+    ("1999-01-01", 13),
+    ("2006-01-01", 14),
+    ("2009-01-01", 15),
+    ("2012-07-01", 16),
+    ("2015-07-01", 17),
+    ("2017-01-01", 18),
 )
 
 
@@ -42,7 +56,7 @@ def _steps_gps_seconds() -> tuple[np.ndarray, np.ndarray]:
     """The GPS seconds (since the GPS epoch) at which each offset of ``LEAP_SECONDS`` takes effect, and
     the offsets. The step to ``n`` s happens when UTC reaches midnight of its date, i.e. at GPS time
     ``UTC midnight + n``."""
-    dates = np.array([datetime.fromisoformat(d).replace(tzinfo=timezone.utc).timestamp() for d, _ in LEAP_SECONDS])
+    dates = np.array([datetime.fromisoformat(d).replace(tzinfo=UTC).timestamp() for d, _ in LEAP_SECONDS])
     offsets = np.array([n for _, n in LEAP_SECONDS], float)
     return dates - GPS_EPOCH_UNIX + offsets, offsets
 

@@ -73,8 +73,16 @@ NT_PER_GAUSS = NT_PER_UNIT["G"]
 #: the stream's median sample intervals (or ``max_gap_s``, whichever is longer).
 AUX_GAP_INTERVALS = 3.0
 #: The topics read; pyulog is told to skip the others.
-TOPICS = ("sensor_mag", "vehicle_magnetometer", "vehicle_attitude", "vehicle_gps_position", "sensor_gps",
-          "battery_status", "actuator_controls_0", "vehicle_thrust_setpoint")
+TOPICS = (
+    "sensor_mag",
+    "vehicle_magnetometer",
+    "vehicle_attitude",
+    "vehicle_gps_position",
+    "sensor_gps",
+    "battery_status",
+    "actuator_controls_0",
+    "vehicle_thrust_setpoint",
+)
 _MAG_TOPICS = ("sensor_mag", "vehicle_magnetometer")
 _GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 
@@ -123,8 +131,10 @@ def _load(path, topics=TOPICS):
         raise InputError(f"unreadable ULog file ({type(exc).__name__}: {exc})", name) from None
     if tracker.short_read or ulog.file_corruption:
         said = " ".join(chatter.getvalue().split())
-        warnings.warn(f"{name}: the ULog file is truncated or damaged; read up to the damage"
-                      + (f" ({said})" if said else ""), stacklevel=3)
+        warnings.warn(
+            f"{name}: the ULog file is truncated or damaged; read up to the damage" + (f" ({said})" if said else ""),
+            stacklevel=3,
+        )
     return ulog
 
 
@@ -154,8 +164,13 @@ def _instances(ulog) -> list[dict]:
         for instance, data in sorted(_datasets(ulog, topic).items()):
             t = _sample_us(data)
             ident = int(data["device_id"][0]) if "device_id" in data else None
-            item = {"topic": topic, "instance": int(instance), "device_id": ident, "rate_hz": _rate_hz(t),
-                    "samples": len(t)}
+            item = {
+                "topic": topic,
+                "instance": int(instance),
+                "device_id": ident,
+                "rate_hz": _rate_hz(t),
+                "samples": len(t),
+            }
             if "is_external" in data:
                 item["is_external"] = bool(data["is_external"][0])
             out.append(item)
@@ -175,20 +190,26 @@ def _utc_offset_us(gnss: dict, fix: np.ndarray, topic: str, name: str) -> tuple[
     """Median of UTC minus boot time (us) over samples with a fix and a UTC time, and how it was found."""
     utc = gnss["time_utc_usec"].astype(np.int64) if "time_utc_usec" in gnss else None
     if utc is None:
-        raise InputError(f"ULog timestamps are time since boot and no GNSS UTC time: {topic} has no "
-                         f"time_utc_usec field", name)
+        raise InputError(
+            f"ULog timestamps are time since boot and no GNSS UTC time: {topic} has no time_utc_usec field", name
+        )
     at = gnss["timestamp"].astype(np.int64)
     if "timestamp_time_relative" in gnss:
         at = at + gnss["timestamp_time_relative"].astype(np.int64)
     ok = (utc > 0) & (fix >= 2)
     if not ok.any():
-        raise InputError(f"ULog timestamps are time since boot and no GNSS UTC time: no {topic} sample has "
-                         f"a fix and a non-zero time_utc_usec", name)
+        raise InputError(
+            f"ULog timestamps are time since boot and no GNSS UTC time: no {topic} sample has "
+            f"a fix and a non-zero time_utc_usec",
+            name,
+        )
     diff = utc[ok] - at[ok]
     offset = float(np.median(diff))
     spread_ms = float(np.max(np.abs(diff - offset))) * 1e-3
-    text = (f"UTC = boot time + median({topic}.time_utc_usec - timestamp - timestamp_time_relative) over "
-            f"{int(ok.sum())} samples with fix_type >= 2 (largest deviation {spread_ms:.3f} ms)")
+    text = (
+        f"UTC = boot time + median({topic}.time_utc_usec - timestamp - timestamp_time_relative) over "
+        f"{int(ok.sum())} samples with fix_type >= 2 (largest deviation {spread_ms:.3f} ms)"
+    )
     return offset, text
 
 
@@ -206,13 +227,18 @@ def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarr
     else:
         values[LAT], values[LON] = g["lat"] * 1e-7, g["lon"] * 1e-7
         source[LAT], source[LON] = f"{topic}.lat (x 1e-7 deg)", f"{topic}.lon (x 1e-7 deg)"
-    for field, scale, unit in (("altitude_ellipsoid_m", 1.0, "m"), ("alt_ellipsoid", 1e-3, "mm -> m"),
-                               ("altitude_msl_m", 1.0, "m"), ("alt", 1e-3, "mm -> m")):
+    for field, scale, unit in (
+        ("altitude_ellipsoid_m", 1.0, "m"),
+        ("alt_ellipsoid", 1e-3, "mm -> m"),
+        ("altitude_msl_m", 1.0, "m"),
+        ("alt", 1e-3, "mm -> m"),
+    ):
         if field in g:
             values[ALT], source[ALT] = g[field] * scale, f"{topic}.{field} ({unit})"
             if "ellipsoid" not in field:
-                notes.append(f"alt is the height above mean sea level ({topic}.{field}): no ellipsoidal "
-                             "height was logged")
+                notes.append(
+                    f"alt is the height above mean sea level ({topic}.{field}): no ellipsoidal height was logged"
+                )
             break
     values[LAT][fix < 2] = np.nan
     values[LON][fix < 2] = np.nan
@@ -286,8 +312,7 @@ def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str
     return topic, instance, sets[instance]
 
 
-def read_ulog(path, *, mag: int | None = None, raw: bool = True,
-              max_gap_s: float = 0.5) -> tuple[pd.DataFrame, dict]:
+def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> tuple[pd.DataFrame, dict]:
     """Read a PX4 ULog file as a canonical drive log.
 
     Rows are the epochs of the chosen magnetometer (``timestamp_sample``), with ``time`` in UNIX seconds
@@ -322,9 +347,10 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True,
     topic, instance, m = _pick_magnetometer(ulog, mag, raw, name)
     calibrated = topic == "vehicle_magnetometer"
     if calibrated:
-        notes.append("the magnetometer is PX4's calibrated vehicle_magnetometer (offsets, scales and rotation "
-                     "to the body FRD frame applied by PX4), not the raw sensor_mag"
-                     + ("" if raw else " (raw=False)"))
+        notes.append(
+            "the magnetometer is PX4's calibrated vehicle_magnetometer (offsets, scales and rotation "
+            "to the body FRD frame applied by PX4), not the raw sensor_mag" + ("" if raw else " (raw=False)")
+        )
     mag_us = _sample_us(m)
     fields = ("x", "y", "z") if topic == "sensor_mag" else tuple(f"magnetometer_ga[{k}]" for k in range(3))
     mag_g = np.column_stack([m[f].astype(float) for f in fields])
@@ -337,8 +363,10 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True,
 
     gnss_topic = next((tp for tp in _GNSS_TOPICS if _datasets(ulog, tp)), None)
     if gnss_topic is None:
-        raise InputError("ULog timestamps are time since boot and no GNSS UTC time: no vehicle_gps_position "
-                         "or sensor_gps topic", name)
+        raise InputError(
+            "ULog timestamps are time since boot and no GNSS UTC time: no vehicle_gps_position or sensor_gps topic",
+            name,
+        )
     gnss_sets = _datasets(ulog, gnss_topic)
     gnss_instance = min(gnss_sets)
     g = gnss_sets[gnss_instance]
@@ -369,8 +397,10 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True,
     t_gnss = (g["timestamp"].astype(np.int64) - ref_us) * 1e-6
     gap = float(np.median(np.diff(t_gnss))) if len(t_gnss) > 1 else 0.0
     if gap > max_gap_s:
-        notes.append(f"{gnss_topic} is logged every {gap:.2f} s, more than max_gap_s = {max_gap_s} s: "
-                     "positions are missing; raise max_gap_s")
+        notes.append(
+            f"{gnss_topic} is logged every {gap:.2f} s, more than max_gap_s = {max_gap_s} s: "
+            "positions are missing; raise max_gap_s"
+        )
     for column, values in gnss_values.items():
         table[column], _ = interpolate_linear(t, t_gnss, values, max_gap_s)
         columns[column] = gnss_source[column] + " (linear)"
@@ -378,8 +408,10 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True,
     table["fix_type"] = np.where(valid, np.minimum(fix[i], fix[np.minimum(i + 1, len(fix) - 1)]), np.nan)
     columns["fix_type"] = f"{gnss_topic}.fix_type (lower of the bracketing samples)"
 
-    for column, found in (("current_a", _battery(ulog, t, ref_us, max_gap_s)),
-                          ("throttle", _throttle(ulog, t, ref_us, max_gap_s))):
+    for column, found in (
+        ("current_a", _battery(ulog, t, ref_us, max_gap_s)),
+        ("throttle", _throttle(ulog, t, ref_us, max_gap_s)),
+    ):
         if found is not None:
             table[column], columns[column] = found
     if "temperature" in m:
@@ -403,15 +435,21 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True,
         if params.get(f"CAL_MAG{cal_index}_EN") == 0:
             notes.append(f"the chosen magnetometer is disabled in PX4 (CAL_MAG{cal_index}_EN = 0)")
     if "CAL_MAG_PRIME" in params and device_id is not None and params["CAL_MAG_PRIME"] != device_id:
-        notes.append(f"the chosen magnetometer (device_id {device_id}) is not PX4's primary one "
-                     f"(CAL_MAG_PRIME = {params['CAL_MAG_PRIME']})")
+        notes.append(
+            f"the chosen magnetometer (device_id {device_id}) is not PX4's primary one "
+            f"(CAL_MAG_PRIME = {params['CAL_MAG_PRIME']})"
+        )
     rotation["applied"] = calibrated
-    rotation["meaning"] = ("CAL_MAGn_ROT (external) or SENS_BOARD_ROT (internal, -1 in CAL_MAGn_ROT) rotate "
-                           "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer only")
+    rotation["meaning"] = (
+        "CAL_MAGn_ROT (external) or SENS_BOARD_ROT (internal, -1 in CAL_MAGn_ROT) rotate "
+        "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer only"
+    )
     version = _version(ulog)
     if topic == "sensor_mag" and version is not None and tuple(map(int, version.split("."))) < (1, 12):
-        notes.append(f"PX4 {version}: up to v1.11 the driver applied the CAL_MAGn offsets and scales before "
-                     "publishing sensor_mag, so the values may already be offset-corrected (not rotated)")
+        notes.append(
+            f"PX4 {version}: up to v1.11 the driver applied the CAL_MAGn offsets and scales before "
+            "publishing sensor_mag, so the values may already be offset-corrected (not rotated)"
+        )
     changed = sorted({k for _, k, _ in ulog.changed_parameters if k.startswith(("CAL_MAG", "SENS_BOARD"))})
     if changed:
         notes.append(f"parameters changed during the log (initial values reported): {', '.join(changed)}")
@@ -421,9 +459,15 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True,
         "file": name,
         "px4_version": version,
         "columns": columns,
-        "magnetometer": {"topic": topic, "instance": int(instance), "device_id": device_id,
-                         "rate_hz": _rate_hz(mag_us), "calibrated": calibrated, "fields": field_text,
-                         "calibration_index": cal_index},
+        "magnetometer": {
+            "topic": topic,
+            "instance": int(instance),
+            "device_id": device_id,
+            "rate_hz": _rate_hz(mag_us),
+            "calibrated": calibrated,
+            "fields": field_text,
+            "calibration_index": cal_index,
+        },
         "magnetometers": _instances(ulog),
         "gnss": {"topic": gnss_topic, "instance": int(gnss_instance)},
         "parameters": params,
@@ -441,26 +485,54 @@ _NUMPY = {"uint64_t": "<u8", "int32_t": "<i4", "uint32_t": "<u4", "float": "<f4"
 
 def _topic_fields(table: pd.DataFrame) -> dict[str, list[tuple[str, int, str]]]:
     """The topics (name -> [(type, array length or 0, field)]) that a table's columns fill."""
-    topics = {"sensor_mag": [("uint64_t", 0, "timestamp"), ("uint64_t", 0, "timestamp_sample"),
-                             ("uint32_t", 0, "device_id"), ("float", 0, "x"), ("float", 0, "y"), ("float", 0, "z"),
-                             ("float", 0, "temperature"), ("uint32_t", 0, "error_count"),
-                             ("bool", 0, "is_external")]}
+    topics = {
+        "sensor_mag": [
+            ("uint64_t", 0, "timestamp"),
+            ("uint64_t", 0, "timestamp_sample"),
+            ("uint32_t", 0, "device_id"),
+            ("float", 0, "x"),
+            ("float", 0, "y"),
+            ("float", 0, "z"),
+            ("float", 0, "temperature"),
+            ("uint32_t", 0, "error_count"),
+            ("bool", 0, "is_external"),
+        ]
+    }
     if all(c in table for c in (ROLL, PITCH, YAW)):
-        topics["vehicle_attitude"] = [("uint64_t", 0, "timestamp"), ("uint64_t", 0, "timestamp_sample"),
-                                      ("float", 4, "q")]
+        topics["vehicle_attitude"] = [
+            ("uint64_t", 0, "timestamp"),
+            ("uint64_t", 0, "timestamp_sample"),
+            ("float", 4, "q"),
+        ]
     if LAT in table and LON in table:
         topics["vehicle_gps_position"] = [
-            ("uint64_t", 0, "timestamp"), ("uint64_t", 0, "time_utc_usec"), ("int32_t", 0, "lat"),
-            ("int32_t", 0, "lon"), ("int32_t", 0, "alt"), ("int32_t", 0, "alt_ellipsoid"), ("float", 0, "eph"),
-            ("float", 0, "epv"), ("float", 0, "hdop"), ("float", 0, "vdop"),
-            ("int32_t", 0, "timestamp_time_relative"), ("uint8_t", 0, "fix_type"),
-            ("uint8_t", 0, "satellites_used")]
+            ("uint64_t", 0, "timestamp"),
+            ("uint64_t", 0, "time_utc_usec"),
+            ("int32_t", 0, "lat"),
+            ("int32_t", 0, "lon"),
+            ("int32_t", 0, "alt"),
+            ("int32_t", 0, "alt_ellipsoid"),
+            ("float", 0, "eph"),
+            ("float", 0, "epv"),
+            ("float", 0, "hdop"),
+            ("float", 0, "vdop"),
+            ("int32_t", 0, "timestamp_time_relative"),
+            ("uint8_t", 0, "fix_type"),
+            ("uint8_t", 0, "satellites_used"),
+        ]
     if "current_a" in table:
-        topics["battery_status"] = [("uint64_t", 0, "timestamp"), ("float", 0, "voltage_v"),
-                                    ("float", 0, "current_a"), ("bool", 0, "connected")]
+        topics["battery_status"] = [
+            ("uint64_t", 0, "timestamp"),
+            ("float", 0, "voltage_v"),
+            ("float", 0, "current_a"),
+            ("bool", 0, "connected"),
+        ]
     if "throttle" in table:
-        topics["actuator_controls_0"] = [("uint64_t", 0, "timestamp"), ("uint64_t", 0, "timestamp_sample"),
-                                         ("float", 8, "control")]
+        topics["actuator_controls_0"] = [
+            ("uint64_t", 0, "timestamp"),
+            ("uint64_t", 0, "timestamp_sample"),
+            ("float", 8, "control"),
+        ]
     return topics
 
 
@@ -468,8 +540,14 @@ def _euler_to_quaternion(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
     """Scalar-first quaternions (N, 4) of ZYX Euler angles (deg): ``q = qz(yaw) * qy(pitch) * qx(roll)``."""
     y, p, r = (np.radians(np.asarray(a, float)) / 2 for a in (yaw_deg, pitch_deg, roll_deg))
     cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
-    return np.column_stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    return np.column_stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
 
 
 def _column(table: pd.DataFrame, column: str, default: float = np.nan) -> np.ndarray:
@@ -478,6 +556,7 @@ def _column(table: pd.DataFrame, column: str, default: float = np.nan) -> np.nda
 
 def _fill(record: np.ndarray, topic: str, table: pd.DataFrame, boot_us: np.ndarray, utc0_us: int) -> None:
     """Write the payload fields of ``topic`` for every row into the structured ``record``."""
+
     def f(field: str) -> str:
         return f"{topic}.{field}"
 
@@ -546,8 +625,10 @@ def write_ulog(table: pd.DataFrame, path, *, start_boot_us: int = 10_000_000) ->
     utc0_us = round(time_s[0] * 1e6)
     topics = _topic_fields(table)
 
-    definitions = [_HEADER + struct.pack("<BQ", 1, start_boot_us),
-                   _message(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0))]
+    definitions = [
+        _HEADER + struct.pack("<BQ", 1, start_boot_us),
+        _message(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0)),
+    ]
     for topic, fields in topics.items():
         text = "".join(f"{kind}[{size}] {field};" if size else f"{kind} {field};" for kind, size, field in fields)
         definitions.append(_message(b"F", f"{topic}:{text}".encode()))

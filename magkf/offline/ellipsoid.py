@@ -28,8 +28,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..conventions import MAG
 from ..errors import InputError
 from ..io.calibration import Calibration
+from .base import Calibrator
 
 #: Smallest ratio sqrt(lambda_min / lambda_max) of the centred sample scatter for a 3-axis fit.
 MIN_THICKNESS = 0.05
@@ -50,9 +52,9 @@ def patent_matrix(k, angles_rad) -> np.ndarray:
     k = np.asarray(k, float)
     if k.size == 3:
         a, be, g = angles_rad
-        K2 = np.array([[np.cos(a), 0.0, np.sin(a)],
-                       [np.sin(be) * np.cos(g), np.cos(be) * np.cos(g), np.sin(g)],
-                       [0.0, 0.0, 1.0]])
+        K2 = np.array(
+            [[np.cos(a), 0.0, np.sin(a)], [np.sin(be) * np.cos(g), np.cos(be) * np.cos(g), np.sin(g)], [0.0, 0.0, 1.0]]
+        )
     else:
         (a,) = np.atleast_1d(angles_rad)[:1]
         K2 = np.array([[1.0, 0.0], [np.sin(a), np.cos(a)]])
@@ -96,7 +98,7 @@ def algebraic_fit(X: np.ndarray, field: float) -> tuple[np.ndarray, np.ndarray]:
     A = np.zeros((d, d))
     A[iu] = v[: len(iu[0])]
     A = A + np.triu(A, 1).T
-    p, g = v[len(iu[0]): len(iu[0]) + d], v[-1]
+    p, g = v[len(iu[0]) : len(iu[0]) + d], v[-1]
     try:
         centre = -np.linalg.solve(A, p)
     except np.linalg.LinAlgError:
@@ -167,53 +169,65 @@ class EllipsoidResult:
         R, b = np.eye(3), np.zeros(3)
         R[: self.axes, : self.axes], b[: self.axes] = self.R, self.b
         quality = {k: v for k, v in self.summary().items() if k not in ("R", "b", "parameters", "standard_errors")}
-        return Calibration(R=R, b=b, method="ellipsoid" if self.axes == 3 else "ellipse",
-                           parameters=self.parameters, standard_errors=self.standard_errors,
-                           quality=quality, source=source)
+        return Calibration(
+            R=R,
+            b=b,
+            method="ellipsoid" if self.axes == 3 else "ellipse",
+            parameters=self.parameters,
+            standard_errors=self.standard_errors,
+            quality=quality,
+            source=source,
+        )
 
     def summary(self) -> dict:
-        return {"axes": self.axes, "field": self.field, "R": self.R.tolist(), "b": self.b.tolist(),
-                "parameters": self.parameters, "standard_errors": self.standard_errors,
-                "algebraic": self.algebraic, "residual_rms": self.residual_rms,
-                "magnitude_spread_before": self.magnitude_spread_before,
-                "magnitude_spread_after": self.magnitude_spread_after,
-                "coverage": self.coverage, "n_samples": self.n_samples,
-                "poorly_determined": self.poorly_determined, "warnings": self.warnings}
+        return {
+            "axes": self.axes,
+            "field": self.field,
+            "R": self.R.tolist(),
+            "b": self.b.tolist(),
+            "parameters": self.parameters,
+            "standard_errors": self.standard_errors,
+            "algebraic": self.algebraic,
+            "residual_rms": self.residual_rms,
+            "magnitude_spread_before": self.magnitude_spread_before,
+            "magnitude_spread_after": self.magnitude_spread_after,
+            "coverage": self.coverage,
+            "n_samples": self.n_samples,
+            "poorly_determined": self.poorly_determined,
+            "warnings": self.warnings,
+        }
 
 
 # ---------------------------------------------------------------- calibrator
-class EllipsoidCalibrator:
+class EllipsoidCalibrator(Calibrator):
     """Ellipsoid (``axes=3``) or ellipse (``axes=2``) calibration of a vector sensor.
 
     ``field`` is the true magnitude in data units (1.0 for a unit sphere, 9.80665 for an
     accelerometer in m/s^2, an IGRF magnitude in nT for a magnetometer). ``refine=False`` stops after
-    the algebraic fit. ``fit(X)`` takes samples of shape (N, axes) and returns ``self``; the result is
-    ``result_``.
+    the algebraic fit. ``fit(X)`` takes samples (N, axes), an array or a DataFrame (its ``mag_x, mag_y
+    [, mag_z]`` columns when present, else its first ``axes`` columns), and returns ``self``; the result
+    is ``result_`` (and ``R_``, ``b_``, ``calibration_``). The scikit-learn contract of
+    ``magkf.offline.base``.
     """
 
     def __init__(self, axes: int = 3, field: float = 1.0, refine: bool = True):
-        if axes not in (2, 3):
+        self.axes, self.field, self.refine = axes, field, refine
+
+    def fit(self, X, source: str = "data") -> EllipsoidCalibrator:
+        if self.axes not in (2, 3):
             raise ValueError("axes must be 2 or 3")
-        if not field > 0:
+        if not float(self.field) > 0:
             raise ValueError("the field magnitude must be positive")
-        self.axes, self.field, self.refine = axes, float(field), refine
-
-    @property
-    def result_(self) -> EllipsoidResult:
-        try:
-            return self._result
-        except AttributeError:
-            raise RuntimeError("EllipsoidCalibrator is not fitted yet: call fit() first") from None
-
-    def fit(self, X, source: str = "data") -> "EllipsoidCalibrator":
-        X = np.asarray(X, float)
-        d, F = self.axes, self.field
+        X = _samples(X, self.axes)
+        d, F = self.axes, float(self.field)
         if X.ndim != 2 or X.shape[1] != d:
             raise ValueError(f"expected samples of shape (N, {d}), got {X.shape}")
         n_min = 4 * (len(parameter_names(d)) + 1)
         if len(X) < n_min:
-            raise InputError(f"too few samples: {len(X)}, an {'ellipsoid' if d == 3 else 'ellipse'} fit needs "
-                             f"at least {n_min}", source)
+            raise InputError(
+                f"too few samples: {len(X)}, an {'ellipsoid' if d == 3 else 'ellipse'} fit needs at least {n_min}",
+                source,
+            )
         self._check_geometry(X, source)
         S, centre = algebraic_fit(X, F)
         k, ang = patent_parameters(S)
@@ -236,12 +250,21 @@ class EllipsoidCalibrator:
         if cov < 0.3:
             warnings.append(f"the data cover only {100 * cov:.0f}% of the {'sphere' if d == 3 else 'circle'}")
         self._result = EllipsoidResult(
-            axes=d, field=F, R=K, b=b, parameters=dict(zip(names, _readable(x, d))),
-            standard_errors=dict(zip(names, _readable(se, d, offsets=False))), algebraic=algebraic,
+            axes=d,
+            field=F,
+            R=K,
+            b=b,
+            parameters=dict(zip(names, _readable(x, d))),
+            standard_errors=dict(zip(names, _readable(se, d, offsets=False))),
+            algebraic=algebraic,
             residual_rms=float(np.sqrt(np.mean((mags - F) ** 2))),
             magnitude_spread_before=float(raw.std() / raw.mean()),
             magnitude_spread_after=float(mags.std() / mags.mean()),
-            coverage=cov, n_samples=len(X), poorly_determined=poorly, warnings=warnings)
+            coverage=cov,
+            n_samples=len(X),
+            poorly_determined=poorly,
+            warnings=warnings,
+        )
         return self
 
     def _check_geometry(self, X: np.ndarray, source: str) -> None:
@@ -255,9 +278,13 @@ class EllipsoidCalibrator:
                     f"degenerate geometry: the samples lie close to a plane (normal ({normal}) in sensor axes, "
                     f"thickness {thickness:.3f}); a 3-axis fit cannot determine the sensitivity, offset and "
                     "tilt along that normal: use --axes 2 for planar data or add samples with that axis turned",
-                    source)
-            raise InputError(f"degenerate geometry: the samples lie close to a line (thickness {thickness:.3f}); "
-                             "turn the sensor through a wider arc", source)
+                    source,
+                )
+            raise InputError(
+                f"degenerate geometry: the samples lie close to a line (thickness {thickness:.3f}); "
+                "turn the sensor through a wider arc",
+                source,
+            )
 
 
 def _magnitudes(X, x, d) -> np.ndarray:
@@ -277,6 +304,17 @@ def _radial_variance(X, x, d) -> np.ndarray:
     u = (X - x[-d:]) @ L.T
     u /= np.linalg.norm(u, axis=1)[:, None]
     return np.einsum("ni,ij,nj->n", u, L @ L.T, u)
+
+
+def _samples(X, axes: int) -> np.ndarray:
+    """Samples (N, axes) of an array or a DataFrame (``mag_x, mag_y[, mag_z]`` if present, else its first columns)."""
+    if hasattr(X, "columns"):
+        names = [c for c in MAG[:axes] if c in X.columns]
+        X = X[names] if len(names) == axes else X.iloc[:, :axes]
+    X = np.asarray(X, float)
+    if X.ndim != 2 or X.shape[1] != axes:
+        raise ValueError(f"expected samples of shape (N, {axes}), got {X.shape}")
+    return X
 
 
 def _refine(X, x0, F, d):
@@ -321,5 +359,5 @@ def _readable(x, d, offsets=True) -> list:
     """Parameter vector with angles turned into degrees."""
     x = np.asarray(x, float).copy()
     n_ang = 1 if d == 2 else 3
-    x[d: d + n_ang] = np.degrees(x[d: d + n_ang])
+    x[d : d + n_ang] = np.degrees(x[d : d + n_ang])
     return [float(v) for v in x]

@@ -18,8 +18,8 @@ Two solvers:
 ``method="paper"``
     The published closed-form equations (5)-(16): phases, amplitudes and offsets of the fitted curves,
     ``kx`` from one sample (eq. 15-16). Eq. (7) prints ``kyx = A_x / A_y``, but ``kyx = ky/kx`` and the
-    paper's own value 1.2607 is ``A_y / A_x``; magkf uses the latter. Eq. (11) ``Bz0 = D'_z`` ignores the vertical field that leaks
-    into Zm through ``kz sin b sin g`` in plane ``xz``; kept as published.
+    paper's own value 1.2607 is ``A_y / A_x``; magkf uses the latter. Eq. (11) ``Bz0 = D'_z`` ignores the
+    vertical field that leaks into Zm through ``kz sin b sin g`` in plane ``xz``; kept as published.
 ``method="exact"``
     Starts from the closed form with the leak removed, then solves the nine parameters (plus the
     unknown table heading of each plane) by nonlinear least squares over every sample of both planes,
@@ -39,6 +39,7 @@ from ..conventions import ANGLE, MAG, PLANE, wrap_deg
 from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.tables import read_csv, require_complete, require_rows
+from .base import Calibrator
 
 PLANES = ("xy", "xz")
 PARAMETER_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "kx", "ky", "kz", "b_x", "b_y", "b_z")
@@ -77,21 +78,25 @@ class SineFitParameters:
     def matrix(self) -> np.ndarray:
         """The lower-triangular ``K`` of eq. (1), shape (3, 3); it is ``R`` in ``m = R B + b``."""
         a, be, g = np.radians([self.alpha_deg, self.beta_deg, self.gamma_deg])
-        return np.array([[self.kx, 0.0, 0.0],
-                         [self.ky * np.sin(a), self.ky * np.cos(a), 0.0],
-                         [self.kz * np.cos(be) * np.sin(g), self.kz * np.sin(be) * np.sin(g), self.kz * np.cos(g)]])
+        return np.array(
+            [
+                [self.kx, 0.0, 0.0],
+                [self.ky * np.sin(a), self.ky * np.cos(a), 0.0],
+                [self.kz * np.cos(be) * np.sin(g), self.kz * np.sin(be) * np.sin(g), self.kz * np.cos(g)],
+            ]
+        )
 
     def as_vector(self) -> np.ndarray:
         """``(alpha, beta, gamma, kx, ky, kz, bx, by, bz)`` with angles in degrees, shape (9,)."""
         return np.array([self.alpha_deg, self.beta_deg, self.gamma_deg, self.kx, self.ky, self.kz, *self.b], float)
 
     @classmethod
-    def from_vector(cls, v) -> "SineFitParameters":
+    def from_vector(cls, v) -> SineFitParameters:
         v = [float(x) for x in v]
         return cls(*v[:6], b=tuple(v[6:9]))
 
     @classmethod
-    def from_matrix(cls, K, b) -> "SineFitParameters":
+    def from_matrix(cls, K, b) -> SineFitParameters:
         """Parameters of a lower-triangular ``K`` (3, 3) and offsets ``b`` (3,)."""
         K = np.asarray(K, float)
         if np.any(np.abs(np.triu(K, 1)) > 1e-12 * np.abs(K).max()):
@@ -100,8 +105,9 @@ class SineFitParameters:
         alpha = np.degrees(np.arctan2(K[1, 0], K[1, 1]))
         beta = np.degrees(np.arctan2(K[2, 1], K[2, 0]))
         gamma = np.degrees(np.arccos(np.clip(K[2, 2] / kz, -1.0, 1.0)))
-        return cls(float(alpha), float(beta), float(gamma), float(K[0, 0]), float(ky), float(kz),
-                   tuple(float(x) for x in b))
+        return cls(
+            float(alpha), float(beta), float(gamma), float(K[0, 0]), float(ky), float(kz), tuple(float(x) for x in b)
+        )
 
     def as_dict(self) -> dict:
         return dict(zip(PARAMETER_NAMES, self.as_vector().tolist()))
@@ -151,16 +157,27 @@ def fit_sine(angle_deg, values) -> SineCurve:
     ja = np.array([p, q]) / amplitude if amplitude > 0 else np.zeros(2)
     jc = np.array([-q, p]) / amplitude**2 if amplitude > 0 else np.zeros(2)
     c2 = cov[:2, :2]
-    return SineCurve(amplitude, phase, float(d),
-                     amplitude_se=float(np.sqrt(ja @ c2 @ ja)),
-                     phase_se_deg=float(np.degrees(np.sqrt(jc @ c2 @ jc))),
-                     offset_se=float(np.sqrt(cov[2, 2])),
-                     rms=float(np.sqrt(resid @ resid / n)), n=n)
+    return SineCurve(
+        amplitude,
+        phase,
+        float(d),
+        amplitude_se=float(np.sqrt(ja @ c2 @ ja)),
+        phase_se_deg=float(np.degrees(np.sqrt(jc @ c2 @ jc))),
+        offset_se=float(np.sqrt(cov[2, 2])),
+        rms=float(np.sqrt(resid @ resid / n)),
+        n=n,
+    )
 
 
 # ---------------------------------------------------------------- turntable geometry
-def turntable_field(plane: str, angle_deg, field_nt: float, inclination_deg: float,
-                    heading_offset_deg: float = 0.0, xz_roll_sign: int = 1) -> np.ndarray:
+def turntable_field(
+    plane: str,
+    angle_deg,
+    field_nt: float,
+    inclination_deg: float,
+    heading_offset_deg: float = 0.0,
+    xz_roll_sign: int = 1,
+) -> np.ndarray:
     """Field in the sensor's orthogonal frame, (N, 3) nT, at the given table angles (N,).
 
     ``heading_offset_deg`` is the magnetic heading of the X axis at table angle 0; ``xz_roll_sign``
@@ -207,27 +224,43 @@ class SineFitResult:
     def to_calibration(self, source: str | None = None) -> Calibration:
         p = self.parameters.as_dict()
         p["phi_deg"] = self.parameters.phi_deg
-        return Calibration(R=self.R, b=self.b, method=f"sinefit-{self.method}", parameters=p,
-                           standard_errors=self.standard_errors,
-                           quality={"residual_rms_nt": self.residual_rms_nt, "field_nt": self.field_nt,
-                                    "inclination_deg": self.inclination_deg, **self.extras},
-                           source=source)
+        return Calibration(
+            R=self.R,
+            b=self.b,
+            method=f"sinefit-{self.method}",
+            parameters=p,
+            standard_errors=self.standard_errors,
+            quality={
+                "residual_rms_nt": self.residual_rms_nt,
+                "field_nt": self.field_nt,
+                "inclination_deg": self.inclination_deg,
+                **self.extras,
+            },
+            source=source,
+        )
 
     def summary(self) -> dict:
         """JSON-ready result: the nine parameters, phi, R, b, standard errors, fit quality."""
         out = self.parameters.as_dict()
-        out.update(phi_deg=self.parameters.phi_deg, R=self.R.tolist(), b=self.b.tolist(),
-                   standard_errors=self.standard_errors, method=self.method,
-                   residual_rms_nt=self.residual_rms_nt, field_nt=self.field_nt,
-                   inclination_deg=self.inclination_deg,
-                   curves={plane: {axis: vars(c) for axis, c in axes.items()} for plane, axes in self.curves.items()})
+        out.update(
+            phi_deg=self.parameters.phi_deg,
+            R=self.R.tolist(),
+            b=self.b.tolist(),
+            standard_errors=self.standard_errors,
+            method=self.method,
+            residual_rms_nt=self.residual_rms_nt,
+            field_nt=self.field_nt,
+            inclination_deg=self.inclination_deg,
+            curves={plane: {axis: vars(c) for axis, c in axes.items()} for plane, axes in self.curves.items()},
+        )
         out.update(self.extras)
         return out
 
 
 # ---------------------------------------------------------------- the paper's closed form
-def paper_equations(curves_xy: dict, curves_xz: dict, field_nt: float, sample_xy=None,
-                    vertical_leak_nt: float = 0.0) -> SineFitParameters:
+def paper_equations(
+    curves_xy: dict, curves_xz: dict, field_nt: float, sample_xy=None, vertical_leak_nt: float = 0.0
+) -> SineFitParameters:
     """The paper's eq. (5)-(16) from fitted curves.
 
     ``curves_xy`` maps ``x, y, z`` to the curves of rotation 1; ``curves_xz`` maps ``x, z`` to those of
@@ -262,60 +295,76 @@ def paper_equations(curves_xy: dict, curves_xz: dict, field_nt: float, sample_xy
 def paper_from_curves(curves_xy: dict, curves_xz: dict, field_nt: float, inclination_deg: float) -> SineFitResult:
     """The paper's method applied to printed curves (no samples); standard errors are not available."""
     params = paper_equations(curves_xy, curves_xz, field_nt)
-    return SineFitResult(params, {k: float("nan") for k in PARAMETER_NAMES},
-                         {"xy": dict(curves_xy), "xz": dict(curves_xz)}, "paper", field_nt, inclination_deg)
+    return SineFitResult(
+        params,
+        {k: float("nan") for k in PARAMETER_NAMES},
+        {"xy": dict(curves_xy), "xz": dict(curves_xz)},
+        "paper",
+        field_nt,
+        inclination_deg,
+    )
 
 
 # ---------------------------------------------------------------- the calibrator
-class SineFitCalibrator:
+class SineFitCalibrator(Calibrator):
     """Sine-fit calibration from a two-plane turntable run.
 
-    ``__init__`` stores settings; ``fit(table)`` does the work and returns ``self``; results end in ``_``
-    (``result_``). ``field_nt`` is the field magnitude (nT), ``inclination_deg`` its inclination.
+    ``field_nt`` is the field magnitude (nT), ``inclination_deg`` its inclination, ``method`` ``exact``
+    or ``paper``. ``fit(table)`` takes the columns ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT) as a
+    DataFrame or anything ``pandas.DataFrame`` accepts (a dict of arrays, a structured array) and returns
+    ``self``; the result is ``result_`` (and ``R_``, ``b_``, ``calibration_``). The scikit-learn contract
+    of ``magkf.offline.base``.
     """
 
     def __init__(self, field_nt: float, inclination_deg: float, method: str = "exact"):
-        if method not in ("paper", "exact"):
-            raise ValueError(f"unknown method {method!r}; use 'paper' or 'exact'")
-        if not field_nt > 0:
-            raise ValueError("the field magnitude must be positive")
-        self.field_nt, self.inclination_deg, self.method = float(field_nt), float(inclination_deg), method
+        self.field_nt, self.inclination_deg, self.method = field_nt, inclination_deg, method
 
-    @property
-    def result_(self) -> SineFitResult:
-        try:
-            return self._result
-        except AttributeError:
-            raise RuntimeError("SineFitCalibrator is not fitted yet: call fit() first") from None
-
-    def fit(self, table: pd.DataFrame, source: str = "turntable data") -> "SineFitCalibrator":
+    def fit(self, table, source: str = "turntable data") -> SineFitCalibrator:
         """Fit a turntable table with columns ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT)."""
+        if self.method not in ("paper", "exact"):
+            raise ValueError(f"unknown method {self.method!r}; use 'paper' or 'exact'")
+        if not float(self.field_nt) > 0:
+            raise ValueError("the field magnitude must be positive")
+        table = table if isinstance(table, pd.DataFrame) else pd.DataFrame(table)
+        missing = [c for c in (PLANE, ANGLE, *MAG) if c not in table.columns]
+        if missing:
+            raise InputError("required column missing", source, column=missing[0])
+        field_nt, inclination_deg = float(self.field_nt), float(self.inclination_deg)
         planes = {p: table[table[PLANE] == p] for p in PLANES}
         for p, rows in planes.items():
             require_rows(rows, MIN_SAMPLES_PER_PLANE, source, f"plane {p!r}")
         for p, rows in planes.items():
             span = arc_span_deg(rows[ANGLE].to_numpy())
             if span < MIN_ARC_DEG:
-                raise InputError(f"degenerate geometry: plane {p!r} spans only {span:.0f} deg of table angle; "
-                                 f"turn the table through at least {MIN_ARC_DEG:.0f} deg", source, column=ANGLE)
+                raise InputError(
+                    f"degenerate geometry: plane {p!r} spans only {span:.0f} deg of table angle; "
+                    f"turn the table through at least {MIN_ARC_DEG:.0f} deg",
+                    source,
+                    column=ANGLE,
+                )
         curves = {p: {a: fit_sine(rows[ANGLE], rows[f"mag_{a}"]) for a in "xyz"} for p, rows in planes.items()}
         first = planes["xy"][list(MAG)].to_numpy()[0]
-        paper = paper_equations(curves["xy"], curves["xz"], self.field_nt, sample_xy=first)
+        paper = paper_equations(curves["xy"], curves["xz"], field_nt, sample_xy=first)
         data = [(p, planes[p][ANGLE].to_numpy(), planes[p][list(MAG)].to_numpy()) for p in PLANES]
         if self.method == "paper":
-            resid = model_residuals(paper, data, self.field_nt, self.inclination_deg, _heading_offsets(curves), 1)
-            self._result = SineFitResult(paper, {k: float("nan") for k in PARAMETER_NAMES}, curves, "paper",
-                                         self.field_nt, self.inclination_deg,
-                                         residual_rms_nt=float(np.sqrt(np.mean(resid**2))))
+            resid = model_residuals(paper, data, field_nt, inclination_deg, _heading_offsets(curves), 1)
+            self._result = SineFitResult(
+                paper,
+                {k: float("nan") for k in PARAMETER_NAMES},
+                curves,
+                "paper",
+                field_nt,
+                inclination_deg,
+                residual_rms_nt=float(np.sqrt(np.mean(resid**2))),
+            )
         else:
-            self._result = self._exact(data, curves, paper)
+            self._result = self._exact(data, curves, paper, field_nt, inclination_deg)
         return self
 
-    def _exact(self, data, curves, paper: SineFitParameters) -> SineFitResult:
+    def _exact(self, data, curves, paper: SineFitParameters, field_nt: float, inclination_deg: float) -> SineFitResult:
         # Turning the sensor 180 deg about z (kx, ky -> -kx, -ky) with both table headings + 180 deg and
         # the opposite roll in plane xz fits the data equally well; positive sensitivities pick the branch.
-        fits = [(_solve_exact(data, curves, paper, self.field_nt, self.inclination_deg, sign), sign)
-                for sign in (1, -1)]
+        fits = [(_solve_exact(data, curves, paper, field_nt, inclination_deg, sign), sign) for sign in (1, -1)]
         fit, sign = min(fits, key=lambda f: (not np.all(f[0].x[3:6] > 0), f[0].cost))
         n, p = fit.fun.size, fit.x.size
         s2 = 2 * fit.cost / max(n - p, 1)
@@ -328,11 +377,19 @@ class SineFitCalibrator:
         params = _unpack(fit.x)
         scale = np.array([np.degrees(1)] * 3 + [1.0] * 6)
         standard_errors = dict(zip(PARAMETER_NAMES, (se[:9] * scale).tolist()))
-        return SineFitResult(params, standard_errors, curves, "exact", self.field_nt, self.inclination_deg,
-                             residual_rms_nt=float(np.sqrt(2 * fit.cost / n)),
-                             extras={"xz_roll_deg": 90.0 * sign,
-                                     "heading_offsets_deg": {"xy": float(np.degrees(fit.x[9])),
-                                                             "xz": float(np.degrees(fit.x[10]))}})
+        return SineFitResult(
+            params,
+            standard_errors,
+            curves,
+            "exact",
+            field_nt,
+            inclination_deg,
+            residual_rms_nt=float(np.sqrt(2 * fit.cost / n)),
+            extras={
+                "xz_roll_deg": 90.0 * sign,
+                "heading_offsets_deg": {"xy": float(np.degrees(fit.x[9])), "xz": float(np.degrees(fit.x[10]))},
+            },
+        )
 
 
 def _heading_offsets(curves) -> tuple[float, float]:
@@ -368,8 +425,9 @@ def _solve_exact(data, curves, paper: SineFitParameters, field_nt, inclination_d
     a_signed = np.radians(wrap_deg(180.0 - (cxy["y"].phase_deg - cxy["x"].phase_deg + 90.0)))
     b_signed = np.radians(wrap_deg(cxy["z"].phase_deg - cxy["x"].phase_deg))
     offsets = np.radians(_heading_offsets(curves))
-    x0 = np.array([a_signed, b_signed, g, paper.kx, paper.ky, paper.kz,
-                   paper.b[0], paper.b[1], paper.b[2] - leak, *offsets])
+    x0 = np.array(
+        [a_signed, b_signed, g, paper.kx, paper.ky, paper.kz, paper.b[0], paper.b[1], paper.b[2] - leak, *offsets]
+    )
     if not np.isfinite(x0).all():
         raise InputError("degenerate geometry: the fitted curves do not determine the parameters")
 
@@ -380,8 +438,9 @@ def _solve_exact(data, curves, paper: SineFitParameters, field_nt, inclination_d
         return exact_jacobian(x, data, field_nt, inclination_deg, sign)
 
     scale = np.array([1e-2] * 3 + [1e-2] * 3 + [1.0] * 3 + [1e-2] * 2)
-    return least_squares(residuals, x0, jac=jacobian, method="lm", x_scale=scale, xtol=1e-12, ftol=1e-12,
-                         gtol=1e-12, max_nfev=2000)
+    return least_squares(
+        residuals, x0, jac=jacobian, method="lm", x_scale=scale, xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000
+    )
 
 
 def exact_jacobian(x, data, field_nt, inclination_deg, sign) -> np.ndarray:

@@ -37,8 +37,7 @@ OUTLIER_SIGMA = 5.0
 LOSS_SCALE = 3.0
 
 
-def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None,
-                effects=()):
+def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()):
     """Batch calibration of ``log``; returns a ``CalibrationRun`` (states constant over the log)."""
     from scipy.optimize import least_squares
 
@@ -66,8 +65,9 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     x_start = x0.copy()
     core = layout.CORE
     if init is None and len(att) >= 3 * 12 and not effects:
-        x_start[core], _, _ = vector_least_squares(prep.m[att], data.field_body[att], config.sensor_noise_nt,
-                                                   x0[core], np.sqrt(np.diag(P0)[core]))
+        x_start[core], _, _ = vector_least_squares(
+            prep.m[att], data.field_body[att], config.sensor_noise_nt, x0[core], np.sqrt(np.diag(P0)[core])
+        )
     idx = np.flatnonzero(cand)
     c0 = calibrated(x_start, data.take(idx), prep.m[idx])
     off = np.abs(np.linalg.norm(c0, axis=1) - prep.ref_mag[idx]) > config.gate_nt
@@ -122,7 +122,24 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     n = len(status)
     xs = np.tile(fit.x, (n, 1))
     stds = np.tile(np.sqrt(np.diag(P)), (n, 1))
-    return build_run(log=log, prep=prep, config=config, layout=layout, x0=x0, P0=P0, xs=xs, stds=stds,
-                     status=status, updated=used, nis=np.full(n, np.nan), x_final=fit.x, P_final=P,
-                     information=information, init_how=how, smoothed=False, reacquisitions=0,
-                     elapsed_s=_time.perf_counter() - started, method="batch")
+    return build_run(
+        log=log,
+        prep=prep,
+        config=config,
+        layout=layout,
+        x0=x0,
+        P0=P0,
+        xs=xs,
+        stds=stds,
+        status=status,
+        updated=used,
+        nis=np.full(n, np.nan),
+        x_final=fit.x,
+        P_final=P,
+        information=information,
+        init_how=how,
+        smoothed=False,
+        reacquisitions=0,
+        elapsed_s=_time.perf_counter() - started,
+        method="batch",
+    )

@@ -81,8 +81,7 @@ def completion_prior(x: np.ndarray) -> np.ndarray:
     return prior
 
 
-def bootstrap_vector(m, field_body, time, noise_nt: float, span_s: float, extra=None,
-                     extra_prior=None) -> Bootstrap:
+def bootstrap_vector(m, field_body, time, noise_nt: float, span_s: float, extra=None, extra_prior=None) -> Bootstrap:
     """Bootstrap from good epochs with attitude: ``m``, ``field_body`` (N, 3) nT, ``time`` (N,) s.
 
     Uses the first ``span_s`` seconds; the whole log if that stretch has too few epochs or does not

@@ -108,8 +108,8 @@ class Estimator:
             # The gate widens with the estimate's own uncertainty of the calibrated magnitude (3 sigma),
             # evaluated at the block's first candidate (it changes little within a block).
             i0 = int(np.argmax(cand))
-            e0 = blk.e[i0:i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
-            _, H0, _ = magnitude_jacobian(layout.core_of(x), blk.m[i0:i0 + 1] - e0)
+            e0 = blk.e[i0 : i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
+            _, H0, _ = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
             core = layout.CORE
             sigma = float(np.sqrt(H0[0] @ kf.P[core, core] @ H0[0]))
             off = np.abs(h - blk.ref_mag) > self.config.gate_nt + 3.0 * sigma

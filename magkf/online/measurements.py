@@ -39,8 +39,20 @@ from ..conventions import body_to_ned, inverse3
 from ..effects.base import EpochData
 from .state import StateLayout
 
-__all__ = ["Block", "MeasurementModel", "Magnitude", "Vector", "Both", "MEASUREMENTS", "register_measurement",
-           "measurement_model", "vector_noise", "whitening", "magnitude_jacobian", "rotation_directions"]
+__all__ = [
+    "Block",
+    "MeasurementModel",
+    "Magnitude",
+    "Vector",
+    "Both",
+    "MEASUREMENTS",
+    "register_measurement",
+    "measurement_model",
+    "vector_noise",
+    "whitening",
+    "magnitude_jacobian",
+    "rotation_directions",
+]
 
 _EYE = np.eye(3)
 
@@ -62,13 +74,20 @@ class Block:
     data: EpochData | None = None
     e: np.ndarray | float = 0.0
 
-    def take(self, index) -> "Block":
+    def take(self, index) -> Block:
         """The same block at the epochs ``index`` (integer array or boolean mask)."""
+
         def cut(a):
             return a[index] if isinstance(a, np.ndarray) else a
 
-        return Block(self.m[index], self.ref_mag[index], self.H[index], cut(self.W),
-                     None if self.data is None else self.data.take(index), cut(self.e))
+        return Block(
+            self.m[index],
+            self.ref_mag[index],
+            self.H[index],
+            cut(self.W),
+            None if self.data is None else self.data.take(index),
+            cut(self.e),
+        )
 
 
 class MeasurementModel:
@@ -293,8 +312,9 @@ class Magnitude(MeasurementModel):
         layout = self.layout
         mc = blk.m - blk.e
         if layout.has_extra:  # the other effects' terms move with the sigma points too
-            mc = mc[None] - np.einsum("kij,sj->ski", blk.H[:, :, layout.EXTRA],
-                                      sigmas[:, layout.EXTRA] - np.asarray(x)[layout.EXTRA])
+            mc = mc[None] - np.einsum(
+                "kij,sj->ski", blk.H[:, :, layout.EXTRA], sigmas[:, layout.EXTRA] - np.asarray(x)[layout.EXTRA]
+            )
         R, b = layout.R_b(sigmas)
         c = np.linalg.solve(R[:, None], (mc - b[:, None, :])[..., None])[..., 0]
         _, H, sd = self._linear(x, blk)

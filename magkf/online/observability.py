@@ -44,13 +44,14 @@ def analyse(P0, information, names, R=None) -> dict:
         if ratio >= UNDETERMINED_RATIO:
             continue
         direction = L @ vec  # in parameter units
-        share = (vec**2)  # weights in prior-scaled coordinates sum to 1
+        share = vec**2  # weights in prior-scaled coordinates sum to 1
         groups = [g for g, idx in parameter_groups(names) if share[idx].sum() >= GROUP_SHARE]
         if R is not None and _is_rotation(direction, R):
             groups = ["the orientation of R (a rotation R -> R Q, which no magnitude can see)"]
         top = np.argsort(-np.abs(direction / np.sqrt(np.diag(P0))))[:6]
-        findings.append({"ratio": float(ratio), "groups": groups,
-                         "loadings": {names[i]: float(direction[i]) for i in top}})
+        findings.append(
+            {"ratio": float(ratio), "groups": groups, "loadings": {names[i]: float(direction[i]) for i in top}}
+        )
     merged = _merge(findings)
     return {"undetermined": merged, "text": describe(merged)}
 

@@ -53,8 +53,13 @@ class PreparedLog:
     def block(self, index, H, W=None, with_data: bool = False) -> Block:
         """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement models,
         with the linear Jacobian ``H`` (N, 3, n) and whitening ``W`` (N, 3, 3) of the whole log."""
-        return Block(self.m[index], self.ref_mag[index], H[index], None if W is None else W[index],
-                     self.data.take(index) if with_data else None)
+        return Block(
+            self.m[index],
+            self.ref_mag[index],
+            H[index],
+            None if W is None else W[index],
+            self.data.take(index) if with_data else None,
+        )
 
 
 def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
@@ -86,8 +91,11 @@ def mark_missing_columns(prep: PreparedLog, effects, source: str) -> np.ndarray:
     for effect in effects:
         for c in effect.columns:
             if c not in prep.data.columns:
-                raise InputError(f"effect {effect.name!r} needs column {c!r}, which the log lacks "
-                                 f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})", source)
+                raise InputError(
+                    f"effect {effect.name!r} needs column {c!r}, which the log lacks "
+                    f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})",
+                    source,
+                )
             base[(base == Status.USED) & ~np.isfinite(prep.data.columns[c])] = Status.MISSING_COLUMN
     return base
 
@@ -112,12 +120,23 @@ def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | No
         extra = extra_prior = None
         if linear and len(linear) == len(effects):
             d = prep.data.take(good)
-            d = replace(d, R0=StateLayout.R(bootstrap_vector(prep.m[good], d.field_body, d.time,
-                                                             config.sensor_noise_nt, config.bootstrap_s).x))
+            d = replace(
+                d,
+                R0=StateLayout.R(
+                    bootstrap_vector(prep.m[good], d.field_body, d.time, config.sensor_noise_nt, config.bootstrap_s).x
+                ),
+            )
             extra = np.concatenate([e.jacobian(e.prior()[0], d) for e in effects], axis=2)
             extra_prior = tuple(np.concatenate(v) for v in zip(*(e.prior() for e in effects)))
-        boot = bootstrap_vector(prep.m[good], prep.data.field_body[good], prep.time[good],
-                                config.sensor_noise_nt, config.bootstrap_s, extra, extra_prior)
+        boot = bootstrap_vector(
+            prep.m[good],
+            prep.data.field_body[good],
+            prep.time[good],
+            config.sensor_noise_nt,
+            config.bootstrap_s,
+            extra,
+            extra_prior,
+        )
     else:
         cand = (prep.base == Status.USED) | (prep.base == Status.MISSING_ATTITUDE)
         if cand.sum() < 200:
@@ -136,6 +155,6 @@ def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | N
     core = SoftHardIron(x_init[:CORE_SIZE], np.sqrt(np.diag(P_init)[:CORE_SIZE]), config.r_walk, config.b_walk)
     layout = StateLayout((core, *effects))
     x0, P0 = layout.prior()
-    x0[:len(x_init)] = x_init
-    P0[:len(x_init), :len(x_init)] = P_init
+    x0[: len(x_init)] = x_init
+    P0[: len(x_init), : len(x_init)] = P_init
     return with_initial_R(prep, x_init), layout, x0, P0, how

@@ -21,8 +21,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import (ALT, ATTITUDE, DOP, HDOP, LAT, LON, MAG, PDOP, REF, declination_deg, euler_to_dcm,
-                           magnetic_heading_deg, ned_to_body)
+from ..conventions import (
+    ALT,
+    ATTITUDE,
+    DOP,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    PDOP,
+    REF,
+    declination_deg,
+    euler_to_dcm,
+    magnetic_heading_deg,
+    ned_to_body,
+)
 from ..effects.base import EpochData
 from ..effects.core import SoftHardIron
 from ..errors import InputError
@@ -86,7 +99,7 @@ class OnlineCalibrator:
         self._last_field_body = None
 
     @classmethod
-    def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=()) -> "OnlineCalibrator":
+    def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=()) -> OnlineCalibrator:
         """Start from a calibration file (JSON)."""
         return cls(Calibration.load(path), config, effects)
 
@@ -117,23 +130,40 @@ class OnlineCalibrator:
         self._last_time, self._last_field_body = t, field_body
         est, layout = self.estimator, self.layout
         x = est.x
-        data = EpochData(np.array([t]), field_body[None], ref[None],
-                         {c: np.array([v[c]]) for e in layout.extra() for c in e.columns}, mag=m[None],
-                         c_nb=c_nb[None], field_body_rate=np.nan_to_num(rate)[None], R0=layout.R(x))
+        data = EpochData(
+            np.array([t]),
+            field_body[None],
+            ref[None],
+            {c: np.array([v[c]]) for e in layout.extra() for c in e.columns},
+            mag=m[None],
+            c_nb=c_nb[None],
+            field_body_rate=np.nan_to_num(rate)[None],
+            R0=layout.R(x),
+        )
         H = layout.linear_jacobian(data)
         W = est.whitening(field_body[None], layout.R(x)) if base[0] == Status.USED else None
         status, updated, nis = est.process_block(
-            np.array([t]), dt, Block(m[None], np.array([np.linalg.norm(ref)]), H, W, data), base)
+            np.array([t]), dt, Block(m[None], np.array([np.linalg.norm(ref)]), H, W, data), base
+        )
         x = est.x
         R, b = layout.R_b(x)
         e = layout.extra_terms(x, H, data) if layout.has_extra else 0.0
         field = layout.calibrated(x, m[None], e)[0]
         heading = float(magnetic_heading_deg(field, roll, pitch)) if has_att else float("nan")
-        return EpochResult(time=t, field_body=field, magnitude_nt=float(np.linalg.norm(field)),
-                           heading_mag_deg=heading,
-                           heading_true_deg=float((heading + declination_deg(ref)) % 360.0),
-                           status=STATUS_NAMES[int(status[0])], updated=bool(updated[0]), nis=float(nis[0]),
-                           R=R.copy(), b=b.copy(), std=np.sqrt(np.diag(est.P)), x=x.copy())
+        return EpochResult(
+            time=t,
+            field_body=field,
+            magnitude_nt=float(np.linalg.norm(field)),
+            heading_mag_deg=heading,
+            heading_true_deg=float((heading + declination_deg(ref)) % 360.0),
+            status=STATUS_NAMES[int(status[0])],
+            updated=bool(updated[0]),
+            nis=float(nis[0]),
+            R=R.copy(),
+            b=b.copy(),
+            std=np.sqrt(np.diag(est.P)),
+            x=x.copy(),
+        )
 
     def _reference(self, t, v) -> np.ndarray:
         ref = np.array([v[c] for c in REF])

@@ -96,9 +96,29 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
 
 
-def build_run(*, log, prep, config, layout: StateLayout, x0, P0, xs, stds, status, updated, nis, x_final,
-              P_final, information, init_how, smoothed, reacquisitions, elapsed_s, method=None,
-              loop_s=float("nan")) -> CalibrationRun:
+def build_run(
+    *,
+    log,
+    prep,
+    config,
+    layout: StateLayout,
+    x0,
+    P0,
+    xs,
+    stds,
+    status,
+    updated,
+    nis,
+    x_final,
+    P_final,
+    information,
+    init_how,
+    smoothed,
+    reacquisitions,
+    elapsed_s,
+    method=None,
+    loop_s=float("nan"),
+) -> CalibrationRun:
     """Assemble a ``CalibrationRun`` from a run's per-epoch states ``xs`` (N, n) and stds (N, n), statuses
     (N,), update flags (N,), NIS (N,) and final ``x_final`` (n,), ``P_final`` (n, n)."""
     names = layout.names
@@ -125,28 +145,63 @@ def build_run(*, log, prep, config, layout: StateLayout, x0, P0, xs, stds, statu
     obs = observability.analyse(P0, information, names, R)
     effects = {}
     for effect, sl in layout.blocks():
-        effects[effect.name] = {p: {"value": float(x_final[sl][j]), "std": float(std[sl][j]),
-                                    "unit": (effect.units[j] if j < len(effect.units) else "")}
-                                for j, p in enumerate(effect.parameter_names)}
+        effects[effect.name] = {
+            p: {
+                "value": float(x_final[sl][j]),
+                "std": float(std[sl][j]),
+                "unit": (effect.units[j] if j < len(effect.units) else ""),
+            }
+            for j, p in enumerate(effect.parameter_names)
+        }
     summary = RunSummary(
-        R=R.tolist(), b=b.tolist(), std=dict(zip(names, std.tolist())),
+        R=R.tolist(),
+        b=b.tolist(),
+        std=dict(zip(names, std.tolist())),
         residual_rms_nt=_rms(np.linalg.norm(ned_f[vec_used], axis=1)),
         residual_rms_axis_nt={a: _rms(ned_f[vec_used, k]) for k, a in enumerate(("north", "east", "down"))},
         residual_rms_magnitude_nt=_rms(mag_f[used]),
         innovation_rms_nt=_rms(np.linalg.norm(ned_i[vec_used], axis=1)),
         nis_mean=float(np.mean(nis[used])) if np.isfinite(nis[used]).any() else float("nan"),
-        n_epochs=int(len(status)), n_updates=int(updated.sum()), status_counts=status_counts(status),
-        run_time_s=float(elapsed_s), epochs_per_second=float(len(status) / elapsed_s), filter_loop_s=float(loop_s),
-        filter=method, measure=config.measure, smoothed=bool(smoothed), init=init_how,
-        reacquisitions=int(reacquisitions), observability=obs, effects=effects, config=config.as_dict())
+        n_epochs=int(len(status)),
+        n_updates=int(updated.sum()),
+        status_counts=status_counts(status),
+        run_time_s=float(elapsed_s),
+        epochs_per_second=float(len(status) / elapsed_s),
+        filter_loop_s=float(loop_s),
+        filter=method,
+        measure=config.measure,
+        smoothed=bool(smoothed),
+        init=init_how,
+        reacquisitions=int(reacquisitions),
+        observability=obs,
+        effects=effects,
+        config=config.as_dict(),
+    )
     core = layout.CORE
-    quality = {k: getattr(summary, k) for k in ("residual_rms_nt", "residual_rms_axis_nt", "residual_rms_magnitude_nt",
-                                                 "nis_mean", "n_epochs", "status_counts")}
-    cal = Calibration(R=R, b=b, method=f"{method}-{config.measure}", covariance=P_final[core, core],
-                      parameters={"effects": effects} if effects else {},
-                      standard_errors=dict(zip(names[core], std[core].tolist())),
-                      quality=quality | {"undetermined": obs["text"]}, source=log.source)
-    fit = pd.DataFrame({"fit_n": ned_f[:, 0], "fit_e": ned_f[:, 1], "fit_d": ned_f[:, 2], "fit_mag": mag_f},
-                       index=log.table.index)
-    return CalibrationRun(calibration=cal, x=x_final, P=P_final, names=names, states=states, summary=summary,
-                          effects=effects, fit=fit)
+    quality = {
+        k: getattr(summary, k)
+        for k in (
+            "residual_rms_nt",
+            "residual_rms_axis_nt",
+            "residual_rms_magnitude_nt",
+            "nis_mean",
+            "n_epochs",
+            "status_counts",
+        )
+    }
+    cal = Calibration(
+        R=R,
+        b=b,
+        method=f"{method}-{config.measure}",
+        covariance=P_final[core, core],
+        parameters={"effects": effects} if effects else {},
+        standard_errors=dict(zip(names[core], std[core].tolist())),
+        quality=quality | {"undetermined": obs["text"]},
+        source=log.source,
+    )
+    fit = pd.DataFrame(
+        {"fit_n": ned_f[:, 0], "fit_e": ned_f[:, 1], "fit_d": ned_f[:, 2], "fit_mag": mag_f}, index=log.table.index
+    )
+    return CalibrationRun(
+        calibration=cal, x=x_final, P=P_final, names=names, states=states, summary=summary, effects=effects, fit=fit
+    )

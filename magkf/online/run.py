@@ -24,8 +24,14 @@ from .smoother import rts_smooth
 __all__ = ["calibrate_log", "blocks", "terminal_progress"]
 
 
-def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None,
-                  effects=(), smooth: bool = False, progress=None) -> CalibrationRun:
+def calibrate_log(
+    log: DriveLog,
+    config: FilterConfig = FilterConfig(),
+    init: Calibration | None = None,
+    effects=(),
+    smooth: bool = False,
+    progress=None,
+) -> CalibrationRun:
     """Run the online calibration over a log.
 
     ``init`` is an offline calibration (else a bootstrap from the log); ``effects`` are extra
@@ -55,7 +61,8 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
     for j, (i0, i1) in enumerate(zip(starts.tolist(), stops.tolist())):
         epochs = slice(i0, i1)
         status[epochs], updated[epochs], nis[epochs] = est.process_block(
-            t[epochs], block_dt[j], prep.block(epochs, H_all, W, with_data), base[epochs])
+            t[epochs], block_dt[j], prep.block(epochs, H_all, W, with_data), base[epochs]
+        )
         xs_b[j] = est.x
         Ps_b[j] = est.P
         if progress is not None and j % every == 0:
@@ -70,10 +77,27 @@ def calibrate_log(log: DriveLog, config: FilterConfig = FilterConfig(), init: Ca
     block_of = np.repeat(np.arange(len(starts)), stops - starts)
     xs = xs_b[block_of]
     stds = np.sqrt(np.einsum("bii->bi", Ps_b))[block_of]
-    return build_run(log=log, prep=prep, config=config, layout=layout, x0=x0, P0=P0, xs=xs, stds=stds,
-                     status=status, updated=updated, nis=nis, x_final=x_final, P_final=P_final,
-                     information=est.information, init_how=how, smoothed=smooth, reacquisitions=est.reacquisitions,
-                     elapsed_s=_time.perf_counter() - started, loop_s=loop_s)
+    return build_run(
+        log=log,
+        prep=prep,
+        config=config,
+        layout=layout,
+        x0=x0,
+        P0=P0,
+        xs=xs,
+        stds=stds,
+        status=status,
+        updated=updated,
+        nis=nis,
+        x_final=x_final,
+        P_final=P_final,
+        information=est.information,
+        init_how=how,
+        smoothed=smooth,
+        reacquisitions=est.reacquisitions,
+        elapsed_s=_time.perf_counter() - started,
+        loop_s=loop_s,
+    )
 
 
 def blocks(time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -50,7 +50,7 @@ class StateLayout:
             raise ValueError(f"an effect appears twice: {names}")
 
     @classmethod
-    def with_core(cls, effects=()) -> "StateLayout":
+    def with_core(cls, effects=()) -> StateLayout:
         """A layout of a default core block followed by ``effects``."""
         return cls((SoftHardIron(), *effects))
 
@@ -130,10 +130,9 @@ class StateLayout:
     def linear_jacobian(self, data: EpochData) -> np.ndarray:
         """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), computed once per log."""
         H = np.zeros((len(data), 3, self.size))
-        x0, _ = self.prior()
         for effect, sl in self.blocks(include_core=True):
-            if effect.linear:
-                H[:, :, sl] = effect.jacobian(x0[sl], data)
+            if effect.linear:  # the Jacobian of a linear effect does not depend on its parameters
+                H[:, :, sl] = effect.jacobian(np.zeros(effect.size), data)
         return H
 
     def nonlinear_terms(self, x, data: EpochData):

@@ -4,5 +4,4 @@ from .drive import DriveConfig, SimulatedDrive, simulate_drive
 from .mounting import mounting_matrix
 from .turntable import PAPER_EXAMPLE, simulate_turntable
 
-__all__ = ["DriveConfig", "SimulatedDrive", "simulate_drive", "simulate_turntable", "mounting_matrix",
-           "PAPER_EXAMPLE"]
+__all__ = ["DriveConfig", "SimulatedDrive", "simulate_drive", "simulate_turntable", "mounting_matrix", "PAPER_EXAMPLE"]

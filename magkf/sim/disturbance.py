@@ -5,9 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 
-def simulate_disturbances(n: int, rate_hz: float, rng: np.random.Generator, count: int = 6,
-                          peak_nt: tuple = (1000.0, 5000.0), duration_s: tuple = (2.0, 8.0),
-                          inside: list | None = None, share_inside: float = 0.5) -> tuple[np.ndarray, list]:
+def simulate_disturbances(
+    n: int,
+    rate_hz: float,
+    rng: np.random.Generator,
+    count: int = 6,
+    peak_nt: tuple = (1000.0, 5000.0),
+    duration_s: tuple = (2.0, 8.0),
+    inside: list | None = None,
+    share_inside: float = 0.5,
+) -> tuple[np.ndarray, list]:
     """Body-frame disturbance field (n, 3) nT and the events as dicts ``start, stop, peak_nt``.
 
     Each event is a Hann-shaped bump in a random direction. About ``share_inside`` of the events are
@@ -29,6 +36,6 @@ def simulate_disturbances(n: int, rate_hz: float, rng: np.random.Generator, coun
         direction = rng.normal(size=3)
         direction /= np.linalg.norm(direction)
         peak = float(rng.uniform(*peak_nt))
-        field[start:start + length] += peak * np.hanning(length)[:, None] * direction
+        field[start : start + length] += peak * np.hanning(length)[:, None] * direction
         events.append({"start": start, "stop": start + length, "peak_nt": peak})
     return field, events

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +32,7 @@ from .gnss import simulate_dop
 from .motion import simulate_motion, smooth_noise
 from .mounting import mounting_matrix
 
-DEFAULT_START = datetime(2026, 6, 1, 10, 0, tzinfo=timezone.utc).timestamp()
+DEFAULT_START = datetime(2026, 6, 1, 10, 0, tzinfo=UTC).timestamp()
 
 
 @dataclass(frozen=True)
@@ -99,11 +99,16 @@ class SimulatedDrive:
         def span(a, z):
             return {"start": float(t[a]), "stop": float(t[min(z, len(t)) - 1])}
 
-        return {"format": "magkf-truth", "version": 1, "R": self.R.tolist(), "b": self.b.tolist(),
-                "config": asdict(self.config),
-                "disturbances": [{**span(e["start"], e["stop"]), "peak_nt": e["peak_nt"]} for e in self.events],
-                "dop_bad": [span(a, z) for a, z in self.dop_stretches],
-                "effects": [{**e.describe(), "truth": np.asarray(theta, float).tolist()} for e, theta in self.effects]}
+        return {
+            "format": "magkf-truth",
+            "version": 1,
+            "R": self.R.tolist(),
+            "b": self.b.tolist(),
+            "config": asdict(self.config),
+            "disturbances": [{**span(e["start"], e["stop"]), "peak_nt": e["peak_nt"]} for e in self.events],
+            "dop_bad": [span(a, z) for a, z in self.dop_stretches],
+            "effects": [{**e.describe(), "truth": np.asarray(theta, float).tolist()} for e, theta in self.effects],
+        }
 
     def write(self, csv_path, truth_path=None) -> None:
         """Write the canonical CSV and, if ``truth_path`` is given, the truth JSON."""
@@ -129,17 +134,26 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     rng = np.random.default_rng(config.seed)
     n = int(round(config.duration_s * config.rate_hz))
     if truth is None:
-        truth = (np.array([[1.05, 0.03, -0.02], [0.01, 0.97, 0.04], [-0.03, 0.02, 1.02]]),
-                 np.array([350.0, -220.0, 480.0]))
+        truth = (
+            np.array([[1.05, 0.03, -0.02], [0.01, 0.97, 0.04], [-0.03, 0.02, 1.02]]),
+            np.array([350.0, -220.0, 480.0]),
+        )
     K, b = true_matrix(truth)
     R = K @ mounting_matrix(config.mounting)
     t = config.start_time + np.arange(n) / config.rate_hz
-    motion = simulate_motion(config.motion, n, config.rate_hz, rng, config.lat0, config.lon0, config.alt0,
-                             config.tilt_deg)
+    motion = simulate_motion(
+        config.motion, n, config.rate_hz, rng, config.lat0, config.lon0, config.alt0, config.tilt_deg
+    )
     dop, stretches = simulate_dop(n, config.rate_hz, rng, config.dop_bad_stretches)
-    disturbance, events = simulate_disturbances(n, config.rate_hz, rng, config.disturbances,
-                                                config.disturbance_peak_nt, config.disturbance_duration_s,
-                                                inside=stretches)
+    disturbance, events = simulate_disturbances(
+        n,
+        config.rate_hz,
+        rng,
+        config.disturbances,
+        config.disturbance_peak_nt,
+        config.disturbance_duration_s,
+        inside=stretches,
+    )
     ref = igrf_ned(t, motion["lat"], motion["lon"], motion["alt"])
     c_nb = euler_to_dcm(motion["yaw"], motion["pitch"], motion["roll"])
     field_body = ned_to_body(c_nb, ref)
@@ -149,16 +163,28 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     table["dop"] = dop
     table["speed_mps"] = motion["speed_mps"]
     # Warm-up, a slow wander (sun and shade, heater cycles), sensor noise: degC.
-    table["temp_c"] = (20.0 + 10.0 * (1 - np.exp(-(t - t[0]) / 900.0))
-                       + 3.0 * smooth_noise(n, config.rate_hz, 120.0, rng) + 0.1 * rng.normal(size=n))
+    table["temp_c"] = (
+        20.0
+        + 10.0 * (1 - np.exp(-(t - t[0]) / 900.0))
+        + 3.0 * smooth_noise(n, config.rate_hz, 120.0, rng)
+        + 0.1 * rng.normal(size=n)
+    )
     load = (np.cumsum(rng.random(n) < 1.0 / (20.0 * config.rate_hz)) % 2).astype(float)
     table["current_a"] = 2.0 + 25.0 * load + 0.3 * rng.normal(size=n)
     if config.write_reference:
         for i, name in enumerate(REF):
             table[name] = ref[:, i]
     mag = (field_body + disturbance) @ R.T + b + rng.normal(scale=config.noise_nt, size=(n, 3))
-    data = EpochData(t, field_body, ref, {c: table[c].to_numpy() for c in table.columns if c not in ATTITUDE},
-                     mag=mag.copy(), c_nb=c_nb, field_body_rate=rate_of_change(t, field_body), R0=R)
+    data = EpochData(
+        t,
+        field_body,
+        ref,
+        {c: table[c].to_numpy() for c in table.columns if c not in ATTITUDE},
+        mag=mag.copy(),
+        c_nb=c_nb,
+        field_body_rate=rate_of_change(t, field_body),
+        R0=R,
+    )
     contributions = [effect.simulate(np.asarray(theta, float), data, rng) for effect, theta in effects]
     for c in contributions:
         mag = mag + c
@@ -167,6 +193,17 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     dop_bad = np.zeros(n, bool)
     for a, z in stretches:
         dop_bad[a:z] = True
-    return SimulatedDrive(table=table.set_index(TIME), R=R, b=b, config=config, reference_ned=ref,
-                          field_body=field_body, disturbance=disturbance, dop_bad=dop_bad, events=events,
-                          dop_stretches=stretches, effects=list(effects), contributions=contributions)
+    return SimulatedDrive(
+        table=table.set_index(TIME),
+        R=R,
+        b=b,
+        config=config,
+        reference_ned=ref,
+        field_body=field_body,
+        disturbance=disturbance,
+        dop_bad=dop_bad,
+        events=events,
+        dop_stretches=stretches,
+        effects=list(effects),
+        contributions=contributions,
+    )

@@ -5,8 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 
-def simulate_dop(n: int, rate_hz: float, rng: np.random.Generator, bad_stretches: int = 3,
-                 bad_duration_s: tuple = (10.0, 40.0), good: float = 1.2, bad: float = 6.0) -> tuple[np.ndarray, list]:
+def simulate_dop(
+    n: int,
+    rate_hz: float,
+    rng: np.random.Generator,
+    bad_stretches: int = 3,
+    bad_duration_s: tuple = (10.0, 40.0),
+    good: float = 1.2,
+    bad: float = 6.0,
+) -> tuple[np.ndarray, list]:
     """DOP (n,) near ``good`` with ``bad_stretches`` stretches near ``bad``; also the stretches as
     ``[(first_epoch, last_epoch_exclusive), ...]``."""
     dop = good + 0.2 * np.abs(rng.normal(size=n))
@@ -16,6 +23,6 @@ def simulate_dop(n: int, rate_hz: float, rng: np.random.Generator, bad_stretches
         if length >= n:
             continue
         start = int(rng.integers(0, n - length))
-        dop[start:start + length] = bad + rng.uniform(0, 3, size=length)
+        dop[start : start + length] = bad + rng.uniform(0, 3, size=length)
         stretches.append((start, start + length))
     return dop, sorted(stretches)

@@ -22,8 +22,16 @@ def smooth_noise(n: int, rate_hz: float, timescale_s: float, rng: np.random.Gene
     return (x - x.mean()) / (x.std() + 1e-12)
 
 
-def simulate_motion(kind: str, n: int, rate_hz: float, rng: np.random.Generator, lat0: float = 48.1,
-                    lon0: float = 11.6, alt0: float = 500.0, tilt_deg: float = 0.8) -> dict:
+def simulate_motion(
+    kind: str,
+    n: int,
+    rate_hz: float,
+    rng: np.random.Generator,
+    lat0: float = 48.1,
+    lon0: float = 11.6,
+    alt0: float = 500.0,
+    tilt_deg: float = 0.8,
+) -> dict:
     """Arrays (n,) ``roll, pitch, yaw, speed_mps, lat, lon, alt`` for ``n`` epochs at ``rate_hz``.
 
     ``tilt_deg`` is the standard deviation of roll and pitch of the planar motion (road camber and slope).

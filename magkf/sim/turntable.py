@@ -9,9 +9,16 @@ from ..conventions import ANGLE, MAG, PLANE
 from ..offline.sinefit import PLANES, SineFitParameters, turntable_field
 
 
-def simulate_turntable(truth: SineFitParameters, field_nt: float = 50_000.0, inclination_deg: float = 43.0,
-                       step_deg: float = 5.0, noise_nt: float = 0.0, rng: np.random.Generator | None = None,
-                       heading_offsets_deg: tuple = (0.0, 0.0), xz_roll_sign: int = 1) -> pd.DataFrame:
+def simulate_turntable(
+    truth: SineFitParameters,
+    field_nt: float = 50_000.0,
+    inclination_deg: float = 43.0,
+    step_deg: float = 5.0,
+    noise_nt: float = 0.0,
+    rng: np.random.Generator | None = None,
+    heading_offsets_deg: tuple = (0.0, 0.0),
+    xz_roll_sign: int = 1,
+) -> pd.DataFrame:
     """A turntable table ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT) for both planes.
 
     The table turns through a full circle in steps of ``step_deg``; white Gaussian noise of

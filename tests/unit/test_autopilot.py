@@ -137,8 +137,10 @@ def test_residual_rotation_and_its_field_error(angle_deg):
     perpendicular = np.cross(axis, rng.standard_normal(3))
     field = FIELD_NT * perpendicular / np.linalg.norm(perpendicular)
     m = cal.distort(field)
-    for params, out in ((to_ardupilot(cal), lambda p: apply_ardupilot(p.values, m / NT_PER_MG) * NT_PER_MG),
-                        (to_px4(cal), lambda p: apply_px4(p.values, m / NT_PER_G) * NT_PER_G)):
+    for params, out in (
+        (to_ardupilot(cal), lambda p: apply_ardupilot(p.values, m / NT_PER_MG) * NT_PER_MG),
+        (to_px4(cal), lambda p: apply_px4(p.values, m / NT_PER_G) * NT_PER_G),
+    ):
         assert params.residual_rotation_deg == pytest.approx(angle_deg, rel=1e-9)
         error = np.linalg.norm(out(params) - field)
         assert error == pytest.approx(2 * math.sin(math.radians(angle_deg) / 2) * FIELD_NT, rel=1e-9)
@@ -176,12 +178,13 @@ def test_current_field_round_trips_through_motor_compensation(label):
 
 def test_effects_without_a_parameter_give_notes():
     rng = np.random.default_rng(8)
-    effects = {"current_field:throttle": current_effect([1, 2, 3]),
-               "temperature_bias": {"k_x": {"value": 1.0, "std": 0.1, "unit": "nT/degC"}}}
+    effects = {
+        "current_field:throttle": current_effect([1, 2, 3]),
+        "temperature_bias": {"k_x": {"value": 1.0, "std": 0.1, "unit": "nT/degC"}},
+    }
     cal = symmetric_calibration(rng, effects)
     for params in (to_ardupilot(cal), to_px4(cal)):
-        assert not any(k.startswith("COMPASS_MOT") or k.endswith(("COMP", "COMP_TYP"))
-                       for k in params.values)
+        assert not any(k.startswith("COMPASS_MOT") or k.endswith(("COMP", "COMP_TYP")) for k in params.values)
         assert any("'throttle'" in n for n in params.notes)
         assert any("temperature_bias" in n for n in params.notes)
 
@@ -238,11 +241,18 @@ def test_bad_input_is_rejected():
 
 def test_real_ardupilot_parameters_round_trip():
     # Instance 1 calibration from the PARM messages of data/real/ardupilot_box_center_0003.bin (ArduPilot 4.x).
-    real = {"COMPASS_OFS_X": -479.2989196777344, "COMPASS_OFS_Y": 356.1933898925781,
-            "COMPASS_OFS_Z": 394.3983459472656, "COMPASS_DIA_X": 1.1970610618591309,
-            "COMPASS_DIA_Y": 1.1088422536849976, "COMPASS_DIA_Z": 0.873660147190094,
-            "COMPASS_ODI_X": 0.05744928866624832, "COMPASS_ODI_Y": 0.19350671768188477,
-            "COMPASS_ODI_Z": -0.17583788931369781, "COMPASS_SCALE": 1.128987193107605}
+    real = {
+        "COMPASS_OFS_X": -479.2989196777344,
+        "COMPASS_OFS_Y": 356.1933898925781,
+        "COMPASS_OFS_Z": 394.3983459472656,
+        "COMPASS_DIA_X": 1.1970610618591309,
+        "COMPASS_DIA_Y": 1.1088422536849976,
+        "COMPASS_DIA_Z": 0.873660147190094,
+        "COMPASS_ODI_X": 0.05744928866624832,
+        "COMPASS_ODI_Y": 0.19350671768188477,
+        "COMPASS_ODI_Z": -0.17583788931369781,
+        "COMPASS_SCALE": 1.128987193107605,
+    }
     x, y, z = (real[f"COMPASS_ODI_{a}"] for a in "XYZ")
     matrix = np.diag([real[f"COMPASS_DIA_{a}"] for a in "XYZ"]) + np.array([[0, x, y], [x, 0, z], [y, z, 0]])
     correction = real["COMPASS_SCALE"] * matrix

@@ -7,7 +7,7 @@ import dataclasses
 import re
 import tempfile
 import warnings
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +36,7 @@ def write(path: Path, text: str) -> Path:
 
 
 def midnight(day: str) -> float:
-    return datetime.fromisoformat(day).replace(tzinfo=timezone.utc).timestamp()
+    return datetime.fromisoformat(day).replace(tzinfo=UTC).timestamp()
 
 
 # ---------------------------------------------------------------- the survey layout
@@ -51,12 +51,32 @@ def survey_truth(rng: np.random.Generator, n: int, t0_sod: float) -> dict[str, n
     r_true = np.array([[1.02, 0.01, -0.004], [0.006, 0.985, 0.012], [-0.003, 0.008, 1.01]])
     body = ned_to_body(euler_to_dcm(yaw, pitch, roll), ref)
     mag = body @ r_true.T + np.array([120.0, -85.0, 240.0]) + rng.normal(0, 1.0, (n, 3))
-    return {"time": t % 86400, "x": mag[:, 0], "y": mag[:, 1], "z": mag[:, 2], "pitch": pitch, "roll": roll,
-            "yaw": yaw, "ref_n": ref[:, 0], "ref_e": ref[:, 1], "ref_d": ref[:, 2]}
+    return {
+        "time": t % 86400,
+        "x": mag[:, 0],
+        "y": mag[:, 1],
+        "z": mag[:, 2],
+        "pitch": pitch,
+        "roll": roll,
+        "yaw": yaw,
+        "ref_n": ref[:, 0],
+        "ref_e": ref[:, 1],
+        "ref_d": ref[:, 2],
+    }
 
 
-SURVEY_FORMATS = {"time": "%.2f", "x": "%.3f", "y": "%.3f", "z": "%.3f", "pitch": "%.4f", "roll": "%.4f",
-                  "yaw": "%.4f", "ref_n": "%.2f", "ref_e": "%.2f", "ref_d": "%.2f"}
+SURVEY_FORMATS = {
+    "time": "%.2f",
+    "x": "%.3f",
+    "y": "%.3f",
+    "z": "%.3f",
+    "pitch": "%.4f",
+    "roll": "%.4f",
+    "yaw": "%.4f",
+    "ref_n": "%.2f",
+    "ref_e": "%.2f",
+    "ref_d": "%.2f",
+}
 
 
 def write_survey(path: Path, truth: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -76,20 +96,27 @@ def test_survey_extract_through_the_example_map(tmp_path, t0_sod, crosses):
     cmap = dataclasses.replace(load_column_map(SURVEY_MAP), date_utc="2021-06-30")
     table, prov = read_mapped(tmp_path / "line_1040.tsv", cmap)
 
-    assert list(table.columns) == ["time", "mag_x", "mag_y", "mag_z", "roll", "pitch", "yaw",
-                                   "ref_n", "ref_e", "ref_d"]
+    assert list(table.columns) == ["time", "mag_x", "mag_y", "mag_z", "roll", "pitch", "yaw", "ref_n", "ref_e", "ref_d"]
     assert len(table) == 120
     day = (np.arange(120) * 0.2 + t0_sod >= 86400).astype(float)
     assert day.any() == crosses
     expected_time = midnight("2021-06-30") + printed["time"] + 86400.0 * day
     np.testing.assert_allclose(table["time"], expected_time, rtol=0, atol=TIME_TOL)
     assert np.all(np.diff(table["time"]) > 0.19)  # 5 Hz, also across midnight
-    for canonical, column in [("mag_x", "x"), ("mag_y", "y"), ("mag_z", "z"), ("roll", "roll"),
-                              ("pitch", "pitch"), ("yaw", "yaw"), ("ref_n", "ref_n"), ("ref_e", "ref_e"),
-                              ("ref_d", "ref_d")]:
+    for canonical, column in [
+        ("mag_x", "x"),
+        ("mag_y", "y"),
+        ("mag_z", "z"),
+        ("roll", "roll"),
+        ("pitch", "pitch"),
+        ("yaw", "yaw"),
+        ("ref_n", "ref_n"),
+        ("ref_e", "ref_e"),
+        ("ref_d", "ref_d"),
+    ]:
         np.testing.assert_array_equal(table[canonical].to_numpy(), printed[column])  # exact: no conversion
         step = float(SURVEY_FORMATS[column][2:-1])
-        np.testing.assert_allclose(table[canonical], truth[column], rtol=0, atol=0.5 * 10 ** -step + 1e-9)
+        np.testing.assert_allclose(table[canonical], truth[column], rtol=0, atol=0.5 * 10**-step + 1e-9)
     assert prov["format"] == "mapped-table" and prov["map"] == str(SURVEY_MAP)
     assert prov["columns"]["mag_x"] == "x (nT)" and prov["columns"]["pitch"] == "pitch (deg)"
     assert ("1 midnight rollover" in prov["time_base"]) == crosses
@@ -129,10 +156,14 @@ def test_csv_quaternion_counts_and_milliseconds_since_start(tmp_path, attitude):
         att_map, att_units = 'roll = "phi"\npitch = "theta"\nyaw = "psi"', 'angles = "rad"'
     lines = [f"t_ms,{att_header},cx,cy,cz,lat_r,lon_r,T_board"]
     for i in range(n):
-        lines.append(f"{t_ms[i]},{att_cells[i]},{counts[i, 0]},{counts[i, 1]},{counts[i, 2]},"
-                     f"{lat[i]!r},{lon[i]!r},{20 + i * 0.1:.1f}")
+        lines.append(
+            f"{t_ms[i]},{att_cells[i]},{counts[i, 0]},{counts[i, 1]},{counts[i, 2]},"
+            f"{lat[i]!r},{lon[i]!r},{20 + i * 0.1:.1f}"
+        )
     write(tmp_path / "log.csv", "\n".join(lines) + "\n")
-    write(tmp_path / "map.toml", f"""
+    write(
+        tmp_path / "map.toml",
+        f"""
 [columns]
 time = "t_ms"
 mag_x = "cx"
@@ -150,11 +181,12 @@ time_epoch = "start"
 start_utc = "2024-05-01T10:20:30.250Z"
 latlon = "rad"
 {att_units}
-""")
+""",
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UnitWarning)  # random counts are not an Earth-like field
         table, prov = read_mapped(tmp_path / "log.csv", tmp_path / "map.toml")
-    start = datetime(2024, 5, 1, 10, 20, 30, 250000, tzinfo=timezone.utc).timestamp()
+    start = datetime(2024, 5, 1, 10, 20, 30, 250000, tzinfo=UTC).timestamp()
     np.testing.assert_allclose(table["time"], start + t_ms / 1000.0, rtol=0, atol=TIME_TOL)
     np.testing.assert_array_equal(table[["mag_x", "mag_y", "mag_z"]].to_numpy(), counts * scale)
     np.testing.assert_array_equal(table["lat"], np.degrees(lat))
@@ -189,14 +221,14 @@ mag = "uT"
 """
 
 WHITESPACE_LINES = [
-    "# magnetometer test, bench 3",   # 1
-    "# units: s uT uT uT degC",       # 2
+    "# magnetometer test, bench 3",  # 1
+    "# units: s uT uT uT degC",  # 2
     "  t      bx      by     bz    temp_c   note",  # 3: header
-    "1000.0  20.125  1.500  44.250  21.5  ok",      # 4
-    "# operator changed the cable",   # 5
-    "",                               # 6
+    "1000.0  20.125  1.500  44.250  21.5  ok",  # 4
+    "# operator changed the cable",  # 5
+    "",  # 6
     "1000.5  20.130  *      44.260  21.6  ok  # no y sample",  # 7
-    "1001.0  20.120  1.510  44.240  *     ok",      # 8
+    "1001.0  20.120  1.510  44.240  *     ok",  # 8
 ]
 
 
@@ -230,9 +262,12 @@ def test_whitespace_bad_cell_is_reported_at_its_file_line(tmp_path, line, column
 def test_skipped_preamble_and_explicit_commented_header_keep_file_line_numbers(tmp_path):
     text = "Logger XY-3\nserial 42\n# t;x;y;z\n0;1,5;2;3\n\n100;1,5;2,25;bad\n"
     path = write(tmp_path / "log.csv", text)
-    write(tmp_path / "map.toml", '[file]\ndelimiter = ";"\ndecimal = ","\ncomment = "#"\nskip_rows = 2\n'
-                                 'header = 3\n[columns]\ntime = "t"\nmag_x = "x"\nmag_y = 3\nmag_z = "z"\n'
-                                 '[units]\ntime = "ms"\n')
+    write(
+        tmp_path / "map.toml",
+        '[file]\ndelimiter = ";"\ndecimal = ","\ncomment = "#"\nskip_rows = 2\n'
+        'header = 3\n[columns]\ntime = "t"\nmag_x = "x"\nmag_y = 3\nmag_z = "z"\n'
+        '[units]\ntime = "ms"\n',
+    )
     with pytest.raises(InputError) as err:
         read_mapped(path, tmp_path / "map.toml")
     assert (err.value.row, err.value.column) == (6, "z")
@@ -248,26 +283,44 @@ def test_parquet_file(tmp_path):
     rng = np.random.default_rng(11)
     n = 40
     t = 1.7e9 + np.cumsum(rng.uniform(0.05, 0.15, n))
-    mag = rng.normal(0, 300, (n, 3)) + [180.0, -20.0, 450.0]   # mG, about 50 000 nT
+    mag = rng.normal(0, 300, (n, 3)) + [180.0, -20.0, 450.0]  # mG, about 50 000 nT
     mag[5, 1] = np.nan
     current = pa.array([float(v) if i != 9 else None for i, v in enumerate(rng.uniform(0, 12, n))])
-    pq.write_table(pa.table({"ts": t, "mx": mag[:, 0], "my": mag[:, 1], "mz": mag[:, 2],
-                             "r": rng.uniform(-5, 5, n), "p": rng.uniform(-5, 5, n), "h": rng.uniform(0, 360, n),
-                             "I_bus": current, "sats": pa.array(rng.integers(5, 20, n), pa.int32()),
-                             "mode": pa.array(["AUTO"] * n)}), tmp_path / "log.parquet")
-    write(tmp_path / "map.toml", '[columns]\ntime = "ts"\nmag_x = "mx"\nmag_y = "my"\nmag_z = "mz"\n'
-                                 'roll = "r"\npitch = "p"\nyaw = "h"\ncurrent_a = "I_bus"\n[units]\nmag = "mG"\n')
+    pq.write_table(
+        pa.table(
+            {
+                "ts": t,
+                "mx": mag[:, 0],
+                "my": mag[:, 1],
+                "mz": mag[:, 2],
+                "r": rng.uniform(-5, 5, n),
+                "p": rng.uniform(-5, 5, n),
+                "h": rng.uniform(0, 360, n),
+                "I_bus": current,
+                "sats": pa.array(rng.integers(5, 20, n), pa.int32()),
+                "mode": pa.array(["AUTO"] * n),
+            }
+        ),
+        tmp_path / "log.parquet",
+    )
+    write(
+        tmp_path / "map.toml",
+        '[columns]\ntime = "ts"\nmag_x = "mx"\nmag_y = "my"\nmag_z = "mz"\n'
+        'roll = "r"\npitch = "p"\nyaw = "h"\ncurrent_a = "I_bus"\n[units]\nmag = "mG"\n',
+    )
     table, prov = read_mapped(tmp_path / "log.parquet", tmp_path / "map.toml")
     source = pq.read_table(tmp_path / "log.parquet").to_pydict()
     np.testing.assert_array_equal(table["time"], t)
     np.testing.assert_array_equal(table[["mag_x", "mag_y", "mag_z"]].to_numpy(), mag * 100.0)
     np.testing.assert_array_equal(table["yaw"], source["h"])
     np.testing.assert_array_equal(table["current_a"], [np.nan if v is None else v for v in source["I_bus"]])
-    np.testing.assert_array_equal(table["sats"], source["sats"])   # unmapped integer column carried
+    np.testing.assert_array_equal(table["sats"], source["sats"])  # unmapped integer column carried
     assert "mode" not in table and prov["file_format"] == "parquet"
 
-    pq.write_table(pa.table({"ts": t, "mx": mag[:, 0], "my": np.where(np.arange(n) == 17, np.inf, mag[:, 1]),
-                             "mz": mag[:, 2]}), tmp_path / "bad.parquet")
+    pq.write_table(
+        pa.table({"ts": t, "mx": mag[:, 0], "my": np.where(np.arange(n) == 17, np.inf, mag[:, 1]), "mz": mag[:, 2]}),
+        tmp_path / "bad.parquet",
+    )
     write(tmp_path / "map2.toml", '[columns]\ntime = "ts"\nmag_x = "mx"\nmag_y = "my"\nmag_z = "mz"\n')
     with pytest.raises(InputError) as err:
         read_mapped(tmp_path / "bad.parquet", tmp_path / "map2.toml")
@@ -283,19 +336,27 @@ def basic(tmp_path, csv=BASIC_CSV, toml=BASIC_MAP):
     return write(tmp_path / "log.csv", csv), write(tmp_path / "map.toml", toml)
 
 
-@pytest.mark.parametrize("csv, toml, row, column, words", [
-    (BASIC_CSV, BASIC_MAP.replace('"y"', '"Y_nT"'), 1, "Y_nT", ["[columns] mag_y", "map.toml", "t, x, y, z"]),
-    (BASIC_CSV.replace("20001", "2O001"), BASIC_MAP, 3, "x", ["not a number: '2O001'"]),
-    (BASIC_CSV.replace("101", "NaN"), BASIC_MAP, 3, "y", ["not a number: 'NaN'"]),
-    (BASIC_CSV.replace("102", "inf"), BASIC_MAP, 4, "y", ["not a finite number: inf"]),
-    (BASIC_CSV.replace("2.0,", ","), BASIC_MAP, 3, "t", ["empty time cell"]),
-    (BASIC_CSV.replace("3.0,", "1.5,"), BASIC_MAP, 4, "t", ["not strictly increasing"]),
-    (BASIC_CSV.replace("40001", "40001,7"), BASIC_MAP, 3, None, ["5 fields where the header has 4"]),
-    ("t,x,y,z,aux\n1,2e4,0,4e4,5\n2,2e4,0,4e4,x\n", BASIC_MAP, 3, "aux", ["keep_unmapped = false"]),
-    ("t,x,y,z\n1,2e4,0,4e4,9\n2,2e4,0,4e4\n", BASIC_MAP, 2, None, ["more fields than the header"]),
-    ("t,x,y,z,qw,qx,qy,qz\n1,2e4,0,4e4,1,0,0,0\n2,2e4,0,4e4,0,0,0,0\n",
-     BASIC_MAP + 'q0 = "qw"\nq1 = "qx"\nq2 = "qy"\nq3 = "qz"\n', 3, "qw", ["quaternion is zero"]),
-])
+@pytest.mark.parametrize(
+    "csv, toml, row, column, words",
+    [
+        (BASIC_CSV, BASIC_MAP.replace('"y"', '"Y_nT"'), 1, "Y_nT", ["[columns] mag_y", "map.toml", "t, x, y, z"]),
+        (BASIC_CSV.replace("20001", "2O001"), BASIC_MAP, 3, "x", ["not a number: '2O001'"]),
+        (BASIC_CSV.replace("101", "NaN"), BASIC_MAP, 3, "y", ["not a number: 'NaN'"]),
+        (BASIC_CSV.replace("102", "inf"), BASIC_MAP, 4, "y", ["not a finite number: inf"]),
+        (BASIC_CSV.replace("2.0,", ","), BASIC_MAP, 3, "t", ["empty time cell"]),
+        (BASIC_CSV.replace("3.0,", "1.5,"), BASIC_MAP, 4, "t", ["not strictly increasing"]),
+        (BASIC_CSV.replace("40001", "40001,7"), BASIC_MAP, 3, None, ["5 fields where the header has 4"]),
+        ("t,x,y,z,aux\n1,2e4,0,4e4,5\n2,2e4,0,4e4,x\n", BASIC_MAP, 3, "aux", ["keep_unmapped = false"]),
+        ("t,x,y,z\n1,2e4,0,4e4,9\n2,2e4,0,4e4\n", BASIC_MAP, 2, None, ["more fields than the header"]),
+        (
+            "t,x,y,z,qw,qx,qy,qz\n1,2e4,0,4e4,1,0,0,0\n2,2e4,0,4e4,0,0,0,0\n",
+            BASIC_MAP + 'q0 = "qw"\nq1 = "qx"\nq2 = "qy"\nq3 = "qz"\n',
+            3,
+            "qw",
+            ["quaternion is zero"],
+        ),
+    ],
+)
 def test_bad_table_errors(tmp_path, csv, toml, row, column, words):
     path, cmap = basic(tmp_path, csv, toml)
     with pytest.raises(InputError) as err, warnings.catch_warnings():
@@ -313,29 +374,35 @@ def test_bad_table_errors(tmp_path, csv, toml, row, column, words):
 
 
 def test_seconds_of_day_decrease_shorter_than_half_a_day_is_an_error(tmp_path):
-    path, cmap = basic(tmp_path, "t,x,y,z\n86000,1,2,3\n50000,1,2,3\n",
-                       BASIC_MAP + '[units]\ntime_epoch = "seconds_of_day"\ndate_utc = 2021-06-30\n')
+    path, cmap = basic(
+        tmp_path,
+        "t,x,y,z\n86000,1,2,3\n50000,1,2,3\n",
+        BASIC_MAP + '[units]\ntime_epoch = "seconds_of_day"\ndate_utc = 2021-06-30\n',
+    )
     match = r"row 3, column 't': time not strictly increasing .*midnight rollover"
     with pytest.raises(InputError, match=match), warnings.catch_warnings():
         warnings.simplefilter("ignore", UnitWarning)
         read_mapped(path, cmap)
 
 
-@pytest.mark.parametrize("toml, words", [
-    (BASIC_MAP + '[units]\nmag = "nanotesla"\n', ["[units] mag", "'nanotesla'", "nT, uT, mG, G, counts"]),
-    (BASIC_MAP + '[units]\nangle = "rad"\n', ["[units] angle: unknown key"]),
-    (BASIC_MAP + '[unit]\nmag = "uT"\n', ["unknown key 'unit'"]),
-    (BASIC_MAP + '[file]\ndelim = ";"\n', ["[file] delim: unknown key"]),
-    (BASIC_MAP + '[units]\nmag = "counts"\n', ["[units] mag_scale_nt_per_count"]),
-    (BASIC_MAP + '[units]\nmag_scale_nt_per_count = 2.0\n', ["[units] mag_scale_nt_per_count", "only applies"]),
-    (BASIC_MAP + '[units]\ntime_epoch = "start"\nstart_utc = "yesterday"\n', ["[units] start_utc", "ISO 8601"]),
-    (BASIC_MAP + '[units]\ntime = "min"\n', ["[units] time", "'min'"]),
-    (BASIC_MAP + '[units]\nquaternion_order = "zyxw"\n', ["[units] quaternion_order"]),
-    (BASIC_MAP.replace('mag_z = "z"\n', ""), ["[columns] mag_z", "required"]),
-    (BASIC_MAP + 'roll = "r"\n', ["[columns] pitch", "roll, pitch, yaw"]),
-    (BASIC_MAP + 'mag_x = "x"\n', ["not valid TOML"]),
-    (BASIC_MAP + '[file]\ncomment = "//"\n', ["[file] comment", "single character"]),
-])
+@pytest.mark.parametrize(
+    "toml, words",
+    [
+        (BASIC_MAP + '[units]\nmag = "nanotesla"\n', ["[units] mag", "'nanotesla'", "nT, uT, mG, G, counts"]),
+        (BASIC_MAP + '[units]\nangle = "rad"\n', ["[units] angle: unknown key"]),
+        (BASIC_MAP + '[unit]\nmag = "uT"\n', ["unknown key 'unit'"]),
+        (BASIC_MAP + '[file]\ndelim = ";"\n', ["[file] delim: unknown key"]),
+        (BASIC_MAP + '[units]\nmag = "counts"\n', ["[units] mag_scale_nt_per_count"]),
+        (BASIC_MAP + "[units]\nmag_scale_nt_per_count = 2.0\n", ["[units] mag_scale_nt_per_count", "only applies"]),
+        (BASIC_MAP + '[units]\ntime_epoch = "start"\nstart_utc = "yesterday"\n', ["[units] start_utc", "ISO 8601"]),
+        (BASIC_MAP + '[units]\ntime = "min"\n', ["[units] time", "'min'"]),
+        (BASIC_MAP + '[units]\nquaternion_order = "zyxw"\n', ["[units] quaternion_order"]),
+        (BASIC_MAP.replace('mag_z = "z"\n', ""), ["[columns] mag_z", "required"]),
+        (BASIC_MAP + 'roll = "r"\n', ["[columns] pitch", "roll, pitch, yaw"]),
+        (BASIC_MAP + 'mag_x = "x"\n', ["not valid TOML"]),
+        (BASIC_MAP + '[file]\ncomment = "//"\n', ["[file] comment", "single character"]),
+    ],
+)
 def test_bad_map_errors_name_the_map_file_and_key(tmp_path, toml, words):
     _, cmap = basic(tmp_path, toml=toml)
     with pytest.raises(InputError) as err:
@@ -354,7 +421,7 @@ def test_headerless_file_by_position_and_unit_warning(tmp_path):
     assert list(table.columns) == ["time", "mag_x", "mag_y", "mag_z"]
     assert prov["columns"]["time"] == "column_1 (UNIX seconds (UTC))"
     assert prov["ignored"] == {"column_5": "unmapped (keep_unmapped = false)"}
-    table, _ = read_mapped(path, dataclasses.replace(cmap, mag="uT"))   # no warning once the unit is right
+    table, _ = read_mapped(path, dataclasses.replace(cmap, mag="uT"))  # no warning once the unit is right
     np.testing.assert_array_equal(table["mag_z"], [44.0 * 1000, 44.1 * 1000])
 
 
@@ -374,15 +441,26 @@ def test_missing_files(tmp_path):
 def test_documented_complete_example_reads(tmp_path):
     """The complete example in docs/column-maps.md: its data and its map, exactly as printed there."""
     doc = DOCS.read_text(encoding="utf-8")
-    section = doc[doc.index("## A complete example"):doc.index("## The survey example")]
+    section = doc[doc.index("## A complete example") : doc.index("## The survey example")]
     data, toml = re.findall(r"```(?:toml)?\n(.*?)```", section, flags=re.DOTALL)
     path = write(tmp_path / "logger.csv", data)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UnitWarning)
         table, prov = read_mapped(path, write(tmp_path / "logger.toml", toml))
-    assert list(table.columns) == ["time", "mag_x", "mag_y", "mag_z", "roll", "pitch", "yaw", "lat", "lon", "alt",
-                                   "temp_c"]
-    start = datetime(2024, 5, 1, 10, 20, 30, 250000, tzinfo=timezone.utc).timestamp()
+    assert list(table.columns) == [
+        "time",
+        "mag_x",
+        "mag_y",
+        "mag_z",
+        "roll",
+        "pitch",
+        "yaw",
+        "lat",
+        "lon",
+        "alt",
+        "temp_c",
+    ]
+    start = datetime(2024, 5, 1, 10, 20, 30, 250000, tzinfo=UTC).timestamp()
     np.testing.assert_allclose(table["time"], [start, start + 0.1], rtol=0, atol=TIME_TOL)
     np.testing.assert_array_equal(table["mag_x"], [2145 * 6.6667, 2151 * 6.6667])
     np.testing.assert_array_equal(table["alt"], [102.5, 102.6])
@@ -397,7 +475,7 @@ def test_documented_complete_example_reads(tmp_path):
 
 def test_documented_survey_example_reads(tmp_path):
     doc = DOCS.read_text(encoding="utf-8")
-    data = re.findall(r"```\n(.*?)```", doc[doc.index("## The survey example"):], flags=re.DOTALL)[0]
+    data = re.findall(r"```\n(.*?)```", doc[doc.index("## The survey example") :], flags=re.DOTALL)[0]
     cmap = dataclasses.replace(load_column_map(SURVEY_MAP), date_utc="2021-06-30")
     table, _ = read_mapped(write(tmp_path / "line.tsv", data), cmap)
     expected = [midnight("2021-06-30") + 86399.2, midnight("2021-06-30") + 86399.4, midnight("2021-07-01") + 0.6]
@@ -458,8 +536,11 @@ def write_table(path: Path, columns: dict[str, list], fmt: str) -> None:
 def test_property_values_come_back_exactly_or_input_error(generated):
     columns, fmt, mag_unit, time_unit = generated
     file_section = '[file]\nmissing = ["NaN"]\n' if fmt == "whitespace" else ""
-    cmap = load_column_map_text(file_section + BASIC_MAP.replace('"x"', '"bx"').replace('"y"', '"by"')
-                                .replace('"z"', '"bz"') + f'[units]\nmag = "{mag_unit}"\ntime = "{time_unit}"\n')
+    cmap = load_column_map_text(
+        file_section
+        + BASIC_MAP.replace('"x"', '"bx"').replace('"y"', '"by"').replace('"z"', '"bz"')
+        + f'[units]\nmag = "{mag_unit}"\ntime = "{time_unit}"\n'
+    )
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / ("table.txt" if fmt == "whitespace" else f"table.{fmt}")
         write_table(path, columns, fmt)

@@ -2,7 +2,7 @@
 
 import struct
 import warnings
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,7 @@ REAL = Path(__file__).resolve().parents[2] / "data" / "real"
 CENTER = REAL / "ardupilot_box_center_0003.bin"
 PILOT = REAL / "ardupilot_box_pilot_0004.bin"
 LAT, LON = 51.64, -2.53
-UTC = timezone.utc
+UTC = UTC
 
 
 def unix(*args) -> float:
@@ -46,13 +46,13 @@ def test_gps_epoch_and_week_2347():
 
 def test_leap_second_2017_boundary():
     """GPS - UTC was 17 s through 2016-12-31 23:59:60 UTC and 18 s from 2017-01-01 00:00:00 UTC."""
-    midnight_gps = unix(2017, 1, 1) - GPS_EPOCH_UNIX        # UTC midnight, counted without leap seconds
+    midnight_gps = unix(2017, 1, 1) - GPS_EPOCH_UNIX  # UTC midnight, counted without leap seconds
     assert leap_seconds(midnight_gps + 18) == 18
-    assert leap_seconds(midnight_gps + 18 - 1e-3) == 17      # inside the inserted second
-    assert leap_seconds(midnight_gps + 17 - 1e-3) == 17      # 23:59:59.999
-    before = midnight_gps + 17 - 1.0                         # 23:59:59 UTC
+    assert leap_seconds(midnight_gps + 18 - 1e-3) == 17  # inside the inserted second
+    assert leap_seconds(midnight_gps + 17 - 1e-3) == 17  # 23:59:59.999
+    before = midnight_gps + 17 - 1.0  # 23:59:59 UTC
     assert gps_to_unix(before // 604_800, (before % 604_800) * 1000) == unix(2016, 12, 31, 23, 59, 59)
-    after = midnight_gps + 18                                # 00:00:00 UTC
+    after = midnight_gps + 18  # 00:00:00 UTC
     assert gps_to_unix(after // 604_800, (after % 604_800) * 1000) == unix(2017, 1, 1)
     assert leap_seconds(0.0) == 0 and leap_seconds(unix(1981, 7, 1) - GPS_EPOCH_UNIX + 1) == 1
 
@@ -60,9 +60,12 @@ def test_leap_second_2017_boundary():
 # ------------------------------------------------------------------ calibration model
 def random_calibration(rng, n=None):
     shape = (3,) if n is None else (n, 3)
-    return {"offsets": rng.uniform(-500, 500, shape), "diagonals": rng.uniform(0.8, 1.2, shape),
-            "offdiagonals": rng.uniform(-0.2, 0.2, shape),
-            "scale": rng.uniform(0.9, 1.3) if n is None else rng.uniform(0.9, 1.3, n)}
+    return {
+        "offsets": rng.uniform(-500, 500, shape),
+        "diagonals": rng.uniform(0.8, 1.2, shape),
+        "offdiagonals": rng.uniform(-0.2, 0.2, shape),
+        "scale": rng.uniform(0.9, 1.3) if n is None else rng.uniform(0.9, 1.3, n),
+    }
 
 
 def test_compass_model_round_trip_exact():
@@ -81,16 +84,32 @@ def test_compass_model_order_and_scale_rules():
     raw, ofs = np.array([[100.0, -50.0, 300.0]]), np.array([10.0, 20.0, -30.0])
     dia, odi = np.array([1.1, 0.9, 1.0]), np.array([0.05, -0.02, 0.03])
     mat = np.array([[1.1, 0.05, -0.02], [0.05, 0.9, 0.03], [-0.02, 0.03, 1.0]])
-    np.testing.assert_allclose(compass_correct(raw, ofs, dia, odi, 1.2, [1.0, 2.0, 3.0]),
-                               (mat @ ((raw[0] + ofs) * 1.2) + [1.0, 2.0, 3.0])[None], rtol=1e-12)
+    np.testing.assert_allclose(
+        compass_correct(raw, ofs, dia, odi, 1.2, [1.0, 2.0, 3.0]),
+        (mat @ ((raw[0] + ofs) * 1.2) + [1.0, 2.0, 3.0])[None],
+        rtol=1e-12,
+    )
     np.testing.assert_allclose(compass_correct(raw, ofs, np.zeros(3), np.zeros(3), 0.0), raw + ofs, rtol=1e-12)
     np.testing.assert_allclose(compass_correct(raw, ofs, dia, odi, 1.6), compass_correct(raw, ofs, dia, odi, 1.0))
 
 
 # ------------------------------------------------------------------ a synthetic DataFlash writer
 HEAD = b"\xa3\x95"
-STRUCT = {"Q": "Q", "B": "B", "h": "h", "H": "H", "I": "I", "i": "i", "f": "f", "c": "h", "C": "H", "e": "i",
-          "L": "i", "N": "16s", "Z": "64s"}
+STRUCT = {
+    "Q": "Q",
+    "B": "B",
+    "h": "h",
+    "H": "H",
+    "I": "I",
+    "i": "i",
+    "f": "f",
+    "c": "h",
+    "C": "H",
+    "e": "i",
+    "L": "i",
+    "N": "16s",
+    "Z": "64s",
+}
 SCALE = {"c": 100, "C": 100, "e": 100, "L": 1e7}
 
 
@@ -103,8 +122,13 @@ class DataFlashWriter:
     def define(self, type_id, name, fmt, columns):
         body = "<" + "".join(STRUCT[c] for c in fmt)
         self.formats[name] = (type_id, fmt, body)
-        self.chunks.append(HEAD + bytes([128]) + struct.pack("<BB4s16s64s", type_id, 3 + struct.calcsize(body),
-                                                             name.encode(), fmt.encode(), columns.encode()))
+        self.chunks.append(
+            HEAD
+            + bytes([128])
+            + struct.pack(
+                "<BB4s16s64s", type_id, 3 + struct.calcsize(body), name.encode(), fmt.encode(), columns.encode()
+            )
+        )
 
     def write(self, name, *values):
         type_id, fmt, body = self.formats[name]
@@ -124,7 +148,7 @@ class DataFlashWriter:
         return path
 
 
-BOOT_TO_UTC = unix(2025, 1, 3, 12) - 100.0      # UTC of TimeUS = 0 in the synthetic logs
+BOOT_TO_UTC = unix(2025, 1, 3, 12) - 100.0  # UTC of TimeUS = 0 in the synthetic logs
 WEEK, WEEK_START = 2347, unix(2024, 12, 29)
 
 
@@ -145,7 +169,7 @@ def synthetic_log(path, rng, *, gps_week=True, mag=True, yaw0=350.0):
     cals = []
     for k, suffix in enumerate(("", "2")):
         cal = random_calibration(rng)
-        cal = {key: np.float32(v).astype(float) for key, v in cal.items()}   # PARM values are float32
+        cal = {key: np.float32(v).astype(float) for key, v in cal.items()}  # PARM values are float32
         for key, name in (("offsets", "OFS"), ("diagonals", "DIA"), ("offdiagonals", "ODI")):
             for axis, value in zip("XYZ", cal[key]):
                 w.write("PARM", 2000 + k, f"COMPASS_{name}{suffix}_{axis}", value)
@@ -163,8 +187,19 @@ def synthetic_log(path, rng, *, gps_week=True, mag=True, yaw0=350.0):
             fix = 3 if j >= 50 else 1
             utc = BOOT_TO_UTC + (t_us + 20_000) * 1e-6
             ms = (utc + 18 - WEEK_START) * 1000 if gps_week else (utc - WEEK_START) * 1000
-            w.write("GPS", t_us + 20_000, 0, fix, round(ms), WEEK if gps_week else 0, 8, 1.2,
-                    LAT + 1e-5 * j if fix == 3 else 0.0, LON, 100.0)
+            w.write(
+                "GPS",
+                t_us + 20_000,
+                0,
+                fix,
+                round(ms),
+                WEEK if gps_week else 0,
+                8,
+                1.2,
+                LAT + 1e-5 * j if fix == 3 else 0.0,
+                LON,
+                100.0,
+            )
             w.write("GPA", t_us + 20_000, 0, 1.8, (t_us + 20_000) // 1000, 150.0)
             w.write("BARO", t_us + 30_000, 0, 5.0, 20.0 + 0.01 * j)
             w.write("BAT", t_us + 40_000, 0, 16.0, 16.1, 3.0 + 0.1 * j)
@@ -183,13 +218,19 @@ def test_synthetic_raw_reconstruction_and_channels(tmp_path):
         # each corrected component is off by at most 0.5 mG and the raw error is bounded by
         # ||M^-1||_inf * 0.5 / scale.
         cal = truth["cals"][k]
-        m_inv = np.linalg.inv(np.array([[cal["diagonals"][0], cal["offdiagonals"][0], cal["offdiagonals"][1]],
-                                        [cal["offdiagonals"][0], cal["diagonals"][1], cal["offdiagonals"][2]],
-                                        [cal["offdiagonals"][1], cal["offdiagonals"][2], cal["diagonals"][2]]]))
+        m_inv = np.linalg.inv(
+            np.array(
+                [
+                    [cal["diagonals"][0], cal["offdiagonals"][0], cal["offdiagonals"][1]],
+                    [cal["offdiagonals"][0], cal["diagonals"][1], cal["offdiagonals"][2]],
+                    [cal["offdiagonals"][1], cal["offdiagonals"][2], cal["diagonals"][2]],
+                ]
+            )
+        )
         bound = np.abs(m_inv).sum(axis=1).max() * 0.5 / cal["scale"] + 1e-6
         err = np.abs(got_mg - truth["raw"][k])
         assert err.max() <= bound
-        assert err.mean() < 0.6 * bound       # centred: no systematic half-count bias
+        assert err.mean() < 0.6 * bound  # centred: no systematic half-count bias
         assert prov["magnetometer"]["instance"] == k
         assert f"COMPASS_OFS{'' if k == 0 else '2'}" in prov["raw_reconstruction"]
     # Time: TimeUS + the boot-to-UTC offset, exactly (GPS ms are whole; 1 ms rounding at most).
@@ -214,10 +255,10 @@ def test_yaw_interpolated_across_north(tmp_path):
     j = np.arange(1, 200)
     expected = 350.0 + 0.5 * (j - 1) + 0.25
     got = df["yaw"].to_numpy()[1:]
-    assert np.abs(wrap_deg(got - expected)).max() < 1e-3   # never the 180 deg of averaging 359.5 and 0
+    assert np.abs(wrap_deg(got - expected)).max() < 1e-3  # never the 180 deg of averaging 359.5 and 0
     np.testing.assert_allclose(df["roll"].to_numpy()[1:], 2.0, atol=1e-9)
     np.testing.assert_allclose(df["pitch"].to_numpy()[1:], -1.0, atol=1e-9)
-    assert np.isnan(df["yaw"].iloc[0])                      # before the first ATT sample
+    assert np.isnan(df["yaw"].iloc[0])  # before the first ATT sample
 
 
 def test_synthetic_errors(tmp_path):
@@ -259,8 +300,14 @@ def test_real_logs_date_place_field(real, path):
     assert abs(np.nanmedian(df["lat"]) - LAT) < 0.05 and abs(np.nanmedian(df["lon"]) - LON) < 0.05
     assert prov["firmware"] == "ArduPlane V4.2.3 (55685c43)"
     magnetometer = prov["magnetometer"]
-    assert {k: magnetometer[k] for k in ("instance", "message", "samples", "dev_id", "external", "orientation")} \
-        == {"instance": 0, "message": "MAG", "samples": len(df), "dev_id": 855297, "external": 1, "orientation": 8}
+    assert {k: magnetometer[k] for k in ("instance", "message", "samples", "dev_id", "external", "orientation")} == {
+        "instance": 0,
+        "message": "MAG",
+        "samples": len(df),
+        "dev_id": 855297,
+        "external": 1,
+        "orientation": 8,
+    }
     assert prov["magnetometers"] == [{k: magnetometer[k] for k in ("instance", "message", "samples", "rate_hz")}]
     assert 9.0 < prov["magnetometer"]["rate_hz"] < 10.5
     # The autopilot's calibration sets COMPASS_SCALE so the corrected sphere has the WMM intensity of the
@@ -293,7 +340,7 @@ def test_real_logs_forward_model_reproduces_logged_field(real, path):
     odi = [p[f"COMPASS_ODI_{a}"] for a in "XYZ"]
     raw_mg = df[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0
     forward = compass_correct(raw_mg, ofs, dia, odi, p["COMPASS_SCALE"])
-    logged_centred = cal[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0     # logged +- 0.5 mG
+    logged_centred = cal[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0  # logged +- 0.5 mG
     np.testing.assert_allclose(forward, logged_centred, atol=1e-9)
     np.testing.assert_array_equal(np.trunc(forward), np.trunc(logged_centred))
     assert "COMPASS_OFS" in prov["raw_reconstruction"] and "4.2.3" in prov["raw_reconstruction"]
@@ -310,8 +357,9 @@ def test_real_decoder_matches_pymavlink():
     df, _ = read_dataflash(CENTER, raw=False)
     logged = np.array([[m.MagX, m.MagY, m.MagZ] for m in mags], float)
     np.testing.assert_array_equal(np.trunc(df[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0), logged)
-    np.testing.assert_allclose(np.diff(df["time"]), np.diff([m.TimeUS for m in mags]) * 1e-6,
-                               atol=1e-6)   # float64 resolution of UNIX seconds near 1.7e9 is 2.4e-7 s
+    np.testing.assert_allclose(
+        np.diff(df["time"]), np.diff([m.TimeUS for m in mags]) * 1e-6, atol=1e-6
+    )  # float64 resolution of UNIX seconds near 1.7e9 is 2.4e-7 s
     fixes = [m for m in gps if m.Status >= 3]
     assert np.nanmax(df["lat"]) <= max(m.Lat for m in fixes) and np.nanmin(df["lat"]) >= min(m.Lat for m in fixes)
 
@@ -327,13 +375,15 @@ def test_old_style_mag2_instances(tmp_path):
         w.write("MAG2", 1_000_000 + j * 100_000, -100, 0, 300)
         w.write("GPS", 1_000_000 + j * 200_000, 3, 400_000_000 + j * 200, WEEK)
     path = w.save(tmp_path / "old.bin")
-    assert [(m["instance"], m["message"], m["samples"]) for m in magnetometer_instances(path)] == \
-        [(0, "MAG", 50), (1, "MAG2", 50)]
+    assert [(m["instance"], m["message"], m["samples"]) for m in magnetometer_instances(path)] == [
+        (0, "MAG", 50),
+        (1, "MAG2", 50),
+    ]
     assert magnetometer_instances(path)[0]["rate_hz"] == pytest.approx(20.0)
     df, prov = read_dataflash(path, mag=1, raw=False)
     np.testing.assert_array_equal(df[["mag_x", "mag_y", "mag_z"]].iloc[0], [-10_050.0, 0.0, 30_050.0])
     assert prov["magnetometer"]["message"] == "MAG2"
-    df, prov = read_dataflash(path, mag=1)   # no PARM: the default calibration (identity) is undone
+    df, prov = read_dataflash(path, mag=1)  # no PARM: the default calibration (identity) is undone
     np.testing.assert_array_equal(df[["mag_x", "mag_y", "mag_z"]].iloc[0], [-10_050.0, 0.0, 30_050.0])
     assert "COMPASS_OFS2" in prov["raw_reconstruction"]
 
@@ -341,7 +391,7 @@ def test_old_style_mag2_instances(tmp_path):
 def test_pilot_no_fix_epochs_have_no_position(real):
     (df, _), _ = real[PILOT.name]
     fix = df["fix_type"].to_numpy()
-    no_fix = ~(fix >= 3)                        # status 1 (or no GPS sample yet: NaN)
+    no_fix = ~(fix >= 3)  # status 1 (or no GPS sample yet: NaN)
     assert no_fix.sum() > 500 and (fix >= 3).sum() > 100
     for column in ("lat", "lon", "alt", "hdop", "vdop"):
         assert np.isnan(df[column].to_numpy()[no_fix]).all()
@@ -363,4 +413,4 @@ def test_truncated_copy_warns_and_reads_to_the_damage(tmp_path):
     assert any("truncated" in n for n in prov["notes"])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        read_dataflash(CENTER)                  # the intact log does not warn
+        read_dataflash(CENTER)  # the intact log does not warn

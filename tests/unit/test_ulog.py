@@ -77,14 +77,23 @@ def test_sample_log_provenance(sample):
     assert set(prov["columns"]) == set(table.columns)
     assert "device_id" not in table.columns
     assert prov["magnetometer"] | {"rate_hz": None} == {
-        "topic": "sensor_mag", "instance": 0, "device_id": 589858, "rate_hz": None, "calibrated": False,
-        "fields": "sensor_mag.x, sensor_mag.y, sensor_mag.z", "calibration_index": 0}
+        "topic": "sensor_mag",
+        "instance": 0,
+        "device_id": 589858,
+        "rate_hz": None,
+        "calibrated": False,
+        "fields": "sensor_mag.x, sensor_mag.y, sensor_mag.z",
+        "calibration_index": 0,
+    }
     assert prov["rotation"]["SENS_BOARD_ROT"] == 4 and prov["rotation"]["CAL_MAG0_ROT"] == -1
     assert prov["rotation"]["applied"] is False
     assert prov["parameters"]["CAL_MAG1_ID"] == 592905
     assert "time_utc_usec" in prov["time_base"]
     assert [(m["topic"], m["instance"], m["samples"]) for m in prov["magnetometers"]] == [
-        ("sensor_mag", 0, 6), ("sensor_mag", 1, 6), ("vehicle_magnetometer", 0, 319)]
+        ("sensor_mag", 0, 6),
+        ("sensor_mag", 1, 6),
+        ("vehicle_magnetometer", 0, 319),
+    ]
     assert magnetometer_instances(SAMPLE) == prov["magnetometers"]
 
 
@@ -107,13 +116,23 @@ def test_missing_instance_is_input_error():
 def _synthetic(n: int, seed: int) -> pd.DataFrame:
     rng = np.random.default_rng(seed)
     yaw = wrap_deg(170.0 + np.cumsum(rng.normal(0.0, 4.0, n)))  # wanders across +-180 deg
-    return pd.DataFrame({
-        "time": 1.7e9 + np.cumsum(rng.uniform(0.015, 0.025, n)),
-        "mag_x": rng.normal(2e4, 2e4, n), "mag_y": rng.normal(0.0, 2e4, n), "mag_z": rng.normal(4e4, 1e4, n),
-        "roll": rng.uniform(-180.0, 180.0, n), "pitch": rng.uniform(-60.0, 60.0, n), "yaw": yaw,
-        "lat": rng.uniform(-80.0, 80.0, n), "lon": rng.uniform(-180.0, 180.0, n),
-        "alt": rng.uniform(-100.0, 3000.0, n), "hdop": rng.uniform(0.5, 3.0, n), "vdop": rng.uniform(0.5, 3.0, n),
-        "current_a": rng.uniform(0.0, 30.0, n)})
+    return pd.DataFrame(
+        {
+            "time": 1.7e9 + np.cumsum(rng.uniform(0.015, 0.025, n)),
+            "mag_x": rng.normal(2e4, 2e4, n),
+            "mag_y": rng.normal(0.0, 2e4, n),
+            "mag_z": rng.normal(4e4, 1e4, n),
+            "roll": rng.uniform(-180.0, 180.0, n),
+            "pitch": rng.uniform(-60.0, 60.0, n),
+            "yaw": yaw,
+            "lat": rng.uniform(-80.0, 80.0, n),
+            "lon": rng.uniform(-180.0, 180.0, n),
+            "alt": rng.uniform(-100.0, 3000.0, n),
+            "hdop": rng.uniform(0.5, 3.0, n),
+            "vdop": rng.uniform(0.5, 3.0, n),
+            "current_a": rng.uniform(0.0, 30.0, n),
+        }
+    )
 
 
 def test_round_trip_within_storage_precision(tmp_path):

@@ -11,21 +11,28 @@ from magkf.io.drivelog import DriveLog
 from magkf.online.run import calibrate_log
 from magkf.sim import DriveConfig, simulate_drive
 
-from .conftest import ROOT, cli_json
+from ..conftest import ROOT, cli_json
 
 NOISE = 30.0
 MATCHED = FilterConfig(sensor_noise_nt=NOISE, attitude_deg=0.0, reference_nt=0.0, r_walk=0.0, b_walk=0.0)
 #: Realistic sizes: each makes tens to hundreds of nT on this log.
-TRUTH = {"temperature_bias": [8.0, -5.0, 6.0], "temperature_scale": [3e-4, -2e-4, 2e-4],
-         "current_field": [12.0, -8.0, 5.0], "time_lag": [0.02], "field_anomaly": [150.0, -80.0, 120.0],
-         "bias_drift": [2.0], "eddy_current": list(np.diag([3e-3, -2e-3, 2e-3]).ravel())}
+TRUTH = {
+    "temperature_bias": [8.0, -5.0, 6.0],
+    "temperature_scale": [3e-4, -2e-4, 2e-4],
+    "current_field": [12.0, -8.0, 5.0],
+    "time_lag": [0.02],
+    "field_anomaly": [150.0, -80.0, 120.0],
+    "bias_drift": [2.0],
+    "eddy_current": list(np.diag([3e-3, -2e-3, 2e-3]).ravel()),
+}
 PLANAR = ("temperature_bias", "temperature_scale", "current_field", "time_lag", "bias_drift", "eddy_current")
 CASES = [(name, "3d") for name in TRUTH] + [(name, "planar") for name in PLANAR]
 
 
 def _sim(effects, motion="3d", seed=31, duration=600.0):
-    return simulate_drive(DriveConfig(duration_s=duration, rate_hz=20, motion=motion, noise_nt=NOISE, seed=seed),
-                          effects=effects)
+    return simulate_drive(
+        DriveConfig(duration_s=duration, rate_hz=20, motion=motion, noise_nt=NOISE, seed=seed), effects=effects
+    )
 
 
 def _quiet_rms(sim, run) -> float:
@@ -35,6 +42,7 @@ def _quiet_rms(sim, run) -> float:
 
 
 @pytest.mark.parametrize("name,motion", CASES)
+@pytest.mark.slow
 def test_hidden_effect_found_added_and_estimated(name, motion):
     effect = BUILTIN[name]()
     sim = _sim([(effect, TRUTH[name])], motion)
@@ -55,6 +63,7 @@ def test_hidden_effect_found_added_and_estimated(name, motion):
     assert np.all(np.abs(z) < 3), z
 
 
+@pytest.mark.slow
 def test_two_hidden_effects_larger_first():
     sim = _sim([(BUILTIN["temperature_bias"](), [12.0, -8.0, 10.0]), (BUILTIN["current_field"](), [1.0, -0.7, 0.5])])
     # "Larger": the variance a contribution leaves in the residual once its mean (which b takes) is removed.
@@ -70,6 +79,7 @@ def test_two_hidden_effects_larger_first():
     assert _quiet_rms(sim, run) <= 1.1 * NOISE
 
 
+@pytest.mark.slow
 def test_no_false_alarms_without_a_hidden_effect():
     """20 seeded logs with no effect: runs with any significant candidate stay within what alpha allows."""
     alpha, runs = 0.01, 20
@@ -95,7 +105,11 @@ def test_user_effect_through_the_command_line(tmp):
     found = cli_json("diagnose", tmp / "log.csv", "--effect-file", path, *noise)
     assert found["candidates"][0]["effect"] == "wheel_magnet:wheel_deg" and found["candidates"][0]["significant"]
     s = cli_json("calibrate", tmp / "log.csv", "--effect-file", path, "--effect", "wheel_magnet", *noise)
-    est = s["effects"]["wheel_magnet:wheel_deg"] if "wheel_magnet:wheel_deg" in s["effects"] else s["effects"]["wheel_magnet"]
+    est = (
+        s["effects"]["wheel_magnet:wheel_deg"]
+        if "wheel_magnet:wheel_deg" in s["effects"]
+        else s["effects"]["wheel_magnet"]
+    )
     z = (np.array([v["value"] for v in est.values()]) - truth) / np.array([v["std"] for v in est.values()])
     assert np.all(np.abs(z) < 3), z
     assert s["before_after"]["after"]["residual_rms_nt"] < s["before_after"]["before"]["residual_rms_nt"]
@@ -132,10 +146,19 @@ def test_diagnose_json_and_self_contained_report(tmp):
     sim.write(tmp / "log.csv")
     d = cli_json("diagnose", tmp / "log.csv")
     assert d["candidates"][0]["effect"] == "current_field:current_a"
-    for key in ("effect", "statistic", "dof", "p_value", "delta_aic", "delta_bic", "residual_rms_after_nt", "significant"):
+    for key in (
+        "effect",
+        "statistic",
+        "dof",
+        "p_value",
+        "delta_aic",
+        "delta_bic",
+        "residual_rms_after_nt",
+        "significant",
+    ):
         assert key in d["candidates"][0]
     assert d["residual_rms_nt"] > d["candidates"][0]["residual_rms_after_nt"]
-    from .conftest import run_cli
+    from ..conftest import run_cli
 
     proc = run_cli("report", tmp / "log.csv", "--effect", "current_field", "-o", tmp / "r.html")
     assert proc.returncode == 0, proc.stderr

@@ -1,3 +1,5 @@
+from datetime import UTC
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -11,8 +13,8 @@ from magkf.offline.ellipsoid import (
     patent_parameters,
 )
 
-from .conftest import DATA, cli_json, run_cli
-from .stats import assert_biased, assert_standard_normal
+from ..conftest import DATA, cli_json, run_cli
+from ..stats import assert_biased, assert_standard_normal
 
 TRUTH3 = (np.array([1.1, 0.9, 1.05]), np.radians([2.0, -3.0, 1.5]), np.array([0.2, -0.1, 0.3]))
 TRUTH2 = (np.array([1.1, 0.9]), np.radians([3.0]), np.array([0.2, -0.1]))
@@ -115,11 +117,11 @@ def test_too_few_samples():
 
 def test_field_from_igrf(tmp):
     """--field igrf scales the sphere to the IGRF magnitude (the horizontal part for --axes 2)."""
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     from magkf.reference import field_at
 
-    f = field_at(48.1, 11.6, 0.0, datetime(2026, 6, 1, tzinfo=timezone.utc).timestamp())
+    f = field_at(48.1, 11.6, 0.0, datetime(2026, 6, 1, tzinfo=UTC).timestamp())
     rng = np.random.default_rng(10)
     X = _sample(TRUTH3, 400, 0.0, rng) * f["magnitude_nt"]
     pd.DataFrame(X, columns=["mag_x", "mag_y", "mag_z"]).to_csv(tmp / "s.csv", index=False)

@@ -34,12 +34,15 @@ def test_dcm_is_a_rotation():
     assert np.allclose(np.linalg.det(c), 1.0)
 
 
-@pytest.mark.parametrize("yaw,pitch,roll,body,ned", [
-    (90, 0, 0, [1, 0, 0], [0, 1, 0]),      # nose east
-    (0, 90, 0, [1, 0, 0], [0, 0, -1]),     # nose up
-    (0, 0, 90, [0, 1, 0], [0, 0, 1]),      # right wing down
-    (180, 0, 0, [0, 1, 0], [0, -1, 0]),    # heading south: right wing points west
-])
+@pytest.mark.parametrize(
+    "yaw,pitch,roll,body,ned",
+    [
+        (90, 0, 0, [1, 0, 0], [0, 1, 0]),  # nose east
+        (0, 90, 0, [1, 0, 0], [0, 0, -1]),  # nose up
+        (0, 0, 90, [0, 1, 0], [0, 0, 1]),  # right wing down
+        (180, 0, 0, [0, 1, 0], [0, -1, 0]),  # heading south: right wing points west
+    ],
+)
 def test_known_rotations(yaw, pitch, roll, body, ned):
     c = euler_to_dcm(yaw, pitch, roll)
     assert np.allclose(body_to_ned(c, np.array(body, float)), ned, atol=1e-12)

@@ -7,13 +7,14 @@ from magkf.conventions import wrap_deg
 from magkf.io.drivelog import read_drive_log
 from magkf.sim import DriveConfig, simulate_drive
 
-from .conftest import DATA, cli_json
+from ..conftest import DATA, cli_json
 
 
 def test_truth_calibration_recovers_field_and_heading(tmp):
     """Noise- and disturbance-free log: the true calibration gives back the body field and the yaw."""
-    sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=10, noise_nt=0.0, disturbances=0, seed=4,
-                                     mounting="-y,x,z"))
+    sim = simulate_drive(
+        DriveConfig(duration_s=60, rate_hz=10, noise_nt=0.0, disturbances=0, seed=4, mounting="-y,x,z")
+    )
     sim.write(tmp / "log.csv")
     log = read_drive_log(tmp / "log.csv")
     out = apply_calibration(log, sim.calibration)
@@ -35,8 +36,12 @@ def test_every_epoch_keeps_a_status(tmp):
     out = pd.read_csv(tmp / "out.csv")
     assert len(out) == len(table) == summary["n_epochs"]
     assert list(out["status"].iloc[[2, 4, 6]]) == ["missing_mag", "missing_attitude", "missing_position"]
-    assert summary["status_counts"] == {"ok": len(table) - 3, "missing_mag": 1, "missing_attitude": 1,
-                                        "missing_position": 1}
+    assert summary["status_counts"] == {
+        "ok": len(table) - 3,
+        "missing_mag": 1,
+        "missing_attitude": 1,
+        "missing_position": 1,
+    }
 
 
 def test_apply_on_shipped_log_with_its_truth(tmp):

@@ -6,15 +6,21 @@ import pytest
 from magkf.errors import InputError
 from magkf.io.calibration import Calibration
 
-from .conftest import DATA, run_cli
+from ..conftest import DATA, run_cli
 
 RNG = np.random.default_rng(2)
 
 
 def _cal():
-    return Calibration(R=np.eye(3) + RNG.normal(scale=0.05, size=(3, 3)), b=RNG.normal(scale=300, size=3),
-                       method="test", covariance=np.diag(RNG.uniform(1, 2, 12)),
-                       parameters={"kx": 1.01}, standard_errors={"kx": 0.001}, quality={"rms": 3.2})
+    return Calibration(
+        R=np.eye(3) + RNG.normal(scale=0.05, size=(3, 3)),
+        b=RNG.normal(scale=300, size=3),
+        method="test",
+        covariance=np.diag(RNG.uniform(1, 2, 12)),
+        parameters={"kx": 1.01},
+        standard_errors={"kx": 0.001},
+        quality={"rms": 3.2},
+    )
 
 
 def test_round_trip_is_exact(tmp):
@@ -40,16 +46,19 @@ def test_result_is_immutable():
         cal.R[0, 0] = 2.0
 
 
-@pytest.mark.parametrize("content,message", [
-    ("{not json", "not valid JSON"),
-    ("[1, 2]", "one JSON object"),
-    ('{"b": [0, 0, 0]}', "required key 'R'"),
-    ('{"R": [[1, 0, 0], [0, 1, 0]], "b": [0, 0, 0]}', "shape"),
-    ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, "x"]], "b": [0, 0, 0]}', "must hold numbers"),
-    ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 0]], "b": [0, 0, 0]}', "singular"),
-    ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "b": [0, 0, 0], "version": 99}', "version"),
-    ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "b": [0, 0, 0], "format": "other"}', "format"),
-])
+@pytest.mark.parametrize(
+    "content,message",
+    [
+        ("{not json", "not valid JSON"),
+        ("[1, 2]", "one JSON object"),
+        ('{"b": [0, 0, 0]}', "required key 'R'"),
+        ('{"R": [[1, 0, 0], [0, 1, 0]], "b": [0, 0, 0]}', "shape"),
+        ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, "x"]], "b": [0, 0, 0]}', "must hold numbers"),
+        ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 0]], "b": [0, 0, 0]}', "singular"),
+        ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "b": [0, 0, 0], "version": 99}', "version"),
+        ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "b": [0, 0, 0], "format": "other"}', "format"),
+    ],
+)
 def test_malformed_files_are_rejected(tmp, content, message):
     path = tmp / "bad.json"
     path.write_text(content)

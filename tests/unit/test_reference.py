@@ -1,4 +1,4 @@
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 import pandas as pd
@@ -19,7 +19,7 @@ def _track(start, hours, rate_hz, kind="3d", seed=0):
 
 
 def _ts(*args):
-    return datetime(*args, tzinfo=timezone.utc).timestamp()
+    return datetime(*args, tzinfo=UTC).timestamp()
 
 
 def test_fast_path_matches_ppigrf_on_an_hour_at_100hz():
@@ -78,8 +78,16 @@ def test_cache_reevaluates_only_when_needed():
 
 
 def test_reference_columns_override_igrf():
-    table = pd.DataFrame({"mag_x": [1.0, 2.0], "mag_y": [0.0, 0.0], "mag_z": [0.0, 0.0],
-                          "ref_n": [20_000.0, 20_001.0], "ref_e": [1.0, 2.0], "ref_d": [40_000.0, 40_001.0]},
-                         index=pd.Index([1.0, 2.0], name="time"))
+    table = pd.DataFrame(
+        {
+            "mag_x": [1.0, 2.0],
+            "mag_y": [0.0, 0.0],
+            "mag_z": [0.0, 0.0],
+            "ref_n": [20_000.0, 20_001.0],
+            "ref_e": [1.0, 2.0],
+            "ref_d": [40_000.0, 40_001.0],
+        },
+        index=pd.Index([1.0, 2.0], name="time"),
+    )
     ref = DriveLog(table).reference_ned()
     assert np.array_equal(ref, table[["ref_n", "ref_e", "ref_d"]].to_numpy())

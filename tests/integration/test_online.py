@@ -19,7 +19,7 @@ from magkf.online.realtime import OnlineCalibrator
 from magkf.online.run import calibrate_log
 from magkf.sim import DriveConfig, simulate_drive, simulate_turntable
 
-from .conftest import DATA, cli_json, run_cli
+from ..conftest import DATA, cli_json, run_cli
 
 NOISE = 30.0
 #: The simulator's attitude and reference are exact and its parameters constant: the matching settings.
@@ -46,8 +46,17 @@ def test_magnitude_jacobian_matches_finite_differences():
     m = rng.normal(scale=3e4, size=(4, 3))
     _, H, _ = magnitude_jacobian(x, m)
     step = 1e-6 * np.maximum(np.abs(x), 1.0)
-    fd = np.stack([(magnitude_jacobian(x + np.eye(12)[j] * step[j], m)[0]
-                    - magnitude_jacobian(x - np.eye(12)[j] * step[j], m)[0]) / (2 * step[j]) for j in range(12)], 1)
+    fd = np.stack(
+        [
+            (
+                magnitude_jacobian(x + np.eye(12)[j] * step[j], m)[0]
+                - magnitude_jacobian(x - np.eye(12)[j] * step[j], m)[0]
+            )
+            / (2 * step[j])
+            for j in range(12)
+        ],
+        1,
+    )
     assert np.allclose(H, fd, rtol=1e-5, atol=1e-4)
 
 
@@ -63,6 +72,7 @@ def monte_carlo():
     return out
 
 
+@pytest.mark.slow
 def test_final_parameters_within_their_standard_deviations(monte_carlo):
     z = np.array([(run.x[:12] - _truth(sim)) / run.std[:12] for sim, run in monte_carlo])
     # |z| > 3 happens with probability 0.0027; allow what a binomial count allows at the 0.999 level.
@@ -70,14 +80,18 @@ def test_final_parameters_within_their_standard_deviations(monte_carlo):
     assert (np.abs(z) > 3).sum() <= allowed, np.abs(z).max()
 
 
+@pytest.mark.slow
 def test_mean_nees_inside_95_percent_band(monte_carlo):
-    nees = [float((run.x[:12] - _truth(sim)) @ np.linalg.solve(run.P[:12, :12], run.x[:12] - _truth(sim)))
-            for sim, run in monte_carlo]
+    nees = [
+        float((run.x[:12] - _truth(sim)) @ np.linalg.solve(run.P[:12, :12], run.x[:12] - _truth(sim)))
+        for sim, run in monte_carlo
+    ]
     n = len(nees)
     lo, hi = stats.chi2.ppf([0.025, 0.975], 12 * n) / n
     assert lo < np.mean(nees) < hi, (np.mean(nees), lo, hi)
 
 
+@pytest.mark.slow
 def test_residual_on_undisturbed_epochs_is_the_noise(monte_carlo):
     for sim, run in monte_carlo:
         used = (run.states["status"] == "used").to_numpy() & (np.linalg.norm(sim.disturbance, axis=1) == 0)
@@ -93,6 +107,7 @@ def test_residual_on_undisturbed_epochs_is_the_noise(monte_carlo):
         assert run.summary.residual_rms_nt / np.sqrt(3) <= 1.05 * NOISE
 
 
+@pytest.mark.slow
 def test_disturbances_are_gated(monte_carlo):
     shares = []
     for sim, run in monte_carlo:
@@ -164,7 +179,9 @@ def test_magnitude_only_reports_the_unseen_rotation(constant_log):
 # ---------------------------------------------------------------- bootstrap, statuses, smoothing
 @pytest.mark.parametrize("mounting", ["z,x,y", "-x,-y,z", "y,-z,-x", "x,y,-z"])
 def test_bootstrap_finds_any_mounting(mounting):
-    sim = simulate_drive(DriveConfig(duration_s=300, rate_hz=20, motion="3d", noise_nt=NOISE, seed=9, mounting=mounting))
+    sim = simulate_drive(
+        DriveConfig(duration_s=300, rate_hz=20, motion="3d", noise_nt=NOISE, seed=9, mounting=mounting)
+    )
     run = calibrate_log(DriveLog(sim.table), MATCHED)
     z = (run.x[:12] - _truth(sim)) / run.std[:12]
     assert np.all(np.abs(z) < 4.5), z  # 12 parameters: |z| >= 4.5 by chance has probability < 1e-4
@@ -207,8 +224,10 @@ def test_smoothing_improves_the_early_estimates():
     err_f = np.abs(filt.states[names].to_numpy()[early] - sim.b).mean()
     err_s = np.abs(smooth.states[names].to_numpy()[early] - sim.b).mean()
     assert err_s < err_f
-    assert (smooth.states[[f"std_{n}" for n in names]].to_numpy()[early]
-            <= filt.states[[f"std_{n}" for n in names]].to_numpy()[early] + 1e-9).all()
+    assert (
+        smooth.states[[f"std_{n}" for n in names]].to_numpy()[early]
+        <= filt.states[[f"std_{n}" for n in names]].to_numpy()[early] + 1e-9
+    ).all()
 
 
 # ---------------------------------------------------------------- real time
@@ -250,8 +269,9 @@ def test_main_job_on_shipped_log(tmp):
     import json
 
     truth = json.loads((DATA / "example_drive_truth.json").read_text())
-    z = (np.concatenate([np.ravel(s["R"]), s["b"]]) - np.concatenate([np.ravel(truth["R"]), truth["b"]])) \
-        / np.array(list(s["std"].values()))
+    z = (np.concatenate([np.ravel(s["R"]), s["b"]]) - np.concatenate([np.ravel(truth["R"]), truth["b"]])) / np.array(
+        list(s["std"].values())
+    )
     assert np.all(np.abs(z) < 4.5)
 
 

@@ -10,8 +10,8 @@ from magkf.offline.sinefit import (
 )
 from magkf.sim import PAPER_EXAMPLE, simulate_turntable
 
-from .conftest import DATA, cli_json, run_cli
-from .stats import assert_standard_normal
+from ..conftest import DATA, cli_json, run_cli
+from ..stats import assert_standard_normal
 
 B, INC = 50_000.0, 43.0
 TRUTH = PAPER_EXAMPLE.as_vector()
@@ -20,23 +20,37 @@ TRUTH = PAPER_EXAMPLE.as_vector()
 def test_fit_sine_noiseless():
     angle = np.arange(0, 360, 10.0)
     c = fit_sine(angle, 123.0 * np.sin(np.radians(angle + 250.0)) - 7.0)
-    assert c.amplitude == pytest.approx(123.0) and c.phase_deg == pytest.approx(250.0) and c.offset == pytest.approx(-7.0)
+    assert (
+        c.amplitude == pytest.approx(123.0) and c.phase_deg == pytest.approx(250.0) and c.offset == pytest.approx(-7.0)
+    )
 
 
+@pytest.mark.slow
 def test_fit_sine_standard_errors_monte_carlo():
     rng = np.random.default_rng(3)
     angle = np.arange(0, 360, 7.5)
     z = []
     for _ in range(400):
         c = fit_sine(angle, 50 * np.sin(np.radians(angle + 30)) + 5 + rng.normal(scale=4, size=angle.size))
-        z.append([(c.amplitude - 50) / c.amplitude_se, (c.phase_deg - 30) / c.phase_se_deg, (c.offset - 5) / c.offset_se])
+        z.append(
+            [(c.amplitude - 50) / c.amplitude_se, (c.phase_deg - 30) / c.phase_se_deg, (c.offset - 5) / c.offset_se]
+        )
     assert_standard_normal(z, label="sine curve")
 
 
 def test_paper_worked_example_to_printed_digits():
     """The paper's printed curves give its printed parameters (phi 89.0996, not the misprinted 89.9996)."""
-    r = cli_json("sinefit", "--curves", DATA / "paper_example_curves.json", "--field", B, "--inclination", INC,
-                 "--method", "paper")
+    r = cli_json(
+        "sinefit",
+        "--curves",
+        DATA / "paper_example_curves.json",
+        "--field",
+        B,
+        "--inclination",
+        INC,
+        "--method",
+        "paper",
+    )
     assert round(r["alpha_deg"], 2) == 1.35 and round(r["beta_deg"], 1) == 32.7 and round(r["gamma_deg"], 2) == 1.07
     assert round(r["phi_deg"], 4) == 89.0996
     assert round(r["ky"] / r["kx"], 4) == 1.2607 and round(r["kz"] / r["kx"], 4) == 1.2134
@@ -63,6 +77,7 @@ def test_exact_recovers_noiseless_parameters(tmp, offsets, roll_sign):
     assert paper["b_z"] - TRUTH[8] == pytest.approx(leak, abs=0.5)
 
 
+@pytest.mark.slow
 def test_exact_errors_match_standard_errors_monte_carlo():
     """With zero-mean noise the exact method's errors agree with its standard errors (seeded)."""
     rng = np.random.default_rng(4)
@@ -76,8 +91,9 @@ def test_exact_errors_match_standard_errors_monte_carlo():
 
 
 def test_human_output_and_calibration_file(tmp):
-    proc = run_cli("sinefit", DATA / "turntable_example.csv", "--field", B, "--inclination", INC,
-                   "-o", tmp / "cal.json")
+    proc = run_cli(
+        "sinefit", DATA / "turntable_example.csv", "--field", B, "--inclination", INC, "-o", tmp / "cal.json"
+    )
     assert proc.returncode == 0, proc.stderr
     assert "alpha_deg" in proc.stdout and "residual RMS" in proc.stdout
     from magkf.io.calibration import Calibration
@@ -124,14 +140,21 @@ def test_exact_jacobian_matches_finite_differences():
     from magkf.offline.sinefit import PLANES, _unpack, exact_jacobian, model_residuals
 
     table = simulate_turntable(PAPER_EXAMPLE, B, INC, 30.0, 5.0, np.random.default_rng(2))
-    data = [(p, table[table.plane == p].angle_deg.to_numpy(), table[table.plane == p][["mag_x", "mag_y", "mag_z"]]
-             .to_numpy()) for p in PLANES]
+    data = [
+        (
+            p,
+            table[table.plane == p].angle_deg.to_numpy(),
+            table[table.plane == p][["mag_x", "mag_y", "mag_z"]].to_numpy(),
+        )
+        for p in PLANES
+    ]
     x = np.concatenate([np.radians(TRUTH[:3]), TRUTH[3:], np.radians([10.0, -20.0])])
 
     def resid(x):
         return model_residuals(_unpack(x), data, B, INC, np.degrees(x[9:11]), -1)
 
     step = 1e-7 * np.maximum(np.abs(x), 1.0)
-    fd = np.column_stack([(resid(x + np.eye(11)[j] * step[j]) - resid(x - np.eye(11)[j] * step[j])) / (2 * step[j])
-                          for j in range(11)])
+    fd = np.column_stack(
+        [(resid(x + np.eye(11)[j] * step[j]) - resid(x - np.eye(11)[j] * step[j])) / (2 * step[j]) for j in range(11)]
+    )
     assert np.allclose(exact_jacobian(x, data, B, INC, -1), fd, rtol=1e-5, atol=1e-3)

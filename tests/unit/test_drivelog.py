@@ -7,12 +7,14 @@ from magkf.errors import InputError
 from magkf.io.drivelog import UnitWarning, read_drive_log
 from magkf.sim import DriveConfig, simulate_drive
 
-from .conftest import DATA, run_cli
+from ..conftest import DATA, run_cli
 
 HEADER = "time,mag_x,mag_y,mag_z,roll,pitch,yaw,lat,lon"
-GOOD = ["1780308000.00,20000,1000,43000,0,0,10,48.1,11.6",
-        "1780308000.02,20010,1010,43010,0,0,11,48.1,11.6",
-        "1780308000.04,20020,1020,43020,0,0,12,48.1,11.6"]
+GOOD = [
+    "1780308000.00,20000,1000,43000,0,0,10,48.1,11.6",
+    "1780308000.02,20010,1010,43010,0,0,11,48.1,11.6",
+    "1780308000.04,20020,1020,43020,0,0,12,48.1,11.6",
+]
 
 
 def _write(tmp, lines, header=HEADER):
@@ -42,20 +44,23 @@ def test_empty_cells_are_kept_as_missing(tmp):
     assert len(log) == 3 and np.isnan(log.mag[1, 0]) and np.isnan(log.attitude[1]).all()
 
 
-@pytest.mark.parametrize("lines,header,where", [
-    (GOOD, "time,mag_x,mag_y,roll,pitch,yaw,lat,lon", "row 1, column 'mag_z'"),
-    ([GOOD[0], GOOD[1].replace("20010", "abc"), GOOD[2]], HEADER, "row 3, column 'mag_x'"),
-    ([GOOD[0], GOOD[1], GOOD[2].replace("1020", "NaN")], HEADER, "row 4, column 'mag_y'"),
-    ([GOOD[0], GOOD[1].replace("43010", "inf")], HEADER, "row 3, column 'mag_z'"),
-    ([GOOD[0], GOOD[2], GOOD[1]], HEADER, "row 4, column 'time'"),
-    ([GOOD[0], GOOD[0]], HEADER, "row 3, column 'time'"),
-    ([GOOD[0], ",1,2,3,0,0,0,48,11"], HEADER, "row 3, column 'time'"),
-    ([GOOD[0]], HEADER, "too few samples"),
-    (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,lat,lon", "row 1, column 'yaw'"),
-    (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,yaw,alt,dop", "row 1, column 'lat'"),
-    ([GOOD[0], GOOD[1].replace(",0,0,11", ",0,95,11")], HEADER, "row 3, column 'pitch'"),
-    ([], HEADER, "no data rows"),
-])
+@pytest.mark.parametrize(
+    "lines,header,where",
+    [
+        (GOOD, "time,mag_x,mag_y,roll,pitch,yaw,lat,lon", "row 1, column 'mag_z'"),
+        ([GOOD[0], GOOD[1].replace("20010", "abc"), GOOD[2]], HEADER, "row 3, column 'mag_x'"),
+        ([GOOD[0], GOOD[1], GOOD[2].replace("1020", "NaN")], HEADER, "row 4, column 'mag_y'"),
+        ([GOOD[0], GOOD[1].replace("43010", "inf")], HEADER, "row 3, column 'mag_z'"),
+        ([GOOD[0], GOOD[2], GOOD[1]], HEADER, "row 4, column 'time'"),
+        ([GOOD[0], GOOD[0]], HEADER, "row 3, column 'time'"),
+        ([GOOD[0], ",1,2,3,0,0,0,48,11"], HEADER, "row 3, column 'time'"),
+        ([GOOD[0]], HEADER, "too few samples"),
+        (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,lat,lon", "row 1, column 'yaw'"),
+        (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,yaw,alt,dop", "row 1, column 'lat'"),
+        ([GOOD[0], GOOD[1].replace(",0,0,11", ",0,95,11")], HEADER, "row 3, column 'pitch'"),
+        ([], HEADER, "no data rows"),
+    ],
+)
 def test_bad_input_names_file_row_and_column(tmp, lines, header, where):
     path = _write(tmp, lines, header)
     with pytest.raises(InputError, match=where) as err:
@@ -63,10 +68,13 @@ def test_bad_input_names_file_row_and_column(tmp, lines, header, where):
     assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("lines,header,where", [
-    ([GOOD[0], GOOD[1].replace("20010", "abc"), GOOD[2]], HEADER, "row 3, column 'mag_x'"),
-    ([GOOD[0], GOOD[2], GOOD[1]], HEADER, "row 4, column 'time'"),
-])
+@pytest.mark.parametrize(
+    "lines,header,where",
+    [
+        ([GOOD[0], GOOD[1].replace("20010", "abc"), GOOD[2]], HEADER, "row 3, column 'mag_x'"),
+        ([GOOD[0], GOOD[2], GOOD[1]], HEADER, "row 4, column 'time'"),
+    ],
+)
 def test_bad_input_exit_status_2_one_line(tmp, lines, header, where):
     path = _write(tmp, lines, header)
     (tmp / "cal.json").write_text('{"R": [[1,0,0],[0,1,0],[0,0,1]], "b": [0,0,0]}')
@@ -76,8 +84,10 @@ def test_bad_input_exit_status_2_one_line(tmp, lines, header, where):
 
 
 def test_units_are_converted_and_suspicious_units_warned(tmp):
-    ut = [",".join([p[0], str(float(p[1]) / 1000), str(float(p[2]) / 1000), str(float(p[3]) / 1000), *p[4:]])
-          for p in (line.split(",") for line in GOOD)]
+    ut = [
+        ",".join([p[0], str(float(p[1]) / 1000), str(float(p[2]) / 1000), str(float(p[3]) / 1000), *p[4:]])
+        for p in (line.split(",") for line in GOOD)
+    ]
     path = _write(tmp, ut)
     with pytest.warns(UnitWarning, match="look like uT"):
         read_drive_log(path)

@@ -1,0 +1,95 @@
+"""A measurement model is one class: defined here, registered, and run through the EKF, the UKF, the batch
+solver and the real-time step without a change anywhere else (seeded)."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from magkf import Calibration, DriveLog, FilterConfig, OnlineCalibrator, calibrate_log, solve_batch
+from magkf.conventions import body_to_ned
+from magkf.online.measurements import MEASUREMENTS, MeasurementModel, register_measurement
+from magkf.sim import DriveConfig, simulate_drive
+
+NOISE = 30.0
+#: Largest |error| / std allowed over 12 parameters and 4 paths: the two-sided normal quantile at 1e-3
+#: shared out over the 48 checks (Bonferroni), so a correct model fails by chance with probability 1e-3.
+Z_MAX = stats.norm.ppf(1 - 1e-3 / 2 / 48)
+
+
+class IsotropicVector(MeasurementModel):
+    """The field vector in the sensor frame with the same noise on every component:
+    ``sigma^2 = sensor^2 + reference^2 + (attitude |B|)^2``. Linear in the state, like ``vector``."""
+
+    name = "isotropic_vector"
+    rows = 3
+    needs_attitude = True
+
+    def _sigma(self, field_body):
+        c = self.config
+        return np.sqrt(
+            c.sensor_noise_nt**2
+            + c.reference_nt**2
+            + (np.radians(c.attitude_deg) * np.linalg.norm(field_body, axis=-1)) ** 2
+        )
+
+    def whitening(self, field_body, R):
+        return np.eye(3) / self._sigma(np.asarray(field_body))[:, None, None]
+
+    def linearise(self, x, blk):
+        return np.einsum("kij,kj->ki", blk.W, blk.m - blk.H @ x), blk.W @ blk.H
+
+    def sigma_predict(self, sigmas, x, blk):
+        WH = blk.W @ blk.H
+        return np.einsum("kin,sn->ski", WH, sigmas), np.einsum("kij,kj->ki", blk.W, blk.m), WH
+
+    def batch_residuals(self, ref, c_nb, ref_mag):
+        sigma = self._sigma(ref)[:, None]
+        return lambda c: (body_to_ned(c_nb, c) - ref) / sigma
+
+
+@pytest.fixture(scope="module")
+def registered():
+    register_measurement(IsotropicVector)
+    yield FilterConfig(
+        measure="isotropic_vector", sensor_noise_nt=NOISE, attitude_deg=0.0, reference_nt=0.0, r_walk=0.0, b_walk=0.0
+    )
+    del MEASUREMENTS[IsotropicVector.name]
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return simulate_drive(
+        DriveConfig(duration_s=600, rate_hz=10, noise_nt=NOISE, seed=77, disturbances=0, dop_bad_stretches=0)
+    )
+
+
+def _z(x, std, sim):
+    truth = np.concatenate([sim.R.ravel(), sim.b])
+    return np.abs(x[:12] - truth) / std[:12]
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf"])
+def test_added_model_runs_through_the_filters(registered, drive, name):
+    run = calibrate_log(DriveLog(drive.table), registered.replace(filter=name))
+    assert run.summary.measure == "isotropic_vector"
+    assert (run.states["status"] == "used").mean() > 0.99
+    assert _z(run.x, run.std, drive).max() < Z_MAX
+
+
+def test_added_model_runs_through_the_batch_solver(registered, drive):
+    run = solve_batch(DriveLog(drive.table), registered)
+    assert _z(run.x, run.std, drive).max() < Z_MAX
+
+
+def test_added_model_runs_through_the_realtime_step(registered, drive):
+    rng = np.random.default_rng(5)
+    start = Calibration(
+        R=drive.R + rng.normal(scale=0.01, size=(3, 3)),
+        b=drive.b + rng.normal(scale=200, size=3),
+        covariance=np.diag([0.02**2] * 9 + [300.0**2] * 3),
+    )
+    online = OnlineCalibrator(start, registered)
+    statuses = [online.step(row).status for _, row in drive.table.iterrows()]  # rows named by their time
+    assert statuses.count("used") > 0.99 * len(statuses)
+    std = np.sqrt(np.diag(online.calibration.covariance))
+    assert _z(online.calibration.state, std, drive).max() < Z_MAX

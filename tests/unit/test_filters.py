@@ -1,0 +1,139 @@
+"""The filters' update and the smoother against textbook computations and FilterPy's own (seeded)."""
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from magkf.online.filters import EKF, FILTERS
+from magkf.online.smoother import rts_smooth
+
+
+def _problem(seed, n=6, r=4):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + n * np.eye(n)
+    x = rng.normal(size=n)
+    H = rng.normal(size=(r, n))
+    B = rng.normal(size=(r, r))
+    R = B @ B.T + r * np.eye(r)
+    z = rng.normal(size=r)
+    return x, P, H, R, z
+
+
+def _textbook(x, P, H, R, z):
+    """The Kalman update as textbooks write it, Joseph form for the covariance."""
+    S = H @ P @ H.T + R
+    K = P @ H.T @ np.linalg.inv(S)
+    x_new = x + K @ (z - H @ x)
+    IKH = np.eye(len(x)) - K @ H
+    return x_new, IKH @ P @ IKH.T + K @ R @ K.T
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ekf_correct_equals_textbook_and_filterpy(seed):
+    x, P, H, R, z = _problem(seed)
+    ekf = EKF(x, P, np.zeros(len(x)))
+    ekf.correct(z - H @ x, H, R)
+    x_tb, P_tb = _textbook(x, P, H, R, z)
+    kf = KalmanFilter(dim_x=len(x), dim_z=len(z))
+    kf.x, kf.P, kf.H, kf.R = x.copy(), P.copy(), H, R
+    kf.update(z)
+    assert np.allclose(ekf.x, x_tb, rtol=1e-12, atol=1e-12)
+    assert np.allclose(ekf.P, P_tb, rtol=1e-10, atol=1e-12)
+    assert np.allclose(ekf.x, kf.x, rtol=1e-12, atol=1e-12)
+    assert np.allclose(ekf.P, kf.P, rtol=1e-10, atol=1e-12)
+    assert np.array_equal(ekf.P, ekf.P.T)  # exactly symmetric by construction
+
+
+def _whitened(H, R, z, x):
+    """Rows of the same problem whitened (unit noise), one row per 'epoch'."""
+    W = np.linalg.inv(np.linalg.cholesky(R))
+    Hw, yw = W @ H, W @ (z - H @ x)
+    return Hw, yw, W @ z
+
+
+class _Linear:
+    """A linear model over whitened rows, one row an epoch, for driving both filters directly."""
+
+    rows = 1
+
+    def __init__(self, Hw, zw):
+        self.Hw, self.zw = Hw, zw
+
+    def linearise(self, x, blk):
+        return (self.zw - self.Hw @ x)[:, None], self.Hw[:, None, :]
+
+    def sigma_predict(self, sigmas, x, blk):
+        return (sigmas @ self.Hw.T)[..., None], self.zw[:, None], self.Hw[:, None, :]
+
+
+@pytest.mark.parametrize("name", sorted(FILTERS))
+@pytest.mark.parametrize("seed", range(3))
+def test_update_of_a_linear_measurement_is_the_textbook_update(name, seed):
+    """For a linear measurement the UKF's update is exact: both filters give the textbook result, with
+    every epoch's NIS equal to y_i^2 / (h_i P h_i^T + 1)."""
+    x, P, H, R, z = _problem(seed)
+    R = np.diag(np.diag(R))  # independent rows: per-epoch whitening is exact
+    Hw, yw, zw = _whitened(H, R, z, x)
+    kf = FILTERS[name](x, P, np.zeros(len(x)))
+    lin = kf.linearise([(_Linear(Hw, zw), None)])
+    expected_nis = yw**2 / (np.einsum("ri,ij,rj->r", Hw, P, Hw) + 1)
+    assert np.allclose(lin.rows[0].nis, expected_nis, rtol=1e-9)
+    kf.update(lin, [np.ones(len(z), bool)])
+    x_tb, P_tb = _textbook(x, P, H, R, z)
+    assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
+    assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", sorted(FILTERS))
+def test_rejected_rows_do_not_update(name):
+    x, P, H, R, z = _problem(7)
+    R = np.diag(np.diag(R))
+    Hw, _, zw = _whitened(H, R, z, x)
+    kf = FILTERS[name](x, P, np.zeros(len(x)))
+    keep = np.array([True, False, True, False])
+    kf.update(kf.linearise([(_Linear(Hw, zw), None)]), [keep])
+    x_tb, P_tb = _textbook(x, P, H[keep], R[np.ix_(keep, keep)], z[keep])
+    assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
+    assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", sorted(FILTERS))
+def test_filters_share_one_small_interface(name):
+    kf = FILTERS[name](np.zeros(3), np.eye(3), np.full(3, 0.5))
+    kf.predict(2.0)
+    assert np.allclose(kf.P, 2.0 * np.eye(3))  # P += Q dt, x unchanged
+    copy = kf.copy()
+    copy.inflate(np.eye(3))
+    assert np.allclose(kf.P, 2.0 * np.eye(3)) and np.allclose(copy.P, 3.0 * np.eye(3))
+    public = {a for a in dir(kf) if not a.startswith("_")}
+    assert {"x", "P", "predict", "linearise", "update", "inflate", "copy"} <= public
+    assert not hasattr(kf, "update_sequential") and not hasattr(kf, "hx")  # nothing that cannot work
+
+
+def test_rts_smoother_equals_filterpy():
+    """A random walk filtered by FilterPy's KalmanFilter, smoothed by magkf and by FilterPy's rts_smoother."""
+    rng = np.random.default_rng(11)
+    n, steps = 3, 60
+    q_rate = np.array([0.5, 0.1, 2.0])
+    dt = rng.uniform(0.1, 1.0, steps)
+    kf = KalmanFilter(dim_x=n, dim_z=2)
+    kf.x, kf.P = np.zeros(n), np.eye(n) * 10.0
+    kf.F = np.eye(n)
+    kf.H = rng.normal(size=(2, n))
+    kf.R = np.eye(2) * 0.3
+    truth = np.cumsum(rng.normal(size=(steps, n)) * np.sqrt(q_rate * dt[:, None]), axis=0)
+    xs, Ps, Qs = [], [], []
+    for k in range(steps):
+        kf.Q = np.diag(q_rate * dt[k])
+        kf.predict()
+        kf.update(kf.H @ truth[k] + rng.normal(scale=np.sqrt(0.3), size=2))
+        xs.append(kf.x.copy())
+        Ps.append(kf.P.copy())
+        Qs.append(np.diag(q_rate * dt[k]))
+    xs, Ps = np.array(xs), np.array(Ps)
+    # Both predict from step k to k + 1 with the process noise of step k + 1 (Qs[k + 1], q_rate * dt[k + 1]).
+    x_fp, P_fp, _, _ = kf.rts_smoother(xs, Ps, Fs=[np.eye(n)] * steps, Qs=Qs)
+    x_mk, P_mk = rts_smooth(xs, Ps, dt, q_rate)
+    assert np.allclose(x_mk, x_fp, rtol=1e-9, atol=1e-9)
+    assert np.allclose(P_mk, P_fp, rtol=1e-9, atol=1e-9)
