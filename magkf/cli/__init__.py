@@ -12,12 +12,12 @@ import warnings
 
 from .. import __version__
 from ..errors import InputError
-from . import apply, diagnostics, offline, online, simulate
+from . import apply, diagnostics, logs, offline, online, simulate
 
 __all__ = ["main", "build_parser"]
 
 #: The modules that add the commands, in the order ``--help`` lists them.
-COMMANDS = (offline, online, diagnostics, apply, simulate)
+COMMANDS = (online, diagnostics, apply, logs, offline, simulate)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from .common import (
-    add_mag_unit,
+    add_log_options,
     add_output_options,
+    open_log,
     print_json,
 )
 
@@ -16,9 +17,8 @@ def add_parsers(sub) -> None:
         help="calibrated field, magnitude and headings for every epoch of a log",
         description="Apply a calibration file to a drive log; every epoch is written with a status.",
     )
-    p.add_argument("file", help="drive-log CSV")
+    add_log_options(p)
     p.add_argument("--cal", required=True, help="calibration JSON")
-    add_mag_unit(p)
     add_output_options(p, "calibrated CSV")
     p.set_defaults(func=run_apply)
 
@@ -26,10 +26,10 @@ def add_parsers(sub) -> None:
 def run_apply(args) -> int:
     from ..apply import apply_calibration
     from ..io.calibration import Calibration
-    from ..io.drivelog import read_drive_log, write_drive_log
+    from ..io.drivelog import write_drive_log
 
     cal = Calibration.load(args.cal)
-    log = read_drive_log(args.file, args.mag_unit)
+    log = open_log(args)
     out = apply_calibration(log, cal)
     if args.output:
         write_drive_log(out, args.output)

@@ -126,6 +126,57 @@ def add_mag_unit(p) -> None:
     )
 
 
+LOG_HELP = "drive or flight log: canonical CSV or Parquet, PX4 .ulg, ArduPilot .bin, or any table with --map"
+
+
+def add_log_options(p, mag_all: bool = False) -> None:
+    """The log argument and the options of ``magkf.io.readers.read_log``."""
+    p.add_argument("file", help=LOG_HELP)
+    g = p.add_argument_group("reading the log")
+    g.add_argument(
+        "--format",
+        choices=["csv", "parquet", "ulog", "dataflash", "mapped"],
+        help="the log's format (default: from its first bytes and extension)",
+    )
+    g.add_argument("--map", metavar="MAP.toml", help="column map of a table in another layout (docs/column-maps.md)")
+    g.add_argument(
+        "--mag",
+        metavar="N|all" if mag_all else "N",
+        help="magnetometer instance of a ULog or DataFlash log (default: the first)"
+        + ("; 'all' calibrates each and compares them" if mag_all else ""),
+    )
+    g.add_argument(
+        "--logged-calibration",
+        action="store_true",
+        help="keep the autopilot's own calibration in the field (default: undo it and use the raw field)",
+    )
+    add_mag_unit(g)
+
+
+def mag_instance(args):
+    """The ``--mag`` value as an instance number (None when not given)."""
+    if args.mag is None:
+        return None
+    try:
+        return int(args.mag)
+    except ValueError:
+        raise InputError(f"--mag {args.mag!r}: give an instance number") from None
+
+
+def open_log(args, mag=None):
+    """The log named on the command line, through ``read_log`` with the reading options."""
+    from ..io.readers import read_log
+
+    return read_log(
+        args.file,
+        args.format,
+        map=args.map,
+        mag=mag_instance(args) if mag is None else mag,
+        mag_unit=args.mag_unit,
+        raw=not args.logged_calibration,
+    )
+
+
 def load_calibration(path):
     """The calibration file ``path``, or None."""
     from ..io.calibration import Calibration

@@ -8,11 +8,12 @@ from ..errors import InputError
 from .common import (
     add_effect_options,
     add_filter_options,
-    add_mag_unit,
+    add_log_options,
     add_output_options,
     effects,
     filter_config,
     load_calibration,
+    open_log,
     print_json,
 )
 
@@ -26,12 +27,11 @@ def add_parsers(sub) -> None:
         "attitude, auxiliary channels, rates) and rank every candidate effect by a "
         "likelihood-ratio test of adding it. Without --cal the online filter runs first.",
     )
-    p.add_argument("file", help="drive-log CSV")
+    add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
     p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
     add_filter_options(p)
     add_effect_options(p, "effects already in the model")
-    add_mag_unit(p)
     add_output_options(p, "diagnosis (JSON)")
     p.set_defaults(func=run_diagnose)
 
@@ -41,13 +41,12 @@ def add_parsers(sub) -> None:
         description="Calibrate (with any --effect), diagnose, and write one HTML file with the plots "
         "embedded: gates, estimates over time, residuals, ranking, before/after.",
     )
-    p.add_argument("file", help="drive-log CSV")
+    add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to start from")
     p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
     p.add_argument("-o", "--output", help="HTML file to write")
     add_filter_options(p)
     add_effect_options(p, "effects to add (the report shows before and after)")
-    add_mag_unit(p)
     p.set_defaults(func=run_report)
 
 
@@ -55,12 +54,11 @@ def run_diagnose(args) -> int:
     from ..diagnostics.diagnose import diagnose
     from ..effects import candidates
     from ..io.calibration import jsonable
-    from ..io.drivelog import read_drive_log
 
     config = filter_config(args)
     added, registry = effects(args)
     cal = load_calibration(args.cal)
-    log = read_drive_log(args.file, args.mag_unit)
+    log = open_log(args)
     pool = candidates(log.auxiliary, registry)
     result, _ = diagnose(log, config, cal, added, pool, alpha=args.alpha)
     summary = result.summary()
@@ -98,14 +96,13 @@ def run_report(args) -> int:
     from pathlib import Path
 
     from ..diagnostics.report import build_report
-    from ..io.drivelog import read_drive_log
 
     if not args.output:
         raise InputError("give -o REPORT.html")
     config = filter_config(args)
     added, registry = effects(args)
     cal = load_calibration(args.cal)
-    log = read_drive_log(args.file, args.mag_unit)
+    log = open_log(args)
     page = build_report(log, config, cal, added, registry, alpha=args.alpha)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(page, encoding="utf-8")

@@ -7,11 +7,12 @@ import math
 from .common import (
     add_effect_options,
     add_filter_options,
-    add_mag_unit,
+    add_log_options,
     add_output_options,
     effects,
     filter_config,
     load_calibration,
+    open_log,
     print_json,
 )
 
@@ -26,19 +27,20 @@ def add_parsers(sub) -> None:
         "Every epoch gets a status. Without --init the start is bootstrapped from "
         "the first stretch of the log.",
     )
-    p.add_argument("file", help="drive-log CSV")
+    add_log_options(p, mag_all=True)
     p.add_argument("--init", help="offline calibration JSON to start from (sinefit, ellipsoid, or an earlier run)")
     p.add_argument("--filter", choices=["ekf", "ukf"], help="filter (default ekf)")
     p.add_argument("--measure", choices=["magnitude", "vector", "both"], help="measurement model (default both)")
     p.add_argument("--batch", action="store_true", help="batch least squares over the whole log instead of the filter")
     p.add_argument("--smooth", action="store_true", help="Rauch-Tung-Striebel smoothing of the per-epoch estimates")
     p.add_argument(
-        "--states", metavar="CSV", help="write per-epoch estimates, standard deviations, statuses, residuals"
+        "--states",
+        metavar="FILE",
+        help="write per-epoch estimates, standard deviations, statuses, residuals (CSV, or Parquet for .parquet)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_filter_options(p)
     add_effect_options(p, "effects to estimate with R and b (repeat the option)")
-    add_mag_unit(p)
     add_output_options(p)
     p.set_defaults(func=run_calibrate)
 
@@ -71,13 +73,66 @@ def _print_run(summary: dict, names) -> None:
 
 
 def run_calibrate(args) -> int:
-    from ..io.drivelog import read_drive_log, write_drive_log
-    from ..online.run import calibrate_log, terminal_progress
-
     config = filter_config(args)
     added, _ = effects(args)
     init = load_calibration(args.init)
-    log = read_drive_log(args.file, args.mag_unit)
+    if args.mag != "all":
+        _calibrate_one(args, open_log(args), config, init, added, args.output, args.states)
+        return 0
+    from ..io.readers import magnetometer_instances
+
+    instances = [
+        m["instance"]
+        for m in magnetometer_instances(args.file, args.format)
+        if m.get("topic") != "vehicle_magnetometer"
+    ]  # PX4's fused topic is not a sensor of its own
+    rows = []
+    for instance in instances:
+        if not args.json:
+            print(f"magnetometer {instance}:")
+        run = _calibrate_one(
+            args,
+            open_log(args, mag=instance),
+            config,
+            init,
+            added,
+            _per_instance(args.output, instance),
+            _per_instance(args.states, instance),
+        )
+        rows.append((instance, run.summary))
+    if not args.json:
+        _print_side_by_side(rows)
+    return 0
+
+
+def _per_instance(path, instance):
+    """``cal.json`` -> ``cal_mag1.json`` for instance 1 (None stays None)."""
+    if path is None or instance is None:
+        return path
+    from pathlib import Path
+
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}_mag{instance}{p.suffix}"))
+
+
+def _print_side_by_side(rows) -> None:
+    print("side by side:")
+    print(
+        f"  {'mag':>4s} {'epochs':>8s} {'used':>8s} {'residual, nT':>13s} {'R11':>9s} {'R22':>9s} {'R33':>9s}"
+        f" {'b_x, nT':>9s} {'b_y, nT':>9s} {'b_z, nT':>9s}"
+    )
+    for instance, s in rows:
+        R, b = s.R, s.b
+        print(
+            f"  {instance!s:>4s} {s.n_epochs:8d} {s.status_counts['used']:8d} {s.residual_rms_nt:13.1f} "
+            f"{R[0][0]:9.4f} {R[1][1]:9.4f} {R[2][2]:9.4f} {b[0]:9.1f} {b[1]:9.1f} {b[2]:9.1f}"
+        )
+
+
+def _calibrate_one(args, log, config, init, added, output, states):
+    """Calibrate one log (one magnetometer), write and print what the options ask; returns the run."""
+    from ..io.drivelog import write_drive_log
+    from ..online.run import calibrate_log, terminal_progress
 
     def run_with(effect_list):
         if args.batch:
@@ -93,22 +148,21 @@ def run_calibrate(args) -> int:
         from ..diagnostics.diagnose import compare_runs
 
         summary["before_after"] = compare_runs(run_with([]), run)
-    if args.output:
-        run.calibration.save(args.output)
-    if args.states:
-        write_drive_log(run.states, args.states)
+    if output:
+        run.calibration.save(output)
+    if states:
+        write_drive_log(run.states, states)
     if args.json:
         print_json(summary)
-    else:
-        _print_run(summary, run.names)
-        if added:
-            ba = summary["before_after"]
-            print(
-                f"  before / after adding {', '.join(e.label for e in added)} (on the {ba['n_epochs']} epochs "
-                "both used):"
-            )
-            for key, unit in (("residual_rms_nt", " nT"), ("nis_mean", ""), ("aic", ""), ("bic", "")):
-                print(f"    {key:16s} {ba['before'][key]:12.2f} -> {ba['after'][key]:12.2f}{unit}")
-        if args.output:
-            print(f"  calibration written to {args.output}")
-    return 0
+        return run
+    _print_run(summary, run.names)
+    if added:
+        ba = summary["before_after"]
+        print(
+            f"  before / after adding {', '.join(e.label for e in added)} (on the {ba['n_epochs']} epochs both used):"
+        )
+        for key, unit in (("residual_rms_nt", " nT"), ("nis_mean", ""), ("aic", ""), ("bic", "")):
+            print(f"    {key:16s} {ba['before'][key]:12.2f} -> {ba['after'][key]:12.2f}{unit}")
+    if output:
+        print(f"  calibration written to {output}")
+    return run

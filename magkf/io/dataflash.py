@@ -56,12 +56,21 @@ import warnings
 
 import numpy as np
 
-from ..conventions import MAG, quaternion_to_euler
+from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, TIME, VDOP, YAW, quaternion_to_euler
 from ..errors import InputError
 from .streams import bracket, interpolate_linear, interpolate_quaternions
-from .timebase import gps_to_unix
+from .timebase import GPS_EPOCH_UNIX, SECONDS_PER_WEEK, gps_to_unix, leap_seconds
 
-__all__ = ["NT_PER_MILLIGAUSS", "compass_correct", "compass_uncorrect", "magnetometer_instances", "read_dataflash"]
+__all__ = [
+    "LAYOUTS",
+    "NT_PER_MILLIGAUSS",
+    "DataFlashWriter",
+    "compass_correct",
+    "compass_uncorrect",
+    "magnetometer_instances",
+    "read_dataflash",
+    "write_dataflash",
+]
 
 NT_PER_MILLIGAUSS = 100.0
 #: The first bytes of every DataFlash log: the header and the type id of ``FMT`` (128).
@@ -87,6 +96,8 @@ _NUMPY_CODE = {
 }
 #: Compass parameters per state index (0, 1, 2 -> suffix "", "2", "3").
 _CAL_PARAMS = ("OFS_X", "OFS_Y", "OFS_Z", "DIA_X", "DIA_Y", "DIA_Z", "ODI_X", "ODI_Y", "ODI_Z", "SCALE")
+#: The value of each compass parameter the firmware uses when it is not set (not in the log).
+_CAL_DEFAULTS = dict.fromkeys(_CAL_PARAMS, 0.0) | {"DIA_X": 1.0, "DIA_Y": 1.0, "DIA_Z": 1.0, "SCALE": 1.0}
 
 
 # ------------------------------------------------------------------ calibration model
@@ -383,8 +394,7 @@ def _reconstruct_raw(table: dict, params: dict, instance: int, firmware: str, no
     if suffix is None:
         notes.append(f"magnetometer instance {instance} has no calibration parameters; raw = logged field")
         return _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")])), "nothing (no parameters)"
-    defaults = dict.fromkeys(_CAL_PARAMS, 0.0) | {"DIA_X": 1.0, "DIA_Y": 1.0, "DIA_Z": 1.0, "SCALE": 1.0}
-    p = {q: _param_at(params, _param_name(q, suffix), time_us, defaults[q]) for q in _CAL_PARAMS}
+    p = {q: _param_at(params, _param_name(q, suffix), time_us, _CAL_DEFAULTS[q]) for q in _CAL_PARAMS}
     offsets = np.column_stack([p["OFS_X"], p["OFS_Y"], p["OFS_Z"]])
     logged_ofs = np.column_stack([table.get(c, np.full(len(time_us), np.nan)) for c in ("OfsX", "OfsY", "OfsZ")])
     differs = np.abs(np.trunc(offsets) - logged_ofs) > 1.0  # False where no offsets are logged
@@ -633,3 +643,301 @@ def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, fra
             frame[name] = interpolate_linear(t, tab["TimeUS"] * 1e-6 + offset, tab[field] * factor, max_gap_s)[0]
             columns[name] = f"{message}.{field} ({unit}, instance 0, linear)"
             break
+
+
+# ------------------------------------------------------------------ writing
+#: ``(format, columns)`` of the messages ``write_dataflash`` writes, as ArduPilot 4.5 declares them:
+#: ``FMT``, ``PARM``, ``MSG`` in ``libraries/AP_Logger/LogStructure.h``, ``MAG`` in ``AP_Compass``, ``ATT`` in
+#: ``AP_AHRS``, ``GPS``/``GPA`` in ``AP_GPS``, ``BARO`` in ``AP_Baro``, ``BAT`` in ``AP_BattMonitor`` (each
+#: ``LogStructure.h``) and Copter's ``CTUN`` (``ArduCopter/Log.cpp``).
+LAYOUTS = {
+    "FMT": ("BBnNZ", "Type,Length,Name,Format,Columns"),
+    "PARM": ("QNff", "TimeUS,Name,Value,Default"),
+    "MSG": ("QZ", "TimeUS,Message"),
+    "MAG": ("QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S"),
+    "ATT": ("QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),
+    "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
+    "GPA": ("QBCCCCfBIHeHH", "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta,AEl,RTCMFU,RTCMFD"),
+    "BARO": ("QBffcfIffB", "TimeUS,I,Alt,Press,Temp,CRt,SMS,Offset,GndTemp,Health"),
+    "BAT": ("QBfffffcf", "TimeUS,Instance,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res"),
+    "CTUN": ("Qffffffefffhh", "TimeUS,ThI,ABst,ThO,ThH,DAlt,Alt,BAlt,DSAlt,SAlt,TAlt,DCRt,CRt"),
+}
+#: Type id of ``FMT``; the other types get ids from 129 on, in the order they are defined.
+FMT_TYPE = 128
+#: ``GPS_UNKNOWN_DOP`` of ``libraries/AP_GPS/AP_GPS.h`` (UINT16_MAX hundredths): a DOP the receiver did not give.
+UNKNOWN_DOP_COUNTS = 65_535
+#: ``GPA.AEl`` when the height above the ellipsoid is unknown (INT32_MIN, in cm).
+UNKNOWN_ALT_ELLIPSOID_CM = -(2**31)
+#: Boot time (us) of the first row of a written table; ``MSG`` and ``PARM`` are written at ``_HEADER_US``.
+_START_US = 10_000_000
+_HEADER_US = 1_000_000
+
+
+class DataFlashWriter:
+    """Messages of declared types, written as one DataFlash log in time order.
+
+    ``define(name)`` declares a message with its ArduPilot layout (``LAYOUTS``) or with the format characters
+    and column names given; ``write(name, **fields)`` adds messages, each field a scalar or an (n,) array in
+    the logged unit (degrees, metres, ...; the writer applies the format character's scale, e.g. ``c`` =
+    int16 x 0.01, ``L`` = int32 x 1e-7, with pymavlink's ``FORMAT_TO_STRUCT``, rounding to the nearest count);
+    fields not given are 0. ``tobytes`` gives the ``FMT`` messages, then every message sorted by ``TimeUS``
+    (stable: messages with the same time keep the order in which they were written).
+    """
+
+    def __init__(self):
+        self._types: dict[str, tuple[int, str, list[str], np.dtype]] = {}
+        self._blocks: list[tuple[np.ndarray, np.ndarray]] = []  # (TimeUS (n,), message bytes (n, size))
+        self._fmt = self._declare("FMT", *LAYOUTS["FMT"], FMT_TYPE)
+
+    def _declare(self, name: str, fmt: str, columns: str, type_id: int) -> bytes:
+        from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+        names = columns.split(",")
+        if len(names) != len(fmt) or len(name) > 4 or len(fmt) > 16 or len(columns) > 64:
+            raise ValueError(f"message {name}: {len(fmt)} format characters for {len(names)} columns, or too long")
+        codes = [_NUMPY_CODE.get(FORMAT_TO_STRUCT.get(c, ("?",))[0]) for c in fmt]
+        if None in codes or "a" in fmt:
+            raise ValueError(f"message {name}: unsupported format characters in {fmt!r}")
+        dtype = np.dtype({"names": ["_head", *names], "formats": ["S3", *codes]})
+        self._types[name] = (type_id, fmt, names, dtype)
+        fields = {"Type": type_id, "Length": dtype.itemsize, "Name": name, "Format": fmt, "Columns": columns}
+        return bytes(self._records("FMT", 1, fields))
+
+    def define(self, name: str, fmt: str | None = None, columns: str | None = None) -> None:
+        """Declare message ``name`` with format characters ``fmt`` and comma-separated ``columns`` (default
+        ``LAYOUTS[name]``)."""
+        if name in self._types:
+            raise ValueError(f"message {name} is already defined")
+        fmt, columns = (fmt, columns) if fmt is not None else LAYOUTS[name]
+        type_id = FMT_TYPE + len(self._types)
+        if type_id > 255:
+            raise ValueError("a DataFlash log has at most 127 message types besides FMT")
+        self._fmt += self._declare(name, fmt, columns, type_id)
+
+    def _records(self, name: str, n: int, fields: dict) -> np.ndarray:
+        """The bytes (n, size) of ``n`` messages of type ``name`` with the values of ``fields``."""
+        from pymavlink.DFReader import FORMAT_TO_STRUCT
+
+        type_id, fmt, names, dtype = self._types[name]
+        unknown = set(fields) - set(names)
+        if unknown:
+            raise ValueError(f"message {name} has no column {sorted(unknown)[0]!r}")
+        records = np.zeros(n, dtype)
+        records["_head"] = bytes([0xA3, 0x95, type_id])
+        for column, char in zip(names, fmt):
+            if column not in fields:
+                continue
+            kind = dtype[column]
+            value = np.broadcast_to(np.asarray(fields[column]), (n,))
+            if kind.kind == "S":
+                text = value.astype(str)
+                if np.char.str_len(text).max(initial=0) > kind.itemsize:
+                    raise ValueError(f"{name}.{column}: text longer than {kind.itemsize} characters")
+                records[column] = np.char.encode(text, "latin-1")
+                continue
+            mult = FORMAT_TO_STRUCT[char][1]
+            value = value.astype(float) / mult if mult is not None else value
+            if kind.kind in "iu":
+                value = np.rint(value) if np.asarray(value).dtype.kind == "f" else value
+                info = np.iinfo(kind)
+                if not np.all(np.isfinite(value)) or np.any(value < info.min) or np.any(value > info.max):
+                    raise ValueError(f"{name}.{column}: a value is not finite or outside the range of {kind.name}")
+            records[column] = value
+        return records.view(np.uint8).reshape(n, dtype.itemsize)
+
+    def write(self, name: str, **fields) -> None:
+        """Add messages of type ``name``: every field a scalar or an (n,) array (all arrays of one length)."""
+        if name not in self._types:
+            raise ValueError(f"message {name} is not defined")
+        sizes = {np.size(v) for v in fields.values() if np.ndim(v) > 0}
+        if len(sizes) > 1:
+            raise ValueError(f"message {name}: fields of different lengths {sorted(sizes)}")
+        n = sizes.pop() if sizes else 1
+        if n:
+            time_us = np.broadcast_to(np.asarray(fields.get("TimeUS", -1), np.int64), (n,))
+            self._blocks.append((time_us, self._records(name, n, fields)))
+
+    def tobytes(self) -> bytes:
+        """The log: the ``FMT`` messages, then all messages in ``TimeUS`` order."""
+        if not self._blocks:
+            return self._fmt
+        keys = np.concatenate([t for t, _ in self._blocks])
+        sizes = np.concatenate([np.full(len(t), b.shape[1]) for t, b in self._blocks])
+        order = np.argsort(keys, kind="stable")
+        start = np.empty(len(keys), np.int64)
+        start[order] = np.cumsum(sizes[order]) - sizes[order]
+        out = np.empty(int(sizes.sum()), np.uint8)
+        first = 0
+        for t, block in self._blocks:
+            out[start[first : first + len(t), None] + np.arange(block.shape[1])] = block
+            first += len(t)
+        return self._fmt + out.tobytes()
+
+    def save(self, path):
+        """Write the log to ``path``; returns ``path``."""
+        with open(path, "wb") as f:
+            f.write(self.tobytes())
+        return path
+
+
+def _unix_to_gps_ms(t) -> np.ndarray:
+    """GPS time in whole milliseconds since the GPS epoch (int64, shape of ``t``) of UNIX times ``t`` (s, UTC).
+
+    GPS = UTC + the leap seconds in force at that UTC instant; ``timebase.leap_seconds`` is indexed by GPS
+    time, and a step to n s happens at GPS time ``midnight + n``, so the offset is looked up at
+    ``UTC + (offset one second earlier) + 1 s``, which is past the step exactly from UTC midnight on.
+    """
+    g0 = np.asarray(t, float) - GPS_EPOCH_UNIX
+    leap = leap_seconds(g0 + leap_seconds(g0) + 1.0)
+    return np.rint((g0 + leap) * 1000.0).astype(np.int64)
+
+
+def _firmware_compass(parameters: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str] | None:
+    """Offsets, diagonals, off-diagonals (3,) and scale of magnetometer instance 0 from ``parameters`` as
+    float32 (how ``PARM`` stores them), and the parameter suffix; None if instance 0 has no parameter set."""
+    params = {k: (np.zeros(1), np.array([v])) for k, v in parameters.items()}
+    k = _state_index(params, 0)
+    if k >= 3:
+        return None
+    suffix = ("", "2", "3")[k]
+    p = {q: float(np.float32(parameters.get(_param_name(q, suffix), _CAL_DEFAULTS[q]))) for q in _CAL_PARAMS}
+    ofs, dia, odi = ([p[f"{q}_{a}"] for a in "XYZ"] for q in ("OFS", "DIA", "ODI"))
+    return np.array(ofs), np.array(dia), np.array(odi), p["SCALE"], suffix
+
+
+def write_dataflash(table, path, *, parameters: dict | None = None, firmware: str = "ArduCopter V4.5.0") -> None:
+    """Write a canonical drive-log table as an ArduPilot DataFlash log (for tests and simulations).
+
+    ``table`` (N rows; ``time`` a column or the index, UNIX s) is written as ``FMT`` messages for the
+    types used (``LAYOUTS``, ArduPilot 4.5), ``MSG`` with ``firmware`` and one ``PARM`` per entry of
+    ``parameters`` (name -> value, stored as float32), then, at each row where its columns are finite, one
+    message of each type its columns fill, all at the row's ``TimeUS`` (boot time 10 s at the first row,
+    following ``time`` to 1 us):
+
+    * ``MAG`` instance 0 from ``mag_x, mag_y, mag_z`` (nT, the raw reading): converted to mG and corrected
+      as the firmware does (``compass_correct`` with the ``COMPASS_OFS/DIA/ODI/SCALE`` set of instance 0 in
+      ``parameters``, defaults where absent, no motor compensation), then truncated to int16 like
+      ``(int16_t)`` (``OfsX..`` too), so ``read_dataflash(raw=True)`` gives the raw reading back to within the
+      truncation (+-0.5 mG = 50 nT through the inverse matrix). Raises InputError where a corrected
+      component does not fit in int16 (+-32 767 mG).
+    * ``ATT`` from ``roll, pitch, yaw`` (deg; roll wrapped to [-180, 180), yaw to [0, 360), 0.01 deg counts).
+    * ``GPS`` and ``GPA`` at the rows with a finite ``fix_type`` if the table has that column (its value is
+      ``Status``), else at every row: ``Status`` 3 where ``lat, lon`` are finite, else 1 (no fix, no
+      position). ``GWk, GMS`` from ``time`` with the leap seconds of the date (``magkf.io.timebase``);
+      ``Lat, Lng`` (1e-7 deg), ``Alt`` and ``GPA.AEl`` (cm) both from ``alt`` (no geoid model: ``Alt`` is
+      not above mean sea level here); ``HDop``/``VDop`` from ``hdop``/``vdop``, else ArduPilot's unknown
+      DOP (UINT16_MAX counts, which the int16 ``HDop`` field shows as -0.01); ``Spd`` from ``speed_mps``.
+    * ``BARO.Temp`` from ``temp_c`` (degC, ``Alt`` relative to the first row's ``alt``), ``BAT.Curr`` from
+      ``current_a`` (A), ``CTUN.ThO`` from ``throttle`` (0..1; x100 if ``firmware`` is ArduPlane's).
+
+    Fields that a table does not give are 0. Raises InputError for a missing ``time`` or magnetometer
+    column or a time that does not strictly increase.
+    """
+    name = str(path)
+    frame = table.reset_index() if TIME not in table.columns and table.index.name == TIME else table
+    for column in (TIME, *MAG):
+        if column not in frame:
+            raise InputError(f"missing column {column!r}", name)
+    t = frame[TIME].to_numpy(float)
+    if len(t) == 0 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise InputError("time must be finite and strictly increasing", name, column=TIME)
+    time_us = _START_US + np.rint((t - t[0]) * 1e6).astype(np.int64)
+    sample_ms = (time_us // 1000) % 2**32
+
+    def col(column: str) -> np.ndarray:
+        return frame[column].to_numpy(float) if column in frame else np.full(len(frame), np.nan)
+
+    w = DataFlashWriter()
+    for message in ("PARM", "MSG", "MAG", "ATT", "GPS", "GPA"):
+        w.define(message)
+    w.write("MSG", TimeUS=_HEADER_US, Message=firmware)
+    parameters = dict(parameters or {})
+    if parameters:
+        values = np.array([float(v) for v in parameters.values()], np.float32)
+        w.write("PARM", TimeUS=_HEADER_US, Name=np.array(list(parameters)), Value=values, Default=values)
+
+    mag_mg = np.column_stack([col(c) for c in MAG]) / NT_PER_MILLIGAUSS
+    rows = np.all(np.isfinite(mag_mg), axis=1)
+    compass = _firmware_compass(parameters)
+    offsets = np.zeros(3)
+    if compass is not None:
+        offsets, diagonals, offdiagonals, scale, _ = compass
+        mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
+    logged = np.trunc(mag_mg)
+    too_large = np.argwhere(rows[:, None] & (np.abs(logged) > np.iinfo(np.int16).max))
+    if too_large.size:
+        i, axis = too_large[0]
+        raise InputError(
+            f"corrected field {logged[i, axis]:g} mG does not fit the int16 MAG field", name, int(i) + 1, MAG[axis]
+        )
+    w.write(
+        "MAG",
+        TimeUS=time_us[rows],
+        I=0,
+        **{f"Mag{a}": logged[rows, k] for k, a in enumerate("XYZ")},
+        **{f"Ofs{a}": np.trunc(offsets[k]) for k, a in enumerate("XYZ")},
+        Health=1,
+        S=time_us[rows] % 2**32,
+    )
+
+    roll, pitch, yaw = col(ROLL), col(PITCH), col(YAW)
+    rows = np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(yaw)
+    w.write(
+        "ATT",
+        TimeUS=time_us[rows],
+        Roll=(roll[rows] + 180.0) % 360.0 - 180.0,
+        Pitch=pitch[rows],
+        Yaw=np.rint(yaw[rows] % 360.0 * 100.0) % 36_000 / 100.0,
+    )
+
+    lat, lon, alt = col(LAT), col(LON), col(ALT)
+    rows = np.isfinite(col("fix_type")) if "fix_type" in frame else np.ones(len(t), bool)
+    fix = np.isfinite(lat) & np.isfinite(lon)
+    status = col("fix_type")[rows] if "fix_type" in frame else np.where(fix, 3, 1)[rows]
+    has_alt = fix & np.isfinite(alt)
+    week, ms = np.divmod(_unix_to_gps_ms(t[rows]), int(SECONDS_PER_WEEK * 1000))
+    hdop, vdop = col(HDOP)[rows], col(VDOP)[rows]
+    w.write(
+        "GPS",
+        TimeUS=time_us[rows],
+        Status=status,
+        GMS=ms,
+        GWk=week,
+        HDop=np.where(np.isfinite(hdop), hdop, -0.01),  # UNKNOWN_DOP_COUNTS read as int16 is -1
+        Lat=np.where(fix, np.nan_to_num(lat), 0.0)[rows],
+        Lng=np.where(fix, np.nan_to_num(lon), 0.0)[rows],
+        Alt=np.where(has_alt, np.nan_to_num(alt), 0.0)[rows],
+        Spd=np.nan_to_num(col("speed_mps"))[rows],
+        U=1,
+    )
+    w.write(
+        "GPA",
+        TimeUS=time_us[rows],
+        VDop=np.where(np.isfinite(vdop), vdop, UNKNOWN_DOP_COUNTS * 0.01),
+        SMS=sample_ms[rows],
+        Delta=np.clip(np.diff(sample_ms[rows], prepend=sample_ms[rows][:1]), 0, 65_535),
+        AEl=np.where(has_alt, np.nan_to_num(alt), UNKNOWN_ALT_ELLIPSOID_CM * 0.01)[rows],
+    )
+
+    ground = alt[np.isfinite(alt)][0] if np.isfinite(alt).any() else 0.0
+    temp, current, throttle = col("temp_c"), col("current_a"), col("throttle")
+    if np.isfinite(temp).any():
+        rows = np.isfinite(temp)
+        w.define("BARO")
+        w.write(
+            "BARO",
+            TimeUS=time_us[rows],
+            Alt=np.nan_to_num(alt[rows] - ground),
+            Temp=temp[rows],
+            SMS=sample_ms[rows],
+            Health=1,
+        )
+    if np.isfinite(current).any():
+        rows = np.isfinite(current)
+        w.define("BAT")
+        w.write("BAT", TimeUS=time_us[rows], Curr=current[rows])
+    if np.isfinite(throttle).any():
+        rows = np.isfinite(throttle)
+        w.define("CTUN")
+        w.write("CTUN", TimeUS=time_us[rows], ThO=throttle[rows] * (100.0 if firmware.startswith("ArduPlane") else 1.0))
+    w.save(path)

@@ -8,8 +8,9 @@ is an auxiliary channel. An empty cell is a missing value: it is kept as NaN, ne
 
 from __future__ import annotations
 
+import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ from ..conventions import (
 )
 from ..errors import InputError
 from ..status import Status
-from .tables import file_row, read_csv, require_complete
+from .tables import file_row, read_csv, read_parquet, require_complete
 
 MIN_EPOCHS = 2
 
@@ -49,11 +50,27 @@ def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
     rule that applies wins): ``missing_attitude``, ``gated_dop``, ``missing_position``, ``missing_mag``;
     otherwise ``used``. Codes from ``magkf.status.Status``.
     """
+    rules = (
+        (Status.MISSING_ATTITUDE, lambda: ~np.asarray(has_attitude, bool)),
+        (Status.GATED_DOP, lambda: np.asarray(dop, float) > dop_max),
+        (Status.MISSING_POSITION, lambda: ~np.all(np.isfinite(ref), axis=1)),
+        (Status.MISSING_MAG, lambda: ~np.all(np.isfinite(m), axis=1)),
+    )
+    if len(m) == 1:  # one sample (real time): the same rules on scalars, without numpy's per-call cost
+        flags = (
+            not has_attitude[0],
+            float(dop[0]) > dop_max,
+            not all(map(math.isfinite, ref[0])),
+            not all(map(math.isfinite, m[0])),
+        )
+        code = Status.USED
+        for (status, _), flag in zip(rules, flags):
+            if flag:
+                code = status
+        return np.array([code], dtype=np.int8)
     base = np.full(len(m), Status.USED, dtype=np.int8)
-    base[~np.asarray(has_attitude, bool)] = Status.MISSING_ATTITUDE
-    base[np.asarray(dop, float) > dop_max] = Status.GATED_DOP
-    base[~np.all(np.isfinite(ref), axis=1)] = Status.MISSING_POSITION
-    base[~np.all(np.isfinite(m), axis=1)] = Status.MISSING_MAG
+    for status, applies in rules:
+        base[applies()] = status
     return base
 
 
@@ -100,14 +117,17 @@ class UnitWarning(UserWarning):
 
 @dataclass(frozen=True)
 class DriveLog:
-    """A drive log: ``table`` is a DataFrame indexed by ``time`` (UNIX s) with the file's columns,
-    magnetic columns converted to nT; ``source`` names the file.
+    """A drive log: ``table`` is a DataFrame indexed by ``time`` (UNIX s) with the canonical columns,
+    magnetic columns converted to nT; ``source`` names the file; ``provenance`` says where each column
+    came from and what the reader converted or undid (JSON-ready; see ``magkf.io.readers``). Build one
+    with ``from_table`` (the epoch contract) or a reader.
 
     Array properties have shape (N,) or (N, 3); missing values are NaN.
     """
 
     table: pd.DataFrame
     source: str = "log"
+    provenance: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.table)
@@ -173,26 +193,72 @@ class DriveLog:
         return igrf_ned(self.time, *self.position.T, **kwargs)
 
 
-def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
-    """Read and validate a canonical drive-log CSV; magnetometer values in ``mag_unit`` become nT.
+#: The time base a log must have: UNIX seconds between these dates (1990-01-01 and 2100-01-01 UTC).
+TIME_RANGE_S = (631_152_000.0, 4_102_444_800.0)
+#: A jump of the clock longer than this (s) is reported.
+MAX_GAP_S = 5.0
 
-    Raises InputError (one line naming file, row and column) for a missing file or column, a
-    non-numeric or non-finite cell, a missing or non-increasing time, an angle or position out of
-    range, too few epochs or an unknown unit. Warns (``UnitWarning``) when the magnitudes look like
-    another unit.
-    """
-    name = str(path)
-    if mag_unit not in NT_PER_UNIT:
-        raise InputError(f"unknown magnetic unit {mag_unit!r}; use one of {', '.join(NT_PER_UNIT)}", name)
-    table = read_csv(path, required=(TIME, *MAG))
-    if len(table) < MIN_EPOCHS:
-        raise InputError(f"too few samples: {len(table)} epoch, a drive log needs at least {MIN_EPOCHS}", name)
-    require_complete(table, (TIME,), name)
-    t = table[TIME].to_numpy()
-    not_increasing = np.flatnonzero(np.diff(t) <= 0)
+
+class TimeBaseWarning(UserWarning):
+    """The log's clock has a gap longer than ``MAX_GAP_S``."""
+
+
+def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> None:
+    """Raise InputError for a time that is not UNIX seconds UTC between 1990 and 2100 (time since boot,
+    milliseconds, a GPS week...) or that does not strictly increase; warn (``TimeBaseWarning``) at the first
+    gap longer than ``max_gap_s``. ``row_of(i)`` gives the file row of epoch ``i`` (default: CSV rows)."""
+    row_of = row_of or file_row
+    t = np.asarray(t, float)
+    lo, hi = TIME_RANGE_S
+    bad = np.flatnonzero((t < lo) | (t > hi))
+    if bad.size:
+        i = int(bad[0])
+        hint = (
+            "it looks like time since boot or since the start; give UTC, e.g. with a column map's "
+            'time_epoch = "start" and start_utc'
+            if t[i] < 1e7
+            else "it is not UNIX seconds (UTC)"
+        )
+        raise InputError(f"time {t[i]!r} s is outside 1990 to 2100: {hint}", name, row_of(i), TIME)
+    step = np.diff(t)
+    not_increasing = np.flatnonzero(step <= 0)
     if not_increasing.size:
         i = int(not_increasing[0]) + 1
-        raise InputError(f"time not strictly increasing ({t[i]!r} after {t[i - 1]!r})", name, file_row(i), TIME)
+        raise InputError(f"time not strictly increasing ({t[i]!r} after {t[i - 1]!r})", name, row_of(i), TIME)
+    gaps = np.flatnonzero(step > max_gap_s)
+    if gaps.size:
+        i = int(gaps[0]) + 1
+        warnings.warn(
+            f"{name}: the clock jumps by {step[i - 1]:.3g} s at row {row_of(i)} ({gaps.size} gap(s) longer "
+            f"than {max_gap_s:g} s); the filter's random walk spans each gap",
+            TimeBaseWarning,
+            stacklevel=3,
+        )
+
+
+def from_table(
+    table: pd.DataFrame, source: str = "log", mag_unit: str = "nT", provenance: dict | None = None, row_of=None
+) -> DriveLog:
+    """Validate a table with the canonical columns (``time`` a column, UNIX s) and build a ``DriveLog``;
+    the epoch contract every reader goes through. Magnetometer values in ``mag_unit`` become nT.
+
+    Raises InputError (one line naming source, row and column) for a missing column, a missing or
+    non-increasing time or one outside 1990 to 2100, an angle or position out of range, too few epochs or
+    an unknown unit. Warns (``UnitWarning``) when the magnitudes look like another unit and
+    (``TimeBaseWarning``) at a long gap. ``row_of(i)`` gives the file row of epoch ``i`` (CSV rows by
+    default). The table is not copied when it needs no conversion.
+    """
+    name = str(source)
+    row_of = row_of or file_row
+    if mag_unit not in NT_PER_UNIT:
+        raise InputError(f"unknown magnetic unit {mag_unit!r}; use one of {', '.join(NT_PER_UNIT)}", name)
+    missing = [c for c in (TIME, *MAG) if c not in table.columns]
+    if missing:
+        raise InputError(
+            f"required column missing (the table has: {', '.join(map(str, table.columns))})", name, 1, missing[0]
+        )
+    if len(table) < MIN_EPOCHS:
+        raise InputError(f"too few samples: {len(table)} epoch, a drive log needs at least {MIN_EPOCHS}", name)
     attitude = [c for c in ATTITUDE if c in table]
     if 0 < len(attitude) < 3:
         missing = next(c for c in ATTITUDE if c not in table)
@@ -200,14 +266,16 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
         raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
+    require_complete(table, (TIME,), name)
+    check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
     for column, lo, hi in ((PITCH, -90, 90), (ROLL, -180, 360), (YAW, -360, 360), (LAT, -90, 90), (LON, -180, 360)):
         if column in table:
-            v = table[column].to_numpy()
+            v = table[column].to_numpy(dtype=float)
             bad = np.flatnonzero((v < lo) | (v > hi))
             if bad.size:
                 i = int(bad[0])
-                raise InputError(f"value {v[i]!r} outside [{lo}, {hi}] degrees", name, file_row(i), column)
-    mag = table[list(MAG)].to_numpy()
+                raise InputError(f"value {v[i]!r} outside [{lo}, {hi}] degrees", name, row_of(i), column)
+    mag = table[list(MAG)].to_numpy(dtype=float)
     complete = np.all(np.isfinite(mag), axis=1)
     if complete.any():
         median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
@@ -217,16 +285,33 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
                 f"{name}: the magnetometer magnitudes (median {median:.4g}) look like {guess}, not "
                 f"{mag_unit}; pass --mag-unit {guess} if they are",
                 UnitWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
-    for c in MAG:
-        table[c] = to_nanotesla(table[c].to_numpy(), mag_unit)
-    table = table.set_index(TIME)
-    return DriveLog(table=table, source=name)
+    if mag_unit != "nT":
+        table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
+    return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
+
+
+def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
+    """Read and validate a canonical drive log, CSV or its Parquet twin (``.parquet``); magnetometer values in
+    ``mag_unit`` become nT. Raises InputError (one line naming file, row and column) for a missing file or
+    column, a non-numeric or non-finite cell, and everything ``from_table`` checks."""
+    name = str(path)
+    if Path(path).suffix.lower() in (".parquet", ".pq"):
+        table = read_parquet(path, required=(TIME, *MAG))
+        provenance = {"format": "canonical-parquet", "file": name}
+    else:
+        table = read_csv(path, required=(TIME, *MAG))
+        provenance = {"format": "canonical-csv", "file": name}
+    return from_table(table, name, mag_unit, provenance)
 
 
 def write_drive_log(table: pd.DataFrame, path) -> None:
-    """Write a time-indexed table (or one with a ``time`` column) as canonical CSV, full precision."""
+    """Write a time-indexed table (or one with a ``time`` column) as canonical CSV, full precision, or as
+    Parquet when ``path`` ends in ``.parquet``."""
     out = table.reset_index() if table.index.name == TIME else table
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    out.to_csv(path, index=False, float_format="%.13g", na_rep="")
+    if Path(path).suffix.lower() in (".parquet", ".pq"):
+        out.to_parquet(path, index=False)
+    else:
+        out.to_csv(path, index=False, float_format="%.13g", na_rep="")

@@ -68,6 +68,28 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     return table
 
 
+def read_parquet(path, required: Iterable[str] = ()) -> pd.DataFrame:
+    """Read a Parquet table into a DataFrame of floats, with the checks of ``read_csv``; rows are named as the
+    CSV twin's would be (record i is row i + 2, the header being row 1)."""
+    path = Path(path)
+    name = str(path)
+    if not path.is_file():
+        raise InputError("no such file", name)
+    try:
+        table = pd.read_parquet(path)
+    except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
+        raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
+    table.columns = [str(c).strip() for c in table.columns]
+    missing = [c for c in required if c not in table.columns]
+    if missing:
+        raise InputError(f"required column missing (the table has: {', '.join(table.columns)})", name, 1, missing[0])
+    if len(table) == 0:
+        raise InputError("the file has no rows", name)
+    for column in table.columns:
+        table[column] = numeric_column(table[column], name, column)
+    return table.reset_index(drop=True)
+
+
 def numeric_column(values: pd.Series, source: str, column: str) -> np.ndarray:
     """Convert one column to float, raising InputError at the first non-numeric or non-finite cell."""
     if pd.api.types.is_numeric_dtype(values.dtype) and not pd.api.types.is_bool_dtype(values.dtype):

@@ -127,6 +127,8 @@ class OnlineCalibrator:
         base = epoch_status(m[None], ref[None], [has_att], [dop], self.config.dop_max)
         dt = 0.0 if self._last_time is None else t - self._last_time
         rate = (field_body - self._last_field_body) / dt if dt > 0 else np.zeros(3)
+        if not np.isfinite(rate).all():
+            rate = np.zeros(3)
         self._last_time, self._last_field_body = t, field_body
         est, layout = self.estimator, self.layout
         x = est.x
@@ -137,7 +139,7 @@ class OnlineCalibrator:
             {c: np.array([v[c]]) for e in layout.extra() for c in e.columns},
             mag=m[None],
             c_nb=c_nb[None],
-            field_body_rate=np.nan_to_num(rate)[None],
+            field_body_rate=rate[None],
             R0=layout.R(x),
         )
         H = layout.linear_jacobian(data)

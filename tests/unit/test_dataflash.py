@@ -1,20 +1,23 @@
-"""ArduPilot DataFlash reader: GPS time, the raw reconstruction, the two real logs and synthetic logs."""
+"""ArduPilot DataFlash reader and writer: GPS time, the raw reconstruction, the two real logs, synthetic logs
+(built with ``DataFlashWriter``) and ``write_dataflash`` round trips."""
 
-import struct
 import warnings
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from magkf.conventions import EARTH_FIELD_RANGE_NT, wrap_deg
 from magkf.errors import InputError
 from magkf.io.dataflash import (
+    DataFlashWriter,
     compass_correct,
     compass_uncorrect,
     magnetometer_instances,
     read_dataflash,
+    write_dataflash,
 )
 from magkf.io.timebase import GPS_EPOCH_UNIX, gps_to_unix, leap_seconds
 
@@ -93,61 +96,7 @@ def test_compass_model_order_and_scale_rules():
     np.testing.assert_allclose(compass_correct(raw, ofs, dia, odi, 1.6), compass_correct(raw, ofs, dia, odi, 1.0))
 
 
-# ------------------------------------------------------------------ a synthetic DataFlash writer
-HEAD = b"\xa3\x95"
-STRUCT = {
-    "Q": "Q",
-    "B": "B",
-    "h": "h",
-    "H": "H",
-    "I": "I",
-    "i": "i",
-    "f": "f",
-    "c": "h",
-    "C": "H",
-    "e": "i",
-    "L": "i",
-    "N": "16s",
-    "Z": "64s",
-}
-SCALE = {"c": 100, "C": 100, "e": 100, "L": 1e7}
-
-
-class DataFlashWriter:
-    """Just enough of the DataFlash format for tests: FMT messages, then messages of the declared types."""
-
-    def __init__(self):
-        self.chunks, self.formats = [], {}
-
-    def define(self, type_id, name, fmt, columns):
-        body = "<" + "".join(STRUCT[c] for c in fmt)
-        self.formats[name] = (type_id, fmt, body)
-        self.chunks.append(
-            HEAD
-            + bytes([128])
-            + struct.pack(
-                "<BB4s16s64s", type_id, 3 + struct.calcsize(body), name.encode(), fmt.encode(), columns.encode()
-            )
-        )
-
-    def write(self, name, *values):
-        type_id, fmt, body = self.formats[name]
-        packed = []
-        for c, v in zip(fmt, values):
-            if c in SCALE:
-                v = round(v * SCALE[c])
-            elif c in "NZ":
-                v = v.encode()
-            elif c != "f":
-                v = int(v)
-            packed.append(v)
-        self.chunks.append(HEAD + bytes([type_id]) + struct.pack(body, *packed))
-
-    def save(self, path):
-        Path(path).write_bytes(b"".join(self.chunks))
-        return path
-
-
+# ------------------------------------------------------------------ synthetic logs
 BOOT_TO_UTC = unix(2025, 1, 3, 12) - 100.0  # UTC of TimeUS = 0 in the synthetic logs
 WEEK, WEEK_START = 2347, unix(2024, 12, 29)
 
@@ -156,54 +105,48 @@ def synthetic_log(path, rng, *, gps_week=True, mag=True, yaw0=350.0):
     """A 20 s log at 10 Hz: two MAG instances (fields from known raw values through ArduPilot's correction),
     ATT turning through north, GPS with a 3-D fix after 5 s, GPA, BARO, BAT, CTUN; Copter firmware."""
     w = DataFlashWriter()
-    w.define(129, "MSG", "QZ", "TimeUS,Message")
-    w.define(130, "PARM", "QNf", "TimeUS,Name,Value")
-    w.define(131, "MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S")
-    w.define(132, "ATT", "QccC", "TimeUS,Roll,Pitch,Yaw")
-    w.define(133, "GPS", "QBBIHBCLLe", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt")
-    w.define(134, "GPA", "QBCIe", "TimeUS,I,VDop,SMS,AEl")
-    w.define(135, "BARO", "QBfc", "TimeUS,I,Alt,Temp")
-    w.define(136, "BAT", "QBfff", "TimeUS,I,Volt,VoltR,Curr")
-    w.define(137, "CTUN", "Qf", "TimeUS,ThO")
-    w.write("MSG", 1000, "ArduCopter V4.5.7 (2a3dc4b7)")
+    for name in ("MSG", "PARM", "MAG", "ATT", "GPS", "GPA", "BARO", "BAT", "CTUN"):
+        w.define(name)
+    w.write("MSG", TimeUS=1000, Message="ArduCopter V4.5.7 (2a3dc4b7)")
     cals = []
     for k, suffix in enumerate(("", "2")):
         cal = random_calibration(rng)
         cal = {key: np.float32(v).astype(float) for key, v in cal.items()}  # PARM values are float32
         for key, name in (("offsets", "OFS"), ("diagonals", "DIA"), ("offdiagonals", "ODI")):
             for axis, value in zip("XYZ", cal[key]):
-                w.write("PARM", 2000 + k, f"COMPASS_{name}{suffix}_{axis}", value)
-        w.write("PARM", 2000 + k, f"COMPASS_SCALE{suffix}", cal["scale"])
+                w.write("PARM", TimeUS=2000 + k, Name=f"COMPASS_{name}{suffix}_{axis}", Value=value)
+        w.write("PARM", TimeUS=2000 + k, Name=f"COMPASS_SCALE{suffix}", Value=cal["scale"])
         cals.append(cal)
     raw = {k: rng.normal([200.0, -100.0, 400.0], 150.0, (200, 3)) for k in (0, 1)}
     for j in range(200):
         t_us = 1_000_000 + j * 100_000
         if mag:
             for k in (0, 1):
-                field = compass_correct(raw[k][j], **cals[k])[0]
-                w.write("MAG", t_us + 10 * k, k, *np.trunc(field), *np.trunc(cals[k]["offsets"]), 0, 0, 0, 1, t_us)
-        w.write("ATT", t_us + 50_000, 2.0, -1.0, (yaw0 + 0.5 * j) % 360)
+                field = np.trunc(compass_correct(raw[k][j], **cals[k])[0])
+                ofs = np.trunc(cals[k]["offsets"])
+                axes = {f"Mag{a}": v for a, v in zip("XYZ", field)} | {f"Ofs{a}": v for a, v in zip("XYZ", ofs)}
+                w.write("MAG", TimeUS=t_us + 10 * k, I=k, **axes, Health=1, S=t_us)
+        w.write("ATT", TimeUS=t_us + 50_000, Roll=2.0, Pitch=-1.0, Yaw=(yaw0 + 0.5 * j) % 360)
         if j % 2 == 0:
             fix = 3 if j >= 50 else 1
             utc = BOOT_TO_UTC + (t_us + 20_000) * 1e-6
             ms = (utc + 18 - WEEK_START) * 1000 if gps_week else (utc - WEEK_START) * 1000
             w.write(
                 "GPS",
-                t_us + 20_000,
-                0,
-                fix,
-                round(ms),
-                WEEK if gps_week else 0,
-                8,
-                1.2,
-                LAT + 1e-5 * j if fix == 3 else 0.0,
-                LON,
-                100.0,
+                TimeUS=t_us + 20_000,
+                Status=fix,
+                GMS=round(ms),
+                GWk=WEEK if gps_week else 0,
+                NSats=8,
+                HDop=1.2,
+                Lat=LAT + 1e-5 * j if fix == 3 else 0.0,
+                Lng=LON,
+                Alt=100.0,
             )
-            w.write("GPA", t_us + 20_000, 0, 1.8, (t_us + 20_000) // 1000, 150.0)
-            w.write("BARO", t_us + 30_000, 0, 5.0, 20.0 + 0.01 * j)
-            w.write("BAT", t_us + 40_000, 0, 16.0, 16.1, 3.0 + 0.1 * j)
-            w.write("CTUN", t_us + 45_000, 0.5)
+            w.write("GPA", TimeUS=t_us + 20_000, VDop=1.8, SMS=(t_us + 20_000) // 1000, AEl=150.0)
+            w.write("BARO", TimeUS=t_us + 30_000, Alt=5.0, Temp=20.0 + 0.01 * j)
+            w.write("BAT", TimeUS=t_us + 40_000, Volt=16.0, VoltR=16.1, Curr=3.0 + 0.1 * j)
+            w.write("CTUN", TimeUS=t_us + 45_000, ThO=0.5)
     return w.save(path), {"raw": raw, "cals": cals}
 
 
@@ -367,13 +310,13 @@ def test_real_decoder_matches_pymavlink():
 def test_old_style_mag2_instances(tmp_path):
     """Logs before 4.0 have MAG, MAG2, MAG3 without an instance field."""
     w = DataFlashWriter()
-    w.define(130, "MAG", "Qhhh", "TimeUS,MagX,MagY,MagZ")
-    w.define(131, "MAG2", "Qhhh", "TimeUS,MagX,MagY,MagZ")
-    w.define(132, "GPS", "QBIH", "TimeUS,Status,GMS,GWk")
+    w.define("MAG", "Qhhh", "TimeUS,MagX,MagY,MagZ")
+    w.define("MAG2", "Qhhh", "TimeUS,MagX,MagY,MagZ")
+    w.define("GPS", "QBIH", "TimeUS,Status,GMS,GWk")
     for j in range(50):
-        w.write("MAG", 1_000_000 + j * 50_000, 100, 200, 300)
-        w.write("MAG2", 1_000_000 + j * 100_000, -100, 0, 300)
-        w.write("GPS", 1_000_000 + j * 200_000, 3, 400_000_000 + j * 200, WEEK)
+        w.write("MAG", TimeUS=1_000_000 + j * 50_000, MagX=100, MagY=200, MagZ=300)
+        w.write("MAG2", TimeUS=1_000_000 + j * 100_000, MagX=-100, MagY=0, MagZ=300)
+        w.write("GPS", TimeUS=1_000_000 + j * 200_000, Status=3, GMS=400_000_000 + j * 200, GWk=WEEK)
     path = w.save(tmp_path / "old.bin")
     assert [(m["instance"], m["message"], m["samples"]) for m in magnetometer_instances(path)] == [
         (0, "MAG", 50),
@@ -414,3 +357,124 @@ def test_truncated_copy_warns_and_reads_to_the_damage(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_dataflash(CENTER)  # the intact log does not warn
+
+
+# ------------------------------------------------------------------ write_dataflash
+PARAMS = {
+    "COMPASS_OFS_X": 120.5,
+    "COMPASS_OFS_Y": -40.25,
+    "COMPASS_OFS_Z": 300.0,
+    "COMPASS_DIA_X": 1.1,
+    "COMPASS_DIA_Y": 0.95,
+    "COMPASS_DIA_Z": 1.02,
+    "COMPASS_ODI_X": 0.03,
+    "COMPASS_ODI_Y": -0.02,
+    "COMPASS_ODI_Z": 0.01,
+    "COMPASS_SCALE": 1.1,
+}
+
+
+def drive_table(n=600, rate_hz=10.0, seed=2, start=BOOT_TO_UTC + 100.0):
+    """A canonical table (time index) with every channel write_dataflash writes."""
+    rng = np.random.default_rng(seed)
+    t = start + np.arange(n) / rate_hz
+    table = {
+        "mag_x": rng.normal(200.0, 20_000.0, n),
+        "mag_y": rng.normal(-100.0, 20_000.0, n),
+        "mag_z": rng.normal(40_000.0, 5_000.0, n),
+        "roll": rng.uniform(-30, 30, n),
+        "pitch": rng.uniform(-20, 20, n),
+        "yaw": rng.uniform(0, 360, n),
+        "lat": LAT + 1e-4 * rng.random(n),
+        "lon": LON + 1e-4 * rng.random(n),
+        "alt": 150.0 + rng.random(n),
+        "hdop": 1.0 + rng.random(n),
+        "vdop": 1.5 + rng.random(n),
+        "temp_c": 20.0 + rng.random(n),
+        "current_a": 5.0 + rng.random(n),
+        "throttle": rng.random(n),
+    }
+    return pd.DataFrame(table, index=pd.Index(t, name="time"))
+
+
+def test_write_dataflash_round_trip(tmp_path):
+    """read_dataflash(raw=True) gives back the table: the raw field within the logger's int16 truncation
+    (after centring 0.5 mG per corrected component, 1 mG where it truncated to 0, whose interval is 2 mG wide;
+    through the inverse of the float32 compass model: |M^-1| e / scale), other channels within half a count
+    of their fields (0.01 deg, 1e-7 deg, 1 cm, 0.01 degC) or float32."""
+    table = drive_table()
+    path = tmp_path / "drive.bin"
+    write_dataflash(table, path, parameters=PARAMS)
+    df, prov = read_dataflash(path)
+    np.testing.assert_allclose(df["time"], table.index, rtol=0, atol=1e-6)  # ms-exact GPS time, 0.1 s rows
+    p = {k: float(np.float32(v)) for k, v in PARAMS.items()}
+    dia = [p[f"COMPASS_DIA_{a}"] for a in "XYZ"]
+    odi = [p[f"COMPASS_ODI_{a}"] for a in "XYZ"]
+    mat = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+    raw_mg = table[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0
+    ofs = [p[f"COMPASS_OFS_{a}"] for a in "XYZ"]
+    logged = np.trunc(compass_correct(raw_mg, ofs, dia, odi, p["COMPASS_SCALE"]))
+    component_nt = np.where(logged == 0, 100.0, 50.0)
+    bound = component_nt @ np.abs(np.linalg.inv(mat)).T / p["COMPASS_SCALE"] + 1e-6  # (N, 3)
+    err = df[["mag_x", "mag_y", "mag_z"]].to_numpy() - raw_mg * 100.0
+    assert np.all(np.abs(err) <= bound)
+    # Centred: the mean error of 600 samples is within 4 standard errors (each at most uniform in +-bound).
+    assert np.all(np.abs(err.mean(axis=0)) < 4 * bound.max() / np.sqrt(3 * len(err)))
+    half_count = {"roll": 0.005, "pitch": 0.005, "lat": 5e-8, "lon": 5e-8, "alt": 0.005, "hdop": 0.005,
+                  "vdop": 0.005, "temp_c": 0.005}  # fmt: skip
+    for column, tol in half_count.items():
+        np.testing.assert_allclose(df[column], table[column], rtol=0, atol=tol + 1e-9, err_msg=column)
+    assert np.abs(wrap_deg(df["yaw"].to_numpy() - table["yaw"].to_numpy())).max() <= 0.005 + 1e-9
+    for column in ("current_a", "throttle"):
+        np.testing.assert_allclose(df[column], table[column], rtol=2**-23, err_msg=column)  # float32
+    assert (df["fix_type"] == 3).all()
+    assert prov["firmware"] == "ArduCopter V4.5.0"
+    assert prov["parameters"]["COMPASS_SCALE"] == pytest.approx(1.1, rel=1e-7)
+    assert "COMPASS_OFS" in prov["raw_reconstruction"] and not prov["notes"]
+
+
+def test_write_dataflash_identity_parameters_and_no_position(tmp_path):
+    """With no (or identity) parameters raw = logged; without lat/lon the GPS messages carry time only."""
+    table = drive_table(n=50).drop(columns=["lat", "lon", "hdop"])
+    path = tmp_path / "plain.bin"
+    write_dataflash(
+        table,
+        path,
+        parameters=dict.fromkeys(("COMPASS_DIA_X", "COMPASS_DIA_Y", "COMPASS_DIA_Z"), 0.0),
+        firmware="ArduPlane V4.2.3",
+    )  # all-zero diagonals count as ones
+    raw, _ = read_dataflash(path)
+    logged, _ = read_dataflash(path, raw=False)
+    np.testing.assert_array_equal(raw[["mag_x", "mag_y", "mag_z"]], logged[["mag_x", "mag_y", "mag_z"]])
+    assert np.abs(raw["mag_x"] - table["mag_x"].to_numpy()).max() <= 50.0
+    assert np.isnan(raw["lat"]).all() and (raw["fix_type"] == 1).all()
+    np.testing.assert_allclose(raw["throttle"], table["throttle"], rtol=1e-6)  # written x100 for ArduPlane
+
+
+def test_write_dataflash_gps_time_across_a_leap_second(tmp_path):
+    """GPS week 1930 starts on Sunday 2017-01-01 00:00:00 GPS time, which is 17 s before UTC midnight (GPS -
+    UTC = 17 s in 2016); UTC midnight is 18 s into the week, and the GPS milliseconds jump by 1.5 s across
+    the half-second before it."""
+    from pymavlink import DFReader
+
+    assert (datetime(2017, 1, 1) - datetime(1980, 1, 6)).days == 1930 * 7
+    table = drive_table(n=6, rate_hz=2.0, start=unix(2016, 12, 31, 23, 59, 58, 500_000))
+    path = tmp_path / "leap.bin"
+    write_dataflash(table, path)
+    gps = []
+    with DFReader.DFReader_binary(str(path)) as reader:
+        while (m := reader.recv_match(type="GPS")) is not None:
+            gps.append((m.GWk, m.GMS))
+    assert gps == [(1930, 15_500), (1930, 16_000), (1930, 16_500), (1930, 18_000), (1930, 18_500), (1930, 19_000)]
+    df, _ = read_dataflash(path)
+    np.testing.assert_allclose(df["time"], table.index, rtol=0, atol=1e-6)
+
+
+def test_write_dataflash_errors(tmp_path):
+    table = drive_table(n=10)
+    with pytest.raises(InputError, match="missing column 'mag_y'"):
+        write_dataflash(table.drop(columns="mag_y"), tmp_path / "a.bin")
+    big = table.assign(mag_z=4e6)  # 40 000 mG: beyond int16
+    with pytest.raises(InputError, match="int16") as err:
+        write_dataflash(big, tmp_path / "b.bin")
+    assert "mag_z" in str(err.value) and "b.bin" in str(err.value)

@@ -1,0 +1,109 @@
+"""``magkf check``, ``magkf convert`` and ``magkf export``: what a log holds, the canonical log of any
+format, and a calibration as autopilot parameters."""
+
+from __future__ import annotations
+
+from .common import add_log_options, open_log, print_json
+
+
+def add_parsers(sub) -> None:
+    """Register ``check``, ``convert`` and ``export``."""
+    p = sub.add_parser(
+        "check",
+        help="what a log holds and what it allows",
+        description="One screen on a log of any supported format: streams and rates, units decided and why, "
+        "time base, heading and tilt coverage, DOP, the measurement models it allows and what will limit "
+        "the calibration.",
+    )
+    add_log_options(p)
+    p.add_argument("--dop-max", type=float, default=5.0, help="DOP gate to summarise against (default 5)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON on standard output")
+    p.set_defaults(func=run_check)
+
+    p = sub.add_parser(
+        "convert",
+        help="any supported log to the canonical drive log (CSV or Parquet)",
+        description="Read a log of any supported format and write the canonical drive log (docs/data-contract.md); "
+        "the provenance (where each column came from, what was converted or undone) is written beside it as "
+        "OUT.provenance.json.",
+    )
+    add_log_options(p)
+    p.add_argument("-o", "--output", required=True, metavar="OUT.csv|OUT.parquet", help="canonical log to write")
+    p.add_argument("--json", action="store_true", help="print a JSON summary")
+    p.set_defaults(func=run_convert)
+
+    p = sub.add_parser(
+        "export",
+        help="a calibration as autopilot parameters (ArduPilot COMPASS_*, PX4 CAL_MAGn_*)",
+        description="Write a calibration file as the parameters an autopilot applies, in the parameter-file "
+        "format its ground station loads. The rotation part of R cannot be held by either autopilot's "
+        "symmetric matrix: the angle it leaves is reported. See docs/autopilot-logs.md.",
+    )
+    p.add_argument("cal", help="calibration JSON")
+    p.add_argument("--to", required=True, choices=["ardupilot", "px4"], help="autopilot")
+    p.add_argument(
+        "--instance", type=int, help="compass instance (ArduPilot 1 to 3, default 1; PX4 CAL_MAGn, default 0)"
+    )
+    p.add_argument("-o", "--output", required=True, metavar="FILE.param", help="parameter file to write")
+    p.add_argument("--json", action="store_true", help="print the parameters as JSON")
+    p.set_defaults(func=run_export)
+
+
+def run_check(args) -> int:
+    from ..io.inspect import format_inspection, inspect_log
+
+    report = inspect_log(open_log(args), dop_max=args.dop_max)
+    if args.json:
+        print_json(report)
+    else:
+        print(format_inspection(report))
+    return 0
+
+
+def run_convert(args) -> int:
+    import json
+    from pathlib import Path
+
+    from ..io.calibration import jsonable
+    from ..io.drivelog import write_drive_log
+
+    log = open_log(args)
+    out = Path(args.output)
+    write_drive_log(log.table, out)
+    beside = out.with_name(out.stem + ".provenance.json")
+    beside.write_text(json.dumps(jsonable(log.provenance), indent=2), encoding="utf-8")
+    summary = {
+        "input": args.file,
+        "format": log.provenance.get("format"),
+        "epochs": len(log),
+        "columns": ["time", *log.table.columns],
+        "output": str(out),
+        "provenance": str(beside),
+    }
+    if args.json:
+        print_json(summary)
+    else:
+        print(f"converted {args.file} ({summary['format']}, {len(log)} epochs) to {out}; provenance in {beside}")
+    return 0
+
+
+def run_export(args) -> int:
+    from ..io.autopilot import to_ardupilot, to_px4, write_param_file
+    from ..io.calibration import Calibration
+
+    cal = Calibration.load(args.cal)
+    if args.to == "ardupilot":
+        params = to_ardupilot(cal, 1 if args.instance is None else args.instance)
+    else:
+        params = to_px4(cal, 0 if args.instance is None else args.instance)
+    write_param_file(params, args.output)
+    if args.json:
+        print_json(params.summary())
+        return 0
+    print(f"{args.to} parameters of {args.cal} written to {args.output}:")
+    for name, value in params.values.items():
+        print(f"  {name:18s} {value:.9g}")
+    print(f"  rotation the parameters cannot hold: {params.residual_rotation_deg:.3f} deg")
+    for note in params.notes:
+        print(f"  note: {note}")
+    return 0
