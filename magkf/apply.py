@@ -9,6 +9,8 @@ from .conventions import declination_deg, magnetic_heading_deg
 from .io.calibration import Calibration
 from .io.drivelog import DriveLog
 
+__all__ = ["COLUMNS", "apply_calibration"]
+
 #: Output columns of ``apply_calibration`` besides the time index.
 COLUMNS = (
     "field_x",

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
+__all__ = ["FilterConfig"]
+
 
 @dataclass(frozen=True)
 class FilterConfig:

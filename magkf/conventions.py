@@ -20,6 +20,45 @@ import math
 
 import numpy as np
 
+__all__ = [
+    "TIME",
+    "MAG",
+    "ROLL",
+    "PITCH",
+    "YAW",
+    "ATTITUDE",
+    "LAT",
+    "LON",
+    "ALT",
+    "DOP",
+    "PDOP",
+    "HDOP",
+    "VDOP",
+    "REF",
+    "CORE_COLUMNS",
+    "PLANE",
+    "ANGLE",
+    "NT_PER_UNIT",
+    "EARTH_FIELD_RANGE_NT",
+    "to_nanotesla",
+    "from_nanotesla",
+    "likely_unit",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "euler_to_dcm",
+    "dcm_to_euler",
+    "quaternion_to_euler",
+    "ned_to_body",
+    "body_to_ned",
+    "inverse3",
+    "calibrated_field",
+    "declination_deg",
+    "inclination_deg",
+    "magnetic_heading_deg",
+    "wrap_deg",
+]
+
 # ---------------------------------------------------------------- column names (data contract)
 TIME = "time"
 MAG = ("mag_x", "mag_y", "mag_z")

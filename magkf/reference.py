@@ -30,6 +30,17 @@ import ppigrf
 from .conventions import declination_deg, inclination_deg
 from .errors import InputError
 
+__all__ = [
+    "EARTH_RADIUS_M",
+    "IGRF_EPOCHS_S",
+    "VALID_RANGE_S",
+    "GRADIENT_STEP",
+    "ppigrf_ned",
+    "igrf_ned",
+    "field_at",
+    "ReferenceFieldCache",
+]
+
 #: Mean Earth radius (m), used only to turn degree offsets into metres for the knot spacing.
 EARTH_RADIUS_M = 6_371_000.0
 #: Model epochs of IGRF-14 (ppigrf's default coefficient file), as UNIX seconds.

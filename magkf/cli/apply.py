@@ -9,6 +9,8 @@ from .common import (
     print_json,
 )
 
+__all__ = ["add_parsers", "run_apply"]
+
 
 def add_parsers(sub) -> None:
     """Register ``apply``."""

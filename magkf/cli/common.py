@@ -9,6 +9,23 @@ from datetime import UTC, datetime
 from ..conventions import NT_PER_UNIT
 from ..errors import InputError
 
+__all__ = [
+    "print_json",
+    "timestamp",
+    "igrf_field",
+    "add_igrf_options",
+    "add_output_options",
+    "add_filter_options",
+    "filter_config",
+    "add_effect_options",
+    "effects",
+    "add_mag_unit",
+    "add_log_options",
+    "mag_instance",
+    "open_log",
+    "load_calibration",
+]
+
 
 def print_json(data) -> None:
     """Print ``data`` as JSON (numpy values converted; NaN as null)."""

@@ -17,6 +17,8 @@ from .common import (
     print_json,
 )
 
+__all__ = ["add_parsers", "run_diagnose", "run_report"]
+
 
 def add_parsers(sub) -> None:
     """Register ``diagnose`` and ``report``."""

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from .common import add_log_options, open_log, print_json
 
+__all__ = ["add_parsers", "run_check", "run_convert", "run_export"]
+
 
 def add_parsers(sub) -> None:
     """Register ``check``, ``convert`` and ``export``."""

@@ -13,6 +13,8 @@ from .common import (
     print_json,
 )
 
+__all__ = ["add_parsers", "run_sinefit", "run_ellipsoid"]
+
 
 def add_parsers(sub) -> None:
     """Register ``sinefit``, ``ellipsoid``."""

@@ -16,6 +16,8 @@ from .common import (
     print_json,
 )
 
+__all__ = ["add_parsers", "run_calibrate"]
+
 
 def add_parsers(sub) -> None:
     """Register ``calibrate``."""

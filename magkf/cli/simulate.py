@@ -7,6 +7,8 @@ import json
 from ..errors import InputError
 from .common import print_json, timestamp
 
+__all__ = ["add_parsers", "run_simulate"]
+
 
 def add_parsers(sub) -> None:
     """Register ``simulate``."""
@@ -109,7 +111,7 @@ def run_simulate(args) -> int:
             except ValueError:
                 raise InputError(f"--effect {spec!r}: give NAME[:COLUMN]=v1,v2,... with numbers") from None
             effect = make_effect(name)
-            if len(theta) != effect.size and not (effect.name == "bias_drift" and len(theta) == 1):
+            if not effect.accepts_simulation(theta):
                 raise InputError(
                     f"--effect {spec!r}: {effect.name} has {effect.size} parameters "
                     f"({', '.join(effect.parameter_names)})"

@@ -33,6 +33,7 @@ from scipy import stats
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import candidates as default_candidates
+from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..online.measurements import Both
@@ -41,6 +42,8 @@ from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
 from ..status import Status
+
+__all__ = ["BINS", "WINDOW_S", "OUTLIER_SIGMA", "Candidate", "Diagnosis", "diagnose", "signal_values", "compare_runs"]
 
 #: Bins of the binned residual means; stretch length of the "largest residual" search, s.
 BINS = 12
@@ -96,6 +99,12 @@ class Diagnosis:
     text: str
     binned: dict = field(default_factory=dict)
     residuals: dict = field(default_factory=dict)
+
+    def candidates_frame(self):
+        """The candidates as a DataFrame indexed by effect (``--effect`` name), in ranking order."""
+        import pandas as pd
+
+        return pd.DataFrame([c.as_dict() for c in self.candidates]).set_index("effect")
 
     def summary(self) -> dict:
         return {
@@ -162,7 +171,7 @@ def diagnose(
         data, m, H, W, resid_raw, y = data.take(keep), m[keep], H[keep], W[keep], resid_raw[keep], y[keep]
     n = len(y)
     if n < 10:
-        raise ValueError(f"too few usable epochs ({n}) to diagnose; the log needs attitude and a reference")
+        raise InputError(f"too few usable epochs ({n}) to diagnose; the log needs attitude and a reference", log.source)
     Hw = (W @ H).reshape(3 * n, -1)
     yw = y.ravel()
     Q, _ = np.linalg.qr(Hw)

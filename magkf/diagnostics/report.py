@@ -19,6 +19,8 @@ from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
 
+__all__ = ["COMPONENT_COLOURS", "build_report"]
+
 COMPONENT_COLOURS = {"north": "tab:blue", "east": "tab:orange", "down": "tab:green", "magnitude": "tab:red"}
 
 

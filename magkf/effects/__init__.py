@@ -78,9 +78,10 @@ def candidates(columns, registry: dict | None = None) -> list[Effect]:
             out.append(cls())
             continue
         for column in columns:
-            # A channel with an effect of its own (temperature) is tried only with the effects made for it.
+            # A channel that is another effect's default is tried only with the effects made for it, and an
+            # effect made for one kind of channel (temperature) only on its own.
             owned = {defaults[n] for n in registry if defaults[n] is not None and defaults[n] != default}
-            if column == default or (column not in owned and not name.startswith("temperature")):
+            if column == default or (column not in owned and not cls.owns_channel):
                 out.append(cls(column=column))
     return out
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+__all__ = ["FD_STEP", "EpochData", "rate_of_change", "Effect"]
+
 #: Relative and absolute step of the finite-difference Jacobian default.
 FD_STEP = 1e-6
 
@@ -88,6 +90,11 @@ class Effect:
     columns: tuple = ()
     units: tuple = ()
     linear: bool = True
+    #: True for an effect made for one kind of channel (temperature): the diagnosis tries it on its own
+    #: default channel only, and tries no other effect on that channel.
+    owns_channel: bool = False
+    #: How many true parameters ``simulate`` accepts (default: the effect's own parameters).
+    simulation_sizes: tuple = ()
 
     @property
     def label(self) -> str:
@@ -126,6 +133,10 @@ class Effect:
         effect whose Jacobian cannot be told apart from the core offset (a slow drift) overrides it.
         """
         return self.jacobian(self.prior()[0], data)
+
+    def accepts_simulation(self, theta) -> bool:
+        """True when ``simulate`` takes ``theta`` (its length is one of ``simulation_sizes``, else ``size``)."""
+        return len(theta) in (self.simulation_sizes or (self.size,))
 
     def simulate(self, theta, data: EpochData, rng: np.random.Generator) -> np.ndarray:
         """Raw-field contribution (N, 3) nT the simulator adds for true parameters ``theta``."""

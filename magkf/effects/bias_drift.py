@@ -4,6 +4,8 @@ import numpy as np
 
 from .linear import LinearEffect
 
+__all__ = ["DRIFT_DEGREE", "BiasDrift"]
+
 #: Degree of the Legendre polynomials in time that the diagnostics test for a drift.
 DRIFT_DEGREE = 3
 
@@ -18,6 +20,7 @@ class BiasDrift(LinearEffect):
     parameter_names = ("d_x", "d_y", "d_z")
     units = ("nT",) * 3
     prior_std = 1.0
+    simulation_sizes = (1, 3)  # one walk for every axis, or one each
 
     def __init__(self, walk: float = 2.0):
         self.walk = walk

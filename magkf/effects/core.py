@@ -7,6 +7,8 @@ import numpy as np
 from ..io.calibration import PARAMETER_NAMES
 from .base import Effect, EpochData
 
+__all__ = ["DEFAULT_R_WALK", "DEFAULT_B_WALK", "SoftHardIron", "core_jacobian"]
+
 #: Default random walks: R per sqrt(s) (dimensionless) and b in nT per sqrt(s).
 DEFAULT_R_WALK = 1e-7
 DEFAULT_B_WALK = 0.01

@@ -2,6 +2,8 @@
 
 from .linear import LinearEffect, per_axis
 
+__all__ = ["CurrentField"]
+
 
 class CurrentField(LinearEffect):
     """``m += c I``: three coefficients (nT per unit of the channel), one per sensor axis.

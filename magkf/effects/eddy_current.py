@@ -5,6 +5,8 @@ import numpy as np
 
 from .linear import LinearEffect
 
+__all__ = ["EddyCurrent"]
+
 
 class EddyCurrent(LinearEffect):
     """Nine parameters ``E_ij`` (seconds: nT of field per nT/s of change), row-major."""

@@ -5,6 +5,8 @@ import numpy as np
 
 from .linear import LinearEffect
 
+__all__ = ["FieldAnomaly"]
+
 
 class FieldAnomaly(LinearEffect):
     """Three parameters, the anomaly's north, east and down components (nT). On a level drive the down

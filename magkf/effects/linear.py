@@ -6,6 +6,8 @@ import numpy as np
 
 from .base import Effect, EpochData
 
+__all__ = ["LinearEffect", "per_axis"]
+
 
 class LinearEffect(Effect):
     """An effect ``m += G(data) theta`` with regressors ``G`` (N, 3, k); subclasses implement ``design``.

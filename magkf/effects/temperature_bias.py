@@ -2,6 +2,8 @@
 
 from .linear import LinearEffect, per_axis
 
+__all__ = ["TemperatureBias"]
+
 
 class TemperatureBias(LinearEffect):
     """Offset drift with temperature: three coefficients (nT per degC), one per sensor axis.
@@ -13,6 +15,7 @@ class TemperatureBias(LinearEffect):
     name = "temperature_bias"
     parameter_names = ("k_x", "k_y", "k_z")
     units = ("nT/degC",) * 3
+    owns_channel = True
     prior_std = 100.0
 
     def __init__(self, column: str = "temp_c", T0: float = 20.0):

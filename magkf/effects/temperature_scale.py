@@ -2,6 +2,8 @@
 
 from .linear import LinearEffect, per_axis
 
+__all__ = ["TemperatureScale"]
+
 
 class TemperatureScale(LinearEffect):
     """Relative sensitivity change per degC of each sensor axis (three parameters, 1/degC).
@@ -14,6 +16,7 @@ class TemperatureScale(LinearEffect):
     name = "temperature_scale"
     parameter_names = ("s_x", "s_y", "s_z")
     units = ("1/degC",) * 3
+    owns_channel = True
     prior_std = 1e-2
 
     def __init__(self, column: str = "temp_c", T0: float = 20.0):

@@ -4,6 +4,8 @@ import numpy as np
 
 from .linear import LinearEffect
 
+__all__ = ["TimeLag"]
+
 
 class TimeLag(LinearEffect):
     """One parameter ``tau`` (s, positive when the magnetometer lags): the reading at ``t`` is the field

@@ -19,6 +19,8 @@ import numpy as np
 from ..conventions import calibrated_field
 from ..errors import InputError
 
+__all__ = ["FORMAT", "VERSION", "PARAMETER_NAMES", "Calibration", "jsonable"]
+
 FORMAT = "magkf-calibration"
 VERSION = 1
 #: Names of the 12 core parameters in state order: R row-major, then b.

@@ -39,6 +39,22 @@ from ..errors import InputError
 from ..status import Status
 from .tables import file_row, read_csv, read_parquet, require_complete
 
+__all__ = [
+    "MIN_EPOCHS",
+    "epoch_status",
+    "select_dop",
+    "read_sample",
+    "UnitWarning",
+    "DriveLog",
+    "TIME_RANGE_S",
+    "MAX_GAP_S",
+    "TimeBaseWarning",
+    "check_time_base",
+    "from_table",
+    "read_drive_log",
+    "write_drive_log",
+]
+
 MIN_EPOCHS = 2
 
 

@@ -14,6 +14,8 @@ import pandas as pd
 
 from ..errors import InputError
 
+__all__ = ["HEADER_ROWS", "file_row", "read_csv", "read_parquet", "numeric_column", "require_complete", "require_rows"]
+
 HEADER_ROWS = 1
 
 

@@ -33,6 +33,23 @@ from ..errors import InputError
 from ..io.calibration import Calibration
 from .base import Calibrator
 
+__all__ = [
+    "MIN_THICKNESS",
+    "SPHERE_CELLS",
+    "CIRCLE_BINS",
+    "POORLY_DETERMINED",
+    "BOOTSTRAP_COPIES",
+    "BOOTSTRAP_SEED",
+    "patent_matrix",
+    "patent_parameters",
+    "parameter_names",
+    "algebraic_fit",
+    "fibonacci_sphere",
+    "coverage",
+    "EllipsoidResult",
+    "EllipsoidCalibrator",
+]
+
 #: Smallest ratio sqrt(lambda_min / lambda_max) of the centred sample scatter for a 3-axis fit.
 MIN_THICKNESS = 0.05
 #: Cells of the equal-area direction grid used for the coverage figure (3-axis) and bins (2-axis).

@@ -41,6 +41,26 @@ from ..io.calibration import Calibration
 from ..io.tables import read_csv, require_complete, require_rows
 from .base import Calibrator
 
+__all__ = [
+    "PLANES",
+    "PARAMETER_NAMES",
+    "MIN_SAMPLES_PER_PLANE",
+    "MIN_ARC_DEG",
+    "arc_span_deg",
+    "SineFitParameters",
+    "SineCurve",
+    "fit_sine",
+    "turntable_field",
+    "SineFitResult",
+    "paper_equations",
+    "paper_from_curves",
+    "SineFitCalibrator",
+    "model_residuals",
+    "exact_jacobian",
+    "read_turntable",
+    "read_curves",
+]
+
 PLANES = ("xy", "xz")
 PARAMETER_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "kx", "ky", "kz", "b_x", "b_y", "b_z")
 MIN_SAMPLES_PER_PLANE = 8

@@ -19,6 +19,19 @@ import numpy as np
 
 from ..errors import InputError
 
+__all__ = [
+    "PRIOR_R_STD",
+    "PRIOR_B_STD",
+    "INFLATION",
+    "HUBER_K",
+    "MIN_EPOCHS",
+    "Bootstrap",
+    "vector_least_squares",
+    "completion_prior",
+    "bootstrap_vector",
+    "bootstrap_magnitude",
+]
+
 #: Weak prior of the bootstrap: standard deviation of each element of R and of each offset (nT).
 PRIOR_R_STD = 0.1
 PRIOR_B_STD = 5000.0

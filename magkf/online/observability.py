@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["UNDETERMINED_RATIO", "GROUP_SHARE", "ORDINAL", "parameter_groups", "analyse", "describe"]
+
 #: Data-to-prior information ratio below which a direction counts as undetermined.
 UNDETERMINED_RATIO = 1.0
 #: Share of a direction's (prior-scaled) weight a group must carry to be named.

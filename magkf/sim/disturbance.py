@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["simulate_disturbances"]
+
 
 def simulate_disturbances(
     n: int,

@@ -32,6 +32,8 @@ from .gnss import simulate_dop
 from .motion import simulate_motion, smooth_noise
 from .mounting import mounting_matrix
 
+__all__ = ["DEFAULT_START", "DriveConfig", "SimulatedDrive", "true_matrix", "simulate_drive"]
+
 DEFAULT_START = datetime(2026, 6, 1, 10, 0, tzinfo=UTC).timestamp()
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["simulate_dop"]
+
 
 def simulate_dop(
     n: int,

@@ -11,6 +11,8 @@ import numpy as np
 
 from ..reference import EARTH_RADIUS_M
 
+__all__ = ["MOTIONS", "smooth_noise", "simulate_motion"]
+
 MOTIONS = ("3d", "planar")
 
 

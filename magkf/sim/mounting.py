@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["AXES", "mounting_matrix"]
+
 AXES = {"x": 0, "y": 1, "z": 2}
 
 

@@ -8,6 +8,8 @@ import pandas as pd
 from ..conventions import ANGLE, MAG, PLANE
 from ..offline.sinefit import PLANES, SineFitParameters, turntable_field
 
+__all__ = ["simulate_turntable", "PAPER_EXAMPLE"]
+
 
 def simulate_turntable(
     truth: SineFitParameters,
