@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from magkf import Calibration
 from magkf.config import FilterConfig
 from magkf.diagnostics.diagnose import diagnose
 from magkf.effects import BUILTIN, EpochData, load_effect_file
@@ -175,3 +176,30 @@ def test_batch_solver_estimates_an_added_effect():
     run = solve_batch(DriveLog(sim.table), MATCHED, effects=[BUILTIN["current_field"]()])
     z = (run.x[12:] - np.asarray(TRUTH["current_field"])) / run.std[12:]
     assert np.all(np.abs(z) < 3), z
+
+
+def test_candidates_frame_follows_the_ranking():
+    from magkf.effects import make_effect
+
+    sim = _sim([(make_effect("current_field"), TRUTH["current_field"])], duration=300.0)
+    diag, _ = diagnose(DriveLog(sim.table), MATCHED)
+    frame = diag.candidates_frame()
+    assert list(frame.index) == [c.effect for c in diag.candidates]
+    assert frame.index[0] == "current_field:current_a" and bool(frame["significant"].iloc[0])
+    assert {"p_value", "delta_bic", "residual_rms_after_nt"} <= set(frame.columns)
+
+
+def test_a_log_too_short_to_diagnose_is_one_line_naming_the_file(tmp):
+    from ..conftest import run_cli
+
+    sim = _sim([], duration=300.0)
+    table = sim.table.reset_index()
+    table.loc[8:, ["roll", "pitch", "yaw"]] = np.nan  # attitude on 8 epochs only
+    path = tmp / "short.csv"
+    table.to_csv(path, index=False)
+    cal = tmp / "cal.json"
+    Calibration(R=sim.R, b=sim.b).save(cal)
+    proc = run_cli("diagnose", path, "--cal", cal)
+    assert proc.returncode == 2
+    assert proc.stderr.count(str(path)) == 1 and "too few usable epochs" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
