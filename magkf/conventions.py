@@ -34,6 +34,7 @@ __all__ = [
     "PDOP",
     "HDOP",
     "VDOP",
+    "DOPS",
     "REF",
     "CORE_COLUMNS",
     "PLANE",
@@ -49,6 +50,7 @@ __all__ = [
     "euler_to_dcm",
     "dcm_to_euler",
     "quaternion_to_euler",
+    "euler_to_quaternion",
     "ned_to_body",
     "body_to_ned",
     "inverse3",
@@ -66,6 +68,7 @@ ROLL, PITCH, YAW = "roll", "pitch", "yaw"
 ATTITUDE = (ROLL, PITCH, YAW)
 LAT, LON, ALT = "lat", "lon", "alt"
 DOP, PDOP, HDOP, VDOP = "dop", "pdop", "hdop", "vdop"
+DOPS = (DOP, PDOP, HDOP, VDOP)
 REF = ("ref_n", "ref_e", "ref_d")
 #: Columns of the canonical drive log that have a fixed meaning; every other numeric column is auxiliary.
 CORE_COLUMNS = (TIME, *MAG, *ATTITUDE, LAT, LON, ALT, DOP, PDOP, HDOP, VDOP, *REF)
@@ -174,6 +177,22 @@ def quaternion_to_euler(q_wxyz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pitch = np.degrees(np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0)))
     roll = np.degrees(np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
     return yaw, pitch, roll
+
+
+def euler_to_quaternion(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
+    """Unit quaternions ``(..., 4)``, scalar first, of ZYX Euler angles in degrees: ``q = qz(yaw) qy(pitch)
+    qx(roll)``, rotating body (FRD) vectors into NED (the inverse of ``quaternion_to_euler``)."""
+    y, p, r = (np.radians(np.asarray(a, float)) / 2 for a in (yaw_deg, pitch_deg, roll_deg))
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    return np.stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ],
+        axis=-1,
+    )
 
 
 def ned_to_body(c_nb, v_ned) -> np.ndarray:

@@ -26,11 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from filterpy.kalman import (
-    ExtendedKalmanFilter,
-    MerweScaledSigmaPoints,
-    UnscentedKalmanFilter,
-)
+from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from magkf.cli import main as cli_main
 from magkf.config import FilterConfig

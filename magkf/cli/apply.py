@@ -2,36 +2,27 @@
 
 from __future__ import annotations
 
-from .common import (
-    add_log_options,
-    add_output_options,
-    open_log,
-    print_json,
-)
+from . import common
 
 __all__ = ["add_parsers", "run_apply"]
 
 
 def add_parsers(sub) -> None:
     """Register ``apply``."""
-    p = sub.add_parser(
-        "apply",
-        help="calibrated field, magnitude and headings for every epoch of a log",
-        description="Apply a calibration file to a drive log; every epoch is written with a status.",
-    )
-    add_log_options(p)
+    p = common.command(sub, "apply", run_apply, "calibrated field, magnitude and headings for every epoch of a log")
+    common.add_log_options(p)
     p.add_argument("--cal", required=True, help="calibration JSON")
-    add_output_options(p, "calibrated CSV")
-    p.set_defaults(func=run_apply)
+    common.add_output_options(p, "calibrated CSV")
 
 
 def run_apply(args) -> int:
+    """Apply a calibration file to a drive log; every epoch is written with a status."""
     from ..apply import apply_calibration
     from ..io.calibration import Calibration
     from ..io.drivelog import write_drive_log
 
     cal = Calibration.load(args.cal)
-    log = open_log(args)
+    log = common.open_log(args)
     out = apply_calibration(log, cal)
     if args.output:
         write_drive_log(out, args.output)
@@ -43,7 +34,7 @@ def run_apply(args) -> int:
         "output": args.output,
     }
     if args.json:
-        print_json(summary)
+        common.print_json(summary)
     else:
         print(
             f"applied {args.cal} to {args.file}: {len(out)} epochs "

@@ -10,6 +10,7 @@ from ..conventions import NT_PER_UNIT
 from ..errors import InputError
 
 __all__ = [
+    "command",
     "print_json",
     "timestamp",
     "igrf_field",
@@ -25,6 +26,15 @@ __all__ = [
     "open_log",
     "load_calibration",
 ]
+
+
+def command(sub, name: str, run, help: str):
+    """Add the command ``name``: its ``--help`` description is ``run``'s docstring, ``run(args)`` does it."""
+    import inspect
+
+    p = sub.add_parser(name, help=help, description=inspect.cleandoc(run.__doc__ or help))
+    p.set_defaults(func=run)
+    return p
 
 
 def print_json(data) -> None:

@@ -5,62 +5,42 @@ from __future__ import annotations
 import json
 
 from ..errors import InputError
-from .common import (
-    add_effect_options,
-    add_filter_options,
-    add_log_options,
-    add_output_options,
-    effects,
-    filter_config,
-    load_calibration,
-    open_log,
-    print_json,
-)
+from . import common
 
 __all__ = ["add_parsers", "run_diagnose", "run_report"]
 
 
 def add_parsers(sub) -> None:
     """Register ``diagnose`` and ``report``."""
-    p = sub.add_parser(
-        "diagnose",
-        help="where the model fails and which physical effect is missing",
-        description="Compare the calibrated model with the measurements (residuals against time, "
-        "attitude, auxiliary channels, rates) and rank every candidate effect by a "
-        "likelihood-ratio test of adding it. Without --cal the online filter runs first.",
-    )
-    add_log_options(p)
+    p = common.command(sub, "diagnose", run_diagnose, "where the model fails and which physical effect is missing")
+    common.add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
     p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
-    add_filter_options(p)
-    add_effect_options(p, "effects already in the model")
-    add_output_options(p, "diagnosis (JSON)")
-    p.set_defaults(func=run_diagnose)
+    common.add_filter_options(p)
+    common.add_effect_options(p, "effects already in the model")
+    common.add_output_options(p, "diagnosis (JSON)")
 
-    p = sub.add_parser(
-        "report",
-        help="self-contained HTML report with plots",
-        description="Calibrate (with any --effect), diagnose, and write one HTML file with the plots "
-        "embedded: gates, estimates over time, residuals, ranking, before/after.",
-    )
-    add_log_options(p)
+    p = common.command(sub, "report", run_report, "self-contained HTML report with plots")
+    common.add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to start from")
     p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
     p.add_argument("-o", "--output", help="HTML file to write")
-    add_filter_options(p)
-    add_effect_options(p, "effects to add (the report shows before and after)")
-    p.set_defaults(func=run_report)
+    common.add_filter_options(p)
+    common.add_effect_options(p, "effects to add (the report shows before and after)")
 
 
 def run_diagnose(args) -> int:
+    """Compare the calibrated model with the measurements (residuals against time, attitude, auxiliary channels, rates)
+    and rank every candidate effect by a likelihood-ratio test of adding it. Without --cal the online filter
+    runs first."""
     from ..diagnostics.diagnose import diagnose
     from ..effects import candidates
     from ..io.calibration import jsonable
 
-    config = filter_config(args)
-    added, registry = effects(args)
-    cal = load_calibration(args.cal)
-    log = open_log(args)
+    config = common.filter_config(args)
+    added, registry = common.effects(args)
+    cal = common.load_calibration(args.cal)
+    log = common.open_log(args)
     pool = candidates(log.auxiliary, registry)
     result, _ = diagnose(log, config, cal, added, pool, alpha=args.alpha)
     summary = result.summary()
@@ -68,7 +48,7 @@ def run_diagnose(args) -> int:
         with open(args.output, "w", encoding="utf-8") as f:
             json.dump(jsonable(summary), f, indent=2)
     if args.json:
-        print_json(summary)
+        common.print_json(summary)
         return 0
     ax = result.residual_rms_axis_nt
     print(
@@ -95,16 +75,18 @@ def run_diagnose(args) -> int:
 
 
 def run_report(args) -> int:
+    """Calibrate (with any --effect), diagnose, and write one HTML file with the plots embedded: gates, estimates over
+    time, residuals, ranking, before/after."""
     from pathlib import Path
 
     from ..diagnostics.report import build_report
 
     if not args.output:
         raise InputError("give -o REPORT.html")
-    config = filter_config(args)
-    added, registry = effects(args)
-    cal = load_calibration(args.cal)
-    log = open_log(args)
+    config = common.filter_config(args)
+    added, registry = common.effects(args)
+    cal = common.load_calibration(args.cal)
+    log = common.open_log(args)
     page = build_report(log, config, cal, added, registry, alpha=args.alpha)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(page, encoding="utf-8")

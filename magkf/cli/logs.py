@@ -3,43 +3,25 @@ format, and a calibration as autopilot parameters."""
 
 from __future__ import annotations
 
-from .common import add_log_options, open_log, print_json
+from . import common
 
 __all__ = ["add_parsers", "run_check", "run_convert", "run_export"]
 
 
 def add_parsers(sub) -> None:
     """Register ``check``, ``convert`` and ``export``."""
-    p = sub.add_parser(
-        "check",
-        help="what a log holds and what it allows",
-        description="One screen on a log of any supported format: streams and rates, units decided and why, "
-        "time base, heading and tilt coverage, DOP, the measurement models it allows and what will limit "
-        "the calibration.",
-    )
-    add_log_options(p)
+    p = common.command(sub, "check", run_check, "what a log holds and what it allows")
+    common.add_log_options(p)
     p.add_argument("--dop-max", type=float, default=5.0, help="DOP gate to summarise against (default 5)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on standard output")
-    p.set_defaults(func=run_check)
 
-    p = sub.add_parser(
-        "convert",
-        help="any supported log to the canonical drive log (CSV or Parquet)",
-        description="Read a log of any supported format and write the canonical drive log (docs/data-contract.md); "
-        "the provenance (where each column came from, what was converted or undone) is written beside it as "
-        "OUT.provenance.json.",
-    )
-    add_log_options(p)
+    p = common.command(sub, "convert", run_convert, "any supported log to the canonical drive log (CSV or Parquet)")
+    common.add_log_options(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv|OUT.parquet", help="canonical log to write")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
-    p.set_defaults(func=run_convert)
 
-    p = sub.add_parser(
-        "export",
-        help="a calibration as autopilot parameters (ArduPilot COMPASS_*, PX4 CAL_MAGn_*)",
-        description="Write a calibration file as the parameters an autopilot applies, in the parameter-file "
-        "format its ground station loads. The rotation part of R cannot be held by either autopilot's "
-        "symmetric matrix: the angle it leaves is reported. See docs/autopilot-logs.md.",
+    p = common.command(
+        sub, "export", run_export, "a calibration as autopilot parameters (ArduPilot COMPASS_*, PX4 CAL_MAGn_*)"
     )
     p.add_argument("cal", help="calibration JSON")
     p.add_argument("--to", required=True, choices=["ardupilot", "px4"], help="autopilot")
@@ -48,28 +30,31 @@ def add_parsers(sub) -> None:
     )
     p.add_argument("-o", "--output", required=True, metavar="FILE.param", help="parameter file to write")
     p.add_argument("--json", action="store_true", help="print the parameters as JSON")
-    p.set_defaults(func=run_export)
 
 
 def run_check(args) -> int:
+    """One screen on a log of any supported format: streams and rates, units decided and why, time base, heading and
+    tilt coverage, DOP, the measurement models it allows and what will limit the calibration."""
     from ..io.inspect import format_inspection, inspect_log
 
-    report = inspect_log(open_log(args), dop_max=args.dop_max)
+    report = inspect_log(common.open_log(args), dop_max=args.dop_max)
     if args.json:
-        print_json(report)
+        common.print_json(report)
     else:
         print(format_inspection(report))
     return 0
 
 
 def run_convert(args) -> int:
+    """Read a log of any supported format and write the canonical drive log (docs/data-contract.md); the provenance
+    (where each column came from, what was converted or undone) is written beside it as OUT.provenance.json."""
     import json
     from pathlib import Path
 
     from ..io.calibration import jsonable
     from ..io.drivelog import write_drive_log
 
-    log = open_log(args)
+    log = common.open_log(args)
     out = Path(args.output)
     write_drive_log(log.table, out)
     beside = out.with_name(out.stem + ".provenance.json")
@@ -83,13 +68,16 @@ def run_convert(args) -> int:
         "provenance": str(beside),
     }
     if args.json:
-        print_json(summary)
+        common.print_json(summary)
     else:
         print(f"converted {args.file} ({summary['format']}, {len(log)} epochs) to {out}; provenance in {beside}")
     return 0
 
 
 def run_export(args) -> int:
+    """Write a calibration file as the parameters an autopilot applies, in the parameter-file format its ground station
+    loads. The rotation part of R cannot be held by either autopilot's symmetric matrix: the angle it leaves is
+    reported. See docs/autopilot-logs.md."""
     from ..io.autopilot import to_ardupilot, to_px4, write_param_file
     from ..io.calibration import Calibration
 
@@ -100,7 +88,7 @@ def run_export(args) -> int:
         params = to_px4(cal, 0 if args.instance is None else args.instance)
     write_param_file(params, args.output)
     if args.json:
-        print_json(params.summary())
+        common.print_json(params.summary())
         return 0
     print(f"{args.to} parameters of {args.cal} written to {args.output}:")
     for name, value in params.values.items():

@@ -5,26 +5,14 @@ from __future__ import annotations
 import sys
 
 from ..errors import InputError
-from .common import (
-    add_igrf_options,
-    add_mag_unit,
-    add_output_options,
-    igrf_field,
-    print_json,
-)
+from . import common
 
 __all__ = ["add_parsers", "run_sinefit", "run_ellipsoid"]
 
 
 def add_parsers(sub) -> None:
     """Register ``sinefit``, ``ellipsoid``."""
-    p = sub.add_parser(
-        "sinefit",
-        help="offline sine-fit calibration of a two-plane turntable run",
-        description="Sine-fit calibration (nine parameters) of a turntable CSV with columns "
-        "plane, angle_deg, mag_x, mag_y, mag_z. Give --field and --inclination, "
-        "or --lat/--lon/--date for IGRF.",
-    )
+    p = common.command(sub, "sinefit", run_sinefit, "offline sine-fit calibration of a two-plane turntable run")
     p.add_argument("file", nargs="?", help="turntable CSV")
     p.add_argument(
         "--curves",
@@ -39,39 +27,28 @@ def add_parsers(sub) -> None:
         default="exact",
         help="exact: all samples, vertical-field leak removed (default); paper: the published equations",
     )
-    add_igrf_options(p)
-    add_mag_unit(p)
-    add_output_options(p)
-    p.set_defaults(func=run_sinefit)
-    p = sub.add_parser(
-        "ellipsoid",
-        help="offline ellipsoid (3-axis) or ellipse (2-axis) calibration",
-        description="Ellipsoid or ellipse fit of any vector sensor; the result is in the data's "
-        "units. Field magnitude: a number, 'igrf' (with --lat/--lon/--date; the "
-        "horizontal part for --axes 2), or a unit sphere by default.",
-    )
+    common.add_igrf_options(p)
+    common.add_mag_unit(p)
+    common.add_output_options(p)
+    p = common.command(sub, "ellipsoid", run_ellipsoid, "offline ellipsoid (3-axis) or ellipse (2-axis) calibration")
     p.add_argument("file", help="CSV with the sensor columns")
     p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
     p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
     p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
     p.add_argument("--algebraic", action="store_true", help="stop after the algebraic fit (biased with noise)")
-    add_igrf_options(p)
-    add_output_options(p)
-    p.set_defaults(func=run_ellipsoid)
+    common.add_igrf_options(p)
+    common.add_output_options(p)
 
 
 def run_sinefit(args) -> int:
+    """Sine-fit calibration (nine parameters) of a turntable CSV with columns plane, angle_deg, mag_x, mag_y, mag_z.
+    Give --field and --inclination, or --lat/--lon/--date for IGRF."""
     import numpy as np
 
-    from ..offline.sinefit import (
-        SineFitCalibrator,
-        paper_from_curves,
-        read_curves,
-        read_turntable,
-    )
+    from ..offline.sinefit import SineFitCalibrator, paper_from_curves, read_curves, read_turntable
 
     if args.field is None or args.inclination is None:
-        igrf = igrf_field(args)
+        igrf = common.igrf_field(args)
         field = args.field if args.field is not None else igrf["magnitude_nt"]
         inclination = args.inclination if args.inclination is not None else igrf["inclination_deg"]
     else:
@@ -88,7 +65,7 @@ def run_sinefit(args) -> int:
     if args.output:
         result.to_calibration(source=args.file or args.curves).save(args.output)
     if args.json:
-        print_json(result.summary())
+        common.print_json(result.summary())
     else:
         p, se = result.parameters.as_dict(), result.standard_errors
         print(
@@ -106,6 +83,8 @@ def run_sinefit(args) -> int:
 
 # ---------------------------------------------------------------- ellipsoid
 def run_ellipsoid(args) -> int:
+    """Ellipsoid or ellipse fit of any vector sensor; the result is in the data's units. Field magnitude: a number,
+    'igrf' (with --lat/--lon/--date; the horizontal part for --axes 2), or a unit sphere by default."""
     import numpy as np
 
     from ..io.tables import read_csv, require_complete
@@ -118,9 +97,9 @@ def run_ellipsoid(args) -> int:
     table = read_csv(args.file, required=columns)
     require_complete(table, columns, args.file)
     if args.field == "igrf":
-        field = igrf_field(args)["magnitude_nt"]
+        field = common.igrf_field(args)["magnitude_nt"]
         if args.axes == 2:
-            field = field * np.cos(np.radians(igrf_field(args)["inclination_deg"]))
+            field = field * np.cos(np.radians(common.igrf_field(args)["inclination_deg"]))
     elif args.field is None:
         field = 1.0
     else:
@@ -135,7 +114,7 @@ def run_ellipsoid(args) -> int:
     for w in result.warnings:
         print(f"magkf: warning: {args.file}: {w}", file=sys.stderr)
     if args.json:
-        print_json({**result.summary(), "columns": columns})
+        common.print_json({**result.summary(), "columns": columns})
     else:
         kind = "ellipsoid" if args.axes == 3 else "ellipse"
         print(

@@ -4,32 +4,15 @@ from __future__ import annotations
 
 import math
 
-from .common import (
-    add_effect_options,
-    add_filter_options,
-    add_log_options,
-    add_output_options,
-    effects,
-    filter_config,
-    load_calibration,
-    open_log,
-    print_json,
-)
+from . import common
 
 __all__ = ["add_parsers", "run_calibrate"]
 
 
 def add_parsers(sub) -> None:
     """Register ``calibrate``."""
-    p = sub.add_parser(
-        "calibrate",
-        help="online (Kalman filter) calibration of a drive log",
-        description="Calibrate R and b (m = R B + b) over a drive log with an EKF or UKF against "
-        "IGRF (or the log's ref_n/e/d), gated by DOP, field magnitude and innovation. "
-        "Every epoch gets a status. Without --init the start is bootstrapped from "
-        "the first stretch of the log.",
-    )
-    add_log_options(p, mag_all=True)
+    p = common.command(sub, "calibrate", run_calibrate, "online (Kalman filter) calibration of a drive log")
+    common.add_log_options(p, mag_all=True)
     p.add_argument("--init", help="offline calibration JSON to start from (sinefit, ellipsoid, or an earlier run)")
     p.add_argument("--filter", choices=["ekf", "ukf"], help="filter (default ekf)")
     p.add_argument("--measure", choices=["magnitude", "vector", "both"], help="measurement model (default both)")
@@ -41,10 +24,9 @@ def add_parsers(sub) -> None:
         help="write per-epoch estimates, standard deviations, statuses, residuals (CSV, or Parquet for .parquet)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_filter_options(p)
-    add_effect_options(p, "effects to estimate with R and b (repeat the option)")
-    add_output_options(p)
-    p.set_defaults(func=run_calibrate)
+    common.add_filter_options(p)
+    common.add_effect_options(p, "effects to estimate with R and b (repeat the option)")
+    common.add_output_options(p)
 
 
 def _print_run(summary: dict, names) -> None:
@@ -75,11 +57,14 @@ def _print_run(summary: dict, names) -> None:
 
 
 def run_calibrate(args) -> int:
-    config = filter_config(args)
-    added, _ = effects(args)
-    init = load_calibration(args.init)
+    """Calibrate R and b (m = R B + b) over a drive log with an EKF or UKF against IGRF (or the log's ref_n/e/d), gated
+    by DOP, field magnitude and innovation. Every epoch gets a status. Without --init the start is bootstrapped
+    from the first stretch of the log."""
+    config = common.filter_config(args)
+    added, _ = common.effects(args)
+    init = common.load_calibration(args.init)
     if args.mag != "all":
-        _calibrate_one(args, open_log(args), config, init, added, args.output, args.states)
+        _calibrate_one(args, common.open_log(args), config, init, added, args.output, args.states)
         return 0
     from ..io.readers import magnetometer_instances
 
@@ -94,7 +79,7 @@ def run_calibrate(args) -> int:
             print(f"magnetometer {instance}:")
         run = _calibrate_one(
             args,
-            open_log(args, mag=instance),
+            common.open_log(args, mag=instance),
             config,
             init,
             added,
@@ -155,7 +140,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
     if states:
         write_drive_log(run.states, states)
     if args.json:
-        print_json(summary)
+        common.print_json(summary)
         return run
     _print_run(summary, run.names)
     if added:

@@ -5,18 +5,14 @@ from __future__ import annotations
 import json
 
 from ..errors import InputError
-from .common import print_json, timestamp
+from . import common
 
 __all__ = ["add_parsers", "run_simulate"]
 
 
 def add_parsers(sub) -> None:
     """Register ``simulate``."""
-    p = sub.add_parser(
-        "simulate",
-        help="synthetic turntable runs and drive logs with known truth",
-        description="Simulate a turntable run (sine fit) or a drive log, with a truth JSON.",
-    )
+    p = common.command(sub, "simulate", run_simulate, "synthetic turntable runs and drive logs with known truth")
     p.add_argument("kind", choices=["drive", "turntable"])
     p.add_argument("-o", "--output", required=True, help="CSV to write")
     p.add_argument("--truth", help="truth JSON to write")
@@ -50,10 +46,10 @@ def add_parsers(sub) -> None:
     g.add_argument("--field", type=float, default=50_000.0, help="field magnitude, nT (default 50000)")
     g.add_argument("--inclination", type=float, default=43.0, help="inclination, deg (default 43)")
     g.add_argument("--step", type=float, default=5.0, help="table step, deg (default 5)")
-    p.set_defaults(func=run_simulate)
 
 
 def run_simulate(args) -> int:
+    """Simulate a turntable run (sine fit) or a drive log, with a truth JSON."""
     import numpy as np
 
     from ..io.calibration import Calibration, jsonable
@@ -99,7 +95,7 @@ def run_simulate(args) -> int:
             dop_bad_stretches=args.dop_bad,
             lat0=args.lat,
             lon0=args.lon,
-            start_time=timestamp(args.date),
+            start_time=common.timestamp(args.date),
         )
         from ..effects import make_effect
 
@@ -121,7 +117,7 @@ def run_simulate(args) -> int:
         sim.write(args.output, args.truth)
         info = {"output": args.output, "rows": len(sim.table), "truth_file": args.truth, "R": sim.R, "b": sim.b}
     if args.json:
-        print_json(info)
+        common.print_json(info)
     else:
         print(f"wrote {info['rows']} rows to {args.output}" + (f" and the truth to {args.truth}" if args.truth else ""))
     return 0

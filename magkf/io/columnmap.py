@@ -74,17 +74,14 @@ from ..conventions import (
     ALT,
     ATTITUDE,
     CORE_COLUMNS,
-    DOP,
-    HDOP,
+    DOPS,
     LAT,
     LON,
     MAG,
     NT_PER_UNIT,
-    PDOP,
     REF,
     ROLL,
     TIME,
-    VDOP,
     likely_unit,
     quaternion_to_euler,
 )
@@ -599,7 +596,7 @@ def _convert(name: str, values: np.ndarray, cmap: ColumnMap) -> tuple[np.ndarray
         return (values, "deg") if unit == "deg" else (np.degrees(values), "rad -> deg")
     if name == ALT:
         return values, "m"
-    if name in (DOP, PDOP, HDOP, VDOP):
+    if name in DOPS:
         return values, "as is"
     return values, "auxiliary, as is"
 

@@ -1,4 +1,4 @@
-"""ArduPilot DataFlash (``.bin``) logs read into the canonical drive log.
+"""ArduPilot DataFlash (``.bin``) logs read into the canonical drive log, and written from one.
 
 Format
     A DataFlash log is a stream of binary messages, each ``0xA3 0x95 <type id>`` followed by a packed
@@ -44,6 +44,14 @@ Raw reconstruction
     ``PARM`` values in effect at each epoch, giving the raw reading in the vehicle-aligned frame after
     the firmware's rotation (before offsets, scale and soft-iron matrix), which is what the autopilot's
     own compass calibration fits.
+
+Writing
+    ``write_dataflash`` turns a canonical table (a simulation) into a log with ArduPilot 4.5's message
+    layouts (``LAYOUTS``), applying the compass model forwards and truncating like the firmware, so that
+    ``read_dataflash(raw=True)`` returns the table's raw field to within the int16 truncation.
+    ``DataFlashWriter`` is the message-level writer beneath it, for logs of any layout (tests build
+    pre-4.0 ``MAG2`` logs or several compasses with it). Messages are laid out with numpy structured
+    arrays, all messages of a type at once, and merged in ``TimeUS`` order.
 """
 
 from __future__ import annotations
@@ -53,13 +61,30 @@ import io
 import os
 import re
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, TIME, VDOP, YAW, quaternion_to_euler
+from ..conventions import (
+    ALT,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    PITCH,
+    ROLL,
+    VDOP,
+    YAW,
+    euler_to_quaternion,
+    quaternion_to_euler,
+)
 from ..errors import InputError
+from .drivelog import table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
 from .timebase import GPS_EPOCH_UNIX, SECONDS_PER_WEEK, gps_to_unix, leap_seconds
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = [
     "LAYOUTS",
@@ -429,20 +454,6 @@ def _reconstruct_raw(table: dict, params: dict, instance: int, firmware: str, no
     return raw, text
 
 
-def _euler_to_quaternion(roll, pitch, yaw) -> np.ndarray:
-    """Quaternions (N, 4), scalar first, of ZYX Euler angles in degrees (N,) (body FRD to NED)."""
-    r, p, y = (np.radians(np.asarray(a, float)) / 2 for a in (roll, pitch, yaw))
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.column_stack(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
-    )
-
-
 def _time_offset(gps: dict, path: str) -> tuple[float, str]:
     """UTC - boot time (s) from the GPS week and milliseconds, and a description."""
     if not gps or "GWk" not in gps:
@@ -533,7 +544,7 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
 
     att = _by_time(log.table("ATT"))
     if att:
-        q = _euler_to_quaternion(att["Roll"], att["Pitch"], att["Yaw"])
+        q = euler_to_quaternion(att["Yaw"], att["Pitch"], att["Roll"])
         q_t, _ = interpolate_quaternions(t, stream_time(att), q, max_gap_s)
         yaw, pitch, roll = quaternion_to_euler(q_t)
         frame.update(roll=roll, pitch=pitch, yaw=yaw)
@@ -792,20 +803,19 @@ def _unix_to_gps_ms(t) -> np.ndarray:
     return np.rint((g0 + leap) * 1000.0).astype(np.int64)
 
 
-def _firmware_compass(parameters: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str] | None:
-    """Offsets, diagonals, off-diagonals (3,) and scale of magnetometer instance 0 from ``parameters`` as
-    float32 (how ``PARM`` stores them), and the parameter suffix; None if instance 0 has no parameter set."""
+def _firmware_compass(parameters: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Offsets, diagonals, off-diagonals (3,) and scale of magnetometer instance 0 from ``parameters``, as
+    float32 (how ``PARM`` stores them), with the firmware's defaults where a parameter is absent."""
     params = {k: (np.zeros(1), np.array([v])) for k, v in parameters.items()}
-    k = _state_index(params, 0)
-    if k >= 3:
-        return None
-    suffix = ("", "2", "3")[k]
+    suffix = ("", "2", "3")[_state_index(params, 0)]
     p = {q: float(np.float32(parameters.get(_param_name(q, suffix), _CAL_DEFAULTS[q]))) for q in _CAL_PARAMS}
-    ofs, dia, odi = ([p[f"{q}_{a}"] for a in "XYZ"] for q in ("OFS", "DIA", "ODI"))
-    return np.array(ofs), np.array(dia), np.array(odi), p["SCALE"], suffix
+    ofs, dia, odi = (np.array([p[f"{q}_{a}"] for a in "XYZ"]) for q in ("OFS", "DIA", "ODI"))
+    return ofs, dia, odi, p["SCALE"]
 
 
-def write_dataflash(table, path, *, parameters: dict | None = None, firmware: str = "ArduCopter V4.5.0") -> None:
+def write_dataflash(
+    table: pd.DataFrame, path, *, parameters: dict | None = None, firmware: str = "ArduCopter V4.5.0"
+) -> None:
     """Write a canonical drive-log table as an ArduPilot DataFlash log (for tests and simulations).
 
     ``table`` (N rows; ``time`` a column or the index, UNIX s) is written as ``FMT`` messages for the
@@ -818,8 +828,9 @@ def write_dataflash(table, path, *, parameters: dict | None = None, firmware: st
       as the firmware does (``compass_correct`` with the ``COMPASS_OFS/DIA/ODI/SCALE`` set of instance 0 in
       ``parameters``, defaults where absent, no motor compensation), then truncated to int16 like
       ``(int16_t)`` (``OfsX..`` too), so ``read_dataflash(raw=True)`` gives the raw reading back to within the
-      truncation (+-0.5 mG = 50 nT through the inverse matrix). Raises InputError where a corrected
-      component does not fit in int16 (+-32 767 mG).
+      truncation (the reader centres it: +-0.5 mG = 50 nT per corrected component, +-1 mG where it truncated
+      to 0, through the inverse matrix). Raises InputError where a corrected component does not fit in
+      int16 (+-32 767 mG).
     * ``ATT`` from ``roll, pitch, yaw`` (deg; roll wrapped to [-180, 180), yaw to [0, 360), 0.01 deg counts).
     * ``GPS`` and ``GPA`` at the rows with a finite ``fix_type`` if the table has that column (its value is
       ``Status``), else at every row: ``Status`` 3 where ``lat, lon`` are finite, else 1 (no fix, no
@@ -834,13 +845,7 @@ def write_dataflash(table, path, *, parameters: dict | None = None, firmware: st
     column or a time that does not strictly increase.
     """
     name = str(path)
-    frame = table.reset_index() if TIME not in table.columns and table.index.name == TIME else table
-    for column in (TIME, *MAG):
-        if column not in frame:
-            raise InputError(f"missing column {column!r}", name)
-    t = frame[TIME].to_numpy(float)
-    if len(t) == 0 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-        raise InputError("time must be finite and strictly increasing", name, column=TIME)
+    frame, t = table_to_write(table, name)
     time_us = _START_US + np.rint((t - t[0]) * 1e6).astype(np.int64)
     sample_ms = (time_us // 1000) % 2**32
 
@@ -858,11 +863,8 @@ def write_dataflash(table, path, *, parameters: dict | None = None, firmware: st
 
     mag_mg = np.column_stack([col(c) for c in MAG]) / NT_PER_MILLIGAUSS
     rows = np.all(np.isfinite(mag_mg), axis=1)
-    compass = _firmware_compass(parameters)
-    offsets = np.zeros(3)
-    if compass is not None:
-        offsets, diagonals, offdiagonals, scale, _ = compass
-        mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
+    offsets, diagonals, offdiagonals, scale = _firmware_compass(parameters)
+    mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
     logged = np.trunc(mag_mg)
     too_large = np.argwhere(rows[:, None] & (np.abs(logged) > np.iinfo(np.int16).max))
     if too_large.size:

@@ -53,6 +53,7 @@ __all__ = [
     "from_table",
     "read_drive_log",
     "write_drive_log",
+    "table_to_write",
 ]
 
 MIN_EPOCHS = 2
@@ -320,6 +321,20 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
         table = read_csv(path, required=(TIME, *MAG))
         provenance = {"format": "canonical-csv", "file": name}
     return from_table(table, name, mag_unit, provenance)
+
+
+def table_to_write(table: pd.DataFrame, name: str) -> tuple[pd.DataFrame, np.ndarray]:
+    """A canonical table about to be written as a log (``time`` a column or the index), checked: the frame with
+    ``time`` as a column and the times (N,) s. Raises InputError for a missing ``time`` or magnetometer column
+    or a time that is not finite and strictly increasing."""
+    frame = table.reset_index() if TIME not in table.columns and table.index.name == TIME else table
+    for column in (TIME, *MAG):
+        if column not in frame:
+            raise InputError(f"missing column {column!r}", name)
+    t = frame[TIME].to_numpy(float)
+    if len(t) == 0 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise InputError("time must be finite and strictly increasing", name, column=TIME)
+    return frame, t
 
 
 def write_drive_log(table: pd.DataFrame, path) -> None:

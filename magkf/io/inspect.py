@@ -47,16 +47,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from ..conventions import (
-    ALT,
-    DOP,
-    HDOP,
-    LAT,
-    LON,
-    PDOP,
-    declination_deg,
-    inclination_deg,
-)
+from ..conventions import ALT, DOP, HDOP, LAT, LON, PDOP, declination_deg, inclination_deg
 from ..errors import InputError
 from ..online.bootstrap import MIN_EPOCHS as BOOTSTRAP_MIN_EPOCHS
 from ..status import Status, status_counts

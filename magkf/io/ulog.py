@@ -61,9 +61,11 @@ from ..conventions import (
     TIME,
     VDOP,
     YAW,
+    euler_to_quaternion,
     quaternion_to_euler,
 )
 from ..errors import InputError
+from .drivelog import table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
 
 __all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
@@ -536,20 +538,6 @@ def _topic_fields(table: pd.DataFrame) -> dict[str, list[tuple[str, int, str]]]:
     return topics
 
 
-def _euler_to_quaternion(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
-    """Scalar-first quaternions (N, 4) of ZYX Euler angles (deg): ``q = qz(yaw) * qy(pitch) * qx(roll)``."""
-    y, p, r = (np.radians(np.asarray(a, float)) / 2 for a in (yaw_deg, pitch_deg, roll_deg))
-    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
-    return np.column_stack(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
-    )
-
-
 def _column(table: pd.DataFrame, column: str, default: float = np.nan) -> np.ndarray:
     return table[column].to_numpy(float) if column in table else np.full(len(table), default)
 
@@ -568,7 +556,7 @@ def _fill(record: np.ndarray, topic: str, table: pd.DataFrame, boot_us: np.ndarr
         record[f("temperature")] = _column(table, "temp_c")
     elif topic == "vehicle_attitude":
         record[f("timestamp_sample")] = boot_us
-        q = _euler_to_quaternion(table[YAW], table[PITCH], table[ROLL])
+        q = euler_to_quaternion(table[YAW], table[PITCH], table[ROLL])
         for k in range(4):
             record[f(f"q[{k}]")] = q[:, k]
     elif topic == "vehicle_gps_position":
@@ -615,12 +603,7 @@ def write_ulog(table: pd.DataFrame, path, *, start_boot_us: int = 10_000_000) ->
     sample; here all records are laid out at once in a numpy structured array.)
     """
     name = str(path)
-    for column in (TIME, *MAG):
-        if column not in table:
-            raise InputError(f"missing column {column!r}", name)
-    time_s = table[TIME].to_numpy(float)
-    if len(time_s) == 0 or not np.all(np.isfinite(time_s)) or np.any(np.diff(time_s) <= 0):
-        raise InputError("time must be finite and strictly increasing", name, column=TIME)
+    table, time_s = table_to_write(table, name)
     boot_us = start_boot_us + np.round((time_s - time_s[0]) * 1e6).astype(np.int64)
     utc0_us = round(time_s[0] * 1e6)
     topics = _topic_fields(table)

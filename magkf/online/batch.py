@@ -29,7 +29,7 @@ from ..status import Status
 from .bootstrap import vector_least_squares
 from .measurements import measurement_model
 from .prepare import initial_state, prepare
-from .results import build_run
+from .results import RunTrace, build_run
 
 __all__ = ["solve_batch", "OUTLIER_SIGMA", "LOSS_SCALE"]
 
@@ -122,24 +122,17 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     n = len(status)
     xs = np.tile(fit.x, (n, 1))
     stds = np.tile(np.sqrt(np.diag(P)), (n, 1))
-    return build_run(
-        log=log,
-        prep=prep,
-        config=config,
-        layout=layout,
-        x0=x0,
-        P0=P0,
-        xs=xs,
-        stds=stds,
-        status=status,
-        updated=used,
-        nis=np.full(n, np.nan),
-        x_final=fit.x,
-        P_final=P,
-        information=information,
-        init_how=how,
-        smoothed=False,
-        reacquisitions=0,
-        elapsed_s=_time.perf_counter() - started,
+    trace = RunTrace(
+        xs,
+        stds,
+        status,
+        used,
+        np.full(n, np.nan),
+        fit.x,
+        P,
+        information,
+        how,
+        _time.perf_counter() - started,
         method="batch",
     )
+    return build_run(log, prep, config, layout, x0, P0, trace)

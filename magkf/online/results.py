@@ -13,7 +13,7 @@ from ..status import Status, status_counts, status_names
 from . import observability
 from .state import StateLayout
 
-__all__ = ["CalibrationRun", "RunSummary", "residuals", "build_run"]
+__all__ = ["CalibrationRun", "RunSummary", "RunTrace", "residuals", "build_run"]
 
 
 @dataclass(frozen=True)
@@ -96,33 +96,34 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
 
 
-def build_run(
-    *,
-    log,
-    prep,
-    config,
-    layout: StateLayout,
-    x0,
-    P0,
-    xs,
-    stds,
-    status,
-    updated,
-    nis,
-    x_final,
-    P_final,
-    information,
-    init_how,
-    smoothed,
-    reacquisitions,
-    elapsed_s,
-    method=None,
-    loop_s=float("nan"),
-) -> CalibrationRun:
-    """Assemble a ``CalibrationRun`` from a run's per-epoch states ``xs`` (N, n) and stds (N, n), statuses
-    (N,), update flags (N,), NIS (N,) and final ``x_final`` (n,), ``P_final`` (n, n)."""
+@dataclass(frozen=True)
+class RunTrace:
+    """What a run went through: per-epoch states ``xs`` (N, n) and their standard deviations ``stds`` (N, n),
+    statuses (N,), update flags (N,) and NIS (N,); the final state ``x`` (n,) and ``P`` (n, n); the whitened
+    information of the updates (n, n); how it started, how long it took (s), and the run's options."""
+
+    xs: np.ndarray
+    stds: np.ndarray
+    status: np.ndarray
+    updated: np.ndarray
+    nis: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    information: np.ndarray
+    init_how: str
+    elapsed_s: float
+    smoothed: bool = False
+    reacquisitions: int = 0
+    loop_s: float = float("nan")
+    method: str | None = None
+
+
+def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -> CalibrationRun:
+    """Assemble a ``CalibrationRun`` from the start ``x0`` (n,), ``P0`` (n, n) and what the run went through."""
+    xs, stds, status, updated, nis = trace.xs, trace.stds, trace.status, trace.updated, trace.nis
+    x_final, P_final, information, smoothed = trace.x, trace.P, trace.information, trace.smoothed
     names = layout.names
-    method = method or config.filter
+    method = trace.method or config.filter
     prior_x = np.vstack([x0, xs[:-1]]) if not (smoothed or method == "batch") else xs
     ned_i, mag_i = residuals(prep, layout, prior_x)
     # With smoothing the per-epoch states are the estimate at every epoch (a drift is followed);
@@ -165,14 +166,14 @@ def build_run(
         n_epochs=int(len(status)),
         n_updates=int(updated.sum()),
         status_counts=status_counts(status),
-        run_time_s=float(elapsed_s),
-        epochs_per_second=float(len(status) / elapsed_s),
-        filter_loop_s=float(loop_s),
+        run_time_s=float(trace.elapsed_s),
+        epochs_per_second=float(len(status) / trace.elapsed_s),
+        filter_loop_s=float(trace.loop_s),
         filter=method,
         measure=config.measure,
         smoothed=bool(smoothed),
-        init=init_how,
-        reacquisitions=int(reacquisitions),
+        init=trace.init_how,
+        reacquisitions=int(trace.reacquisitions),
         observability=obs,
         effects=effects,
         config=config.as_dict(),

@@ -18,7 +18,7 @@ from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from .estimator import Estimator
 from .prepare import initial_state, mark_missing_columns, prepare
-from .results import CalibrationRun, build_run
+from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
 __all__ = ["calibrate_log", "blocks", "terminal_progress"]
@@ -72,32 +72,26 @@ def calibrate_log(
         progress(1.0)
     if smooth:
         xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, layout.q_rate())
-    # The calibration at the end of the log (smoothing leaves the last estimate as it is).
-    x_final, P_final = est.x, est.P
     block_of = np.repeat(np.arange(len(starts)), stops - starts)
     xs = xs_b[block_of]
     stds = np.sqrt(np.einsum("bii->bi", Ps_b))[block_of]
-    return build_run(
-        log=log,
-        prep=prep,
-        config=config,
-        layout=layout,
-        x0=x0,
-        P0=P0,
-        xs=xs,
-        stds=stds,
-        status=status,
-        updated=updated,
-        nis=nis,
-        x_final=x_final,
-        P_final=P_final,
-        information=est.information,
-        init_how=how,
-        smoothed=smooth,
-        reacquisitions=est.reacquisitions,
-        elapsed_s=_time.perf_counter() - started,
-        loop_s=loop_s,
+    # The calibration is the estimate at the end of the log (smoothing leaves the last estimate as it is).
+    trace = RunTrace(
+        xs,
+        stds,
+        status,
+        updated,
+        nis,
+        est.x,
+        est.P,
+        est.information,
+        how,
+        _time.perf_counter() - started,
+        smooth,
+        est.reacquisitions,
+        loop_s,
     )
+    return build_run(log, prep, config, layout, x0, P0, trace)
 
 
 def blocks(time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -6,12 +6,7 @@ import pytest
 
 from magkf.errors import InputError
 from magkf.io.calibration import Calibration
-from magkf.offline.ellipsoid import (
-    EllipsoidCalibrator,
-    parameter_names,
-    patent_matrix,
-    patent_parameters,
-)
+from magkf.offline.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix, patent_parameters
 
 from ..conftest import DATA, cli_json, run_cli
 from ..stats import assert_biased, assert_standard_normal

@@ -2,12 +2,7 @@ import numpy as np
 import pytest
 
 from magkf.errors import InputError
-from magkf.offline.sinefit import (
-    PARAMETER_NAMES,
-    SineFitCalibrator,
-    fit_sine,
-    read_turntable,
-)
+from magkf.offline.sinefit import PARAMETER_NAMES, SineFitCalibrator, fit_sine, read_turntable
 from magkf.sim import PAPER_EXAMPLE, simulate_turntable
 
 from ..conftest import DATA, cli_json, run_cli
