@@ -65,19 +65,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import (
-    ALT,
-    HDOP,
-    LAT,
-    LON,
-    MAG,
-    PITCH,
-    ROLL,
-    VDOP,
-    YAW,
-    euler_to_quaternion,
-    quaternion_to_euler,
-)
+from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, VDOP, YAW, euler_to_quaternion, quaternion_to_euler
 from ..errors import InputError
 from .drivelog import table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
