@@ -37,7 +37,7 @@ from ..conventions import (
 )
 from ..errors import InputError
 from ..status import Status
-from .tables import file_row, read_csv, read_parquet, require_complete
+from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete
 
 __all__ = [
     "MIN_EPOCHS",
@@ -314,12 +314,9 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
     ``mag_unit`` become nT. Raises InputError (one line naming file, row and column) for a missing file or
     column, a non-numeric or non-finite cell, and everything ``from_table`` checks."""
     name = str(path)
-    if Path(path).suffix.lower() in (".parquet", ".pq"):
-        table = read_parquet(path, required=(TIME, *MAG))
-        provenance = {"format": "canonical-parquet", "file": name}
-    else:
-        table = read_csv(path, required=(TIME, *MAG))
-        provenance = {"format": "canonical-csv", "file": name}
+    parquet = Path(path).suffix.lower() in PARQUET_SUFFIXES
+    table = read_csv(path, required=(TIME, *MAG))
+    provenance = {"format": "canonical-parquet" if parquet else "canonical-csv", "file": name}
     return from_table(table, name, mag_unit, provenance)
 
 
@@ -342,7 +339,7 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     Parquet when ``path`` ends in ``.parquet``."""
     out = table.reset_index() if table.index.name == TIME else table
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    if Path(path).suffix.lower() in (".parquet", ".pq"):
+    if Path(path).suffix.lower() in PARQUET_SUFFIXES:
         out.to_parquet(path, index=False)
     else:
         out.to_csv(path, index=False, float_format="%.13g", na_rep="")

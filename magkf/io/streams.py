@@ -33,7 +33,8 @@ def bracket(t, t_src, max_gap_s: float) -> tuple[np.ndarray, np.ndarray, np.ndar
     i = np.clip(np.searchsorted(t_src, t, side="right") - 1, 0, len(t_src) - 2)
     span = t_src[i + 1] - t_src[i]
     frac = np.where(span > 0, (t - t_src[i]) / np.where(span > 0, span, 1.0), 0.0)
-    valid = (t >= t_src[0]) & (t <= t_src[-1]) & (span <= max_gap_s)
+    on_sample = (t == t_src[i]) | (t == t_src[i + 1])  # a sample's own epoch needs no bracket
+    valid = (t >= t_src[0]) & (t <= t_src[-1]) & ((span <= max_gap_s) | on_sample)
     return i, np.clip(frac, 0.0, 1.0), valid
 
 

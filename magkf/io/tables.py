@@ -14,9 +14,20 @@ import pandas as pd
 
 from ..errors import InputError
 
-__all__ = ["HEADER_ROWS", "file_row", "read_csv", "read_parquet", "numeric_column", "require_complete", "require_rows"]
+__all__ = [
+    "HEADER_ROWS",
+    "PARQUET_SUFFIXES",
+    "file_row",
+    "read_csv",
+    "read_parquet",
+    "numeric_column",
+    "require_complete",
+    "require_rows",
+]
 
 HEADER_ROWS = 1
+#: File endings of Parquet tables, read wherever a CSV is.
+PARQUET_SUFFIXES = (".parquet", ".pq")
 
 
 def file_row(index: int) -> int:
@@ -41,6 +52,8 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     """
     path = Path(path)
     name = str(path)
+    if path.suffix.lower() in PARQUET_SUFFIXES:  # the Parquet twin of a CSV file is read alike
+        return read_parquet(path, required, text_columns)
     if not path.is_file():
         raise InputError("no such file", name)
     try:
@@ -70,7 +83,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     return table
 
 
-def read_parquet(path, required: Iterable[str] = ()) -> pd.DataFrame:
+def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str] = ()) -> pd.DataFrame:
     """Read a Parquet table into a DataFrame of floats, with the checks of ``read_csv``; rows are named as the
     CSV twin's would be (record i is row i + 2, the header being row 1)."""
     path = Path(path)
@@ -87,8 +100,12 @@ def read_parquet(path, required: Iterable[str] = ()) -> pd.DataFrame:
         raise InputError(f"required column missing (the table has: {', '.join(table.columns)})", name, 1, missing[0])
     if len(table) == 0:
         raise InputError("the file has no rows", name)
+    text = set(text_columns)
     for column in table.columns:
-        table[column] = numeric_column(table[column], name, column)
+        if column in text:
+            table[column] = table[column].astype(str)
+        else:
+            table[column] = numeric_column(table[column], name, column)
     return table.reset_index(drop=True)
 
 

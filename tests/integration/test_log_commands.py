@@ -197,3 +197,19 @@ def test_check_prints_one_screen_per_sample_log(path, expected):
         assert text in proc.stdout, text
     report = cli_json("check", path)
     assert report["models"] and "limits" in report
+
+
+@pytest.mark.parametrize(
+    "command,name",
+    [
+        (["sinefit", "--field", "50000", "--inclination", "43"], "turntable_example.csv"),
+        (["ellipsoid", "--columns", "mx,my,mz"], "ckexplorer_acc_mag_log.csv"),
+    ],
+)
+def test_offline_commands_read_parquet_like_csv(command, name, tmp):
+    table = pd.read_csv(DATA / name)
+    path = tmp / (name.removesuffix(".csv") + ".parquet")
+    table.to_parquet(path, index=False)
+    from_csv = cli_json(command[0], DATA / name, *command[1:])
+    from_parquet = cli_json(command[0], path, *command[1:])
+    assert from_csv["R"] == from_parquet["R"] and from_csv["b"] == from_parquet["b"]
