@@ -22,3 +22,9 @@ class InputError(ValueError):
             where.append(f"column {column!r}")
         text = f"{', '.join(where)}: {message}" if where else message
         super().__init__(" ".join(text.split()))
+
+    def located(self, source: str) -> InputError:
+        """This error, naming ``source`` when it names no file yet."""
+        if self.source is not None:
+            return self
+        return InputError(self.message, source, self.row, self.column)

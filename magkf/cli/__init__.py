@@ -7,6 +7,7 @@ names the file, row and column where it applies; ``ValueError`` is a setting tha
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import warnings
 
@@ -30,6 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    if hasattr(signal, "SIGPIPE"):  # output piped into head and the like: stop quietly when it closes
+        signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "noise", 0) is None:

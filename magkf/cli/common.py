@@ -190,15 +190,16 @@ def mag_instance(args):
         raise InputError(f"--mag {args.mag!r}: give an instance number") from None
 
 
-def open_log(args, mag=None):
-    """The log named on the command line, through ``read_log`` with the reading options."""
+def open_log(args, mag="option"):
+    """The log named on the command line, through ``read_log`` with the reading options (``mag``: an
+    instance number, or None for the log's only magnetometer, instead of the ``--mag`` option)."""
     from ..io.readers import read_log
 
     return read_log(
         args.file,
         args.format,
         map=args.map,
-        mag=mag_instance(args) if mag is None else mag,
+        mag=mag_instance(args) if mag == "option" else mag,
         mag_unit=args.mag_unit,
         raw=not args.logged_calibration,
     )

@@ -46,8 +46,8 @@ def run_check(args) -> int:
 
 
 def run_convert(args) -> int:
-    """Read a log of any supported format and write the canonical drive log (docs/data-contract.md); the provenance
-    (where each column came from, what was converted or undone) is written beside it as OUT.provenance.json."""
+    """Read a log of any supported format and write the canonical drive log; the provenance (where each column
+    came from, what was converted or undone) is written beside it, as OUT.csv.provenance.json for OUT.csv."""
     import json
     from pathlib import Path
 
@@ -57,7 +57,7 @@ def run_convert(args) -> int:
     log = common.open_log(args)
     out = Path(args.output)
     write_drive_log(log.table, out)
-    beside = out.with_name(out.stem + ".provenance.json")
+    beside = out.with_name(out.name + ".provenance.json")
     beside.write_text(json.dumps(jsonable(log.provenance), indent=2), encoding="utf-8")
     summary = {
         "input": args.file,

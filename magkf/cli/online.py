@@ -66,29 +66,40 @@ def run_calibrate(args) -> int:
     if args.mag != "all":
         _calibrate_one(args, common.open_log(args), config, init, added, args.output, args.states)
         return 0
+    from ..errors import InputError
     from ..io.readers import magnetometer_instances
 
+    # PX4's fused vehicle_magnetometer is not a sensor of its own.
     instances = [
         m["instance"]
         for m in magnetometer_instances(args.file, args.format)
         if m.get("topic") != "vehicle_magnetometer"
-    ]  # PX4's fused topic is not a sensor of its own
-    rows = []
+    ]
+    rows, errors = [], []
     for instance in instances:
-        if not args.json:
+        if len(instances) > 1 and not args.json:
             print(f"magnetometer {instance}:")
-        run = _calibrate_one(
-            args,
-            common.open_log(args, mag=instance),
-            config,
-            init,
-            added,
-            _per_instance(args.output, instance),
-            _per_instance(args.states, instance),
-        )
+        try:
+            run = _calibrate_one(
+                args,
+                common.open_log(args, mag=instance),
+                config,
+                init,
+                added,
+                _per_instance(args.output, instance),
+                _per_instance(args.states, instance),
+            )
+        except InputError as exc:  # one magnetometer that cannot be calibrated does not stop the others
+            if len(instances) == 1:
+                raise
+            errors.append(exc)
+            print(f"  magnetometer {instance} not calibrated: {exc}")
+            continue
         rows.append((instance, run.summary))
-    if not args.json:
+    if len(instances) > 1 and rows and not args.json:
         _print_side_by_side(rows)
+    if not rows and errors:
+        raise errors[0]
     return 0
 
 

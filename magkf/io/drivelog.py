@@ -236,12 +236,14 @@ def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> 
             if t[i] < 1e7
             else "it is not UNIX seconds (UTC)"
         )
-        raise InputError(f"time {t[i]!r} s is outside 1990 to 2100: {hint}", name, row_of(i), TIME)
+        raise InputError(f"time {float(t[i])!r} s is outside 1990 to 2100: {hint}", name, row_of(i), TIME)
     step = np.diff(t)
     not_increasing = np.flatnonzero(step <= 0)
     if not_increasing.size:
         i = int(not_increasing[0]) + 1
-        raise InputError(f"time not strictly increasing ({t[i]!r} after {t[i - 1]!r})", name, row_of(i), TIME)
+        raise InputError(
+            f"time not strictly increasing ({float(t[i])!r} after {float(t[i - 1])!r})", name, row_of(i), TIME
+        )
     gaps = np.flatnonzero(step > max_gap_s)
     if gaps.size:
         i = int(gaps[0]) + 1
@@ -291,7 +293,7 @@ def from_table(
             bad = np.flatnonzero((v < lo) | (v > hi))
             if bad.size:
                 i = int(bad[0])
-                raise InputError(f"value {v[i]!r} outside [{lo}, {hi}] degrees", name, row_of(i), column)
+                raise InputError(f"value {float(v[i])!r} outside [{lo}, {hi}] degrees", name, row_of(i), column)
     mag = table[list(MAG)].to_numpy(dtype=float)
     complete = np.all(np.isfinite(mag), axis=1)
     if complete.any():
@@ -341,5 +343,7 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     if Path(path).suffix.lower() in PARQUET_SUFFIXES:
         out.to_parquet(path, index=False)
-    else:
+    else:  # 13 significant digits keep every nT value; UNIX time needs 16 for microseconds
+        if TIME in out:
+            out = out.assign(**{TIME: np.char.mod("%.6f", out[TIME].to_numpy(float))})
         out.to_csv(path, index=False, float_format="%.13g", na_rep="")

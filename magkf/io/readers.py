@@ -69,6 +69,8 @@ def read_log(
     kind = format or ("mapped" if map is not None else detect_format(path))
     if kind not in FORMATS:
         raise InputError(f"unknown format {kind!r}; use one of {', '.join(FORMATS)}", name)
+    if mag is not None and kind not in ("ulog", "dataflash"):
+        raise InputError(f"a {kind} table holds one magnetometer: --mag applies to ULog and DataFlash logs", name)
     if kind in ("csv", "parquet"):
         return read_drive_log(path, mag_unit)
     if kind == "mapped":

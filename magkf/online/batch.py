@@ -43,7 +43,10 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
 
     started = _time.perf_counter()
     prep = prepare(log, config)
-    prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
+    try:
+        prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
+    except InputError as exc:
+        raise exc.located(log.source) from None
     model = measurement_model(config, layout, x0)
     status = prep.base.copy()
     # Each epoch goes to the model that can use it: the model itself, or its fallback without attitude.

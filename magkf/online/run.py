@@ -14,6 +14,7 @@ import time as _time
 import numpy as np
 
 from ..config import FilterConfig
+from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from .estimator import Estimator
@@ -42,7 +43,10 @@ def calibrate_log(
     started = _time.perf_counter()
     prep = prepare(log, config)
     base = mark_missing_columns(prep, effects, log.source)
-    prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
+    try:
+        prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
+    except InputError as exc:
+        raise exc.located(log.source) from None
     est = Estimator(layout, config, x0, P0)
     H_all = layout.linear_jacobian(prep.data)
     W = est.whitening(np.nan_to_num(prep.data.field_body), layout.R(x0))

@@ -40,7 +40,7 @@ def test_convert_to_parquet_and_back_is_lossless(drive, tmp):
     _, path = drive
     out = tmp / "drive.parquet"
     summary = cli_json("convert", path, "-o", out)
-    assert summary["epochs"] == 1200 and (tmp / "drive.provenance.json").is_file()
+    assert summary["epochs"] == 1200 and (tmp / "drive.parquet.provenance.json").is_file()
     a, b = read_drive_log(path), read_log(out)
     assert b.provenance["format"] == "canonical-parquet"
     pd.testing.assert_frame_equal(a.table, b.table)
@@ -52,7 +52,7 @@ def test_convert_to_parquet_and_back_is_lossless(drive, tmp):
 def test_binary_logs_convert_with_their_provenance(tmp):
     out = tmp / "ap.csv"
     cli_json("convert", DATAFLASH, "-o", out)
-    provenance = json.loads((tmp / "ap.provenance.json").read_text())
+    provenance = json.loads((tmp / "ap.csv.provenance.json").read_text())
     assert provenance["format"] == "ardupilot-dataflash"
     assert "MAG" in provenance["columns"]["mag_x"]
     log = read_drive_log(out)
@@ -213,3 +213,58 @@ def test_offline_commands_read_parquet_like_csv(command, name, tmp):
     from_csv = cli_json(command[0], DATA / name, *command[1:])
     from_parquet = cli_json(command[0], path, *command[1:])
     assert from_csv["R"] == from_parquet["R"] and from_csv["b"] == from_parquet["b"]
+
+
+def test_mag_all_on_a_table_is_its_one_magnetometer(drive):
+    _, path = drive
+    proc = run_cli("calibrate", path, "--mag", "all", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "magnetometer None" not in proc.stdout and "R[1]" in proc.stdout
+
+
+def test_mag_all_goes_on_past_a_magnetometer_it_cannot_calibrate():
+    proc = run_cli("calibrate", ULOG, "--mag", "all", "--quiet")  # 6 s, still: neither calibrates
+    assert proc.stdout.count("not calibrated:") == 2 and str(ULOG) in proc.stdout
+    assert proc.returncode == 2 and proc.stderr.startswith("magkf: error: " + str(ULOG))
+
+
+def test_mag_on_a_table_is_refused(drive):
+    _, path = drive
+    _one_line_error(run_cli("check", path, "--mag", "7"), str(path), "--mag applies to ULog and DataFlash")
+
+
+def test_errors_print_plain_numbers(drive, tmp):
+    sim, _ = drive
+    table = sim.table.reset_index()
+    table["time"] -= table["time"].iloc[0]
+    path = tmp / "boot.csv"
+    table.to_csv(path, index=False)
+    proc = run_cli("check", path)
+    assert "np.float64" not in proc.stderr and "time 0.0 s" in proc.stderr
+
+
+def test_the_canonical_csv_keeps_microseconds(tmp):
+    from magkf.io.drivelog import write_drive_log
+
+    table = pd.DataFrame(
+        {
+            "time": 1780308000.0 + np.array([0.0, 0.000001, 0.123457]),
+            "mag_x": 1.0,
+            "mag_y": 2.0,
+            "mag_z": 3.0,
+            "lat": 48.0,
+            "lon": 11.0,
+        }
+    )
+    write_drive_log(table, tmp / "us.csv")
+    assert np.array_equal(read_drive_log(tmp / "us.csv").time, table["time"].to_numpy())
+
+
+def test_a_closed_pipe_ends_quietly():
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        f"{sys.executable} -m magkf check {DATAFLASH} | head -1", shell=True, capture_output=True, text=True
+    )
+    assert "Traceback" not in proc.stderr and proc.stdout.startswith("magkf check")
