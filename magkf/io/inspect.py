@@ -58,7 +58,6 @@ __all__ = [
     "format_inspection",
     "sphere_cell",
     "heading_span_deg",
-    "MODELS",
     "GAP_S",
     "HEADING_BIN_DEG",
     "SPHERE_CELLS",
@@ -68,8 +67,6 @@ __all__ = [
     "MAX_WIDTH",
 ]
 
-#: Measurement models of the filter (``FilterConfig.measure``); ``vector`` and ``both`` need attitude.
-MODELS = ("magnitude", "vector", "both")
 #: A clock gap is an interval longer than ``GAP_S`` (s) and than ``GAP_INTERVALS`` median intervals.
 GAP_S = 1.0
 GAP_INTERVALS = 1.5
@@ -407,11 +404,13 @@ def inspect_log(log: DriveLog, dop_max: float = 5.0) -> dict:
         groups["dop"] = dop_finite
     pos = log.position[has_pos] if log.has_position else np.empty((0, 3))
 
-    models = []
-    if usable_field.any():
-        models.append("magnitude")
-        if usable_vector.any():
-            models += ["vector", "both"]
+    from ..online.measurements import MEASUREMENTS
+
+    models = [
+        name
+        for name, cls in MEASUREMENTS.items()
+        if usable_field.any() and (usable_vector.any() or not cls.needs_attitude)
+    ]
 
     limits += _limits(log, n, attitude_ok, has_pos, status, counts, coverage, dop_max, models)
     if field_limit is not None:

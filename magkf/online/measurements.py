@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import body_to_ned, inverse3
+from ..conventions import body_to_ned, calibrated_field, inverse3
 from ..effects.base import EpochData
 from .state import StateLayout
 
@@ -316,7 +316,7 @@ class Magnitude(MeasurementModel):
                 "kij,sj->ski", blk.H[:, :, layout.EXTRA], sigmas[:, layout.EXTRA] - np.asarray(x)[layout.EXTRA]
             )
         R, b = layout.R_b(sigmas)
-        c = np.linalg.solve(R[:, None], (mc - b[:, None, :])[..., None])[..., 0]
+        c = calibrated_field(R[:, None], b[:, None, :], mc)  # (S, k, 3): every sigma point's calibration
         _, H, sd = self._linear(x, blk)
         h = np.linalg.norm(c, axis=2) / sd  # (S, k), whitened
         return h[..., None], (blk.ref_mag / sd)[:, None], (H / sd[:, None])[:, None, :]
