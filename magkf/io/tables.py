@@ -64,23 +64,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         raise InputError("the file is empty", name) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise InputError(f"not a readable CSV file ({' '.join(str(exc).split())})", name) from None
-    table.columns = [str(c).strip() for c in table.columns]
-    seen = set()
-    for column in table.columns:
-        if column in seen:
-            raise InputError("the column appears twice in the header", name, 1, column)
-        seen.add(column)
-    missing = [c for c in required if c not in table.columns]
-    if missing:
-        raise InputError(f"required column missing (the header has: {', '.join(table.columns)})", name, 1, missing[0])
-    if len(table) == 0:
-        raise InputError("the file has a header but no data rows", name)
-    text = set(text_columns)
-    for column in table.columns:
-        if column in text:
-            continue
-        table[column] = numeric_column(table[column], name, column)
-    return table
+    return _checked(table, name, required, text_columns, "the file has a header but no data rows")
 
 
 def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str] = ()) -> pd.DataFrame:
@@ -94,19 +78,30 @@ def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str]
         table = pd.read_parquet(path)
     except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
         raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
+    return _checked(table, name, required, text_columns, "the file has no rows").reset_index(drop=True)
+
+
+def _checked(table: pd.DataFrame, name: str, required, text_columns, empty: str) -> pd.DataFrame:
+    """``table`` with stripped, unique column names, the ``required`` ones present, at least one row, and every
+    column but ``text_columns`` converted to finite floats (NaN where empty); InputError otherwise."""
     table.columns = [str(c).strip() for c in table.columns]
+    seen = set()
+    for column in table.columns:
+        if column in seen:
+            raise InputError("the column appears twice in the header", name, 1, column)
+        seen.add(column)
     missing = [c for c in required if c not in table.columns]
     if missing:
-        raise InputError(f"required column missing (the table has: {', '.join(table.columns)})", name, 1, missing[0])
+        raise InputError(f"required column missing (the header has: {', '.join(table.columns)})", name, 1, missing[0])
     if len(table) == 0:
-        raise InputError("the file has no rows", name)
+        raise InputError(empty, name)
     text = set(text_columns)
     for column in table.columns:
         if column in text:
             table[column] = table[column].astype(str)
         else:
             table[column] = numeric_column(table[column], name, column)
-    return table.reset_index(drop=True)
+    return table
 
 
 def numeric_column(values: pd.Series, source: str, column: str) -> np.ndarray:
