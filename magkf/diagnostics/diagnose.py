@@ -232,18 +232,8 @@ def diagnose(
     signals, binned = _signals(data, ned, mag, alpha)
     largest = _largest(data.time, ned)
     text = _describe(results, signals, level)
-    return Diagnosis(
-        residual_rms_nt=rms,
-        residual_rms_axis_nt=axis_rms,
-        n_epochs_used=n,
-        alpha=alpha,
-        candidates=results,
-        signals=signals,
-        largest=largest,
-        text=text,
-        binned=binned,
-        residuals={"time": data.time, "ned": ned, "body": body, "magnitude": mag},
-    ), run
+    residuals = {"time": data.time, "ned": ned, "body": body, "magnitude": mag}
+    return Diagnosis(rms, axis_rms, n, alpha, results, signals, largest, text, binned, residuals), run
 
 
 # ---------------------------------------------------------------- residual against signals

@@ -14,7 +14,6 @@ import numpy as np
 
 from ..config import FilterConfig
 from ..effects import candidates as default_candidates
-from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
@@ -121,15 +120,10 @@ def _status_plot(run, t0):
     return _png(fig)
 
 
-def build_report(
-    log: DriveLog,
-    config: FilterConfig = FilterConfig(),
-    cal: Calibration | None = None,
-    effects=(),
-    registry=None,
-    alpha: float = 0.01,
-) -> str:
-    """The report as an HTML string (self-contained)."""
+def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), registry=None, alpha=0.01) -> str:
+    """The report of ``log`` as a self-contained HTML string: the run with ``config`` (a ``FilterConfig``)
+    started from ``cal`` (a ``Calibration`` or None) with ``effects`` added, and its diagnosis at level
+    ``alpha`` over the built-in candidates and those of ``registry``."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -286,30 +286,29 @@ class ColumnMap:
         return self.ref or self.mag
 
 
-def _utc_datetime(value, bad) -> datetime:
-    """An aware UTC datetime from a TOML date-time or an ISO 8601 string; naive values are UTC."""
+def _iso(value, bad, kind: type, example: str, needed_by: str):
+    """A ``kind`` (``datetime`` or ``date``) from a TOML value or an ISO 8601 string; ``bad(message)`` raises."""
     if isinstance(value, str):
         try:
-            value = datetime.fromisoformat(value.strip())
+            value = kind.fromisoformat(value.strip())
         except ValueError:
-            bad(f"{value!r} is not an ISO 8601 date-time such as 2024-05-01T12:00:00Z")
-    if isinstance(value, date) and not isinstance(value, datetime):
+            bad(f"{value!r} is not an ISO 8601 {kind.__name__.replace('datetime', 'date-time')} such as {example}")
+    if kind is datetime and isinstance(value, date) and not isinstance(value, datetime):
         value = datetime.combine(value, clock_time())
-    if not isinstance(value, datetime):
-        bad(f'{value!r} is not a date-time (required by time_epoch = "start")')
+    if not isinstance(value, kind) or (kind is date and isinstance(value, datetime)):
+        bad(f"{value!r} is not a {kind.__name__.replace('datetime', 'date-time')} (required by {needed_by})")
+    return value
+
+
+def _utc_datetime(value, bad) -> datetime:
+    """An aware UTC datetime from a TOML date-time or an ISO 8601 string; naive values are UTC."""
+    value = _iso(value, bad, datetime, "2024-05-01T12:00:00Z", 'time_epoch = "start"')
     return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
 
 
 def _utc_date(value, bad) -> date:
     """A date from a TOML date or an ISO 8601 string (``YYYY-MM-DD``)."""
-    if isinstance(value, str):
-        try:
-            value = date.fromisoformat(value.strip())
-        except ValueError:
-            bad(f"{value!r} is not an ISO 8601 date such as 2023-06-14")
-    if not isinstance(value, date) or isinstance(value, datetime):
-        bad(f'{value!r} is not a date (required by time_epoch = "seconds_of_day")')
-    return value
+    return _iso(value, bad, date, "2023-06-14", 'time_epoch = "seconds_of_day"')
 
 
 def _check_layout(cmap: ColumnMap, fmt: str, what: str) -> None:

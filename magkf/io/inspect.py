@@ -484,32 +484,20 @@ def _limits(log, n, attitude_ok, has_pos, status, counts, coverage, dop_max, mod
             add("heading", f"heading coverage {100 * share:.0f} %: turn through more headings")
         tilt = coverage["tilt_p95_deg"]
         if tilt is not None and tilt < LEVEL_TILT_DEG:
-            add(
-                "level",
-                f"level flight (tilt under {LEVEL_TILT_DEG:g} deg, 95 % within {tilt:.1f} deg): the third "
-                "column of R and b_z trade off; the third column will stay at its prior",
-            )
+            level = f"level flight (tilt under {LEVEL_TILT_DEG:g} deg, 95 % within {tilt:.1f} deg)"
+            add("level", level + ": the third column of R and b_z trade off; the third column will stay at its prior")
         elif tilt is not None and tilt < LOW_TILT_DEG:
-            add(
-                "low_tilt",
-                f"tilt under {LOW_TILT_DEG:g} deg (95 % within {tilt:.1f} deg): the third column of R is "
-                "weakly determined against b_z; roll and pitch further",
-            )
+            low = f"tilt under {LOW_TILT_DEG:g} deg (95 % within {tilt:.1f} deg)"
+            add("low_tilt", low + ": the third column of R is weakly determined against b_z; roll and pitch further")
     else:
         field_epochs = coverage["field_epochs"]
         if 0 < field_epochs < ELLIPSOID_MIN_EPOCHS:
-            add(
-                "too_short",
-                f"too short: {field_epochs} usable epochs; the magnitude bootstrap's ellipsoid fit "
-                f"needs at least {ELLIPSOID_MIN_EPOCHS}",
-            )
+            fit = f"the magnitude bootstrap's ellipsoid fit needs at least {ELLIPSOID_MIN_EPOCHS}"
+            add("too_short", f"too short: {field_epochs} usable epochs; {fit}")
         sphere = coverage["sphere_share"]
         if sphere is not None and sphere < SPHERE_COVERAGE_MIN:
-            add(
-                "sphere",
-                f"field directions cover {100 * sphere:.0f} % of the sphere: the magnitude model needs "
-                "the sensor turned in 3-D",
-            )
+            cover = f"field directions cover {100 * sphere:.0f} % of the sphere"
+            add("sphere", cover + ": the magnitude model needs the sensor turned in 3-D")
     return out
 
 

@@ -8,14 +8,7 @@ __all__ = ["simulate_disturbances"]
 
 
 def simulate_disturbances(
-    n: int,
-    rate_hz: float,
-    rng: np.random.Generator,
-    count: int = 6,
-    peak_nt: tuple = (1000.0, 5000.0),
-    duration_s: tuple = (2.0, 8.0),
-    inside: list | None = None,
-    share_inside: float = 0.5,
+    n: int, rate_hz: float, rng, count=6, peak_nt=(1000.0, 5000.0), duration_s=(2.0, 8.0), inside=None, share_inside=0.5
 ) -> tuple[np.ndarray, list]:
     """Body-frame disturbance field (n, 3) nT and the events as dicts ``start, stop, peak_nt``.
 

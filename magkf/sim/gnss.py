@@ -8,13 +8,7 @@ __all__ = ["simulate_dop"]
 
 
 def simulate_dop(
-    n: int,
-    rate_hz: float,
-    rng: np.random.Generator,
-    bad_stretches: int = 3,
-    bad_duration_s: tuple = (10.0, 40.0),
-    good: float = 1.2,
-    bad: float = 6.0,
+    n: int, rate_hz: float, rng, bad_stretches=3, bad_duration_s=(10.0, 40.0), good=1.2, bad=6.0
 ) -> tuple[np.ndarray, list]:
     """DOP (n,) near ``good`` with ``bad_stretches`` stretches near ``bad``; also the stretches as
     ``[(first_epoch, last_epoch_exclusive), ...]``."""
