@@ -31,6 +31,7 @@ from .disturbance import simulate_disturbances
 from .gnss import simulate_dop
 from .motion import simulate_motion, smooth_noise
 from .mounting import mounting_matrix
+from .realism import coloured, gauss_markov, realism_rng
 
 __all__ = ["DEFAULT_START", "DriveConfig", "SimulatedDrive", "true_matrix", "simulate_drive"]
 
@@ -46,6 +47,13 @@ class DriveConfig:
     ``disturbance_peak_nt`` their peak range; ``dop_bad_stretches`` the number of bad-DOP stretches;
     ``write_reference`` adds the ``ref_n, ref_e, ref_d`` columns; ``tilt_deg`` is the roll and pitch
     standard deviation of planar motion.
+
+    Realism (``magkf.sim.realism``; all off by default): ``noise_correlation_s`` makes the sensor noise a
+    first-order Gauss-Markov process of that correlation time (standard deviation still ``noise_nt``);
+    ``attitude_wander_deg`` (roll, pitch, yaw) is the standard deviation of the logged attitude's error, a
+    Gauss-Markov process of correlation time ``attitude_wander_s`` (a bounded random walk); ``interference_nt``
+    is the standard deviation per body axis of a slowly varying field nobody modelled, correlation time
+    ``interference_s``.
     """
 
     duration_s: float = 600.0
@@ -64,6 +72,11 @@ class DriveConfig:
     dop_bad_stretches: int = 3
     write_reference: bool = False
     tilt_deg: float = 0.8
+    noise_correlation_s: float = 0.0
+    attitude_wander_deg: tuple = (0.0, 0.0, 0.0)
+    attitude_wander_s: float = 60.0
+    interference_nt: float = 0.0
+    interference_s: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -74,7 +87,9 @@ class SimulatedDrive:
     (mounting included); ``reference_ned`` (N, 3) the true field; ``field_body`` (N, 3) the true body
     field without disturbances; ``disturbance`` (N, 3) the body-frame disturbance; ``dop_bad`` (N,)
     marks the bad-DOP stretches; ``events`` lists the disturbance events; ``effects`` the simulated
-    ``(effect, theta)`` pairs and ``contributions`` their raw-field contributions (N, 3).
+    ``(effect, theta)`` pairs and ``contributions`` their raw-field contributions (N, 3);
+    ``sensor_noise`` (N, 3) nT the noise added to the reading, ``attitude_error`` (N, 3) deg the logged
+    roll, pitch and yaw less the true ones, ``interference`` (N, 3) nT the unmodelled body-frame field.
     """
 
     table: pd.DataFrame
@@ -89,6 +104,9 @@ class SimulatedDrive:
     dop_stretches: list = field(default_factory=list)
     effects: list = field(default_factory=list)
     contributions: list = field(default_factory=list)
+    sensor_noise: np.ndarray | None = None
+    attitude_error: np.ndarray | None = None
+    interference: np.ndarray | None = None
 
     @property
     def calibration(self) -> Calibration:
@@ -160,8 +178,15 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     c_nb = euler_to_dcm(motion["yaw"], motion["pitch"], motion["roll"])
     field_body = ned_to_body(c_nb, ref)
     table = pd.DataFrame({TIME: t})
-    for name in (*ATTITUDE, "lat", "lon", "alt"):
+    extra = realism_rng(config.seed)
+    attitude_error = gauss_markov(n, config.rate_hz, config.attitude_wander_deg, config.attitude_wander_s, extra)
+    interference = gauss_markov(n, config.rate_hz, config.interference_nt, config.interference_s, extra)
+    for name in ("lat", "lon", "alt"):
         table[name] = motion[name]
+    for k, name in enumerate(ATTITUDE):  # the logged attitude: the truth and its error
+        table.insert(1 + k, name, motion[name] + attitude_error[:, k])
+    if any(config.attitude_wander_deg):
+        table["yaw"] %= 360.0
     table["dop"] = dop
     table["speed_mps"] = motion["speed_mps"]
     # Warm-up, a slow wander (sun and shade, heater cycles), sensor noise: degC.
@@ -176,7 +201,8 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     if config.write_reference:
         for i, name in enumerate(REF):
             table[name] = ref[:, i]
-    mag = (field_body + disturbance) @ R.T + b + rng.normal(scale=config.noise_nt, size=(n, 3))
+    sensor_noise = config.noise_nt * coloured(rng.normal(size=(n, 3)), config.rate_hz, config.noise_correlation_s)
+    mag = (field_body + disturbance + interference) @ R.T + b + sensor_noise
     data = EpochData(
         t,
         field_body,
@@ -208,4 +234,7 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
         dop_stretches=stretches,
         effects=list(effects),
         contributions=contributions,
+        sensor_noise=sensor_noise,
+        attitude_error=attitude_error,
+        interference=interference,
     )
