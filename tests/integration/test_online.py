@@ -280,3 +280,6 @@ def test_bad_options_exit_2(tmp):
     assert proc.returncode == 2 and "innovation_prob" in proc.stderr
     proc = run_cli("calibrate", DATA / "example_drive.csv", "--init", tmp / "none.json")
     assert proc.returncode == 2 and "none.json" in proc.stderr
+    for option, value in (("--measure", "bogus"), ("--filter", "kalman")):
+        proc = run_cli("calibrate", DATA / "example_drive.csv", option, value)
+        assert proc.returncode == 2 and proc.stderr.startswith("magkf: error:") and repr(value) in proc.stderr
