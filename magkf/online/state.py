@@ -112,8 +112,7 @@ class StateLayout:
     @staticmethod
     def R_b(x) -> tuple[np.ndarray, np.ndarray]:
         """The core ``R`` (3, 3) and ``b`` (3,) of a state (n,), or ``(..., 3, 3)``, ``(..., 3)`` of a stack."""
-        x = np.asarray(x)
-        return x[..., _R].reshape(x.shape[:-1] + (3, 3)), x[..., _B]
+        return StateLayout.R(x), np.asarray(x)[..., _B]
 
     @staticmethod
     def R(x) -> np.ndarray:

@@ -92,30 +92,33 @@ def _one_line_error(proc, *fragments):
         assert f in lines[0], lines[0]
 
 
+def _retimed(sim, path, time):
+    """The simulated log written to ``path`` with its time column replaced by ``time(t)`` (t: UNIX s, (N,))."""
+    table = sim.table.reset_index()
+    table["time"] = time(table["time"].to_numpy())
+    table.to_csv(path, index=False)
+    return path
+
+
+def _since_boot(t):
+    return t - t[0]
+
+
 def test_time_since_boot_is_refused_with_advice(drive, tmp):
     sim, _ = drive
-    table = sim.table.reset_index()
-    table["time"] -= table["time"].iloc[0]
-    path = tmp / "boot.csv"
-    table.to_csv(path, index=False)
+    path = _retimed(sim, tmp / "boot.csv", _since_boot)
     _one_line_error(run_cli("calibrate", path), str(path), "row 2", "'time'", "time since boot")
 
 
 def test_time_in_milliseconds_is_refused(drive, tmp):
     sim, _ = drive
-    table = sim.table.reset_index()
-    table["time"] *= 1000.0
-    path = tmp / "ms.csv"
-    table.to_csv(path, index=False)
+    path = _retimed(sim, tmp / "ms.csv", lambda t: t * 1000.0)
     _one_line_error(run_cli("convert", path, "-o", tmp / "out.csv"), str(path), "outside 1990 to 2100")
 
 
 def test_a_long_gap_is_reported(drive, tmp):
     sim, _ = drive
-    table = sim.table.reset_index()
-    table.loc[600:, "time"] += 60.0
-    path = tmp / "gap.csv"
-    table.to_csv(path, index=False)
+    path = _retimed(sim, tmp / "gap.csv", lambda t: t + 60.0 * (np.arange(len(t)) >= 600))
     proc = run_cli("calibrate", path, "--quiet")
     assert proc.returncode == 0
     assert "clock jumps by 60.1 s at row 602" in proc.stderr
@@ -235,10 +238,7 @@ def test_mag_on_a_table_is_refused(drive):
 
 def test_errors_print_plain_numbers(drive, tmp):
     sim, _ = drive
-    table = sim.table.reset_index()
-    table["time"] -= table["time"].iloc[0]
-    path = tmp / "boot.csv"
-    table.to_csv(path, index=False)
+    path = _retimed(sim, tmp / "boot.csv", _since_boot)
     proc = run_cli("check", path)
     assert "np.float64" not in proc.stderr and "time 0.0 s" in proc.stderr
 
