@@ -12,18 +12,26 @@ class FilterConfig:
     """Settings of ``magkf calibrate`` and ``OnlineCalibrator``.
 
     Measurement noise (from which every measurement covariance follows)
-        ``sensor_noise_nt``: white noise of each magnetometer axis, nT.
-        ``attitude_deg``: attitude uncertainty of the INS, degrees (1 sigma, each axis).
+        ``sensor_noise_nt``: noise of each magnetometer axis, nT. ``attitude_deg``: attitude uncertainty
+        of the INS, degrees (1 sigma, each axis). With ``adapt_noise`` (the default) both are only the
+        prior: the noise is learned from the log (``magkf.online.noise``), starting from a robust scale
+        of a first whole-log fit, forgetting over ``noise_window_s`` seconds, by ``noise_method``
+        (``variational``, the default, or ``matching``: innovation covariance matching; compared in
+        ``scripts/noise_study.py``), never below ``noise_floor_nt``; tilt and heading errors apart;
+        the correlation of the residuals in time is measured and each epoch counts accordingly.
         ``reference_nt``: uncertainty of each reference-field component, nT (crustal anomalies,
-        model error, diurnal variation).
+        model error, diurnal variation); not learned.
     Process noise (random walk)
         ``r_walk``: of each element of ``R``, per sqrt(s); ``b_walk``: of each offset, nT per sqrt(s).
     Gates
         ``dop_max``: no update where ``dop > dop_max``.
-        ``gate_nt``: no update where ``| |calibrated m| - |B_ref| | > gate_nt + 3 sigma`` (sigma: the
-        calibrated magnitude's standard deviation implied by the estimate's covariance).
-        ``innovation_prob``: no update where the normalised innovation squared exceeds the chi-square
-        quantile of this probability (degrees of freedom = measurement size).
+        magnitude gate: no update where ``| |calibrated m| - |B_ref| |`` exceeds ``gate_sigma`` standard
+        deviations of the (learned) total-field noise, or ``gate_nt`` nT if that is wider, plus 3 sigma
+        of the calibrated magnitude implied by the estimate's covariance.
+        ``innovation_prob``: no update where the normalised innovation squared (in units of the learned
+        noise) exceeds the chi-square quantile of this probability (degrees of freedom = measurement
+        size). ``huber_prob``: beyond this quantile and up to the gate, an epoch is down-weighted (Huber
+        weight ``sqrt(q / NIS)``) instead of refused, so that heavy tails do not starve the filter.
         ``max_gated_s``: after this many seconds of consecutive innovation gating with good DOP and
         magnitude, the covariance is inflated so that the filter can re-acquire (0 disables).
     Initialisation
@@ -47,8 +55,14 @@ class FilterConfig:
     r_walk: float = 1e-7
     b_walk: float = 0.01
     dop_max: float = 5.0
-    gate_nt: float = 1000.0
+    gate_nt: float = 0.0
+    gate_sigma: float = 5.0
     innovation_prob: float = 0.999
+    huber_prob: float = 0.99
+    adapt_noise: bool = True
+    noise_method: str = "variational"
+    noise_window_s: float = 60.0
+    noise_floor_nt: float = 1.0
     max_gated_s: float = 30.0
     bootstrap_s: float = 120.0
     init_r_std: float = 0.02
@@ -63,9 +77,17 @@ class FilterConfig:
         for name, known in (("filter", FILTERS), ("measure", MEASUREMENTS)):
             if getattr(self, name) not in known:
                 raise ValueError(f"{name} must be one of {', '.join(known)}, got {getattr(self, name)!r}")
-        for name in ("sensor_noise_nt", "bootstrap_s", "gate_nt", "dop_max"):
+        for name in ("sensor_noise_nt", "bootstrap_s", "dop_max", "gate_sigma", "noise_window_s", "noise_floor_nt"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
+        if not self.gate_nt >= 0:
+            raise ValueError("gate_nt must not be negative")
+        if not 0 < self.huber_prob < 1:
+            raise ValueError("huber_prob must lie between 0 and 1")
+        from .online.noise import METHODS
+
+        if self.noise_method not in METHODS:
+            raise ValueError(f"noise_method must be one of {', '.join(METHODS)}, got {self.noise_method!r}")
         if self.block_s < 0:
             raise ValueError("block_s must not be negative")
         if not 0 < self.innovation_prob < 1:

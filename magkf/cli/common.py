@@ -78,13 +78,33 @@ def add_output_options(p, what: str = "calibration file") -> None:
 
 def add_filter_options(p) -> None:
     g = p.add_argument_group("noise and gates (defaults in magkf.FilterConfig)")
-    g.add_argument("--sensor-noise", type=float, help="magnetometer noise per axis, nT (default 30)")
-    g.add_argument("--attitude-deg", type=float, help="attitude uncertainty, deg (default 0.1)")
+    g.add_argument(
+        "--sensor-noise",
+        type=float,
+        help="magnetometer noise per axis, nT: the prior of the learned noise (default 30)",
+    )
+    g.add_argument("--attitude-deg", type=float, help="attitude uncertainty, deg: the prior (default 0.1)")
+    g.add_argument(
+        "--fixed-noise",
+        action="store_true",
+        help="use --sensor-noise and --attitude-deg as they are instead of learning the noise from the log",
+    )
+    g.add_argument(
+        "--noise-method",
+        help="how the noise is learned: variational (default) or matching (innovation covariance matching)",
+    )
+    g.add_argument("--noise-floor", type=float, help="least learned sensor noise per axis, nT (default 1)")
     g.add_argument("--reference-nt", type=float, help="reference field uncertainty per component, nT (default 10)")
     g.add_argument("--r-walk", type=float, help="random walk of R per sqrt(s) (default 1e-7)")
     g.add_argument("--b-walk", type=float, help="random walk of b, nT per sqrt(s) (default 0.01)")
     g.add_argument("--dop-max", type=float, help="no update above this DOP (default 5)")
-    g.add_argument("--gate-nt", type=float, help="magnitude gate, nT (default 1000, widened by 3 sigma)")
+    g.add_argument(
+        "--gate-sigma",
+        type=float,
+        help="magnitude gate in standard deviations of the learned total-field noise (default 5, widened by "
+        "the estimate's 3 sigma)",
+    )
+    g.add_argument("--gate-nt", type=float, help="least width of the magnitude gate, nT (default 0)")
     g.add_argument(
         "--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)"
     )
@@ -105,6 +125,10 @@ def filter_config(args):
             "measure": args.measure,
             "dop_max": args.dop_max,
             "gate_nt": args.gate_nt,
+            "gate_sigma": args.gate_sigma,
+            "adapt_noise": False if args.fixed_noise else None,
+            "noise_method": args.noise_method,
+            "noise_floor_nt": args.noise_floor,
             "sensor_noise_nt": args.sensor_noise,
             "attitude_deg": args.attitude_deg,
             "reference_nt": args.reference_nt,

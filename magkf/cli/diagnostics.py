@@ -42,8 +42,9 @@ def run_diagnose(args) -> int:
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
     pool = candidates(log.auxiliary, registry)
-    result, _ = diagnose(log, config, cal, added, pool, alpha=args.alpha)
+    result, run = diagnose(log, config, cal, added, pool, alpha=args.alpha)
     summary = result.summary()
+    summary["verdict"] = _verdict(run)
     if args.output:
         with open(args.output, "w", encoding="utf-8") as f:
             json.dump(jsonable(summary), f, indent=2)
@@ -71,7 +72,15 @@ def run_diagnose(args) -> int:
     for w in result.largest[:3]:
         print(f"  largest residual: {w['rms_nt']:.0f} nT RMS from t = {w['start']:.1f} to {w['stop']:.1f} s")
     print(f"  {result.text}")
+    print(f"  verdict: {summary['verdict']}")
     return 0
+
+
+def _verdict(run) -> str:
+    """The run's verdict on its noise model, or why there is none (a calibration diagnosed as it is)."""
+    if run is None:
+        return "none: the noise was not learned (the calibration from --cal was diagnosed as it is, without a run)"
+    return run.summary.verdict
 
 
 def run_report(args) -> int:

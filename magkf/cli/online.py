@@ -47,14 +47,73 @@ def _print_run(summary: dict, names) -> None:
             f"  {effect}: "
             + ", ".join(f"{p} = {v['value']:.4g} +- {v['std']:.2g} {v['unit']}".rstrip() for p, v in params.items())
         )
-    ax = s["residual_rms_axis_nt"]
-    nis = f", mean NIS {s['nis_mean']:.2f}" if math.isfinite(s["nis_mean"]) else ""
-    print(
-        f"  residual RMS {s['residual_rms_nt']:.2f} nT (vector norm; N {ax['north']:.2f}, E {ax['east']:.2f}, "
-        f"D {ax['down']:.2f}), magnitude {s['residual_rms_magnitude_nt']:.2f} nT{nis}"
-    )
+    for line in _fit_lines(s):
+        print("  " + line)
     print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
     print(f"  observability: {s['observability']['text']}")
+    print(f"  verdict: {s['verdict']}")
+
+
+def _fit_lines(s: dict) -> list[str]:
+    """The residuals (used epochs and whole log), the learned noise, the NIS and the used share, in words."""
+    lines = []
+    n_vector, n_used = s["status_counts"].get("used", 0), round(s["used_share"] * s["n_epochs"])
+    whole = "over the whole log (every epoch with attitude and a reference, gated ones included)"
+    if math.isfinite(s["residual_rms_nt"]) or math.isfinite(s["residual_rms_all_nt"]):
+        ax = s["residual_rms_axis_nt"]
+        lines.append(
+            f"residual RMS {_nt(s['residual_rms_nt'])} over the {n_vector} epochs used, "
+            f"{_nt(s['residual_rms_all_nt'])} {whole}; NED vector norm with the final estimate, used epochs per axis N "
+            f"{ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f} nT"
+        )
+    else:
+        lines.append("vector residual: no attitude")
+    lines.append(
+        f"magnitude {_nt(s['residual_rms_magnitude_nt'])} used / {_nt(s['residual_rms_magnitude_all_nt'])} "
+        "whole log (every epoch with a reference)"
+    )
+    lines.append(_noise_line(s["noise"], s["filter"], attitude=n_vector > 0))
+    lo, hi = s["nis_band"]
+    if math.isfinite(s["nis_mean"]):
+        inside = "inside" if lo <= s["nis_mean"] <= hi else "outside"
+        lines.append(
+            f"mean NIS {s['nis_mean']:.2f} per degree of freedom ({inside} its 95 % band [{lo:.2f}, {hi:.2f}])"
+        )
+    else:
+        lines.append(f"mean NIS: not computed ({s['filter']} gives no innovations)")
+    lines.append(f"used {n_used} of {s['n_epochs']} epochs ({100 * s['used_share']:.0f} %)")
+    return lines
+
+
+def _noise_line(noise: dict, method: str, attitude: bool) -> str:
+    """``noise: sensor 28.4 nT learned (30 configured), attitude ...`` (or why it was not learned); ``attitude``
+    False: no epoch with attitude was used, so the attitude part was not learned."""
+    conf = noise["configured"]
+    learned = noise.get("learned")
+    if learned is None:
+        return (
+            f"noise: not learned ({method}); sensor {conf['sensor_nt']:g} nT, attitude {conf['attitude_deg']:g} deg "
+            "as configured"
+        )
+    how = "learned" if noise["adapted"] else "fixed, not learned"
+    att = (
+        f"tilt {learned['attitude_deg']:.2g} deg and heading {learned['heading_deg']:.2g} deg ("
+        if attitude
+        else "not learned (no attitude; "
+    )
+    return (
+        f"noise: sensor {learned['sensor_nt']:.1f} nT {how} ({conf['sensor_nt']:g} configured), attitude "
+        f"{att}{conf['attitude_deg']:g} configured), residuals correlated over "
+        f"{noise['correlation_s']:.2g} s, each epoch counts 1/{_count(noise['inflation'])}"
+    )
+
+
+def _count(inflation: float) -> str:
+    return f"{inflation:.2g}" if inflation < 10 else f"{inflation:.0f}"
+
+
+def _nt(value: float) -> str:
+    return f"{value:.2f} nT" if math.isfinite(value) else "none"
 
 
 def run_calibrate(args) -> int:

@@ -385,8 +385,18 @@ def _describe(results, signals, level) -> str:
     return f"nothing significant at the stated level (each candidate tested at p < {level:.2g})"
 
 
+def _nis_per_dof(states, epochs) -> float:
+    """Mean NIS per degree of freedom over ``epochs`` (mask) of a run's states: 3 for an epoch with a
+    vector residual, 1 for a magnitude-only one."""
+    nis = states["nis"].to_numpy()[epochs]
+    dof = np.where(np.isfinite(states["residual_n"].to_numpy()[epochs]), 3.0, 1.0)
+    ok = np.isfinite(nis)
+    return float(np.sum(nis[ok]) / np.sum(dof[ok])) if ok.any() else float("nan")
+
+
 def compare_runs(before: CalibrationRun, after: CalibrationRun) -> dict:
-    """Before and after adding effects, on the epochs both used: residual RMS (nT), mean NIS, AIC, BIC."""
+    """Before and after adding effects, on the epochs both used: residual RMS (nT), mean NIS per degree of
+    freedom (each run with its own learned noise), AIC, BIC."""
     both = ((before.states["status"] == "used") & (after.states["status"] == "used")).to_numpy()
     out = {}
     for label, run in (("before", before), ("after", after)):
@@ -397,7 +407,7 @@ def compare_runs(before: CalibrationRun, after: CalibrationRun) -> dict:
         rss = float(np.sum(ned**2))
         out[label] = {
             "residual_rms_nt": float(np.sqrt(rss / max(len(ned), 1))),
-            "nis_mean": float(np.nanmean(run.states["nis"].to_numpy()[both])),
+            "nis_mean": _nis_per_dof(run.states, both),
             "aic": float(nrows * np.log(rss / nrows) + 2 * k),
             "bic": float(nrows * np.log(rss / nrows) + k * np.log(nrows)),
             "n_parameters": k,

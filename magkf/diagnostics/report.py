@@ -1,7 +1,8 @@
 """``magkf report``: one self-contained HTML file (plots embedded as PNG, no network) about a log's
-calibration: gate statistics, estimates with standard-deviation bands over time, residuals over time
-and against the signals they follow, the ranking of candidate effects, and before/after for any
-added effect.
+calibration: the noise learned from the log against the configured one and the verdict on the fit
+(``RunSummary.noise``, ``nis_mean``, ``verdict``) with the learned noise over time, gate statistics,
+estimates with standard-deviation bands over time, residuals over time and against the signals they
+follow, the ranking of candidate effects, and before/after for any added effect.
 """
 
 from __future__ import annotations
@@ -23,13 +24,15 @@ __all__ = ["COMPONENT_COLOURS", "build_report"]
 COMPONENT_COLOURS = {"north": "tab:blue", "east": "tab:orange", "down": "tab:green", "magnitude": "tab:red"}
 
 
-def _png(fig) -> str:
+def _png(fig, alt: str) -> str:
+    """The figure as an embedded PNG ``<img>`` with the alternative text ``alt`` (what the plot shows)."""
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=90)
     import matplotlib.pyplot as plt
 
     plt.close(fig)
-    return '<img alt="plot" src="data:image/png;base64,' + base64.b64encode(buffer.getvalue()).decode() + '">'
+    data = base64.b64encode(buffer.getvalue()).decode()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
 
 def _table(rows, header) -> str:
@@ -50,7 +53,7 @@ def _residual_plot(t0, diag, title):
     lim = np.nanpercentile(np.abs(r["ned"]), 99.5) * 1.5
     ax.set(ylim=(-lim, lim), xlabel="time since start, s", ylabel="residual, nT", title=title)
     ax.legend(markerscale=8, ncol=4, fontsize=8)
-    return _png(fig)
+    return _png(fig, f"{title}: north, east, down and magnitude residuals in nT against time since start in s")
 
 
 def _binned_plot(diag, names, title, other=None):
@@ -76,7 +79,7 @@ def _binned_plot(diag, names, title, other=None):
         ax.set(xlabel=name, ylabel="mean residual, nT")
     axes[0][0].legend(fontsize=7, ncol=2)
     fig.suptitle(title)
-    return _png(fig)
+    return _png(fig, f"{title}, against {', '.join(names)}")
 
 
 def _states_plot(run, t0):
@@ -100,7 +103,7 @@ def _states_plot(run, t0):
         ax.set(ylim=(final.min() - pad, final.max() + pad), ylabel=title)
         ax.legend(fontsize=7, ncol=len(names))
     axes[-1, 0].set_xlabel("time since start, s (bands: +- 1 standard deviation)")
-    return _png(fig)
+    return _png(fig, "estimates of b (nT), the diagonal of R and any added effects over time, +- 1 standard deviation")
 
 
 def _status_plot(run, t0):
@@ -117,7 +120,127 @@ def _status_plot(run, t0):
     names = list(counts.index)
     ax2.scatter(t, [names.index(v) for v in status], s=1, c=[names.index(v) for v in status], cmap="tab10")
     ax2.set(yticks=range(len(names)), yticklabels=names, xlabel="time since start, s", title="status over time")
-    return _png(fig)
+    return _png(fig, "number of epochs of each status, and the status of every epoch against time since start in s")
+
+
+def _fixed(value: float, digits: int = 2) -> str:
+    return f"{value:.{digits}f}" if np.isfinite(value) else "none"
+
+
+def _noise_section(run, t0: float) -> list[str]:
+    """The "Noise and verdict" section: configured against learned noise, NIS, used share and residuals
+    (``RunSummary``), the verdict, and the learned noise over time."""
+    s = run.summary
+    noise, conf = s.noise, s.noise["configured"]
+    learned = noise.get("learned")
+    header = [
+        "",
+        "sensor noise, nT",
+        "tilt noise, deg",
+        "heading noise, deg",
+        "correlation time, s",
+        "inflation: epochs per independent one (dimensionless)",
+    ]
+    rows = [
+        (
+            "configured",
+            f"{conf['sensor_nt']:g}",
+            f"{conf['attitude_deg']:g}",
+            f"{conf['attitude_deg']:g}",
+            "0 (white)",
+            "1",
+        )
+    ]
+    if learned is not None:
+        rows += [
+            (
+                "learned, end of log",
+                f"{learned['sensor_nt']:.1f}",
+                f"{learned['attitude_deg']:.2g}",
+                f"{learned['heading_deg']:.2g}",
+                f"{noise['correlation_s']:.2g}",
+                f"{noise['inflation']:.3g}",
+            ),
+            (
+                "learned, median over the log",
+                f"{learned['sensor_median_nt']:.1f}",
+                f"{learned['attitude_median_deg']:.2g}",
+                f"{learned['heading_median_deg']:.2g}",
+                "",
+                "",
+            ),
+        ]
+    lo, hi = s.nis_band
+    fit = _table(
+        [
+            (
+                _fixed(s.nis_mean),
+                f"[{_fixed(lo)}, {_fixed(hi)}]",
+                f"{100 * s.used_share:.1f}",
+                _fixed(s.residual_rms_nt),
+                _fixed(s.residual_rms_all_nt),
+                _fixed(s.residual_rms_magnitude_nt),
+                _fixed(s.residual_rms_magnitude_all_nt),
+            )
+        ],
+        [
+            "mean NIS per degree of freedom (dimensionless)",
+            "its 95 % band (dimensionless)",
+            "epochs used, %",
+            "residual RMS, epochs used, nT",
+            "residual RMS, whole log, nT",
+            "magnitude residual RMS, epochs used, nT",
+            "magnitude residual RMS, whole log, nT",
+        ],
+    )
+    how = "learned from the log's innovations" if noise.get("adapted") else "not learned: the configured noise was used"
+    return [
+        "<h2>Noise and verdict</h2>",
+        f"<p><b>Verdict:</b> {html.escape(s.verdict)}.</p>",
+        f"<p>Measurement noise {how}. Residuals with the final estimate: vector norm in NED over the epochs used "
+        "and over the whole log (every epoch with attitude and a reference, gated ones included); the magnitude "
+        "residual likewise.</p>",
+        _table(rows, header),
+        fit,
+        _noise_plot(run, t0),
+    ]
+
+
+def _noise_plot(run, t0: float) -> str:
+    """The learned sensor noise (nT) and attitude noise (deg) against time since ``t0`` (UNIX s), with the
+    configured values dashed."""
+    import matplotlib.pyplot as plt
+
+    s = run.states
+    if "noise_sensor_nt" not in s:
+        return "<p>The noise was not learned (no per-epoch noise to plot).</p>"
+    conf = run.summary.noise["configured"]
+    t = s.index.to_numpy() - t0
+    panels = (
+        (("noise_sensor_nt",), "sensor_nt", "sensor noise, nT"),
+        (("noise_attitude_deg", "noise_heading_deg"), "attitude_deg", "attitude noise, deg"),
+    )
+    styles = {"noise_attitude_deg": ("tilt", "tab:blue"), "noise_heading_deg": ("heading", "tab:orange")}
+    with plt.rc_context({"font.size": 11}):
+        fig, axes = plt.subplots(2, 1, figsize=(10, 4.6), sharex=True, constrained_layout=True)
+        for ax, (columns, key, label) in zip(axes, panels):
+            top = conf[key]
+            for column in columns:
+                values = s[column].to_numpy()
+                name, colour = styles.get(column, ("learned", "tab:blue"))
+                ax.plot(t, values, lw=1.5, color=colour, label=name)
+                top = max(np.nanmax(values, initial=0.0), top)
+            ax.axhline(conf[key], color="tab:gray", ls="--", lw=1.2, label="configured")
+            ax.set_ylim(0, 1.35 * top if top > 0 else 1.0)  # room for the legend above the curves
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+            ax.legend(loc="upper right", ncol=3)
+        axes[-1].set_xlabel("time since start, s")
+        axes[0].set_title("measurement noise learned from the log")
+    return _png(
+        fig,
+        "learned sensor noise in nT, tilt and heading noise in deg against time since start in s, configured dashed",
+    )
 
 
 def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), registry=None, alpha=0.01) -> str:
@@ -134,11 +257,12 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
     s = run.summary
     parts = [
         f"<h1>magkf report: {html.escape(log.source)}</h1>",
-        f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; "
-        f"residual RMS {s.residual_rms_nt:.2f} nT (vector norm), magnitude "
-        f"{s.residual_rms_magnitude_nt:.2f} nT, mean NIS {s.nis_mean:.2f}.</p>",
+        f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; residual RMS over the "
+        f"epochs used {_fixed(s.residual_rms_nt)} nT (vector norm), magnitude {_fixed(s.residual_rms_magnitude_nt)} "
+        f"nT, mean NIS per degree of freedom {_fixed(s.nis_mean)}.</p>",
         f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
         f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
+        *_noise_section(run, t0),
         "<h2>Gates</h2>",
         _status_plot(run, t0),
         _table([(k, v) for k, v in s.status_counts.items()], ["status", "epochs"]),

@@ -28,7 +28,7 @@ from ..io.drivelog import DriveLog
 from ..status import Status
 from .bootstrap import vector_least_squares
 from .measurements import measurement_model
-from .prepare import initial_state, prepare
+from .prepare import deflate_bootstrap, initial_state, prepare, start_noise
 from .results import RunTrace, build_run
 
 __all__ = ["solve_batch", "OUTLIER_SIGMA", "LOSS_SCALE"]
@@ -48,6 +48,13 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     except InputError as exc:
         raise exc.located(log.source) from None
     model = measurement_model(config, layout, x0)
+    if init is None:  # the noise of the log, as the filter starts from it
+        structure = model.structure(np.nan_to_num(prep.data.field_body), layout.R(x0), prep.heading)
+        frame = None if structure is None else structure[3]
+        noise = start_noise(prep, config, x0, layout.linear_jacobian(prep.data), frame, prep.base)
+        P0 = deflate_bootstrap(P0, layout, noise.inflation)
+        if config.adapt_noise:
+            model.set_noise(noise)
     status = prep.base.copy()
     # Each epoch goes to the model that can use it: the model itself, or its fallback without attitude.
     takes = {Status.USED: model, Status.MISSING_ATTITUDE: model.fallback if model.needs_attitude else model}
@@ -73,7 +80,8 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         )
     idx = np.flatnonzero(cand)
     c0 = calibrated(x_start, data.take(idx), prep.m[idx])
-    off = np.abs(np.linalg.norm(c0, axis=1) - prep.ref_mag[idx]) > config.gate_nt
+    gate = max(config.gate_nt, config.gate_sigma * np.sqrt(model.noise.along_var))
+    off = np.abs(np.linalg.norm(c0, axis=1) - prep.ref_mag[idx]) > gate
     status[idx[off]] = Status.GATED_MAGNITUDE
     idx = idx[~off]
     # The residual functions of each model over its epochs, built once.

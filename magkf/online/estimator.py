@@ -18,9 +18,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import FilterConfig
+from ..conventions import inverse3
 from ..status import Status
 from .filters import make_filter
-from .measurements import Block, magnitude_jacobian, measurement_model
+from .measurements import Block, Magnitude, magnitude_jacobian, measurement_model
+from .noise import NoiseLearner, NoiseLevels
 from .state import StateLayout
 
 __all__ = ["Estimator"]
@@ -28,6 +30,34 @@ __all__ = ["Estimator"]
 # Plain integers: enum members are slow to look up and to compare with in the per-block loop.
 USED, MISSING_ATTITUDE = int(Status.USED), int(Status.MISSING_ATTITUDE)
 GATED_MAGNITUDE, GATED_INNOVATION = int(Status.GATED_MAGNITUDE), int(Status.GATED_INNOVATION)
+
+
+def _scale_rows(rows, factor) -> None:
+    """Multiply each epoch's whitened rows (innovation, Jacobian, sigma-point predictions) by ``factor`` (k,):
+    the epoch's noise variance divided by ``factor^2``."""
+    rows.y = rows.y * factor[:, None]
+    rows.H = rows.H * factor[:, None, None]
+    if rows.h is not None:
+        rows.h = rows.h * factor[None, :, None]
+
+
+def _transform_rows(rows, T) -> None:
+    """Apply ``T`` (k, 3, 3) to each epoch's whitened rows (innovation, Jacobian, sigma-point predictions)."""
+    rows.y = np.einsum("kij,kj->ki", T, rows.y)
+    rows.H = T @ rows.H
+    if rows.h is not None:
+        rows.h = np.einsum("kij,skj->ski", T, rows.h)
+
+
+def correlation_transform(W, frame, noise: NoiseLevels) -> np.ndarray:
+    """``T`` (k, 3, 3) taking rows whitened by ``W`` (k, 3, 3) to rows whitened by the same noise inflated by
+    ``noise.inflations`` along the rows of ``frame`` (k, 3, 3): the field's direction, the heading axis and
+    the third, in the sensor axes (``measurements.field_frame``)."""
+    L = inverse3(W) if W.shape == (1, 3, 3) else np.linalg.inv(W)
+    field_noise = frame @ L @ np.swapaxes(L, 1, 2) @ np.swapaxes(frame, 1, 2)
+    d = np.sqrt(noise.inflations)
+    inflated = field_noise * d[:, None] * d[None, :]
+    return np.linalg.inv(np.linalg.cholesky(inflated)) @ frame @ L
 
 
 def chi2_quantile(probability: float, dof: int) -> float:
@@ -41,19 +71,45 @@ class Estimator:
     """The filter, the measurement model and the gates of one calibration run.
 
     ``layout`` gives the state blocks; ``x0`` (n,), ``P0`` (n, n) the initial estimate; the filter and the
-    measurement model are the ones ``config`` names. ``information`` accumulates the whitened
-    ``H^T H`` of every update (for the observability report).
+    measurement model are the ones ``config`` names. ``noise`` the starting ``NoiseLevels`` (default: the
+    configured noise); the learner (``magkf.online.noise``) refines it from the innovations unless
+    ``config.adapt_noise`` is False. ``information`` accumulates the whitened ``H^T H`` of every update
+    (for the observability report). ``magnitude_only``: use the magnitude model alone (a log without
+    attitude), whatever ``config.measure`` says.
     """
 
-    def __init__(self, layout: StateLayout, config: FilterConfig, x0, P0):
+    def __init__(
+        self,
+        layout: StateLayout,
+        config: FilterConfig,
+        x0,
+        P0,
+        noise: NoiseLevels | None = None,
+        magnitude_only: bool = False,
+    ):
         self.layout, self.config = layout, config
         self.filter = make_filter(config.filter, x0, P0, layout.q_rate())
-        self.model = measurement_model(config, layout, x0)
+        self.model = Magnitude(config, layout, x0) if magnitude_only else measurement_model(config, layout, x0)
+        start = noise or self.model.noise
+        self.learner = NoiseLearner(
+            start,
+            config.noise_floor_nt,
+            config.noise_window_s,
+            attitude=self.model.needs_attitude,
+            adapt=config.adapt_noise,
+            method=config.noise_method,
+        )
+        self.model.set_noise(start)
         self.P0 = np.array(P0, float)
         self.information = np.zeros((layout.size, layout.size))
         self.reacquisitions = 0
         self._gated_since = None
         self._chi2 = {}
+
+    @property
+    def noise(self) -> NoiseLevels:
+        """The noise the models use now."""
+        return self.model.noise
 
     @property
     def x(self) -> np.ndarray:
@@ -63,14 +119,17 @@ class Estimator:
     def P(self) -> np.ndarray:
         return self.filter.P
 
-    def whitening(self, field_body, R):
-        """The model's whitening (N, 3, 3) of epochs with body field ``field_body`` (N, 3) at ``R`` (or None)."""
-        return self.model.whitening(field_body, R)
+    def structure(self, field_body, R, heading=None):
+        """What the model's noise at epochs with body field ``field_body`` (N, 3) and heading axis ``heading``
+        (N, 3) is made of (see ``MeasurementModel.structure``), at calibration ``R``; None for the magnitude
+        model."""
+        return self.model.structure(field_body, R, heading)
 
-    def _bound(self, rows: int) -> float:
-        if rows not in self._chi2:
-            self._chi2[rows] = chi2_quantile(self.config.innovation_prob, rows)
-        return self._chi2[rows]
+    def _bound(self, probability: float, rows: int) -> float:
+        key = (probability, rows)
+        if key not in self._chi2:
+            self._chi2[key] = chi2_quantile(probability, rows)
+        return self._chi2[key]
 
     def _parts(self, status) -> list:
         """``(model, mask)`` of the epochs each model takes."""
@@ -102,30 +161,50 @@ class Estimator:
         x = kf.x
         if layout.has_extra:
             blk.e = layout.extra_terms(x, blk.H, blk.data)
-        h = np.linalg.norm(layout.calibrated(x, blk.m, blk.e), axis=1)
-        off = np.abs(h - blk.ref_mag) > self.config.gate_nt
-        if np.count_nonzero(cand & off):
-            # The gate widens with the estimate's own uncertainty of the calibrated magnitude (3 sigma),
-            # evaluated at the block's first candidate (it changes little within a block).
-            i0 = int(np.argmax(cand))
-            e0 = blk.e[i0 : i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
-            _, H0, _ = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
+        c = layout.calibrated(x, blk.m, blk.e)
+        h = np.linalg.norm(c, axis=1)
+        # The variance of the calibrated magnitude that the estimate's covariance implies, at the block's
+        # first candidate (it changes little within a block), every block of the state included.
+        i0 = int(np.argmax(cand))
+        e0 = blk.e[i0 : i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
+        _, H0, w0 = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
+        if layout.has_extra:
+            H0 = np.concatenate([H0[0], -w0[0] @ blk.H[i0][:, layout.EXTRA]])[None]
+            predicted = float(H0[0] @ kf.P @ H0[0])
+        else:
             core = layout.CORE
-            sigma = float(np.sqrt(H0[0] @ kf.P[core, core] @ H0[0]))
-            off = np.abs(h - blk.ref_mag) > self.config.gate_nt + 3.0 * sigma
+            predicted = float(H0[0] @ kf.P[core, core] @ H0[0])
+        self._learn(t, x, blk, h, parts, predicted)
+        width = max(self.config.gate_nt, self.config.gate_sigma * np.sqrt(self.noise.along_var))
+        off = np.abs(h - blk.ref_mag) > width
+        if np.count_nonzero(cand & off):  # the gate widens with the estimate's own uncertainty (3 sigma)
+            off = np.abs(h - blk.ref_mag) > width + 3.0 * np.sqrt(predicted)
         status[cand & off] = GATED_MAGNITUDE
         parts = [(model, mask & ~off) for model, mask in parts if np.count_nonzero(mask & ~off)]
         if not parts:
             return status, updated, nis
-        lin = kf.linearise([(model, blk if mask.all() else blk.take(mask)) for model, mask in parts])
+        self.model.whiten(blk)
+        part_blocks = [blk if mask.all() else blk.take(mask) for _, mask in parts]
+        lin = kf.linearise([(model, b) for (model, _), b in zip(parts, part_blocks)])
         gated = np.zeros(k, bool)
         accept_parts = []
-        for (model, mask), rows in zip(parts, lin.rows):
+        noise = self.noise
+        for (model, mask), rows, part in zip(parts, lin.rows, part_blocks):
             idx = np.flatnonzero(mask)
             nis[idx] = rows.nis
-            refused = rows.nis > self._bound(model.rows)
+            refused = rows.nis > self._bound(self.config.innovation_prob, model.rows)
             gated[idx[refused]] = True
             accept_parts.append(~refused)
+            # Heavy tails: beyond the Huber quantile an epoch is down-weighted, not refused; and each epoch
+            # counts 1 / inflation of an independent one (the residuals' correlation in time), along the
+            # field and across it apart.
+            q = self._bound(self.config.huber_prob, model.rows)
+            huber = np.minimum(1.0, np.sqrt(q / np.maximum(rows.nis, 1e-300)))
+            if model.rows == 3 and part.frame is not None and part.W is not None:
+                _transform_rows(rows, correlation_transform(part.W, part.frame, noise))
+                _scale_rows(rows, np.sqrt(huber))
+            else:
+                _scale_rows(rows, np.sqrt(huber / noise.inflation_along))
         accept = (parts[0][1] if len(parts) == 1 else np.logical_or.reduce([mask for _, mask in parts])) & ~gated
         self._reacquire(t, gated, accept)
         status[gated] = GATED_INNOVATION
@@ -134,6 +213,34 @@ class Estimator:
             self.information += H.T @ H
             updated[accept] = True
         return status, updated, nis
+
+    def _learn(self, t, x, blk: Block, h, parts, predicted: float) -> None:
+        """Show the noise learner the innovations of the candidate epochs (before any gate: the learner
+        winsorises them itself) and give the models what it learned."""
+        along, cross, field2, horizontal2, times = [], [], [], [], []
+        for model, mask in parts:
+            if not np.count_nonzero(mask):
+                continue
+            if model.needs_attitude and blk.frame is not None:
+                e = blk.m[mask] - np.einsum("kij,j->ki", blk.H[mask], x)
+                parts_of_e = np.einsum("kji,ki->kj", blk.frame[mask], e)  # along the field, h, v
+                along.append(parts_of_e[:, 0])
+                cross.append(parts_of_e[:, 1:])
+            else:
+                along.append(blk.ref_mag[mask] - h[mask])
+                cross.append(None)
+            field2.append(blk.ref_mag[mask] ** 2)
+            horizontal2.append(np.einsum("ki,ki->k", blk.heading[mask], blk.heading[mask]))
+            times.append(np.asarray(t)[mask])
+        if not along:
+            return
+        with_cross = [c for c in cross if c is not None]
+        a = np.concatenate(along)
+        cr = np.concatenate(with_cross) if len(with_cross) == len(cross) else None
+        self.learner.observe(
+            np.concatenate(times), a, cr, np.concatenate(field2), predicted, np.concatenate(horizontal2)
+        )
+        self.model.set_noise(self.learner.levels)
 
     def _reacquire(self, t, gated, accept) -> None:
         """After ``max_gated_s`` of innovation gating with nothing accepted, widen P so the filter can recover."""

@@ -14,11 +14,14 @@ evaluated once per log). Residuals are reported in NED. Noise covariance in the 
 
     sensor_noise^2 I + R (reference^2 I + A) R^T
 
-with the attitude term ``A = att^2 (|B|^2 I - B B^T)`` for ``both``: an attitude error turns the field
-but does not change its length, so the along-field (total-field) component keeps sensor-level noise and
-only the two cross-field (inter-axis) components carry the attitude noise; this is the patent's
-total-field plus inter-axis residual pair without counting the magnitude twice. For ``vector``,
-``A = att^2 |B|^2 I`` on every component. ``both`` falls back to the magnitude for epochs without attitude.
+with the attitude term ``A = tilt^2 (|B|^2 I - B B^T) + (heading^2 - tilt^2) h h^T`` for ``both``, where
+``h = B x down`` (body frame; its length is the horizontal field): an attitude error turns the field but
+does not change its length, so the along-field (total-field) component keeps sensor-level noise and only
+the two cross-field (inter-axis) components carry the attitude noise; this is the patent's total-field
+plus inter-axis residual pair without counting the magnitude twice. A heading error (about the vertical,
+usually an INS's worst angle) turns the field along ``h`` only; tilt errors (about the horizontal axes)
+along both cross directions. For ``vector``, ``A = tilt^2 |B|^2 I + (heading^2 - tilt^2) h h^T``.
+``both`` falls back to the magnitude for epochs without attitude.
 
 **Magnitude.** ``|R^-1 (m - b - e)|`` against ``|B_ref|``; needs no attitude. Variance
 ``sensor_noise^2 u^T R^-1 R^-T u + reference^2`` with ``u`` the unit calibrated field. As the only
@@ -35,8 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import body_to_ned, calibrated_field, inverse3
+from ..conventions import body_to_ned, calibrated_field, inverse3, ned_to_body
 from ..effects.base import EpochData
+from .noise import NoiseLevels
 from .state import StateLayout
 
 __all__ = [
@@ -49,6 +53,12 @@ __all__ = [
     "register_measurement",
     "measurement_model",
     "vector_noise",
+    "attitude_structure",
+    "heading_axis",
+    "heading_structure",
+    "cross_basis",
+    "field_frame",
+    "sensor_frame",
     "whitening",
     "magnitude_jacobian",
     "rotation_directions",
@@ -62,17 +72,30 @@ class Block:
     """k consecutive epochs as the models see them.
 
     ``m`` (k, 3) raw nT; ``ref_mag`` (k,) reference magnitude nT; ``H`` (k, 3, n) Jacobian of the linear
-    blocks (``StateLayout.linear_jacobian``); ``W`` (k, 3, 3) whitening of the vector measurement (or None
-    for a model that needs none); ``data`` the epochs' ``EpochData`` (needed by nonlinear effects and the
-    batch residuals); ``e`` (k, 3) raw-field terms of the added effects at the current estimate.
+    blocks (``StateLayout.linear_jacobian``); ``B`` (k, 3) the reference field in the body frame and ``R``
+    (3, 3) the calibration at which the vector noise is evaluated; ``heading`` (k, 3) nT the heading axis
+    ``B x down`` in the body frame (``heading_axis``); ``G`` (k, 3, 3) the tilt part of the vector noise
+    per unit variance, ``Gh`` (k, 3, 3) the heading part and ``RRt`` (3, 3) the reference part,
+    precomputed (``Vector.structure``; None to compute them from ``B``, ``heading`` and ``R``), ``frame``
+    (k, 3, 3) the unit field in the sensor frame, the horizontal direction across it and the third, as
+    rows (``field_frame``; None for a model that needs no attitude); ``data`` the epochs' ``EpochData``
+    (needed by nonlinear effects); ``e`` (k, 3) raw-field terms of the added effects at the current
+    estimate; ``W`` (k, 3, 3) the whitening at the current noise, set by the model (``Vector.whiten``).
     """
 
     m: np.ndarray
     ref_mag: np.ndarray
     H: np.ndarray
-    W: np.ndarray | None = None
+    B: np.ndarray | None = None
+    R: np.ndarray | None = None
+    heading: np.ndarray | None = None
+    G: np.ndarray | None = None
+    Gh: np.ndarray | None = None
+    RRt: np.ndarray | None = None
+    frame: np.ndarray | None = None
     data: EpochData | None = None
     e: np.ndarray | float = 0.0
+    W: np.ndarray | None = None
 
     def take(self, index) -> Block:
         """The same block at the epochs ``index`` (integer array or boolean mask)."""
@@ -84,9 +107,16 @@ class Block:
             self.m[index],
             self.ref_mag[index],
             self.H[index],
-            cut(self.W),
+            cut(self.B),
+            self.R,
+            cut(self.heading),
+            cut(self.G),
+            cut(self.Gh),
+            self.RRt,
+            cut(self.frame),
             None if self.data is None else self.data.take(index),
             cut(self.e),
+            cut(self.W),
         )
 
 
@@ -105,10 +135,33 @@ class MeasurementModel:
     def __init__(self, config: FilterConfig, layout: StateLayout, x0):
         self.config, self.layout = config, layout
         self.fallback: MeasurementModel | None = None
+        self.noise = NoiseLevels(config.sensor_noise_nt, np.radians(config.attitude_deg), config.reference_nt)
+
+    def set_noise(self, noise: NoiseLevels) -> None:
+        """Use ``noise`` from now on (and in the fallback model)."""
+        self.noise = noise
+        if self.fallback is not None:
+            self.fallback.set_noise(noise)
+
+    def structure(self, field_body, R, heading=None):
+        """What the noise of epochs with body field ``field_body`` (N, 3) and heading axis ``heading`` (N, 3)
+        at ``R`` (3, 3) is made of, computed once per log: ``(G, Gh, RRt, frame)`` with ``frame`` (N, 3, 3) the
+        field's frame in the sensor axes (``field_frame``: what the noise learner splits the innovations
+        along) and ``G``, ``Gh``, ``RRt`` what ``whiten`` may use (None here); None for a model that needs no
+        attitude."""
+        if not self.needs_attitude:
+            return None
+        return None, None, None, sensor_frame(field_body, heading, R)
 
     def whitening(self, field_body, R) -> np.ndarray | None:
         """Whitening (k, 3, 3) of the epochs' vector noise at calibration ``R`` (None: not needed)."""
         return None
+
+    def whiten(self, blk: Block) -> None:
+        """Set ``blk.W``, the whitening at the current noise, for the block's epochs (by default
+        ``whitening(blk.B, blk.R)``; nothing for a model that needs none)."""
+        if self.needs_attitude:
+            blk.W = self.whitening(blk.B, blk.R)
 
     def linearise(self, x, blk: Block) -> tuple[np.ndarray, np.ndarray]:
         """Whitened innovation ``y`` (k, r) and Jacobian ``H`` (k, r, n) at state ``x`` (n,)."""
@@ -124,27 +177,50 @@ class MeasurementModel:
         fields ``c`` (k, 3) nT at epochs with reference ``ref`` (k, 3), attitude ``c_nb`` (k, 3, 3), nT."""
         raise NotImplementedError
 
-    # Noise of the batch solver's residuals: the same settings as the filter's.
+    # Noise of the batch solver's residuals: the same as the filter's.
     def _sigma_total(self) -> float:
-        return float(np.sqrt(self.config.sensor_noise_nt**2 + self.config.reference_nt**2))
+        return float(np.sqrt(self.noise.along_var))
 
     def _sigma_cross(self, ref_mag) -> np.ndarray:
-        c = self.config
-        return np.sqrt(c.sensor_noise_nt**2 + c.reference_nt**2 + (np.radians(c.attitude_deg) * ref_mag) ** 2)
+        attitude = max(self.noise.attitude_rad, self.noise.heading)
+        return np.sqrt(self.noise.along_var + (attitude * ref_mag) ** 2)
 
 
 # ---------------------------------------------------------------- vector
-def vector_noise(field_body: np.ndarray, R: np.ndarray, config: FilterConfig, field_aligned: bool) -> np.ndarray:
-    """Sensor-frame noise covariance (N, 3, 3) of the vector measurement at N epochs (body field in nT);
-    ``field_aligned``: attitude noise only across the field (``both``), else on every component."""
+def attitude_structure(field_body: np.ndarray, R: np.ndarray, field_aligned: bool) -> np.ndarray:
+    """The attitude part (N, 3, 3) of the sensor-frame vector noise per unit attitude variance (rad^2):
+    ``R (|B|^2 I - B B^T) R^T`` across the field (``field_aligned``), else ``|B|^2 R R^T``."""
     B = np.asarray(field_body, float)
-    att2 = np.radians(config.attitude_deg) ** 2
-    b2 = np.einsum("ni,ni->n", B, B)
-    diagonal = att2 * b2 + config.reference_nt**2  # (N,)
-    A = _EYE * diagonal[:, None, None]
+    A = _EYE * np.einsum("ni,ni->n", B, B)[:, None, None]
     if field_aligned:
-        A = A - att2 * B[:, :, None] * B[:, None, :]
-    return config.sensor_noise_nt**2 * _EYE + R @ A @ R.T
+        A = A - B[:, :, None] * B[:, None, :]
+    return R @ A @ R.T
+
+
+def heading_axis(c_nb: np.ndarray, field_ned: np.ndarray) -> np.ndarray:
+    """The heading axis ``B x down`` (N, 3) in the body frame, nT, at attitudes ``c_nb`` (N, 3, 3) for the
+    reference ``field_ned`` (N, 3): a heading error ``e`` (rad) moves the body-frame field by ``e`` times it.
+    Its length is the horizontal field."""
+    f = np.asarray(field_ned, float)
+    return ned_to_body(c_nb, np.column_stack([f[:, 1], -f[:, 0], np.zeros(len(f))]))
+
+
+def heading_structure(heading: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The heading part (N, 3, 3) of the sensor-frame vector noise per unit heading variance (rad^2):
+    ``R h h^T R^T`` with ``h`` the heading axis (N, 3) nT."""
+    Rh = np.asarray(heading, float) @ np.asarray(R).T
+    return Rh[:, :, None] * Rh[:, None, :]
+
+
+def vector_noise(field_body, R, noise: NoiseLevels, field_aligned: bool, heading=None) -> np.ndarray:
+    """Sensor-frame noise covariance (N, 3, 3) of the vector measurement at N epochs (body field in nT):
+    ``sensor^2 I + reference^2 R R^T + tilt^2 G + (heading^2 - tilt^2) Gh`` (``attitude_structure``,
+    ``heading_structure``; without ``heading`` axes the heading error is taken as a tilt)."""
+    G = attitude_structure(field_body, R, field_aligned)
+    out = noise.sensor_nt**2 * _EYE + noise.reference_nt**2 * (R @ R.T) + noise.attitude_rad**2 * G
+    if heading is not None:
+        out = out + (noise.heading**2 - noise.attitude_rad**2) * heading_structure(heading, R)
+    return out
 
 
 def whitening(noise: np.ndarray) -> np.ndarray:
@@ -178,8 +254,23 @@ class Vector(MeasurementModel):
     needs_attitude = True
     field_aligned = False
 
-    def whitening(self, field_body, R):
-        return whitening(vector_noise(field_body, R, self.config, self.field_aligned))
+    def structure(self, field_body, R, heading=None):
+        B = np.asarray(field_body, float)
+        Gh = None if heading is None else heading_structure(heading, R)
+        return attitude_structure(B, R, self.field_aligned), Gh, R @ R.T, sensor_frame(B, heading, R)
+
+    def whitening(self, field_body, R, heading=None):
+        return whitening(vector_noise(field_body, R, self.noise, self.field_aligned, heading))
+
+    def whiten(self, blk):
+        if blk.G is None:
+            blk.W = self.whitening(blk.B, blk.R, blk.heading)
+            return
+        n = self.noise
+        noise = n.sensor_nt**2 * _EYE + n.reference_nt**2 * blk.RRt + n.attitude_rad**2 * blk.G
+        if blk.Gh is not None:
+            noise = noise + (n.heading**2 - n.attitude_rad**2) * blk.Gh
+        blk.W = whitening(noise)
 
     def _jacobian(self, x, blk: Block) -> np.ndarray:
         """(k, 3, n) Jacobian of ``m``: the linear blocks' with the nonlinear effects' filled in."""
@@ -223,8 +314,9 @@ class Both(Vector):
 
     def batch_residuals(self, ref, c_nb, ref_mag):
         total = self.fallback.batch_residuals(ref, c_nb, ref_mag)
-        basis = _cross_basis(ref)
-        sigma = self._sigma_cross(ref_mag)[:, None]
+        basis = field_frame(ref, np.column_stack([ref[:, 1], -ref[:, 0], np.zeros(len(ref))]))[:, 1:]
+        var_h, var_v = self.noise.across_vars(ref_mag**2, ref[:, 0] ** 2 + ref[:, 1] ** 2)
+        sigma = np.sqrt(np.column_stack([var_h, var_v]))
 
         def residuals(c):
             cross = np.einsum("nki,ni->nk", basis, body_to_ned(c_nb, c) - ref) / sigma
@@ -233,13 +325,46 @@ class Both(Vector):
         return residuals
 
 
-def _cross_basis(ref: np.ndarray) -> np.ndarray:
+def cross_basis(ref: np.ndarray) -> np.ndarray:
     """Two unit vectors (N, 2, 3) spanning the plane across each reference field (N, 3)."""
     u = ref / np.linalg.norm(ref, axis=1)[:, None]
     helper = np.where(np.abs(u[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    e1 = np.cross(u, helper)
+    e1 = _cross(u, helper)
     e1 /= np.linalg.norm(e1, axis=1)[:, None]
-    return np.stack([e1, np.cross(u, e1)], axis=1)
+    return np.stack([e1, _cross(u, e1)], axis=1)
+
+
+def field_frame(field: np.ndarray, heading=None) -> np.ndarray:
+    """Orthonormal frames (N, 3, 3) whose rows are the unit field (N, 3), the unit ``heading`` axis (N, 3)
+    made orthogonal to it, and the third direction, across both; without ``heading`` (or where it vanishes,
+    a vertical field) two unit vectors across the field (``cross_basis``). Missing fields give a frame
+    about the z axis."""
+    field = np.nan_to_num(np.asarray(field, float))
+    safe = np.where(np.linalg.norm(field, axis=1, keepdims=True) > 0, field, np.array([[0.0, 0.0, 1.0]]))
+    u = safe / np.linalg.norm(safe, axis=1)[:, None]
+    basis = cross_basis(u)
+    if heading is not None:
+        h = np.nan_to_num(np.asarray(heading, float))
+        h = h - np.einsum("ni,ni->n", h, u)[:, None] * u
+        norm = np.linalg.norm(h, axis=1)
+        ok = norm > 1e-6 * np.linalg.norm(safe, axis=1)
+        h = h[ok] / norm[ok, None]
+        basis[ok] = np.stack([h, _cross(u[ok], h)], axis=1)
+    return np.concatenate([u[:, None, :], basis], axis=1)
+
+
+def sensor_frame(field_body, heading, R) -> np.ndarray:
+    """``field_frame`` (N, 3, 3) in the sensor axes at calibration ``R`` (3, 3) of the body field (N, 3) and
+    the heading axis (N, 3, or None)."""
+    R = np.asarray(R)
+    return field_frame(np.asarray(field_body, float) @ R.T, None if heading is None else np.asarray(heading) @ R.T)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products (N, 3), written out: ``np.cross`` pays a generic axis handling per call."""
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.column_stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 # ---------------------------------------------------------------- magnitude
@@ -289,8 +414,8 @@ class Magnitude(MeasurementModel):
 
     def _noise_sd(self, w) -> np.ndarray:
         """Standard deviation (k,) of the magnitude: ``sqrt(sensor^2 |w|^2 + reference^2)``, nT."""
-        c = self.config
-        return np.sqrt(c.sensor_noise_nt**2 * np.einsum("ki,ki->k", w, w) + c.reference_nt**2)
+        n = self.noise
+        return np.sqrt(n.sensor_nt**2 * np.einsum("ki,ki->k", w, w) + n.reference_nt**2)
 
     def _linear(self, x, blk):
         """Magnitude ``h`` (k,), Jacobian (k, n) and noise sd (k,) at ``x``."""

@@ -13,25 +13,35 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import euler_to_dcm, ned_to_body
+from ..conventions import calibrated_field, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
 from ..effects.core import SoftHardIron
 from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog, epoch_status
 from ..status import Status
-from .bootstrap import bootstrap_magnitude, bootstrap_vector
-from .measurements import MEASUREMENTS, Block
+from .bootstrap import PRIOR_B_STD, PRIOR_R_STD, bootstrap_magnitude, bootstrap_vector
+from .measurements import MEASUREMENTS, Block, heading_axis
+from .noise import NoiseLevels, robust_start
 from .state import CORE_SIZE, StateLayout
 
-__all__ = ["PreparedLog", "prepare", "initial_state", "initial_covariance", "with_initial_R"]
+__all__ = [
+    "PreparedLog",
+    "prepare",
+    "initial_state",
+    "initial_covariance",
+    "with_initial_R",
+    "start_noise",
+    "deflate_bootstrap",
+]
 
 
 @dataclass(frozen=True)
 class PreparedLog:
     """Per-epoch arrays of a log, computed once: ``m`` (N, 3) nT, ``ref`` (N, 3) NED nT, ``ref_mag`` (N,),
     ``c_nb`` (N, 3, 3), ``has_attitude`` (N,), ``dop`` (N,), ``base`` (N,) status before filtering (codes of
-    ``magkf.status.Status``), and ``data`` (``EpochData`` for the effects and the models)."""
+    ``magkf.status.Status``), ``data`` (``EpochData`` for the effects and the models) and ``heading``
+    (N, 3) nT the heading axis in the body frame (``measurements.heading_axis``; zero without attitude)."""
 
     m: np.ndarray
     ref: np.ndarray
@@ -41,6 +51,7 @@ class PreparedLog:
     dop: np.ndarray
     base: np.ndarray
     data: EpochData
+    heading: np.ndarray
 
     def __len__(self) -> int:
         return len(self.m)
@@ -50,14 +61,27 @@ class PreparedLog:
         """(N,) UNIX seconds."""
         return self.data.time
 
-    def block(self, index, H, W=None, with_data: bool = False) -> Block:
+    def block(self, index, H, structure=None, with_data: bool = False, R=None) -> Block:
         """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement models,
-        with the linear Jacobian ``H`` (N, 3, n) and whitening ``W`` (N, 3, 3) of the whole log."""
+        with the linear Jacobian ``H`` (N, 3, n), the noise ``structure`` ``(G, Gh, RRt, frame)`` of the
+        whole log (``MeasurementModel.structure``; None for the magnitude model) and the calibration ``R``
+        (3, 3) at which the vector noise is evaluated."""
+        G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
+
+        def cut(a):
+            return None if a is None else a[index]
+
         return Block(
             self.m[index],
             self.ref_mag[index],
             H[index],
-            None if W is None else W[index],
+            self.data.field_body[index],
+            R,
+            self.heading[index],
+            cut(G),
+            cut(Gh),
+            RRt,
+            cut(frame),
             self.data.take(index) if with_data else None,
         )
 
@@ -76,7 +100,8 @@ def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     columns = {c: log.column(c) for c in log.auxiliary}
     ref_mag = np.linalg.norm(ref, axis=1)
     data = EpochData(t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate_of_change(t, field_body))
-    return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data)
+    heading = np.nan_to_num(heading_axis(c_nb, ref))
+    return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
 
 
 def with_initial_R(prep: PreparedLog, x) -> PreparedLog:
@@ -158,3 +183,75 @@ def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | N
     x0[: len(x_init)] = x_init
     P0[: len(x_init), : len(x_init)] = P_init
     return with_initial_R(prep, x_init), layout, x0, P0, how
+
+
+def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> NoiseLevels:
+    """The noise to start from: a robust scale of the residuals of a whole-log fit.
+
+    With attitude, the fit is a robust (Huber-weighted) linear least squares of ``m = H x`` over every usable
+    epoch, starting from ``x0``: over the bootstrap's short stretch alone, a slowly wandering attitude error is
+    absorbed into ``R`` and ``b`` and its residuals understate the noise (and its correlation), which lets
+    the filter trust its first minutes far too much. Without attitude, the residual magnitudes at ``x0``.
+    ``H`` (N, 3, n) the linear Jacobian; ``frame`` (N, 3, 3) the field's frame in the sensor axes (None
+    for the magnitude model); ``base`` (N,) the statuses before filtering."""
+    start = NoiseLevels(config.sensor_noise_nt, np.radians(config.attitude_deg), config.reference_nt)
+    if frame is not None:
+        usable = base == Status.USED
+        if usable.sum() < 50:
+            return start
+        m, Hu = prep.m[usable], H[usable]
+        x = _robust_linear_fit(m, Hu, x0, start.along_var)
+        parts_of_e = np.einsum("kji,ki->kj", frame[usable], m - np.einsum("kij,j->ki", Hu, x))
+        along, cross = parts_of_e[:, 0], parts_of_e[:, 1:]  # along the field, the heading axis, the third
+    else:
+        usable = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)
+        if usable.sum() < 10:
+            return start
+        c = StateLayout.R_b(x0)
+        along = prep.ref_mag[usable] - np.linalg.norm(calibrated_field(*c, prep.m[usable]), axis=1)
+        cross = None
+    horizontal2 = np.sum(prep.ref[usable, :2] ** 2, axis=1)
+    return robust_start(
+        along,
+        cross,
+        prep.ref_mag[usable] ** 2,
+        config.reference_nt,
+        config.noise_floor_nt,
+        start.attitude_rad,
+        horizontal2,
+    )
+
+
+def _robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:
+    """``x`` (n,) minimising Huber-weighted ``|m - H x|^2`` over epochs ``m`` (N, 3) nT, ``H`` (N, 3, n), with a
+    weak pull towards ``x0`` that keeps directions the log does not determine where the start put them."""
+    x = np.asarray(x0, float)
+    n = len(x)
+    scale = np.abs(x) * 1e-3 + 1e-3
+    w = np.ones(len(m))
+    for _ in range(iterations):
+        A = np.einsum("k,kij,kil->jl", w, H, H) + np.diag(noise_var / (1e6 * scale) ** 2 * np.ones(n))
+        rhs = np.einsum("k,kij,ki->j", w, H, m) + noise_var / (1e6 * scale) ** 2 * x0
+        x = np.linalg.solve(A, rhs)
+        r = np.linalg.norm(m - np.einsum("kij,j->ki", H, x), axis=1)
+        s = 1.4826 * np.median(r) + 1e-9
+        w = np.minimum(1.0, 3.0 * s / np.maximum(r, 1e-12))
+    return x
+
+
+def deflate_bootstrap(P0, layout: StateLayout, inflation: float) -> np.ndarray:
+    """``P0`` with the information the bootstrap's *data* gave the core block divided by ``inflation``: the
+    bootstrap counted its stretch's epochs as independent, and residuals correlated over ``inflation``
+    epochs carry that much less. Its weak prior (``bootstrap.PRIOR_R_STD``, ``PRIOR_B_STD``) is kept as
+    it was, so that directions the stretch did not determine stay where the prior holds them."""
+    if inflation <= 1.0:
+        return P0
+    P0 = np.array(P0, float)
+    core = layout.CORE
+    prior = np.diag(1.0 / np.concatenate([np.full(9, PRIOR_R_STD), np.full(3, PRIOR_B_STD)]) ** 2)
+    data = np.linalg.inv(P0[core, core]) - prior
+    values, vectors = np.linalg.eigh(0.5 * (data + data.T))
+    data = (vectors * np.maximum(values, 0.0)) @ vectors.T  # what the data added, never less than nothing
+    deflated = np.linalg.inv(data / inflation + prior)
+    P0[core, core] = 0.5 * (deflated + deflated.T)
+    return P0

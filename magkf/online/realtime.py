@@ -44,7 +44,7 @@ from ..io.drivelog import epoch_status, read_sample, select_dop
 from ..reference import ReferenceFieldCache
 from ..status import STATUS_NAMES, Status
 from .estimator import Estimator
-from .measurements import Block
+from .measurements import Block, heading_axis
 from .prepare import initial_covariance
 from .state import StateLayout
 
@@ -61,7 +61,9 @@ class EpochResult:
     ``field_body`` (3,) calibrated body field, nT (with the estimate after this step); ``magnitude_nt``;
     ``heading_mag_deg`` and ``heading_true_deg`` (NaN without attitude or position); ``status`` (a name
     of ``magkf.status``), ``updated``, ``nis``; ``R`` (3, 3), ``b`` (3,), ``std`` (n,) the current
-    estimate's standard deviations in state order, ``x`` (n,) the whole state.
+    estimate's standard deviations in state order, ``x`` (n,) the whole state; ``noise_sensor_nt`` (nT per
+    axis), ``noise_attitude_deg`` (tilt) and ``noise_heading_deg`` (deg, 1 sigma) the measurement noise
+    the estimator uses after this step (learned from the innovations, ``magkf.online.noise``).
     """
 
     time: float
@@ -76,6 +78,9 @@ class EpochResult:
     b: np.ndarray
     std: np.ndarray
     x: np.ndarray
+    noise_sensor_nt: float
+    noise_attitude_deg: float
+    noise_heading_deg: float
 
 
 class OnlineCalibrator:
@@ -143,10 +148,12 @@ class OnlineCalibrator:
             R0=layout.R(x),
         )
         H = layout.linear_jacobian(data)
-        W = est.whitening(field_body[None], layout.R(x)) if base[0] == Status.USED else None
-        status, updated, nis = est.process_block(
-            np.array([t]), dt, Block(m[None], np.array([np.linalg.norm(ref)]), H, W, data), base
-        )
+        R = layout.R(x)
+        axis = np.nan_to_num(heading_axis(c_nb[None], ref[None]))
+        structure = est.structure(field_body[None], R, axis) if base[0] == Status.USED else None
+        G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
+        blk = Block(m[None], np.array([np.linalg.norm(ref)]), H, field_body[None], R, axis, G, Gh, RRt, frame, data)
+        status, updated, nis = est.process_block(np.array([t]), dt, blk, base)
         x = est.x
         R, b = layout.R_b(x)
         e = layout.extra_terms(x, H, data) if layout.has_extra else 0.0
@@ -165,6 +172,9 @@ class OnlineCalibrator:
             b=b.copy(),
             std=np.sqrt(np.diag(est.P)),
             x=x.copy(),
+            noise_sensor_nt=float(est.noise.sensor_nt),
+            noise_attitude_deg=float(est.noise.attitude_deg),
+            noise_heading_deg=float(est.noise.heading_deg),
         )
 
     def _reference(self, t, v) -> np.ndarray:

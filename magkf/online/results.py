@@ -13,7 +13,16 @@ from ..status import Status, status_counts, status_names
 from . import observability
 from .state import StateLayout
 
-__all__ = ["CalibrationRun", "RunSummary", "RunTrace", "residuals", "build_run"]
+__all__ = [
+    "CalibrationRun",
+    "RunSummary",
+    "RunTrace",
+    "residuals",
+    "build_run",
+    "noise_summary",
+    "nis_summary",
+    "verdict",
+]
 
 
 @dataclass(frozen=True)
@@ -21,12 +30,19 @@ class RunSummary:
     """The figures of a run, each with its unit.
 
     ``R`` (3x3) and ``b`` (3, nT) the final estimate, ``std`` the standard deviation of every state by name.
-    ``residual_rms_nt``: RMS of the NED residual norm (nT) with the final estimate (the smoothed per-epoch
-    estimate when smoothed) over the epochs used with attitude; ``residual_rms_axis_nt`` the same per NED
-    axis; ``residual_rms_magnitude_nt`` the RMS magnitude residual over every epoch used;
-    ``innovation_rms_nt`` the RMS NED residual norm with the estimate before each epoch; ``nis_mean`` the
-    mean normalised innovation squared of the epochs used. ``status_counts`` the epochs of each status.
-    ``observability``: the directions the data did not determine (``text`` says it in words).
+    Residuals, all with the final estimate (the smoothed per-epoch estimate when smoothed):
+    ``residual_rms_nt`` the RMS of the NED residual norm (nT) over the epochs *used* with attitude,
+    ``residual_rms_axis_nt`` the same per NED axis, ``residual_rms_magnitude_nt`` the RMS magnitude
+    residual over the epochs used (with or without attitude); ``residual_rms_all_nt`` and
+    ``residual_rms_magnitude_all_nt`` the same over the *whole log* (every epoch with a magnetometer
+    reading and a reference; attitude for the vector figure), gated epochs included.
+    ``innovation_rms_nt`` the RMS NED residual norm with the estimate before each epoch. ``nis_mean`` the
+    mean normalised innovation squared per degree of freedom of the epochs used, ``nis_band`` its 95 %
+    band for the effective number of independent epochs; ``used_share`` the share of epochs used.
+    ``noise``: the configured and the learned noise (sensor nT, attitude deg), the residuals' correlation
+    time (s) and the inflation of each epoch's noise it implies. ``verdict``: what these say, in words.
+    ``status_counts`` the epochs of each status. ``observability``: the directions the data did not
+    determine (``text`` says it in words).
     """
 
     R: list
@@ -35,8 +51,14 @@ class RunSummary:
     residual_rms_nt: float
     residual_rms_axis_nt: dict
     residual_rms_magnitude_nt: float
+    residual_rms_all_nt: float
+    residual_rms_magnitude_all_nt: float
     innovation_rms_nt: float
     nis_mean: float
+    nis_band: list
+    used_share: float
+    noise: dict
+    verdict: str
     n_epochs: int
     n_updates: int
     status_counts: dict
@@ -91,6 +113,97 @@ def residuals(prep, layout: StateLayout, x) -> tuple[np.ndarray, np.ndarray]:
     return ned, mag
 
 
+#: The least attitude error the verdict reports: about what the robust scale of a minute of residuals can
+#: tell from none (0.02 deg is 17 nT across a 48 000 nT field).
+ATTITUDE_RESOLUTION_DEG = 0.02
+#: The verdict calls the noise model wrong when the mean NIS per degree of freedom is outside its 95 % band
+#: *and* further than this from 1: with thousands of epochs the band is a few per cent wide, narrower than
+#: the approximations of a learned noise model.
+NIS_TOLERANCE = 0.2
+
+
+def noise_summary(config, trace: RunTrace) -> dict:
+    """The configured and learned noise of a run, and the residuals' correlation (JSON-ready)."""
+    learned = trace.noise
+    out = {
+        "adapted": bool(config.adapt_noise) and learned is not None,
+        "configured": {"sensor_nt": config.sensor_noise_nt, "attitude_deg": config.attitude_deg},
+        "correlation_s": float(trace.correlation_s),
+        "inflation": 1.0,
+    }
+    if learned is not None and len(learned):
+        out["learned"] = {
+            "sensor_nt": float(learned[-1, 0]),
+            "attitude_deg": float(learned[-1, 1]),
+            "heading_deg": float(learned[-1, 2]),
+            "sensor_median_nt": float(np.median(learned[:, 0])),
+            "attitude_median_deg": float(np.median(learned[:, 1])),
+            "heading_median_deg": float(np.median(learned[:, 2])),
+        }
+        out["inflation"] = float(learned[-1, 3])
+    return out
+
+
+def nis_summary(nis, updated, has_attitude, inflation: float) -> dict:
+    """Mean NIS per degree of freedom of the updated epochs and its two-sided 95 % chi-square band for the
+    effective number of independent epochs (``n / inflation``)."""
+    from scipy.stats import chi2
+
+    ok = updated & np.isfinite(nis)
+    dof = np.where(has_attitude[ok], 3.0, 1.0)
+    if not ok.any():
+        return {"mean": float("nan"), "band": [float("nan"), float("nan")]}
+    total_dof = max(dof.sum() / max(inflation, 1.0), 1.0)
+    band = [float(chi2.ppf(0.025, total_dof) / total_dof), float(chi2.ppf(0.975, total_dof) / total_dof)]
+    return {"mean": float(np.sum(nis[ok]) / dof.sum()), "band": band}
+
+
+def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
+    """What the learned noise, the NIS and the used share say about the fit, in words."""
+    if not noise["adapted"]:
+        return "the noise was not learned (a batch solution, or adapt_noise off): no verdict on the fit"
+    words = []
+    configured = noise["configured"]["sensor_nt"]
+    learned = noise.get("learned", {}).get("sensor_median_nt")
+    misses = False
+    if learned is not None and learned > 3 * configured:
+        words.append(
+            f"residuals are {learned / configured:.0f} times the stated sensor noise "
+            f"({learned:.0f} nT against {configured:g} nT)"
+        )
+        misses = True
+    elif learned is not None and learned < configured / 3:
+        words.append(f"the sensor is quieter than stated ({learned:.1f} nT against {configured:g} nT)")
+    for key, what in (("attitude_median_deg", "a tilt error"), ("heading_median_deg", "a heading error")):
+        att = noise.get("learned", {}).get(key)
+        if att is not None and att > max(3 * noise["configured"]["attitude_deg"], ATTITUDE_RESOLUTION_DEG):
+            words.append(f"the field across the reference scatters as {what} of {att:.2g} deg")
+            misses = True
+    if noise["inflation"] > 2:
+        words.append(
+            f"correlated over about {noise['correlation_s']:.2g} s (each epoch counts as "
+            f"1/{noise['inflation']:.0f} of an independent one)"
+        )
+        misses = True
+    lo, hi = nis_stats["band"]
+    mean = nis_stats["mean"]
+    if np.isfinite(mean) and not lo <= mean <= hi and abs(mean - 1.0) > NIS_TOLERANCE:
+        words.append(
+            f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band [{lo:.2f}, {hi:.2f}]: "
+            "the noise model does not fit"
+        )
+        misses = True
+    if used_share < 0.5:
+        words.append(f"only {100 * used_share:.0f} % of the epochs were used")
+    if not words:
+        nis = f", mean NIS {mean:.2f} per degree of freedom" if np.isfinite(mean) else ""
+        return f"the model fits the data at the level of the noise (residuals white{nis})"
+    text = "; ".join(words)
+    if misses:
+        text += ": the model misses something; run magkf diagnose"
+    return text[0].upper() + text[1:]
+
+
 def _rms(a) -> float:
     a = np.asarray(a, float)
     return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
@@ -100,7 +213,9 @@ def _rms(a) -> float:
 class RunTrace:
     """What a run went through: per-epoch states ``xs`` (N, n) and their standard deviations ``stds`` (N, n),
     statuses (N,), update flags (N,) and NIS (N,); the final state ``x`` (n,) and ``P`` (n, n); the whitened
-    information of the updates (n, n); how it started, how long it took (s), and the run's options."""
+    information of the updates (n, n); how it started, how long it took (s), and the run's options;
+    ``noise`` (N, 4) the noise the filter had learned after each epoch's block (sensor nT, tilt and heading
+    deg, inflation) and ``correlation_s`` the residuals' integrated correlation time at the end, s."""
 
     xs: np.ndarray
     stds: np.ndarray
@@ -116,6 +231,8 @@ class RunTrace:
     reacquisitions: int = 0
     loop_s: float = float("nan")
     method: str | None = None
+    noise: np.ndarray | None = None
+    correlation_s: float = 0.0
 
 
 def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -> CalibrationRun:
@@ -131,6 +248,7 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     ned_f, mag_f = residuals(prep, layout, xs if smoothed else x_final)
     used = (status == Status.USED) & updated
     vec_used = used & prep.has_attitude
+    updated_any = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
     table = {"status": status_names(status), "updated": updated, "nis": nis}
     for k, name in enumerate(names):
         table[name] = xs[:, k]
@@ -139,6 +257,10 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     for k, axis in enumerate("ned"):
         table[f"residual_{axis}"] = ned_i[:, k]
     table["residual_mag"] = mag_i
+    if trace.noise is not None:
+        noise_columns = ("noise_sensor_nt", "noise_attitude_deg", "noise_heading_deg", "noise_inflation")
+        for column, values in zip(noise_columns, trace.noise.T):
+            table[column] = values
     states = pd.DataFrame(table, index=log.table.index)
 
     std = np.sqrt(np.diag(P_final))
@@ -154,15 +276,23 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             }
             for j, p in enumerate(effect.parameter_names)
         }
+    noise = noise_summary(config, trace)
+    nis_stats = nis_summary(nis, updated_any, prep.has_attitude, noise["inflation"])
     summary = RunSummary(
         R=R.tolist(),
         b=b.tolist(),
         std=dict(zip(names, std.tolist())),
         residual_rms_nt=_rms(np.linalg.norm(ned_f[vec_used], axis=1)),
         residual_rms_axis_nt={a: _rms(ned_f[vec_used, k]) for k, a in enumerate(("north", "east", "down"))},
-        residual_rms_magnitude_nt=_rms(mag_f[used]),
+        residual_rms_magnitude_nt=_rms(mag_f[updated_any]),
+        residual_rms_all_nt=_rms(np.linalg.norm(ned_f[np.all(np.isfinite(ned_f), axis=1)], axis=1)),
+        residual_rms_magnitude_all_nt=_rms(mag_f[np.isfinite(mag_f)]),
         innovation_rms_nt=_rms(np.linalg.norm(ned_i[vec_used], axis=1)),
-        nis_mean=float(np.mean(nis[used])) if np.isfinite(nis[used]).any() else float("nan"),
+        nis_mean=nis_stats["mean"],
+        nis_band=nis_stats["band"],
+        used_share=float(np.mean(updated_any)) if len(status) else 0.0,
+        noise=noise,
+        verdict=verdict(noise, nis_stats, float(np.mean(updated_any)) if len(status) else 0.0, obs),
         n_epochs=int(len(status)),
         n_updates=int(updated.sum()),
         status_counts=status_counts(status),
@@ -182,6 +312,9 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     quality = {
         k: getattr(summary, k)
         for k in (
+            "residual_rms_all_nt",
+            "used_share",
+            "verdict",
             "residual_rms_nt",
             "residual_rms_axis_nt",
             "residual_rms_magnitude_nt",

@@ -18,7 +18,7 @@ from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from .estimator import Estimator
-from .prepare import initial_state, mark_missing_columns, prepare
+from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
@@ -47,9 +47,15 @@ def calibrate_log(
         prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
     except InputError as exc:
         raise exc.located(log.source) from None
-    est = Estimator(layout, config, x0, P0)
     H_all = layout.linear_jacobian(prep.data)
-    W = est.whitening(np.nan_to_num(prep.data.field_body), layout.R(x0))
+    magnitude_only = not prep.has_attitude.any()
+    est = Estimator(layout, config, x0, P0, magnitude_only=magnitude_only)
+    R0 = layout.R(x0)
+    structure = est.structure(np.nan_to_num(prep.data.field_body), R0, prep.heading)
+    if init is None:  # bootstrapped: the noise starts from the log's robust scale too
+        noise = start_noise(prep, config, x0, H_all, None if structure is None else structure[3], base)
+        P0 = deflate_bootstrap(P0, layout, noise.inflation)
+        est = Estimator(layout, config, x0, P0, noise if config.adapt_noise else None, magnitude_only=magnitude_only)
     n_ep, n = len(prep), layout.size
     t = prep.time
     starts, stops = blocks(t, config.block_s)
@@ -59,16 +65,18 @@ def calibrate_log(
     status = np.empty(n_ep, np.int8)
     updated = np.zeros(n_ep, bool)
     nis = np.full(n_ep, np.nan)
+    noise_b = np.empty((len(starts), 4))  # learned sensor nT, tilt and heading deg, inflation, after each block
     with_data = bool(layout.nonlinear)
     every = max(len(starts) // 100, 1)
     loop_started = _time.perf_counter()
     for j, (i0, i1) in enumerate(zip(starts.tolist(), stops.tolist())):
         epochs = slice(i0, i1)
         status[epochs], updated[epochs], nis[epochs] = est.process_block(
-            t[epochs], block_dt[j], prep.block(epochs, H_all, W, with_data), base[epochs]
+            t[epochs], block_dt[j], prep.block(epochs, H_all, structure, with_data, R0), base[epochs]
         )
         xs_b[j] = est.x
         Ps_b[j] = est.P
+        noise_b[j] = est.noise.sensor_nt, est.noise.attitude_deg, est.noise.heading_deg, est.noise.inflation
         if progress is not None and j % every == 0:
             progress(j / len(starts))
     loop_s = _time.perf_counter() - loop_started
@@ -94,6 +102,8 @@ def calibrate_log(
         smooth,
         est.reacquisitions,
         loop_s,
+        noise=noise_b[block_of],
+        correlation_s=est.learner.inflation() * float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
     )
     return build_run(log, prep, config, layout, x0, P0, trace)
 
