@@ -225,15 +225,16 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> 
 def _robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:
     """``x`` (n,) minimising Huber-weighted ``|m - H x|^2`` over epochs ``m`` (N, 3) nT, ``H`` (N, 3, n), with a
     weak pull towards ``x0`` that keeps directions the log does not determine where the start put them."""
-    x = np.asarray(x0, float)
-    n = len(x)
-    scale = np.abs(x) * 1e-3 + 1e-3
+    x0 = np.asarray(x0, float)
+    n = len(x0)
+    rows, y = H.reshape(-1, n), m.reshape(-1)  # (3N, n) and (3N,): one row per component
+    pull = noise_var / (1e6 * (np.abs(x0) * 1e-3 + 1e-3)) ** 2
     w = np.ones(len(m))
+    x = x0
     for _ in range(iterations):
-        A = np.einsum("k,kij,kil->jl", w, H, H) + np.diag(noise_var / (1e6 * scale) ** 2 * np.ones(n))
-        rhs = np.einsum("k,kij,ki->j", w, H, m) + noise_var / (1e6 * scale) ** 2 * x0
-        x = np.linalg.solve(A, rhs)
-        r = np.linalg.norm(m - np.einsum("kij,j->ki", H, x), axis=1)
+        weighted = rows * np.repeat(w, 3)[:, None]
+        x = np.linalg.solve(rows.T @ weighted + np.diag(pull), weighted.T @ y + pull * x0)
+        r = np.linalg.norm((y - rows @ x).reshape(-1, 3), axis=1)
         s = 1.4826 * np.median(r) + 1e-9
         w = np.minimum(1.0, 3.0 * s / np.maximum(r, 1e-12))
     return x

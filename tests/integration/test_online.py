@@ -63,14 +63,14 @@ def test_magnitude_jacobian_matches_finite_differences():
 # ---------------------------------------------------------------- accuracy on 3-D motion
 @pytest.fixture(scope="module")
 def monte_carlo():
-    """20 seeded 20-minute 50 Hz 3-D logs with disturbances and bad-DOP stretches, run through the EKF with
+    """20 seeded 20-minute 25 Hz 3-D logs with disturbances and bad-DOP stretches, run through the EKF with
     the default noise settings (the noise learned from the log, starting from the configured 30 nT and
     0.1 deg) but without the random walks of R and b: the simulated calibration is constant, and a walk the
     truth does not take widens the covariance (by design, to follow slow changes) and so lowers NEES."""
     config = FilterConfig(r_walk=0.0, b_walk=0.0)
     out = []
     for seed in range(20):
-        sim = simulate_drive(DriveConfig(duration_s=1200, rate_hz=50, motion="3d", noise_nt=NOISE, seed=100 + seed))
+        sim = simulate_drive(DriveConfig(duration_s=1200, rate_hz=25, motion="3d", noise_nt=NOISE, seed=100 + seed))
         out.append((sim, calibrate_log(DriveLog(sim.table, "sim"), config)))
     return out
 
