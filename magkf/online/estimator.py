@@ -21,11 +21,11 @@ from ..config import FilterConfig
 from ..conventions import inverse3
 from ..status import Status
 from .filters import make_filter
-from .measurements import Block, Magnitude, magnitude_jacobian, measurement_model
+from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model
 from .noise import NoiseLearner, NoiseLevels
 from .state import StateLayout
 
-__all__ = ["Estimator"]
+__all__ = ["Estimator", "run_model"]
 
 # Plain integers: enum members are slow to look up and to compare with in the per-block loop.
 USED, MISSING_ATTITUDE = int(Status.USED), int(Status.MISSING_ATTITUDE)
@@ -60,6 +60,12 @@ def correlation_transform(W, frame, noise: NoiseLevels) -> np.ndarray:
     return np.linalg.inv(np.linalg.cholesky(inflated)) @ frame @ L
 
 
+def run_model(config: FilterConfig, layout: StateLayout, x0, magnitude_only: bool = False) -> MeasurementModel:
+    """The measurement model of a run: the one ``config.measure`` names, or the magnitude alone
+    (``magnitude_only``: a log without attitude)."""
+    return Magnitude(config, layout, x0) if magnitude_only else measurement_model(config, layout, x0)
+
+
 def chi2_quantile(probability: float, dof: int) -> float:
     """The chi-square quantile of ``probability`` with ``dof`` degrees of freedom."""
     from scipy.special import chdtri
@@ -74,8 +80,8 @@ class Estimator:
     measurement model are the ones ``config`` names. ``noise`` the starting ``NoiseLevels`` (default: the
     configured noise); the learner (``magkf.online.noise``) refines it from the innovations unless
     ``config.adapt_noise`` is False. ``information`` accumulates the whitened ``H^T H`` of every update
-    (for the observability report). ``magnitude_only``: use the magnitude model alone (a log without
-    attitude), whatever ``config.measure`` says.
+    (for the observability report). ``model`` the measurement model (default: the one ``config.measure``
+    names; ``run_model`` chooses it for a log).
     """
 
     def __init__(
@@ -85,11 +91,11 @@ class Estimator:
         x0,
         P0,
         noise: NoiseLevels | None = None,
-        magnitude_only: bool = False,
+        model: MeasurementModel | None = None,
     ):
         self.layout, self.config = layout, config
         self.filter = make_filter(config.filter, x0, P0, layout.q_rate())
-        self.model = Magnitude(config, layout, x0) if magnitude_only else measurement_model(config, layout, x0)
+        self.model = model or measurement_model(config, layout, x0)
         start = noise or self.model.noise
         self.learner = NoiseLearner(
             start,

@@ -55,7 +55,9 @@ __all__ = [
     "vector_noise",
     "attitude_structure",
     "heading_axis",
+    "heading_axis_ned",
     "heading_structure",
+    "compose_noise",
     "cross_basis",
     "field_frame",
     "sensor_frame",
@@ -201,8 +203,13 @@ def heading_axis(c_nb: np.ndarray, field_ned: np.ndarray) -> np.ndarray:
     """The heading axis ``B x down`` (N, 3) in the body frame, nT, at attitudes ``c_nb`` (N, 3, 3) for the
     reference ``field_ned`` (N, 3): a heading error ``e`` (rad) moves the body-frame field by ``e`` times it.
     Its length is the horizontal field."""
+    return ned_to_body(c_nb, heading_axis_ned(field_ned))
+
+
+def heading_axis_ned(field_ned: np.ndarray) -> np.ndarray:
+    """``B x down`` (N, 3) in NED, nT: ``(B_e, -B_n, 0)``, horizontal and across the field."""
     f = np.asarray(field_ned, float)
-    return ned_to_body(c_nb, np.column_stack([f[:, 1], -f[:, 0], np.zeros(len(f))]))
+    return np.column_stack([f[:, 1], -f[:, 0], np.zeros(len(f))])
 
 
 def heading_structure(heading: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -216,10 +223,16 @@ def vector_noise(field_body, R, noise: NoiseLevels, field_aligned: bool, heading
     """Sensor-frame noise covariance (N, 3, 3) of the vector measurement at N epochs (body field in nT):
     ``sensor^2 I + reference^2 R R^T + tilt^2 G + (heading^2 - tilt^2) Gh`` (``attitude_structure``,
     ``heading_structure``; without ``heading`` axes the heading error is taken as a tilt)."""
-    G = attitude_structure(field_body, R, field_aligned)
-    out = noise.sensor_nt**2 * _EYE + noise.reference_nt**2 * (R @ R.T) + noise.attitude_rad**2 * G
-    if heading is not None:
-        out = out + (noise.heading**2 - noise.attitude_rad**2) * heading_structure(heading, R)
+    Gh = None if heading is None else heading_structure(heading, R)
+    return compose_noise(noise, attitude_structure(field_body, R, field_aligned), Gh, R @ R.T)
+
+
+def compose_noise(noise: NoiseLevels, G, Gh, RRt) -> np.ndarray:
+    """``sensor^2 I + reference^2 RRt + tilt^2 G + (heading^2 - tilt^2) Gh`` (N, 3, 3) from the noise levels
+    and the parts of the noise per unit variance (``Vector.structure``; ``Gh`` None: no heading term)."""
+    out = noise.sensor_nt**2 * _EYE + noise.reference_nt**2 * RRt + noise.attitude_rad**2 * G
+    if Gh is not None:
+        out = out + (noise.heading**2 - noise.attitude_rad**2) * Gh
     return out
 
 
@@ -266,11 +279,7 @@ class Vector(MeasurementModel):
         if blk.G is None:
             blk.W = self.whitening(blk.B, blk.R, blk.heading)
             return
-        n = self.noise
-        noise = n.sensor_nt**2 * _EYE + n.reference_nt**2 * blk.RRt + n.attitude_rad**2 * blk.G
-        if blk.Gh is not None:
-            noise = noise + (n.heading**2 - n.attitude_rad**2) * blk.Gh
-        blk.W = whitening(noise)
+        blk.W = whitening(compose_noise(self.noise, blk.G, blk.Gh, blk.RRt))
 
     def _jacobian(self, x, blk: Block) -> np.ndarray:
         """(k, 3, n) Jacobian of ``m``: the linear blocks' with the nonlinear effects' filled in."""
@@ -314,7 +323,7 @@ class Both(Vector):
 
     def batch_residuals(self, ref, c_nb, ref_mag):
         total = self.fallback.batch_residuals(ref, c_nb, ref_mag)
-        basis = field_frame(ref, np.column_stack([ref[:, 1], -ref[:, 0], np.zeros(len(ref))]))[:, 1:]
+        basis = field_frame(ref, heading_axis_ned(ref))[:, 1:]
         var_h, var_v = self.noise.across_vars(ref_mag**2, ref[:, 0] ** 2 + ref[:, 1] ** 2)
         sigma = np.sqrt(np.column_stack([var_h, var_v]))
 

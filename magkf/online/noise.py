@@ -210,9 +210,9 @@ class NoiseLearner:
             self._autocorrelate(z, math.exp(-dt / (CORRELATION_WINDOWS * self.window_s)))
             self._measured_s += dt
         # Re-estimated on a fixed grid of times (the same epochs whether they come in blocks or one by one).
-        tick = math.floor((float(t[0]) - self._t0) / ESTIMATE_EVERY_S) if self._t0 is not None else None
         if self._t0 is None:
-            self._t0, tick = float(t[0]), 0
+            self._t0 = float(t[0])
+        tick = math.floor((float(t[0]) - self._t0) / ESTIMATE_EVERY_S)
         if self.adapt and tick != self._estimated:
             self._estimated = tick
             lv = self._estimate()
@@ -258,6 +258,11 @@ class NoiseLearner:
         white innovations); the start's until the correlation has been measured over one window."""
         if self._measured_s < self.window_s:
             return self._start_inflations
+        return self.measured_inflations()
+
+    def measured_inflations(self) -> tuple[float, float, float]:
+        """The integrated autocorrelation times of what has been observed so far, epochs (``inflations``
+        without the start's)."""
         along, heading, across = (_integrated_time(rho) for rho in self.correlation())
         return (along, heading, across) if self.attitude else (along, along, along)
 
@@ -293,7 +298,7 @@ def _robust_scale(values) -> float:
 
 
 def estimate_levels(
-    along, cross, field2, horizontal2, prior: NoiseLevels, floor_nt: float, predicted: float = 0.0, method="matching"
+    along, cross, field2, horizontal2, prior: NoiseLevels, floor_nt: float, predicted: float = 0.0, method="variational"
 ) -> NoiseLevels:
     """Noise levels from innovations: ``along`` (N,) nT along the field, ``cross`` (N, 2) nT along ``h`` and
     ``v`` (None: the attitude part of ``prior`` is kept), ``field2`` and ``horizontal2`` (N,) the field and
@@ -334,9 +339,4 @@ def robust_start(
     levels = estimate_levels(along, cross, field2, horizontal2, prior, floor_nt)
     learner = NoiseLearner(levels, floor_nt, attitude=cross is not None, adapt=False)
     learner.observe(np.arange(len(along), dtype=float), along, cross, field2, horizontal2=horizontal2)
-    along_i, heading_i, across_i = (_integrated_time(rho) for rho in learner.correlation())
-    return (
-        levels.with_inflations(along_i, heading_i, across_i)
-        if cross is not None
-        else levels.with_inflations(along_i, along_i, along_i)
-    )
+    return levels.with_inflations(*learner.measured_inflations())

@@ -17,7 +17,7 @@ from ..config import FilterConfig
 from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
-from .estimator import Estimator
+from .estimator import Estimator, run_model
 from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
@@ -48,14 +48,15 @@ def calibrate_log(
     except InputError as exc:
         raise exc.located(log.source) from None
     H_all = layout.linear_jacobian(prep.data)
-    magnitude_only = not prep.has_attitude.any()
-    est = Estimator(layout, config, x0, P0, magnitude_only=magnitude_only)
+    model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
     R0 = layout.R(x0)
-    structure = est.structure(np.nan_to_num(prep.data.field_body), R0, prep.heading)
+    structure = model.structure(np.nan_to_num(prep.data.field_body), R0, prep.heading)
+    noise = None
     if init is None:  # bootstrapped: the noise starts from the log's robust scale too
-        noise = start_noise(prep, config, x0, H_all, None if structure is None else structure[3], base)
-        P0 = deflate_bootstrap(P0, layout, noise.inflation)
-        est = Estimator(layout, config, x0, P0, noise if config.adapt_noise else None, magnitude_only=magnitude_only)
+        start = start_noise(prep, config, x0, H_all, None if structure is None else structure[3], base)
+        P0 = deflate_bootstrap(P0, layout, start.inflation)
+        noise = start if config.adapt_noise else None
+    est = Estimator(layout, config, x0, P0, noise, model)
     n_ep, n = len(prep), layout.size
     t = prep.time
     starts, stops = blocks(t, config.block_s)
