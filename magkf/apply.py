@@ -9,7 +9,7 @@ from .conventions import declination_deg, magnetic_heading_deg
 from .io.calibration import Calibration
 from .io.drivelog import DriveLog
 
-__all__ = ["COLUMNS", "apply_calibration"]
+__all__ = ["COLUMNS", "apply_calibration", "effect_terms"]
 
 #: Output columns of ``apply_calibration`` besides the time index.
 COLUMNS = (
@@ -24,26 +24,46 @@ COLUMNS = (
 )
 
 
-def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
-    """Every epoch of ``log`` corrected with ``cal``; a DataFrame indexed by time.
+def effect_terms(log: DriveLog, cal: Calibration, registry: dict | None = None) -> np.ndarray:
+    """The raw-field contribution (N, 3) nT of the physical effects ``cal`` stores, at their stored values,
+    at every epoch of ``log`` (NaN where an effect lacks its input: a channel, or the attitude and reference
+    of the effects of the body field); zeros when it stores none. User effects need ``registry``."""
+    if not cal.effects:
+        return np.zeros((len(log.table), 3))
+    from .config import FilterConfig
+    from .effects import restore_effects
+    from .online.prepare import prepare, with_initial_R
+    from .online.state import StateLayout
 
-    Columns: ``field_x, field_y, field_z`` (calibrated body field ``R^-1 (m - b)``, nT),
+    layout = StateLayout.with_core(restore_effects(cal, registry))
+    x = cal.full_state
+    prep = with_initial_R(prepare(log, FilterConfig()), x)
+    return layout.extra_terms(x, layout.linear_jacobian(prep.data), prep.data)
+
+
+def apply_calibration(log: DriveLog, cal: Calibration, registry: dict | None = None) -> pd.DataFrame:
+    """Every epoch of ``log`` corrected with ``cal`` and the effects it stores; a DataFrame indexed by time.
+
+    Columns: ``field_x, field_y, field_z`` (calibrated body field ``R^-1 (m - b - e)``, nT, with ``e`` the
+    stored effects' contribution, ``effect_terms``),
     ``magnitude_nt``, ``heading_mag_deg`` (tilt-compensated, clockwise from magnetic north),
     ``declination_deg`` (from ``ref_*`` or IGRF), ``heading_true_deg`` and ``status``:
-    ``ok``, ``missing_mag`` (no field), ``missing_attitude`` (field but no heading) or
-    ``missing_position`` (magnetic heading but no true heading).
+    ``ok``, ``missing_mag`` (no field), ``missing_effect_input`` (a stored effect lacks its channel, or the
+    attitude and position it needs), ``missing_attitude`` (field but no heading) or ``missing_position``
+    (magnetic heading but no true heading).
     """
-    field = cal.correct(log.mag)
+    terms = effect_terms(log, cal, registry)
+    field = cal.correct(log.mag - terms)
     att = log.attitude
     heading = magnetic_heading_deg(field, att[:, 0], att[:, 1])
     declination = declination_deg(log.reference_ned())
     true_heading = (heading + declination) % 360.0
     has_mag = np.all(np.isfinite(log.mag), axis=1)
     has_att = np.all(np.isfinite(att[:, :2]), axis=1)
-    status = np.where(
-        ~has_mag,
-        "missing_mag",
-        np.where(~has_att, "missing_attitude", np.where(~np.isfinite(declination), "missing_position", "ok")),
+    status = np.select(
+        [~has_mag, ~np.all(np.isfinite(terms), axis=1), ~has_att, ~np.isfinite(declination)],
+        ["missing_mag", "missing_effect_input", "missing_attitude", "missing_position"],
+        "ok",
     )
     out = pd.DataFrame(
         {

@@ -16,6 +16,7 @@ class WheelMagnet(LinearEffect):
     name = "wheel_magnet"
     parameter_names = ("a_x", "a_y", "a_z", "c_x", "c_y", "c_z")
     units = ("nT",) * 6
+    channels = ("angle",)  # candidates only on angle channels (names ending in _deg or _rad)
     prior_std = 1000.0  # nT: a weak prior
 
     def __init__(self, column: str = "wheel_deg"):

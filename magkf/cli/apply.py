@@ -11,7 +11,8 @@ def add_parsers(sub) -> None:
     """Register ``apply``."""
     p = common.command(sub, "apply", run_apply, "calibrated field, magnitude and headings for every epoch of a log")
     common.add_log_options(p)
-    p.add_argument("--cal", required=True, help="calibration JSON")
+    p.add_argument("--cal", required=True, help="calibration JSON (its stored effects are applied too)")
+    common.add_effect_file_option(p)
     common.add_output_options(p, "calibrated CSV")
 
 
@@ -22,8 +23,9 @@ def run_apply(args) -> int:
     from ..io.drivelog import write_drive_log
 
     cal = Calibration.load(args.cal)
+    _, registry = common.effects(args, cal)  # checks the stored effects before the log is read
     log = common.open_log(args)
-    out = apply_calibration(log, cal)
+    out = apply_calibration(log, cal, registry)
     if args.output:
         write_drive_log(out, args.output)
     counts = out["status"].value_counts().to_dict()
@@ -31,13 +33,16 @@ def run_apply(args) -> int:
         "n_epochs": len(out),
         "status_counts": counts,
         "magnitude_nt": {"mean": float(out["magnitude_nt"].mean()), "std": float(out["magnitude_nt"].std())},
+        "effects": [e.label for e in cal.effects],
         "output": args.output,
     }
     if args.json:
         common.print_json(summary)
     else:
         print(
-            f"applied {args.cal} to {args.file}: {len(out)} epochs "
+            f"applied {args.cal}"
+            + (f" (with {', '.join(e.label for e in cal.effects)})" if cal.effects else "")
+            + f" to {args.file}: {len(out)} epochs "
             f"({', '.join(f'{k} {v}' for k, v in counts.items())}); calibrated magnitude "
             f"{summary['magnitude_nt']['mean']:.1f} +- {summary['magnitude_nt']['std']:.1f} nT"
             + (f"; written to {args.output}" if args.output else "")

@@ -142,6 +142,19 @@ def filter_config(args):
     return FilterConfig(**changes)
 
 
+def probability(text: str) -> float:
+    """An argparse type: a number strictly between 0 and 1."""
+    import argparse
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"{text} is not strictly between 0 and 1")
+    return value
+
+
 def add_effect_options(p, what: str) -> None:
     g = p.add_argument_group("physical effects")
     g.add_argument(
@@ -161,14 +174,31 @@ def add_effect_options(p, what: str) -> None:
     )
 
 
-def effects(args) -> tuple[list, dict]:
-    """The effects named with --effect, and the registry of user effects from --effect-file."""
-    from ..effects import load_effect_file, make_effect
+def effects(args, cal=None) -> tuple[list, dict]:
+    """The model's effects: those the calibration ``cal`` stores (rebuilt with their settings), then those named
+    with --effect that it does not store; and the registry of user effects from --effect-file."""
+    from ..effects import load_effect_file, make_effect, restore_effects
 
     registry = {}
-    for path in args.effect_file:
+    for path in getattr(args, "effect_file", []):
         registry.update(load_effect_file(path))
-    return [make_effect(spec, registry) for spec in args.effect], registry
+    out = list(restore_effects(cal, registry)) if cal is not None else []
+    for spec in getattr(args, "effect", []):
+        effect = make_effect(spec, registry)
+        if effect.label not in {e.label for e in out}:
+            out.append(effect)
+    return out, registry
+
+
+def add_effect_file_option(p) -> None:
+    """``--effect-file``: user effects, for a calibration that stores them."""
+    p.add_argument(
+        "--effect-file",
+        action="append",
+        default=[],
+        metavar="FILE.py",
+        help="a Python file defining Effect subclasses (needed when the calibration stores a user effect)",
+    )
 
 
 def add_mag_unit(p) -> None:

@@ -7,7 +7,7 @@ import json
 from ..errors import InputError
 from . import common
 
-__all__ = ["add_parsers", "run_diagnose", "run_report"]
+__all__ = ["add_parsers", "run_diagnose", "run_report", "run_validate"]
 
 
 def add_parsers(sub) -> None:
@@ -15,15 +15,29 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "diagnose", run_diagnose, "where the model fails and which physical effect is missing")
     common.add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
-    p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
+    p.add_argument(
+        "--alpha", type=common.probability, default=0.01, help="significance level over all candidates (default 0.01)"
+    )
     common.add_filter_options(p)
     common.add_effect_options(p, "effects already in the model")
     common.add_output_options(p, "diagnosis (JSON)")
 
+    p = common.command(sub, "validate", run_validate, "a calibration learned on one log, checked on another")
+    common.add_log_options(p)
+    p.add_argument("--cal", required=True, help="calibration JSON learned on another log (with its effects)")
+    p.add_argument(
+        "--alpha", type=common.probability, default=0.01, help="level of each effect's one-sided test (default 0.01)"
+    )
+    common.add_filter_options(p)
+    common.add_effect_file_option(p)
+    common.add_output_options(p, "validation (JSON)")
+
     p = common.command(sub, "report", run_report, "self-contained HTML report with plots")
     common.add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to start from")
-    p.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates (default 0.01)")
+    p.add_argument(
+        "--alpha", type=common.probability, default=0.01, help="significance level over all candidates (default 0.01)"
+    )
     p.add_argument("-o", "--output", help="HTML file to write")
     common.add_filter_options(p)
     common.add_effect_options(p, "effects to add (the report shows before and after)")
@@ -31,18 +45,18 @@ def add_parsers(sub) -> None:
 
 def run_diagnose(args) -> int:
     """Compare the calibrated model with the measurements (residuals against time, attitude, auxiliary channels, rates)
-    and rank every candidate effect by a likelihood-ratio test of adding it. Without --cal the online filter
-    runs first."""
+    and test every candidate effect by a correlation-robust F test, with its residual on held-out data. Without --cal
+    the online filter runs first; a calibration's stored effects are part of the model."""
     from ..diagnostics.diagnose import diagnose
     from ..effects import candidates
     from ..io.calibration import jsonable
 
     config = common.filter_config(args)
-    added, registry = common.effects(args)
     cal = common.load_calibration(args.cal)
+    added, registry = common.effects(args, cal)
     log = common.open_log(args)
     pool = candidates(log.auxiliary, registry)
-    result, run = diagnose(log, config, cal, added, pool, alpha=args.alpha)
+    result, run = diagnose(log, config, cal, added, pool, alpha=args.alpha, registry=registry)
     summary = result.summary()
     summary["verdict"] = _verdict(run)
     if args.output:
@@ -52,17 +66,26 @@ def run_diagnose(args) -> int:
         common.print_json(summary)
         return 0
     ax = result.residual_rms_axis_nt
+    model = ", ".join(result.model_effects) or "core only"
     print(
-        f"diagnosis of {args.file}: {result.n_epochs_used} epochs used; residual RMS {result.residual_rms_nt:.2f} nT "
-        f"(N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f})"
+        f"diagnosis of {args.file} ({model}): {result.n_epochs_used} epochs used; residual RMS "
+        f"{result.residual_rms_nt:.2f} nT (N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f}); "
+        f"{result.residual_rms_held_out_nt:.2f} nT on held-out blocks; correlated over {result.correlation_s:.2g} s"
     )
-    print(f"  {'candidate':28s} {'LR':>10s} {'dof':>4s} {'p-value':>9s} {'dBIC':>10s} {'RMS after':>10s}")
+    print(f"  {'candidate':28s} {'F':>10s} {'dof':>8s} {'p-value':>9s} {'held-out RMS':>13s}")
     for c in result.candidates:
+        dof = f"{c.dof},{c.dof_denominator}" if c.dof_denominator else f"{c.dof}"
         print(
-            f"  {c.effect:28s} {c.statistic:10.1f} {c.dof:4d} {c.p_value:9.2g} {c.delta_bic:10.1f} "
-            f"{c.residual_rms_after_nt:8.2f} nT" + ("  *" if c.significant else "")
+            f"  {c.effect:28s} {c.statistic:10.1f} {dof:>8s} {c.p_value:9.2g} {c.residual_rms_after_nt:10.2f} nT"
+            + ("  *" if c.significant else "   ")
+            + (f"  ({c.note})" if c.note else "")
         )
-    print(f"  (* significant: p < {args.alpha:g} / {len(result.candidates)} candidates)")
+    print(
+        f"  (* taken into the model: p < {args.alpha:g} / {result.n_tested} candidates tested, correlation-robust F; "
+        "held-out RMS: the residual on blocks left out of the fit)"
+    )
+    if result.untried:
+        print(f"  channels not tried (their kind is not known from the name): {', '.join(result.untried)}")
     follows = [sgn for sgn in result.signals if sgn["significant"]][:5]
     if follows:
         print(
@@ -83,6 +106,42 @@ def _verdict(run) -> str:
     return run.summary.verdict
 
 
+def run_validate(args) -> int:
+    """Check a calibration learned on another log (or another part of the flight) on this log: the residual as
+    stored, with the core refitted here with and without the stored effects, and for each effect whether it
+    helps here beyond chance (a one-sided t test over blocks longer than the residual's correlation)."""
+    from ..diagnostics.validate import validate
+    from ..io.calibration import jsonable
+
+    config = common.filter_config(args)
+    cal = common.load_calibration(args.cal)
+    _, registry = common.effects(args, cal)
+    log = common.open_log(args)
+    result = validate(log, cal, config, registry, alpha=args.alpha)
+    summary = result.summary()
+    if args.output:
+        with open(args.output, "w", encoding="utf-8") as f:
+            json.dump(jsonable(summary), f, indent=2)
+    if args.json:
+        common.print_json(summary)
+        return 0
+    print(
+        f"validation of {args.cal} on {args.file}: {result.n_epochs} epochs; residual RMS as stored "
+        f"{result.as_stored_nt:.2f} nT; core refitted here: {result.with_effects_nt:.2f} nT with the stored effects, "
+        f"{result.core_only_nt:.2f} nT without (correlated over {result.correlation_s:.2g} s)"
+    )
+    if result.effects:
+        print(f"  {'effect':28s} {'with':>10s} {'without':>10s} {'change':>8s} {'p helps':>9s} {'p hurts':>9s}")
+    for c in result.effects:
+        print(
+            f"  {c.effect:28s} {c.with_nt:7.2f} nT {c.without_nt:7.2f} nT {100 * c.change:+7.1f}% "
+            f"{c.p_helps:9.2g} {c.p_hurts:9.2g}  {c.verdict}"
+        )
+    if not result.effects:
+        print("  the calibration stores no effect: only the core was checked")
+    return 0
+
+
 def run_report(args) -> int:
     """Calibrate (with any --effect), diagnose, and write one HTML file with the plots embedded: gates, estimates over
     time, residuals, ranking, before/after."""
@@ -93,8 +152,8 @@ def run_report(args) -> int:
     if not args.output:
         raise InputError("give -o REPORT.html")
     config = common.filter_config(args)
-    added, registry = common.effects(args)
     cal = common.load_calibration(args.cal)
+    added, registry = common.effects(args, cal)
     log = common.open_log(args)
     page = build_report(log, config, cal, added, registry, alpha=args.alpha)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)

@@ -121,8 +121,8 @@ def run_calibrate(args) -> int:
     by DOP, field magnitude and innovation. Every epoch gets a status. Without --init the start is bootstrapped
     from the first stretch of the log."""
     config = common.filter_config(args)
-    added, _ = common.effects(args)
     init = common.load_calibration(args.init)
+    added, _ = common.effects(args, init)
     if args.mag != "all":
         _calibrate_one(args, common.open_log(args), config, init, added, args.output, args.states)
         return 0

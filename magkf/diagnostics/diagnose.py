@@ -1,26 +1,28 @@
 """Compare the model with the measurements, and find which physical effect is missing.
 
-For a log and a calibration (the filter's, the batch solver's, or a file's), on the epochs the
-calibration used:
+For a log and a model (the filter's run, or a calibration file with the effects it stores), on the epochs
+the model used:
 
 * **Residuals** in NED and magnitude (nT), and against every candidate explanatory signal (heading,
-  roll, pitch, time, each auxiliary column, yaw rate, rate of change of the body field): binned means
-  with 95 % confidence bands and a one-way analysis of variance per signal; the stretches where the
+  roll, pitch, time, each auxiliary channel, yaw rate, rate of change of the body field): binned means
+  with 95 % bands and a one-way analysis of variance per signal whose F statistic is divided by the
+  residual's integrated autocorrelation time (the epochs are not independent); the stretches where the
   residual is largest.
-* **Which effect is missing.** The vector measurement is linear in the parameters in the sensor
-  frame, so adding an effect is a linear regression on the whitened residual ``y = W (m - H x)``
-  (``W`` from the noise settings). For each candidate with regressors ``G`` (its ``regressors``), the
-  model with the core parameters (and effects already added) re-fitted jointly is compared with the
-  model without it: the likelihood-ratio statistic ``LR = n ln(RSS0 / RSS1)`` (Gaussian noise of
-  unknown variance) is chi-square with ``q`` degrees of freedom (the candidate's parameters, less any
-  the core already spans) when the effect is absent. Reported with it: the p-value, the change of
-  AIC (``2q - LR``) and BIC (``q ln n - LR``), and the residual RMS expected after adding the effect.
-  Candidates are ranked by the change of BIC, so that an effect with more parameters (the nine-term
-  eddy current contains the one-term time lag) ranks first only when it explains more than its extra
-  parameters would by chance. A candidate is significant when its p-value is below ``alpha`` divided
-  by the number of candidates
-  (Bonferroni), so on data with no missing effect nothing is reported at the stated level
-  ``alpha`` but by chance.
+* **Which effect is missing.** The vector measurement is linear in the parameters in the sensor frame, so
+  adding an effect is a regression of the whitened residual on the effect's regressors (``regressors``),
+  with the model refitted jointly. The model is first refitted to the whole log (iterated: the
+  whitening and the effects' linearisation follow the estimate), so that candidates are not judged
+  around an estimate that the missing effect has pulled off. Each candidate is then tested by a
+  correlation-robust F test (``magkf.diagnostics.inference``), and the residual it would leave is
+  measured on held-out blocks of the log. The leading candidates are refitted jointly with the model at
+  their own best fit before they are compared.
+
+  **One decision rule.** A candidate is significant when its p-value is below ``alpha / m`` (``m`` the
+  candidates tested; Bonferroni). Among the significant ones, the one with the lowest held-out residual
+  is taken into the model, unless a simpler candidate it contains (a time lag inside the eddy-current
+  terms) does as well: the larger one wins only when it is significant given the smaller one and better
+  on held-out data. The rest are tested again given it, until none is significant. The stars, the
+  order, the stop and the advice are all this rule.
 """
 
 from __future__ import annotations
@@ -32,52 +34,88 @@ from scipy import stats
 
 from ..config import FilterConfig
 from ..conventions import body_to_ned
+from ..effects import Effect, LinearEffect, restore_effects
 from ..effects import candidates as default_candidates
 from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
-from ..online.measurements import Both
-from ..online.prepare import prepare, with_initial_R
+from ..online.noise import NoiseLevels
+from ..online.prepare import prepare
 from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
 from ..status import Status
+from .fitting import EpochSet, Linearised
+from .inference import fold_edges, held_out_residual, integrated_time, robust_test
 
-__all__ = ["BINS", "WINDOW_S", "OUTLIER_SIGMA", "Candidate", "Diagnosis", "diagnose", "signal_values", "compare_runs"]
+__all__ = [
+    "BINS",
+    "WINDOW_S",
+    "OUTLIER_SIGMA",
+    "LEADING",
+    "Candidate",
+    "Diagnosis",
+    "diagnose",
+    "signal_values",
+    "compare_runs",
+]
 
 #: Bins of the binned residual means; stretch length of the "largest residual" search, s.
 BINS = 12
 WINDOW_S = 10.0
 #: Whitened residual, in units of its robust (MAD) scale, beyond which an epoch is an outlier.
 OUTLIER_SIGMA = 5.0
+#: How many of the significant candidates are refitted at their own best fit before they are compared.
+LEADING = 3
+#: Singular values of a candidate's (column-normalised) regressors below this, once the model's span is
+#: removed, are directions the model already has: a candidate with none left is contained in it.
+RANK_TOLERANCE = 1e-4
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """One candidate effect's test. ``effect`` is the name as ``--effect`` accepts it."""
+    """One candidate effect's test. ``effect`` is the name as ``--effect`` accepts it.
+
+    ``statistic`` the correlation-robust F with ``dof`` and ``dof_denominator`` degrees of freedom
+    (``terms`` cosine terms; ``correlation_s`` the scores' integrated autocorrelation time, s);
+    ``residual_rms_after_nt`` the NED residual RMS on held-out blocks with the effect added (its expected
+    residual), ``residual_rms_fit_nt`` the same in-sample; ``estimate`` the parameters with their
+    correlation-robust standard deviations; ``note`` why a candidate was not tested or not taken."""
 
     effect: str
     statistic: float
     dof: int
+    dof_denominator: int
     p_value: float
-    delta_aic: float
-    delta_bic: float
+    terms: int
+    correlation_s: float
     residual_rms_after_nt: float
+    residual_rms_fit_nt: float
     significant: bool
     estimate: dict = field(default_factory=dict)
+    note: str = ""
+
+    @property
+    def option(self) -> str:
+        """The command-line option that adds this effect."""
+        return f"--effect {self.effect}"
 
     def as_dict(self) -> dict:
         return {
             "effect": self.effect,
+            "option": self.option,
             "statistic": self.statistic,
-            "test": "likelihood ratio (chi-square)",
+            "test": "correlation-robust F (equal-weighted cosine long-run variance, Sun 2013)",
             "dof": self.dof,
+            "dof_denominator": self.dof_denominator,
             "p_value": self.p_value,
-            "delta_aic": self.delta_aic,
-            "delta_bic": self.delta_bic,
+            "terms": self.terms,
+            "correlation_s": self.correlation_s,
             "residual_rms_after_nt": self.residual_rms_after_nt,
+            "residual_rms_fit_nt": self.residual_rms_fit_nt,
             "significant": self.significant,
             "estimate": self.estimate,
+            "note": self.note,
         }
 
 
@@ -87,6 +125,10 @@ class Diagnosis:
 
     ``residual_rms_axis_nt`` holds the RMS per NED axis, per body axis (``body_x`` ...), of the
     magnitude, and the filter's mean normalised innovation squared (``nis_mean``) when a run was made.
+    ``residual_rms_held_out_nt`` is the model's own residual on held-out blocks (refitted on the others),
+    the baseline of the candidates' ``residual_rms_after_nt``; ``level`` the p-value below which a
+    candidate is significant (``alpha / n_tested``); ``correlation_s`` the residual's integrated
+    autocorrelation time; ``untried`` the auxiliary channels no candidate could use (unknown kind).
     """
 
     residual_rms_nt: float
@@ -99,6 +141,17 @@ class Diagnosis:
     text: str
     binned: dict = field(default_factory=dict)
     residuals: dict = field(default_factory=dict)
+    residual_rms_held_out_nt: float = float("nan")
+    n_tested: int = 0
+    level: float = float("nan")
+    correlation_s: float = float("nan")
+    untried: list = field(default_factory=list)
+    model_effects: list = field(default_factory=list)
+
+    @property
+    def recommended(self) -> list:
+        """The candidates the decision rule took into the model, in order."""
+        return [c for c in self.candidates if c.significant]
 
     def candidates_frame(self):
         """The candidates as a DataFrame indexed by effect (``--effect`` name), in ranking order."""
@@ -110,19 +163,35 @@ class Diagnosis:
         return {
             "residual_rms_nt": self.residual_rms_nt,
             "residual_rms_axis_nt": self.residual_rms_axis_nt,
+            "residual_rms_held_out_nt": self.residual_rms_held_out_nt,
             "n_epochs_used": self.n_epochs_used,
             "alpha": self.alpha,
+            "n_tested": self.n_tested,
+            "level": self.level,
+            "correlation_s": self.correlation_s,
+            "model_effects": self.model_effects,
             "candidates": [c.as_dict() for c in self.candidates],
+            "recommended": [c.option for c in self.recommended],
+            "untried_channels": self.untried,
             "signals": self.signals,
             "largest_residuals": self.largest,
             "text": self.text,
         }
 
 
-def _state_from_calibration(cal: Calibration, layout: StateLayout) -> np.ndarray:
-    x, _ = layout.prior()
-    x[layout.CORE] = cal.state
-    return x
+def _learned_noise(run, config: FilterConfig) -> NoiseLevels | None:
+    """The noise a run learned (medians over the log), to weigh the residuals as the filter did."""
+    learned = run.summary.noise.get("learned") if run is not None else None
+    if not learned:
+        return None
+    return NoiseLevels(
+        learned["sensor_median_nt"],
+        np.radians(learned["attitude_median_deg"]),
+        config.reference_nt,
+        1.0,
+        1.0,
+        np.radians(learned["heading_median_deg"]),
+    )
 
 
 def diagnose(
@@ -133,53 +202,65 @@ def diagnose(
     candidates=None,
     alpha: float = 0.01,
     run: CalibrationRun | None = None,
+    registry: dict | None = None,
 ):
     """Diagnose ``log``; returns ``(Diagnosis, run)``.
 
-    The model is the calibration ``cal`` (used as it is when no ``effects`` are added), or the online
-    filter's estimate with ``effects`` added (started from ``cal`` if given), or an existing ``run``.
-    ``candidates`` are the effects to test (default: every built-in that the log's columns allow);
-    those already in the model are skipped.
+    The model is the calibration ``cal`` with the effects it stores (used as it is when ``effects`` adds
+    nothing to them), or the online filter's estimate with ``effects`` added (started from ``cal`` if
+    given), or an existing ``run``. ``candidates`` are the effects to test (default: every built-in, and
+    every effect of ``registry``, that the log's channels allow); those already in the model are skipped.
+    ``alpha`` in (0, 1) is the significance level over all candidates.
     """
-    if run is None and (cal is None or effects):
-        run = calibrate_log(log, config, init=cal, effects=effects)
+    if not 0.0 < alpha < 1.0:
+        raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
+    stored = list(restore_effects(cal, registry)) if cal is not None else []
+    effects = list(effects)
+    adds = [e for e in effects if e.label not in {s.label for s in stored}]
+    if run is None and (cal is None or adds):
+        run = calibrate_log(log, config, init=cal, effects=effects or stored)
     prep = prepare(log, config)
     if run is not None:
         x = run.x
-        layout = StateLayout.with_core(effects)
+        layout = StateLayout.with_core(effects or stored)
         # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
         # the epochs where it is largest, and leaving them out would bias the diagnosis.
         used = run.states["status"].isin(["used", "gated_innovation"]).to_numpy() & prep.has_attitude
     else:
-        layout = StateLayout.with_core()
-        x = _state_from_calibration(cal, layout)
+        layout = StateLayout.with_core(stored)
+        x = cal.full_state
         used = prep.base == Status.USED
-    prep = with_initial_R(prep, x)  # effects acting through R (time lag, anomaly) use the estimate's
-    data = prep.data.take(used)
-    m = prep.m[used]
-    H = layout.linear_jacobian(data)  # (n, 3, p) nuisance: core and added effects
-    W = Both(config, layout, x).whitening(data.field_body, layout.R(x))
-    resid_raw = m - np.einsum("nij,j->ni", H, x)
-    y = np.einsum("nij,nj->ni", W, resid_raw)
-    # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the residual's robust scale.
-    scale = max(1.4826 * float(np.median(np.abs(y - np.median(y, axis=0)))), 1.0)
-    keep = np.abs(y).max(axis=1) <= OUTLIER_SIGMA * scale
+    for effect in layout.extra():
+        for column in effect.columns:
+            used &= np.isfinite(prep.data.columns[column])
+    problem = EpochSet.of(prep, used, config, _learned_noise(run, config))
+    if len(problem) < 10:
+        raise InputError(
+            f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
+        )
+    present = {e.label for e in layout.extra()}
+    pool = [
+        e
+        for e in (candidates if candidates is not None else default_candidates(list(problem.data.columns), registry))
+        if e.label not in present and all(col in problem.data.columns for col in e.columns)
+    ]
+    given = problem.at(layout, x)  # the model as it is
+    # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the robust scale of the residual of the
+    # model with every candidate added, so that a missing effect does not hide them by inflating the scale.
+    y = _screening_residual(given, pool)
+    scale = np.maximum(1.4826 * np.median(np.abs(y - np.median(y, axis=0)), axis=0), 1e-12)
+    keep = np.all(np.abs(y - np.median(y, axis=0)) <= OUTLIER_SIGMA * scale, axis=1)
     if not keep.all():
-        used_idx = np.flatnonzero(used)[keep]
-        used = np.zeros_like(used)
-        used[used_idx] = True
-        data, m, H, W, resid_raw, y = data.take(keep), m[keep], H[keep], W[keep], resid_raw[keep], y[keep]
-    n = len(y)
+        problem = problem.take(keep)
+        given = problem.at(layout, x)
+    n = len(problem)
     if n < 10:
-        raise InputError(f"too few usable epochs ({n}) to diagnose; the log needs attitude and a reference", log.source)
-    Hw = (W @ H).reshape(3 * n, -1)
-    yw = y.ravel()
-    Q, _ = np.linalg.qr(Hw)
-    r0 = yw - Q @ (Q.T @ yw)
-    nrows = 3 * n
+        raise InputError(f"too few usable epochs ({n}) to diagnose once outliers are left out", log.source)
+    dt = float(np.median(np.diff(problem.data.time))) if n > 1 else 1.0
 
     # residuals in nT (NED and magnitude), with the model as it is
-    c = layout.calibrated(x, m, layout.extra_terms(x, H, data))
+    data = given.data
+    c = layout.calibrated(x, problem.m, layout.extra_terms(x, layout.linear_jacobian(data), data))
     ned = body_to_ned(data.c_nb, c) - data.field_ned
     body = c - data.field_body
     mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
@@ -191,87 +272,225 @@ def diagnose(
         nis = run.states["nis"].to_numpy()[(run.states["status"] == "used").to_numpy()]
         axis_rms["nis_mean"] = float(np.nanmean(nis)) if np.isfinite(nis).any() else float("nan")
 
-    present = {e.label for e in effects} | {e.name for e in effects}
-    pool = [
-        e
-        for e in (candidates if candidates is not None else default_candidates(list(data.columns)))
-        if e.label not in present and all(col in data.columns for col in e.columns)
-    ]
-    regressors = {}
+    null = problem.fit(layout, x)  # the model at its own best fit over the log
+    tau = integrated_time(null.r.reshape(n, 3))
+    edges = fold_edges(n, tau)
+    nT = _InNanotesla(null)
+    baseline = nT.rms(held_out_residual(null.A, null.y, edges))
+
+    selection = _Selection(problem, pool, edges, nT, dt, alpha)
+    results = selection.run(null)
+    signals, binned = _signals(problem.data, ned, mag, alpha, tau)
+    largest = _largest(problem.data.time, ned)
+    text = _describe(results, signals, selection, baseline)
+    residuals = {"time": problem.data.time, "ned": ned, "body": body, "magnitude": mag}
+    from ..effects import untried_columns
+
+    untried = untried_columns(list(prep.data.columns), registry) if candidates is None else []
+    diagnosis = Diagnosis(
+        rms,
+        axis_rms,
+        n,
+        alpha,
+        results,
+        signals,
+        largest,
+        text,
+        binned,
+        residuals,
+        residual_rms_held_out_nt=baseline,
+        n_tested=selection.m,
+        level=selection.level,
+        correlation_s=tau * dt,
+        untried=untried,
+        model_effects=sorted(present),
+    )
+    return diagnosis, run
+
+
+def _screening_residual(fit: Linearised, pool) -> np.ndarray:
+    """Whitened residual (n, 3) of ``fit``'s model with every candidate of ``pool`` added (screening
+    regressors, one least-squares fit)."""
+    columns = [fit.A]
     for effect in pool:
-        G = effect.regressors(data)
+        G = effect.regressors(fit.data)
         G = np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
-        regressors[effect.label] = (effect, G, (W @ G).reshape(nrows, -1))
-    L = np.linalg.inv(W)  # un-whitening, to express fitted corrections in nT
-    Rinv = np.linalg.inv(layout.R(x))
+        columns.append((fit.W @ G).reshape(fit.y.size, -1))
+    A = np.hstack(columns)
+    A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    beta = np.linalg.lstsq(A, fit.y, rcond=1e-9)[0]
+    return (fit.y - A @ beta).reshape(-1, 3)
 
-    def rms_after(residual_w):
-        """RMS residual norm (nT, NED) of what a fit leaves: the whitened residual, un-whitened."""
-        raw = np.einsum("nij,nj->ni", L, residual_w.reshape(n, 3))
-        return float(np.sqrt(np.mean(np.sum(body_to_ned(data.c_nb, raw @ Rinv.T) ** 2, axis=1))))
 
-    # Forward selection: test every candidate; take the best significant one into the model; test the
-    # rest again given it; until none is significant. Effects found later are conditional on earlier ones.
-    level = alpha / max(len(regressors), 1)
-    basis, residual = Q, r0
-    results, remaining = [], dict(regressors)
-    while remaining:
-        tests = [_lr_test(label, *remaining[label], basis, residual, nrows, rms_after) for label in remaining]
-        tests = [t for t in tests if t is not None]
-        if not tests:
-            break
-        tests.sort(key=lambda r: (r[0].delta_bic, r[0].p_value))
-        best, new_basis, new_residual = tests[0]
-        if best.p_value >= level:
-            results += [Candidate(**{**vars(t), "significant": False}) for t, _, _ in tests]
-            break
-        results.append(Candidate(**{**vars(best), "significant": True}))
-        basis, residual = new_basis, new_residual
-        del remaining[best.effect]
+class _InNanotesla:
+    """Whitened residuals (3n,) of the diagnosed epochs as NED residual RMS in nT, at the model ``fit``."""
 
-    signals, binned = _signals(data, ned, mag, alpha)
-    largest = _largest(data.time, ned)
-    text = _describe(results, signals, level)
-    residuals = {"time": data.time, "ned": ned, "body": body, "magnitude": mag}
-    return Diagnosis(rms, axis_rms, n, alpha, results, signals, largest, text, binned, residuals), run
+    def __init__(self, fit: Linearised):
+        self.L = np.linalg.inv(fit.W)  # un-whitening
+        self.Rinv = np.linalg.inv(fit.layout.R(fit.x_fit))
+        self.c_nb = fit.data.c_nb
+
+    def rms(self, residual_w: np.ndarray) -> float:
+        raw = np.einsum("nij,nj->ni", self.L, residual_w.reshape(-1, 3))
+        return float(np.sqrt(np.mean(np.sum(body_to_ned(self.c_nb, raw @ self.Rinv.T) ** 2, axis=1))))
+
+
+@dataclass
+class _Trial:
+    """One candidate evaluated in a model: its test (None: contained, or not testable), held-out and
+    in-sample residual RMS (nT), the parameter estimate, and its whitened regressors' directions."""
+
+    effect: object
+    test: object
+    held_out_nt: float
+    fit_nt: float
+    estimate: dict
+    rank: int
+    note: str = ""
+
+    def candidate(self, significant: bool, dt: float, note: str | None = None) -> Candidate:
+        t = self.test
+        return Candidate(
+            effect=self.effect.label,
+            statistic=t.F if t else float("nan"),
+            dof=t.dof if t else self.rank,
+            dof_denominator=t.dof_denominator if t else 0,
+            p_value=t.p_value if t else 1.0,
+            terms=t.terms if t else 0,
+            correlation_s=t.tau * dt if t else float("nan"),
+            residual_rms_after_nt=self.held_out_nt,
+            residual_rms_fit_nt=self.fit_nt,
+            significant=significant,
+            estimate=self.estimate,
+            note=self.note if note is None else note,
+        )
+
+
+class _AsTested(LinearEffect):
+    """An effect whose diagnostic regressors are not its Jacobian (a slow drift, whose Jacobian is the
+    offset itself) as the linear block of those regressors, so that it can be refitted and kept in the model
+    while the other candidates are tested."""
+
+    def __init__(self, effect, size: int):
+        self.effect, self.name, self.columns = effect, effect.name, effect.columns
+        self.parameter_names = tuple(f"g{j + 1}" for j in range(size))
+
+    def design(self, data):
+        G = self.effect.regressors(data)
+        return np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+
+
+class _Selection:
+    """Forward selection by the one decision rule (see the module's docstring)."""
+
+    def __init__(self, problem, pool, edges, nT, dt, alpha):
+        self.problem, self.pool, self.edges, self.nT, self.dt = problem, pool, edges, nT, dt
+        self.alpha = alpha
+        self.m = 0
+        self.level = float("nan")
+
+    def trial(self, effect, fit: Linearised) -> _Trial:
+        """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
+        G = effect.regressors(fit.data)
+        G = np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+        names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
+        return self._evaluate(effect, fit.A, fit.basis, (fit.W @ G).reshape(fit.y.size, -1), fit.y, names)
+
+    def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
+        """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
+        exact time lag linearised at its estimate), and its test there. Returns the trial and that model."""
+        block = effect
+        if type(effect).regressors is not Effect.regressors:
+            block = _AsTested(effect, effect.regressors(fit.data).shape[2])
+        layout = StateLayout((*fit.layout.effects, block))
+        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]))
+        p = fit.layout.size
+        A_null = with_it.A[:, :p]
+        u, sv, _ = np.linalg.svd(A_null, full_matrices=False)
+        basis = u[:, : int(np.sum(sv > 1e-9 * sv[0]))]
+        trial = self._evaluate(effect, A_null, basis, with_it.A[:, p:], with_it.y, block.parameter_names)
+        return trial, with_it
+
+    def _evaluate(self, effect, A, basis, Gw, y, names) -> _Trial:
+        """The test of whitened regressors ``Gw`` (3n, q) added to a model of whitened Jacobian ``A`` (3n, p)
+        with orthonormal ``basis`` of its span, for the whitened reading ``y`` (3n,)."""
+        n = len(self.problem)
+        norms = np.linalg.norm(Gw, axis=0)
+        norms[norms == 0] = 1.0
+        Gn = Gw / norms
+        Gt = Gn - basis @ (basis.T @ Gn)
+        u, s, vt = np.linalg.svd(Gt, full_matrices=False)
+        rank = int(np.sum(s > RANK_TOLERANCE))
+        if rank == 0:
+            return _Trial(effect, None, float("nan"), float("nan"), {}, 0, "contained in the model")
+        U = u[:, :rank]
+        r = y - basis @ (basis.T @ y)
+        test = robust_test(U.reshape(n, 3, rank), r.reshape(n, 3))
+        held = held_out_residual(np.hstack([A, Gw]), y, self.edges)
+        in_sample = r - U @ (U.T @ r)
+        estimate, note = {}, "not testable: the residual's correlation leaves too few independent stretches"
+        if test is not None:
+            # coefficients of G (Frisch-Waugh): theta_G = V S^-1 theta_U / norms, with the robust covariance
+            back = (vt[:rank].T / s[:rank]) / norms[:, None]
+            value = back @ test.theta
+            std = np.sqrt(np.clip(np.diag(back @ test.cov @ back.T), 0, None))
+            estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in zip(names, value, std)}
+            note = ""
+        return _Trial(effect, test, self.nT.rms(held), self.nT.rms(in_sample), estimate, rank, note)
+
+    def significant(self, trial: _Trial) -> bool:
+        return trial.test is not None and trial.test.p_value < self.level
+
+    def run(self, null: Linearised) -> list[Candidate]:
+        fit = null
+        remaining = list(self.pool)
+        trials = {e.label: self.trial(e, fit) for e in remaining}
+        self.m = max(sum(t.test is not None for t in trials.values()), 1)
+        self.level = self.alpha / self.m
+        taken = []
+        while remaining:
+            hits = [trials[e.label] for e in remaining if self.significant(trials[e.label])]
+            if not hits:
+                break
+            hits.sort(key=lambda t: t.held_out_nt)
+            refits = {}
+            for t in hits[:LEADING]:
+                refits[t.effect.label] = self.refit(t.effect, fit)
+            leading = [refits[t.effect.label] for t in hits[:LEADING] if self.significant(refits[t.effect.label][0])]
+            if not leading:
+                for t in hits[:LEADING]:
+                    trials[t.effect.label] = refits[t.effect.label][0]
+                continue
+            best, best_fit = min(leading, key=lambda pair: pair[0].held_out_nt)
+            best, best_fit = self._simpler(best, best_fit, hits, fit)
+            taken.append(best.candidate(True, self.dt))
+            remaining = [e for e in remaining if e.label != best.effect.label]
+            fit = best_fit
+            trials = {e.label: self.trial(e, fit) for e in remaining}
+            for e in remaining:
+                if trials[e.label].rank == 0:
+                    trials[e.label].note = f"contained in {best.effect.label}"
+        rest = sorted(
+            (trials[e.label] for e in remaining), key=lambda t: (t.test is None, t.test.p_value if t.test else 1.0)
+        )
+        return taken + [t.candidate(False, self.dt) for t in rest]
+
+    def _simpler(self, best: _Trial, best_fit: Linearised, hits, fit: Linearised):
+        """Among significant candidates contained in ``best`` (fewer parameters, nothing left once ``best`` is
+        in the model), the simplest that ``best`` does not beat on held-out data beyond chance."""
+        smaller = sorted((t for t in hits if t.rank < best.rank), key=lambda t: t.rank)
+        for small in smaller:
+            if self.trial(small.effect, best_fit).rank != 0:
+                continue  # not nested in best
+            small_trial, small_fit = self.refit(small.effect, fit)
+            beyond = self.trial(best.effect, small_fit)  # best given the smaller one
+            if not self.significant(beyond) or beyond.held_out_nt >= small_trial.held_out_nt:
+                small_trial.note = f"preferred to {best.effect.label}, which it is nested in"
+                return small_trial, small_fit
+        return best, best_fit
 
 
 # ---------------------------------------------------------------- residual against signals
-def _lr_test(label, effect, G, Gw, basis, r0, nrows, rms_after):
-    """Likelihood-ratio test of adding regressors ``Gw`` (whitened) to the model spanned by ``basis``;
-    returns ``(Candidate, basis with them, residual with them)`` or None when they add nothing."""
-    Gt = Gw - basis @ (basis.T @ Gw)
-    u, s, vt = np.linalg.svd(Gt, full_matrices=False)
-    rank = int(np.sum(s > 1e-9 * max(s.max(), 1e-300))) if s.size else 0
-    if rank == 0:
-        return None
-    proj = u[:, :rank].T @ r0
-    rss0 = float(r0 @ r0)
-    rss1 = rss0 - float(proj @ proj)
-    lr = float(nrows * np.log(rss0 / rss1))
-    residual = r0 - u[:, :rank] @ proj
-    theta = vt[:rank].T @ (proj / s[:rank])
-    sigma2 = rss1 / (nrows - basis.shape[1] - rank)
-    cov = (vt[:rank].T / s[:rank] ** 2) @ vt[:rank] * sigma2
-    names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-    estimate = {
-        nm: {"value": float(v), "std": float(sd)}
-        for nm, v, sd in zip(names, theta, np.sqrt(np.clip(np.diag(cov), 0, None)))
-    }
-    candidate = Candidate(
-        effect=label,
-        statistic=lr,
-        dof=rank,
-        p_value=float(stats.chi2.sf(lr, rank)),
-        delta_aic=2 * rank - lr,
-        delta_bic=rank * np.log(nrows) - lr,
-        residual_rms_after_nt=rms_after(residual),
-        significant=False,
-        estimate=estimate,
-    )
-    return candidate, np.hstack([basis, u[:, :rank]]), residual
-
-
 def signal_values(data) -> dict:
     """Candidate explanatory signals (N,) at the used epochs: name -> values."""
     c = data.c_nb
@@ -297,8 +516,12 @@ def _bins(name: str, v: np.ndarray) -> np.ndarray:
     return np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 2)
 
 
-def _signals(data, ned, mag, alpha):
-    """One-way ANOVA of each residual component over bins of each signal; binned means for plots."""
+def _signals(data, ned, mag, alpha, tau: float = 1.0):
+    """One-way ANOVA of each residual component over bins of each signal; binned means for plots.
+
+    The residual is correlated over ``tau`` epochs (its integrated autocorrelation time), so each bin's
+    mean varies about ``tau`` times more than independent epochs would make it: the F statistic is divided
+    by ``tau`` and the denominator's degrees of freedom are those of ``n / tau`` independent epochs."""
     components = {"north": ned[:, 0], "east": ned[:, 1], "down": ned[:, 2], "magnitude": mag}
     values = signal_values(data)
     tests = len(values) * len(components)
@@ -315,7 +538,9 @@ def _signals(data, ned, mag, alpha):
             groups = [g for g in groups if len(g) > 1]
             if len(groups) < 2:
                 continue
-            f, p = stats.f_oneway(*groups)
+            f, _ = stats.f_oneway(*groups)
+            k, total = len(groups), sum(len(g) for g in groups)
+            p = float(stats.f.sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
             centres = np.array([np.mean(v[ok][b == k]) for k in np.unique(b)])
             means = np.array([g.mean() for g in groups])
             half = np.array([1.96 * g.std(ddof=1) / np.sqrt(len(g)) for g in groups])
@@ -365,24 +590,30 @@ def _largest(t: np.ndarray, ned: np.ndarray, count: int = 3) -> list:
     return out
 
 
-def _describe(results, signals, level) -> str:
-    significant = [r for r in results if r.significant]
+def _describe(results, signals, selection, baseline: float) -> str:
+    """The advice: what the decision rule took, or what the residual still follows."""
+    taken = [r for r in results if r.significant]
     following = [s for s in signals if s["significant"]]
-    if significant:
-        best = significant[0]
+    if taken:
+        best = taken[0]
         text = (
-            f"{best.effect} explains most of the residual (LR {best.statistic:.1f} on {best.dof} dof, "
-            f"p = {best.p_value:.2g}); adding it should bring the residual RMS to "
-            f"{best.residual_rms_after_nt:.1f} nT"
+            f"{best.effect} explains the residual beyond chance (F = {best.statistic:.1f} on {best.dof} and "
+            f"{best.dof_denominator} dof, p = {best.p_value:.2g}, robust to the residual's correlation); on "
+            f"held-out data it brings the residual RMS from {baseline:.1f} to {best.residual_rms_after_nt:.1f} nT: "
+            f"add {best.option}"
         )
-        if len(significant) > 1:
-            text += "; also significant: " + ", ".join(r.effect for r in significant[1:])
+        if len(taken) > 1:
+            text += "; then also " + ", ".join(r.option for r in taken[1:])
         return text
+    text = (
+        f"no candidate explains the residual beyond chance ({selection.m} tested, each at p < "
+        f"{selection.level:.2g}, alpha {selection.alpha:g})"
+    )
     if following:
-        return "no candidate effect explains the residual; it still follows " + ", ".join(
+        text += "; it still follows " + ", ".join(
             f"{s['signal']} ({s['component']}, p = {s['p_value']:.2g})" for s in following[:4]
         )
-    return f"nothing significant at the stated level (each candidate tested at p < {level:.2g})"
+    return text
 
 
 def _nis_per_dof(states, epochs) -> float:

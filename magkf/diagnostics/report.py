@@ -243,6 +243,40 @@ def _noise_plot(run, t0: float) -> str:
     )
 
 
+#: The signal to plot the residual against for an effect without a channel of its own.
+EFFECT_SIGNAL = {
+    "time_lag": "yaw_rate_dps",
+    "eddy_current": "field_rate_nt_s",
+    "bias_drift": "time_s",
+    "field_anomaly": "heading_deg",
+}
+
+
+def _advice(diag) -> list[str]:
+    """What to do: the option that adds the recommended effect, its held-out before and after, and the
+    residual against the effect's channel."""
+    if not diag.recommended:
+        return ["<p><b>What to do:</b> no candidate effect is needed; " + html.escape(diag.text) + ".</p>"]
+    best = diag.recommended[0]
+    name, _, column = best.effect.partition(":")
+    signal = column or EFFECT_SIGNAL.get(name, diag.signals[0]["signal"] if diag.signals else "time_s")
+    return [
+        f"<p><b>What to do:</b> add <code>{html.escape(best.option)}</code> to <code>magkf calibrate</code> "
+        f"(and check it on another log with <code>magkf validate</code>).</p>",
+        _table(
+            [
+                (
+                    "held-out blocks of this log",
+                    _fixed(diag.residual_rms_held_out_nt),
+                    _fixed(best.residual_rms_after_nt),
+                )
+            ],
+            ["NED residual RMS", "model as it is, nT", f"with {best.effect}, nT"],
+        ),
+        _binned_plot(diag, [signal], f"residual against {signal}, the channel of {best.effect} (binned means)"),
+    ]
+
+
 def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), registry=None, alpha=0.01) -> str:
     """The report of ``log`` as a self-contained HTML string: the run with ``config`` (a ``FilterConfig``)
     started from ``cal`` (a ``Calibration`` or None) with ``effects`` added, and its diagnosis at level
@@ -252,7 +286,7 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
     matplotlib.use("Agg")
     pool = default_candidates(log.auxiliary, registry)
     run = calibrate_log(log, config, init=cal, effects=effects)
-    diag, _ = diagnose(log, config, cal, effects, pool, alpha=alpha, run=run)
+    diag, _ = diagnose(log, config, cal, effects, pool, alpha=alpha, run=run, registry=registry)
     t0 = log.time[0]
     s = run.summary
     parts = [
@@ -284,21 +318,36 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
             ["from, s", "to, s", "RMS, nT", "max, nT"],
         ),
         "<h2>Which effect is missing</h2>",
+        f"<p>{diag.n_tested} candidates tested, each by a correlation-robust F test at p &lt; {diag.level:.2g} "
+        f"(alpha {diag.alpha:g} over the candidates); the residual is correlated over about "
+        f"{diag.correlation_s:.2g} s. Held-out RMS: the NED residual on blocks of the log left out of the fit "
+        f"(the model's own: {_fixed(diag.residual_rms_held_out_nt)} nT).</p>",
         _table(
             [
                 (
                     c.effect,
-                    f"{c.statistic:.1f}",
-                    c.dof,
+                    _fixed(c.statistic, 1),
+                    f"{c.dof}, {c.dof_denominator}" if c.dof_denominator else str(c.dof),
                     f"{c.p_value:.2g}",
-                    f"{c.delta_bic:.1f}",
-                    f"{c.residual_rms_after_nt:.2f}",
+                    _fixed(c.residual_rms_after_nt),
+                    _fixed(c.residual_rms_fit_nt),
                     "yes" if c.significant else "",
+                    c.note,
                 )
                 for c in diag.candidates
             ],
-            ["candidate", "LR", "dof", "p-value", "change of BIC", "RMS after, nT", "significant"],
+            [
+                "candidate",
+                "F (dimensionless)",
+                "degrees of freedom",
+                "p-value",
+                "held-out RMS after, nT",
+                "in-sample RMS after, nT",
+                "taken",
+                "note",
+            ],
         ),
+        *_advice(diag),
         _table(
             [(x["signal"], x["component"], f"{x['p_value']:.2g}", f"{x['binned_range_nt']:.1f}") for x in diag.signals],
             ["signal", "component", "p-value", "range of binned means, nT"],

@@ -12,8 +12,10 @@ import inspect
 from pathlib import Path
 
 from ..errors import InputError
+from ..io.calibration import Calibration, StoredEffect
 from .base import Effect, EpochData
 from .bias_drift import BiasDrift
+from .channels import channel_kind
 from .core import SoftHardIron
 from .current_field import CurrentField
 from .eddy_current import EddyCurrent
@@ -67,23 +69,65 @@ def load_effect_file(path) -> dict:
 
 
 def candidates(columns, registry: dict | None = None) -> list[Effect]:
-    """Every effect that can be tried on a log with these auxiliary ``columns``: built-ins on their
-    default columns, column effects on each other numeric column too, and the registry's effects."""
+    """Every effect that can be tried on a log with these auxiliary ``columns``: effects without a column
+    once; an effect of a column on every column of a kind it declares (``Effect.channels``, read by
+    ``channel_kind``), or on its default column only when it declares none."""
     registry = {**BUILTIN, **(registry or {})}
-    defaults = {name: _default_column(cls) for name, cls in registry.items()}
     out = []
-    for name, cls in registry.items():
-        default = defaults[name]
+    for cls in registry.values():
+        default = _default_column(cls)
         if default is None:
             out.append(cls())
             continue
         for column in columns:
-            # A channel that is another effect's default is tried only with the effects made for it, and an
-            # effect made for one kind of channel (temperature) only on its own.
-            owned = {defaults[n] for n in registry if defaults[n] is not None and defaults[n] != default}
-            if column == default or (column not in owned and not cls.owns_channel):
+            kinds = cls.channels
+            if column == default if not kinds else channel_kind(column) in kinds:
                 out.append(cls(column=column))
     return out
+
+
+def untried_columns(columns, registry: dict | None = None) -> list[str]:
+    """The ``columns`` no candidate of ``candidates`` uses (their kind is unknown or fits no effect)."""
+    used = {c for e in candidates(columns, registry) for c in e.columns}
+    return [c for c in columns if c not in used]
+
+
+def stored_effect(effect: Effect, values, stds) -> StoredEffect:
+    """``effect`` with its estimated ``values`` and standard deviations ``stds`` (k,), as a file holds it."""
+    units = tuple(effect.units[j] if j < len(effect.units) else "" for j in range(effect.size))
+    return StoredEffect(
+        effect.label,
+        effect.settings(),
+        tuple(effect.parameter_names),
+        tuple(float(v) for v in values),
+        tuple(float(s) for s in stds),
+        units,
+    )
+
+
+def restore_effects(cal: Calibration, registry: dict | None = None) -> tuple[Effect, ...]:
+    """The effects a calibration file stores, rebuilt with their settings (user effects need their classes
+    in ``registry``, from ``load_effect_file``); raises InputError naming the calibration's source when one
+    cannot be rebuilt or its parameters do not match."""
+    registry = {**BUILTIN, **(registry or {})}
+    out = []
+    for stored in cal.effects:
+        cls = registry.get(stored.name)
+        where = f"calibration effect {stored.label!r}"
+        if cls is None:
+            raise InputError(f"{where} is not a built-in; give the --effect-file that defines it", cal.source)
+        try:
+            effect = cls(**stored.settings)
+        except TypeError as exc:
+            raise InputError(f"{where}: its settings do not fit {cls.__name__} ({exc})", cal.source) from None
+        if tuple(effect.parameter_names) != tuple(stored.names):
+            raise InputError(
+                f"{where} stores parameters {', '.join(stored.names)}; the effect has "
+                f"{', '.join(effect.parameter_names)}",
+                cal.source,
+            )
+        out.append(effect)
+    return tuple(out)
 
 
 def _default_column(cls):
@@ -100,4 +144,8 @@ __all__ = [
     "make_effect",
     "load_effect_file",
     "candidates",
+    "untried_columns",
+    "stored_effect",
+    "restore_effects",
+    "channel_kind",
 ]

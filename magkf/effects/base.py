@@ -29,7 +29,9 @@ class EpochData:
     there is no attitude); ``field_ned`` (N, 3) nT, the reference field; ``columns`` maps auxiliary
     column names to (N,) arrays; ``mag`` (N, 3) the raw reading, nT; ``c_nb`` (N, 3, 3) the attitude;
     ``field_body_rate`` (N, 3) nT/s, the rate of change of ``field_body``; ``R0`` (3, 3) the initial
-    calibration's ``R`` (effects acting through the sensor's axes use it to stay linear).
+    calibration's ``R`` (effects acting through the sensor's axes use it to stay linear);
+    ``field_body_accel`` (N, 3) nT/s^2, the rate of ``field_body_rate`` (None where it is not known, as in
+    real time).
     """
 
     time: np.ndarray
@@ -40,6 +42,7 @@ class EpochData:
     c_nb: np.ndarray | None = None
     field_body_rate: np.ndarray | None = None
     R0: np.ndarray = field(default_factory=lambda: np.eye(3))
+    field_body_accel: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.time)
@@ -59,6 +62,7 @@ class EpochData:
             cut(self.c_nb),
             cut(self.field_body_rate),
             self.R0,
+            cut(self.field_body_accel),
         )
 
 
@@ -80,6 +84,9 @@ class Effect:
     units : unit of each parameter, for reports.
     linear : True when ``contribution`` is linear in the effect's own parameters and independent of the
         other blocks; the filters then compute its Jacobian once per log.
+    channels : the kinds of channel an effect of a column accepts (``magkf.effects.channels.KINDS``:
+        ``temperature``, ``current``, ``throttle``, ``angle``, ``speed``, ``voltage``); the diagnosis forms
+        candidates only from columns of these kinds. Empty: the effect's default column only.
 
     Methods to implement: ``contribution``; optionally ``jacobian`` (finite differences by default),
     ``prior`` and ``random_walk``.
@@ -90,9 +97,7 @@ class Effect:
     columns: tuple = ()
     units: tuple = ()
     linear: bool = True
-    #: True for an effect made for one kind of channel (temperature): the diagnosis tries it on its own
-    #: default channel only, and tries no other effect on that channel.
-    owns_channel: bool = False
+    channels: tuple = ()
     #: How many true parameters ``simulate`` accepts (default: the effect's own parameters).
     simulation_sizes: tuple = ()
 
@@ -141,6 +146,19 @@ class Effect:
     def simulate(self, theta, data: EpochData, rng: np.random.Generator) -> np.ndarray:
         """Raw-field contribution (N, 3) nT the simulator adds for true parameters ``theta``."""
         return self.contribution(np.asarray(theta, float), data)
+
+    def settings(self) -> dict:
+        """The constructor arguments that rebuild this effect (stored in calibration files): the public
+        attributes named like ``__init__``'s parameters, ``column`` for the first column."""
+        import inspect
+
+        out = {}
+        for name in inspect.signature(type(self).__init__).parameters:
+            if name == "column" and self.columns:
+                out[name] = self.columns[0]
+            elif name != "self" and hasattr(self, name):
+                out[name] = getattr(self, name)
+        return out
 
     def describe(self) -> dict:
         return {"name": self.label, "parameters": list(self.parameter_names), "columns": list(self.columns)}

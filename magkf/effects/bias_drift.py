@@ -7,7 +7,7 @@ from .linear import LinearEffect
 __all__ = ["DRIFT_DEGREE", "BiasDrift"]
 
 #: Degree of the Legendre polynomials in time that the diagnostics test for a drift.
-DRIFT_DEGREE = 3
+DRIFT_DEGREE = 1
 
 
 class BiasDrift(LinearEffect):

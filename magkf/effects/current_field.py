@@ -15,6 +15,7 @@ class CurrentField(LinearEffect):
     name = "current_field"
     parameter_names = ("c_x", "c_y", "c_z")
     units = ("nT/unit",) * 3
+    channels = ("current", "throttle")
     prior_std = 1000.0
 
     def __init__(self, column: str = "current_a"):

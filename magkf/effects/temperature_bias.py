@@ -15,7 +15,7 @@ class TemperatureBias(LinearEffect):
     name = "temperature_bias"
     parameter_names = ("k_x", "k_y", "k_z")
     units = ("nT/degC",) * 3
-    owns_channel = True
+    channels = ("temperature",)
     prior_std = 100.0
 
     def __init__(self, column: str = "temp_c", T0: float = 20.0):

@@ -16,7 +16,7 @@ class TemperatureScale(LinearEffect):
     name = "temperature_scale"
     parameter_names = ("s_x", "s_y", "s_z")
     units = ("1/degC",) * 3
-    owns_channel = True
+    channels = ("temperature",)
     prior_std = 1e-2
 
     def __init__(self, column: str = "temp_c", T0: float = 20.0):

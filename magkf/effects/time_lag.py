@@ -2,26 +2,52 @@
 
 import numpy as np
 
-from .linear import LinearEffect
+from .base import Effect
 
 __all__ = ["TimeLag"]
 
 
-class TimeLag(LinearEffect):
-    """One parameter ``tau`` (s, positive when the magnetometer lags): the reading at ``t`` is the field
-    at ``t - tau``, ``m(t) = R B(t - tau) + b``, so ``m += -tau R dB/dt`` to first order (with the
-    initial ``R``, which keeps the effect linear; the difference is second order)."""
+class TimeLag(Effect):
+    """One parameter ``tau`` (s, positive when the magnetometer lags): the reading stamped ``t`` is the
+    field at ``t - tau``, ``m(t) = R B(t - tau) + b``, so ``m += R (B(t - tau) - B(t))`` (with the initial
+    ``R``; the difference is second order).
+
+    The delayed field is interpolated along the log's body-frame reference (a cubic Hermite spline through
+    the field and its rate, so that the first-order model is this one's derivative at ``tau = 0``), so the
+    model is exact however fast the vehicle turns. Outside the data's time span (before a filter block's first epoch, or
+    at a single real-time sample) it is extrapolated from the nearest epoch by its Taylor series in the
+    field's rate and, where known, its second derivative (``EpochData.field_body_accel``). The Jacobian is
+    the base class's central difference of this model, the slope of the interpolation itself.
+    """
 
     name = "time_lag"
     parameter_names = ("tau",)
     units = ("s",)
-    prior_std = 0.5
+    linear = False
 
-    def design(self, data):
-        return -(data.field_body_rate @ data.R0.T)[:, :, None]
+    def prior(self):
+        return np.zeros(1), np.full(1, 0.5)
 
-    def simulate(self, theta, data, rng):
-        """The exact delay: the body field interpolated ``tau`` earlier, less the field now."""
-        t = data.time
-        lagged = np.column_stack([np.interp(t - theta[0], t, data.field_body[:, i]) for i in range(3)])
-        return (lagged - data.field_body) @ data.R0.T
+    @staticmethod
+    def _delayed(values, rate, accel, t, target):
+        """``values`` (N, 3) with derivative ``rate`` interpolated at times ``target`` (N,), extrapolated outside
+        the span of ``t`` by the Taylor series with ``rate`` and ``accel`` (None: first order)."""
+        from scipy.interpolate import CubicHermiteSpline
+
+        if len(t) > 1:
+            out = CubicHermiteSpline(t, values, rate, axis=0, extrapolate=False)(target)
+        else:
+            out = np.repeat(values, len(target), axis=0)
+        for mask, k in ((target < t[0], 0), (target > t[-1], -1)):
+            if mask.any():
+                d = (target[mask] - t[k])[:, None]
+                out[mask] = values[k] + d * rate[k] + (0.0 if accel is None else 0.5 * d**2 * accel[k])
+        return out
+
+    def contribution(self, theta, data):
+        theta = np.asarray(theta, float)
+        if theta.ndim == 2:
+            return np.stack([self.contribution(th, data) for th in theta])
+        t, B = data.time, data.field_body
+        lagged = self._delayed(B, data.field_body_rate, data.field_body_accel, t, t - theta[0])
+        return (lagged - B) @ data.R0.T

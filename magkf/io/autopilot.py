@@ -256,18 +256,16 @@ def _split(cal):
 
 def _current_coefficients(cal, notes: list, target: str):
     """The ``current_field`` coefficients ``c`` (3,) in nT/A if the calibration has them on ``current_a``."""
-    effects = cal.parameters.get("effects", {}) if isinstance(cal.parameters, dict) else {}
     found = None
-    for label, params in effects.items():
-        name, _, column = str(label).partition(":")
-        if name != "current_field":
-            notes.append(f"effect {label!r} has no autopilot parameter and is not exported")
+    for stored in cal.effects:
+        if stored.name != "current_field":
+            notes.append(f"effect {stored.label!r} has no autopilot parameter and is not exported")
             continue
-        column = column or CURRENT_COLUMN
+        column = stored.settings.get("column", CURRENT_COLUMN)
         if column != CURRENT_COLUMN:
-            notes.append(f"effect {label!r} works on {column!r}; only a current in A maps to {target}")
+            notes.append(f"effect {stored.label!r} works on {column!r}; only a current in A maps to {target}")
             continue
-        found = np.array([float(params[p]["value"]) for p in ("c_x", "c_y", "c_z")])
+        found = np.array([stored.values[stored.names.index(p)] for p in ("c_x", "c_y", "c_z")])
     return found
 
 

@@ -3,6 +3,12 @@
 A calibration file is one JSON object. The data contract requires ``R`` (3x3, row-major) and ``b``
 (3 values, nT); magkf adds ``format``, ``version``, ``method``, and optionally ``covariance`` (12x12 over
 ``R`` row-major then ``b``), ``parameters``, ``standard_errors``, ``quality`` and ``source``.
+
+Version 2 adds the physical effects estimated with the core: ``effects``, a list of objects
+``{"effect": "NAME[:COLUMN]", "settings": {...}, "parameters": {NAME: {"value", "std", "unit"}}}`` in state
+order, and ``state_covariance``, the covariance over the core and then every effect's parameters. Every
+command that uses a calibration restores them (``magkf.effects.restore_effects``). Version 1 files are read
+as they are (their effects, under ``parameters.effects``, are kept there for information only).
 Files are written with Python's shortest round-trip float representation, so reading a written file
 gives back the same numbers bit for bit.
 """
@@ -11,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,12 +25,60 @@ import numpy as np
 from ..conventions import calibrated_field
 from ..errors import InputError
 
-__all__ = ["FORMAT", "VERSION", "PARAMETER_NAMES", "Calibration", "jsonable"]
+__all__ = ["FORMAT", "VERSION", "PARAMETER_NAMES", "StoredEffect", "Calibration", "jsonable"]
 
 FORMAT = "magkf-calibration"
-VERSION = 1
+VERSION = 2
 #: Names of the 12 core parameters in state order: R row-major, then b.
 PARAMETER_NAMES = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4)) + ("b_x", "b_y", "b_z")
+
+
+@dataclass(frozen=True)
+class StoredEffect:
+    """A physical effect as a calibration file holds it: ``label`` (``NAME[:COLUMN]``, as ``--effect``
+    takes it), the constructor ``settings`` that rebuild it (``Effect.settings``), and its parameters'
+    ``names``, ``values``, ``stds`` and ``units``."""
+
+    label: str
+    settings: dict
+    names: tuple
+    values: tuple
+    stds: tuple
+    units: tuple
+
+    @property
+    def name(self) -> str:
+        return self.label.partition(":")[0]
+
+    def to_dict(self) -> dict:
+        params = {
+            n: {"value": float(v), "std": float(s), "unit": u}
+            for n, v, s, u in zip(self.names, self.values, self.stds, self.units)
+        }
+        return {"effect": self.label, "settings": jsonable(self.settings), "parameters": params}
+
+    @classmethod
+    def from_dict(cls, data, source: str) -> StoredEffect:
+        where = "key 'effects'"
+        if not isinstance(data, dict) or not isinstance(data.get("effect"), str):
+            raise InputError(f"{where}: each entry must be an object with an 'effect' name", source)
+        settings = data.get("settings", {})
+        params = data.get("parameters")
+        if not isinstance(settings, dict) or not isinstance(params, dict) or not params:
+            raise InputError(f"{where}: effect {data['effect']!r} needs 'settings' and 'parameters' objects", source)
+        names, values, stds, units = [], [], [], []
+        for name, p in params.items():
+            try:
+                value, std = float(p["value"]), float(p.get("std", "nan"))
+            except (TypeError, KeyError, ValueError):
+                raise InputError(f"{where}: {data['effect']}.{name} needs a numeric 'value'", source) from None
+            if not math.isfinite(value):
+                raise InputError(f"{where}: {data['effect']}.{name} is not finite", source)
+            names.append(str(name))
+            values.append(value)
+            stds.append(std)
+            units.append(str(p.get("unit", "")))
+        return cls(data["effect"], dict(settings), tuple(names), tuple(values), tuple(stds), tuple(units))
 
 
 @dataclass(frozen=True)
@@ -41,6 +95,8 @@ class Calibration:
     standard_errors : standard errors of those named parameters.
     quality : fit statistics (``residual_rms``, ``coverage``, ...).
     source : the data the calibration was computed from.
+    effects : ``StoredEffect`` of each physical effect estimated with the core, in state order.
+    state_covariance : (n, n) array over the core then every effect's parameters, or None.
     """
 
     R: np.ndarray
@@ -51,6 +107,8 @@ class Calibration:
     standard_errors: dict = field(default_factory=dict)
     quality: dict = field(default_factory=dict)
     source: str | None = None
+    effects: tuple = ()
+    state_covariance: np.ndarray | None = None
 
     def __post_init__(self):
         R = np.array(self.R, dtype=float)
@@ -71,6 +129,14 @@ class Calibration:
                 raise ValueError(f"covariance must be 12x12, got {cov.shape}")
             cov.setflags(write=False)
             object.__setattr__(self, "covariance", cov)
+        object.__setattr__(self, "effects", tuple(self.effects))
+        if self.state_covariance is not None:
+            n = 12 + sum(len(e.values) for e in self.effects)
+            cov = np.array(self.state_covariance, dtype=float)
+            if cov.shape != (n, n):
+                raise ValueError(f"state_covariance must be {n}x{n} (the core and the effects), got {cov.shape}")
+            cov.setflags(write=False)
+            object.__setattr__(self, "state_covariance", cov)
 
     # ------------------------------------------------------------ use
     def correct(self, mag_nt) -> np.ndarray:
@@ -86,6 +152,15 @@ class Calibration:
         """The 12 core parameters, ``R`` row-major then ``b``, shape (12,)."""
         return np.concatenate([self.R.ravel(), self.b])
 
+    @property
+    def full_state(self) -> np.ndarray:
+        """The core then every stored effect's parameters, shape (12 + k,)."""
+        return np.concatenate([self.state, *(np.asarray(e.values, float) for e in self.effects)])
+
+    def without_effects(self) -> Calibration:
+        """The same calibration with its core only."""
+        return replace(self, effects=(), state_covariance=None)
+
     # ------------------------------------------------------------ file
     def to_dict(self) -> dict:
         """A JSON-ready dictionary with the contract's keys."""
@@ -98,6 +173,10 @@ class Calibration:
                 out[key] = jsonable(value)
         if self.source is not None:
             out["source"] = self.source
+        if self.effects:
+            out["effects"] = [e.to_dict() for e in self.effects]
+        if self.state_covariance is not None:
+            out["state_covariance"] = self.state_covariance.tolist()
         return out
 
     def save(self, path) -> None:
@@ -128,8 +207,23 @@ class Calibration:
         method = data.get("method", "unspecified")
         if not isinstance(method, str):
             raise InputError("key 'method' must be a string", source)
+        stored = data.get("effects", [])
+        if not isinstance(stored, list):
+            raise InputError("key 'effects' must be a list", source)
+        effects = tuple(StoredEffect.from_dict(e, source) for e in stored)
+        n = 12 + sum(len(e.values) for e in effects)
+        state_cov = _matrix(data, "state_covariance", (n, n), source) if "state_covariance" in data else None
         try:
-            return cls(R=R, b=b, method=method, covariance=cov, source=data.get("source"), **extras)
+            return cls(
+                R=R,
+                b=b,
+                method=method,
+                covariance=cov,
+                source=data.get("source"),
+                effects=effects,
+                state_covariance=state_cov,
+                **extras,
+            )
         except ValueError as exc:
             raise InputError(str(exc), source) from None
 

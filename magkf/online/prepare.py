@@ -31,6 +31,7 @@ __all__ = [
     "initial_state",
     "initial_covariance",
     "with_initial_R",
+    "calibration_start",
     "start_noise",
     "deflate_bootstrap",
 ]
@@ -99,7 +100,10 @@ def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     base = epoch_status(m, ref, has_att, dop, config.dop_max)
     columns = {c: log.column(c) for c in log.auxiliary}
     ref_mag = np.linalg.norm(ref, axis=1)
-    data = EpochData(t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate_of_change(t, field_body))
+    rate = rate_of_change(t, field_body)
+    data = EpochData(
+        t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate, field_body_accel=rate_of_change(t, rate)
+    )
     heading = np.nan_to_num(heading_axis(c_nb, ref))
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
 
@@ -132,11 +136,9 @@ def initial_covariance(init: Calibration, config: FilterConfig) -> np.ndarray:
     return np.diag(np.concatenate([np.full(9, config.init_r_std**2), np.full(3, config.init_b_std**2)]))
 
 
-def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
-    """Initial ``(x, P, how)`` of the core block (and of ``effects``, when the bootstrap fitted them with
-    it: then ``x`` and ``P`` cover 12 + their parameters): from ``init`` or bootstrapped."""
-    if init is not None:
-        return init.state, initial_covariance(init, config), f"file ({init.method})"
+def initial_core(prep: PreparedLog, config: FilterConfig, effects=()):
+    """Initial ``(x, P, how)`` of the core block bootstrapped from the log (and of ``effects``, when the
+    bootstrap fitted them with it: then ``x`` and ``P`` cover 12 + their parameters)."""
     good = prep.base == Status.USED
     linear = [e for e in effects if e.linear]
     if linear:
@@ -173,16 +175,49 @@ def initial_core(prep: PreparedLog, config: FilterConfig, init: Calibration | No
 def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
     """The start of a run: ``(prep, layout, x0, P0, how)``.
 
-    The core block (and the effects, when the bootstrap fitted them jointly) from ``initial_core``;
-    the other effects from their priors; ``prep`` with the initial ``R`` for the effects that use it.
+    From the calibration ``init`` (``calibration_start``), else the core block (and the effects, when the
+    bootstrap fitted them jointly) from ``initial_core`` and the other effects from their priors; ``prep``
+    with the initial ``R`` for the effects that use it.
     """
-    x_init, P_init, how = initial_core(prep, config, init, effects)
+    if init is not None:
+        layout, x0, P0 = calibration_start(init, config, effects)
+        return with_initial_R(prep, x0), layout, x0, P0, f"file ({init.method})"
+    x_init, P_init, how = initial_core(prep, config, effects)
     core = SoftHardIron(x_init[:CORE_SIZE], np.sqrt(np.diag(P_init)[:CORE_SIZE]), config.r_walk, config.b_walk)
     layout = StateLayout((core, *effects))
     x0, P0 = layout.prior()
     x0[: len(x_init)] = x_init
     P0[: len(x_init), : len(x_init)] = P_init
     return with_initial_R(prep, x_init), layout, x0, P0, how
+
+
+def calibration_start(
+    init: Calibration, config: FilterConfig, effects=()
+) -> tuple[StateLayout, np.ndarray, np.ndarray]:
+    """``(layout, x0, P0)`` starting from a calibration: its core with its covariance (``initial_covariance``),
+    and each of ``effects`` that the calibration stores (same ``label``) at its stored values and covariance
+    (with the cross terms to the core and to the other stored effects); the others from their priors."""
+    P_core = initial_covariance(init, config)
+    core = SoftHardIron(init.state, np.sqrt(np.diag(P_core)), config.r_walk, config.b_walk)
+    layout = StateLayout((core, *effects))
+    x0, P0 = layout.prior()
+    P0[:CORE_SIZE, :CORE_SIZE] = P_core
+    x0[:CORE_SIZE] = init.state
+    # the stored state's index of each stored effect, and of the core
+    stored_at, start = {"core": np.arange(CORE_SIZE)}, CORE_SIZE
+    for e in init.effects:
+        stored_at[e.label] = np.arange(start, start + len(e.values))
+        start += len(e.values)
+    ours, theirs = [np.arange(CORE_SIZE)], [stored_at["core"]]
+    for effect, sl in layout.blocks():
+        if effect.label in stored_at:
+            x0[sl] = init.full_state[stored_at[effect.label]]
+            ours.append(np.arange(sl.start, sl.stop))
+            theirs.append(stored_at[effect.label])
+    if init.state_covariance is not None and len(ours) > 1:
+        a, b = np.concatenate(ours), np.concatenate(theirs)
+        P0[np.ix_(a, a)] = init.state_covariance[np.ix_(b, b)]
+    return layout, x0, P0
 
 
 def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> NoiseLevels:

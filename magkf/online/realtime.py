@@ -36,8 +36,8 @@ from ..conventions import (
     magnetic_heading_deg,
     ned_to_body,
 )
+from ..effects import restore_effects, stored_effect
 from ..effects.base import EpochData
-from ..effects.core import SoftHardIron
 from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import epoch_status, read_sample, select_dop
@@ -45,8 +45,7 @@ from ..reference import ReferenceFieldCache
 from ..status import STATUS_NAMES, Status
 from .estimator import Estimator
 from .measurements import Block, heading_axis
-from .prepare import initial_covariance
-from .state import StateLayout
+from .prepare import calibration_start
 
 __all__ = ["OnlineCalibrator", "EpochResult"]
 
@@ -90,13 +89,10 @@ class OnlineCalibrator:
     own priors. Memory does not grow with the number of steps.
     """
 
-    def __init__(self, init: Calibration, config: FilterConfig = FilterConfig(), effects=()):
+    def __init__(self, init: Calibration, config: FilterConfig = FilterConfig(), effects=None):
         self.config = config
-        P_core = initial_covariance(init, config)
-        core = SoftHardIron(init.state, np.sqrt(np.diag(P_core)), config.r_walk, config.b_walk)
-        self.layout = StateLayout((core, *effects))
-        x0, P0 = self.layout.prior()
-        P0[self.layout.CORE, self.layout.CORE] = P_core
+        effects = restore_effects(init) if effects is None else tuple(effects)
+        self.layout, x0, P0 = calibration_start(init, config, effects)
         self.estimator = Estimator(self.layout, config, x0, P0)
         self.reference = ReferenceFieldCache(config.reference_refresh_m)
         self._columns = _SAMPLE_COLUMNS + tuple(c for e in self.layout.extra() for c in e.columns)
@@ -104,16 +100,27 @@ class OnlineCalibrator:
         self._last_field_body = None
 
     @classmethod
-    def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=()) -> OnlineCalibrator:
-        """Start from a calibration file (JSON)."""
-        return cls(Calibration.load(path), config, effects)
+    def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=None, registry=None) -> OnlineCalibrator:
+        """Start from a calibration file (JSON), with the effects it stores at their stored values and
+        covariance (user effects need their classes in ``registry``, from ``load_effect_file``), or with
+        ``effects`` instead when given (those the file stores start from it, the others from their priors)."""
+        init = Calibration.load(path)
+        return cls(init, config, restore_effects(init, registry) if effects is None else effects)
 
     @property
     def calibration(self) -> Calibration:
-        """The current estimate as a calibration with its 12x12 covariance."""
+        """The current estimate as a calibration with its 12x12 covariance, and its effects."""
         x, P, core = self.estimator.x, self.estimator.P, self.layout.CORE
         R, b = self.layout.R_b(x)
-        return Calibration(R=R, b=b, method=f"{self.config.filter}-online", covariance=P[core, core])
+        std = np.sqrt(np.diag(P))
+        return Calibration(
+            R=R,
+            b=b,
+            method=f"{self.config.filter}-online",
+            covariance=P[core, core],
+            effects=tuple(stored_effect(e, x[sl], std[sl]) for e, sl in self.layout.blocks()),
+            state_covariance=P if self.layout.has_extra else None,
+        )
 
     def step(self, sample, time: float | None = None) -> EpochResult:
         """Process one sample (a mapping of column names to values, or a pandas row); ``time`` (UNIX s)

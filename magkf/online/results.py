@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 
 from ..conventions import body_to_ned
+from ..effects import stored_effect
 from ..io.calibration import Calibration
 from ..status import Status, status_counts, status_names
 from . import observability
@@ -328,7 +329,8 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
         b=b,
         method=f"{method}-{config.measure}",
         covariance=P_final[core, core],
-        parameters={"effects": effects} if effects else {},
+        effects=tuple(stored_effect(e, x_final[sl], std[sl]) for e, sl in layout.blocks()),
+        state_covariance=P_final if layout.has_extra else None,
         standard_errors=dict(zip(names[core], std[core].tolist())),
         quality=quality | {"undetermined": obs["text"]},
         source=log.source,

@@ -149,16 +149,18 @@ def test_diagnose_json_and_self_contained_report(tmp):
     assert d["candidates"][0]["effect"] == "current_field:current_a"
     for key in (
         "effect",
+        "option",
         "statistic",
         "dof",
+        "dof_denominator",
         "p_value",
-        "delta_aic",
-        "delta_bic",
         "residual_rms_after_nt",
+        "residual_rms_fit_nt",
         "significant",
     ):
         assert key in d["candidates"][0]
-    assert d["residual_rms_nt"] > d["candidates"][0]["residual_rms_after_nt"]
+    assert d["recommended"] == ["--effect current_field:current_a"]
+    assert d["residual_rms_held_out_nt"] > d["candidates"][0]["residual_rms_after_nt"]
     from ..conftest import run_cli
 
     proc = run_cli("report", tmp / "log.csv", "--effect", "current_field", "-o", tmp / "r.html")
@@ -186,7 +188,7 @@ def test_candidates_frame_follows_the_ranking():
     frame = diag.candidates_frame()
     assert list(frame.index) == [c.effect for c in diag.candidates]
     assert frame.index[0] == "current_field:current_a" and bool(frame["significant"].iloc[0])
-    assert {"p_value", "delta_bic", "residual_rms_after_nt"} <= set(frame.columns)
+    assert {"p_value", "statistic", "residual_rms_after_nt", "option"} <= set(frame.columns)
 
 
 def test_a_log_too_short_to_diagnose_is_one_line_naming_the_file(tmp):

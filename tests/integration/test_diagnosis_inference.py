@@ -1,0 +1,159 @@
+"""The diagnosis on correlated residuals, nested effects, channel kinds, and effects that travel with the
+calibration to the next log (seeded)."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy import signal, stats
+
+from magkf import Calibration
+from magkf.diagnostics.diagnose import diagnose
+from magkf.diagnostics.inference import robust_test
+from magkf.diagnostics.validate import validate
+from magkf.effects import BUILTIN, candidates, restore_effects, stored_effect, untried_columns
+from magkf.errors import InputError
+from magkf.io.drivelog import DriveLog
+from magkf.online.realtime import OnlineCalibrator
+from magkf.sim import DriveConfig, simulate_drive
+
+from ..conftest import cli_json, run_cli
+
+COLOURED = {"noise_correlation_s": 2.0, "attitude_wander_deg": (0.0, 0.0, 0.2)}
+
+
+def _log(seed, minutes=5.0, rate=10.0, effects=(), **realism):
+    config = DriveConfig(duration_s=60 * minutes, rate_hz=rate, noise_nt=30.0, seed=seed, **realism)
+    return simulate_drive(config, effects=list(effects))
+
+
+def test_robust_test_keeps_its_size_on_autocorrelated_residuals():
+    """AR(1) residuals (phi 0.9) and autocorrelated regressors: the share of p < 0.05 over 300 seeded
+    trials stays within the 99.9 % binomial band of 0.05."""
+    rng = np.random.default_rng(5)
+    n, q, trials = 3000, 3, 300
+    hits = 0
+    for _ in range(trials):
+        e = signal.lfilter([1.0], [1.0, -0.9], rng.normal(size=(n, 3)), axis=0)
+        G = signal.lfilter([1.0], [1.0, -0.8], rng.normal(size=(3 * n, q)), axis=0)
+        u, _, _ = np.linalg.svd(G - G.mean(axis=0), full_matrices=False)
+        result = robust_test(u.reshape(n, 3, q), e)
+        hits += result is not None and result.p_value < 0.05
+    lo, hi = stats.binom.ppf([0.0005, 0.9995], trials, 0.05)
+    assert lo <= hits <= hi, hits
+
+
+@pytest.mark.slow
+def test_no_false_alarms_on_coloured_noise_with_a_wandering_yaw():
+    """20 null logs, coloured sensor noise (2 s) and a logged yaw wandering by 0.2 deg: logs with any
+    candidate taken stay within the 99.9 % binomial bound of alpha."""
+    alpha, runs = 0.01, 20
+    alarms = sum(
+        bool(diagnose(DriveLog(_log(800 + s, **COLOURED).table), alpha=alpha)[0].recommended) for s in range(runs)
+    )
+    assert alarms <= stats.binom.ppf(0.999, runs, alpha), alarms
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("realism", [{}, COLOURED], ids=["white", "coloured"])
+def test_an_exact_time_lag_is_named_time_lag_not_eddy_current(realism):
+    """The log's sample stamped t is the field at t - 0.12 s (exact delay, not the first-order model)."""
+    sim = _log(61, minutes=10.0, rate=20.0, effects=[(BUILTIN["time_lag"](), [0.12])], **realism)
+    found, _ = diagnose(DriveLog(sim.table))
+    assert [c.effect for c in found.recommended][:1] == ["time_lag"], found.text
+    tau = found.recommended[0].estimate["tau"]
+    assert abs(tau["value"] - 0.12) < 4 * tau["std"] + 1e-3, tau
+
+
+def test_alpha_outside_zero_one_is_refused(tmp):
+    sim = _log(3, minutes=2.0)
+    with pytest.raises(InputError, match="alpha"):
+        diagnose(DriveLog(sim.table), alpha=1.5)
+    sim.write(tmp / "log.csv")
+    proc = run_cli("diagnose", tmp / "log.csv", "--alpha", "5")
+    assert proc.returncode == 2 and "--alpha" in proc.stderr
+
+
+def test_candidates_only_from_channels_of_their_kind():
+    columns = ["temp_c", "current_a", "throttle", "speed_mps", "mag_health"]
+    labels = {e.label for e in candidates(columns)}
+    assert {"temperature_bias:temp_c", "current_field:current_a", "current_field:throttle"} <= labels
+    assert not any(":speed_mps" in x or ":mag_health" in x or "current_field:temp_c" == x for x in labels)
+    assert untried_columns(columns) == ["speed_mps", "mag_health"]
+
+
+def _with_effect(effect, theta, cov_scale=1e-4):
+    """A calibration storing ``effect`` at ``theta`` with a full state covariance."""
+    theta = np.asarray(theta, float)
+    n = 12 + len(theta)
+    A = np.random.default_rng(2).normal(size=(n, n))
+    cov = cov_scale * (A @ A.T + n * np.eye(n))
+    R = np.array([[1.02, 0.01, 0.0], [0.0, 0.98, 0.02], [0.01, 0.0, 1.01]])
+    std = np.sqrt(np.diag(cov))[12:]
+    return Calibration(
+        R,
+        [120.0, -80.0, 40.0],
+        effects=(stored_effect(effect, theta, std),),
+        state_covariance=cov,
+        covariance=cov[:12, :12],
+    )
+
+
+@pytest.mark.parametrize("name", sorted(BUILTIN))
+def test_each_builtin_travels_with_the_calibration(name, tmp):
+    """Saved and loaded bit for bit; restored with its settings; applied; and the real-time calibrator starts
+    from its stored values and covariance."""
+    effect = BUILTIN[name]()
+    theta = {"time_lag": [0.05], "bias_drift": [3.0, -2.0, 1.0]}.get(name, np.linspace(0.5, 2.0, effect.size) * 1e-3)
+    cal = _with_effect(effect, theta)
+    cal.save(tmp / "cal.json")
+    back = Calibration.load(tmp / "cal.json")
+    assert back.to_dict() == json.loads(json.dumps(cal.to_dict()))
+    (restored,) = restore_effects(back)
+    assert restored.label == effect.label and restored.settings() == effect.settings()
+    online = OnlineCalibrator.from_file(tmp / "cal.json")
+    assert np.array_equal(online.estimator.x, back.full_state)
+    assert np.allclose(online.estimator.P, back.state_covariance)
+    assert online.calibration.effects[0].label == effect.label
+
+
+def test_apply_and_diagnose_use_the_stored_effects(tmp):
+    effect, theta = BUILTIN["current_field"](), np.array([12.0, -8.0, 5.0])
+    sim = _log(21, effects=[(effect, theta)])
+    sim.write(tmp / "log.csv")
+    with_it = Calibration(sim.R, sim.b, effects=(stored_effect(effect, theta, np.zeros(3)),))
+    with_it.save(tmp / "cal.json")
+    Calibration(sim.R, sim.b).save(tmp / "core.json")
+    quiet = np.linalg.norm(sim.disturbance, axis=1) == 0
+    for path, expect_small in (("cal.json", True), ("core.json", False)):
+        cli_json("apply", tmp / "log.csv", "--cal", tmp / path, "-o", tmp / "out.csv")
+        import pandas as pd
+
+        out = pd.read_csv(tmp / "out.csv")
+        err = np.linalg.norm(out[["field_x", "field_y", "field_z"]].to_numpy() - sim.field_body, axis=1)[quiet]
+        assert (np.sqrt(np.mean(err**2)) < 1.1 * np.sqrt(3) * 30.0) == expect_small
+    found = cli_json("diagnose", tmp / "log.csv", "--cal", tmp / "cal.json")
+    assert found["model_effects"] == ["current_field:current_a"] and not found["recommended"]
+
+
+@pytest.mark.slow
+def test_learn_on_one_log_check_on_the_next(tmp):
+    """A hidden current field in both logs: learned on A, it brings B's residual within 1.1 times the true
+    model's and helps beyond chance; with nothing hidden, adding it never makes B worse beyond chance."""
+    effect, theta = BUILTIN["current_field"](), [12.0, -8.0, 5.0]
+    for hidden, seeds in ((True, (31, 32)), (False, (33, 34))):
+        a, b = (
+            _log(s, minutes=10.0, rate=20.0, effects=[(effect, theta)] if hidden else [], **COLOURED) for s in seeds
+        )
+        a.write(tmp / "a.csv")
+        b.write(tmp / "b.csv")
+        assert run_cli("calibrate", tmp / "a.csv", "--effect", "current_field", "-o", tmp / "a.json").returncode == 0
+        checked = cli_json("validate", tmp / "b.csv", "--cal", tmp / "a.json")
+        (check,) = checked["effects"]
+        if hidden:
+            truth = Calibration(b.R, b.b, effects=(stored_effect(effect, theta, np.zeros(3)),))
+            true_model = validate(DriveLog(b.table), truth)
+            assert checked["with_effects_nt"] <= 1.1 * true_model.with_effects_nt
+            assert check["verdict"] == "helps beyond chance", check
+        else:
+            assert check["p_hurts"] >= 0.01, check
