@@ -17,7 +17,7 @@ from magkf.io.autopilot import (
     to_px4,
     write_param_file,
 )
-from magkf.io.calibration import Calibration
+from magkf.io.calibration import Calibration, StoredEffect
 
 FIELD_NT = 50_000.0
 NT_PER_MG = 100.0
@@ -43,8 +43,20 @@ def rotation(axis, angle_deg):
 def symmetric_calibration(rng, effects=None):
     """A calibration whose correction R^-1 is symmetric (no rotation), offsets up to 8000 nT."""
     correction = random_spd(rng)
-    params = {"effects": effects} if effects else {}
-    return Calibration(R=np.linalg.inv(correction), b=rng.uniform(-8000, 8000, 3), parameters=params)
+    stored = []
+    for label, params in (effects or {}).items():
+        column = label.partition(":")[2]
+        stored.append(
+            StoredEffect(
+                label,
+                {"column": column} if column else {},
+                tuple(params),
+                tuple(p["value"] for p in params.values()),
+                tuple(p["std"] for p in params.values()),
+                tuple(p["unit"] for p in params.values()),
+            )
+        )
+    return Calibration(R=np.linalg.inv(correction), b=rng.uniform(-8000, 8000, 3), effects=tuple(stored))
 
 
 def raw_readings(rng, cal, n=200):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from magkf.errors import InputError
-from magkf.io.calibration import Calibration
+from magkf.io.calibration import VERSION, Calibration
 
 from ..conftest import DATA, run_cli
 
@@ -31,7 +31,7 @@ def test_round_trip_is_exact(tmp):
     assert np.array_equal(back.covariance, cal.covariance)
     assert back.parameters == cal.parameters and back.method == "test"
     data = json.loads((tmp / "c.json").read_text())
-    assert data["format"] == "magkf-calibration" and data["version"] == 1
+    assert data["format"] == "magkf-calibration" and data["version"] == VERSION
 
 
 def test_correct_inverts_distort():
