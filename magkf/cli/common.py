@@ -12,6 +12,7 @@ from ..errors import InputError
 __all__ = [
     "command",
     "print_json",
+    "write_json_result",
     "timestamp",
     "igrf_field",
     "add_igrf_options",
@@ -42,6 +43,19 @@ def print_json(data) -> None:
     from ..io.calibration import jsonable
 
     print(json.dumps(jsonable(data), indent=2))
+
+
+def write_json_result(args, summary: dict) -> bool:
+    """Write ``summary`` to ``-o`` (JSON) if given, print it with ``--json``; True when printed (the command
+    then prints nothing else)."""
+    from ..io.calibration import jsonable
+
+    if args.output:
+        with open(args.output, "w", encoding="utf-8") as f:
+            json.dump(jsonable(summary), f, indent=2)
+    if args.json:
+        print_json(summary)
+    return bool(args.json)
 
 
 def timestamp(date: str) -> float:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 from ..errors import InputError
 from . import common
 
@@ -48,22 +46,15 @@ def run_diagnose(args) -> int:
     and test every candidate effect by a correlation-robust F test, with its residual on held-out data. Without --cal
     the online filter runs first; a calibration's stored effects are part of the model."""
     from ..diagnostics.diagnose import diagnose
-    from ..effects import candidates
-    from ..io.calibration import jsonable
 
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     added, registry = common.effects(args, cal)
     log = common.open_log(args)
-    pool = candidates(log.auxiliary, registry)
-    result, run = diagnose(log, config, cal, added, pool, alpha=args.alpha, registry=registry)
+    result, run = diagnose(log, config, cal, added, alpha=args.alpha, registry=registry)
     summary = result.summary()
     summary["verdict"] = _verdict(run)
-    if args.output:
-        with open(args.output, "w", encoding="utf-8") as f:
-            json.dump(jsonable(summary), f, indent=2)
-    if args.json:
-        common.print_json(summary)
+    if common.write_json_result(args, summary):
         return 0
     ax = result.residual_rms_axis_nt
     model = ", ".join(result.model_effects) or "core only"
@@ -111,7 +102,6 @@ def run_validate(args) -> int:
     stored, with the core refitted here with and without the stored effects, and for each effect whether it
     helps here beyond chance (a one-sided t test over blocks longer than the residual's correlation)."""
     from ..diagnostics.validate import validate
-    from ..io.calibration import jsonable
 
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
@@ -119,11 +109,7 @@ def run_validate(args) -> int:
     log = common.open_log(args)
     result = validate(log, cal, config, registry, alpha=args.alpha)
     summary = result.summary()
-    if args.output:
-        with open(args.output, "w", encoding="utf-8") as f:
-            json.dump(jsonable(summary), f, indent=2)
-    if args.json:
-        common.print_json(summary)
+    if common.write_json_result(args, summary):
         return 0
     print(
         f"validation of {args.cal} on {args.file}: {result.n_epochs} epochs; residual RMS as stored "

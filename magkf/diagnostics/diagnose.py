@@ -45,7 +45,7 @@ from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
 from ..status import Status
-from .fitting import EpochSet, Linearised
+from .fitting import OUTLIER_SIGMA, EpochSet, Linearised, finite_regressors, inliers, span_basis
 from .inference import fold_edges, held_out_residual, integrated_time, robust_test
 
 __all__ = [
@@ -63,8 +63,6 @@ __all__ = [
 #: Bins of the binned residual means; stretch length of the "largest residual" search, s.
 BINS = 12
 WINDOW_S = 10.0
-#: Whitened residual, in units of its robust (MAD) scale, beyond which an epoch is an outlier.
-OUTLIER_SIGMA = 5.0
 #: How many of the significant candidates are refitted at their own best fit before they are compared.
 LEADING = 3
 #: Singular values of a candidate's (column-normalised) regressors below this, once the model's span is
@@ -223,6 +221,10 @@ def diagnose(
     if run is not None:
         x = run.x
         layout = StateLayout.with_core(effects or stored)
+        if len(x) != layout.size:
+            raise ValueError(
+                f"the run's state has {len(x)} parameters; the model with {layout.names[12:]} has {layout.size}"
+            )
         # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
         # the epochs where it is largest, and leaving them out would bias the diagnosis.
         used = run.states["status"].isin(["used", "gated_innovation"]).to_numpy() & prep.has_attitude
@@ -247,9 +249,7 @@ def diagnose(
     given = problem.at(layout, x)  # the model as it is
     # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the robust scale of the residual of the
     # model with every candidate added, so that a missing effect does not hide them by inflating the scale.
-    y = _screening_residual(given, pool)
-    scale = np.maximum(1.4826 * np.median(np.abs(y - np.median(y, axis=0)), axis=0), 1e-12)
-    keep = np.all(np.abs(y - np.median(y, axis=0)) <= OUTLIER_SIGMA * scale, axis=1)
+    keep = inliers(_screening_residual(given, pool))
     if not keep.all():
         problem = problem.take(keep)
         given = problem.at(layout, x)
@@ -313,8 +313,7 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     regressors, one least-squares fit)."""
     columns = [fit.A]
     for effect in pool:
-        G = effect.regressors(fit.data)
-        G = np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+        G = finite_regressors(effect, fit.data)
         columns.append((fit.W @ G).reshape(fit.y.size, -1))
     A = np.hstack(columns)
     A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
@@ -376,8 +375,7 @@ class _AsTested(LinearEffect):
         self.parameter_names = tuple(f"g{j + 1}" for j in range(size))
 
     def design(self, data):
-        G = self.effect.regressors(data)
-        return np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+        return finite_regressors(self.effect, data)
 
 
 class _Selection:
@@ -391,8 +389,7 @@ class _Selection:
 
     def trial(self, effect, fit: Linearised) -> _Trial:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
-        G = effect.regressors(fit.data)
-        G = np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+        G = finite_regressors(effect, fit.data)
         names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
         return self._evaluate(effect, fit.A, fit.basis, (fit.W @ G).reshape(fit.y.size, -1), fit.y, names)
 
@@ -406,9 +403,7 @@ class _Selection:
         with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]))
         p = fit.layout.size
         A_null = with_it.A[:, :p]
-        u, sv, _ = np.linalg.svd(A_null, full_matrices=False)
-        basis = u[:, : int(np.sum(sv > 1e-9 * sv[0]))]
-        trial = self._evaluate(effect, A_null, basis, with_it.A[:, p:], with_it.y, block.parameter_names)
+        trial = self._evaluate(effect, A_null, span_basis(A_null), with_it.A[:, p:], with_it.y, block.parameter_names)
         return trial, with_it
 
     def _evaluate(self, effect, A, basis, Gw, y, names) -> _Trial:

@@ -16,12 +16,50 @@ import numpy as np
 from ..online.measurements import measurement_model
 from ..online.state import StateLayout
 
-__all__ = ["REFIT_ITERATIONS", "REFIT_TOLERANCE", "Linearised", "EpochSet"]
+__all__ = [
+    "REFIT_ITERATIONS",
+    "REFIT_TOLERANCE",
+    "OUTLIER_SIGMA",
+    "Linearised",
+    "EpochSet",
+    "inliers",
+    "span_basis",
+    "finite_regressors",
+]
 
 #: Iterations of the refit (whitening and linearisation at the estimate), and its tolerance on the change
 #: of the state relative to the prior standard deviations.
 REFIT_ITERATIONS = 4
 REFIT_TOLERANCE = 1e-3
+#: Whitened residual, in units of its robust (MAD) scale per component, beyond which an epoch is an outlier.
+OUTLIER_SIGMA = 5.0
+
+
+def span_basis(A: np.ndarray) -> np.ndarray:
+    """An orthonormal basis (rows, rank) of the span of ``A`` (rows, p), directions below ``1e-9`` of the
+    largest singular value left out."""
+    u, sv, _ = np.linalg.svd(A, full_matrices=False)
+    return u[:, : _rank(sv)]
+
+
+def _rank(sv: np.ndarray) -> int:
+    """Numerical rank from singular values in descending order."""
+    return int(np.sum(sv > 1e-9 * sv[0])) if sv.size and sv[0] > 0 else 0
+
+
+def finite_regressors(effect, data) -> np.ndarray:
+    """``effect.regressors(data)`` (n, 3, q) with epochs where any is not finite set to zero (they add
+    nothing to a fit)."""
+    G = effect.regressors(data)
+    return np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+
+
+def inliers(residual: np.ndarray) -> np.ndarray:
+    """Mask (n,) of the epochs whose whitened residual (n, 3) lies within ``OUTLIER_SIGMA`` robust scales
+    (1.4826 times the median absolute deviation, per component) of its median."""
+    centred = residual - np.median(residual, axis=0)
+    scale = np.maximum(1.4826 * np.median(np.abs(centred), axis=0), 1e-12)
+    return np.all(np.abs(centred) <= OUTLIER_SIGMA * scale, axis=1)
 
 
 @dataclass(frozen=True)
@@ -86,7 +124,7 @@ class EpochSet:
         A = (W @ H).reshape(3 * n, p)
         y = np.einsum("nij,nj->ni", W, self.m - offset).ravel()
         u, sv, vt = np.linalg.svd(A, full_matrices=False)
-        rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size and sv[0] > 0 else 0
+        rank = _rank(sv)
         basis = u[:, :rank]
         r = y - basis @ (basis.T @ y)
         # the least-squares step from x in the determined directions only

@@ -14,7 +14,6 @@ import io
 import numpy as np
 
 from ..config import FilterConfig
-from ..effects import candidates as default_candidates
 from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
@@ -284,9 +283,8 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
     import matplotlib
 
     matplotlib.use("Agg")
-    pool = default_candidates(log.auxiliary, registry)
     run = calibrate_log(log, config, init=cal, effects=effects)
-    diag, _ = diagnose(log, config, cal, effects, pool, alpha=alpha, run=run, registry=registry)
+    diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, registry=registry)
     t0 = log.time[0]
     s = run.summary
     parts = [
@@ -354,8 +352,9 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
         ),
     ]
     if effects:
-        before = calibrate_log(log, config, init=cal)
-        diag0, _ = diagnose(log, config, cal, (), pool, alpha=alpha, run=before)
+        core = cal.without_effects() if cal is not None else None  # the model without any effect
+        before = calibrate_log(log, config, init=core)
+        diag0, _ = diagnose(log, config, core, (), alpha=alpha, run=before)
         ba = compare_runs(before, run)
         signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
         parts += [

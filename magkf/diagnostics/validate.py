@@ -33,13 +33,10 @@ from ..io.drivelog import DriveLog
 from ..online.prepare import prepare
 from ..online.state import StateLayout
 from ..status import Status
-from .fitting import EpochSet
+from .fitting import EpochSet, inliers
 from .inference import fold_edges, integrated_time
 
-__all__ = ["OUTLIER_SIGMA", "EffectCheck", "Validation", "validate"]
-
-#: Whitened residual, in units of its robust scale, beyond which an epoch of B is left out.
-OUTLIER_SIGMA = 5.0
+__all__ = ["EffectCheck", "Validation", "validate"]
 
 
 @dataclass(frozen=True)
@@ -104,11 +101,7 @@ def validate(
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
     stored = epochs.at(layout, x)
-    r = stored.y - stored.A @ x
-    y = r.reshape(-1, 3)
-    scale = np.maximum(1.4826 * np.median(np.abs(y - np.median(y, axis=0)), axis=0), 1e-12)
-    keep = np.all(np.abs(y - np.median(y, axis=0)) <= OUTLIER_SIGMA * scale, axis=1)
-    epochs = epochs.take(keep)
+    epochs = epochs.take(inliers((stored.y - stored.A @ x).reshape(-1, 3)))
     stored = epochs.at(layout, x)
 
     def terms(subset) -> np.ndarray:

@@ -134,6 +134,9 @@ def test_apply_and_diagnose_use_the_stored_effects(tmp):
         assert (np.sqrt(np.mean(err**2)) < 1.1 * np.sqrt(3) * 30.0) == expect_small
     found = cli_json("diagnose", tmp / "log.csv", "--cal", tmp / "cal.json")
     assert found["model_effects"] == ["current_field:current_a"] and not found["recommended"]
+    proc = run_cli("report", tmp / "log.csv", "--cal", tmp / "cal.json", "-o", tmp / "r.html")
+    assert proc.returncode == 0, proc.stderr
+    assert "Before and after adding current_field:current_a" in (tmp / "r.html").read_text()
 
 
 @pytest.mark.slow
