@@ -59,9 +59,10 @@ def main(argv=None) -> None:
     p.add_argument("--minutes", type=float, default=20.0)
     p.add_argument("--rate", type=float, default=50.0)
     p.add_argument("--alpha", type=float, default=0.01)
+    p.add_argument("--noise", choices=sorted(NOISES), action="append", help="default: each")
     args = p.parse_args(argv)
     bound = int(stats.binom.ppf(0.99, args.seeds, args.alpha))
-    for noise in NOISES:
+    for noise in args.noise or NOISES:
         alarms = 0
         for seed in range(args.seeds):
             d, _ = diagnose(DriveLog(log_of(900 + seed, args.minutes, args.rate, noise).table), alpha=args.alpha)

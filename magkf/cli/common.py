@@ -4,6 +4,7 @@ parts it uses when it runs, so that ``magkf --help`` starts at once."""
 from __future__ import annotations
 
 import json
+import math
 from datetime import UTC, datetime
 
 from ..conventions import NT_PER_UNIT
@@ -167,6 +168,36 @@ def probability(text: str) -> float:
     if not 0.0 < value < 1.0:
         raise argparse.ArgumentTypeError(f"{text} is not strictly between 0 and 1")
     return value
+
+
+def seconds_or_off(text: str) -> float | None:
+    """An argparse type: a finite duration in seconds, ``0`` (or ``off``) for None."""
+    import argparse
+
+    if text.strip().lower() in ("0", "off", "none"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text} is not a positive number of seconds (0 or off: none)")
+    return value
+
+
+def add_diagnosis_options(p, alpha_help: str) -> None:
+    """``--alpha`` and ``--heading-wander`` of ``diagnose``, ``validate`` and ``report``."""
+    from ..diagnostics.fitting import WANDER_BLOCK_S
+
+    p.add_argument("--alpha", type=probability, default=0.01, help=f"{alpha_help} (default 0.01)")
+    p.add_argument(
+        "--heading-wander",
+        type=seconds_or_off,
+        default=WANDER_BLOCK_S,
+        metavar="S",
+        help="let the logged heading's error wander, a straight line over each S seconds, and take it out of the "
+        f"residuals before testing (default {WANDER_BLOCK_S:g}; 0: take the logged heading as exact)",
+    )
 
 
 def add_effect_options(p, what: str) -> None:

@@ -13,9 +13,7 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "diagnose", run_diagnose, "where the model fails and which physical effect is missing")
     common.add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
-    p.add_argument(
-        "--alpha", type=common.probability, default=0.01, help="significance level over all candidates (default 0.01)"
-    )
+    common.add_diagnosis_options(p, "significance level over all candidates")
     common.add_filter_options(p)
     common.add_effect_options(p, "effects already in the model")
     common.add_output_options(p, "diagnosis (JSON)")
@@ -23,9 +21,7 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "validate", run_validate, "a calibration learned on one log, checked on another")
     common.add_log_options(p)
     p.add_argument("--cal", required=True, help="calibration JSON learned on another log (with its effects)")
-    p.add_argument(
-        "--alpha", type=common.probability, default=0.01, help="level of each effect's one-sided test (default 0.01)"
-    )
+    common.add_diagnosis_options(p, "level of each effect's one-sided test")
     common.add_filter_options(p)
     common.add_effect_file_option(p)
     common.add_output_options(p, "validation (JSON)")
@@ -33,9 +29,7 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "report", run_report, "self-contained HTML report with plots")
     common.add_log_options(p)
     p.add_argument("--cal", help="calibration JSON to start from")
-    p.add_argument(
-        "--alpha", type=common.probability, default=0.01, help="significance level over all candidates (default 0.01)"
-    )
+    common.add_diagnosis_options(p, "significance level over all candidates")
     p.add_argument("-o", "--output", help="HTML file to write")
     common.add_filter_options(p)
     common.add_effect_options(p, "effects to add (the report shows before and after)")
@@ -51,7 +45,7 @@ def run_diagnose(args) -> int:
     cal = common.load_calibration(args.cal)
     added, registry = common.effects(args, cal)
     log = common.open_log(args)
-    result, run = diagnose(log, config, cal, added, alpha=args.alpha, registry=registry)
+    result, run = diagnose(log, config, cal, added, alpha=args.alpha, registry=registry, wander_s=args.heading_wander)
     summary = result.summary()
     summary["verdict"] = _verdict(run)
     if common.write_json_result(args, summary):
@@ -72,8 +66,9 @@ def run_diagnose(args) -> int:
             + (f"  ({c.note})" if c.note else "")
         )
     print(
-        f"  (* taken into the model: p < {args.alpha:g} / {result.n_tested} candidates tested, correlation-robust F; "
-        "held-out RMS: the residual on blocks left out of the fit)"
+        f"  (* taken into the model: p < {args.alpha:g} / {result.n_tested} candidates tested, correlation-robust F "
+        "(L: constancy test of a wandering offset); held-out RMS: the residual on blocks left out of the fit"
+        + (f"; the heading's error taken out over {args.heading_wander:g} s stretches)" if args.heading_wander else ")")
     )
     if result.untried:
         print(f"  channels not tried (their kind is not known from the name): {', '.join(result.untried)}")
@@ -107,7 +102,7 @@ def run_validate(args) -> int:
     cal = common.load_calibration(args.cal)
     _, registry = common.effects(args, cal)
     log = common.open_log(args)
-    result = validate(log, cal, config, registry, alpha=args.alpha)
+    result = validate(log, cal, config, registry, alpha=args.alpha, wander_s=args.heading_wander)
     summary = result.summary()
     if common.write_json_result(args, summary):
         return 0
@@ -141,7 +136,7 @@ def run_report(args) -> int:
     cal = common.load_calibration(args.cal)
     added, registry = common.effects(args, cal)
     log = common.open_log(args)
-    page = build_report(log, config, cal, added, registry, alpha=args.alpha)
+    page = build_report(log, config, cal, added, registry, alpha=args.alpha, wander_s=args.heading_wander)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(page, encoding="utf-8")
     print(f"report written to {args.output}")

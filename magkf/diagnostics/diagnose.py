@@ -16,13 +16,19 @@ the model used:
   correlation-robust F test (``magkf.diagnostics.inference``), and the residual it would leave is
   measured on held-out blocks of the log. The leading candidates are refitted jointly with the model at
   their own best fit before they are compared.
+* **The heading's slow error.** An INS heading wanders by tenths of a degree over minutes, and its error
+  moves the body-frame field by tens of nT: left in, it dominates the residual and its correlation leaves
+  too few independent stretches to test anything. By default it is a nuisance, a straight line in time
+  over each ``WANDER_BLOCK_S`` seconds, taken out of the residual and of every regressor before anything
+  is fitted (``fitting.HeadingWander``). An effect whose parameters wander (``bias_drift``) is tested for
+  constancy against a random walk instead of for a value (``inference.constancy_test``).
 
   **One decision rule.** A candidate is significant when its p-value is below ``alpha / m`` (``m`` the
-  candidates tested; Bonferroni). Among the significant ones, the one with the lowest held-out residual
-  is taken into the model, unless a simpler candidate it contains (a time lag inside the eddy-current
-  terms) does as well: the larger one wins only when it is significant given the smaller one and better
-  on held-out data. The rest are tested again given it, until none is significant. The stars, the
-  order, the stop and the advice are all this rule.
+  candidates tested; Bonferroni). Among the significant ones that also lower the held-out residual, the
+  one with the lowest held-out residual is taken into the model, unless a simpler candidate it contains
+  (a time lag inside the eddy-current terms) does as well: the larger one wins only when it is
+  significant given the smaller one and better on held-out data. The rest are tested again given it,
+  until none is significant. The stars, the order, the stop and the advice are all this rule.
 """
 
 from __future__ import annotations
@@ -45,8 +51,8 @@ from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
 from ..status import Status
-from .fitting import OUTLIER_SIGMA, EpochSet, Linearised, finite_regressors, inliers, span_basis
-from .inference import fold_edges, held_out_residual, integrated_time, robust_test
+from .fitting import OUTLIER_SIGMA, WANDER_BLOCK_S, EpochSet, Linearised, finite_regressors, inliers, span_basis
+from .inference import constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, robust_test
 
 __all__ = [
     "BINS",
@@ -65,6 +71,11 @@ BINS = 12
 WINDOW_S = 10.0
 #: How many of the significant candidates are refitted at their own best fit before they are compared.
 LEADING = 3
+#: The tests a candidate's ``statistic`` comes from.
+TESTS = {
+    "F": "correlation-robust F (equal-weighted cosine long-run variance, Sun 2013)",
+    "L": "constancy against a random walk, correlation-robust (Nyblom 1989, Hansen 1992)",
+}
 #: Singular values of a candidate's (column-normalised) regressors below this, once the model's span is
 #: removed, are directions the model already has: a candidate with none left is contained in it.
 RANK_TOLERANCE = 1e-4
@@ -74,8 +85,9 @@ RANK_TOLERANCE = 1e-4
 class Candidate:
     """One candidate effect's test. ``effect`` is the name as ``--effect`` accepts it.
 
-    ``statistic`` the correlation-robust F with ``dof`` and ``dof_denominator`` degrees of freedom
-    (``terms`` cosine terms; ``correlation_s`` the scores' integrated autocorrelation time, s);
+    ``statistic`` the correlation-robust F with ``dof`` and ``dof_denominator`` degrees of freedom, or for
+    an effect whose parameters wander Nyblom's constancy statistic ``L`` (``test`` says which; ``terms``
+    cosine terms; ``correlation_s`` the scores' integrated autocorrelation time, s);
     ``residual_rms_after_nt`` the NED residual RMS on held-out blocks with the effect added (its expected
     residual), ``residual_rms_fit_nt`` the same in-sample; ``estimate`` the parameters with their
     correlation-robust standard deviations; ``note`` why a candidate was not tested or not taken."""
@@ -92,6 +104,7 @@ class Candidate:
     significant: bool
     estimate: dict = field(default_factory=dict)
     note: str = ""
+    test: str = "F"
 
     @property
     def option(self) -> str:
@@ -103,7 +116,7 @@ class Candidate:
             "effect": self.effect,
             "option": self.option,
             "statistic": self.statistic,
-            "test": "correlation-robust F (equal-weighted cosine long-run variance, Sun 2013)",
+            "test": TESTS[self.test],
             "dof": self.dof,
             "dof_denominator": self.dof_denominator,
             "p_value": self.p_value,
@@ -126,7 +139,8 @@ class Diagnosis:
     ``residual_rms_held_out_nt`` is the model's own residual on held-out blocks (refitted on the others),
     the baseline of the candidates' ``residual_rms_after_nt``; ``level`` the p-value below which a
     candidate is significant (``alpha / n_tested``); ``correlation_s`` the residual's integrated
-    autocorrelation time; ``untried`` the auxiliary channels no candidate could use (unknown kind).
+    autocorrelation time; ``untried`` the auxiliary channels no candidate could use (unknown kind);
+    ``heading_wander_s`` the stretches over which the heading's error was taken out (None: it was not).
     """
 
     residual_rms_nt: float
@@ -145,6 +159,7 @@ class Diagnosis:
     correlation_s: float = float("nan")
     untried: list = field(default_factory=list)
     model_effects: list = field(default_factory=list)
+    heading_wander_s: float | None = None
 
     @property
     def recommended(self) -> list:
@@ -167,6 +182,7 @@ class Diagnosis:
             "n_tested": self.n_tested,
             "level": self.level,
             "correlation_s": self.correlation_s,
+            "heading_wander_s": self.heading_wander_s,
             "model_effects": self.model_effects,
             "candidates": [c.as_dict() for c in self.candidates],
             "recommended": [c.option for c in self.recommended],
@@ -201,6 +217,7 @@ def diagnose(
     alpha: float = 0.01,
     run: CalibrationRun | None = None,
     registry: dict | None = None,
+    wander_s: float | None = WANDER_BLOCK_S,
 ):
     """Diagnose ``log``; returns ``(Diagnosis, run)``.
 
@@ -208,7 +225,10 @@ def diagnose(
     nothing to them), or the online filter's estimate with ``effects`` added (started from ``cal`` if
     given), or an existing ``run``. ``candidates`` are the effects to test (default: every built-in, and
     every effect of ``registry``, that the log's channels allow); those already in the model are skipped.
-    ``alpha`` in (0, 1) is the significance level over all candidates.
+    ``alpha`` in (0, 1) is the significance level over all candidates. ``wander_s``: the logged heading's
+    error is let wander, a straight line over each stretch of that many seconds, and taken out of the
+    residuals and regressors before anything is fitted or tested (``fitting.HeadingWander``; None: the
+    logged heading is taken as exact).
     """
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
@@ -235,7 +255,7 @@ def diagnose(
     for effect in layout.extra():
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
-    problem = EpochSet.of(prep, used, config, _learned_noise(run, config))
+    problem = EpochSet.of(prep, used, config, _learned_noise(run, config), wander_s)
     if len(problem) < 10:
         raise InputError(
             f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
@@ -274,7 +294,7 @@ def diagnose(
 
     null = problem.fit(layout, x)  # the model at its own best fit over the log
     tau = integrated_time(null.r.reshape(n, 3))
-    edges = fold_edges(n, tau)
+    edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
     nT = _InNanotesla(null)
     baseline = nT.rms(held_out_residual(null.A, null.y, edges))
 
@@ -304,6 +324,7 @@ def diagnose(
         correlation_s=tau * dt,
         untried=untried,
         model_effects=sorted(present),
+        heading_wander_s=wander_s,
     )
     return diagnosis, run
 
@@ -314,7 +335,7 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     columns = [fit.A]
     for effect in pool:
         G = finite_regressors(effect, fit.data)
-        columns.append((fit.W @ G).reshape(fit.y.size, -1))
+        columns.append(fit.whitened(G))
     A = np.hstack(columns)
     A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     beta = np.linalg.lstsq(A, fit.y, rcond=1e-9)[0]
@@ -362,6 +383,7 @@ class _Trial:
             significant=significant,
             estimate=self.estimate,
             note=self.note if note is None else note,
+            test="L" if self.effect.wanders else "F",
         )
 
 
@@ -378,6 +400,18 @@ class _AsTested(LinearEffect):
         return finite_regressors(self.effect, data)
 
 
+def _wander_prior(effect, A: np.ndarray, Gw: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """For an effect that wanders, the random walk's prior on the coefficients of ``[A, Gw]``: its
+    increments between knots (``effect.increments``) divided by their spread in the whole-log fit (an
+    empirical Bayes estimate of the walk's step). None for other effects."""
+    D = effect.increments()
+    if D is None:
+        return None
+    beta = np.linalg.lstsq(np.hstack([A, Gw]), y, rcond=None)[0][A.shape[1] :]
+    spread = np.sqrt(np.mean((D @ beta) ** 2))
+    return np.hstack([np.zeros((len(D), A.shape[1])), D / max(spread, 1e-12)])
+
+
 class _Selection:
     """Forward selection by the one decision rule (see the module's docstring)."""
 
@@ -391,7 +425,7 @@ class _Selection:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
         G = finite_regressors(effect, fit.data)
         names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-        return self._evaluate(effect, fit.A, fit.basis, (fit.W @ G).reshape(fit.y.size, -1), fit.y, names)
+        return self._evaluate(effect, fit.A, fit.basis, fit.whitened(G), fit.y, names, fit)
 
     def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
         """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
@@ -403,12 +437,17 @@ class _Selection:
         with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]))
         p = fit.layout.size
         A_null = with_it.A[:, :p]
-        trial = self._evaluate(effect, A_null, span_basis(A_null), with_it.A[:, p:], with_it.y, block.parameter_names)
+        # a wandering effect's test is made at the model without it (a score test): it is fitted here only
+        # for its held-out residual
+        trial = self._evaluate(
+            effect, A_null, span_basis(A_null), with_it.A[:, p:], with_it.y, block.parameter_names, fit
+        )
         return trial, with_it
 
-    def _evaluate(self, effect, A, basis, Gw, y, names) -> _Trial:
+    def _evaluate(self, effect, A, basis, Gw, y, names, null: Linearised) -> _Trial:
         """The test of whitened regressors ``Gw`` (3n, q) added to a model of whitened Jacobian ``A`` (3n, p)
-        with orthonormal ``basis`` of its span, for the whitened reading ``y`` (3n,)."""
+        with orthonormal ``basis`` of its span, for the whitened reading ``y`` (3n,); a wandering effect's
+        constancy test at the model ``null`` without it."""
         n = len(self.problem)
         norms = np.linalg.norm(Gw, axis=0)
         norms[norms == 0] = 1.0
@@ -420,11 +459,17 @@ class _Selection:
             return _Trial(effect, None, float("nan"), float("nan"), {}, 0, "contained in the model")
         U = u[:, :rank]
         r = y - basis @ (basis.T @ y)
-        test = robust_test(U.reshape(n, 3, rank), r.reshape(n, 3))
-        held = held_out_residual(np.hstack([A, Gw]), y, self.edges)
+        if effect.wanders:
+            J = null.whitened(effect.jacobian(effect.prior()[0], null.data)).reshape(n, 3, -1)
+            test = constancy_test(np.einsum("nik,ni->nk", J, null.r.reshape(n, 3)))
+        else:
+            test = robust_test(U.reshape(n, 3, rank), r.reshape(n, 3))
+        held = held_out_residual(np.hstack([A, Gw]), y, self.edges, penalty=_wander_prior(effect, A, Gw, y))
         in_sample = r - U @ (U.T @ r)
         estimate, note = {}, "not testable: the residual's correlation leaves too few independent stretches"
-        if test is not None:
+        if test is not None and effect.wanders:
+            note = ""
+        elif test is not None:
             # coefficients of G (Frisch-Waugh): theta_G = V S^-1 theta_U / norms, with the robust covariance
             back = (vt[:rank].T / s[:rank]) / norms[:, None]
             value = back @ test.theta
@@ -442,25 +487,32 @@ class _Selection:
         trials = {e.label: self.trial(e, fit) for e in remaining}
         self.m = max(sum(t.test is not None for t in trials.values()), 1)
         self.level = self.alpha / self.m
-        taken = []
+        taken, refused = [], set()
         while remaining:
-            hits = [trials[e.label] for e in remaining if self.significant(trials[e.label])]
+            hits = [trials[e.label] for e in remaining if e.label not in refused and self.significant(trials[e.label])]
             if not hits:
                 break
             hits.sort(key=lambda t: t.held_out_nt)
             refits = {}
             for t in hits[:LEADING]:
                 refits[t.effect.label] = self.refit(t.effect, fit)
-            leading = [refits[t.effect.label] for t in hits[:LEADING] if self.significant(refits[t.effect.label][0])]
+            # taken only if significant at its own best fit and better than the model on held-out data
+            current = self.nT.rms(held_out_residual(fit.A, fit.y, self.edges))
+            leading = []
+            for t in hits[:LEADING]:
+                trial = trials[t.effect.label] = refits[t.effect.label][0]
+                if self.significant(trial) and trial.held_out_nt < current:
+                    leading.append(refits[t.effect.label])
+                elif self.significant(trial):
+                    trial.note = f"significant, but no better than the model on held-out blocks ({current:.1f} nT)"
+                    refused.add(t.effect.label)
             if not leading:
-                for t in hits[:LEADING]:
-                    trials[t.effect.label] = refits[t.effect.label][0]
                 continue
             best, best_fit = min(leading, key=lambda pair: pair[0].held_out_nt)
             best, best_fit = self._simpler(best, best_fit, hits, fit)
             taken.append(best.candidate(True, self.dt))
             remaining = [e for e in remaining if e.label != best.effect.label]
-            fit = best_fit
+            fit, refused = best_fit, set()
             trials = {e.label: self.trial(e, fit) for e in remaining}
             for e in remaining:
                 if trials[e.label].rank == 0:

@@ -18,6 +18,8 @@ from ..online.state import StateLayout
 
 __all__ = [
     "REFIT_ITERATIONS",
+    "WANDER_BLOCK_S",
+    "HeadingWander",
     "REFIT_TOLERANCE",
     "OUTLIER_SIGMA",
     "Linearised",
@@ -31,6 +33,8 @@ __all__ = [
 #: of the state relative to the prior standard deviations.
 REFIT_ITERATIONS = 4
 REFIT_TOLERANCE = 1e-3
+#: Stretches (s) over which the logged heading's error is let be a straight line in time (``HeadingWander``).
+WANDER_BLOCK_S = 10.0
 #: Whitened residual, in units of its robust (MAD) scale per component, beyond which an epoch is an outlier.
 OUTLIER_SIGMA = 5.0
 
@@ -62,6 +66,43 @@ def inliers(residual: np.ndarray) -> np.ndarray:
     return np.all(np.abs(centred) <= OUTLIER_SIGMA * scale, axis=1)
 
 
+class HeadingWander:
+    """The projection that takes a slowly wandering error of the logged heading out of whitened residuals
+    and regressors.
+
+    An INS heading wanders by tenths of a degree over minutes; each tenth moves the body-frame field by
+    ``0.0017 |B_h|`` (tens of nT) along the heading axis ``h`` (``heading_axis``). Unmodelled, that slow
+    error dominates the residual and its correlation leaves too few independent stretches to test an effect.
+    Here the heading error is a nuisance, a straight line in time over each stretch of ``block_s`` seconds
+    (two coefficients a stretch), fitted and removed jointly with the model: by Frisch-Waugh, projecting
+    it out of the whitened reading and of every regressor before the least-squares fit gives the fit of
+    the model with the nuisance (the partial-residual treatment of a partly linear model, Speckman 1988).
+    What is lost: the part of an effect that looks like a heading change within a stretch, notably a
+    constant field anomaly across the horizontal field (the same thing as a heading offset).
+
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing.
+    """
+
+    def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):
+        t = np.asarray(time, float)
+        block = np.floor((t - t[0]) / block_s).astype(int)
+        self.starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
+        self.block = np.cumsum(np.r_[False, np.diff(block) != 0])  # index of each epoch's stretch
+        centre = (np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)]))[self.block]
+        s = 2.0 * (t - centre) / block_s
+        self.Z = np.stack([Z, Z * s[:, None]], axis=2)  # (n, 3, 2)
+        normal = np.add.reduceat(np.einsum("nia,nib->nab", self.Z, self.Z), self.starts, axis=0)
+        self.inverse = np.linalg.pinv(normal, rcond=1e-9)  # (blocks, 2, 2)
+
+    def remove(self, X: np.ndarray) -> np.ndarray:
+        """``X`` (3n,) or (3n, k), epoch-major, less its least-squares fit by the wander of each stretch."""
+        n = len(self.block)
+        Xr = X.reshape(n, 3, -1)
+        c = np.add.reduceat(np.einsum("nia,nik->nak", self.Z, Xr), self.starts, axis=0)
+        coef = self.inverse @ c  # (blocks, 2, k)
+        return (Xr - np.einsum("nia,nak->nik", self.Z, coef[self.block])).reshape(X.shape)
+
+
 @dataclass(frozen=True)
 class Linearised:
     """A model linearised and whitened at state ``x`` on the diagnosed epochs: ``data`` with ``R0`` of ``x``;
@@ -78,6 +119,12 @@ class Linearised:
     y: np.ndarray
     r: np.ndarray
     x_fit: np.ndarray
+    wander: HeadingWander | None = None
+
+    def whitened(self, G: np.ndarray) -> np.ndarray:
+        """Regressors ``G`` (n, 3, q) whitened, less the heading wander when it is modelled: (3n, q)."""
+        Gw = (self.W @ G).reshape(self.y.size, -1)
+        return Gw if self.wander is None else self.wander.remove(Gw)
 
 
 class EpochSet:
@@ -85,23 +132,28 @@ class EpochSet:
     (``EpochData``), the heading axes (n, 3) and the measurement settings whose whitening weighs the
     residuals."""
 
-    def __init__(self, data, m, heading, config, noise=None):
+    def __init__(self, data, m, heading, config, noise=None, wander_s=None):
         self.data, self.m, self.heading = data, m, heading
-        self.config, self.noise = config, noise
+        self.config, self.noise, self.wander_s = config, noise, wander_s
 
     @classmethod
-    def of(cls, prep, used, config, noise=None) -> EpochSet:
+    def of(cls, prep, used, config, noise=None, wander_s=None) -> EpochSet:
         """The epochs ``used`` (mask) of a ``PreparedLog``, weighed with ``noise`` (a ``NoiseLevels``; None:
-        the configured noise)."""
-        return cls(prep.data.take(used), prep.m[used], prep.heading[used], config, noise)
+        the configured noise), with the heading's error a nuisance over stretches of ``wander_s`` seconds
+        (None: the logged heading taken as it is)."""
+        return cls(prep.data.take(used), prep.m[used], prep.heading[used], config, noise, wander_s)
+
+    def with_wander(self, wander_s) -> EpochSet:
+        """The same epochs with the heading wander modelled over ``wander_s`` s (None: not modelled)."""
+        return EpochSet(self.data, self.m, self.heading, self.config, self.noise, wander_s)
 
     def take(self, keep) -> EpochSet:
         """The epochs ``keep`` (mask or index) of this set."""
-        return EpochSet(self.data.take(keep), self.m[keep], self.heading[keep], self.config, self.noise)
+        return EpochSet(self.data.take(keep), self.m[keep], self.heading[keep], self.config, self.noise, self.wander_s)
 
     def less(self, terms) -> EpochSet:
         """The same epochs with ``terms`` (n, 3) nT taken off the readings (effects held fixed)."""
-        return EpochSet(self.data, self.m - terms, self.heading, self.config, self.noise)
+        return EpochSet(self.data, self.m - terms, self.heading, self.config, self.noise, self.wander_s)
 
     def __len__(self):
         return len(self.m)
@@ -116,6 +168,8 @@ class EpochSet:
         for effect, sl in layout.nonlinear:
             H[:, :, sl] = effect.jacobian(x[sl], data)
             offset += effect.contribution(x[sl], data) - H[:, :, sl] @ x[sl]
+        # an effect's input unknown at an epoch (a rate at a gap) adds nothing there, as in finite_regressors
+        H, offset = np.nan_to_num(H, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
         model = measurement_model(self.config, layout, x)
         if self.noise is not None:
             model.set_noise(self.noise)
@@ -123,13 +177,17 @@ class EpochSet:
         n, p = len(self.m), layout.size
         A = (W @ H).reshape(3 * n, p)
         y = np.einsum("nij,nj->ni", W, self.m - offset).ravel()
+        wander = None
+        if self.wander_s:
+            wander = HeadingWander(np.einsum("nij,nj->ni", W, self.heading @ R.T), data.time, self.wander_s)
+            A, y = wander.remove(A), wander.remove(y)
         u, sv, vt = np.linalg.svd(A, full_matrices=False)
         rank = _rank(sv)
         basis = u[:, :rank]
         r = y - basis @ (basis.T @ y)
         # the least-squares step from x in the determined directions only
         step = vt[:rank].T @ ((basis.T @ (y - A @ x)) / sv[:rank])
-        return Linearised(layout, x, data, W, A, basis, y, r, x + step)
+        return Linearised(layout, x, data, W, A, basis, y, r, x + step, wander)
 
     def fit(self, layout: StateLayout, x) -> Linearised:
         """``at`` iterated until the estimate stops moving: the model at its own best fit."""

@@ -17,6 +17,7 @@ from ..config import FilterConfig
 from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
+from .fitting import WANDER_BLOCK_S
 
 __all__ = ["COMPONENT_COLOURS", "build_report"]
 
@@ -276,7 +277,9 @@ def _advice(diag) -> list[str]:
     ]
 
 
-def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), registry=None, alpha=0.01) -> str:
+def build_report(
+    log: DriveLog, config=FilterConfig(), cal=None, effects=(), registry=None, alpha=0.01, wander_s=WANDER_BLOCK_S
+) -> str:
     """The report of ``log`` as a self-contained HTML string: the run with ``config`` (a ``FilterConfig``)
     started from ``cal`` (a ``Calibration`` or None) with ``effects`` added, and its diagnosis at level
     ``alpha`` over the built-in candidates and those of ``registry``."""
@@ -284,7 +287,7 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
 
     matplotlib.use("Agg")
     run = calibrate_log(log, config, init=cal, effects=effects)
-    diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, registry=registry)
+    diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, registry=registry, wander_s=wander_s)
     t0 = log.time[0]
     s = run.summary
     parts = [
@@ -354,7 +357,7 @@ def build_report(log: DriveLog, config=FilterConfig(), cal=None, effects=(), reg
     if effects:
         core = cal.without_effects() if cal is not None else None  # the model without any effect
         before = calibrate_log(log, config, init=core)
-        diag0, _ = diagnose(log, config, core, (), alpha=alpha, run=before)
+        diag0, _ = diagnose(log, config, core, (), alpha=alpha, run=before, wander_s=wander_s)
         ba = compare_runs(before, run)
         signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
         parts += [

@@ -33,7 +33,7 @@ from ..io.drivelog import DriveLog
 from ..online.prepare import prepare
 from ..online.state import StateLayout
 from ..status import Status
-from .fitting import EpochSet, inliers
+from .fitting import WANDER_BLOCK_S, EpochSet, inliers
 from .inference import fold_edges, integrated_time
 
 __all__ = ["EffectCheck", "Validation", "validate"]
@@ -81,10 +81,16 @@ class Validation:
 
 
 def validate(
-    log: DriveLog, cal: Calibration, config: FilterConfig = FilterConfig(), registry=None, alpha: float = 0.01
+    log: DriveLog,
+    cal: Calibration,
+    config: FilterConfig = FilterConfig(),
+    registry=None,
+    alpha: float = 0.01,
+    wander_s: float | None = WANDER_BLOCK_S,
 ) -> Validation:
     """Check the calibration ``cal`` (learned elsewhere) and each effect it stores on ``log``; an effect
-    helps (or hurts) when its one-sided p-value is below ``alpha``."""
+    helps (or hurts) when its one-sided p-value is below ``alpha``. The logged heading's slow error is
+    taken out over stretches of ``wander_s`` seconds as in ``diagnose`` (None: not)."""
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
     effects = restore_effects(cal, registry)
@@ -97,7 +103,7 @@ def validate(
             if column not in prep.data.columns:
                 raise InputError(f"the calibration's effect {effect.label!r} needs column {column!r}", log.source)
             used &= np.isfinite(prep.data.columns[column])
-    epochs = EpochSet.of(prep, used, config)
+    epochs = EpochSet.of(prep, used, config, wander_s=wander_s)
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
     stored = epochs.at(layout, x)

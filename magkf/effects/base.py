@@ -87,6 +87,9 @@ class Effect:
     channels : the kinds of channel an effect of a column accepts (``magkf.effects.channels.KINDS``:
         ``temperature``, ``current``, ``throttle``, ``angle``, ``speed``, ``voltage``); the diagnosis forms
         candidates only from columns of these kinds. Empty: the effect's default column only.
+    wanders : True when the parameters follow a random walk rather than holding a value (a drifting
+        offset): the diagnosis then tests their constancy (Nyblom's test on the scores of ``jacobian``)
+        and ``regressors`` is the slow basis over which the wander is fitted for the held-out residual.
 
     Methods to implement: ``contribution``; optionally ``jacobian`` (finite differences by default),
     ``prior`` and ``random_walk``.
@@ -98,6 +101,7 @@ class Effect:
     units: tuple = ()
     linear: bool = True
     channels: tuple = ()
+    wanders: bool = False
     #: How many true parameters ``simulate`` accepts (default: the effect's own parameters).
     simulation_sizes: tuple = ()
 
@@ -138,6 +142,12 @@ class Effect:
         effect whose Jacobian cannot be told apart from the core offset (a slow drift) overrides it.
         """
         return self.jacobian(self.prior()[0], data)
+
+    def increments(self) -> np.ndarray | None:
+        """For an effect that ``wanders``: the matrix (m, q) taking ``regressors``' coefficients to the
+        wander's increments between knots, whose smallness is the random walk's prior (a held-out stretch
+        is then predicted by interpolating its neighbours). None otherwise."""
+        return None
 
     def accepts_simulation(self, theta) -> bool:
         """True when ``simulate`` takes ``theta`` (its length is one of ``simulation_sizes``, else ``size``)."""

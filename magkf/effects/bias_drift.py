@@ -4,23 +4,25 @@ import numpy as np
 
 from .linear import LinearEffect
 
-__all__ = ["DRIFT_DEGREE", "BiasDrift"]
+__all__ = ["DRIFT_SEGMENTS", "BiasDrift"]
 
-#: Degree of the Legendre polynomials in time that the diagnostics test for a drift.
-DRIFT_DEGREE = 1
+#: Straight segments in time of the drift the diagnostics fit for a held-out residual (knots evenly spaced
+#: over the log); the constant is ``b``'s.
+DRIFT_SEGMENTS = 12
 
 
 class BiasDrift(LinearEffect):
     """Three parameters: the offset's departure from ``b`` (nT), following a random walk of ``walk``
-    nT per sqrt(s) in the filter. A constant departure is ``b`` itself, so the diagnostics look for
-    what a drift leaves in the residual instead: a slow trend in time (Legendre polynomials of degree
-    1 to ``DRIFT_DEGREE`` on each axis)."""
+    nT per sqrt(s) in the filter. A constant departure is ``b`` itself, so the diagnostics test whether
+    ``b`` wanders (Nyblom's constancy test) and fit the wander as a continuous piecewise-linear offset on
+    each axis (``DRIFT_SEGMENTS`` segments) for the residual it would leave."""
 
     name = "bias_drift"
     parameter_names = ("d_x", "d_y", "d_z")
     units = ("nT",) * 3
     prior_std = 1.0
     simulation_sizes = (1, 3)  # one walk for every axis, or one each
+    wanders = True
 
     def __init__(self, walk: float = 2.0):
         self.walk = walk
@@ -31,14 +33,20 @@ class BiasDrift(LinearEffect):
         return G
 
     def regressors(self, data):
+        """Hat functions in time (N, 3, 3 (DRIFT_SEGMENTS + 1)): knot ``k`` on axis ``i`` is column
+        ``3 k + i``; they sum to the constant offset."""
         t = data.time
-        u = 2 * (t - t[0]) / max(t[-1] - t[0], 1e-9) - 1
-        basis = [np.polynomial.legendre.Legendre.basis(d)(u) for d in range(1, DRIFT_DEGREE + 1)]
-        G = np.zeros((len(t), 3, 3 * DRIFT_DEGREE))
+        u = DRIFT_SEGMENTS * (t - t[0]) / max(t[-1] - t[0], 1e-9)
+        hats = np.clip(1.0 - np.abs(u[:, None] - np.arange(DRIFT_SEGMENTS + 1)), 0.0, None)  # (N, knots)
+        G = np.zeros((len(t), 3, 3 * (DRIFT_SEGMENTS + 1)))
         for i in range(3):
-            for d, values in enumerate(basis):
-                G[:, i, 3 * d + i] = values
+            G[:, i, i::3] = hats
         return G
+
+    def increments(self):
+        """First differences (3 DRIFT_SEGMENTS, 3 (DRIFT_SEGMENTS + 1)) of the knot values, axis by axis."""
+        q = 3 * (DRIFT_SEGMENTS + 1)
+        return np.eye(q)[3:] - np.eye(q)[:-3]
 
     def simulate(self, theta, data, rng):
         """A random walk of ``theta[0]`` nT per sqrt(s) on each axis (``theta`` (1,) or (3,))."""

@@ -34,6 +34,14 @@ class TimeLag(Effect):
         the span of ``t`` by the Taylor series with ``rate`` and ``accel`` (None: first order)."""
         from scipy.interpolate import CubicHermiteSpline
 
+        # through the epochs with a finite field and rate, at strictly increasing times (real logs have gaps
+        # without attitude and repeated stamps); the others are left out of the spline
+        good = np.all(np.isfinite(values), axis=1) & np.all(np.isfinite(rate), axis=1) & np.isfinite(t)
+        good[1:] &= np.diff(t) > 0
+        if not good.any():
+            return np.full((len(target), 3), np.nan)
+        if not good.all():
+            return TimeLag._delayed(values[good], rate[good], _take(accel, good), t[good], target)
         if len(t) > 1:
             out = CubicHermiteSpline(t, values, rate, axis=0, extrapolate=False)(target)
         else:
@@ -41,7 +49,8 @@ class TimeLag(Effect):
         for mask, k in ((target < t[0], 0), (target > t[-1], -1)):
             if mask.any():
                 d = (target[mask] - t[k])[:, None]
-                out[mask] = values[k] + d * rate[k] + (0.0 if accel is None else 0.5 * d**2 * accel[k])
+                second = 0.0 if accel is None else np.nan_to_num(accel[k])  # first order where unknown
+                out[mask] = values[k] + d * rate[k] + 0.5 * d**2 * second
         return out
 
     def contribution(self, theta, data):
@@ -51,3 +60,7 @@ class TimeLag(Effect):
         t, B = data.time, data.field_body
         lagged = self._delayed(B, data.field_body_rate, data.field_body_accel, t, t - theta[0])
         return (lagged - B) @ data.R0.T
+
+
+def _take(a, mask):
+    return None if a is None else a[mask]

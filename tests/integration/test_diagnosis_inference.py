@@ -9,7 +9,8 @@ from scipy import signal, stats
 
 from magkf import Calibration
 from magkf.diagnostics.diagnose import diagnose
-from magkf.diagnostics.inference import robust_test
+from magkf.diagnostics.fitting import HeadingWander
+from magkf.diagnostics.inference import constancy_test, robust_test
 from magkf.diagnostics.validate import validate
 from magkf.effects import BUILTIN, candidates, restore_effects, stored_effect, untried_columns
 from magkf.errors import InputError
@@ -41,6 +42,49 @@ def test_robust_test_keeps_its_size_on_autocorrelated_residuals():
         hits += result is not None and result.p_value < 0.05
     lo, hi = stats.binom.ppf([0.0005, 0.9995], trials, 0.05)
     assert lo <= hits <= hi, hits
+
+
+def _ar1(rng, n, k, phi):
+    return signal.lfilter([1.0], [1.0, -phi], rng.normal(size=(n, k)), axis=0)
+
+
+def test_constancy_test_keeps_its_size_on_autocorrelated_scores_and_finds_a_random_walk():
+    """Scores AR(1) (phi 0.9) with no wander: the share of p < 0.05 over 300 seeded trials stays within the
+    99.9 % binomial band of 0.05; a random walk added (ending at three times the scores' long-run standard
+    deviation) is found at p < 0.01 in at least 90 % of 100 trials."""
+    rng = np.random.default_rng(7)
+    n, q, trials = 3000, 3, 300
+    hits = 0
+    for _ in range(trials):
+        result = constancy_test(_ar1(rng, n, q, 0.9))
+        hits += result is not None and result.p_value < 0.05
+    lo, hi = stats.binom.ppf([0.0005, 0.9995], trials, 0.05)
+    assert lo <= hits <= hi, hits
+    found = 0
+    for _ in range(100):
+        # a walk ending at three times the scores' long-run standard deviation (1 / (1 - phi) = 10)
+        walk = np.cumsum(rng.normal(size=(n, q)), axis=0) * 3 * 10 / np.sqrt(n)
+        scores = _ar1(rng, n, q, 0.9) + walk
+        result = constancy_test(scores - scores.mean(axis=0))
+        found += result is not None and result.p_value < 0.01
+    assert found >= 90, found
+
+
+def test_heading_wander_takes_out_a_heading_error_straight_over_each_stretch():
+    """A heading error that is a straight line over each 10 s stretch is removed to rounding; what is left
+    is orthogonal to the heading directions; the projection is idempotent."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    t = np.arange(n) * 0.05
+    Z = rng.normal(size=(n, 3))
+    stretch = np.floor(t / 10.0).astype(int)
+    error = rng.normal(size=stretch.max() + 1)[stretch] + rng.normal(size=stretch.max() + 1)[stretch] * (t % 10.0)
+    noise = rng.normal(size=(n, 3))
+    wander = HeadingWander(Z, t, 10.0)
+    assert np.allclose(wander.remove((Z * error[:, None]).ravel()), 0.0, atol=1e-9)
+    left = wander.remove((Z * error[:, None] + noise).ravel())
+    assert np.allclose(wander.remove(left), left)
+    assert np.allclose(left, wander.remove(noise.ravel()))
 
 
 @pytest.mark.slow
