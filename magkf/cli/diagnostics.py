@@ -57,11 +57,12 @@ def run_diagnose(args) -> int:
         f"{result.residual_rms_nt:.2f} nT (N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f}); "
         f"{result.residual_rms_held_out_nt:.2f} nT on held-out blocks; correlated over {result.correlation_s:.2g} s"
     )
-    print(f"  {'candidate':28s} {'F':>10s} {'dof':>8s} {'p-value':>9s} {'held-out RMS':>13s}")
+    print(f"  {'candidate':28s} {'statistic':>10s} {'dof':>8s} {'p-value':>9s} {'held-out RMS':>13s}")
     for c in result.candidates:
         dof = f"{c.dof},{c.dof_denominator}" if c.dof_denominator else f"{c.dof}"
         print(
-            f"  {c.effect:28s} {c.statistic:10.1f} {dof:>8s} {c.p_value:9.2g} {c.residual_rms_after_nt:10.2f} nT"
+            f"  {c.effect:28s} {c.test} {c.statistic:8.1f} {dof:>8s} {c.p_value:9.2g} "
+            f"{c.residual_rms_after_nt:10.2f} nT"
             + ("  *" if c.significant else "   ")
             + (f"  ({c.note})" if c.note else "")
         )

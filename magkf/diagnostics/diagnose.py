@@ -268,8 +268,10 @@ def diagnose(
     ]
     given = problem.at(layout, x)  # the model as it is
     # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the robust scale of the residual of the
-    # model with every candidate added, so that a missing effect does not hide them by inflating the scale.
-    keep = inliers(_screening_residual(given, pool))
+    # model with every candidate added, so that a missing effect does not hide them by inflating the scale;
+    # judged before the heading wander is taken out, which would spread a burst over its stretch.
+    # A wandering effect's flexible basis would absorb the bursts, so it is left out of the screening.
+    keep = inliers(_screening_residual(problem.with_wander(None).at(layout, x), [e for e in pool if not e.wanders]))
     if not keep.all():
         problem = problem.take(keep)
         given = problem.at(layout, x)

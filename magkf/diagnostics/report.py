@@ -315,19 +315,28 @@ def build_report(
             "residual against the signals it follows most (binned means, 95 % bands)",
         ),
         _table(
-            [(w["start"] - t0, w["stop"] - t0, f"{w['rms_nt']:.1f}", f"{w['max_nt']:.1f}") for w in diag.largest],
+            [
+                (f"{w['start'] - t0:.1f}", f"{w['stop'] - t0:.1f}", f"{w['rms_nt']:.1f}", f"{w['max_nt']:.1f}")
+                for w in diag.largest
+            ],
             ["from, s", "to, s", "RMS, nT", "max, nT"],
         ),
         "<h2>Which effect is missing</h2>",
-        f"<p>{diag.n_tested} candidates tested, each by a correlation-robust F test at p &lt; {diag.level:.2g} "
-        f"(alpha {diag.alpha:g} over the candidates); the residual is correlated over about "
+        f"<p>{diag.n_tested} candidates tested, each by a correlation-robust F test (a drifting offset: L, "
+        f"Nyblom's constancy test) at p &lt; {diag.level:.2g} (alpha {diag.alpha:g} over the candidates)"
+        + (
+            f", after the heading's slow error was taken out over {diag.heading_wander_s:g} s stretches"
+            if diag.heading_wander_s
+            else ""
+        )
+        + f"; the residual is correlated over about "
         f"{diag.correlation_s:.2g} s. Held-out RMS: the NED residual on blocks of the log left out of the fit "
         f"(the model's own: {_fixed(diag.residual_rms_held_out_nt)} nT).</p>",
         _table(
             [
                 (
                     c.effect,
-                    _fixed(c.statistic, 1),
+                    f"{c.test} {_fixed(c.statistic, 1)}",
                     f"{c.dof}, {c.dof_denominator}" if c.dof_denominator else str(c.dof),
                     f"{c.p_value:.2g}",
                     _fixed(c.residual_rms_after_nt),
@@ -339,7 +348,7 @@ def build_report(
             ],
             [
                 "candidate",
-                "F (dimensionless)",
+                "statistic (dimensionless)",
                 "degrees of freedom",
                 "p-value",
                 "held-out RMS after, nT",

@@ -106,8 +106,8 @@ def validate(
     epochs = EpochSet.of(prep, used, config, wander_s=wander_s)
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
-    stored = epochs.at(layout, x)
-    epochs = epochs.take(inliers((stored.y - stored.A @ x).reshape(-1, 3)))
+    raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
+    epochs = epochs.take(inliers((raw.y - raw.A @ x).reshape(-1, 3)))
     stored = epochs.at(layout, x)
 
     def terms(subset) -> np.ndarray:
