@@ -402,18 +402,6 @@ class _AsTested(LinearEffect):
         return finite_regressors(self.effect, data)
 
 
-def _wander_prior(effect, A: np.ndarray, Gw: np.ndarray, y: np.ndarray) -> np.ndarray | None:
-    """For an effect that wanders, the random walk's prior on the coefficients of ``[A, Gw]``: its
-    increments between knots (``effect.increments``) divided by their spread in the whole-log fit (an
-    empirical Bayes estimate of the walk's step). None for other effects."""
-    D = effect.increments()
-    if D is None:
-        return None
-    beta = np.linalg.lstsq(np.hstack([A, Gw]), y, rcond=None)[0][A.shape[1] :]
-    spread = np.sqrt(np.mean((D @ beta) ** 2))
-    return np.hstack([np.zeros((len(D), A.shape[1])), D / max(spread, 1e-12)])
-
-
 class _Selection:
     """Forward selection by the one decision rule (see the module's docstring)."""
 
@@ -466,7 +454,9 @@ class _Selection:
             test = constancy_test(np.einsum("nik,ni->nk", J, null.r.reshape(n, 3)))
         else:
             test = robust_test(U.reshape(n, 3, rank), r.reshape(n, 3))
-        held = held_out_residual(np.hstack([A, Gw]), y, self.edges, penalty=_wander_prior(effect, A, Gw, y))
+        D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
+        increments = None if D is None else np.hstack([np.zeros((len(D), A.shape[1])), D])
+        held = held_out_residual(np.hstack([A, Gw]), y, self.edges, increments=increments)
         in_sample = r - U @ (U.T @ r)
         estimate, note = {}, "not testable: the residual's correlation leaves too few independent stretches"
         if test is not None and effect.wanders:

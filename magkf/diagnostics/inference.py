@@ -143,6 +143,8 @@ CONSTANCY_TERMS = 8
 #: Monte Carlo draws of the constancy statistic's null distribution (seeded; p-values below about
 #: ``1 / CONSTANCY_DRAWS`` are reported as that bound).
 CONSTANCY_DRAWS = 20000
+#: Null draws of ``_constancy_null`` already made, by (q, K).
+_NULL_DRAWS: dict = {}
 
 
 def _constancy_null(q: int, K: int) -> np.ndarray:
@@ -164,13 +166,11 @@ def _constancy_null(q: int, K: int) -> np.ndarray:
     return _NULL_DRAWS[key]
 
 
-_NULL_DRAWS: dict = {}
-
-
-def high_passed(x: np.ndarray) -> np.ndarray:
+def high_passed(x: np.ndarray, transform: np.ndarray | None = None) -> np.ndarray:
     """``x`` (n, k) without its ``CONSTANCY_TERMS`` lowest cosine frequencies (periods longer than a quarter
-    of the log): what its correlation time is measured on where a wander would otherwise dominate it."""
-    c = fft.dct(x, type=2, axis=0)
+    of the log): what its correlation time is measured on where a wander would otherwise dominate it.
+    ``transform``: ``x``'s type-II cosine transform when already computed."""
+    c = fft.dct(x, type=2, axis=0) if transform is None else transform.copy()
     c[: CONSTANCY_TERMS + 1] = 0.0
     return fft.idct(c, type=2, axis=0)
 
@@ -190,12 +190,14 @@ def constancy_test(scores: np.ndarray) -> RobustTest | None:
     when ``K < q + 2``.
     """
     n, q = scores.shape
-    c = fft.dct(scores - scores.mean(axis=0), type=2, axis=0) * np.sqrt(2.0 / n) / 2.0  # c_k ~ N(0, V)
-    tau = integrated_time(high_passed(scores))
+    c = fft.dct(scores, type=2, axis=0)
+    tau = integrated_time(high_passed(scores, c))
     K = cosine_terms(n, tau)
     if K < q + 2:
         return None
-    V = c[CONSTANCY_TERMS + 1 : CONSTANCY_TERMS + 1 + K].T @ c[CONSTANCY_TERMS + 1 : CONSTANCY_TERMS + 1 + K] / K
+    c = c * np.sqrt(2.0 / n) / 2.0  # c_k ~ N(0, V) for k >= 1 (c_0 is the mean's)
+    band = c[CONSTANCY_TERMS + 1 : CONSTANCY_TERMS + 1 + K]
+    V = band.T @ band / K
     low = c[1 : CONSTANCY_TERMS + 1]
     weights = 1.0 / (np.arange(1, CONSTANCY_TERMS + 1) * np.pi) ** 2
     try:
@@ -215,18 +217,20 @@ def fold_edges(n: int, tau: float) -> np.ndarray:
 
 
 def held_out_residual(
-    A: np.ndarray, y: np.ndarray, edges: np.ndarray, rows_per_epoch: int = 3, penalty: np.ndarray | None = None
+    A: np.ndarray, y: np.ndarray, edges: np.ndarray, rows_per_epoch: int = 3, increments: np.ndarray | None = None
 ) -> np.ndarray:
     """The residual of each block predicted by the least-squares fit of ``y ~ A`` on the other blocks.
 
     ``A`` (rows, p) and ``y`` (rows,) whitened, ``rows_per_epoch`` rows per epoch in epoch order; ``edges``
-    from ``fold_edges``; ``penalty`` (m, p) a Gaussian prior of zero mean on ``penalty @ beta`` with unit
-    variance (a wander's increments scaled by their spread): coefficients the other blocks leave open are
-    then interpolated from their neighbours. Returns (rows,)."""
+    from ``fold_edges``; ``increments`` (m, p) the steps between knots of a wander among the coefficients:
+    they get a zero-mean Gaussian prior with the spread they have in the fit to all blocks (an empirical
+    Bayes estimate of the walk's step), so that coefficients the other blocks leave open are interpolated
+    from their neighbours. Returns (rows,)."""
     edges = np.asarray(edges) * rows_per_epoch
     N, c = A.T @ A, A.T @ y
-    if penalty is not None:
-        N = N + penalty.T @ penalty
+    if increments is not None:
+        spread = np.sqrt(np.mean((increments @ np.linalg.lstsq(N, c, rcond=None)[0]) ** 2))
+        N = N + increments.T @ increments / max(spread, 1e-12) ** 2
     out = np.empty_like(y)
     for a, b in zip(edges[:-1], edges[1:]):
         Af, yf = A[a:b], y[a:b]
