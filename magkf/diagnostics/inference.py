@@ -209,6 +209,10 @@ def constancy_test(scores: np.ndarray) -> RobustTest | None:
     return RobustTest(L, q, K, float(p), K, tau, np.zeros(0), np.zeros((0, 0)))
 
 
+#: The walk's squared step, relative to the unconstrained fit's, tried for a wander's held-out prediction.
+WALK_STEPS = np.logspace(-6.0, 0.0, 13)
+
+
 def fold_edges(n: int, tau: float) -> np.ndarray:
     """Edges (epoch indices) of the contiguous held-out blocks: at most ``MAX_FOLDS``, each at least
     ``BLOCK_TAUS`` correlation times ``tau`` (epochs) long, and at least two."""
@@ -223,17 +227,25 @@ def held_out_residual(
 
     ``A`` (rows, p) and ``y`` (rows,) whitened, ``rows_per_epoch`` rows per epoch in epoch order; ``edges``
     from ``fold_edges``; ``increments`` (m, p) the steps between knots of a wander among the coefficients:
-    they get a zero-mean Gaussian prior with the spread they have in the fit to all blocks (an empirical
-    Bayes estimate of the walk's step), so that coefficients the other blocks leave open are interpolated
-    from their neighbours. Returns (rows,)."""
+    they get a zero-mean Gaussian prior, so that coefficients the other blocks leave open are interpolated
+    from their neighbours. The prior's spread (the walk's step) is the one of ``WALK_STEPS`` that predicts
+    the held-out blocks best: the smallest makes the wander a constant, so the result is never worse than
+    the model without it, and whether it wanders is for ``constancy_test`` to say. Returns (rows,)."""
     edges = np.asarray(edges) * rows_per_epoch
     N, c = A.T @ A, A.T @ y
-    if increments is not None:
-        spread = np.sqrt(np.mean((increments @ np.linalg.lstsq(N, c, rcond=None)[0]) ** 2))
-        N = N + increments.T @ increments / max(spread, 1e-12) ** 2
-    out = np.empty_like(y)
-    for a, b in zip(edges[:-1], edges[1:]):
-        Af, yf = A[a:b], y[a:b]
-        beta = np.linalg.lstsq(N - Af.T @ Af, c - Af.T @ yf, rcond=None)[0]
-        out[a:b] = yf - Af @ beta
-    return out
+    blocks = [(a, b, A[a:b].T @ A[a:b], A[a:b].T @ y[a:b]) for a, b in zip(edges[:-1], edges[1:])]
+
+    def predicted(normal: np.ndarray) -> np.ndarray:
+        out = np.empty_like(y)
+        for a, b, Nf, cf in blocks:
+            beta = np.linalg.lstsq(normal - Nf, c - cf, rcond=None)[0]
+            out[a:b] = y[a:b] - A[a:b] @ beta
+        return out
+
+    if increments is None:
+        return predicted(N)
+    # steps relative to those of the unconstrained fit to all blocks, which noise inflates
+    raw = float(np.mean((increments @ np.linalg.lstsq(N, c, rcond=None)[0]) ** 2))
+    P = increments.T @ increments / max(raw, 1e-300)
+    trials = [predicted(N + P / step) for step in WALK_STEPS]
+    return min(trials, key=lambda r: float(r @ r))
