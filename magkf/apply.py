@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 
 from .conventions import declination_deg, magnetic_heading_deg
+from .errors import names_the_log
 from .io.calibration import Calibration
 from .io.drivelog import DriveLog
 
@@ -41,6 +42,7 @@ def effect_terms(log: DriveLog, cal: Calibration, registry: dict | None = None) 
     return layout.extra_terms(x, layout.linear_jacobian(prep.data), prep.data)
 
 
+@names_the_log
 def apply_calibration(log: DriveLog, cal: Calibration, registry: dict | None = None) -> pd.DataFrame:
     """Every epoch of ``log`` corrected with ``cal`` and the effects it stores; a DataFrame indexed by time.
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+import math
+from dataclasses import asdict, dataclass, fields, replace
 
 __all__ = ["FilterConfig"]
 
@@ -74,6 +75,15 @@ class FilterConfig:
         from .online.filters import FILTERS
         from .online.measurements import MEASUREMENTS
 
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float | int) and not isinstance(value, bool) and not math.isfinite(value):
+                raise ValueError(f"{f.name} must be a finite number, got {value!r}")
+        for name in ("attitude_deg", "reference_nt", "r_walk", "b_walk", "max_gated_s", "init_r_std", "init_b_std"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must not be negative")
+        if not self.reference_refresh_m > 0:
+            raise ValueError("reference_refresh_m must be positive")
         for name, known in (("filter", FILTERS), ("measure", MEASUREMENTS)):
             if getattr(self, name) not in known:
                 raise ValueError(f"{name} must be one of {', '.join(known)}, got {getattr(self, name)!r}")

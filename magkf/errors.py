@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["InputError"]
+__all__ = ["InputError", "names_the_log"]
 
 
 class InputError(ValueError):
@@ -28,3 +28,18 @@ class InputError(ValueError):
         if self.source is not None:
             return self
         return InputError(self.message, source, self.row, self.column)
+
+
+def names_the_log(function):
+    """Decorate a function whose first argument is a ``DriveLog``: an InputError raised inside it that names
+    no file (an IGRF date out of range, too few usable epochs) names the log's."""
+    import functools
+
+    @functools.wraps(function)
+    def wrapper(log, *args, **kwargs):
+        try:
+            return function(log, *args, **kwargs)
+        except InputError as exc:
+            raise exc.located(getattr(log, "source", None) or "log") from None
+
+    return wrapper

@@ -1,7 +1,10 @@
 """The ``magkf`` command line: a thin layer over the Python API, one module per group of commands.
 
 Exit status 0 on success; 2 on bad usage or bad input, with one line on standard error (``InputError``
-names the file, row and column where it applies; ``ValueError`` is a setting that cannot be used).
+names the file, row and column where it applies; ``ValueError`` is a setting that cannot be used; an
+``OSError`` a file that cannot be read or written); 1 with one line for an internal error, whose traceback
+``--debug`` shows. Output paths are checked before any work (``magkf.io.files``); ``-`` is standard
+output for ``-o`` and ``--states``, standard input for a log.
 """
 
 from __future__ import annotations
@@ -21,28 +24,95 @@ __all__ = ["main", "build_parser"]
 COMMANDS = (online, diagnostics, apply, logs, offline, simulate)
 
 
+#: Options that name files a command writes, and files it reads (argparse ``dest`` -> the option's name).
+OUTPUTS = {"output": "-o", "states": "--states", "truth": "--truth"}
+INPUTS = ("file", "cal", "init", "map", "curves", "truth_cal", "effect_file")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="magkf", description="Magnetometer calibration for vehicles.")
+    parser = argparse.ArgumentParser(
+        prog="magkf",
+        description="Magnetometer calibration for vehicles.",
+        epilog="Each command's --help gives its options. The log columns, units and files are described in "
+        "docs/data-contract.md.",
+    )
     parser.add_argument("--version", action="version", version=f"magkf {__version__}")
+    parser.add_argument("--debug", action="store_true", help="on an internal error, show the traceback")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in COMMANDS:
         module.add_parsers(sub)
     return parser
 
 
+def _files(args) -> tuple[dict, list]:
+    """The output options given (option name -> path) and the input files of ``args``."""
+    outputs = {flag: getattr(args, dest) for dest, flag in OUTPUTS.items() if getattr(args, dest, None) is not None}
+    inputs = []
+    for dest in INPUTS:
+        value = getattr(args, dest, None)
+        inputs.extend(value if isinstance(value, list) else [value])
+    return outputs, [str(i) for i in inputs if i is not None]
+
+
 def main(argv=None) -> int:
+    """Run the command line; returns the exit status (0 done, 2 bad input or usage, 1 internal error)."""
     if hasattr(signal, "SIGPIPE"):  # output piped into head and the like: stop quietly when it closes
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_values_joined(sys.argv[1:] if argv is None else list(argv)))
     if getattr(args, "noise", 0) is None:
         args.noise = 30.0 if args.kind == "drive" else 0.0
     warnings.showwarning = lambda message, category, *a, **k: print(f"magkf: warning: {message}", file=sys.stderr)
+    # numpy's floating-point warnings on degenerate data say nothing the checks do not say in words
+    warnings.simplefilter("ignore", RuntimeWarning)
     try:
+        from ..io.files import STDIO, check_outputs, messages_to_stderr
+
+        outputs, inputs = _files(args)
+        check_outputs(outputs, inputs)
+        if STDIO in outputs.values():  # the result goes to standard output, the messages to standard error
+            with messages_to_stderr():
+                return args.func(args)
         return args.func(args)
     except (InputError, ValueError) as exc:  # bad input, or a setting that cannot be used: one line
-        print(f"magkf: error: {exc}", file=sys.stderr)
+        print(f"magkf: error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a file that cannot be read or written
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"magkf: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("magkf: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # a defect of magkf: one line, the traceback on request
+        if args.debug:
+            raise
+        print(
+            f"magkf: internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)",
+            file=sys.stderr,
+        )
+        return 1
+
+
+#: Options whose value may start with '-' (a mounting such as -y,x,z), which argparse would take for an option.
+DASH_VALUES = ("--mounting",)
+
+
+def _values_joined(argv: list) -> list:
+    """``--mounting -y,x,z`` as ``--mounting=-y,x,z``."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in DASH_VALUES and i + 1 < len(argv):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(str(argv[i]))
+            i += 1
+    return out
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 if __name__ == "__main__":

@@ -23,8 +23,8 @@ def run_apply(args) -> int:
     from ..io.drivelog import write_drive_log
 
     cal = Calibration.load(args.cal)
-    _, registry = common.effects(args, cal)  # checks the stored effects before the log is read
     log = common.open_log(args)
+    _, registry = common.effects(args, cal)  # user code runs once the inputs are read
     out = apply_calibration(log, cal, registry)
     if args.output:
         write_drive_log(out, args.output)

@@ -20,6 +20,8 @@ __all__ = [
     "add_output_options",
     "add_filter_options",
     "filter_config",
+    "add_quiet_option",
+    "stages",
     "add_effect_options",
     "effects",
     "add_mag_unit",
@@ -32,10 +34,14 @@ __all__ = [
 
 def command(sub, name: str, run, help: str):
     """Add the command ``name``: its ``--help`` description is ``run``'s docstring, ``run(args)`` does it."""
+    import argparse
     import inspect
 
     p = sub.add_parser(name, help=help, description=inspect.cleandoc(run.__doc__ or help))
     p.set_defaults(func=run)
+    p.add_argument(
+        "--debug", action="store_true", default=argparse.SUPPRESS, help="on an internal error, show the traceback"
+    )
     return p
 
 
@@ -50,10 +56,10 @@ def write_json_result(args, summary: dict) -> bool:
     """Write ``summary`` to ``-o`` (JSON) if given, print it with ``--json``; True when printed (the command
     then prints nothing else)."""
     from ..io.calibration import jsonable
+    from ..io.files import output_text
 
     if args.output:
-        with open(args.output, "w", encoding="utf-8") as f:
-            json.dump(jsonable(summary), f, indent=2)
+        output_text(args.output, json.dumps(jsonable(summary), indent=2) + "\n")
     if args.json:
         print_json(summary)
     return bool(args.json)
@@ -70,19 +76,29 @@ def timestamp(date: str) -> float:
 
 def igrf_field(args) -> dict:
     """IGRF magnitude and inclination at ``--lat --lon [--alt] --date``."""
+    import sys
+
     from ..reference import field_at
 
     if args.lat is None or args.lon is None:
         raise InputError("the IGRF field needs --lat and --lon (and --date, default today)")
     date = args.date or datetime.now(UTC).date().isoformat()
-    return field_at(args.lat, args.lon, args.alt, timestamp(date))
+    if not args.date and not getattr(args, "_date_noted", False):
+        print(f"magkf: note: IGRF for today, {date}: give --date for the day of the run", file=sys.stderr)
+        args._date_noted = True
+    try:
+        return field_at(args.lat, args.lon, args.alt, timestamp(date))
+    except InputError:
+        raise InputError(f"--date {date} is outside the validity of IGRF-14 (1900-01-01 to 2030-01-01)") from None
 
 
 def add_igrf_options(p) -> None:
     g = p.add_argument_group("field from IGRF-14")
-    g.add_argument("--lat", type=float, help="latitude, degrees")
-    g.add_argument("--lon", type=float, help="longitude, degrees")
-    g.add_argument("--alt", type=float, default=0.0, help="height above the ellipsoid, m (default 0)")
+    g.add_argument("--lat", type=number_in(-90, 90, "degrees"), help="latitude, degrees")
+    g.add_argument("--lon", type=number_in(-180, 360, "degrees"), help="longitude, degrees")
+    g.add_argument(
+        "--alt", type=number_in(-1000, 100_000, "m"), default=0.0, help="height above the ellipsoid, m (default 0)"
+    )
     g.add_argument("--date", help="ISO date, UTC (default today)")
 
 
@@ -170,6 +186,24 @@ def probability(text: str) -> float:
     return value
 
 
+def number_in(lo: float, hi: float, what: str = "", open_low: bool = False):
+    """An argparse type: a finite number in [lo, hi] (``open_low``: above lo); ``what`` names its unit."""
+    import argparse
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        low_ok = value > lo if open_low else value >= lo
+        if not (math.isfinite(value) and low_ok and value <= hi):
+            bound = f"({lo:g}" if open_low else f"[{lo:g}"
+            raise argparse.ArgumentTypeError(f"{text} is not in {bound}, {hi:g}] {what}".rstrip())
+        return value
+
+    return parse
+
+
 def seconds_or_off(text: str) -> float | None:
     """An argparse type: a finite duration in seconds, ``0`` (or ``off``) for None."""
     import argparse
@@ -186,7 +220,7 @@ def seconds_or_off(text: str) -> float | None:
 
 
 def add_diagnosis_options(p, alpha_help: str) -> None:
-    """``--alpha`` and ``--heading-wander`` of ``diagnose``, ``validate`` and ``report``."""
+    """``--alpha``, ``--heading-wander`` and ``--quiet`` of ``diagnose``, ``validate`` and ``report``."""
     from ..diagnostics.fitting import WANDER_BLOCK_S
 
     p.add_argument("--alpha", type=probability, default=0.01, help=f"{alpha_help} (default 0.01)")
@@ -198,6 +232,20 @@ def add_diagnosis_options(p, alpha_help: str) -> None:
         help="let the logged heading's error wander, a straight line over each S seconds, and take it out of the "
         f"residuals before testing (default {WANDER_BLOCK_S:g}; 0: take the logged heading as exact)",
     )
+    add_quiet_option(p)
+
+
+def add_quiet_option(p) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress on standard error")
+
+
+def stages(args):
+    """A progress callback printing each stage on standard error (a terminal only), or None with --quiet."""
+    import sys
+
+    if getattr(args, "quiet", False) or not sys.stderr.isatty():
+        return None
+    return lambda text: print(f"magkf: {text} ...", file=sys.stderr, flush=True)
 
 
 def add_effect_options(p, what: str) -> None:
@@ -215,7 +263,8 @@ def add_effect_options(p, what: str) -> None:
         action="append",
         default=[],
         metavar="FILE.py",
-        help="a Python file defining Effect subclasses (their names become usable with --effect)",
+        help="a Python file defining Effect subclasses (their names become usable with --effect); it is run as "
+        "Python code with your rights once the inputs are read: use only files you trust",
     )
 
 
@@ -242,7 +291,8 @@ def add_effect_file_option(p) -> None:
         action="append",
         default=[],
         metavar="FILE.py",
-        help="a Python file defining Effect subclasses (needed when the calibration stores a user effect)",
+        help="a Python file defining Effect subclasses (needed when the calibration stores a user effect); it is "
+        "run as Python code with your rights once the inputs are read: use only files you trust",
     )
 
 
@@ -294,14 +344,47 @@ def open_log(args, mag="option"):
     instance number, or None for the log's only magnetometer, instead of the ``--mag`` option)."""
     from ..io.readers import read_log
 
-    return read_log(
-        args.file,
-        args.format,
-        map=args.map,
-        mag=mag_instance(args) if mag == "option" else mag,
-        mag_unit=args.mag_unit,
-        raw=not args.logged_calibration,
-    )
+    def read(path):
+        return read_log(
+            path,
+            args.format,
+            map=args.map,
+            mag=mag_instance(args) if mag == "option" else mag,
+            mag_unit=args.mag_unit,
+            raw=not args.logged_calibration,
+        )
+
+    if args.file != "-":
+        return read(args.file)
+    return _from_standard_input(read, args.format)
+
+
+#: A log's file name extension by ``--format``, for one read from standard input.
+SUFFIX = {"csv": ".csv", "parquet": ".parquet", "ulog": ".ulg", "dataflash": ".bin", "mapped": ".csv", None: ".csv"}
+
+
+def _from_standard_input(read, format):
+    """``read(path)`` of the log on standard input (copied to a temporary file; errors name ``<stdin>``)."""
+    import os
+    import shutil
+    import sys
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(suffix=SUFFIX[format])
+    try:
+        with os.fdopen(fd, "wb") as f:
+            shutil.copyfileobj(sys.stdin.buffer, f)
+        if os.path.getsize(tmp) == 0:
+            raise InputError("standard input is empty", "<stdin>")
+        try:
+            log = read(tmp)
+        except InputError as exc:
+            raise InputError(exc.message, "<stdin>", exc.row, exc.column) from None
+        from dataclasses import replace
+
+        return replace(log, source="<stdin>")
+    finally:
+        os.unlink(tmp)
 
 
 def load_calibration(path):

@@ -43,9 +43,18 @@ def run_diagnose(args) -> int:
 
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
-    added, registry = common.effects(args, cal)
     log = common.open_log(args)
-    result, run = diagnose(log, config, cal, added, alpha=args.alpha, registry=registry, wander_s=args.heading_wander)
+    added, registry = common.effects(args, cal)  # user code runs once the inputs are read
+    result, run = diagnose(
+        log,
+        config,
+        cal,
+        added,
+        alpha=args.alpha,
+        registry=registry,
+        wander_s=args.heading_wander,
+        progress=common.stages(args),
+    )
     summary = result.summary()
     summary["verdict"] = _verdict(run)
     if common.write_json_result(args, summary):
@@ -79,8 +88,12 @@ def run_diagnose(args) -> int:
             "  the residual follows: "
             + ", ".join(f"{sg['signal']} ({sg['component']}, range {sg['binned_range_nt']:.0f} nT)" for sg in follows)
         )
+    t0 = log.time[0]
     for w in result.largest[:3]:
-        print(f"  largest residual: {w['rms_nt']:.0f} nT RMS from t = {w['start']:.1f} to {w['stop']:.1f} s")
+        print(
+            f"  largest residual: {w['rms_nt']:.0f} nT RMS from {w['start'] - t0:.1f} to {w['stop'] - t0:.1f} s "
+            "after the start"
+        )
     print(f"  {result.text}")
     print(f"  verdict: {summary['verdict']}")
     return 0
@@ -101,8 +114,8 @@ def run_validate(args) -> int:
 
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
-    _, registry = common.effects(args, cal)
     log = common.open_log(args)
+    _, registry = common.effects(args, cal)  # user code runs once the inputs are read
     result = validate(log, cal, config, registry, alpha=args.alpha, wander_s=args.heading_wander)
     summary = result.summary()
     if common.write_json_result(args, summary):
@@ -127,18 +140,19 @@ def run_validate(args) -> int:
 def run_report(args) -> int:
     """Calibrate (with any --effect), diagnose, and write one HTML file with the plots embedded: gates, estimates over
     time, residuals, ranking, before/after."""
-    from pathlib import Path
-
     from ..diagnostics.report import build_report
+    from ..io.files import output_text
 
     if not args.output:
         raise InputError("give -o REPORT.html")
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
-    added, registry = common.effects(args, cal)
     log = common.open_log(args)
-    page = build_report(log, config, cal, added, registry, alpha=args.alpha, wander_s=args.heading_wander)
-    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.output).write_text(page, encoding="utf-8")
-    print(f"report written to {args.output}")
+    added, registry = common.effects(args, cal)  # user code runs once the inputs are read
+    page = build_report(
+        log, config, cal, added, registry, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
+    )
+    output_text(args.output, page)
+    if args.output != "-":
+        print(f"report written to {args.output}")
     return 0

@@ -51,14 +51,19 @@ def run_convert(args) -> int:
     import json
     from pathlib import Path
 
+    from ..errors import InputError
     from ..io.calibration import jsonable
     from ..io.drivelog import write_drive_log
+    from ..io.files import check_outputs, output_text
 
-    log = common.open_log(args)
     out = Path(args.output)
-    write_drive_log(log.table, out)
+    if args.output == "-":
+        raise InputError("convert writes a file and its provenance beside it: give -o OUT.csv or OUT.parquet")
     beside = out.with_name(out.name + ".provenance.json")
-    beside.write_text(json.dumps(jsonable(log.provenance), indent=2), encoding="utf-8")
+    check_outputs({"provenance": str(beside)}, [args.file, args.map])
+    log = common.open_log(args)
+    write_drive_log(log.table, out)
+    output_text(beside, json.dumps(jsonable(log.provenance), indent=2) + "\n")
     summary = {
         "input": args.file,
         "format": log.provenance.get("format"),

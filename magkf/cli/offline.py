@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 
+from ..conventions import NT_PER_UNIT, to_nanotesla
 from ..errors import InputError
 from . import common
 
@@ -19,13 +20,15 @@ def add_parsers(sub) -> None:
         help="JSON of fitted curves instead of samples: "
         '{"xy": {"x": [A, C_deg, D], "y": [...], "z": [...]}, "xz": {"x": [...], "z": [...]}}',
     )
-    p.add_argument("--field", type=float, help="field magnitude B, nT")
-    p.add_argument("--inclination", type=float, help="field inclination I, degrees (positive down)")
+    p.add_argument("--field", type=common.number_in(0, 1e7, "nT", open_low=True), help="field magnitude B, nT")
+    p.add_argument(
+        "--inclination", type=common.number_in(-90, 90, "degrees"), help="field inclination I, degrees (positive down)"
+    )
     p.add_argument(
         "--method",
         choices=["exact", "paper"],
-        default="exact",
-        help="exact: all samples, vertical-field leak removed (default); paper: the published equations",
+        help="exact: all samples, vertical-field leak removed (default for samples); paper: the published "
+        "equations (the only method for --curves)",
     )
     common.add_igrf_options(p)
     common.add_mag_unit(p)
@@ -35,6 +38,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
     p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
     p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
+    p.add_argument(
+        "--mag-unit",
+        choices=list(NT_PER_UNIT),
+        help="unit of magnetometer columns, converted to nT (then --field is in nT); default: the data's units",
+    )
     p.add_argument("--algebraic", action="store_true", help="stop after the algebraic fit (biased with noise)")
     common.add_igrf_options(p)
     common.add_output_options(p)
@@ -46,6 +54,7 @@ def run_sinefit(args) -> int:
     import numpy as np
 
     from ..offline.sinefit import SineFitCalibrator, paper_from_curves, read_curves, read_turntable
+    from ..plausibility import check_calibration, check_residual
 
     if args.field is None or args.inclination is None:
         igrf = common.igrf_field(args)
@@ -56,12 +65,18 @@ def run_sinefit(args) -> int:
     if (args.file is None) == (args.curves is None):
         raise InputError("give either a turntable CSV or --curves FILE.json")
     if args.curves:
-        if args.method != "paper":
+        if args.method not in (None, "paper"):
             raise InputError("--curves holds fitted curves, not samples: only --method paper applies to them")
         result = paper_from_curves(*read_curves(args.curves), field, inclination)
     else:
         table = read_turntable(args.file, args.mag_unit)
-        result = SineFitCalibrator(field, inclination, args.method).fit(table, args.file).result_
+        result = SineFitCalibrator(field, inclination, args.method or "exact").fit(table, args.file).result_
+    cal = result.to_calibration(source=args.file or args.curves)
+    source = args.file or args.curves
+    warnings = check_calibration(cal.R, np.asarray(cal.b) / field, source)
+    warnings += check_residual(result.residual_rms_nt, field, source, refuse=result.method == "exact")
+    for warning in warnings:
+        print(f"magkf: warning: {source}: {warning}", file=sys.stderr)
     if args.output:
         result.to_calibration(source=args.file or args.curves).save(args.output)
     if args.json:
@@ -89,6 +104,7 @@ def run_ellipsoid(args) -> int:
 
     from ..io.tables import read_csv, require_complete
     from ..offline.ellipsoid import EllipsoidCalibrator
+    from ..plausibility import check_calibration, check_residual
 
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
     columns = columns[: args.axes]
@@ -108,7 +124,19 @@ def run_ellipsoid(args) -> int:
         except ValueError:
             raise InputError(f"--field {args.field!r} is neither a number nor 'igrf'") from None
     X = table[columns].to_numpy()
+    if args.mag_unit:
+        X = to_nanotesla(X, args.mag_unit)
     result = EllipsoidCalibrator(args.axes, field, refine=not args.algebraic).fit(X, args.file).result_
+    known = args.field is not None
+    result.warnings.extend(check_calibration(result.R, result.b / field, args.file, field_known=known))
+    if known:
+        result.warnings.extend(check_residual(result.residual_rms, field, args.file))
+    tilt = _largest_tilt_deg(table)
+    if args.axes == 2 and tilt > LEVEL_DEG:
+        result.warnings.append(
+            f"the ellipse fit takes the sensor as level, but roll and pitch reach {tilt:.0f} deg: the vertical field "
+            "leaks into the fit (use the 3-axis fit, or level the data first)"
+        )
     if args.output:
         result.to_calibration(source=args.file).save(args.output)
     for w in result.warnings:
@@ -128,3 +156,15 @@ def run_ellipsoid(args) -> int:
             f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%"
         )
     return 0
+
+
+#: Largest tilt (deg) a 2-axis (ellipse) fit accepts without a warning.
+LEVEL_DEG = 5.0
+
+
+def _largest_tilt_deg(table) -> float:
+    """The largest of |roll| and |pitch| (deg) in ``table``, 0 when it has no such columns."""
+    import numpy as np
+
+    angles = [np.abs(table[c].to_numpy(float)) for c in ("roll", "pitch") if c in table]
+    return float(np.nanmax(np.concatenate(angles))) if angles and np.isfinite(np.concatenate(angles)).any() else 0.0

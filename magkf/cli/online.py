@@ -24,7 +24,7 @@ def add_parsers(sub) -> None:
         metavar="FILE",
         help="write per-epoch estimates, standard deviations, statuses, residuals (CSV, or Parquet for .parquet)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    common.add_quiet_option(p)
     common.add_filter_options(p)
     common.add_effect_options(p, "effects to estimate with R and b (repeat the option)")
     common.add_output_options(p)
@@ -122,19 +122,23 @@ def run_calibrate(args) -> int:
     from the first stretch of the log."""
     config = common.filter_config(args)
     init = common.load_calibration(args.init)
-    added, _ = common.effects(args, init)
     if args.mag != "all":
-        _calibrate_one(args, common.open_log(args), config, init, added, args.output, args.states)
+        log = common.open_log(args)
+        added, _ = common.effects(args, init)  # user code runs once the inputs are read
+        _calibrate_one(args, log, config, init, added, args.output, args.states)
         return 0
     from ..errors import InputError
     from ..io.readers import magnetometer_instances
 
+    if args.file == "-":
+        raise InputError("--mag all reads a log file more than once: give its name, not -")
     # PX4's fused vehicle_magnetometer is not a sensor of its own.
     instances = [
         m["instance"]
         for m in magnetometer_instances(args.file, args.format)
         if m.get("topic") != "vehicle_magnetometer"
     ]
+    added, _ = common.effects(args, init)
     rows, errors = [], []
     for instance in instances:
         if len(instances) > 1 and not args.json:
@@ -189,8 +193,11 @@ def _print_side_by_side(rows) -> None:
 
 def _calibrate_one(args, log, config, init, added, output, states):
     """Calibrate one log (one magnetometer), write and print what the options ask; returns the run."""
+    import sys
+
     from ..io.drivelog import write_drive_log
     from ..online.run import calibrate_log, terminal_progress
+    from ..plausibility import check_run, log_field_nt
 
     def run_with(effect_list):
         if args.batch:
@@ -202,6 +209,10 @@ def _calibrate_one(args, log, config, init, added, output, states):
 
     run = run_with(added)
     summary = run.summary.as_dict()
+    # the rule of magkf.plausibility: refused before anything is written, or warned
+    summary["warnings"] = check_run(run, log.source, log_field_nt(log), init)
+    for warning in summary["warnings"]:
+        print(f"magkf: warning: {log.source}: {warning}", file=sys.stderr)
     if added:
         from ..diagnostics.diagnose import compare_runs
 

@@ -53,6 +53,7 @@ def run_simulate(args) -> int:
     import numpy as np
 
     from ..io.calibration import Calibration, jsonable
+    from ..io.files import output_text
     from ..sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
 
     truth = Calibration.load(args.truth_cal) if args.truth_cal else None
@@ -63,26 +64,20 @@ def run_simulate(args) -> int:
         table = simulate_turntable(
             params, args.field, args.inclination, args.step, args.noise, np.random.default_rng(args.seed)
         )
-        table.to_csv(args.output, index=False, float_format="%.10g")
+        output_text(args.output, table.to_csv(index=False, float_format="%.10g"))
         info = {"output": args.output, "rows": len(table), "truth": params.as_dict()}
         if args.truth:
-            with open(args.truth, "w", encoding="utf-8") as f:
-                json.dump(
-                    jsonable(
-                        {
-                            "format": "magkf-truth",
-                            "version": 1,
-                            "R": params.matrix(),
-                            "b": params.b,
-                            "sinefit_parameters": params.as_dict(),
-                            "field_nt": args.field,
-                            "inclination_deg": args.inclination,
-                            "noise_nt": args.noise,
-                        }
-                    ),
-                    f,
-                    indent=2,
-                )
+            truth_file = {
+                "format": "magkf-truth",
+                "version": 1,
+                "R": params.matrix(),
+                "b": params.b,
+                "sinefit_parameters": params.as_dict(),
+                "field_nt": args.field,
+                "inclination_deg": args.inclination,
+                "noise_nt": args.noise,
+            }
+            output_text(args.truth, json.dumps(jsonable(truth_file), indent=2) + "\n")
     else:
         config = DriveConfig(
             duration_s=args.duration,

@@ -42,7 +42,7 @@ from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import Effect, LinearEffect, restore_effects
 from ..effects import candidates as default_candidates
-from ..errors import InputError
+from ..errors import InputError, names_the_log
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..online.noise import NoiseLevels
@@ -208,6 +208,7 @@ def _learned_noise(run, config: FilterConfig) -> NoiseLevels | None:
     )
 
 
+@names_the_log
 def diagnose(
     log: DriveLog,
     config: FilterConfig = FilterConfig(),
@@ -218,6 +219,7 @@ def diagnose(
     run: CalibrationRun | None = None,
     registry: dict | None = None,
     wander_s: float | None = WANDER_BLOCK_S,
+    progress=None,
 ):
     """Diagnose ``log``; returns ``(Diagnosis, run)``.
 
@@ -228,14 +230,16 @@ def diagnose(
     ``alpha`` in (0, 1) is the significance level over all candidates. ``wander_s``: the logged heading's
     error is let wander, a straight line over each stretch of that many seconds, and taken out of the
     residuals and regressors before anything is fitted or tested (``fitting.HeadingWander``; None: the
-    logged heading is taken as exact).
+    logged heading is taken as exact). ``progress``: called with a few words at each stage.
     """
+    say = progress or (lambda text: None)
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
     stored = list(restore_effects(cal, registry)) if cal is not None else []
     effects = list(effects)
     adds = [e for e in effects if e.label not in {s.label for s in stored}]
     if run is None and (cal is None or adds):
+        say("calibrating")
         run = calibrate_log(log, config, init=cal, effects=effects or stored)
     prep = prepare(log, config)
     if run is not None:
@@ -294,13 +298,14 @@ def diagnose(
         nis = run.states["nis"].to_numpy()[(run.states["status"] == "used").to_numpy()]
         axis_rms["nis_mean"] = float(np.nanmean(nis)) if np.isfinite(nis).any() else float("nan")
 
+    say(f"fitting the model to {n} epochs")
     null = problem.fit(layout, x)  # the model at its own best fit over the log
     tau = integrated_time(null.r.reshape(n, 3))
     edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
     nT = _InNanotesla(null)
     baseline = nT.rms(held_out_residual(null.A, null.y, edges))
 
-    selection = _Selection(problem, pool, edges, nT, dt, alpha)
+    selection = _Selection(problem, pool, edges, nT, dt, alpha, say)
     results = selection.run(null)
     signals, binned = _signals(problem.data, ned, mag, alpha, tau)
     largest = _largest(problem.data.time, ned)
@@ -405,8 +410,8 @@ class _AsTested(LinearEffect):
 class _Selection:
     """Forward selection by the one decision rule (see the module's docstring)."""
 
-    def __init__(self, problem, pool, edges, nT, dt, alpha):
-        self.problem, self.pool, self.edges, self.nT, self.dt = problem, pool, edges, nT, dt
+    def __init__(self, problem, pool, edges, nT, dt, alpha, say=lambda text: None):
+        self.problem, self.pool, self.edges, self.nT, self.dt, self.say = problem, pool, edges, nT, dt, say
         self.alpha = alpha
         self.m = 0
         self.level = float("nan")
@@ -476,6 +481,7 @@ class _Selection:
     def run(self, null: Linearised) -> list[Candidate]:
         fit = null
         remaining = list(self.pool)
+        self.say(f"testing {len(remaining)} candidates")
         trials = {e.label: self.trial(e, fit) for e in remaining}
         self.m = max(sum(t.test is not None for t in trials.values()), 1)
         self.level = self.alpha / self.m
@@ -487,6 +493,7 @@ class _Selection:
             hits.sort(key=lambda t: t.held_out_nt)
             refits = {}
             for t in hits[:LEADING]:
+                self.say(f"refitting the model with {t.effect.label}")
                 refits[t.effect.label] = self.refit(t.effect, fit)
             # taken only if significant at its own best fit and better than the model on held-out data
             current = self.nT.rms(held_out_residual(fit.A, fit.y, self.edges))
@@ -560,7 +567,8 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
 
     The residual is correlated over ``tau`` epochs (its integrated autocorrelation time), so each bin's
     mean varies about ``tau`` times more than independent epochs would make it: the F statistic is divided
-    by ``tau`` and the denominator's degrees of freedom are those of ``n / tau`` independent epochs."""
+    by ``tau`` and the denominator's degrees of freedom are those of ``n / tau`` independent epochs, and the
+    95 % band of each binned mean is widened by ``sqrt(tau)``."""
     components = {"north": ned[:, 0], "east": ned[:, 1], "down": ned[:, 2], "magnitude": mag}
     values = signal_values(data)
     tests = len(values) * len(components)
@@ -572,22 +580,19 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
         b = _bins(name, v[ok])
         best = None
         binned[name] = {}
+        keys = [k for k in np.unique(b) if np.count_nonzero(b == k) > 1]
+        centres = np.array([np.mean(v[ok][b == k]) for k in keys])
         for comp, r in components.items():
-            groups = [r[ok][b == k] for k in np.unique(b)]
-            groups = [g for g in groups if len(g) > 1]
+            groups = [r[ok][b == k] for k in keys]
             if len(groups) < 2:
                 continue
             f, _ = stats.f_oneway(*groups)
             k, total = len(groups), sum(len(g) for g in groups)
             p = float(stats.f.sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
-            centres = np.array([np.mean(v[ok][b == k]) for k in np.unique(b)])
             means = np.array([g.mean() for g in groups])
-            half = np.array([1.96 * g.std(ddof=1) / np.sqrt(len(g)) for g in groups])
-            binned[name][comp] = {
-                "centre": centres[: len(means)].tolist(),
-                "mean": means.tolist(),
-                "ci95": half.tolist(),
-            }
+            # a bin's mean varies tau times more than that of independent epochs
+            half = np.array([1.96 * g.std(ddof=1) * np.sqrt(max(tau, 1.0) / len(g)) for g in groups])
+            binned[name][comp] = {"centre": centres.tolist(), "mean": means.tolist(), "ci95": half.tolist()}
             if best is None or p < best[1]:
                 best = (comp, float(p), float(np.ptp(means)))
         if best is not None:

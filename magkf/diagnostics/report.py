@@ -14,6 +14,7 @@ import io
 import numpy as np
 
 from ..config import FilterConfig
+from ..errors import names_the_log
 from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
@@ -22,6 +23,11 @@ from .fitting import WANDER_BLOCK_S
 __all__ = ["COMPONENT_COLOURS", "build_report"]
 
 COMPONENT_COLOURS = {"north": "tab:blue", "east": "tab:orange", "down": "tab:green", "magnitude": "tab:red"}
+#: Matplotlib settings of every figure: figures are drawn at most 10 in wide and shown at 1 100 px, so
+#: that 11 pt text stays legible.
+FIGURE_STYLE = {"font.size": 11, "legend.fontsize": 10, "axes.titlesize": 12, "legend.handlelength": 3.0}
+#: Most points drawn in a scatter plot (the statistics use every epoch; the plot a seeded sample).
+MAX_POINTS = 6000
 
 
 def _png(fig, alt: str) -> str:
@@ -38,7 +44,7 @@ def _png(fig, alt: str) -> str:
 def _table(rows, header) -> str:
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    return f"<div class='wide'><table><tr>{head}</tr>{body}</table></div>"
 
 
 def _residual_plot(t0, diag, title):
@@ -52,7 +58,7 @@ def _residual_plot(t0, diag, title):
     ax.plot(t, r["magnitude"], ".", ms=1, color=COMPONENT_COLOURS["magnitude"], label="magnitude")
     lim = np.nanpercentile(np.abs(r["ned"]), 99.5) * 1.5
     ax.set(ylim=(-lim, lim), xlabel="time since start, s", ylabel="residual, nT", title=title)
-    ax.legend(markerscale=8, ncol=4, fontsize=8)
+    ax.legend(markerscale=8, ncol=4)
     return _png(fig, f"{title}: north, east, down and magnitude residuals in nT against time since start in s")
 
 
@@ -64,22 +70,55 @@ def _binned_plot(diag, names, title, other=None):
     names = [n for n in names if n in diag.binned]
     if not names:
         return ""
-    fig, axes = plt.subplots(
-        1, len(names), figsize=(max(4.2 * len(names), 8.0), 3.2), constrained_layout=True, squeeze=False
-    )
-    for ax, name in zip(axes[0], names):
+    columns = min(len(names), 2)
+    rows = -(-len(names) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(10, 3.6 * rows), constrained_layout=True, squeeze=False)
+    for ax in axes.ravel()[len(names) :]:
+        ax.set_visible(False)
+    for ax, name in zip(axes.ravel(), names):
         for label, d, style in (("", diag, "-"), (" after", other, "--")):
             if d is None or name not in d.binned:
                 continue
             for comp, b in d.binned[name].items():
-                x, mean, ci = np.array(b["centre"]), np.array(b["mean"]), np.array(b["ci95"])
-                ax.plot(x, mean, style, marker="o", ms=3, color=COMPONENT_COLOURS[comp], label=comp + label)
+                x, mean, ci = _gaps_broken(np.array(b["centre"]), np.array(b["mean"]), np.array(b["ci95"]))
+                ax.plot(x, mean, style, marker="o", ms=4, color=COMPONENT_COLOURS[comp], label=comp + label)
                 ax.fill_between(x, mean - ci, mean + ci, color=COMPONENT_COLOURS[comp], alpha=0.15)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set(xlabel=name, ylabel="mean residual, nT")
-    axes[0][0].legend(fontsize=7, ncol=2)
+        ax.set(xlabel=_signal_label(name), ylabel="mean residual, nT")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(ncol=2)
     fig.suptitle(title)
-    return _png(fig, f"{title}, against {', '.join(names)}")
+    return _png(fig, f"{title}: mean residual in nT against {', '.join(_signal_label(n) for n in names)}")
+
+
+def _gaps_broken(x, mean, ci):
+    """Binned means with a NaN between bins further apart than 1.5 times the usual spacing, so that a line is
+    not drawn across a range with no data."""
+    if len(x) < 3:
+        return x, mean, ci
+    step = np.median(np.diff(x))
+    gaps = np.flatnonzero(np.diff(x) > 1.5 * step) + 1
+    return (np.insert(x, gaps, np.nan), np.insert(mean, gaps, np.nan), np.insert(ci, gaps, np.nan))
+
+
+#: Units of the signals the residual is binned against (name -> axis label); others by their column name.
+SIGNAL_LABELS = {
+    "time_s": "time since start, s",
+    "heading_deg": "heading, deg",
+    "roll_deg": "roll, deg",
+    "pitch_deg": "pitch, deg",
+    "yaw_rate_dps": "yaw rate, deg/s",
+    "field_rate_nt_s": "rate of the body-frame field, nT/s",
+}
+
+
+def _signal_label(name: str) -> str:
+    if name in SIGNAL_LABELS:
+        return SIGNAL_LABELS[name]
+    for suffix, unit in (("_c", "deg C"), ("_a", "A"), ("_v", "V"), ("_mps", "m/s"), ("_deg", "deg"), ("_nt", "nT")):
+        if name.endswith(suffix):
+            return f"{name}, {unit}"
+    return name
 
 
 def _states_plot(run, t0):
@@ -101,9 +140,13 @@ def _states_plot(run, t0):
         spread = np.max([3 * s[f"std_{n}"].to_numpy()[len(t) // 10] for n in names]) + 1e-12
         pad = max(spread, 0.15 * np.ptp(final), 1e-9)
         ax.set(ylim=(final.min() - pad, final.max() + pad), ylabel=title)
-        ax.legend(fontsize=7, ncol=len(names))
+        ax.legend(ncol=len(names))
     axes[-1, 0].set_xlabel("time since start, s (bands: +- 1 standard deviation)")
-    return _png(fig, "estimates of b (nT), the diagonal of R and any added effects over time, +- 1 standard deviation")
+    return _png(
+        fig,
+        "estimates of b in nT, the diagonal of R and any added effects against time since start in s, with +- 1 "
+        "standard deviation bands",
+    )
 
 
 def _status_plot(run, t0):
@@ -125,6 +168,28 @@ def _status_plot(run, t0):
 
 def _fixed(value: float, digits: int = 2) -> str:
     return f"{value:.{digits}f}" if np.isfinite(value) else "none"
+
+
+def _p(value: float) -> str:
+    """A p-value as text: two significant digits, and below what double precision resolves as such."""
+    if not np.isfinite(value):
+        return "none"
+    return "< 1e-16" if value < 1e-16 else f"{value:.2g}"
+
+
+def _number(value) -> str:
+    """An integer as such, another number with four significant digits (no float noise)."""
+    value = float(value)
+    if not np.isfinite(value):
+        return "none"
+    return f"{value:.0f}" if value == round(value) and abs(value) < 1e15 else f"{value:.4g}"
+
+
+def _sample(n: int) -> np.ndarray:
+    """Indices (sorted) of at most ``MAX_POINTS`` of ``n`` epochs, the same on every run."""
+    if n <= MAX_POINTS:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(0).choice(n, MAX_POINTS, replace=False))
 
 
 def _noise_section(run, t0: float) -> list[str]:
@@ -243,6 +308,102 @@ def _noise_plot(run, t0: float) -> str:
     )
 
 
+def _estimate_table(run) -> str:
+    """Every estimated parameter with its standard deviation and unit."""
+    rows = [
+        (n, f"{v:.6g}", f"{sd:.2g}", "dimensionless" if n.startswith("R") else "nT")
+        for n, v, sd in zip(run.names[:12], run.x[:12], run.std[:12])
+    ]
+    for e in run.calibration.effects:
+        rows += [
+            (f"{e.label}: {n}", f"{v:.6g}", f"{sd:.2g}", u or "dimensionless")
+            for n, v, sd, u in zip(e.names, e.values, e.stds, e.units)
+        ]
+    return _table(rows, ["parameter", "value", "standard deviation", "unit"])
+
+
+def _field_views(log: DriveLog, run, registry) -> list[str]:
+    """The raw and the calibrated field in three projections with the reference sphere, the magnitude error
+    before and after, and the heading deviation against heading (compass swing) before and after."""
+    import matplotlib.pyplot as plt
+
+    from ..apply import apply_calibration
+    from ..conventions import wrap_deg
+    from ..io.calibration import Calibration
+
+    before = apply_calibration(log, Calibration(np.eye(3), np.zeros(3)))  # the raw reading taken as the field
+    after = apply_calibration(log, run.calibration, registry)
+    ref = np.linalg.norm(log.reference_ned(), axis=1)
+    radius = float(np.nanmedian(ref))
+    views = {"raw reading": log.mag, "calibrated": after[["field_x", "field_y", "field_z"]].to_numpy(float)}
+    fig, axes = plt.subplots(2, 3, figsize=(10, 6.8), constrained_layout=True)
+    circle = np.linspace(0, 2 * np.pi, 361)
+    for row, (name, v) in zip(axes, views.items()):
+        v = v[_sample(len(v))]
+        for ax, (i, j) in zip(row, ((0, 1), (0, 2), (1, 2))):
+            ax.plot(v[:, i], v[:, j], ".", ms=1.5, color="tab:blue", alpha=0.5)
+            ax.plot(radius * np.cos(circle), radius * np.sin(circle), "--", color="tab:red", lw=1.2)
+            ax.set(xlabel=f"{'xyz'[i]}, nT", ylabel=f"{'xyz'[j]}, nT", title=f"{name}: {'xyz'[i]}-{'xyz'[j]}")
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.grid(alpha=0.3)
+    fig.suptitle(f"sensor-axis field; dashed: the reference sphere, radius {radius:.0f} nT")
+    projections = _png(
+        fig,
+        "raw and calibrated magnetometer field in nT projected on the x-y, x-z and y-z planes, with the "
+        f"reference field's sphere of radius {radius:.0f} nT dashed",
+    )
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), constrained_layout=True)
+    for ax, (name, frame) in zip(axes, (("raw reading", before), ("calibrated", after))):
+        error = (frame["magnitude_nt"].to_numpy(float) - ref)[np.isfinite(ref)]
+        error = error[np.isfinite(error)]
+        rms = float(np.sqrt(np.mean(error**2))) if error.size else float("nan")
+        span = np.percentile(error, [0.5, 99.5]) if error.size else (-1.0, 1.0)
+        beyond = int(np.sum((error < span[0]) | (error > span[1])))
+        ax.hist(error, bins=60, range=tuple(span), color="tab:blue" if name == "calibrated" else "tab:gray")
+        ax.axvline(0, color="k", lw=0.8)
+        ax.set(
+            xlabel=f"magnitude less the reference's, nT ({beyond} epochs beyond the axis)",
+            ylabel="epochs",
+            title=f"{name}: RMS {rms:.0f} nT over every epoch",
+        )
+    fig.suptitle("magnitude error before and after calibration")
+    histogram = _png(fig, "histograms of the field magnitude less the reference magnitude in nT, raw and calibrated")
+
+    yaw = log.attitude[:, 2] % 360.0
+    ok = ((before["status"] == "ok") & (after["status"] == "ok")).to_numpy()
+    if not ok.any():
+        return ["<h2>Field before and after calibration</h2>", projections, histogram]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
+    edges = np.arange(0.0, 361.0, 10.0)
+    for ax, (name, frame) in zip(axes, (("raw reading", before), ("calibrated", after))):
+        deviation = wrap_deg(frame["heading_true_deg"].to_numpy(float) - yaw)[ok]
+        h = yaw[ok]
+        pick = _sample(len(h))
+        ax.plot(h[pick], deviation[pick], ".", ms=1.5, color="tab:gray", alpha=0.4, label="epochs")
+        which = np.digitize(h, edges) - 1
+        means = [np.mean(deviation[which == k]) if np.any(which == k) else np.nan for k in range(36)]
+        ax.plot(edges[:-1] + 5.0, means, "o-", color="tab:blue", ms=4, label="mean per 10 deg")
+        ax.axhline(0, color="k", lw=0.8)
+        rms = float(np.sqrt(np.mean(deviation**2)))
+        ax.set(
+            xlabel="heading (logged yaw), deg",
+            ylabel="compass heading less yaw, deg",
+            title=f"{name}: RMS {rms:.2f} deg",
+            xlim=(0, 360),
+            xticks=range(0, 361, 90),
+        )
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+    fig.suptitle("compass swing: heading deviation against heading")
+    swing = _png(
+        fig,
+        "heading deviation in deg (tilt-compensated compass heading less the logged yaw) against heading in deg, "
+        "raw and calibrated, with means per 10 deg",
+    )
+    return ["<h2>Field before and after calibration</h2>", projections, histogram, swing]
+
+
 #: The signal to plot the residual against for an effect without a channel of its own.
 EFFECT_SIGNAL = {
     "time_lag": "yaw_rate_dps",
@@ -277,17 +438,35 @@ def _advice(diag) -> list[str]:
     ]
 
 
+@names_the_log
 def build_report(
-    log: DriveLog, config=FilterConfig(), cal=None, effects=(), registry=None, alpha=0.01, wander_s=WANDER_BLOCK_S
+    log: DriveLog,
+    config=FilterConfig(),
+    cal=None,
+    effects=(),
+    registry=None,
+    alpha=0.01,
+    wander_s=WANDER_BLOCK_S,
+    progress=None,
 ) -> str:
     """The report of ``log`` as a self-contained HTML string: the run with ``config`` (a ``FilterConfig``)
     started from ``cal`` (a ``Calibration`` or None) with ``effects`` added, and its diagnosis at level
-    ``alpha`` over the built-in candidates and those of ``registry``."""
+    ``alpha`` over the built-in candidates and those of ``registry``. ``progress``: called with a few
+    words at each stage."""
     import matplotlib
 
     matplotlib.use("Agg")
+    with matplotlib.rc_context(FIGURE_STYLE):
+        return _page(log, config, cal, effects, registry, alpha, wander_s, progress or (lambda text: None))
+
+
+def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
+    say("calibrating")
     run = calibrate_log(log, config, init=cal, effects=effects)
-    diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, registry=registry, wander_s=wander_s)
+    diag, _ = diagnose(
+        log, config, cal, effects, alpha=alpha, run=run, registry=registry, wander_s=wander_s, progress=say
+    )
+    say("drawing the plots")
     t0 = log.time[0]
     s = run.summary
     parts = [
@@ -302,13 +481,13 @@ def build_report(
         _status_plot(run, t0),
         _table([(k, v) for k, v in s.status_counts.items()], ["status", "epochs"]),
         "<h2>Estimate</h2>",
-        _table(
-            [(n, f"{v:.6g}", f"{sd:.2g}") for n, v, sd in zip(run.names, run.x, run.std)],
-            ["parameter", "value", "standard deviation"],
-        ),
+        _estimate_table(run),
         _states_plot(run, t0),
+        *_field_views(log, run, registry),
         "<h2>Residuals</h2>",
-        _residual_plot(t0, diag, "residuals of the used epochs, final estimate"),
+        _residual_plot(
+            t0, diag, "residuals of the diagnosed epochs (used and innovation-gated, gross outliers left out)"
+        ),
         _binned_plot(
             diag,
             [x["signal"] for x in diag.signals[:4]],
@@ -319,7 +498,7 @@ def build_report(
                 (f"{w['start'] - t0:.1f}", f"{w['stop'] - t0:.1f}", f"{w['rms_nt']:.1f}", f"{w['max_nt']:.1f}")
                 for w in diag.largest
             ],
-            ["from, s", "to, s", "RMS, nT", "max, nT"],
+            ["largest residuals: from, s after the start", "to, s", "RMS, nT", "max, nT"],
         ),
         "<h2>Which effect is missing</h2>",
         f"<p>{diag.n_tested} candidates tested, each by a correlation-robust F test (a drifting offset: L, "
@@ -338,7 +517,7 @@ def build_report(
                     c.effect,
                     f"{c.test} {_fixed(c.statistic, 1)}",
                     f"{c.dof}, {c.dof_denominator}" if c.dof_denominator else str(c.dof),
-                    f"{c.p_value:.2g}",
+                    _p(c.p_value),
                     _fixed(c.residual_rms_after_nt),
                     _fixed(c.residual_rms_fit_nt),
                     "yes" if c.significant else "",
@@ -359,8 +538,11 @@ def build_report(
         ),
         *_advice(diag),
         _table(
-            [(x["signal"], x["component"], f"{x['p_value']:.2g}", f"{x['binned_range_nt']:.1f}") for x in diag.signals],
-            ["signal", "component", "p-value", "range of binned means, nT"],
+            [
+                (_signal_label(x["signal"]), x["component"], _p(x["p_value"]), f"{x['binned_range_nt']:.1f}")
+                for x in diag.signals
+            ],
+            ["signal the residual follows", "component", "p-value (correlation-robust)", "range of binned means, nT"],
         ),
     ]
     if effects:
@@ -373,8 +555,14 @@ def build_report(
             "<h2>Before and after adding " + html.escape(", ".join(e.label for e in effects)) + "</h2>",
             _table(
                 [
-                    (k, f"{ba['before'][k]:.3f}", f"{ba['after'][k]:.3f}")
-                    for k in ("residual_rms_nt", "nis_mean", "aic", "bic", "n_parameters")
+                    (label, _number(ba["before"][k]), _number(ba["after"][k]))
+                    for k, label in (
+                        ("residual_rms_nt", "residual RMS, nT"),
+                        ("nis_mean", "mean NIS per degree of freedom"),
+                        ("aic", "AIC"),
+                        ("bic", "BIC"),
+                        ("n_parameters", "parameters"),
+                    )
                 ],
                 ["on the epochs both used", "before", "after"],
             ),
@@ -385,9 +573,12 @@ def build_report(
         ]
     style = (
         "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
-        "td,th{border:1px solid #bbb;padding:2px 8px;font-size:13px}img{max-width:100%}"
+        "td,th{border:1px solid #bbb;padding:2px 8px;font-size:14px}th{background:#f2f2f2}img{max-width:100%}"
+        "td{font-variant-numeric:tabular-nums}.wide{overflow-x:auto}body{padding:0 8px}"
     )
     return (
-        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>magkf report</title><style>{style}</style>"
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>magkf report</title><style>{style}</style>"
         f"</head><body>{''.join(parts)}</body></html>"
     )

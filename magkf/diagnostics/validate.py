@@ -27,7 +27,7 @@ from scipy import stats
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import restore_effects
-from ..errors import InputError
+from ..errors import InputError, names_the_log
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..online.prepare import prepare
@@ -80,6 +80,7 @@ class Validation:
         return out
 
 
+@names_the_log
 def validate(
     log: DriveLog,
     cal: Calibration,

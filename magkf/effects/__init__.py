@@ -45,16 +45,25 @@ def make_effect(spec: str, registry: dict | None = None) -> Effect:
 
 
 def load_effect_file(path) -> dict:
-    """The ``Effect`` subclasses defined in a Python file, by name (``{name: class}``)."""
+    """The ``Effect`` subclasses defined in a Python file, by name (``{name: class}``).
+
+    The file is run as Python with the user's rights, as ``import`` would: load only files you trust. A
+    failure inside it (``sys.exit`` included) is an InputError naming the file; so is a name that is a
+    built-in effect's."""
     path = Path(path)
     if not path.is_file():
         raise InputError("no such effect file", str(path))
+    if path.suffix != ".py":
+        raise InputError("an effect file is Python source ending in .py", str(path))
     spec = importlib.util.spec_from_file_location(f"magkf_user_effect_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(module)
-    except Exception as exc:  # the user's code: report it on one line
-        raise InputError(f"the effect file failed to load: {type(exc).__name__}: {exc}", str(path)) from None
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # the user's code, sys.exit included: reported on one line
+        what = " ".join(str(exc).split())
+        raise InputError(f"the effect file failed to load: {type(exc).__name__}: {what}", str(path)) from None
     found = {
         obj.name: obj
         for obj in vars(module).values()
@@ -65,6 +74,9 @@ def load_effect_file(path) -> dict:
     }
     if not found:
         raise InputError("the file defines no Effect subclass with a name", str(path))
+    clash = sorted(set(found) & set(BUILTIN))
+    if clash:
+        raise InputError(f"effect {clash[0]!r} is a built-in effect's name: give yours another", str(path))
     return found
 
 

@@ -61,6 +61,7 @@ import numpy as np
 from ..conventions import NT_PER_UNIT
 from ..errors import InputError
 from .calibration import jsonable
+from .files import output_text
 
 __all__ = [
     "ParameterSet",
@@ -347,8 +348,7 @@ def write_param_file(params: ParameterSet, path) -> None:
             lines.append(f"1\t1\t{name}\t{_number(value)}\t{kind}")
     else:
         raise InputError(f"unknown autopilot {params.autopilot!r}")
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    output_text(path, "\n".join(lines) + "\n")
 
 
 def read_param_file(path) -> dict:

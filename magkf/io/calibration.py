@@ -180,9 +180,11 @@ class Calibration:
         return out
 
     def save(self, path) -> None:
-        """Write the calibration file ``path`` (JSON, UTF-8), creating its folder if needed."""
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+        """Write the calibration file ``path`` (JSON, UTF-8; ``-``: standard output), replacing it only once
+        complete (``magkf.io.files``)."""
+        from .files import output_text
+
+        output_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def from_dict(cls, data, source: str = "calibration") -> Calibration:

@@ -47,6 +47,9 @@ __all__ = [
     "UnitWarning",
     "DriveLog",
     "TIME_RANGE_S",
+    "ALT_RANGE_M",
+    "MAG_MAX_NT",
+    "DOP_MAX",
     "MAX_GAP_S",
     "TimeBaseWarning",
     "check_time_base",
@@ -108,7 +111,12 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
     ``sample`` is a mapping of column names to values: a dict, or a pandas row (``Series``). ``time`` (UNIX
     s) is taken from the argument if given, else from the sample's ``time`` entry, else from a pandas
     row's name (``DataFrame.iterrows`` and ``DriveLog.table`` rows carry the time as their index).
+    Raises InputError for a sample that is not such a mapping (a bare array names no columns).
     """
+    if not hasattr(sample, "keys"):
+        raise InputError(
+            f"a sample maps column names to values (a dict or a pandas row), not a {type(sample).__name__}"
+        )
 
     def number(name) -> float:
         try:
@@ -212,6 +220,12 @@ class DriveLog:
 
 #: The time base a log must have: UNIX seconds between these dates (1990-01-01 and 2100-01-01 UTC).
 TIME_RANGE_S = (631_152_000.0, 4_102_444_800.0)
+#: Heights a vehicle's log may hold, m above the ellipsoid (below: a unit or a sentinel value, not a place).
+ALT_RANGE_M = (-1_000.0, 100_000.0)
+#: Largest magnetometer or reference component, nT (0.01 T: far beyond any vehicle's field).
+MAG_MAX_NT = 1e7
+#: Largest dilution of precision a log may hold (receivers report 99.99 for no fix).
+DOP_MAX = 1_000.0
 #: A jump of the clock longer than this (s) is reported.
 MAX_GAP_S = 5.0
 
@@ -282,18 +296,33 @@ def from_table(
     if 0 < len(attitude) < 3:
         missing = next(c for c in ATTITUDE if c not in table)
         raise InputError("attitude needs all of roll, pitch and yaw (or none of them)", name, 1, missing)
+    refs = [c for c in REF if c in table]
+    if 0 < len(refs) < 3:
+        missing = next(c for c in REF if c not in table)
+        raise InputError("a reference field needs all of ref_n, ref_e and ref_d (or none of them)", name, 1, missing)
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
         raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
     require_complete(table, (TIME,), name)
     check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
-    for column, lo, hi in ((PITCH, -90, 90), (ROLL, -180, 360), (YAW, -360, 360), (LAT, -90, 90), (LON, -180, 360)):
+    scale = NT_PER_UNIT[mag_unit]
+    for column, lo, hi, unit in (
+        *((c, lo, hi, "degrees") for c, lo, hi in ((PITCH, -90, 90), (ROLL, -180, 360), (YAW, -360, 360))),
+        (LAT, -90, 90, "degrees"),
+        (LON, -180, 360, "degrees"),
+        (ALT, *ALT_RANGE_M, "m"),
+        *((c, 0, DOP_MAX, "") for c in (DOP, PDOP, HDOP)),
+        *((c, -MAG_MAX_NT / scale, MAG_MAX_NT / scale, mag_unit) for c in MAG),
+        *((c, -MAG_MAX_NT, MAG_MAX_NT, "nT") for c in REF),
+    ):
         if column in table:
             v = table[column].to_numpy(dtype=float)
             bad = np.flatnonzero((v < lo) | (v > hi))
             if bad.size:
                 i = int(bad[0])
-                raise InputError(f"value {float(v[i])!r} outside [{lo}, {hi}] degrees", name, row_of(i), column)
+                raise InputError(
+                    f"value {float(v[i])!r} outside [{lo:g}, {hi:g}] {unit}".rstrip(), name, row_of(i), column
+                )
     mag = table[list(MAG)].to_numpy(dtype=float)
     complete = np.all(np.isfinite(mag), axis=1)
     if complete.any():
@@ -338,12 +367,18 @@ def table_to_write(table: pd.DataFrame, name: str) -> tuple[pd.DataFrame, np.nda
 
 def write_drive_log(table: pd.DataFrame, path) -> None:
     """Write a time-indexed table (or one with a ``time`` column) as canonical CSV, full precision, or as
-    Parquet when ``path`` ends in ``.parquet``."""
+    Parquet when ``path`` ends in ``.parquet``; ``-``: CSV on standard output. Replaced only once complete."""
+    from .files import STDIO, standard_output, written
+
     out = table.reset_index() if table.index.name == TIME else table
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    if Path(path).suffix.lower() in PARQUET_SUFFIXES:
-        out.to_parquet(path, index=False)
-    else:  # 13 significant digits keep every nT value; UNIX time needs 16 for microseconds
-        if TIME in out:
-            out = out.assign(**{TIME: np.char.mod("%.6f", out[TIME].to_numpy(float))})
-        out.to_csv(path, index=False, float_format="%.13g", na_rep="")
+    parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
+    if not parquet and TIME in out:  # 13 significant digits keep every nT value; UNIX time needs 16 for microseconds
+        out = out.assign(**{TIME: np.char.mod("%.6f", out[TIME].to_numpy(float))})
+    if path == STDIO:
+        out.to_csv(standard_output(), index=False, float_format="%.13g", na_rep="")
+        return
+    with written(path) as tmp:
+        if parquet:
+            out.to_parquet(tmp, index=False)
+        else:
+            out.to_csv(tmp, index=False, float_format="%.13g", na_rep="")

@@ -48,7 +48,7 @@ from datetime import UTC, datetime
 import numpy as np
 
 from ..conventions import ALT, DOP, HDOP, LAT, LON, PDOP, declination_deg, inclination_deg
-from ..errors import InputError
+from ..errors import InputError, names_the_log
 from ..online.bootstrap import MIN_EPOCHS as BOOTSTRAP_MIN_EPOCHS
 from ..status import Status, status_counts
 from .drivelog import DriveLog, epoch_status
@@ -323,6 +323,7 @@ def _coverage(log: DriveLog, usable_vector: np.ndarray, usable_field: np.ndarray
     return out
 
 
+@names_the_log
 def inspect_log(log: DriveLog, dop_max: float = 5.0) -> dict:
     """What ``log`` holds and which calibration it allows, as a JSON-ready dict.
 

@@ -56,6 +56,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         return read_parquet(path, required, text_columns)
     if not path.is_file():
         raise InputError("no such file", name)
+    _check_layout(path, name, required)
     try:
         table = pd.read_csv(
             path, keep_default_na=False, na_values=[""], skipinitialspace=True, dtype={c: str for c in text_columns}
@@ -79,6 +80,56 @@ def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str]
     except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
         raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
     return _checked(table, name, required, text_columns, "the file has no rows").reset_index(drop=True)
+
+
+#: Bytes of a CSV file scanned at a time for its field counts.
+SCAN_BYTES = 1 << 24
+
+
+def _check_layout(path: Path, name: str, required=()) -> None:
+    """Raise InputError for a header naming a column twice or lacking a ``required`` one, or a row with fewer
+    or more fields than the header (pandas would fill a short row with empty cells, or take a long row's
+    first field as an index). Files with quoted fields are left to the parser."""
+    import csv
+
+    with open(path, encoding="utf-8", errors="replace", newline="") as f:
+        header = next(csv.reader([f.readline()]), [])
+    seen = set()
+    for column in (c.strip() for c in header):
+        if column in seen:
+            raise InputError("the column appears twice in the header", name, 1, column)
+        seen.add(column)
+    missing = [c for c in required if c not in seen]
+    if missing and header:
+        raise InputError(f"required column missing (the header has: {', '.join(header)})", name, 1, missing[0])
+    fields = len(header)
+    line, commas_in_line, length_of_line = 0, 0, 0
+    with open(path, "rb") as f:
+        while chunk := f.read(SCAN_BYTES):
+            data = np.frombuffer(chunk, dtype=np.uint8)
+            if (data == ord('"')).any():
+                return
+            ends = np.flatnonzero(data == ord("\n"))
+            commas = np.cumsum(data == ord(","))
+            starts = np.r_[0, ends[:-1] + 1] if ends.size else np.zeros(0, int)
+            before = np.r_[0, commas[ends[:-1]]] if ends.size else np.zeros(0, int)
+            counts = commas[ends] - before if ends.size else np.zeros(0, int)
+            lengths = ends - starts
+            if ends.size:  # the line running on from the last chunk
+                counts[0] += commas_in_line
+                lengths[0] += length_of_line
+            content = lengths > (data[np.maximum(ends - 1, 0)] == ord("\r"))  # blank lines are skipped
+            bad = np.flatnonzero(content & (counts + 1 != fields))
+            bad = bad[(line + bad) > 0]  # the header itself
+            if bad.size:
+                k = int(bad[0])
+                raise InputError(f"{int(counts[k]) + 1} fields where the header has {fields}", name, line + k + 1, None)
+            line += ends.size
+            tail = data[ends[-1] + 1 :] if ends.size else data
+            commas_in_line = int(np.count_nonzero(tail == ord(","))) + (0 if ends.size else commas_in_line)
+            length_of_line = len(tail) + (0 if ends.size else length_of_line)
+    if length_of_line and commas_in_line + 1 != fields and line > 0:
+        raise InputError(f"{commas_in_line + 1} fields where the header has {fields}", name, line + 1, None)
 
 
 def _checked(table: pd.DataFrame, name: str, required, text_columns, empty: str) -> pd.DataFrame:

@@ -56,7 +56,7 @@ MIN_THICKNESS = 0.05
 SPHERE_CELLS = 200
 CIRCLE_BINS = 36
 #: A parameter is reported as poorly determined when its standard error exceeds this share of its scale
-#: (the field magnitude for offsets, 1 for sensitivities, 1 rad for angles).
+#: (the mean sensitivity for sensitivities, the field in the data's units for offsets, 1 rad for angles).
 POORLY_DETERMINED = 0.05
 #: Copies of the data simulated to estimate the second-order noise bias of the refined fit, and their seed.
 BOOTSTRAP_COPIES = 8
@@ -261,7 +261,9 @@ class EllipsoidCalibrator(Calibrator):
         mags = np.linalg.norm(calibrated, axis=1)
         raw = np.linalg.norm(X, axis=1)
         cov = coverage(calibrated / mags[:, None])
-        poorly = [n for n, s, sc in zip(names, se, _scales(d, F)) if not np.isfinite(s) or s > POORLY_DETERMINED * sc]
+        poorly = [
+            n for n, s, sc in zip(names, se, _scales(d, F, x)) if not np.isfinite(s) or s > POORLY_DETERMINED * sc
+        ]
         if self.refine and poorly:
             warnings.append("poorly determined: " + ", ".join(poorly) + "; add samples with other orientations")
         if cov < 0.3:
@@ -368,8 +370,10 @@ def _refine(X, x0, F, d):
     return x - shift, se
 
 
-def _scales(d, F):
-    return [1.0] * d + [1.0] * (1 if d == 2 else 3) + [F] * d
+def _scales(d, F, x):
+    """The scale each parameter's standard error is judged against (see ``POORLY_DETERMINED``)."""
+    s = float(np.mean(np.abs(x[:d])))
+    return [s] * d + [1.0] * (1 if d == 2 else 3) + [F * s] * d
 
 
 def _readable(x, d, offsets=True) -> list:

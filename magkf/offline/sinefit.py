@@ -6,7 +6,7 @@ Model (the paper's eq. 1): raw ``m = K B_o + b0`` with the lower-triangular
          [ky sin a,           ky cos a,           0       ],
          [kz cos b sin g,     kz sin b sin g,     kz cos g]]
 
-Turntable geometry (see ``docs/data-contract-notes.md``): in plane ``xy`` the sensor is level (roll 0, Z down);
+Turntable geometry (see ``docs/data-contract.md``): in plane ``xy`` the sensor is level (roll 0, Z down);
 in plane ``xz`` it is rolled +90 deg about X (Y down). ``angle_deg`` turns the table clockwise seen from
 above. With horizontal field ``H = B cos I`` and vertical ``V = B sin I`` the field in the sensor's
 orthogonal frame at table angle ``psi`` is ``(H cos psi, -H sin psi, V)`` in plane ``xy`` and
@@ -407,7 +407,7 @@ class SineFitCalibrator(Calibrator):
             residual_rms_nt=float(np.sqrt(2 * fit.cost / n)),
             extras={
                 "xz_roll_deg": 90.0 * sign,
-                "heading_offsets_deg": {"xy": float(np.degrees(fit.x[9])), "xz": float(np.degrees(fit.x[10]))},
+                "heading_offsets_deg": {k: float(wrap_deg(np.degrees(fit.x[i]))) for k, i in (("xy", 9), ("xz", 10))},
             },
         )
 
@@ -418,7 +418,8 @@ def _heading_offsets(curves) -> tuple[float, float]:
 
 
 def _unpack(x) -> SineFitParameters:
-    return SineFitParameters(*np.degrees(x[:3]), *x[3:6], b=tuple(x[6:9]))
+    """The parameters of the solver's vector, angles wrapped to (-180, 180] deg (they enter as angles only)."""
+    return SineFitParameters(*(float(a) for a in wrap_deg(np.degrees(x[:3]))), *x[3:6], b=tuple(x[6:9]))
 
 
 def model_residuals(params: SineFitParameters, data, field_nt, inclination_deg, offsets_deg, sign) -> np.ndarray:

@@ -22,7 +22,7 @@ import time as _time
 import numpy as np
 
 from ..config import FilterConfig
-from ..errors import InputError
+from ..errors import InputError, names_the_log
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..status import Status
@@ -37,6 +37,7 @@ OUTLIER_SIGMA = 5.0
 LOSS_SCALE = 3.0
 
 
+@names_the_log
 def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()):
     """Batch calibration of ``log``; returns a ``CalibrationRun`` (states constant over the log)."""
     from scipy.optimize import least_squares

@@ -129,6 +129,8 @@ class OnlineCalibrator:
         t = v["time"]
         if not np.isfinite(t):
             raise InputError("the sample has no time (give a 'time' entry, a row named by its time, or time=...)")
+        if self._last_time is not None and not t > self._last_time:
+            raise InputError(f"time {t!r} s is not after the previous sample's {self._last_time!r} s", column="time")
         m = np.array([v[c] for c in MAG])
         roll, pitch, yaw = (v[c] for c in ATTITUDE)
         ref = self._reference(t, v)

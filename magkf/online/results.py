@@ -9,6 +9,7 @@ import pandas as pd
 
 from ..conventions import body_to_ned
 from ..effects import stored_effect
+from ..errors import InputError
 from ..io.calibration import Calibration
 from ..status import Status, status_counts, status_names
 from . import observability
@@ -324,17 +325,24 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             "status_counts",
         )
     }
-    cal = Calibration(
-        R=R,
-        b=b,
-        method=f"{method}-{config.measure}",
-        covariance=P_final[core, core],
-        effects=tuple(stored_effect(e, x_final[sl], std[sl]) for e, sl in layout.blocks()),
-        state_covariance=P_final if layout.has_extra else None,
-        standard_errors=dict(zip(names[core], std[core].tolist())),
-        quality=quality | {"undetermined": obs["text"]},
-        source=log.source,
-    )
+    try:
+        cal = Calibration(
+            R=R,
+            b=b,
+            method=f"{method}-{config.measure}",
+            covariance=P_final[core, core],
+            effects=tuple(stored_effect(e, x_final[sl], std[sl]) for e, sl in layout.blocks()),
+            state_covariance=P_final if layout.has_extra else None,
+            standard_errors=dict(zip(names[core], std[core].tolist())),
+            quality=quality | {"undetermined": obs["text"]},
+            source=log.source,
+        )
+    except ValueError as exc:  # a degenerate estimate (R singular): the data, not the code
+        raise InputError(
+            f"the estimate is degenerate ({exc}): the data do not determine R, or the magnetometer unit is wrong "
+            "(--mag-unit)",
+            log.source,
+        ) from None
     fit = pd.DataFrame(
         {"fit_n": ned_f[:, 0], "fit_e": ned_f[:, 1], "fit_d": ned_f[:, 2], "fit_mag": mag_f}, index=log.table.index
     )

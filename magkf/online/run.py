@@ -14,7 +14,7 @@ import time as _time
 import numpy as np
 
 from ..config import FilterConfig
-from ..errors import InputError
+from ..errors import InputError, names_the_log
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from .estimator import Estimator, run_model
@@ -25,6 +25,7 @@ from .smoother import rts_smooth
 __all__ = ["calibrate_log", "blocks", "terminal_progress"]
 
 
+@names_the_log
 def calibrate_log(
     log: DriveLog,
     config: FilterConfig = FilterConfig(),

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -25,6 +24,7 @@ from ..conventions import ATTITUDE, MAG, REF, TIME, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
 from ..io.calibration import Calibration
 from ..io.drivelog import write_drive_log
+from ..io.files import output_text
 from ..offline.sinefit import SineFitParameters
 from ..reference import igrf_ned
 from .disturbance import simulate_disturbances
@@ -134,7 +134,7 @@ class SimulatedDrive:
         """Write the canonical CSV and, if ``truth_path`` is given, the truth JSON."""
         write_drive_log(self.table, csv_path)
         if truth_path is not None:
-            Path(truth_path).write_text(json.dumps(self.truth(), indent=2) + "\n", encoding="utf-8")
+            output_text(truth_path, json.dumps(self.truth(), indent=2) + "\n")
 
 
 def true_matrix(truth) -> tuple[np.ndarray, np.ndarray]:

@@ -147,6 +147,46 @@ def test_report_has_the_noise_and_verdict_section(tmp_path):
     width, height = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
     assert width >= 800 and height >= 350, (width, height)
     assert "nan" not in re.sub(r"<img[^>]*>", "", section).lower()
+    _check_structure(page)
+
+
+#: Table headers that name a thing, a count or a probability (no unit applies), or whose unit is in a
+#: column of its own ("value", "standard deviation" beside "unit").
+CATEGORICAL = {
+    "",
+    "epochs",
+    "degrees of freedom",
+    "p-value",
+    "value",
+    "standard deviation",
+    "parameter",
+    "status",
+    "candidate",
+    "component",
+    "taken",
+    "note",
+    "unit",
+    "signal the residual follows",
+    "on the epochs both used",
+    "before",
+    "after",
+    "NED residual RMS",
+}
+
+
+def _check_structure(page: str) -> None:
+    """The report a reader can use: its sections in order, every image described, every quantity's unit."""
+    sections = re.findall(r"<h2>([^<]+)</h2>", page)
+    expected = ["Noise and verdict", "Gates", "Estimate", "Field before and after calibration", "Residuals"]
+    assert sections[: len(expected)] == expected and "Which effect is missing" in sections, sections
+    alts = re.findall(r'<img alt="([^"]*)"', page)
+    assert len(alts) == page.count("<img") >= 8
+    for alt in map(html.unescape, alts):  # says what is plotted against what, with units
+        assert len(alt) > 40 and re.search(r"\bin (nT|deg|s)\b", alt), alt
+    quantity = re.compile(r"(, [^,]*((nT|deg|s|A|V|m/s)\b|%)|\(dimensionless\)|\(correlation-robust\))")
+    for header in map(html.unescape, re.findall(r"<th>([^<]*)</th>", page)):
+        assert header in CATEGORICAL or quantity.search(header), header
+    assert "viewport" in page and "http://" not in page and "https://" not in page
 
 
 # ---------------------------------------------------------------- real time

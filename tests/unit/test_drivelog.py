@@ -55,7 +55,9 @@ def test_empty_cells_are_kept_as_missing(tmp):
         ([GOOD[0], GOOD[0]], HEADER, "row 3, column 'time'"),
         ([GOOD[0], ",1,2,3,0,0,0,48,11"], HEADER, "row 3, column 'time'"),
         ([GOOD[0]], HEADER, "too few samples"),
-        (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,lat,lon", "row 1, column 'yaw'"),
+        # a header one name short: pandas would take each row's first field as an index and shift the rest
+        (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,lat,lon", "row 2: 9 fields where the header has 8"),
+        ([",".join(g.split(",")[:6] + g.split(",")[7:]) for g in GOOD], HEADER.replace(",yaw", ""), "column 'yaw'"),
         (GOOD, "time,mag_x,mag_y,mag_z,roll,pitch,yaw,alt,dop", "row 1, column 'lat'"),
         ([GOOD[0], GOOD[1].replace(",0,0,11", ",0,95,11")], HEADER, "row 3, column 'pitch'"),
         ([], HEADER, "no data rows"),

@@ -98,9 +98,20 @@ def test_human_output_and_calibration_file(tmp):
     assert np.allclose(cal.R, PAPER_EXAMPLE.matrix(), atol=2e-4)
 
 
-def test_field_from_igrf():
-    r = cli_json("sinefit", DATA / "turntable_example.csv", "--lat", 48.1, "--lon", 11.6, "--date", "2026-06-01")
-    assert 45_000 < r["field_nt"] < 52_000 and 60 < r["inclination_deg"] < 68
+def test_field_from_igrf(tmp):
+    """The field and inclination from IGRF at the table's place and date; a table turned in another field
+    is refused (the example was simulated in 50 000 nT at 43 deg, not Munich's field)."""
+    from magkf.cli.common import timestamp
+    from magkf.reference import field_at
+
+    igrf = field_at(48.1, 11.6, 0.0, timestamp("2026-06-01"))
+    table = simulate_turntable(PAPER_EXAMPLE, igrf["magnitude_nt"], igrf["inclination_deg"], 5.0, 0.0)
+    table.to_csv(tmp / "munich.csv", index=False, float_format="%.17g")
+    r = cli_json("sinefit", tmp / "munich.csv", "--lat", 48.1, "--lon", 11.6, "--date", "2026-06-01")
+    assert r["field_nt"] == pytest.approx(igrf["magnitude_nt"]) and 60 < r["inclination_deg"] < 68
+    assert r["residual_rms_nt"] < 1e-3
+    proc = run_cli("sinefit", DATA / "turntable_example.csv", "--lat", 48.1, "--lon", 11.6, "--date", "2026-06-01")
+    assert proc.returncode == 2 and "does not match these data (nothing written)" in proc.stderr
 
 
 def test_bad_turntable_input(tmp):

@@ -1,0 +1,53 @@
+"""The rule that decides whether a calibration is written (magkf.plausibility)."""
+
+import numpy as np
+import pytest
+
+from magkf.errors import InputError
+from magkf.plausibility import check_calibration, check_residual
+
+
+def rotation(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+
+
+def test_a_plausible_calibration_passes_without_warning():
+    R = rotation(30) @ np.diag([1.05, 0.97, 1.02])
+    assert check_calibration(R, np.array([0.01, -0.005, 0.008]), "cal") == []
+
+
+@pytest.mark.parametrize(
+    "R, b, message",
+    [
+        (np.eye(3) * 1e-5, np.zeros(3), "outside \\[0.2, 5\\]"),  # readings in gauss declared as nT
+        (np.eye(3) * 1e3, np.zeros(3), "outside \\[0.2, 5\\]"),
+        (np.diag([1.0, 1.0, 0.0]), np.zeros(3), "R is singular"),
+        (np.diag([1.0, 1.0, 4.5]) @ np.diag([1.0, 0.8, 1.0]), np.zeros(3), "stretches one direction"),
+        (np.eye(3), np.array([0.0, 0.0, 25.0]), "offset \\|b\\| 25 times the field"),
+        (np.full((3, 3), np.nan), np.zeros(3), "not finite"),
+    ],
+)
+def test_an_absurd_calibration_is_refused_naming_the_file(R, b, message):
+    with pytest.raises(InputError, match=message) as info:
+        check_calibration(R, b, "run.csv")
+    assert info.value.source == "run.csv" and "nothing written" in str(info.value)
+
+
+def test_a_suspect_calibration_is_written_with_warnings():
+    warnings = check_calibration(np.diag([1.0, 1.0, 2.5]), np.array([0.0, 6.0, 0.0]), "cal")
+    assert [w.split(" ")[0] for w in warnings] == ["sensitivities", "R", "offset"]
+
+
+def test_an_unknown_field_unit_judges_the_shape_and_offset_only():
+    R = np.diag([1081.0, 1090.0, 1075.0])  # counts per unit of a unit sphere
+    assert check_calibration(R, np.array([10.0, -20.0, 5.0]) / 1.0, "ellipsoid", field_known=False) == []
+    with pytest.raises(InputError, match="offset"):
+        check_calibration(R, np.array([0.0, 0.0, 1e9]), "ellipsoid", field_known=False)
+
+
+def test_a_residual_that_does_not_match_the_field_is_refused():
+    assert check_residual(30.0, 48_000.0, "t.csv") == []
+    assert check_residual(800.0, 48_000.0, "t.csv") == ["the fit leaves 1.67 % of the field"]
+    with pytest.raises(InputError, match="does not match these data"):
+        check_residual(5958.0, 48_000.0, "t.csv")
