@@ -82,6 +82,9 @@ class FilterConfig:
         for name in ("attitude_deg", "reference_nt", "r_walk", "b_walk", "max_gated_s", "init_r_std", "init_b_std"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must not be negative")
+        for name, most in (("r_walk", 1.0), ("b_walk", 1e5), ("sensor_noise_nt", 1e6), ("attitude_deg", 90.0)):
+            if getattr(self, name) > most:
+                raise ValueError(f"{name} must not exceed {most:g}")
         if not self.reference_refresh_m > 0:
             raise ValueError("reference_refresh_m must be positive")
         for name, known in (("filter", FILTERS), ("measure", MEASUREMENTS)):

@@ -17,6 +17,7 @@ import warnings
 from .. import __version__
 from ..errors import InputError
 from . import apply, diagnostics, logs, offline, online, simulate
+from .common import Note
 
 __all__ = ["main", "build_parser"]
 
@@ -29,8 +30,16 @@ OUTPUTS = {"output": "-o", "states": "--states", "truth": "--truth"}
 INPUTS = ("file", "cal", "init", "map", "curves", "truth_cal", "effect_file")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with usage errors on one line, as every other error (exit status 2)."""
+
+    def error(self, message: str):
+        print(f"magkf: error: {self.prog}: {_one_line(message)} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="magkf",
         description="Magnetometer calibration for vehicles.",
         epilog="Each command's --help gives its options. The log columns, units and files are described in "
@@ -62,9 +71,25 @@ def main(argv=None) -> int:
     args = parser.parse_args(_values_joined(sys.argv[1:] if argv is None else list(argv)))
     if getattr(args, "noise", 0) is None:
         args.noise = 30.0 if args.kind == "drive" else 0.0
-    warnings.showwarning = lambda message, category, *a, **k: print(f"magkf: warning: {message}", file=sys.stderr)
+    # Warnings and notes are printed once the command has succeeded: an error is one line.
+    pending = []
+
+    def hold(message, category, *rest, **kw):
+        kind = "note" if issubclass(category, Note) else "warning"
+        pending.append(f"magkf: {kind}: {_one_line(message)}")
+
+    warnings.showwarning = hold
     # numpy's floating-point warnings on degenerate data say nothing the checks do not say in words
     warnings.simplefilter("ignore", RuntimeWarning)
+    status = _run(args)
+    if status == 0:
+        for line in pending:
+            print(line, file=sys.stderr)
+    return status
+
+
+def _run(args) -> int:
+    """Run the parsed command; returns its exit status, an error printed on one line."""
     try:
         from ..io.files import STDIO, check_outputs, messages_to_stderr
 
@@ -75,6 +100,11 @@ def main(argv=None) -> int:
                 return args.func(args)
         return args.func(args)
     except (InputError, ValueError) as exc:  # bad input, or a setting that cannot be used: one line
+        import numpy as np
+
+        if isinstance(exc, np.linalg.LinAlgError):  # degenerate numbers from the data or the settings
+            where = f"{args.file}: " if getattr(args, "file", None) else ""
+            exc = f"{where}the computation failed ({exc}): the data or the settings are degenerate"
         print(f"magkf: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:  # a file that cannot be read or written
@@ -111,8 +141,10 @@ def _values_joined(argv: list) -> list:
     return out
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
+def _one_line(exc) -> str:
+    """``exc`` (an exception or a message) on one line, control characters escaped."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 if __name__ == "__main__":

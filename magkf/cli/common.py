@@ -16,6 +16,9 @@ __all__ = [
     "write_json_result",
     "timestamp",
     "igrf_field",
+    "igrf_timestamp",
+    "number_in",
+    "count_in",
     "add_igrf_options",
     "add_output_options",
     "add_filter_options",
@@ -74,9 +77,21 @@ def timestamp(date: str) -> float:
     return (d if d.tzinfo else d.replace(tzinfo=UTC)).timestamp()
 
 
+def igrf_timestamp(date: str, duration_s: float = 0.0) -> float:
+    """UNIX seconds of ``--date``, refused (one line naming the option) when the span from it does not lie
+    within IGRF-14's validity."""
+    from ..reference import VALID_RANGE_S
+
+    t = timestamp(date)
+    lo, hi = VALID_RANGE_S
+    if not (lo <= t and t + duration_s <= hi):
+        raise InputError(f"--date {date} is outside the validity of IGRF-14 (1900-01-01 to 2030-01-01)")
+    return t
+
+
 def igrf_field(args) -> dict:
     """IGRF magnitude and inclination at ``--lat --lon [--alt] --date``."""
-    import sys
+    import warnings
 
     from ..reference import field_at
 
@@ -84,12 +99,9 @@ def igrf_field(args) -> dict:
         raise InputError("the IGRF field needs --lat and --lon (and --date, default today)")
     date = args.date or datetime.now(UTC).date().isoformat()
     if not args.date and not getattr(args, "_date_noted", False):
-        print(f"magkf: note: IGRF for today, {date}: give --date for the day of the run", file=sys.stderr)
+        warnings.warn(f"IGRF for today, {date}: give --date for the day of the run", Note, stacklevel=2)
         args._date_noted = True
-    try:
-        return field_at(args.lat, args.lon, args.alt, timestamp(date))
-    except InputError:
-        raise InputError(f"--date {date} is outside the validity of IGRF-14 (1900-01-01 to 2030-01-01)") from None
+    return field_at(args.lat, args.lon, args.alt, igrf_timestamp(date))
 
 
 def add_igrf_options(p) -> None:
@@ -170,7 +182,37 @@ def filter_config(args):
         }.items()
         if v is not None
     }
-    return FilterConfig(**changes)
+    try:
+        return FilterConfig(**changes)
+    except ValueError as exc:  # name the option, not the setting
+        text = str(exc)
+        for setting, option in FILTER_OPTIONS.items():
+            if text.startswith(setting + " "):
+                raise InputError(option + text[len(setting) :]) from None
+        raise
+
+
+#: ``FilterConfig`` settings and the options that set them.
+FILTER_OPTIONS = {
+    "filter": "--filter",
+    "measure": "--measure",
+    "dop_max": "--dop-max",
+    "gate_nt": "--gate-nt",
+    "gate_sigma": "--gate-sigma",
+    "noise_method": "--noise-method",
+    "noise_floor_nt": "--noise-floor",
+    "sensor_noise_nt": "--sensor-noise",
+    "attitude_deg": "--attitude-deg",
+    "reference_nt": "--reference-nt",
+    "r_walk": "--r-walk",
+    "b_walk": "--b-walk",
+    "innovation_prob": "--innovation-prob",
+    "block_s": "--block-s",
+}
+
+
+class Note(UserWarning):
+    """Something the user should know that is not a suspicion (printed as ``magkf: note:``)."""
 
 
 def probability(text: str) -> float:
@@ -204,6 +246,22 @@ def number_in(lo: float, hi: float, what: str = "", open_low: bool = False):
     return parse
 
 
+def count_in(lo: int, hi: int):
+    """An argparse type: a whole number in [lo, hi]."""
+    import argparse
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"{text} is not in [{lo}, {hi}]")
+        return value
+
+    return parse
+
+
 def seconds_or_off(text: str) -> float | None:
     """An argparse type: a finite duration in seconds, ``0`` (or ``off``) for None."""
     import argparse
@@ -214,8 +272,8 @@ def seconds_or_off(text: str) -> float | None:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text} is not a positive number of seconds (0 or off: none)")
+    if not (math.isfinite(value) and 1.0 <= value <= 86_400.0):
+        raise argparse.ArgumentTypeError(f"{text} is not a number of seconds from 1 to 86400 (0 or off: none)")
     return value
 
 
@@ -276,9 +334,17 @@ def effects(args, cal=None) -> tuple[list, dict]:
     registry = {}
     for path in getattr(args, "effect_file", []):
         registry.update(load_effect_file(path))
-    out = list(restore_effects(cal, registry)) if cal is not None else []
+    out = []
+    if cal is not None:
+        try:
+            out = list(restore_effects(cal, registry))
+        except InputError as exc:  # about the calibration file that stores them
+            raise exc.located(str(getattr(args, "cal", None) or getattr(args, "init", None) or "calibration")) from None
     for spec in getattr(args, "effect", []):
-        effect = make_effect(spec, registry)
+        try:
+            effect = make_effect(spec, registry)
+        except InputError as exc:
+            raise InputError(f"--effect {spec!r}: {exc.message}", exc.source) from None
         if effect.label not in {e.label for e in out}:
             out.append(effect)
     return out, registry

@@ -12,7 +12,12 @@ def add_parsers(sub) -> None:
     """Register ``check``, ``convert`` and ``export``."""
     p = common.command(sub, "check", run_check, "what a log holds and what it allows")
     common.add_log_options(p)
-    p.add_argument("--dop-max", type=float, default=5.0, help="DOP gate to summarise against (default 5)")
+    p.add_argument(
+        "--dop-max",
+        type=common.number_in(0, 1000, open_low=True),
+        default=5.0,
+        help="DOP gate to summarise against (default 5)",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON on standard output")
 
     p = common.command(sub, "convert", run_convert, "any supported log to the canonical drive log (CSV or Parquet)")
@@ -83,14 +88,19 @@ def run_export(args) -> int:
     """Write a calibration file as the parameters an autopilot applies, in the parameter-file format its ground station
     loads. The rotation part of R cannot be held by either autopilot's symmetric matrix: the angle it leaves is
     reported. See docs/autopilot-logs.md."""
+    from ..errors import InputError
     from ..io.autopilot import to_ardupilot, to_px4, write_param_file
     from ..io.calibration import Calibration
 
+    lo, hi, default = (1, 3, 1) if args.to == "ardupilot" else (0, 3, 0)
+    instance = default if args.instance is None else args.instance
+    if not lo <= instance <= hi:
+        raise InputError(f"--instance {instance}: {args.to} compass instances are {lo} to {hi}")
     cal = Calibration.load(args.cal)
-    if args.to == "ardupilot":
-        params = to_ardupilot(cal, 1 if args.instance is None else args.instance)
-    else:
-        params = to_px4(cal, 0 if args.instance is None else args.instance)
+    try:
+        params = (to_ardupilot if args.to == "ardupilot" else to_px4)(cal, instance)
+    except InputError as exc:  # about the calibration
+        raise exc.located(args.cal) from None
     write_param_file(params, args.output)
     if args.json:
         common.print_json(params.summary())

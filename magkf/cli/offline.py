@@ -67,12 +67,21 @@ def run_sinefit(args) -> int:
     if args.curves:
         if args.method not in (None, "paper"):
             raise InputError("--curves holds fitted curves, not samples: only --method paper applies to them")
-        result = paper_from_curves(*read_curves(args.curves), field, inclination)
+        try:
+            result = paper_from_curves(*read_curves(args.curves), field, inclination)
+        except InputError as exc:  # about the curves
+            raise exc.located(args.curves) from None
     else:
         table = read_turntable(args.file, args.mag_unit)
-        result = SineFitCalibrator(field, inclination, args.method or "exact").fit(table, args.file).result_
-    cal = result.to_calibration(source=args.file or args.curves)
+        try:
+            result = SineFitCalibrator(field, inclination, args.method or "exact").fit(table, args.file).result_
+        except InputError as exc:  # about the run's data
+            raise exc.located(args.file) from None
     source = args.file or args.curves
+    try:
+        cal = result.to_calibration(source=source)
+    except ValueError as exc:  # R singular or not finite: the data do not determine it
+        raise InputError(f"the fit is degenerate ({exc}): the data do not determine the parameters", source) from None
     warnings = check_calibration(cal.R, np.asarray(cal.b) / field, source)
     warnings += check_residual(result.residual_rms_nt, field, source, refuse=result.method == "exact")
     for warning in warnings:
@@ -123,6 +132,8 @@ def run_ellipsoid(args) -> int:
             field = float(args.field)
         except ValueError:
             raise InputError(f"--field {args.field!r} is neither a number nor 'igrf'") from None
+        if not (np.isfinite(field) and 1e-9 <= field <= 1e9):
+            raise InputError(f"--field {args.field}: give a magnitude between 1e-9 and 1e9 in the data's units")
     X = table[columns].to_numpy()
     if args.mag_unit:
         X = to_nanotesla(X, args.mag_unit)

@@ -21,18 +21,27 @@ def add_parsers(sub) -> None:
         help="calibration JSON used as the truth (default: a built-in one; for "
         "turntable runs its R must be lower triangular; default the paper's example)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--noise", type=float, default=None, help="sensor noise, nT (default 30 drive, 0 turntable)")
+    p.add_argument("--seed", type=common.count_in(0, 2**63 - 1), default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--noise",
+        type=common.number_in(0, 1e6, "nT"),
+        default=None,
+        help="sensor noise, nT (default 30 drive, 0 turntable)",
+    )
     p.add_argument("--json", action="store_true", help="print a JSON summary")
     g = p.add_argument_group("drive")
     g.add_argument("--motion", choices=["3d", "planar"], default="3d", help="3d (drone/aircraft) or planar (car)")
-    g.add_argument("--duration", type=float, default=600.0, help="seconds (default 600)")
-    g.add_argument("--rate", type=float, default=50.0, help="Hz (default 50)")
-    g.add_argument("--mounting", default="x,y,z", help="sensor axes along body axes, e.g. '-y,x,z'")
-    g.add_argument("--disturbances", type=int, default=6, help="number of disturbance events (default 6)")
-    g.add_argument("--dop-bad", type=int, default=3, help="number of bad-DOP stretches (default 3)")
-    g.add_argument("--lat", type=float, default=48.1, help="start latitude, deg")
-    g.add_argument("--lon", type=float, default=11.6, help="start longitude, deg")
+    g.add_argument("--duration", type=common.number_in(1, 31 * 86400, "s"), default=600.0, help="seconds (default 600)")
+    g.add_argument("--rate", type=common.number_in(0.1, 10_000, "Hz"), default=50.0, help="Hz (default 50)")
+    g.add_argument("--mounting", type=_mounting, default="x,y,z", help="sensor axes along body axes, e.g. '-y,x,z'")
+    g.add_argument(
+        "--disturbances", type=common.count_in(0, 10_000), default=6, help="number of disturbance events (default 6)"
+    )
+    g.add_argument(
+        "--dop-bad", type=common.count_in(0, 10_000), default=3, help="number of bad-DOP stretches (default 3)"
+    )
+    g.add_argument("--lat", type=common.number_in(-89, 89, "degrees"), default=48.1, help="start latitude, deg")
+    g.add_argument("--lon", type=common.number_in(-180, 360, "degrees"), default=11.6, help="start longitude, deg")
     g.add_argument("--date", default="2026-06-01T10:00:00", help="start, ISO UTC")
     g.add_argument(
         "--effect",
@@ -43,9 +52,31 @@ def add_parsers(sub) -> None:
         "nT per sqrt(s)); repeat the option for several",
     )
     g = p.add_argument_group("turntable")
-    g.add_argument("--field", type=float, default=50_000.0, help="field magnitude, nT (default 50000)")
-    g.add_argument("--inclination", type=float, default=43.0, help="inclination, deg (default 43)")
-    g.add_argument("--step", type=float, default=5.0, help="table step, deg (default 5)")
+    g.add_argument(
+        "--field",
+        type=common.number_in(0, 1e7, "nT", open_low=True),
+        default=50_000.0,
+        help="field magnitude, nT (default 50000)",
+    )
+    g.add_argument(
+        "--inclination", type=common.number_in(-90, 90, "degrees"), default=43.0, help="inclination, deg (default 43)"
+    )
+    g.add_argument(
+        "--step", type=common.number_in(0.01, 90, "degrees"), default=5.0, help="table step, deg (default 5)"
+    )
+
+
+def _mounting(text: str) -> str:
+    """An argparse type: a mounting such as ``-y,x,z`` (checked, kept as given)."""
+    import argparse
+
+    from ..sim.mounting import mounting_matrix
+
+    try:
+        mounting_matrix(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("mounting ")) from None
+    return text
 
 
 def run_simulate(args) -> int:
@@ -60,7 +91,13 @@ def run_simulate(args) -> int:
     if args.kind == "turntable":
         from ..offline.sinefit import SineFitParameters
 
-        params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
+        try:
+            params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
+        except ValueError:
+            raise InputError(
+                "--truth-cal: a turntable simulation needs a lower-triangular R (a sine-fit calibration)",
+                args.truth_cal,
+            ) from None
         table = simulate_turntable(
             params, args.field, args.inclination, args.step, args.noise, np.random.default_rng(args.seed)
         )
@@ -90,7 +127,7 @@ def run_simulate(args) -> int:
             dop_bad_stretches=args.dop_bad,
             lat0=args.lat,
             lon0=args.lon,
-            start_time=common.timestamp(args.date),
+            start_time=common.igrf_timestamp(args.date, args.duration),
         )
         from ..effects import make_effect
 
@@ -101,7 +138,12 @@ def run_simulate(args) -> int:
                 theta = [float(v) for v in values.split(",")]
             except ValueError:
                 raise InputError(f"--effect {spec!r}: give NAME[:COLUMN]=v1,v2,... with numbers") from None
-            effect = make_effect(name)
+            if not np.all(np.isfinite(theta)):
+                raise InputError(f"--effect {spec!r}: the values must be finite numbers")
+            try:
+                effect = make_effect(name)
+            except InputError as exc:
+                raise InputError(f"--effect {spec!r}: {exc.message}") from None
             if not effect.accepts_simulation(theta):
                 raise InputError(
                     f"--effect {spec!r}: {effect.name} has {effect.size} parameters "

@@ -11,6 +11,8 @@ import importlib.util
 import inspect
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputError
 from ..io.calibration import Calibration, StoredEffect
 from .base import Effect, EpochData
@@ -77,7 +79,42 @@ def load_effect_file(path) -> dict:
     clash = sorted(set(found) & set(BUILTIN))
     if clash:
         raise InputError(f"effect {clash[0]!r} is a built-in effect's name: give yours another", str(path))
+    for name, cls in found.items():
+        _tried(name, cls, str(path))
     return found
+
+
+def _tried(name: str, cls, source: str) -> None:
+    """Raise InputError naming ``source`` unless the effect class ``cls`` can be made with its defaults and its
+    ``design`` gives finite regressors of shape (N, 3, size) on a few plausible epochs."""
+    from .base import EpochData
+
+    n = 4
+    rng = np.random.default_rng(0)
+    field_ned = np.tile([20_000.0, 1_000.0, 43_000.0], (n, 1))
+    try:
+        effect = cls()
+        data = EpochData(
+            time=1.78e9 + np.arange(n, dtype=float),
+            field_body=field_ned + rng.normal(0, 100, (n, 3)),
+            field_ned=field_ned,
+            columns={c: np.linspace(1.0, 2.0, n) for c in effect.columns},
+            mag=field_ned + rng.normal(0, 100, (n, 3)),
+            c_nb=np.tile(np.eye(3), (n, 1, 1)),
+            field_body_rate=rng.normal(0, 10, (n, 3)),
+        )
+        G = np.asarray(effect.design(data), dtype=float)
+    except Exception as exc:  # the user's code: reported on one line
+        what = " ".join(str(exc).split())
+        raise InputError(f"effect {name!r} fails on test epochs: {type(exc).__name__}: {what}", source) from None
+    if G.shape != (n, 3, effect.size):
+        raise InputError(
+            f"effect {name!r}: design() gives shape {G.shape} for {n} epochs, expected ({n}, 3, {effect.size})", source
+        )
+    if not np.isfinite(G).all() or np.abs(G).max(initial=0.0) > 1e9:
+        raise InputError(
+            f"effect {name!r}: design() gives values that are not finite or beyond 1e9 on test epochs", source
+        )
 
 
 def candidates(columns, registry: dict | None = None) -> list[Effect]:

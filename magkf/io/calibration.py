@@ -52,7 +52,7 @@ class StoredEffect:
 
     def to_dict(self) -> dict:
         params = {
-            n: {"value": float(v), "std": float(s), "unit": u}
+            n: {"value": float(v), **({"std": float(s)} if math.isfinite(s) else {}), "unit": u}  # NaN: not JSON
             for n, v, s, u in zip(self.names, self.values, self.stds, self.units)
         }
         return {"effect": self.label, "settings": jsonable(self.settings), "parameters": params}
@@ -68,10 +68,13 @@ class StoredEffect:
             raise InputError(f"{where}: effect {data['effect']!r} needs 'settings' and 'parameters' objects", source)
         names, values, stds, units = [], [], [], []
         for name, p in params.items():
+            std = p.get("std") if isinstance(p, dict) else None
+            if not (isinstance(p, dict) and _numbers(p.get("value"), 0) and (std is None or _numbers(std, 0))):
+                raise InputError(f"{where}: {data['effect']}.{name} needs a numeric 'value' (and 'std')", source)
             try:
-                value, std = float(p["value"]), float(p.get("std", "nan"))
-            except (TypeError, KeyError, ValueError):
-                raise InputError(f"{where}: {data['effect']}.{name} needs a numeric 'value'", source) from None
+                value, std = float(p["value"]), math.nan if std is None else float(std)
+            except OverflowError:  # an integer beyond the float range
+                value = math.inf
             if not math.isfinite(value):
                 raise InputError(f"{where}: {data['effect']}.{name} is not finite", source)
             names.append(str(name))
@@ -193,19 +196,28 @@ class Calibration:
             raise InputError("a calibration file must hold one JSON object", source)
         fmt = data.get("format", FORMAT)
         if fmt != FORMAT:
-            raise InputError(f"key 'format' is {fmt!r}, expected {FORMAT!r}", source)
+            raise InputError(f"key 'format' is {_shown(fmt)}, expected {FORMAT!r}", source)
         version = data.get("version", VERSION)
-        if not isinstance(version, int) or version < 1 or version > VERSION:
-            raise InputError(f"key 'version' is {version!r}; this magkf reads versions 1 to {VERSION}", source)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1 or version > VERSION:
+            raise InputError(f"key 'version' is {_shown(version)}; this magkf reads versions 1 to {VERSION}", source)
         R = _matrix(data, "R", (3, 3), source)
         b = _matrix(data, "b", (3,), source)
+        for key, value, limit in (("R", R, R_MAX), ("b", b, B_MAX_NT)):
+            if np.abs(value).max() > limit:
+                raise InputError(
+                    f"key {key!r} holds {np.abs(value).max():.3g}, beyond {limit:g}: not a calibration", source
+                )
         cov = _matrix(data, "covariance", (12, 12), source) if "covariance" in data else None
+        if cov is not None:
+            _covariance_checked(cov, "covariance", source)
         extras = {}
         for key in ("parameters", "standard_errors", "quality"):
             value = data.get(key, {})
             if not isinstance(value, dict):
                 raise InputError(f"key {key!r} must be a JSON object", source)
             extras[key] = value
+        if not isinstance(data.get("source", ""), str):
+            raise InputError("key 'source' must be a string", source)
         method = data.get("method", "unspecified")
         if not isinstance(method, str):
             raise InputError("key 'method' must be a string", source)
@@ -213,8 +225,14 @@ class Calibration:
         if not isinstance(stored, list):
             raise InputError("key 'effects' must be a list", source)
         effects = tuple(StoredEffect.from_dict(e, source) for e in stored)
+        labels = [e.label for e in effects]
+        if len(set(labels)) < len(labels):
+            twice = next(label for label in labels if labels.count(label) > 1)
+            raise InputError(f"effect {twice!r} is stored twice", source)
         n = 12 + sum(len(e.values) for e in effects)
         state_cov = _matrix(data, "state_covariance", (n, n), source) if "state_covariance" in data else None
+        if state_cov is not None:
+            _covariance_checked(state_cov, "state_covariance", source)
         try:
             return cls(
                 R=R,
@@ -233,29 +251,79 @@ class Calibration:
     def load(cls, path) -> Calibration:
         """Read a calibration file, raising InputError (naming the file) if it is missing or malformed."""
         name = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise InputError(f"cannot read the calibration file ({exc.strerror})", name) from None
-        try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}", name) from None
-        return cls.from_dict(data, name)
+        return cls.from_dict(read_json(path, "calibration file"), name)
+
+
+def read_json(path, what: str = "file"):
+    """The JSON document in ``path`` (UTF-8), or InputError naming the file: unreadable, not UTF-8, not
+    JSON, nested too deeply, or holding an integer too long to read."""
+    name = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read the {what} ({exc.strerror})", name) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text (byte {exc.start + 1} of the file)", name) from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}", name) from None
+    except RecursionError:
+        raise InputError("not a usable JSON document: nested too deeply", name) from None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise InputError(f"not a usable JSON document: {' '.join(str(exc).split())}", name) from None
+
+
+#: Largest element of R (a sensitivity relative to the field) and of b (nT) a calibration file may hold.
+R_MAX, B_MAX_NT = 1e3, 1e8
 
 
 def _matrix(data: dict, key: str, shape: tuple, source: str) -> np.ndarray:
     if key not in data:
         raise InputError(f"required key {key!r} is missing", source)
+    if not _numbers(data[key], len(shape)):  # no booleans, text or null (numpy would take True and "1")
+        raise InputError(f"key {key!r} must hold numbers, shape {shape}", source)
     try:
         value = np.array(data[key], dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"key {key!r} must hold numbers, shape {shape}", source) from None
+    except OverflowError:  # an integer beyond the float range
+        raise InputError(f"key {key!r} holds a non-finite number", source) from None
     if value.shape != shape:
         raise InputError(f"key {key!r} has shape {value.shape}, expected {shape}", source)
     if not np.all(np.isfinite(value)):
         raise InputError(f"key {key!r} holds a non-finite number", source)
     return value
+
+
+def _shown(value) -> str:
+    """A short repr of a value from a file (an integer of thousands of digits or a deep nest has none)."""
+    try:
+        text = repr(value)
+    except (ValueError, RecursionError):
+        return f"a {type(value).__name__} too large to show"
+    return text if len(text) <= 60 else f"{text[:57]}..."
+
+
+def _numbers(value, depth: int) -> bool:
+    """Whether ``value`` is a number, or lists (or an array) of numbers nested at most ``depth`` deep."""
+    if isinstance(value, np.ndarray):
+        return value.ndim <= depth and value.dtype.kind in "iuf"
+    if isinstance(value, (list, tuple)):
+        return depth > 0 and all(_numbers(v, depth - 1) for v in value)
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def _covariance_checked(cov: np.ndarray, key: str, source: str) -> None:
+    """InputError unless ``cov`` is symmetric and positive semi-definite (to rounding) with a positive
+    diagonal (every parameter uncertain: a filter cannot start from a certainty)."""
+    if not np.all(np.diag(cov) > 0):
+        raise InputError(f"key {key!r} has a diagonal element that is not positive", source)
+    scale = max(float(np.abs(cov).max()), 1e-300)
+    if not np.allclose(cov, cov.T, rtol=1e-8, atol=1e-12 * scale):
+        raise InputError(f"key {key!r} is not symmetric", source)
+    if np.linalg.eigvalsh((cov + cov.T) / 2).min() < -1e-9 * scale:
+        raise InputError(f"key {key!r} is not positive semi-definite", source)
 
 
 def jsonable(value):

@@ -57,8 +57,8 @@ from __future__ import annotations
 
 import codecs
 import io
-import math
 import re
+import sys
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -229,6 +229,7 @@ class ColumnMap:
             bad("decimal", "the decimal mark is also the delimiter")
         try:
             codecs.lookup(self.encoding)
+            b"".decode(self.encoding)  # a text encoding, not rot13, hex or zlib
         except (LookupError, TypeError):
             bad("encoding", f"unknown text encoding {self.encoding!r}")
         missing = self.missing
@@ -244,7 +245,7 @@ class ColumnMap:
             if (
                 isinstance(scale, bool)
                 or not isinstance(scale, (int, float))
-                or not (math.isfinite(scale) and scale != 0)
+                or not (abs(scale) <= sys.float_info.max and scale != 0)  # finite, and a float (not 10**400)
             ):
                 bad(
                     "mag_scale_nt_per_count",
@@ -319,6 +320,8 @@ def _check_layout(cmap: ColumnMap, fmt: str, what: str) -> None:
                 raise InputError(f"{_key(name)} does not apply to {what}, a Parquet file", cmap.source)
     elif fmt != "csv" and cmap.delimiter is not None:
         raise InputError(f"{_key('delimiter')} does not apply to {what}, a {fmt} file (only to csv)", cmap.source)
+    elif fmt == "csv" and cmap.decimal == (cmap.delimiter or ","):
+        raise InputError(f"{_key('decimal')}: the decimal mark is also the delimiter (csv: ',')", cmap.source)
 
 
 def load_column_map(path) -> ColumnMap:
@@ -336,6 +339,10 @@ def load_column_map(path) -> ColumnMap:
         raise InputError(f"cannot read the column map ({exc})", source) from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source) from None
+    except ValueError as exc:  # an integer of more digits than int() converts
+        raise InputError(f"not a readable TOML file: {' '.join(str(exc).split())}", source) from None
+    except RecursionError:
+        raise InputError("not a usable TOML file: nested too deeply", source) from None
     for name in data:
         if name not in TOP_LEVEL:
             raise InputError(f"unknown key {name!r}; a column map has [file], [columns] and [units]", source)
@@ -384,7 +391,9 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
     encoding = "utf-8-sig" if codecs.lookup(cmap.encoding).name == "utf-8" else cmap.encoding
     try:
         text = raw.decode(encoding)
-    except UnicodeDecodeError as exc:
+    except UnicodeError as exc:  # UnicodeDecodeError, or a bare UnicodeError (punycode)
+        if not isinstance(exc, UnicodeDecodeError):
+            raise InputError(f"not {cmap.encoding} text ({' '.join(str(exc).split())})", name) from None
         line_start = raw.rfind(b"\n", 0, exc.start) + 1
         raise InputError(
             f"not {cmap.encoding} text (byte {exc.start - line_start + 1} of the line)",

@@ -37,7 +37,7 @@ from ..conventions import (
 )
 from ..errors import InputError
 from ..status import Status
-from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete
+from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete, table_rows
 
 __all__ = [
     "MIN_EPOCHS",
@@ -50,6 +50,7 @@ __all__ = [
     "ALT_RANGE_M",
     "MAG_MAX_NT",
     "DOP_MAX",
+    "REF_MIN_NT",
     "MAX_GAP_S",
     "TimeBaseWarning",
     "check_time_base",
@@ -111,7 +112,8 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
     ``sample`` is a mapping of column names to values: a dict, or a pandas row (``Series``). ``time`` (UNIX
     s) is taken from the argument if given, else from the sample's ``time`` entry, else from a pandas
     row's name (``DataFrame.iterrows`` and ``DriveLog.table`` rows carry the time as their index).
-    Raises InputError for a sample that is not such a mapping (a bare array names no columns).
+    Raises InputError for a sample that is not such a mapping (a bare array names no columns), and for a
+    number beyond the range a log may hold (``SAMPLE_RANGES``; time: ``TIME_RANGE_S``).
     """
     if not hasattr(sample, "keys"):
         raise InputError(
@@ -121,7 +123,7 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
     def number(name) -> float:
         try:
             return float(sample[name])
-        except (KeyError, IndexError, TypeError, ValueError):
+        except (KeyError, IndexError, TypeError, ValueError, OverflowError):  # OverflowError: 10**400
             return float("nan")
 
     out = {name: number(name) for name in names}
@@ -131,8 +133,12 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
             time = getattr(sample, "name", None)
     try:
         out[TIME] = float(time)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         out[TIME] = float("nan")
+    for name, (lo, hi) in ((TIME, TIME_RANGE_S), *SAMPLE_RANGES.items()):  # a log would be refused
+        v = out.get(name, math.nan)
+        if math.isfinite(v) and not lo <= v <= hi:
+            raise InputError(f"value {v!r} outside [{lo:g}, {hi:g}] (UNIX s, degrees, m, nT)", column=name)
     return out
 
 
@@ -224,8 +230,21 @@ TIME_RANGE_S = (631_152_000.0, 4_102_444_800.0)
 ALT_RANGE_M = (-1_000.0, 100_000.0)
 #: Largest magnetometer or reference component, nT (0.01 T: far beyond any vehicle's field).
 MAG_MAX_NT = 1e7
+#: Least magnitude of a ``ref_*`` reference field, nT.
+REF_MIN_NT = 1_000.0
 #: Largest dilution of precision a log may hold (receivers report 99.99 for no fix).
 DOP_MAX = 1_000.0
+#: The ranges ``from_table`` holds a log's columns to (magnetic ones in nT), for one sample (``read_sample``).
+SAMPLE_RANGES = {
+    PITCH: (-90.0, 90.0),
+    ROLL: (-180.0, 360.0),
+    YAW: (-360.0, 360.0),
+    LAT: (-90.0, 90.0),
+    LON: (-180.0, 360.0),
+    ALT: ALT_RANGE_M,
+    **{c: (0.0, DOP_MAX) for c in (DOP, PDOP, HDOP)},
+    **{c: (-MAG_MAX_NT, MAG_MAX_NT) for c in (*MAG, *REF)},
+}
 #: A jump of the clock longer than this (s) is reported.
 MAX_GAP_S = 5.0
 
@@ -282,7 +301,7 @@ def from_table(
     default). The table is not copied when it needs no conversion.
     """
     name = str(source)
-    row_of = row_of or file_row
+    row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
     if mag_unit not in NT_PER_UNIT:
         raise InputError(f"unknown magnetic unit {mag_unit!r}; use one of {', '.join(NT_PER_UNIT)}", name)
     missing = [c for c in (TIME, *MAG) if c not in table.columns]
@@ -303,7 +322,7 @@ def from_table(
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
         raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
-    require_complete(table, (TIME,), name)
+    require_complete(table, (TIME,), name, row_of)
     check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
     scale = NT_PER_UNIT[mag_unit]
     for column, lo, hi, unit in (
@@ -325,6 +344,19 @@ def from_table(
                 )
     mag = table[list(MAG)].to_numpy(dtype=float)
     complete = np.all(np.isfinite(mag), axis=1)
+    if complete.sum() > 1 and np.all(np.ptp(mag[complete], axis=0) == 0):
+        raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", name)
+    if all(c in table for c in REF):
+        ref = np.linalg.norm(table[list(REF)].to_numpy(dtype=float), axis=1)
+        weak = np.flatnonzero(ref < REF_MIN_NT)
+        if weak.size:
+            i = int(weak[0])
+            raise InputError(
+                f"reference field of {ref[i]:.4g} nT, under {REF_MIN_NT:g} nT (the Earth's is 22 000 to 67 000)",
+                name,
+                row_of(i),
+                REF[0],
+            )
     if complete.any():
         median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
         guess = likely_unit(median)

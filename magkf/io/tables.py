@@ -18,6 +18,7 @@ __all__ = [
     "HEADER_ROWS",
     "PARQUET_SUFFIXES",
     "file_row",
+    "table_rows",
     "read_csv",
     "read_parquet",
     "numeric_column",
@@ -33,6 +34,13 @@ PARQUET_SUFFIXES = (".parquet", ".pq")
 def file_row(index: int) -> int:
     """The file line number of data row ``index`` (0-based), counting the header as row 1."""
     return int(index) + HEADER_ROWS + 1
+
+
+def table_rows(table: pd.DataFrame):
+    """``row_of(i)``, the file row of data row ``i`` of a table ``read_csv`` read: its line number, blank lines
+    counted (kept in ``table.attrs["rows"]`` when the file has blank lines between records), else ``file_row``."""
+    rows = table.attrs.get("rows")
+    return file_row if rows is None else (lambda i: int(rows[i]))
 
 
 def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = ()) -> pd.DataFrame:
@@ -56,7 +64,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         return read_parquet(path, required, text_columns)
     if not path.is_file():
         raise InputError("no such file", name)
-    _check_layout(path, name, required)
+    rows = _check_layout(path, name, required)
     try:
         table = pd.read_csv(
             path, keep_default_na=False, na_values=[""], skipinitialspace=True, dtype={c: str for c in text_columns}
@@ -65,6 +73,8 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         raise InputError("the file is empty", name) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise InputError(f"not a readable CSV file ({' '.join(str(exc).split())})", name) from None
+    if rows is not None and len(rows) == len(table) and np.any(rows != np.arange(len(rows)) + HEADER_ROWS + 1):
+        table.attrs["rows"] = rows  # blank lines (which pandas skips) among the records
     return _checked(table, name, required, text_columns, "the file has a header but no data rows")
 
 
@@ -86,13 +96,14 @@ def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str]
 SCAN_BYTES = 1 << 24
 
 
-def _check_layout(path: Path, name: str, required=()) -> None:
+def _check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
     """Raise InputError for a header naming a column twice or lacking a ``required`` one, or a row with fewer
     or more fields than the header (pandas would fill a short row with empty cells, or take a long row's
-    first field as an index). Files with quoted fields are left to the parser."""
+    first field as an index). Files with quoted fields are left to the parser (None is returned); otherwise
+    the line numbers of the records (the lines after the header that are not blank)."""
     import csv
 
-    with open(path, encoding="utf-8", errors="replace", newline="") as f:
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:  # pandas skips a byte-order mark
         header = next(csv.reader([f.readline()]), [])
     seen = set()
     for column in (c.strip() for c in header):
@@ -103,13 +114,16 @@ def _check_layout(path: Path, name: str, required=()) -> None:
     if missing and header:
         raise InputError(f"required column missing (the header has: {', '.join(header)})", name, 1, missing[0])
     fields = len(header)
-    line, commas_in_line, length_of_line = 0, 0, 0
+    line, commas_in_line, length_of_line, records = 0, 0, 0, []
     with open(path, "rb") as f:
         while chunk := f.read(SCAN_BYTES):
+            while chunk.endswith(b"\r") and (more := f.read(1)):  # a CR LF pair stays in one chunk
+                chunk += more
             data = np.frombuffer(chunk, dtype=np.uint8)
             if (data == ord('"')).any():
-                return
-            ends = np.flatnonzero(data == ord("\n"))
+                return None
+            newline = data == ord("\n")
+            ends = np.flatnonzero(newline | (data == ord("\r")) & ~np.r_[newline[1:], False])  # LF, CR LF or CR
             commas = np.cumsum(data == ord(","))
             starts = np.r_[0, ends[:-1] + 1] if ends.size else np.zeros(0, int)
             before = np.r_[0, commas[ends[:-1]]] if ends.size else np.zeros(0, int)
@@ -119,6 +133,7 @@ def _check_layout(path: Path, name: str, required=()) -> None:
                 counts[0] += commas_in_line
                 lengths[0] += length_of_line
             content = lengths > (data[np.maximum(ends - 1, 0)] == ord("\r"))  # blank lines are skipped
+            records.append(line + np.flatnonzero(content) + 1)
             bad = np.flatnonzero(content & (counts + 1 != fields))
             bad = bad[(line + bad) > 0]  # the header itself
             if bad.size:
@@ -130,6 +145,10 @@ def _check_layout(path: Path, name: str, required=()) -> None:
             length_of_line = len(tail) + (0 if ends.size else length_of_line)
     if length_of_line and commas_in_line + 1 != fields and line > 0:
         raise InputError(f"{commas_in_line + 1} fields where the header has {fields}", name, line + 1, None)
+    if length_of_line:
+        records.append(np.array([line + 1]))
+    records = np.concatenate(records) if records else np.zeros(0, int)
+    return records[records > 1]
 
 
 def _checked(table: pd.DataFrame, name: str, required, text_columns, empty: str) -> pd.DataFrame:
@@ -151,39 +170,58 @@ def _checked(table: pd.DataFrame, name: str, required, text_columns, empty: str)
         if column in text:
             table[column] = table[column].astype(str)
         else:
-            table[column] = numeric_column(table[column], name, column)
+            table[column] = numeric_column(table[column], name, column, table_rows(table))
     return table
 
 
-def numeric_column(values: pd.Series, source: str, column: str) -> np.ndarray:
-    """Convert one column to float, raising InputError at the first non-numeric or non-finite cell."""
+def numeric_column(values: pd.Series, source: str, column: str, row_of=file_row) -> np.ndarray:
+    """Convert one column to float, raising InputError at the first non-numeric or non-finite cell (``row_of(i)``:
+    the file row of cell ``i``). ``True`` and ``False`` are not numbers; a blank cell is a missing value."""
     if pd.api.types.is_numeric_dtype(values.dtype) and not pd.api.types.is_bool_dtype(values.dtype):
         out = values.to_numpy(dtype=float)
-    else:
-        out = pd.to_numeric(values, errors="coerce").to_numpy(dtype=float)
-        bad = np.isnan(out) & values.notna().to_numpy()
+    else:  # as text: pandas makes True/False booleans, and keeps "" in a column holding huge integers
+        text = pd.Series([str(v).strip() if p else "" for v, p in zip(values, values.notna())], dtype=object)
+        present = (text != "").to_numpy()
+        text = text.where(present, None)
+        try:
+            out = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float)
+        except OverflowError:  # an integer beyond the float range among other cells: cell by cell
+            out = np.array([_number(t) for t in text], dtype=float)
+        bad = np.isnan(out) & present
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             raise InputError(
                 f"not a number: {values.iloc[i]!r} (leave the cell empty for a missing value)",
                 source,
-                file_row(i),
+                row_of(i),
                 column,
             )
     infinite = np.isinf(out)
     if infinite.any():
         i = int(np.flatnonzero(infinite)[0])
-        raise InputError("not a finite number (leave the cell empty for a missing value)", source, file_row(i), column)
+        raise InputError("not a finite number (leave the cell empty for a missing value)", source, row_of(i), column)
     return out
 
 
-def require_complete(table: pd.DataFrame, columns: Iterable[str], source: str) -> None:
-    """Raise InputError naming the first empty cell among ``columns``."""
+def _number(text) -> float:
+    """A cell's number (NaN for none, inf for an integer beyond the float range)."""
+    if text is None:
+        return np.nan
+    try:
+        return float(pd.to_numeric(text, errors="coerce"))
+    except OverflowError:
+        return np.inf
+
+
+def require_complete(table: pd.DataFrame, columns: Iterable[str], source: str, row_of=None) -> None:
+    """Raise InputError naming the first empty cell among ``columns`` (``row_of(i)``: the file row of data row
+    ``i``; by default ``table_rows(table)``)."""
+    row_of = row_of or table_rows(table)
     for column in columns:
         empty = np.isnan(table[column].to_numpy(dtype=float))
         if empty.any():
             i = int(np.flatnonzero(empty)[0])
-            raise InputError("empty cell where a value is required", source, file_row(i), column)
+            raise InputError("empty cell where a value is required", source, row_of(i), column)
 
 
 def require_rows(table: pd.DataFrame, minimum: int, source: str, what: str) -> None:

@@ -289,6 +289,10 @@ def paper_equations(
     """
     cx, cy, cz = (curves_xy[a] for a in "xyz")
     cx2, cz2 = curves_xz["x"], curves_xz["z"]
+    if not (cx.amplitude > 0 and cy.amplitude > 0 and cx2.amplitude > 0):
+        raise InputError(
+            "degenerate: the x or y axis shows no sine over the table's turn (a sensor that does not follow the field)"
+        )
     alpha = abs(float(wrap_deg(cy.phase_deg - cx.phase_deg - 90.0)))
     bx0, by0 = cx.offset, cy.offset
     kyx = cy.amplitude / cx.amplitude  # ky/kx; eq. (7) prints the inverse ratio, its own number is this one
@@ -511,23 +515,27 @@ def read_turntable(path, mag_unit: str = "nT") -> pd.DataFrame:
         i = int(np.flatnonzero(bad.to_numpy())[0])
         raise InputError(f"plane must be 'xy' or 'xz', got {table[PLANE].iloc[i]!r}", name, i + 2, PLANE)
     table[PLANE] = planes
+    from ..io.drivelog import MAG_MAX_NT
+
     for c in MAG:
         table[c] = to_nanotesla(table[c].to_numpy(), mag_unit)
+        far = np.flatnonzero(np.abs(table[c].to_numpy()) > MAG_MAX_NT)
+        if far.size:
+            i = int(far[0])
+            raise InputError(f"value beyond +-{MAG_MAX_NT:g} nT once in nT", name, i + 2, c)
+    angle = table[ANGLE].to_numpy()
+    far = np.flatnonzero(np.abs(angle) > 3600)
+    if far.size:
+        raise InputError("angle beyond +-3600 deg", name, int(far[0]) + 2, ANGLE)
     return table
 
 
 def read_curves(path) -> tuple[dict, dict]:
     """Fitted curves from JSON ``{"xy": {"x": [A, C_deg, D], "y": ..., "z": ...}, "xz": {"x": ..., "z": ...}}``."""
-    import json
+    from ..io.calibration import read_json
 
     name = str(path)
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except OSError as exc:
-        raise InputError(f"cannot read the curves file ({exc.strerror})", name) from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON: {exc.msg} at line {exc.lineno}", name) from None
+    data = read_json(path, "curves file")
     out = []
     for plane, axes in (("xy", "xyz"), ("xz", "xz")):
         curves = {}
@@ -536,6 +544,10 @@ def read_curves(path) -> tuple[dict, dict]:
                 amplitude, phase, offset = (float(v) for v in data[plane][a])
             except (KeyError, TypeError, ValueError):
                 raise InputError(f"key {plane}.{a} must be a list [amplitude, phase_deg, offset]", name) from None
+            if not (np.all(np.isfinite([amplitude, phase, offset])) and 0 < amplitude <= 1e7 and abs(offset) <= 1e8):
+                raise InputError(
+                    f"key {plane}.{a}: the amplitude must lie in (0, 1e7] nT and every value be finite", name
+                )
             curves[a] = SineCurve(amplitude, phase, offset)
         out.append(curves)
     return out[0], out[1]

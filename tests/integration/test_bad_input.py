@@ -342,3 +342,54 @@ def test_long_commands_report_their_stages_and_take_quiet(files):
             [command, "log.csv", "--quiet", *(["--cal", "c.json"] * (command == "validate"))]
         )
         assert args.quiet
+
+
+def test_usage_errors_are_one_line(capsys):
+    for argv in (["diagnose", "log.csv", "--alpha", "5"], ["frobnicate"], [], ["calibrate"]):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 2
+        line = one_line_error(capsys.readouterr().err)
+        assert "(see magkf" in line and "--help)" in line
+
+
+def test_the_documents_link_only_inside_the_repository():
+    """README and docs/ name no file outside the repository, and every relative link resolves."""
+    root = DATA.parent
+    for doc in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        text = doc.read_text(encoding="utf-8")
+        assert "../shared" not in text, doc
+        for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", text):
+            assert (doc.parent / target).exists(), (doc.name, target)
+
+
+def test_the_small_items_a_new_user_hits(files, capsys, tmp_path):
+    # --mounting with a leading minus, as the README writes it
+    status, out, _ = run(capsys, "simulate", "drive", "-o", tmp_path / "m.csv", "--duration", 5, "--mounting", "-y,x,z")
+    assert status == 0 and (tmp_path / "m.csv").exists()
+    # ellipsoid: the determined-ness scale follows the data (sensitivities of 0.3 on a unit sphere are not "poor")
+    import pandas as pd
+
+    imu = pd.read_csv(DATA / "ckexplorer_acc_mag_log.csv")[["mx", "my", "mz"]] * 3000.0  # in counts, about 1 000
+    imu.to_csv(tmp_path / "counts.csv", index=False)
+    status, out, err = run(capsys, "ellipsoid", tmp_path / "counts.csv", "--columns", "mx,my,mz", "--json")
+    assert status == 0 and "poorly determined" not in err and json.loads(out)["parameters"]["kx"] > 900
+    # --mag-unit converts to nT; --axes 2 on tilted data is warned
+    status, out, err = run(capsys, "ellipsoid", DATA / "example_drive.csv", "--axes", "2", "--mag-unit", "uT", "--json")
+    assert status == 0 and "takes the sensor as level, but roll and pitch reach" in err
+    assert json.loads(out)["parameters"]["kx"] > 1e6  # uT columns converted to nT (1 000 times the numbers)
+    # --curves implies the paper's method; the IGRF date, when not given, is said
+    curves = DATA / "paper_example_curves.json"
+    status, out, _ = run(capsys, "sinefit", "--curves", curves, "--field", 50000, "--inclination", 43, "--json")
+    assert status == 0 and json.loads(out)["method"] == "paper"
+    status, _, err = run(capsys, "sinefit", "--curves", curves, "--lat", 48.1, "--lon", 11.6, "--json")
+    assert status == 0 and "magkf: note: IGRF for today" in err
+    # a script's --help writes nothing
+    before = {p.name: p.stat().st_mtime for p in DATA.iterdir()}
+    proc = subprocess.run(
+        [sys.executable, str(DATA.parent / "scripts" / "make_example_data.py"), "--help"],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0 and "usage" in proc.stdout
+    assert {p.name: p.stat().st_mtime for p in DATA.iterdir()} == before
