@@ -71,25 +71,31 @@ def main(argv=None) -> int:
     args = parser.parse_args(_values_joined(sys.argv[1:] if argv is None else list(argv)))
     if getattr(args, "noise", 0) is None:
         args.noise = 30.0 if args.kind == "drive" else 0.0
-    # Warnings and notes are printed once the command has succeeded: an error is one line.
+    # Warnings and notes are printed once the command has succeeded; an error stays one line and carries
+    # the warnings that came before it (a suspected unit often explains the error).
     pending = []
 
     def hold(message, category, *rest, **kw):
-        kind = "note" if issubclass(category, Note) else "warning"
-        pending.append(f"magkf: {kind}: {_one_line(message)}")
+        pending.append(("note" if issubclass(category, Note) else "warning", _one_line(message)))
 
     warnings.showwarning = hold
     # numpy's floating-point warnings on degenerate data say nothing the checks do not say in words
     warnings.simplefilter("ignore", RuntimeWarning)
-    status = _run(args)
+    status = _run(args, pending)
     if status == 0:
-        for line in pending:
-            print(line, file=sys.stderr)
+        for kind, text in pending:
+            print(f"magkf: {kind}: {text}", file=sys.stderr)
     return status
 
 
-def _run(args) -> int:
-    """Run the parsed command; returns its exit status, an error printed on one line."""
+def _run(args, pending: list) -> int:
+    """Run the parsed command; returns its exit status, an error printed on one line (with the warnings
+    ``pending`` before it)."""
+
+    def error(text: str) -> None:
+        before = [t for kind, t in pending if kind == "warning"]
+        print(f"magkf: error: {text}" + (f" [warned before: {'; '.join(before)}]" if before else ""), file=sys.stderr)
+
     try:
         from ..io.files import STDIO, check_outputs, messages_to_stderr
 
@@ -105,11 +111,11 @@ def _run(args) -> int:
         if isinstance(exc, np.linalg.LinAlgError):  # degenerate numbers from the data or the settings
             where = f"{args.file}: " if getattr(args, "file", None) else ""
             exc = f"{where}the computation failed ({exc}): the data or the settings are degenerate"
-        print(f"magkf: error: {_one_line(exc)}", file=sys.stderr)
+        error(_one_line(exc))
         return 2
     except OSError as exc:  # a file that cannot be read or written
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"magkf: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        error(_one_line(f"{where}{exc.strerror or exc}"))
         return 2
     except KeyboardInterrupt:
         print("magkf: interrupted", file=sys.stderr)

@@ -420,6 +420,8 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         if cmap.header is None and header_line is None:
             header_line, header_text = number, line
             continue
+        if comment and comment in line:  # the blanks before a comment are no part of the last cell ("NA # x")
+            line = line[: line.index(comment)].rstrip(blank)
         data_lines.append(line)
         rows.append(number)
     if cmap.header and header_line is None:

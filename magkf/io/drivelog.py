@@ -230,6 +230,8 @@ TIME_RANGE_S = (631_152_000.0, 4_102_444_800.0)
 ALT_RANGE_M = (-1_000.0, 100_000.0)
 #: Largest magnetometer or reference component, nT (0.01 T: far beyond any vehicle's field).
 MAG_MAX_NT = 1e7
+#: Epochs a log needs before its attitude is judged to look like radians.
+RADIANS_MIN_EPOCHS = 100
 #: Least magnitude of a ``ref_*`` reference field, nT.
 REF_MIN_NT = 1_000.0
 #: Largest dilution of precision a log may hold (receivers report 99.99 for no fix).
@@ -364,6 +366,20 @@ def from_table(
             warnings.warn(
                 f"{name}: the magnetometer magnitudes (median {median:.4g}) look like {guess}, not "
                 f"{mag_unit}; pass --mag-unit {guess} if they are",
+                UnitWarning,
+                stacklevel=3,
+            )
+    if attitude and len(table) >= RADIANS_MIN_EPOCHS:
+        angles = np.abs(table[list(ATTITUDE)].to_numpy(dtype=float))
+        yaw = table[YAW].to_numpy(dtype=float)
+        if (
+            np.nanmax(angles[:, :2], initial=0.0) <= np.pi / 2 + 1e-9
+            and np.nanmax(angles[:, 2], initial=0.0) <= 2 * np.pi + 1e-9
+            and np.nanmax(yaw, initial=0.0) - np.nanmin(yaw, initial=0.0) > 1.0
+        ):
+            warnings.warn(
+                f"{name}: roll, pitch and yaw never leave +-pi/2, +-pi/2 and +-2 pi while yaw turns: they look like "
+                "radians, and magkf reads degrees",
                 UnitWarning,
                 stacklevel=3,
             )

@@ -249,7 +249,7 @@ def test_the_canonical_csv_keeps_microseconds(tmp):
     table = pd.DataFrame(
         {
             "time": 1780308000.0 + np.array([0.0, 0.000001, 0.123457]),
-            "mag_x": 1.0,
+            "mag_x": [1.0, 1.5, 2.0],
             "mag_y": 2.0,
             "mag_z": 3.0,
             "lat": 48.0,

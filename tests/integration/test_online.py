@@ -280,7 +280,7 @@ def test_main_job_on_shipped_log(tmp):
 
 def test_bad_options_exit_2(tmp):
     proc = run_cli("calibrate", DATA / "example_drive.csv", "--innovation-prob", "2")
-    assert proc.returncode == 2 and "innovation_prob" in proc.stderr
+    assert proc.returncode == 2 and "--innovation-prob" in proc.stderr
     proc = run_cli("calibrate", DATA / "example_drive.csv", "--init", tmp / "none.json")
     assert proc.returncode == 2 and "none.json" in proc.stderr
     for option, value in (("--measure", "bogus"), ("--filter", "kalman")):
