@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 from ..errors import InputError
 from . import common
 
@@ -57,6 +59,9 @@ def run_diagnose(args) -> int:
     )
     summary = result.summary()
     summary["verdict"] = _verdict(run)
+    summary["calibration_warnings"] = _judged(run, log, cal)
+    for warning in summary["calibration_warnings"]:
+        warnings.warn(f"{args.file}: the calibration diagnosed: {warning}", stacklevel=1)
     if common.write_json_result(args, summary):
         return 0
     ax = result.residual_rms_axis_nt
@@ -135,6 +140,19 @@ def run_validate(args) -> int:
     if not result.effects:
         print("  the calibration stores no effect: only the core was checked")
     return 0
+
+
+def _judged(run, log, init) -> list:
+    """What ``magkf.plausibility`` says of the run diagnosed (a refusal becomes a warning here: the
+    diagnosis is still worth reading, it says where the model fails)."""
+    from ..plausibility import check_run, log_field_nt
+
+    if run is None:
+        return []
+    try:
+        return check_run(run, log.source, log_field_nt(log), init)
+    except InputError as exc:
+        return [f"calibrate would not write it: {exc.message.replace(' (nothing written)', '')}"]
 
 
 def run_report(args) -> int:
