@@ -66,6 +66,8 @@ class StoredEffect:
         params = data.get("parameters")
         if not isinstance(settings, dict) or not isinstance(params, dict) or not params:
             raise InputError(f"{where}: effect {data['effect']!r} needs 'settings' and 'parameters' objects", source)
+        if "column" in settings and not isinstance(settings["column"], str):
+            raise InputError(f"{where}: setting 'column' must be a column name (a string)", source)
         names, values, stds, units = [], [], [], []
         for name, p in params.items():
             std = p.get("std") if isinstance(p, dict) else None
@@ -314,11 +316,17 @@ def _numbers(value, depth: int) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
+#: Largest variance a stored covariance may hold (a standard deviation of 1e9: nT for b, far beyond any R).
+COVARIANCE_MAX = 1e18
+
+
 def _covariance_checked(cov: np.ndarray, key: str, source: str) -> None:
     """InputError unless ``cov`` is symmetric and positive semi-definite (to rounding) with a positive
     diagonal (every parameter uncertain: a filter cannot start from a certainty)."""
     if not np.all(np.diag(cov) > 0):
         raise InputError(f"key {key!r} has a diagonal element that is not positive", source)
+    if np.diag(cov).max() > COVARIANCE_MAX:
+        raise InputError(f"key {key!r} has a variance beyond {COVARIANCE_MAX:g}: not an uncertainty", source)
     scale = max(float(np.abs(cov).max()), 1e-300)
     if not np.allclose(cov, cov.T, rtol=1e-8, atol=1e-12 * scale):
         raise InputError(f"key {key!r} is not symmetric", source)

@@ -125,7 +125,8 @@ def mark_missing_columns(prep: PreparedLog, effects, source: str) -> np.ndarray:
                     f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})",
                     source,
                 )
-            base[(base == Status.USED) & ~np.isfinite(prep.data.columns[c])] = Status.MISSING_COLUMN
+            updating = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)  # the latter by its magnitude
+            base[updating & ~np.isfinite(prep.data.columns[c])] = Status.MISSING_COLUMN
     return base
 
 

@@ -139,6 +139,9 @@ class OnlineCalibrator:
         field_body = ned_to_body(c_nb, ref)
         dop = select_dop({c: v[c] for c in (DOP, PDOP, HDOP)})
         base = epoch_status(m[None], ref[None], [has_att], [dop], self.config.dop_max)
+        updating = base[0] in (Status.USED, Status.MISSING_ATTITUDE)  # the latter by its magnitude
+        if updating and not all(np.isfinite(v[c]) for e in self.layout.extra() for c in e.columns):
+            base[0] = Status.MISSING_COLUMN  # an added effect lacks its channel: no update, as post-processing
         dt = 0.0 if self._last_time is None else t - self._last_time
         rate = (field_body - self._last_field_body) / dt if dt > 0 else np.zeros(3)
         if not np.isfinite(rate).all():
