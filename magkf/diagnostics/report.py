@@ -308,6 +308,24 @@ def _noise_plot(run, t0: float) -> str:
     )
 
 
+def _plausibility(run, log, init) -> str:
+    """What ``magkf.plausibility`` says of the run: whether ``magkf calibrate`` would write it, and why not."""
+    from ..errors import InputError
+    from ..plausibility import check_run, log_field_nt
+
+    try:
+        warnings = check_run(run, log.source, log_field_nt(log), init)
+    except InputError as exc:
+        reason = exc.message.replace(" (nothing written)", "")
+        return (
+            "<p><b>Plausibility:</b> <code>magkf calibrate</code> would not write this calibration: "
+            f"{html.escape(reason)}.</p>"
+        )
+    if not warnings:
+        return "<p><b>Plausibility:</b> the calibration passes magkf's rule for writing it.</p>"
+    return f"<p><b>Plausibility:</b> written with warnings: {html.escape('; '.join(warnings))}.</p>"
+
+
 def _estimate_table(run) -> str:
     """Every estimated parameter with its standard deviation and unit."""
     rows = [
@@ -345,6 +363,8 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
             ax.plot(radius * np.cos(circle), radius * np.sin(circle), "--", color="tab:red", lw=1.2)
             ax.set(xlabel=f"{'xyz'[i]}, nT", ylabel=f"{'xyz'[j]}, nT", title=f"{name}: {'xyz'[i]}-{'xyz'[j]}")
             ax.set_aspect("equal", adjustable="datalim")
+            ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+            ax.yaxis.set_major_locator(plt.MaxNLocator(5))
             ax.grid(alpha=0.3)
     fig.suptitle(f"sensor-axis field; dashed: the reference sphere, radius {radius:.0f} nT")
     projections = _png(
@@ -363,7 +383,7 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
         ax.hist(error, bins=60, range=tuple(span), color="tab:blue" if name == "calibrated" else "tab:gray")
         ax.axvline(0, color="k", lw=0.8)
         ax.set(
-            xlabel=f"magnitude less the reference's, nT ({beyond} epochs beyond the axis)",
+            xlabel=f"|field| - |reference|, nT ({beyond} beyond the axis)",
             ylabel="epochs",
             title=f"{name}: RMS {rms:.0f} nT over every epoch",
         )
@@ -476,6 +496,7 @@ def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
         f"nT, mean NIS per degree of freedom {_fixed(s.nis_mean)}.</p>",
         f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
         f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
+        _plausibility(run, log, cal),
         *_noise_section(run, t0),
         "<h2>Gates</h2>",
         _status_plot(run, t0),

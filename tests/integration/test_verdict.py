@@ -186,7 +186,8 @@ def _check_structure(page: str) -> None:
     quantity = re.compile(r"(, [^,]*((nT|deg|s|A|V|m/s)\b|%)|\(dimensionless\)|\(correlation-robust\))")
     for header in map(html.unescape, re.findall(r"<th>([^<]*)</th>", page)):
         assert header in CATEGORICAL or quantity.search(header), header
-    assert "viewport" in page and "http://" not in page and "https://" not in page
+    assert "<b>Plausibility:</b>" in page and "viewport" in page
+    assert "http://" not in page and "https://" not in page
 
 
 # ---------------------------------------------------------------- real time
