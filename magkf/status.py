@@ -2,7 +2,9 @@
 
 Codes are small integers (``Status``, an ``IntEnum``) stored as ``int8`` arrays; their names (the
 strings written in ``--states`` files and returned by the real-time step) are the lower-case member
-names. In order of precedence, highest last:
+names. Listed by code; where several apply, ``magkf.io.drivelog.epoch_status`` says which wins
+(of ``missing_attitude``, ``gated_dop``, ``missing_position`` and ``missing_mag``, the last that applies);
+the filter's gates and ``missing_column`` then apply to the epochs still to be updated:
 
 ``used``               updated with the configured measurement.
 ``gated_dop``          ``dop > dop_max``: no update.
