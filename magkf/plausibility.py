@@ -37,6 +37,7 @@ __all__ = [
     "check_calibration",
     "check_run",
     "log_field_nt",
+    "judge_run",
     "RESIDUAL_REFUSED",
     "RESIDUAL_WARNED",
     "check_residual",
@@ -162,3 +163,12 @@ def check_run(run, source: str, field_nt: float, init=None) -> list[str]:
                 "is wrong, or the start's uncertainty too small"
             )
     return warnings
+
+
+def judge_run(run, log, init=None) -> tuple[str | None, list[str]]:
+    """``check_run`` of a run over the ``DriveLog`` ``log``, for a command that does not write the calibration
+    (diagnose, report): the reason calibrate would refuse it (None: it would write it), and the warnings."""
+    try:
+        return None, check_run(run, log.source, log_field_nt(log), init)
+    except InputError as exc:
+        return exc.message.replace(" (nothing written)", ""), []

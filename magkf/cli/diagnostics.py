@@ -145,14 +145,12 @@ def run_validate(args) -> int:
 def _judged(run, log, init) -> list:
     """What ``magkf.plausibility`` says of the run diagnosed (a refusal becomes a warning here: the
     diagnosis is still worth reading, it says where the model fails)."""
-    from ..plausibility import check_run, log_field_nt
+    from ..plausibility import judge_run
 
     if run is None:
         return []
-    try:
-        return check_run(run, log.source, log_field_nt(log), init)
-    except InputError as exc:
-        return [f"calibrate would not write it: {exc.message.replace(' (nothing written)', '')}"]
+    reason, warnings = judge_run(run, log, init)
+    return warnings if reason is None else [f"calibrate would not write it: {reason}"]
 
 
 def run_report(args) -> int:

@@ -87,7 +87,7 @@ def run_sinefit(args) -> int:
     for warning in warnings:
         print(f"magkf: warning: {source}: {warning}", file=sys.stderr)
     if args.output:
-        result.to_calibration(source=args.file or args.curves).save(args.output)
+        cal.save(args.output)
     if args.json:
         common.print_json(result.summary())
     else:

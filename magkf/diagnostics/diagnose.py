@@ -306,7 +306,7 @@ def diagnose(
     baseline = nT.rms(held_out_residual(null.A, null.y, edges))
 
     selection = _Selection(problem, pool, edges, nT, dt, alpha, say)
-    results = selection.run(null)
+    results = selection.run(null, baseline)
     signals, binned = _signals(problem.data, ned, mag, alpha, tau)
     largest = _largest(problem.data.time, ned)
     text = _describe(results, signals, selection, baseline)
@@ -478,8 +478,10 @@ class _Selection:
     def significant(self, trial: _Trial) -> bool:
         return trial.test is not None and trial.test.p_value < self.level
 
-    def run(self, null: Linearised) -> list[Candidate]:
-        fit = null
+    def run(self, null: Linearised, held_out_nt: float) -> list[Candidate]:
+        """The candidates, taken ones first, starting from the model ``null`` whose held-out residual (nT) is
+        ``held_out_nt``."""
+        fit, current = null, held_out_nt
         remaining = list(self.pool)
         self.say(f"testing {len(remaining)} candidates")
         trials = {e.label: self.trial(e, fit) for e in remaining}
@@ -496,7 +498,6 @@ class _Selection:
                 self.say(f"refitting the model with {t.effect.label}")
                 refits[t.effect.label] = self.refit(t.effect, fit)
             # taken only if significant at its own best fit and better than the model on held-out data
-            current = self.nT.rms(held_out_residual(fit.A, fit.y, self.edges))
             leading = []
             for t in hits[:LEADING]:
                 trial = trials[t.effect.label] = refits[t.effect.label][0]
@@ -512,6 +513,7 @@ class _Selection:
             taken.append(best.candidate(True, self.dt))
             remaining = [e for e in remaining if e.label != best.effect.label]
             fit, refused = best_fit, set()
+            current = self.nT.rms(held_out_residual(fit.A, fit.y, self.edges))
             trials = {e.label: self.trial(e, fit) for e in remaining}
             for e in remaining:
                 if trials[e.label].rank == 0:

@@ -310,13 +310,10 @@ def _noise_plot(run, t0: float) -> str:
 
 def _plausibility(run, log, init) -> str:
     """What ``magkf.plausibility`` says of the run: whether ``magkf calibrate`` would write it, and why not."""
-    from ..errors import InputError
-    from ..plausibility import check_run, log_field_nt
+    from ..plausibility import judge_run
 
-    try:
-        warnings = check_run(run, log.source, log_field_nt(log), init)
-    except InputError as exc:
-        reason = exc.message.replace(" (nothing written)", "")
+    reason, warnings = judge_run(run, log, init)
+    if reason is not None:
         return (
             "<p><b>Plausibility:</b> <code>magkf calibrate</code> would not write this calibration: "
             f"{html.escape(reason)}.</p>"
@@ -344,13 +341,20 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
     """The raw and the calibrated field in three projections with the reference sphere, the magnitude error
     before and after, and the heading deviation against heading (compass swing) before and after."""
     import matplotlib.pyplot as plt
+    import pandas as pd
 
     from ..apply import apply_calibration
-    from ..conventions import wrap_deg
-    from ..io.calibration import Calibration
+    from ..conventions import magnetic_heading_deg, wrap_deg
 
-    before = apply_calibration(log, Calibration(np.eye(3), np.zeros(3)))  # the raw reading taken as the field
     after = apply_calibration(log, run.calibration, registry)
+    att = log.attitude
+    before = pd.DataFrame(  # the raw reading taken as the field, with the declination ``after`` found
+        {
+            "magnitude_nt": np.linalg.norm(log.mag, axis=1),
+            "heading_true_deg": (magnetic_heading_deg(log.mag, att[:, 0], att[:, 1]) + after["declination_deg"]) % 360,
+        },
+        index=after.index,
+    )
     ref = np.linalg.norm(log.reference_ned(), axis=1)
     radius = float(np.nanmedian(ref))
     views = {"raw reading": log.mag, "calibrated": after[["field_x", "field_y", "field_z"]].to_numpy(float)}
@@ -390,8 +394,8 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
     fig.suptitle("magnitude error before and after calibration")
     histogram = _png(fig, "histograms of the field magnitude less the reference magnitude in nT, raw and calibrated")
 
-    yaw = log.attitude[:, 2] % 360.0
-    ok = ((before["status"] == "ok") & (after["status"] == "ok")).to_numpy()
+    yaw = att[:, 2] % 360.0
+    ok = (after["status"] == "ok").to_numpy()
     if not ok.any():
         return ["<h2>Field before and after calibration</h2>", projections, histogram]
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)

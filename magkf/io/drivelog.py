@@ -51,6 +51,7 @@ __all__ = [
     "MAG_MAX_NT",
     "DOP_MAX",
     "REF_MIN_NT",
+    "RANGES",
     "MAX_GAP_S",
     "TimeBaseWarning",
     "check_time_base",
@@ -113,7 +114,7 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
     s) is taken from the argument if given, else from the sample's ``time`` entry, else from a pandas
     row's name (``DataFrame.iterrows`` and ``DriveLog.table`` rows carry the time as their index).
     Raises InputError for a sample that is not such a mapping (a bare array names no columns), and for a
-    number beyond the range a log may hold (``SAMPLE_RANGES``; time: ``TIME_RANGE_S``).
+    number beyond the range a log may hold (``RANGES``; time: ``TIME_RANGE_S``).
     """
     if not hasattr(sample, "keys"):
         raise InputError(
@@ -135,7 +136,7 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
         out[TIME] = float(time)
     except (TypeError, ValueError, OverflowError):
         out[TIME] = float("nan")
-    for name, (lo, hi) in ((TIME, TIME_RANGE_S), *SAMPLE_RANGES.items()):  # a log would be refused
+    for name, (lo, hi, _) in ((TIME, (*TIME_RANGE_S, "s")), *RANGES.items()):  # a log would be refused
         v = out.get(name, math.nan)
         if math.isfinite(v) and not lo <= v <= hi:
             raise InputError(f"value {v!r} outside [{lo:g}, {hi:g}] (UNIX s, degrees, m, nT)", column=name)
@@ -236,16 +237,17 @@ RADIANS_MIN_EPOCHS = 100
 REF_MIN_NT = 1_000.0
 #: Largest dilution of precision a log may hold (receivers report 99.99 for no fix).
 DOP_MAX = 1_000.0
-#: The ranges ``from_table`` holds a log's columns to (magnetic ones in nT), for one sample (``read_sample``).
-SAMPLE_RANGES = {
-    PITCH: (-90.0, 90.0),
-    ROLL: (-180.0, 360.0),
-    YAW: (-360.0, 360.0),
-    LAT: (-90.0, 90.0),
-    LON: (-180.0, 360.0),
-    ALT: ALT_RANGE_M,
-    **{c: (0.0, DOP_MAX) for c in (DOP, PDOP, HDOP)},
-    **{c: (-MAG_MAX_NT, MAG_MAX_NT) for c in (*MAG, *REF)},
+#: The range (lowest, highest, unit) a log's column is held to, by ``from_table`` (the magnetometer's in the
+#: unit given) and for one sample by ``read_sample``.
+RANGES = {
+    PITCH: (-90.0, 90.0, "degrees"),
+    ROLL: (-180.0, 360.0, "degrees"),
+    YAW: (-360.0, 360.0, "degrees"),
+    LAT: (-90.0, 90.0, "degrees"),
+    LON: (-180.0, 360.0, "degrees"),
+    ALT: (*ALT_RANGE_M, "m"),
+    **{c: (0.0, DOP_MAX, "") for c in (DOP, PDOP, HDOP)},
+    **{c: (-MAG_MAX_NT, MAG_MAX_NT, "nT") for c in (*MAG, *REF)},
 }
 #: A jump of the clock longer than this (s) is reported.
 MAX_GAP_S = 5.0
@@ -327,15 +329,9 @@ def from_table(
     require_complete(table, (TIME,), name, row_of)
     check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
     scale = NT_PER_UNIT[mag_unit]
-    for column, lo, hi, unit in (
-        *((c, lo, hi, "degrees") for c, lo, hi in ((PITCH, -90, 90), (ROLL, -180, 360), (YAW, -360, 360))),
-        (LAT, -90, 90, "degrees"),
-        (LON, -180, 360, "degrees"),
-        (ALT, *ALT_RANGE_M, "m"),
-        *((c, 0, DOP_MAX, "") for c in (DOP, PDOP, HDOP)),
-        *((c, -MAG_MAX_NT / scale, MAG_MAX_NT / scale, mag_unit) for c in MAG),
-        *((c, -MAG_MAX_NT, MAG_MAX_NT, "nT") for c in REF),
-    ):
+    for column, (lo, hi, unit) in RANGES.items():
+        if column in MAG:  # in the unit the table is in
+            lo, hi, unit = lo / scale, hi / scale, mag_unit
         if column in table:
             v = table[column].to_numpy(dtype=float)
             bad = np.flatnonzero((v < lo) | (v > hi))

@@ -20,7 +20,7 @@ from magkf.conventions import ATTITUDE, MAG, REF, euler_to_dcm, ned_to_body
 from magkf.effects import make_effect
 from magkf.errors import InputError
 from magkf.io.calibration import Calibration
-from magkf.io.drivelog import SAMPLE_RANGES, TIME_RANGE_S
+from magkf.io.drivelog import RANGES, TIME_RANGE_S
 from magkf.reference import VALID_RANGE_S, igrf_ned
 from magkf.status import STATUS_NAMES
 
@@ -129,8 +129,8 @@ def faults(sample, last: float | None) -> tuple[bool, set]:
     t = time_of(sample)
     if not math.isfinite(t) or (last is not None and not t > last):
         return True, set()
-    value = {c: number(sample.get(c)) for c in (*SAMPLE_RANGES, *REF)}
-    beyond = {c for c, (lo, hi) in SAMPLE_RANGES.items() if math.isfinite(value[c]) and not lo <= value[c] <= hi}
+    value = {c: number(sample.get(c)) for c in (*RANGES, *REF)}
+    beyond = {c for c, (lo, hi, _) in RANGES.items() if math.isfinite(value[c]) and not lo <= value[c] <= hi}
     if not TIME_RANGE_S[0] <= t <= TIME_RANGE_S[1]:
         beyond.add("time")
     igrf = not all(math.isfinite(value[c]) for c in REF) and all(math.isfinite(value[c]) for c in ("lat", "lon"))
