@@ -80,7 +80,12 @@ def main(argv=None) -> None:
                 ranked += d.candidates[0].effect == label
                 row = next(c for c in d.candidates if c.effect == label)
                 ratios.append(row.residual_rms_after_nt / true_model_residual(sim))
-            ratio = f"{np.median(ratios):.3f} (max {np.max(ratios):.3f})" if ratios else "n/a"
+            within = sum(r <= 1.1 for r in ratios)
+            ratio = (
+                f"{np.median(ratios):.3f} (max {np.max(ratios):.3f}; within 1.1 on {within}/{len(ratios)})"
+                if ratios
+                else "n/a"
+            )
             print(
                 f"  {hidden:18s} ranked first {ranked}/{args.hidden_seeds}, and taken {first}; after/true model {ratio}"
             )

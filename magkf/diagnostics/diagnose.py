@@ -51,7 +51,16 @@ from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
 from ..status import Status
-from .fitting import OUTLIER_SIGMA, WANDER_BLOCK_S, EpochSet, Linearised, finite_regressors, inliers, span_basis
+from .fitting import (
+    OUTLIER_SIGMA,
+    WANDER_BLOCK_S,
+    EpochSet,
+    Linearised,
+    determined,
+    finite_regressors,
+    inliers,
+    span_basis,
+)
 from .inference import constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, robust_test
 
 __all__ = [
@@ -302,10 +311,9 @@ def diagnose(
     null = problem.fit(layout, x)  # the model at its own best fit over the log
     tau = integrated_time(null.r.reshape(n, 3))
     edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
-    nT = _InNanotesla(null)
-    baseline = nT.rms(held_out_residual(null.A, null.y, edges))
+    baseline = _InNanotesla(null).rms(held_out_residual(null.A, null.y, edges))
 
-    selection = _Selection(problem, pool, edges, nT, dt, alpha, say)
+    selection = _Selection(problem, pool, edges, dt, alpha, say)
     results = selection.run(null, baseline)
     signals, binned = _signals(problem.data, ned, mag, alpha, tau)
     largest = _largest(problem.data.time, ned)
@@ -350,7 +358,9 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
 
 
 class _InNanotesla:
-    """Whitened residuals (3n,) of the diagnosed epochs as NED residual RMS in nT, at the model ``fit``."""
+    """Whitened residuals (3n,) of the diagnosed epochs as NED residual RMS in nT, at the model ``fit``: un-whitened
+    by ``fit``'s own whitening, which follows its estimate (a residual whitened at one model and un-whitened at
+    another is in neither's nanotesla)."""
 
     def __init__(self, fit: Linearised):
         self.L = np.linalg.inv(fit.W)  # un-whitening
@@ -394,6 +404,23 @@ class _Trial:
         )
 
 
+def _determined_part(effect, Gw, basis, value, cov):
+    """The estimate ``value`` (q,) and its covariance (q, q) of an effect whose whitened regressors ``Gw``
+    (3n, q) are its Jacobian, projected onto the directions the data determine beside the model of orthonormal
+    ``basis`` (``fitting.determined``, in units of the effect's prior spread): the others, which the model or
+    the heading's wander mimics, are held at zero. Returns ``(value, cov, directions held)``."""
+    mean, spread = effect.prior()
+    if Gw.shape[1] != len(spread):
+        return value, cov, 0
+    scaled = (Gw - basis @ (basis.T @ Gw)) * spread
+    _, sv, vt = np.linalg.svd(scaled, full_matrices=False)
+    k = determined(sv)
+    if k == len(spread):
+        return value, cov, 0
+    keep = (vt[:k].T @ vt[:k]) * spread[None, :] / spread[:, None]  # projector in the parameters' units
+    return mean + keep @ (value - mean), keep @ cov @ keep.T, len(spread) - k
+
+
 class _AsTested(LinearEffect):
     """An effect whose diagnostic regressors are not its Jacobian (a slow drift, whose Jacobian is the
     offset itself) as the linear block of those regressors, so that it can be refitted and kept in the model
@@ -410,8 +437,8 @@ class _AsTested(LinearEffect):
 class _Selection:
     """Forward selection by the one decision rule (see the module's docstring)."""
 
-    def __init__(self, problem, pool, edges, nT, dt, alpha, say=lambda text: None):
-        self.problem, self.pool, self.edges, self.nT, self.dt, self.say = problem, pool, edges, nT, dt, say
+    def __init__(self, problem, pool, edges, dt, alpha, say=lambda text: None):
+        self.problem, self.pool, self.edges, self.dt, self.say = problem, pool, edges, dt, say
         self.alpha = alpha
         self.m = 0
         self.level = float("nan")
@@ -420,7 +447,7 @@ class _Selection:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
         G = finite_regressors(effect, fit.data)
         names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-        return self._evaluate(effect, fit.A, fit.basis, fit.whitened(G), fit.y, names, fit)
+        return self._evaluate(effect, fit.A, fit.basis, fit.whitened(G), fit.y, names, fit, fit)
 
     def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
         """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
@@ -435,14 +462,14 @@ class _Selection:
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual
         trial = self._evaluate(
-            effect, A_null, span_basis(A_null), with_it.A[:, p:], with_it.y, block.parameter_names, fit
+            effect, A_null, span_basis(A_null), with_it.A[:, p:], with_it.y, block.parameter_names, fit, with_it
         )
         return trial, with_it
 
-    def _evaluate(self, effect, A, basis, Gw, y, names, null: Linearised) -> _Trial:
+    def _evaluate(self, effect, A, basis, Gw, y, names, null: Linearised, whitened_at: Linearised) -> _Trial:
         """The test of whitened regressors ``Gw`` (3n, q) added to a model of whitened Jacobian ``A`` (3n, p)
-        with orthonormal ``basis`` of its span, for the whitened reading ``y`` (3n,); a wandering effect's
-        constancy test at the model ``null`` without it."""
+        with orthonormal ``basis`` of its span, for the reading ``y`` (3n,), all whitened at the model
+        ``whitened_at``; a wandering effect's constancy test at the model ``null`` without it."""
         n = len(self.problem)
         norms = np.linalg.norm(Gw, axis=0)
         norms[norms == 0] = 1.0
@@ -469,11 +496,16 @@ class _Selection:
         elif test is not None:
             # coefficients of G (Frisch-Waugh): theta_G = V S^-1 theta_U / norms, with the robust covariance
             back = (vt[:rank].T / s[:rank]) / norms[:, None]
-            value = back @ test.theta
-            std = np.sqrt(np.clip(np.diag(back @ test.cov @ back.T), 0, None))
+            value, cov = back @ test.theta, back @ test.cov @ back.T
+            value, cov, undetermined = _determined_part(effect, Gw, basis, value, cov)
+            std = np.sqrt(np.clip(np.diag(cov), 0, None))
             estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in zip(names, value, std)}
             note = ""
-        return _Trial(effect, test, self.nT.rms(held), self.nT.rms(in_sample), estimate, rank, note)
+            if undetermined:
+                plural = "s" if undetermined > 1 else ""
+                note = f"{undetermined} direction{plural} of its parameters not determined (held at the prior mean)"
+        nT = _InNanotesla(whitened_at)
+        return _Trial(effect, test, nT.rms(held), nT.rms(in_sample), estimate, rank, note)
 
     def significant(self, trial: _Trial) -> bool:
         return trial.test is not None and trial.test.p_value < self.level
@@ -513,7 +545,7 @@ class _Selection:
             taken.append(best.candidate(True, self.dt))
             remaining = [e for e in remaining if e.label != best.effect.label]
             fit, refused = best_fit, set()
-            current = self.nT.rms(held_out_residual(fit.A, fit.y, self.edges))
+            current = _InNanotesla(fit).rms(held_out_residual(fit.A, fit.y, self.edges))
             trials = {e.label: self.trial(e, fit) for e in remaining}
             for e in remaining:
                 if trials[e.label].rank == 0:

@@ -21,6 +21,8 @@ __all__ = [
     "WANDER_BLOCK_S",
     "HeadingWander",
     "REFIT_TOLERANCE",
+    "DETERMINED",
+    "determined",
     "OUTLIER_SIGMA",
     "Linearised",
     "EpochSet",
@@ -32,6 +34,9 @@ __all__ = [
 #: Iterations of the refit (whitening and linearisation at the estimate), and its tolerance on the change
 #: of the state relative to the prior standard deviations.
 REFIT_ITERATIONS = 4
+#: A direction of the parameters counts as determined by the data when its standard error (noise as whitened)
+#: is below this share of its prior spread: the data then say more about it than the prior does.
+DETERMINED = 1.0
 REFIT_TOLERANCE = 1e-3
 #: Stretches (s) over which the logged heading's error is let be a straight line in time (``HeadingWander``).
 WANDER_BLOCK_S = 10.0
@@ -49,6 +54,12 @@ def span_basis(A: np.ndarray) -> np.ndarray:
 def _rank(sv: np.ndarray) -> int:
     """Numerical rank from singular values in descending order."""
     return int(np.sum(sv > 1e-9 * sv[0])) if sv.size and sv[0] > 0 else 0
+
+
+def determined(sv: np.ndarray) -> int:
+    """How many of the directions with singular values ``sv`` (descending) of whitened regressors scaled by the
+    parameters' prior spread the data determine: standard error ``1 / sv`` below ``DETERMINED`` prior spreads."""
+    return min(_rank(sv), int(np.sum(sv > 1.0 / DETERMINED)))
 
 
 def finite_regressors(effect, data) -> np.ndarray:
@@ -181,12 +192,15 @@ class EpochSet:
         if self.wander_s:
             wander = HeadingWander(np.einsum("nij,nj->ni", W, self.heading @ R.T), data.time, self.wander_s)
             A, y = wander.remove(A), wander.remove(y)
-        u, sv, vt = np.linalg.svd(A, full_matrices=False)
-        rank = _rank(sv)
+        # Directions in units of the parameters' prior spread (``determined``). A weaker one (the part of a field
+        # anomaly that a heading offset mimics, once the heading's wander is taken out) is held where it is:
+        # fitted, it would take noise as values of hundreds of thousands of nT.
+        spread = np.sqrt(np.diag(layout.prior()[1]))
+        u, sv, vt = np.linalg.svd(A * spread, full_matrices=False)
+        rank = determined(sv)
         basis = u[:, :rank]
         r = y - basis @ (basis.T @ y)
-        # the least-squares step from x in the determined directions only
-        step = vt[:rank].T @ ((basis.T @ (y - A @ x)) / sv[:rank])
+        step = spread * (vt[:rank].T @ ((basis.T @ (y - A @ x)) / sv[:rank]))
         return Linearised(layout, x, data, W, A, basis, y, r, x + step, wander)
 
     def fit(self, layout: StateLayout, x) -> Linearised:
