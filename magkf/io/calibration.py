@@ -70,8 +70,8 @@ class StoredEffect:
             raise InputError(f"{where}: setting 'column' must be a column name (a string)", source)
         names, values, stds, units = [], [], [], []
         for name, p in params.items():
-            std = p.get("std") if isinstance(p, dict) else None
-            if not (isinstance(p, dict) and _numbers(p.get("value"), 0) and (std is None or _numbers(std, 0))):
+            std = p.get("std") if isinstance(p, dict) else None  # absent: unknown; null is not a number
+            if not (isinstance(p, dict) and _numbers(p.get("value"), 0) and ("std" not in p or _numbers(std, 0))):
                 raise InputError(f"{where}: {data['effect']}.{name} needs a numeric 'value' (and 'std')", source)
             try:
                 value, std = float(p["value"]), math.nan if std is None else float(std)

@@ -447,7 +447,10 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         names = None
     else:
         fed_rows = np.asarray([header_line, *rows])
-        first = pd.read_csv(io.StringIO(header_text), header=None, na_filter=False, dtype=str, **options)
+        try:
+            first = pd.read_csv(io.StringIO(header_text), header=None, na_filter=False, dtype=str, **options)
+        except pd.errors.ParserError as exc:  # an unclosed quote, for one
+            raise InputError(f"cannot read the header: {str(exc).split('. ')[-1].strip()}", name, header_line) from None
         names = [str(v).strip() or f"column_{k + 1}" for k, v in enumerate(first.iloc[0].tolist())]
         for k, column in enumerate(names):
             if column in names[:k]:
