@@ -114,10 +114,14 @@ class EKF(_RandomWalkFilter):
         """Update with innovation ``y`` (r,), Jacobian ``H`` (r, n) and noise ``R`` (r, r; default the
         identity, for whitened rows).
 
-        Joseph form ``(I - K H) P (I - K H)^T + K R K^T``, expanded as ``P + M + M^T`` with
+        Whitened rows that outnumber the states (a block of epochs) are folded in by their information
+        ``H^T H`` and ``H^T y`` (``_fold_information``): one n x n solve instead of r x r. Otherwise the Joseph
+        form ``(I - K H) P (I - K H)^T + K R K^T``, expanded as ``P + M + M^T`` with
         ``M = K S K^T / 2 - K (P H^T)^T``: the same expression, valid for any gain, in two products
         instead of four and exactly symmetric by construction.
         """
+        if R is None and H.shape[0] > H.shape[1] and self._fold_information(H.T @ H, H.T @ y):
+            return
         PHt = self.P @ H.T
         S = H @ PHt
         if R is None:
@@ -128,6 +132,25 @@ class EKF(_RandomWalkFilter):
         self.x = self.x + K @ y
         M = (0.5 * (K @ S)) @ K.T - K @ PHt.T
         self.P = _guard(self.P + (M + M.T))
+
+    def _fold_information(self, J, g) -> bool:
+        """Update with the information ``J = H^T H`` (n, n) and ``g = H^T y`` (n,) of whitened rows; False
+        (nothing changed) when ``P`` is not positive definite.
+
+        With ``P = L L^T``: ``P+ = L (I + L^T J L)^-1 L^T`` and ``x+ = x + P+ g``, the Kalman update of those
+        rows exactly (the information filter's ``P+^-1 = P^-1 + J`` without ever inverting ``P``); the
+        matrix inverted has eigenvalues of at least 1.
+        """
+        try:
+            L = np.linalg.cholesky(self.P)
+            C = np.linalg.cholesky(np.eye(len(J)) + L.T @ J @ L)
+        except np.linalg.LinAlgError:
+            return False
+        M = np.linalg.solve(C, L.T)  # C^-1 L^T, so that P+ = M^T M
+        P = M.T @ M
+        self.x = self.x + P @ g
+        self.P = 0.5 * (P + P.T)
+        return True
 
 
 class UKF(_RandomWalkFilter):

@@ -17,6 +17,7 @@ from ..config import FilterConfig
 from ..errors import InputError, names_the_log
 from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
+from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
 from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise
 from .results import CalibrationRun, RunTrace, build_run
@@ -33,31 +34,35 @@ def calibrate_log(
     effects=(),
     smooth: bool = False,
     progress=None,
+    phases=NO_PHASES,
 ) -> CalibrationRun:
     """Run the online calibration over a log.
 
     ``init`` is an offline calibration (else a bootstrap from the log); ``effects`` are extra
     ``Effect`` blocks; ``smooth`` adds a Rauch-Tung-Striebel pass; ``progress(fraction)`` is called now
     and then. Epochs are processed in blocks of ``config.block_s`` seconds; the per-epoch estimates are
-    those after each epoch's block. Returns an immutable ``CalibrationRun``.
+    those after each epoch's block. ``phases`` (a ``magkf.timing.Phases``) is told the time of each phase.
+    Returns an immutable ``CalibrationRun``.
     """
     started = _time.perf_counter()
-    prep = prepare(log, config)
-    base = mark_missing_columns(prep, effects, log.source)
-    try:
-        prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
-    except InputError as exc:
-        raise exc.located(log.source) from None
-    H_all = layout.linear_jacobian(prep.data)
-    model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
-    R0 = layout.R(x0)
-    structure = model.structure(np.nan_to_num(prep.data.field_body), R0, prep.heading)
-    noise = None
-    if init is None:  # bootstrapped: the noise starts from the log's robust scale too
-        start = start_noise(prep, config, x0, H_all, None if structure is None else structure[3], base)
-        P0 = deflate_bootstrap(P0, layout, start.inflation)
-        noise = start if config.adapt_noise else None
-    est = Estimator(layout, config, x0, P0, noise, model)
+    with phases("reference field and attitude"):
+        prep = prepare(log, config)
+    with phases("start (bootstrap, noise)"):
+        base = mark_missing_columns(prep, effects, log.source)
+        try:
+            prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
+        except InputError as exc:
+            raise exc.located(log.source) from None
+        H_all = layout.linear_jacobian(prep.data)
+        model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
+        R0 = layout.R(x0)
+        structure = model.structure(np.nan_to_num(prep.data.field_body), R0, prep.heading)
+        noise = None
+        if init is None:  # bootstrapped: the noise starts from the log's robust scale too
+            start = start_noise(prep, config, x0, H_all, None if structure is None else structure[3], base)
+            P0 = deflate_bootstrap(P0, layout, start.inflation)
+            noise = start if config.adapt_noise else None
+        est = Estimator(layout, config, x0, P0, noise, model)
     n_ep, n = len(prep), layout.size
     t = prep.time
     starts, stops = blocks(t, config.block_s)
@@ -82,10 +87,12 @@ def calibrate_log(
         if progress is not None and j % every == 0:
             progress(j / len(starts))
     loop_s = _time.perf_counter() - loop_started
+    phases.add("filter loop", loop_s)
     if progress is not None:
         progress(1.0)
     if smooth:
-        xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, layout.q_rate())
+        with phases("smoother"):
+            xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, layout.q_rate())
     block_of = np.repeat(np.arange(len(starts)), stops - starts)
     xs = xs_b[block_of]
     stds = np.sqrt(np.einsum("bii->bi", Ps_b))[block_of]
@@ -107,7 +114,8 @@ def calibrate_log(
         noise=noise_b[block_of],
         correlation_s=est.learner.inflation() * float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
     )
-    return build_run(log, prep, config, layout, x0, P0, trace)
+    with phases("per-epoch table and summary"):
+        return build_run(log, prep, config, layout, x0, P0, trace)
 
 
 def blocks(time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -45,6 +45,26 @@ def test_ekf_correct_equals_textbook_and_filterpy(seed):
     assert np.array_equal(ekf.P, ekf.P.T)  # exactly symmetric by construction
 
 
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("units", [1.0, 1e3])
+def test_block_of_whitened_rows_folded_as_information_equals_textbook(seed, units):
+    """75 whitened rows (a 0.25 s block at 100 Hz) on 12 states: the information update is the Kalman
+    update; also in the units of a calibration, R's spreads near 1e-3 and b's near 1e3 nT (compared in units
+    of each state's spread)."""
+    rng = np.random.default_rng(seed)
+    n, r = 12, 75
+    A = rng.normal(size=(n, n))
+    s = np.concatenate([np.full(9, 1.0 / units), np.full(3, units)])
+    P = s[:, None] * (A @ A.T + n * np.eye(n)) * s[None, :]
+    x, H, z = rng.normal(size=n) * s, rng.normal(size=(r, n)) / s, rng.normal(size=r)
+    ekf = EKF(x, P, np.zeros(n))
+    ekf.correct(z - H @ x, H)
+    x_tb, P_tb = _textbook(x, P, H, np.eye(r), z)
+    assert np.allclose(ekf.x / s, x_tb / s, rtol=1e-9, atol=1e-12)
+    assert np.allclose(ekf.P / np.outer(s, s), P_tb / np.outer(s, s), rtol=1e-9, atol=1e-12)
+    assert np.array_equal(ekf.P, ekf.P.T)
+
+
 def _whitened(H, R, z, x):
     """Rows of the same problem whitened (unit noise), one row per 'epoch'."""
     W = np.linalg.inv(np.linalg.cholesky(R))
