@@ -363,7 +363,7 @@ class _InNanotesla:
     another is in neither's nanotesla)."""
 
     def __init__(self, fit: Linearised):
-        self.L = np.linalg.inv(fit.W)  # un-whitening
+        self.L = fit.unwhitening
         self.Rinv = np.linalg.inv(fit.layout.R(fit.x_fit))
         self.c_nb = fit.data.c_nb
 

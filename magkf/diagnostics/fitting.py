@@ -10,6 +10,7 @@ effect has pulled off.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -131,6 +132,11 @@ class Linearised:
     r: np.ndarray
     x_fit: np.ndarray
     wander: HeadingWander | None = None
+
+    @cached_property
+    def unwhitening(self) -> np.ndarray:
+        """``W^-1`` (n, 3, 3): takes whitened residuals back to nT in the sensor axes (computed once per model)."""
+        return np.linalg.inv(self.W)
 
     def whitened(self, G: np.ndarray) -> np.ndarray:
         """Regressors ``G`` (n, 3, q) whitened, less the heading wander when it is modelled: (3n, q)."""

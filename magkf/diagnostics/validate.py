@@ -154,7 +154,7 @@ def validate(
 
 def _ned(fit, residual_w, x=None) -> np.ndarray:
     """Whitened residuals (n, 3) as NED residuals (n, 3) nT at the fit's (or ``x``'s) calibration ``R``."""
-    raw = np.einsum("nij,nj->ni", np.linalg.inv(fit.W), residual_w)
+    raw = np.einsum("nij,nj->ni", fit.unwhitening, residual_w)
     R = fit.layout.R(fit.x_fit if x is None else x)
     return body_to_ned(fit.data.c_nb, raw @ np.linalg.inv(R).T)
 
