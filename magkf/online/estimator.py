@@ -41,23 +41,19 @@ def _scale_rows(rows, factor) -> None:
         rows.h = rows.h * factor[None, :, None]
 
 
-def _transform_rows(rows, T) -> None:
-    """Apply ``T`` (k, 3, 3) to each epoch's whitened rows (innovation, Jacobian, sigma-point predictions)."""
-    rows.y = np.einsum("kij,kj->ki", T, rows.y)
-    rows.H = T @ rows.H
-    if rows.h is not None:
-        rows.h = np.einsum("kij,skj->ski", T, rows.h)
+def correlated_whitening(cov, frame, inflations) -> tuple[np.ndarray, np.ndarray]:
+    """The whitening ``W`` (k, 3, 3) of noise of covariance ``cov`` (k, 3, 3) inflated by ``inflations``
+    (along the field, ``h``, ``v``) along the rows of ``frame`` (k, 3, 3: the field's direction, the heading
+    axis and the third, in the sensor axes; ``measurements.field_frame``), and ``N = W cov W^T`` (k, 3, 3),
+    the covariance of the un-inflated noise in the whitened rows.
 
-
-def correlation_transform(W, frame, noise: NoiseLevels) -> np.ndarray:
-    """``T`` (k, 3, 3) taking rows whitened by ``W`` (k, 3, 3) to rows whitened by the same noise inflated by
-    ``noise.inflations`` along the rows of ``frame`` (k, 3, 3): the field's direction, the heading axis and
-    the third, in the sensor axes (``measurements.field_frame``)."""
-    L = inverse3(W) if W.shape == (1, 3, 3) else np.linalg.inv(W)
-    field_noise = frame @ L @ np.swapaxes(L, 1, 2) @ np.swapaxes(frame, 1, 2)
-    d = np.sqrt(noise.inflations)
-    inflated = field_noise * d[:, None] * d[None, :]
-    return np.linalg.inv(np.linalg.cholesky(inflated)) @ frame @ L
+    With ``M = frame cov frame^T`` the noise in the field's frame and ``D`` the inflations' square roots:
+    ``W = chol(D M D)^-1 frame``.
+    """
+    M = frame @ cov @ np.swapaxes(frame, 1, 2)
+    d = np.sqrt(np.asarray(inflations, float))
+    W = np.linalg.inv(np.linalg.cholesky(M * d[:, None] * d[None, :])) @ frame
+    return W, W @ cov @ np.swapaxes(W, 1, 2)
 
 
 def run_model(config: FilterConfig, layout: StateLayout, x0, magnitude_only: bool = False) -> MeasurementModel:
@@ -180,7 +176,17 @@ class Estimator:
         else:
             core = layout.CORE
             predicted = float(H0[0] @ kf.P[core, core] @ H0[0])
+        self._gate_and_update(t, blk, h, predicted, parts, cand, status, updated, nis)
+        # What the block's innovations teach about the noise applies from the next block on: a span of
+        # blocks is whitened at once (``whiten``), and a block's gates and update use one noise throughout.
         self._learn(t, x, blk, h, parts, predicted)
+        return status, updated, nis
+
+    def _gate_and_update(self, t, blk: Block, h, predicted, parts, cand, status, updated, nis) -> None:
+        """Gate the candidate epochs of ``parts`` and update the filter with the accepted ones, writing their
+        ``status``, ``updated`` and ``nis`` (k,) in place. ``h`` (k,) the calibrated magnitude at the
+        estimate, nT; ``predicted`` its variance from the estimate's covariance, nT^2."""
+        kf, k = self.filter, len(status)
         width = max(self.config.gate_nt, self.config.gate_sigma * np.sqrt(self.noise.along_var))
         off = np.abs(h - blk.ref_mag) > width
         if np.count_nonzero(cand & off):  # the gate widens with the estimate's own uncertainty (3 sigma)
@@ -188,8 +194,9 @@ class Estimator:
         status[cand & off] = GATED_MAGNITUDE
         parts = [(model, mask & ~off) for model, mask in parts if np.count_nonzero(mask & ~off)]
         if not parts:
-            return status, updated, nis
-        self.model.whiten(blk)
+            return
+        if blk.whitened_with is not self.noise:
+            self.whiten(blk)
         part_blocks = [blk if mask.all() else blk.take(mask) for _, mask in parts]
         lin = kf.linearise([(model, b) for (model, _), b in zip(parts, part_blocks)])
         gated = np.zeros(k, bool)
@@ -206,8 +213,7 @@ class Estimator:
             # field and across it apart.
             q = self._bound(self.config.huber_prob, model.rows)
             huber = np.minimum(1.0, np.sqrt(q / np.maximum(rows.nis, 1e-300)))
-            if model.rows == 3 and part.frame is not None and part.W is not None:
-                _transform_rows(rows, correlation_transform(part.W, part.frame, noise))
+            if part.N is not None and model.rows == part.N.shape[1]:  # the correlation is in the whitening
                 _scale_rows(rows, np.sqrt(huber))
             else:
                 _scale_rows(rows, np.sqrt(huber / noise.inflation_along))
@@ -218,7 +224,20 @@ class Estimator:
             H = kf.update(lin, accept_parts)
             self.information += H.T @ H
             updated[accept] = True
-        return status, updated, nis
+
+    def whiten(self, blk: Block) -> None:
+        """Set the whitening of ``blk``'s epochs at the current noise (``Block.W``, ``Block.N``): the model's,
+        with the residuals' correlation in time folded in for a three-row model (its rows are then whitened
+        by the noise inflated along the field's frame, ``correlated_whitening``, and ``N`` is the covariance
+        of the model's own whitened noise in those rows, which the gates use). Computed once for many
+        blocks when ``blk`` spans them (``Block.take`` keeps it)."""
+        noise, model = self.noise, self.model
+        if model.needs_attitude and model.rows == 3 and blk.frame is not None:
+            blk.W, blk.N = correlated_whitening(model.covariance(blk), blk.frame, noise.inflations)
+        else:
+            model.whiten(blk)
+            blk.N = None
+        blk.whitened_with = noise
 
     def _learn(self, t, x, blk: Block, h, parts, predicted: float) -> None:
         """Show the noise learner the innovations of the candidate epochs (before any gate: the learner

@@ -55,6 +55,16 @@ def _guard(P: np.ndarray) -> np.ndarray:
     return P
 
 
+def _add_noise(S: np.ndarray, blk) -> None:
+    """Add the whitened noise of ``blk`` (``Block.N``, or the identity) to innovation covariances (k, r, r)."""
+    N = getattr(blk, "N", None)
+    if N is not None and S.shape[1] == N.shape[1]:
+        S += N
+    else:
+        r = S.shape[1]
+        S[:, np.arange(r), np.arange(r)] += 1.0
+
+
 def _nis(y: np.ndarray, S: np.ndarray) -> np.ndarray:
     """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with covariances (k, r, r)."""
     if S.shape[1] == 1:
@@ -92,12 +102,13 @@ class EKF(_RandomWalkFilter):
     name = "ekf"
 
     def linearise(self, parts) -> Linearisation:
-        """Rows of each ``(model, block)`` at the estimate, with per-epoch NIS ``y^T (H P H^T + I)^-1 y``."""
+        """Rows of each ``(model, block)`` at the estimate, with per-epoch NIS ``y^T (H P H^T + N)^-1 y``
+        (``N`` the block's whitened noise, ``Block.N``)."""
         rows = []
         for model, blk in parts:
             y, H = model.linearise(self.x, blk)
             S = H @ self.P @ H.transpose(0, 2, 1)
-            S[:, np.arange(H.shape[1]), np.arange(H.shape[1])] += 1.0
+            _add_noise(S, blk)
             rows.append(Rows(y, H, _nis(y, S)))
         return Linearisation(rows)
 
@@ -176,7 +187,7 @@ class UKF(_RandomWalkFilter):
             zp = np.einsum("s,ski->ki", self.Wm, h)
             dz = h - zp
             S = np.einsum("s,ski,skj->kij", self.Wc, dz, dz)
-            S[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
+            _add_noise(S, blk)
             y = z - zp
             rows.append(Rows(y, H, _nis(y, S), h))
         return Linearisation(rows, sigmas)

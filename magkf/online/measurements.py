@@ -82,7 +82,10 @@ class Block:
     (k, 3, 3) the unit field in the sensor frame, the horizontal direction across it and the third, as
     rows (``field_frame``; None for a model that needs no attitude); ``data`` the epochs' ``EpochData``
     (needed by nonlinear effects); ``e`` (k, 3) raw-field terms of the added effects at the current
-    estimate; ``W`` (k, 3, 3) the whitening at the current noise, set by the model (``Vector.whiten``).
+    estimate; ``W`` (k, 3, 3) the whitening at the current noise, set by the model (``Vector.whiten``) and
+    then by the estimator, which folds the residuals' correlation in time into it; ``N`` (k, 3, 3) the
+    covariance of the noise whitened by ``W`` as the gates see it (None: the identity); ``whitened_with`` the
+    ``NoiseLevels`` that ``W`` and ``N`` were computed at (None: not yet whitened).
     """
 
     m: np.ndarray
@@ -98,6 +101,8 @@ class Block:
     data: EpochData | None = None
     e: np.ndarray | float = 0.0
     W: np.ndarray | None = None
+    N: np.ndarray | None = None
+    whitened_with: NoiseLevels | None = None
 
     def take(self, index) -> Block:
         """The same block at the epochs ``index`` (integer array or boolean mask)."""
@@ -119,6 +124,8 @@ class Block:
             None if self.data is None else self.data.take(index),
             cut(self.e),
             cut(self.W),
+            cut(self.N),
+            self.whitened_with,
         )
 
 
@@ -164,6 +171,13 @@ class MeasurementModel:
         ``whitening(blk.B, blk.R)``; nothing for a model that needs none)."""
         if self.needs_attitude:
             blk.W = self.whitening(blk.B, blk.R)
+
+    def covariance(self, blk: Block) -> np.ndarray:
+        """The noise covariance (k, r, r) of the block's epochs at the current noise, nT^2 (by default
+        ``W^-1 W^-T`` of ``whiten``'s ``W``)."""
+        self.whiten(blk)
+        L = np.linalg.inv(blk.W)
+        return L @ np.swapaxes(L, 1, 2)
 
     def linearise(self, x, blk: Block) -> tuple[np.ndarray, np.ndarray]:
         """Whitened innovation ``y`` (k, r) and Jacobian ``H`` (k, r, n) at state ``x`` (n,)."""
@@ -276,10 +290,12 @@ class Vector(MeasurementModel):
         return whitening(vector_noise(field_body, R, self.noise, self.field_aligned, heading))
 
     def whiten(self, blk):
+        blk.W = whitening(self.covariance(blk))
+
+    def covariance(self, blk):
         if blk.G is None:
-            blk.W = self.whitening(blk.B, blk.R, blk.heading)
-            return
-        blk.W = whitening(compose_noise(self.noise, blk.G, blk.Gh, blk.RRt))
+            return vector_noise(blk.B, blk.R, self.noise, self.field_aligned, blk.heading)
+        return compose_noise(self.noise, blk.G, blk.Gh, blk.RRt)
 
     def _jacobian(self, x, blk: Block) -> np.ndarray:
         """(k, 3, n) Jacobian of ``m``: the linear blocks' with the nonlinear effects' filled in."""

@@ -47,7 +47,7 @@ __all__ = ["NoiseLevels", "NoiseLearner", "estimate_levels", "robust_start", "CL
 
 #: Squared innovations are winsorised at this many standard deviations of the current estimate.
 CLIP_SIGMA = 5.0
-#: The robust scales are re-estimated this often, s of data (the correlation at every block).
+#: The robust scales and the correlation are re-estimated this often, s of data.
 ESTIMATE_EVERY_S = 5.0
 #: The robust scales need at least this many innovations in the window (else the start is kept).
 MIN_SAMPLES = 200
@@ -63,6 +63,8 @@ CONVERGED = 0.1
 #: The autocorrelation sum stops where it falls below this.
 RHO_STOP = 0.05
 METHODS = ("matching", "variational")
+#: Innovations whose lagged products are taken at once (bounds the memory of a whole log's start).
+_CHUNK = 16384
 #: The heading error is learned where the horizontal field is at least this share of the field (squared).
 HORIZONTAL_SHARE = 0.05
 
@@ -165,10 +167,12 @@ class NoiseLearner:
         self._next = 0
         self._predicted = 0.0
         self._ring = np.zeros((LAGS[-1], 3))  # the latest standardised innovations (along, h, v)
-        self._count = 0  # innovations seen
+        self._count = 0  # innovations whose lagged products were taken
+        self._pending = []  # (times, standardised innovations) not yet in the lagged products
         self._prod = np.zeros((3, len(LAGS)))
         self._sq = np.zeros(3)
         self._t = None
+        self._t_products = None  # time of the latest innovation in the lagged products, s
         self._t0 = None
         self._estimated = None
         self._measured_s = 0.0  # seconds of innovations whose correlation was measured
@@ -207,16 +211,18 @@ class NoiseLearner:
         # While the state is still far less certain than the noise, its own error makes the innovations look
         # correlated: the correlation is measured only once it explains a small part of them.
         if predicted <= CONVERGED * var_along:
-            self._autocorrelate(z, math.exp(-dt / (CORRELATION_WINDOWS * self.window_s)))
+            self._pending.append((t, z))
             self._measured_s += dt
-        # Re-estimated on a fixed grid of times (the same epochs whether they come in blocks or one by one).
+        # Re-estimated on a fixed grid of times (the same epochs whether they come in blocks or one by one):
+        # the levels, and the correlation of the innovations seen since the last tick, all at once.
         if self._t0 is None:
             self._t0 = float(t[0])
         tick = math.floor((float(t[0]) - self._t0) / ESTIMATE_EVERY_S)
-        if self.adapt and tick != self._estimated:
+        if tick != self._estimated:
             self._estimated = tick
-            lv = self._estimate()
-        self.levels = lv.with_inflations(*self.inflations())
+            if self.adapt:
+                lv = self._estimate()
+            self.levels = lv.with_inflations(*self.inflations())
 
     def _store(self, rows: np.ndarray) -> None:
         k = min(len(rows), BUFFER)
@@ -234,23 +240,38 @@ class NoiseLearner:
             recent[:, 1], cross, recent[:, 4], recent[:, 5], self.levels, self.floor_nt, self._predicted, self.method
         )
 
-    def _autocorrelate(self, z: np.ndarray, decay: float) -> None:
-        """Accumulate, with forgetting, the lagged products of the standardised innovations (k, 3) against
-        the latest ``LAGS[-1]`` ones before them (kept in chronological order)."""
-        history = np.concatenate([self._ring, z])
-        k, n = len(z), len(history)
-        rows = np.arange(n - k, n)
-        partner = rows[:, None] - LAGS[None, :]  # (k, lags)
-        seen = partner >= n - (self._count + k)  # the lagged partner was an innovation, not padding
-        products = z[:, None, :] * history[partner] * seen[:, :, None]  # (k, lags, 3)
-        self._prod = decay * self._prod + products.sum(axis=0).T
-        self._sq = decay * self._sq + np.sum(z**2, axis=0)
-        self._count += k
-        self._ring[...] = history[-len(self._ring) :]  # in place: constant memory
+    def _autocorrelate(self) -> None:
+        """Accumulate, with forgetting, the lagged products of the pending standardised innovations (k, 3)
+        against the latest ``LAGS[-1]`` ones before them (kept in chronological order). Each epoch's products
+        are weighted by ``exp(-age / memory)``, its age counted from the latest pending epoch, and what was
+        accumulated before decays by the time since it."""
+        if not self._pending:
+            return
+        times = np.concatenate([t for t, _ in self._pending])
+        z = np.concatenate([z for _, z in self._pending])
+        self._pending = []
+        memory = CORRELATION_WINDOWS * self.window_s
+        end = float(times[-1])
+        weight = np.exp(-(end - times) / memory)
+        decay = 1.0 if self._t_products is None else math.exp(-max(end - self._t_products, 0.0) / memory)
+        self._t_products = end
+        self._prod *= decay
+        self._sq = decay * self._sq + np.einsum("kc,k->c", z**2, weight)
+        for start in range(0, len(z), _CHUNK):  # in pieces: a whole log's products would not fit
+            piece = z[start : start + _CHUNK]
+            history = np.concatenate([self._ring, piece])
+            k, n = len(piece), len(history)
+            partner = np.arange(n - k, n)[:, None] - LAGS[None, :]  # (k, lags)
+            seen = partner >= n - (self._count + k)  # the lagged partner was an innovation, not padding
+            lagged = history[partner] * seen[:, :, None]  # (k, lags, 3)
+            self._prod += np.einsum("kc,klc->cl", piece * weight[start : start + _CHUNK, None], lagged)
+            self._count += k
+            self._ring[...] = history[-len(self._ring) :]  # in place: constant memory
 
     def correlation(self) -> np.ndarray:
         """The autocorrelation (3, len(LAGS)) of the standardised innovations along the field, along ``h`` and
-        along ``v`` at ``LAGS`` epochs."""
+        along ``v`` at ``LAGS`` epochs, of every innovation observed so far."""
+        self._autocorrelate()
         return np.where(self._sq[:, None] > 0, self._prod / np.maximum(self._sq[:, None], 1e-300), 0.0)
 
     def inflations(self) -> tuple[float, float, float]:
@@ -338,5 +359,6 @@ def robust_start(
     prior = NoiseLevels(floor_nt, attitude_rad, reference_nt)
     levels = estimate_levels(along, cross, field2, horizontal2, prior, floor_nt)
     learner = NoiseLearner(levels, floor_nt, attitude=cross is not None, adapt=False)
-    learner.observe(np.arange(len(along), dtype=float), along, cross, field2, horizontal2=horizontal2)
+    # all at one instant, so that every epoch's lagged products weigh the same (no forgetting)
+    learner.observe(np.zeros(len(along)), along, cross, field2, horizontal2=horizontal2)
     return levels.with_inflations(*learner.measured_inflations())

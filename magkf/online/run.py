@@ -19,11 +19,13 @@ from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
+from .noise import ESTIMATE_EVERY_S
 from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
 __all__ = ["calibrate_log", "blocks", "terminal_progress"]
+
 
 
 @names_the_log
@@ -75,11 +77,20 @@ def calibrate_log(
     noise_b = np.empty((len(starts), 4))  # learned sensor nT, tilt and heading deg, inflation, after each block
     with_data = bool(layout.nonlinear)
     every = max(len(starts) // 100, 1)
+    # Blocks are cut from spans whitened at once, cut anew where the learned noise changed (it changes at
+    # most every ESTIMATE_EVERY_S, after the block that crosses a tick).
+    span_s = ESTIMATE_EVERY_S + config.block_s
+    span_ends = stops[np.maximum(np.searchsorted(t[starts], t[starts] + span_s) - 1, np.arange(len(starts)))]
+    span, s0, s1 = None, 0, 0
     loop_started = _time.perf_counter()
     for j, (i0, i1) in enumerate(zip(starts.tolist(), stops.tolist())):
         epochs = slice(i0, i1)
+        if i1 > s1 or span.whitened_with is not est.noise:
+            s0, s1 = i0, int(span_ends[j])
+            span = prep.block(slice(s0, s1), H_all, structure, with_data, R0)
+            est.whiten(span)
         status[epochs], updated[epochs], nis[epochs] = est.process_block(
-            t[epochs], block_dt[j], prep.block(epochs, H_all, structure, with_data, R0), base[epochs]
+            t[epochs], block_dt[j], span.take(slice(i0 - s0, i1 - s0)), base[epochs]
         )
         xs_b[j] = est.x
         Ps_b[j] = est.P
