@@ -18,7 +18,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import inverse3
 from ..status import Status
 from .filters import make_filter
 from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model

@@ -27,7 +27,6 @@ from .smoother import rts_smooth
 __all__ = ["calibrate_log", "blocks", "terminal_progress"]
 
 
-
 @names_the_log
 def calibrate_log(
     log: DriveLog,
