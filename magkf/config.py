@@ -69,7 +69,7 @@ class FilterConfig:
     init_r_std: float = 0.02
     init_b_std: float = 300.0
     reference_refresh_m: float = 2000.0
-    block_s: float = 0.25
+    block_s: float = 1.0
 
     def __post_init__(self):
         from .online.filters import FILTERS

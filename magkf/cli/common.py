@@ -151,7 +151,7 @@ def add_filter_options(p) -> None:
     g.add_argument(
         "--innovation-prob", type=float, help="chi-square probability of the innovation gate (default 0.999)"
     )
-    g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 0.25; 0 = every epoch)")
+    g.add_argument("--block-s", type=float, help="seconds of epochs per filter update (default 1; 0 = every epoch)")
     for name in ("filter", "measure"):
         if not any(a.dest == name for a in p._actions):
             p.set_defaults(**{name: None})
