@@ -95,6 +95,25 @@ class _RandomWalkFilter:
         """An independent copy (state, covariance and settings)."""
         return copy.deepcopy(self)
 
+    def _fold_information(self, J, g) -> bool:
+        """Update with the information ``J = H^T H`` (n, n) and ``g = H^T y`` (n,) of whitened rows; False
+        (nothing changed) when ``P`` is not positive definite.
+
+        With ``P = L L^T``: ``P+ = L (I + L^T J L)^-1 L^T`` and ``x+ = x + P+ g``, the Kalman update of those
+        rows exactly (the information filter's ``P+^-1 = P^-1 + J`` without ever inverting ``P``); the
+        matrix inverted has eigenvalues of at least 1.
+        """
+        try:
+            L = np.linalg.cholesky(self.P)
+            C = np.linalg.cholesky(np.eye(len(J)) + L.T @ J @ L)
+        except np.linalg.LinAlgError:
+            return False
+        M = np.linalg.solve(C, L.T)  # C^-1 L^T, so that P+ = M^T M
+        P = M.T @ M
+        self.x = self.x + P @ g
+        self.P = 0.5 * (P + P.T)
+        return True
+
 
 class EKF(_RandomWalkFilter):
     """Extended Kalman filter: ``x0`` (n,), ``P0`` (n, n), ``q_rate`` (n,) random-walk variance per second."""
@@ -144,26 +163,6 @@ class EKF(_RandomWalkFilter):
         M = (0.5 * (K @ S)) @ K.T - K @ PHt.T
         self.P = _guard(self.P + (M + M.T))
 
-    def _fold_information(self, J, g) -> bool:
-        """Update with the information ``J = H^T H`` (n, n) and ``g = H^T y`` (n,) of whitened rows; False
-        (nothing changed) when ``P`` is not positive definite.
-
-        With ``P = L L^T``: ``P+ = L (I + L^T J L)^-1 L^T`` and ``x+ = x + P+ g``, the Kalman update of those
-        rows exactly (the information filter's ``P+^-1 = P^-1 + J`` without ever inverting ``P``); the
-        matrix inverted has eigenvalues of at least 1.
-        """
-        try:
-            L = np.linalg.cholesky(self.P)
-            C = np.linalg.cholesky(np.eye(len(J)) + L.T @ J @ L)
-        except np.linalg.LinAlgError:
-            return False
-        M = np.linalg.solve(C, L.T)  # C^-1 L^T, so that P+ = M^T M
-        P = M.T @ M
-        self.x = self.x + P @ g
-        self.P = 0.5 * (P + P.T)
-        return True
-
-
 class UKF(_RandomWalkFilter):
     """Unscented Kalman filter with Van der Merwe's scaled sigma points (FilterPy's
     ``MerweScaledSigmaPoints``; ``alpha=1, beta=2, kappa=0``: all mean weights equal and positive).
@@ -194,8 +193,14 @@ class UKF(_RandomWalkFilter):
 
     def update(self, lin: Linearisation, accept) -> np.ndarray:
         """Update with the accepted epochs of every part at once; returns the whitened linear Jacobian
-        (r, n) of the rows used (the information they carry)."""
+        (r, n) of the rows used (the information they carry).
+
+        Rows that outnumber the states are folded in by their information (``_fold_sigma_rows``); otherwise
+        the textbook update with the stacked innovation covariance."""
         S_count = len(lin.sigmas)
+        H_lin = np.vstack([r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)])
+        if len(H_lin) > self.x.size and self._fold_sigma_rows(lin, accept):
+            return H_lin
         y = np.concatenate([r.y[a].ravel() for r, a in zip(lin.rows, accept)])
         h = np.hstack([r.h[:, a].reshape(S_count, -1) for r, a in zip(lin.rows, accept)])
         zp = self.Wm @ h
@@ -206,7 +211,37 @@ class UKF(_RandomWalkFilter):
         self.x = self.x + K @ y
         P = self.P - (K @ S) @ K.T
         self.P = _guard(0.5 * (P + P.T))
-        return np.vstack([r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)])
+        return H_lin
+
+    def _fold_sigma_rows(self, lin: Linearisation, accept) -> bool:
+        """The update by statistical linear regression: each row's sigma-point predictions give its Jacobian
+        ``H = Pxz^T P^-1`` and its linearisation error ``Omega = Pzz - H P H^T``, and the rows, whitened epoch
+        by epoch by ``I + Omega``, are folded in by their information (``_fold_information``). With the
+        whole ``Omega`` this is the unscented update exactly (``H P H^T + Omega + I`` is its innovation
+        covariance and ``P H^T`` its cross covariance); only the linearisation error's correlation between
+        different epochs is left out, which is nil for the linear vector rows. False when it cannot be done
+        (nothing changed)."""
+        X = (lin.sigmas - self.x) * self.Wc[:, None]  # (S, n)
+        J, g = np.zeros((self.x.size, self.x.size)), np.zeros(self.x.size)
+        for rows, a in zip(lin.rows, accept):
+            h = rows.h[:, a]  # (S, k, r)
+            if not h.shape[1]:
+                continue
+            dz = h - np.einsum("s,skr->kr", self.Wm, h)
+            Pxz = np.einsum("sn,skr->krn", X, dz)  # (k, r, n)
+            try:
+                H = np.linalg.solve(self.P, Pxz.reshape(-1, self.x.size).T).T.reshape(Pxz.shape)
+                Pzz = np.einsum("s,ski,skj->kij", self.Wc, dz, dz)
+                noise = Pzz - H @ self.P @ np.swapaxes(H, 1, 2)
+                noise[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
+                C = np.linalg.cholesky(0.5 * (noise + np.swapaxes(noise, 1, 2)))
+            except np.linalg.LinAlgError:
+                return False
+            Hw = np.linalg.solve(C, H)  # (k, r, n)
+            yw = np.linalg.solve(C, rows.y[a][..., None])[..., 0]  # (k, r)
+            J += np.einsum("kri,krj->ij", Hw, Hw)
+            g += np.einsum("kri,kr->i", Hw, yw)
+        return self._fold_information(J, g)
 
 
 FILTERS = {cls.name: cls for cls in (EKF, UKF)}

@@ -236,7 +236,10 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> 
         if usable.sum() < 50:
             return start
         m, Hu = prep.m[usable], H[usable]
-        x = _robust_linear_fit(m, Hu, x0, start.along_var)
+        # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
+        # whose scale it is for. Every epoch's residual counts in the scale.
+        stride = max(len(m) // FIT_EPOCHS, 1)
+        x = _robust_linear_fit(m[::stride], Hu[::stride], x0, start.along_var)
         parts_of_e = np.einsum("kji,ki->kj", frame[usable], m - np.einsum("kij,j->ki", Hu, x))
         along, cross = parts_of_e[:, 0], parts_of_e[:, 1:]  # along the field, the heading axis, the third
     else:
@@ -256,6 +259,10 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> 
         start.attitude_rad,
         horizontal2,
     )
+
+
+#: At most about this many epochs (evenly spaced) go into the starting noise's whole-log fit.
+FIT_EPOCHS = 50_000
 
 
 def _robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:

@@ -157,3 +157,74 @@ def test_rts_smoother_equals_filterpy():
     x_mk, P_mk = rts_smooth(xs, Ps, dt, q_rate)
     assert np.allclose(x_mk, x_fp, rtol=1e-9, atol=1e-9)
     assert np.allclose(P_mk, P_fp, rtol=1e-9, atol=1e-9)
+
+
+def _unscented_textbook(x, P, hx, z):
+    """The unscented update with unit noise from FilterPy's sigma points and transform (fresh sigma points at
+    the estimate, as magkf's UKF draws them)."""
+    from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
+
+    points = MerweScaledSigmaPoints(len(x), alpha=1.0, beta=2.0, kappa=0.0)
+    sigmas = points.sigma_points(x, P)
+    h = np.array([hx(s) for s in sigmas])
+    zp, S = unscented_transform(h, points.Wm, points.Wc, np.eye(len(z)))
+    Pxz = ((sigmas - x).T * points.Wc) @ (h - zp)
+    K = Pxz @ np.linalg.inv(S)
+    return x + K @ (z - zp), P - K @ S @ K.T
+
+
+class _Curved:
+    """One epoch of three rows that curve with the state (unit noise): the unscented update is then not the
+    linear one."""
+
+    rows = 3
+
+    def __init__(self, z):
+        self.z = z
+
+    @staticmethod
+    def h(x):
+        x = np.asarray(x)
+        return np.stack(
+            [
+                x[..., 0] + 0.3 * x[..., 1] ** 2,
+                x[..., 1] + 0.2 * x[..., 0] * x[..., 1],
+                x[..., 0] - x[..., 1] + 0.1 * x[..., 0] ** 2,
+            ],
+            -1,
+        )
+
+    def sigma_predict(self, sigmas, x, blk):
+        H = np.array([[1.0, 0.6 * x[1]], [0.2 * x[1], 1.0 + 0.2 * x[0]], [1.0 + 0.2 * x[0], -1.0]])
+        return self.h(sigmas)[:, None, :], self.z[None], H[None]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ukf_folds_many_linear_rows_as_the_textbook_update(seed):
+    """75 linear whitened rows on 12 states: the unscented update folded in by information (statistical linear
+    regression, no linearisation error) is the textbook update."""
+    rng = np.random.default_rng(seed)
+    n, r = 12, 75
+    A = rng.normal(size=(n, n))
+    P, x = A @ A.T + n * np.eye(n), rng.normal(size=n)
+    Hw, zw = rng.normal(size=(r, n)), rng.normal(size=r)
+    kf = FILTERS["ukf"](x, P, np.zeros(n))
+    kf.update(kf.linearise([(_Linear(Hw, zw), None)]), [np.ones(r, bool)])
+    x_tb, P_tb = _textbook(x, P, Hw, np.eye(r), zw)
+    assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
+    assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ukf_fold_keeps_the_linearisation_error_of_a_curved_epoch(seed):
+    """Three curved rows of one epoch on two states (more rows than states, so they are folded in): the
+    linearisation error that the sigma points see enters as noise, and the update is FilterPy's unscented one."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(2, 2))
+    P, x = A @ A.T + np.eye(2), rng.normal(size=2)
+    z = _Curved.h(x) + rng.normal(size=3)
+    kf = FILTERS["ukf"](x, P, np.zeros(2))
+    kf.update(kf.linearise([(_Curved(z), None)]), [np.ones(1, bool)])
+    x_tb, P_tb = _unscented_textbook(x, P, _Curved.h, z)
+    assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
+    assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
