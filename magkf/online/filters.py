@@ -65,6 +65,12 @@ def _add_noise(S: np.ndarray, blk) -> None:
         S[:, np.arange(r), np.arange(r)] += 1.0
 
 
+def _weighted_covariance(weights: np.ndarray, dz: np.ndarray) -> np.ndarray:
+    """``sum_s weights[s] dz[s, k] dz[s, k]^T`` (k, r, r) of deviations ``dz`` (S, k, r)."""
+    D = np.moveaxis(dz, 0, 1)  # (k, S, r)
+    return np.swapaxes(D * weights[:, None], 1, 2) @ D
+
+
 def _nis(y: np.ndarray, S: np.ndarray) -> np.ndarray:
     """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with covariances (k, r, r)."""
     if S.shape[1] == 1:
@@ -163,6 +169,7 @@ class EKF(_RandomWalkFilter):
         M = (0.5 * (K @ S)) @ K.T - K @ PHt.T
         self.P = _guard(self.P + (M + M.T))
 
+
 class UKF(_RandomWalkFilter):
     """Unscented Kalman filter with Van der Merwe's scaled sigma points (FilterPy's
     ``MerweScaledSigmaPoints``; ``alpha=1, beta=2, kappa=0``: all mean weights equal and positive).
@@ -183,9 +190,9 @@ class UKF(_RandomWalkFilter):
         rows = []
         for model, blk in parts:
             h, z, H = model.sigma_predict(sigmas, self.x, blk)
-            zp = np.einsum("s,ski->ki", self.Wm, h)
+            zp = np.tensordot(self.Wm, h, axes=1)
             dz = h - zp
-            S = np.einsum("s,ski,skj->kij", self.Wc, dz, dz)
+            S = _weighted_covariance(self.Wc, dz)
             _add_noise(S, blk)
             y = z - zp
             rows.append(Rows(y, H, _nis(y, S), h))
@@ -227,11 +234,11 @@ class UKF(_RandomWalkFilter):
             h = rows.h[:, a]  # (S, k, r)
             if not h.shape[1]:
                 continue
-            dz = h - np.einsum("s,skr->kr", self.Wm, h)
-            Pxz = np.einsum("sn,skr->krn", X, dz)  # (k, r, n)
+            dz = h - np.tensordot(self.Wm, h, axes=1)
+            Pxz = np.tensordot(dz, X, axes=([0], [0]))  # (k, r, n)
             try:
                 H = np.linalg.solve(self.P, Pxz.reshape(-1, self.x.size).T).T.reshape(Pxz.shape)
-                Pzz = np.einsum("s,ski,skj->kij", self.Wc, dz, dz)
+                Pzz = _weighted_covariance(self.Wc, dz)
                 noise = Pzz - H @ self.P @ np.swapaxes(H, 1, 2)
                 noise[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
                 C = np.linalg.cholesky(0.5 * (noise + np.swapaxes(noise, 1, 2)))

@@ -315,7 +315,7 @@ class Vector(MeasurementModel):
 
     def sigma_predict(self, sigmas, x, blk):
         WH = blk.W @ blk.H
-        h = np.einsum("kin,sn->ski", WH, sigmas)
+        h = np.tensordot(sigmas, WH, axes=([1], [2]))  # (S, k, 3)
         if self.layout.nonlinear:
             h = h + np.einsum("kij,skj->ski", blk.W, self.layout.nonlinear_terms(sigmas, blk.data))
         z = np.einsum("kij,kj->ki", blk.W, blk.m)
