@@ -93,7 +93,7 @@ def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str]
 
 
 #: Bytes of a CSV file scanned at a time for its field counts.
-SCAN_BYTES = 1 << 24
+SCAN_BYTES = 1 << 22
 
 
 def _check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
@@ -124,10 +124,9 @@ def _check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
                 return None
             newline = data == ord("\n")
             ends = np.flatnonzero(newline | (data == ord("\r")) & ~np.r_[newline[1:], False])  # LF, CR LF or CR
-            commas = np.cumsum(data == ord(","))
+            commas_before_end = np.searchsorted(np.flatnonzero(data == ord(",")), ends)  # commas before each end
             starts = np.r_[0, ends[:-1] + 1] if ends.size else np.zeros(0, int)
-            before = np.r_[0, commas[ends[:-1]]] if ends.size else np.zeros(0, int)
-            counts = commas[ends] - before if ends.size else np.zeros(0, int)
+            counts = np.diff(commas_before_end, prepend=0)
             lengths = ends - starts
             if ends.size:  # the line running on from the last chunk
                 counts[0] += commas_in_line
