@@ -20,7 +20,7 @@ import numpy as np
 from ..config import FilterConfig
 from ..status import Status
 from .filters import make_filter
-from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model
+from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model, whitening
 from .noise import NoiseLearner, NoiseLevels
 from .state import StateLayout
 
@@ -47,11 +47,11 @@ def correlated_whitening(cov, frame, inflations) -> tuple[np.ndarray, np.ndarray
     the covariance of the un-inflated noise in the whitened rows.
 
     With ``M = frame cov frame^T`` the noise in the field's frame and ``D`` the inflations' square roots:
-    ``W = chol(D M D)^-1 frame``.
+    ``W = chol(D M D)^-1 frame`` (``measurements.whitening``).
     """
     M = frame @ cov @ np.swapaxes(frame, 1, 2)
     d = np.sqrt(np.asarray(inflations, float))
-    W = np.linalg.inv(np.linalg.cholesky(M * d[:, None] * d[None, :])) @ frame
+    W = whitening(M * d[:, None] * d[None, :]) @ frame
     return W, W @ cov @ np.swapaxes(W, 1, 2)
 
 

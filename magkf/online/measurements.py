@@ -33,6 +33,7 @@ Shapes: a block of k epochs; ``r`` rows per epoch (``Model.rows``); n states; S 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -364,6 +365,8 @@ def field_frame(field: np.ndarray, heading=None) -> np.ndarray:
     made orthogonal to it, and the third direction, across both; without ``heading`` (or where it vanishes,
     a vertical field) two unit vectors across the field (``cross_basis``). Missing fields give a frame
     about the z axis."""
+    if len(field) == 1:  # one epoch (real time): plain floats beat numpy's per-call cost
+        return _field_frame1(field[0], None if heading is None else heading[0])[None]
     field = np.nan_to_num(np.asarray(field, float))
     safe = np.where(np.linalg.norm(field, axis=1, keepdims=True) > 0, field, np.array([[0.0, 0.0, 1.0]]))
     u = safe / np.linalg.norm(safe, axis=1)[:, None]
@@ -376,6 +379,31 @@ def field_frame(field: np.ndarray, heading=None) -> np.ndarray:
         h = h[ok] / norm[ok, None]
         basis[ok] = np.stack([h, _cross(u[ok], h)], axis=1)
     return np.concatenate([u[:, None, :], basis], axis=1)
+
+
+def _field_frame1(field, heading) -> np.ndarray:
+    """``field_frame`` (3, 3) of one epoch's field (3,) and heading axis (3, or None)."""
+    f = [float(v) if math.isfinite(v) else 0.0 for v in field]
+    norm = math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
+    u = [v / norm for v in f] if norm > 0 else [0.0, 0.0, 1.0]
+    second = None
+    if heading is not None:
+        h = [float(v) if math.isfinite(v) else 0.0 for v in heading]
+        along = h[0] * u[0] + h[1] * u[1] + h[2] * u[2]
+        h = [a - along * b for a, b in zip(h, u)]
+        length = math.sqrt(h[0] ** 2 + h[1] ** 2 + h[2] ** 2)
+        if length > 1e-6 * max(norm, 1.0 if norm == 0 else norm):
+            second = [v / length for v in h]
+    if second is None:  # as cross_basis: across the field, from the x axis (or y near x)
+        helper = [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0]
+        e = _cross3(u, helper)
+        length = math.sqrt(e[0] ** 2 + e[1] ** 2 + e[2] ** 2)
+        second = [v / length for v in e]
+    return np.array([u, second, _cross3(u, second)])
+
+
+def _cross3(a, b) -> list:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
 def sensor_frame(field_body, heading, R) -> np.ndarray:

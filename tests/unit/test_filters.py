@@ -228,3 +228,20 @@ def test_ukf_fold_keeps_the_linearisation_error_of_a_curved_epoch(seed):
     x_tb, P_tb = _unscented_textbook(x, P, _Curved.h, z)
     assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
     assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
+
+
+def test_one_epoch_field_frame_is_the_vectorised_one():
+    """The real-time path's plain-float field frame (one epoch) equals the vectorised one, also where the
+    heading axis lies along the field and where the field is near the x axis."""
+    from magkf.online.measurements import field_frame
+
+    rng = np.random.default_rng(3)
+    for i in range(100):
+        f, h = rng.normal(size=(1, 3)) * 3e4, rng.normal(size=(1, 3)) * 2e4
+        if i % 5 == 0:
+            h = 0.5 * f
+        if i % 7 == 0:
+            f[0, 0] = 0.95 * np.linalg.norm(f)
+        for heading in (h, None):
+            twice = None if heading is None else np.vstack([heading, heading])
+            assert np.allclose(field_frame(f, heading), field_frame(np.vstack([f, f]), twice)[:1], atol=1e-12)
