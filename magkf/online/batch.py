@@ -50,9 +50,7 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         raise exc.located(log.source) from None
     model = measurement_model(config, layout, x0)
     if init is None:  # the noise of the log, as the filter starts from it
-        structure = model.structure(np.nan_to_num(prep.data.field_body), layout.R(x0), prep.heading)
-        frame = None if structure is None else structure[3]
-        noise = start_noise(prep, config, x0, layout.linear_jacobian(prep.data), frame, prep.base)
+        noise = start_noise(prep, config, x0, layout, model.needs_attitude, prep.base)
         P0 = deflate_bootstrap(P0, layout, noise.inflation)
         if config.adapt_noise:
             model.set_noise(noise)

@@ -21,7 +21,7 @@ from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog, epoch_status
 from ..status import Status
 from .bootstrap import PRIOR_B_STD, PRIOR_R_STD, bootstrap_magnitude, bootstrap_vector
-from .measurements import MEASUREMENTS, Block, heading_axis
+from .measurements import MEASUREMENTS, Block, heading_axis, sensor_frame
 from .noise import NoiseLevels, robust_start
 from .state import CORE_SIZE, StateLayout
 
@@ -62,29 +62,33 @@ class PreparedLog:
         """(N,) UNIX seconds."""
         return self.data.time
 
-    def block(self, index, H, structure=None, with_data: bool = False, R=None) -> Block:
-        """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement models,
-        with the linear Jacobian ``H`` (N, 3, n), the noise ``structure`` ``(G, Gh, RRt, frame)`` of the
-        whole log (``MeasurementModel.structure``; None for the magnitude model) and the calibration ``R``
-        (3, 3) at which the vector noise is evaluated."""
+    def block(self, index, layout: StateLayout, model, R, with_data: bool = False) -> Block:
+        """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement ``model``: their
+        linear Jacobian (``layout.linear_jacobian``) and noise structure (``model.structure``) at the
+        calibration ``R`` (3, 3), computed for these epochs only (a long log is never held whole in them);
+        ``with_data`` keeps the epochs' ``EpochData`` (for nonlinear effects)."""
+        data = self.data.take(index)
+        heading = self.heading[index]
+        structure = model.structure(np.nan_to_num(data.field_body), R, heading)
         G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
-
-        def cut(a):
-            return None if a is None else a[index]
-
         return Block(
             self.m[index],
             self.ref_mag[index],
-            H[index],
-            self.data.field_body[index],
+            layout.linear_jacobian(data),
+            data.field_body,
             R,
-            self.heading[index],
-            cut(G),
-            cut(Gh),
+            heading,
+            G,
+            Gh,
             RRt,
-            cut(frame),
-            self.data.take(index) if with_data else None,
+            frame,
+            data if with_data else None,
         )
+
+    def frame(self, index, R) -> np.ndarray:
+        """The field's frame (k, 3, 3) in the sensor axes at the epochs ``index`` at calibration ``R``
+        (``measurements.sensor_frame``)."""
+        return sensor_frame(np.nan_to_num(self.data.field_body[index]), self.heading[index], R)
 
 
 def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
@@ -221,26 +225,30 @@ def calibration_start(
     return layout, x0, P0
 
 
-def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> NoiseLevels:
+def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout, attitude: bool, base) -> NoiseLevels:
     """The noise to start from: a robust scale of the residuals of a whole-log fit.
 
-    With attitude, the fit is a robust (Huber-weighted) linear least squares of ``m = H x`` over every usable
-    epoch, starting from ``x0``: over the bootstrap's short stretch alone, a slowly wandering attitude error is
-    absorbed into ``R`` and ``b`` and its residuals understate the noise (and its correlation), which lets
-    the filter trust its first minutes far too much. Without attitude, the residual magnitudes at ``x0``.
-    ``H`` (N, 3, n) the linear Jacobian; ``frame`` (N, 3, 3) the field's frame in the sensor axes (None
-    for the magnitude model); ``base`` (N,) the statuses before filtering."""
+    With ``attitude`` (a model that uses it), the fit is a robust (Huber-weighted) linear least squares of
+    ``m = H x`` (``H`` the layout's linear Jacobian) over the usable epochs, starting from ``x0``: over the
+    bootstrap's short stretch alone, a slowly wandering attitude error is absorbed into ``R`` and ``b`` and
+    its residuals understate the noise (and its correlation), which lets the filter trust its first
+    minutes far too much. Without attitude, the residual magnitudes at ``x0``. ``base`` (N,) the statuses
+    before filtering. The log is gone through in pieces of ``CHUNK`` epochs."""
     start = NoiseLevels(config.sensor_noise_nt, np.radians(config.attitude_deg), config.reference_nt)
-    if frame is not None:
-        usable = base == Status.USED
-        if usable.sum() < 50:
+    if attitude:
+        usable = np.flatnonzero(base == Status.USED)
+        if len(usable) < 50:
             return start
-        m, Hu = prep.m[usable], H[usable]
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
-        stride = max(len(m) // FIT_EPOCHS, 1)
-        x = _robust_linear_fit(m[::stride], Hu[::stride], x0, start.along_var)
-        parts_of_e = np.einsum("kji,ki->kj", frame[usable], m - np.einsum("kij,j->ki", Hu, x))
+        fit = usable[:: max(len(usable) // FIT_EPOCHS, 1)]
+        x = _robust_linear_fit(prep.m[fit], layout.linear_jacobian(prep.data.take(fit)), x0, start.along_var)
+        R = StateLayout.R(np.asarray(x0, float))
+        parts_of_e = np.empty((len(usable), 3))
+        for i in range(0, len(usable), CHUNK):
+            idx = usable[i : i + CHUNK]
+            e = prep.m[idx] - layout.linear_jacobian(prep.data.take(idx)) @ x
+            parts_of_e[i : i + CHUNK] = np.einsum("kji,ki->kj", prep.frame(idx, R), e)
         along, cross = parts_of_e[:, 0], parts_of_e[:, 1:]  # along the field, the heading axis, the third
     else:
         usable = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)
@@ -261,6 +269,8 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, H, frame, base) -> 
     )
 
 
+#: Epochs whose Jacobians are held at once when a whole log is gone through.
+CHUNK = 65_536
 #: At most about this many epochs (evenly spaced) go into the starting noise's whole-log fit.
 FIT_EPOCHS = 50_000
 

@@ -54,13 +54,11 @@ def calibrate_log(
             prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
         except InputError as exc:
             raise exc.located(log.source) from None
-        H_all = layout.linear_jacobian(prep.data)
         model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
         R0 = layout.R(x0)
-        structure = model.structure(np.nan_to_num(prep.data.field_body), R0, prep.heading)
         noise = None
         if init is None:  # bootstrapped: the noise starts from the log's robust scale too
-            start = start_noise(prep, config, x0, H_all, None if structure is None else structure[3], base)
+            start = start_noise(prep, config, x0, layout, model.needs_attitude, base)
             P0 = deflate_bootstrap(P0, layout, start.inflation)
             noise = start if config.adapt_noise else None
         est = Estimator(layout, config, x0, P0, noise, model)
@@ -86,7 +84,7 @@ def calibrate_log(
         epochs = slice(i0, i1)
         if i1 > s1 or span.whitened_with is not est.noise:
             s0, s1 = i0, int(span_ends[j])
-            span = prep.block(slice(s0, s1), H_all, structure, with_data, R0)
+            span = prep.block(slice(s0, s1), layout, model, R0, with_data)
             est.whiten(span)
         status[epochs], updated[epochs], nis[epochs] = est.process_block(
             t[epochs], block_dt[j], span.take(slice(i0 - s0, i1 - s0)), base[epochs]
