@@ -8,6 +8,11 @@ stacked measurement. For the linear vector measurement this is exactly the same 
 epoch (the process noise is merely added at the block's start instead of spread over it); it lets the
 per-log loop pay numpy's per-call cost once per block instead of once per epoch.
 
+The noise the block's gates and update use is the one learned from the blocks before it; the block's own
+innovations go to the learner at its end. The learned noise changes only every few seconds of data
+(``noise.ESTIMATE_EVERY_S``), so a caller may whiten a span of many blocks at once (``Estimator.whiten``;
+``Block.take`` cuts the span, and a block whitened at another noise is whitened again).
+
 Which epochs a measurement model takes: those with status ``used`` (and, for a model that needs no
 attitude, those with ``missing_attitude`` too); its ``fallback`` takes the ``missing_attitude`` ones.
 The statuses are defined in ``magkf.status``.
