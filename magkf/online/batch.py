@@ -130,11 +130,9 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
     used[idx[~outlier]] = True
     information = np.linalg.inv(P) - np.linalg.inv(P0)
     n = len(status)
-    xs = np.tile(fit.x, (n, 1))
-    stds = np.tile(np.sqrt(np.diag(P)), (n, 1))
     trace = RunTrace(
-        xs,
-        stds,
+        fit.x[None],
+        np.sqrt(np.diag(P))[None],
         status,
         used,
         np.full(n, np.nan),
@@ -144,5 +142,6 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         how,
         _time.perf_counter() - started,
         method="batch",
+        stops=np.array([n]),
     )
     return build_run(log, prep, config, layout, x0, P0, trace)

@@ -62,6 +62,20 @@ class PreparedLog:
         """(N,) UNIX seconds."""
         return self.data.time
 
+    def take(self, index) -> PreparedLog:
+        """The same arrays at the epochs ``index`` (a slice gives views)."""
+        return PreparedLog(
+            self.m[index],
+            self.ref[index],
+            self.ref_mag[index],
+            self.c_nb[index],
+            self.has_attitude[index],
+            self.dop[index],
+            self.base[index],
+            self.data.take(index),
+            self.heading[index],
+        )
+
     def block(self, index, layout: StateLayout, model, R, with_data: bool = False) -> Block:
         """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement ``model``: their
         linear Jacobian (``layout.linear_jacobian``) and noise structure (``model.structure``) at the

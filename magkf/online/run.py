@@ -101,13 +101,10 @@ def calibrate_log(
     if smooth:
         with phases("smoother"):
             xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, layout.q_rate())
-    block_of = np.repeat(np.arange(len(starts)), stops - starts)
-    xs = xs_b[block_of]
-    stds = np.sqrt(np.einsum("bii->bi", Ps_b))[block_of]
     # The calibration is the estimate at the end of the log (smoothing leaves the last estimate as it is).
     trace = RunTrace(
-        xs,
-        stds,
+        xs_b,
+        np.sqrt(np.einsum("bii->bi", Ps_b)),
         status,
         updated,
         nis,
@@ -119,8 +116,9 @@ def calibrate_log(
         smooth,
         est.reacquisitions,
         loop_s,
-        noise=noise_b[block_of],
+        noise=noise_b,
         correlation_s=est.learner.inflation() * float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
+        stops=stops,
     )
     with phases("per-epoch table and summary"):
         return build_run(log, prep, config, layout, x0, P0, trace)
