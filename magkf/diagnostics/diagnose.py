@@ -60,6 +60,7 @@ from .fitting import (
     finite_regressors,
     inliers,
     span_basis,
+    tall_svd,
 )
 from .inference import constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, robust_test
 
@@ -413,7 +414,7 @@ def _determined_part(effect, Gw, basis, value, cov):
     if Gw.shape[1] != len(spread):
         return value, cov, 0
     scaled = (Gw - basis @ (basis.T @ Gw)) * spread
-    _, sv, vt = np.linalg.svd(scaled, full_matrices=False)
+    _, sv, vt = tall_svd(scaled, want_u=False)
     k = determined(sv)
     if k == len(spread):
         return value, cov, 0
@@ -475,7 +476,7 @@ class _Selection:
         norms[norms == 0] = 1.0
         Gn = Gw / norms
         Gt = Gn - basis @ (basis.T @ Gn)
-        u, s, vt = np.linalg.svd(Gt, full_matrices=False)
+        u, s, vt = tall_svd(Gt)
         rank = int(np.sum(s > RANK_TOLERANCE))
         if rank == 0:
             return _Trial(effect, None, float("nan"), float("nan"), {}, 0, "contained in the model")

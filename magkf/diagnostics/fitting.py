@@ -47,9 +47,36 @@ OUTLIER_SIGMA = 5.0
 
 def span_basis(A: np.ndarray) -> np.ndarray:
     """An orthonormal basis (rows, rank) of the span of ``A`` (rows, p), directions below ``1e-9`` of the
-    largest singular value left out."""
-    u, sv, _ = np.linalg.svd(A, full_matrices=False)
+    largest singular value (or unresolved, ``tall_svd``) left out."""
+    u, sv, _ = tall_svd(A)
     return u[:, : _rank(sv)]
+
+
+#: Singular values below this share of the largest are not resolved by ``tall_svd`` (about the square root of
+#: the float64 precision, which the Gram matrix squares).
+GRAM_RESOLUTION = 1e-7
+
+
+def tall_svd(A: np.ndarray, want_u: bool = True):
+    """Thin SVD ``(u, s, vt)`` of ``A`` (rows, q) in descending order. A matrix of many more rows than columns
+    (the diagnosis's whitened regressors: three rows an epoch) is decomposed through its Gram matrix
+    ``A^T A`` (one matrix product and a q x q eigen-decomposition: a small fraction of LAPACK's SVD of a
+    million rows); singular values below ``GRAM_RESOLUTION`` of the largest are then returned as 0, with zero
+    columns of ``u``. Other shapes go to ``np.linalg.svd``. ``want_u`` False skips ``u`` (None)."""
+    rows, q = A.shape
+    if rows < 8 * q or q == 0:
+        if not want_u:
+            return None, *np.linalg.svd(A, full_matrices=False)[1:]
+        return np.linalg.svd(A, full_matrices=False)
+    w, V = np.linalg.eigh(A.T @ A)
+    w, V = w[::-1].copy(), np.ascontiguousarray(V[:, ::-1])
+    s = np.sqrt(np.clip(w, 0.0, None))
+    resolved = s > GRAM_RESOLUTION * s[0] if s[0] > 0 else np.zeros(q, bool)
+    s[~resolved] = 0.0
+    u = None
+    if want_u:
+        u = A @ (V * np.divide(1.0, s, out=np.zeros(q), where=resolved))  # one matrix product
+    return u, s, np.ascontiguousarray(V.T)
 
 
 def _rank(sv: np.ndarray) -> int:
@@ -103,16 +130,17 @@ class HeadingWander:
         centre = (np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)]))[self.block]
         s = 2.0 * (t - centre) / block_s
         self.Z = np.stack([Z, Z * s[:, None]], axis=2)  # (n, 3, 2)
-        normal = np.add.reduceat(np.einsum("nia,nib->nab", self.Z, self.Z), self.starts, axis=0)
+        normal = np.add.reduceat(np.swapaxes(self.Z, 1, 2) @ self.Z, self.starts, axis=0)
         self.inverse = np.linalg.pinv(normal, rcond=1e-9)  # (blocks, 2, 2)
 
     def remove(self, X: np.ndarray) -> np.ndarray:
         """``X`` (3n,) or (3n, k), epoch-major, less its least-squares fit by the wander of each stretch."""
         n = len(self.block)
         Xr = X.reshape(n, 3, -1)
-        c = np.add.reduceat(np.einsum("nia,nik->nak", self.Z, Xr), self.starts, axis=0)
+        # batched matrix products: about twice as fast as the same einsums on long logs
+        c = np.add.reduceat(np.swapaxes(self.Z, 1, 2) @ Xr, self.starts, axis=0)
         coef = self.inverse @ c  # (blocks, 2, k)
-        return (Xr - np.einsum("nia,nak->nik", self.Z, coef[self.block])).reshape(X.shape)
+        return (Xr - self.Z @ coef[self.block]).reshape(X.shape)
 
 
 @dataclass(frozen=True)
@@ -202,7 +230,7 @@ class EpochSet:
         # anomaly that a heading offset mimics, once the heading's wander is taken out) is held where it is:
         # fitted, it would take noise as values of hundreds of thousands of nT.
         spread = np.sqrt(np.diag(layout.prior()[1]))
-        u, sv, vt = np.linalg.svd(A * spread, full_matrices=False)
+        u, sv, vt = tall_svd(A * spread)
         rank = determined(sv)
         basis = u[:, :rank]
         r = y - basis @ (basis.T @ y)

@@ -147,6 +147,17 @@ CONSTANCY_DRAWS = 20000
 _NULL_DRAWS: dict = {}
 
 
+def _wishart_bartlett(rng, draws: int, K: int, q: int) -> np.ndarray:
+    """``draws`` sums (draws, q, q) of ``K`` outer products of independent standard normal q-vectors, drawn as
+    Wishart matrices by Bartlett's decomposition ``A A^T`` (``A`` lower triangular, ``A_ii^2`` chi-square with
+    ``K - i`` degrees of freedom, ``A_ij`` standard normal below the diagonal): O(q^2) numbers a draw instead
+    of ``K q`` (Bartlett, "On the theory of statistical regression", Proc. R. Soc. Edinburgh 53, 1933)."""
+    A = np.tril(rng.normal(size=(draws, q, q)), -1)
+    idx = np.arange(q)
+    A[:, idx, idx] = np.sqrt(rng.chisquare(K - idx, size=(draws, q)))
+    return A @ np.swapaxes(A, 1, 2)
+
+
 def _constancy_null(q: int, K: int) -> np.ndarray:
     """Sorted draws of ``sum_{k<=CONSTANCY_TERMS} c_k^T Vhat^-1 c_k / (k pi)^2`` with ``c_k`` independent
     standard normal q-vectors and ``Vhat`` the mean of ``K`` more outer products (the statistic's exact
@@ -158,8 +169,7 @@ def _constancy_null(q: int, K: int) -> np.ndarray:
         out = np.empty(CONSTANCY_DRAWS)
         for start in range(0, CONSTANCY_DRAWS, 2000):
             c = rng.normal(size=(2000, CONSTANCY_TERMS, q))
-            v = rng.normal(size=(2000, K, q))
-            V = np.einsum("dki,dkj->dij", v, v) / K
+            V = _wishart_bartlett(rng, 2000, K, q) / K
             sol = np.linalg.solve(V, np.swapaxes(c, 1, 2))  # (d, q, terms)
             out[start : start + 2000] = np.einsum("dti,dit,t->d", c, sol, weights)
         _NULL_DRAWS[key] = np.sort(out)
