@@ -414,41 +414,70 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     ends in ``.parquet``; ``-``: CSV on standard output. Replaced only once complete.
 
     The CSV is written by pyarrow (about fifteen times faster than pandas' ``to_csv``): numbers in their
-    shortest form that reads back to the same double, an empty cell for a missing value, and ``time`` with six
-    decimals (microseconds of UNIX time)."""
-    from .files import STDIO, standard_output, written
-
-    out = table.reset_index() if table.index.name == TIME else table
-    parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
-    if path == STDIO:
-        standard_output().write(_csv_bytes(out).decode("utf-8"))
-        standard_output().flush()
-        return
-    with written(path) as tmp:
-        if parquet:
-            out.to_parquet(tmp, index=False)
-        else:
-            Path(tmp).write_bytes(_csv_bytes(out))
-
-
-def _csv_bytes(frame: pd.DataFrame) -> bytes:
-    """``frame`` as canonical CSV (see ``write_drive_log``)."""
+    shortest form that reads back to the same value, an empty cell for a missing value, and ``time`` with six
+    decimals (microseconds of UNIX time). Both are written ``WRITE_ROWS`` rows at a time, so that a long
+    table is never held a second time in another form."""
     import pyarrow as pa
     from pyarrow import csv
 
+    from .files import STDIO, standard_output, written
+
+    parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
+    pieces = (
+        _arrow_piece(table.iloc[i : i + WRITE_ROWS], time_as_text=not parquet)
+        for i in range(0, max(len(table), 1), WRITE_ROWS)
+    )
+    if parquet:
+        import pyarrow.parquet as pq
+
+        with written(path) as tmp:
+            first = next(pieces)
+            with pq.ParquetWriter(tmp, first.schema) as writer:
+                writer.write_table(first)
+                for piece in pieces:
+                    writer.write_table(piece)
+        return
+    # plain cells, as a spreadsheet writes them, unless a text cell holds a comma, a quote or a line end
+    quoted = any(
+        table[c].astype(str).str.contains(r'[,"\r\n]').any()
+        for c in table.columns
+        if not (pd.api.types.is_numeric_dtype(table[c]) or pd.api.types.is_bool_dtype(table[c]))
+    )
+    options = csv.WriteOptions() if quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")
+
+    def write(sink) -> None:
+        first = next(pieces)
+        with csv.CSVWriter(sink, first.schema, write_options=options) as writer:
+            writer.write_table(first)
+            for piece in pieces:
+                writer.write_table(piece)
+
+    if path == STDIO:
+        sink = pa.BufferOutputStream()
+        write(sink)
+        standard_output().write(sink.getvalue().to_pybytes().decode("utf-8"))
+        standard_output().flush()
+        return
+    with written(path) as tmp:
+        with pa.OSFile(str(tmp), "wb") as sink:
+            write(sink)
+
+
+#: Rows converted and written at a time by ``write_drive_log``.
+WRITE_ROWS = 65_536
+
+
+def _arrow_piece(frame: pd.DataFrame, time_as_text: bool):
+    """Rows of a time-indexed table (or one with a ``time`` column) as an Arrow table: ``time`` first (as text
+    with six decimals for a CSV file); NaN a missing value (an empty CSV cell)."""
+    import pyarrow as pa
+
+    out = frame.reset_index() if frame.index.name == TIME else frame
     columns = {}
-    for name in frame.columns:
-        values = frame[name]
-        if name == TIME:
+    for name in out.columns:
+        values = out[name]
+        if name == TIME and time_as_text:
             columns[name] = pa.array(np.char.mod("%.6f", values.to_numpy(float)))
         else:
             columns[name] = pa.Array.from_pandas(values)  # NaN becomes a missing value: an empty cell
-    table = pa.table(columns)
-    try:  # plain cells, as a spreadsheet writes them
-        plain = csv.WriteOptions(quoting_style="none", quoting_header="none")
-        sink = pa.BufferOutputStream()
-        csv.write_csv(table, sink, plain)
-    except pa.ArrowInvalid:  # a text cell with a comma, a quote or a line end
-        sink = pa.BufferOutputStream()
-        csv.write_csv(table, sink)
-    return sink.getvalue().to_pybytes()
+    return pa.table(columns)
