@@ -12,6 +12,7 @@ import html
 import io
 
 import numpy as np
+import pandas as pd
 
 from ..config import FilterConfig
 from ..errors import names_the_log
@@ -28,6 +29,8 @@ COMPONENT_COLOURS = {"north": "tab:blue", "east": "tab:orange", "down": "tab:gre
 FIGURE_STYLE = {"font.size": 11, "legend.fontsize": 10, "axes.titlesize": 12, "legend.handlelength": 3.0}
 #: Most points drawn in a scatter plot (the statistics use every epoch; the plot a seeded sample).
 MAX_POINTS = 6000
+#: Most points a line of per-epoch values is drawn through (``_thinned``).
+MAX_LINE_POINTS = 4000
 
 
 def _png(fig, alt: str) -> str:
@@ -52,10 +55,11 @@ def _residual_plot(t0, diag, title):
 
     r = diag.residuals
     fig, ax = plt.subplots(figsize=(10, 3.2), constrained_layout=True)
-    t = r["time"] - t0
+    pick = _sample(len(r["time"]))  # drawn: a seeded sample; the axis limit: every epoch
+    t = r["time"][pick] - t0
     for k, name in enumerate(("north", "east", "down")):
-        ax.plot(t, r["ned"][:, k], ".", ms=1, color=COMPONENT_COLOURS[name], label=name)
-    ax.plot(t, r["magnitude"], ".", ms=1, color=COMPONENT_COLOURS["magnitude"], label="magnitude")
+        ax.plot(t, r["ned"][pick, k], ".", ms=1, color=COMPONENT_COLOURS[name], label=name)
+    ax.plot(t, r["magnitude"][pick], ".", ms=1, color=COMPONENT_COLOURS["magnitude"], label="magnitude")
     lim = np.nanpercentile(np.abs(r["ned"]), 99.5) * 1.5
     ax.set(ylim=(-lim, lim), xlabel="time since start, s", ylabel="residual, nT", title=title)
     ax.legend(markerscale=8, ncol=4)
@@ -125,7 +129,8 @@ def _states_plot(run, t0):
     import matplotlib.pyplot as plt
 
     s = run.states
-    t = s.index.to_numpy() - t0
+    shown = _thinned(len(s))
+    t = s.index.to_numpy()[shown] - t0
     groups = [("offset b, nT", ["b_x", "b_y", "b_z"]), ("diagonal of R", ["R11", "R22", "R33"])]
     extra = [n for n in run.names[12:]]
     if extra:
@@ -133,7 +138,7 @@ def _states_plot(run, t0):
     fig, axes = plt.subplots(len(groups), 1, figsize=(10, 2.6 * len(groups)), constrained_layout=True, squeeze=False)
     for ax, (title, names) in zip(axes[:, 0], groups):
         for name in names:
-            v, sd = s[name].to_numpy(), s[f"std_{name}"].to_numpy()
+            v, sd = s[name].to_numpy()[shown], s[f"std_{name}"].to_numpy()[shown]
             (line,) = ax.plot(t, v, lw=1, label=name)
             ax.fill_between(t, v - sd, v + sd, color=line.get_color(), alpha=0.2)
         final = np.array([s[n].to_numpy()[-1] for n in names])
@@ -157,12 +162,27 @@ def _status_plot(run, t0):
     fig, (ax1, ax2) = plt.subplots(
         1, 2, figsize=(10, 2.8), constrained_layout=True, gridspec_kw={"width_ratios": [1, 2]}
     )
-    ax1.barh(counts.index, counts.to_numpy())
+    names = list(counts.index)
+    colours = plt.get_cmap("tab10")
+    ax1.barh(names, counts.to_numpy(), color=[colours(k % 10) for k in range(len(names))])
     ax1.set(xlabel="epochs", title="epoch statuses")
     t = run.states.index.to_numpy() - t0
-    names = list(counts.index)
-    ax2.scatter(t, [names.index(v) for v in status], s=1, c=[names.index(v) for v in status], cmap="tab10")
-    ax2.set(yticks=range(len(names)), yticklabels=names, xlabel="time since start, s", title="status over time")
+    # each stretch of one status as a bar (every epoch shown, however long the log)
+    codes = pd.Categorical(status.to_numpy(), categories=names).codes
+    change = np.flatnonzero(codes[1:] != codes[:-1]) + 1
+    first, last = np.r_[0, change], np.r_[change, len(codes)] - 1
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    for k in range(len(names)):
+        runs = codes[first] == k
+        spans = list(zip(t[first[runs]], t[last[runs]] - t[first[runs]] + step))
+        ax2.broken_barh(spans, (k - 0.4, 0.8), color=colours(k % 10))
+    ax2.set(
+        xlim=(t[0], t[-1] + step) if len(t) else None,
+        yticks=range(len(names)),
+        yticklabels=names,
+        xlabel="time since start, s",
+        title="status over time",
+    )
     return _png(fig, "number of epochs of each status, and the status of every epoch against time since start in s")
 
 
@@ -190,6 +210,14 @@ def _sample(n: int) -> np.ndarray:
     if n <= MAX_POINTS:
         return np.arange(n)
     return np.sort(np.random.default_rng(0).choice(n, MAX_POINTS, replace=False))
+
+
+def _thinned(n: int) -> np.ndarray:
+    """Indices of at most ``MAX_LINE_POINTS`` evenly spaced epochs of ``n``, the last included: what a line of
+    per-epoch estimates is drawn through (they change once a block, and a page is a thousand pixels wide)."""
+    if n <= MAX_LINE_POINTS:
+        return np.arange(n)
+    return np.unique(np.r_[np.linspace(0, n - 1, MAX_LINE_POINTS).astype(int), n - 1])
 
 
 def _noise_section(run, t0: float) -> list[str]:
@@ -280,7 +308,8 @@ def _noise_plot(run, t0: float) -> str:
     if "noise_sensor_nt" not in s:
         return "<p>The noise was not learned (no per-epoch noise to plot).</p>"
     conf = run.summary.noise["configured"]
-    t = s.index.to_numpy() - t0
+    shown = _thinned(len(s))
+    t = s.index.to_numpy()[shown] - t0
     panels = (
         (("noise_sensor_nt",), "sensor_nt", "sensor noise, nT"),
         (("noise_attitude_deg", "noise_heading_deg"), "attitude_deg", "attitude noise, deg"),
@@ -291,7 +320,7 @@ def _noise_plot(run, t0: float) -> str:
         for ax, (columns, key, label) in zip(axes, panels):
             top = conf[key]
             for column in columns:
-                values = s[column].to_numpy()
+                values = s[column].to_numpy()[shown]
                 name, colour = styles.get(column, ("learned", "tab:blue"))
                 ax.plot(t, values, lw=1.5, color=colour, label=name)
                 top = max(np.nanmax(values, initial=0.0), top)
