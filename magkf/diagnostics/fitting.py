@@ -47,36 +47,33 @@ OUTLIER_SIGMA = 5.0
 
 def span_basis(A: np.ndarray) -> np.ndarray:
     """An orthonormal basis (rows, rank) of the span of ``A`` (rows, p), directions below ``1e-9`` of the
-    largest singular value (or unresolved, ``tall_svd``) left out."""
+    largest singular value left out."""
     u, sv, _ = tall_svd(A)
     return u[:, : _rank(sv)]
 
 
-#: Singular values below this share of the largest are not resolved by ``tall_svd`` (about the square root of
-#: the float64 precision, which the Gram matrix squares).
-GRAM_RESOLUTION = 1e-7
+#: ``tall_svd`` goes through the Gram matrix only when every singular value is at least this share of the
+#: largest: the Gram matrix squares the condition number, and its vectors are then still orthonormal to
+#: about ``eps / GRAM_CONDITION^2`` (2e-8).
+GRAM_CONDITION = 1e-4
 
 
 def tall_svd(A: np.ndarray, want_u: bool = True):
-    """Thin SVD ``(u, s, vt)`` of ``A`` (rows, q) in descending order. A matrix of many more rows than columns
-    (the diagnosis's whitened regressors: three rows an epoch) is decomposed through its Gram matrix
-    ``A^T A`` (one matrix product and a q x q eigen-decomposition: a small fraction of LAPACK's SVD of a
-    million rows); singular values below ``GRAM_RESOLUTION`` of the largest are then returned as 0, with zero
-    columns of ``u``. Other shapes go to ``np.linalg.svd``. ``want_u`` False skips ``u`` (None)."""
+    """Thin SVD ``(u, s, vt)`` of ``A`` (rows, q), singular values in descending order. A well-conditioned
+    matrix of many more rows than columns (the diagnosis's whitened regressors: three rows an epoch) is
+    decomposed through its Gram matrix ``A^T A`` (one matrix product and a q x q eigen-decomposition: a small
+    fraction of LAPACK's SVD of a million rows); any other (a singular value below ``GRAM_CONDITION`` of the
+    largest, or few rows) by ``np.linalg.svd``. ``want_u`` False skips ``u`` (None)."""
     rows, q = A.shape
-    if rows < 8 * q or q == 0:
-        if not want_u:
-            return None, *np.linalg.svd(A, full_matrices=False)[1:]
-        return np.linalg.svd(A, full_matrices=False)
-    w, V = np.linalg.eigh(A.T @ A)
-    w, V = w[::-1].copy(), np.ascontiguousarray(V[:, ::-1])
-    s = np.sqrt(np.clip(w, 0.0, None))
-    resolved = s > GRAM_RESOLUTION * s[0] if s[0] > 0 else np.zeros(q, bool)
-    s[~resolved] = 0.0
-    u = None
-    if want_u:
-        u = A @ (V * np.divide(1.0, s, out=np.zeros(q), where=resolved))  # one matrix product
-    return u, s, np.ascontiguousarray(V.T)
+    if rows >= 8 * q and q > 0:
+        w, V = np.linalg.eigh(A.T @ A)
+        w, V = w[::-1].copy(), np.ascontiguousarray(V[:, ::-1])
+        if w[0] > 0 and w[-1] >= (GRAM_CONDITION**2) * w[0]:
+            s = np.sqrt(w)
+            return (A @ (V / s) if want_u else None), s, np.ascontiguousarray(V.T)
+    if not want_u:
+        return None, *np.linalg.svd(A, full_matrices=False)[1:]
+    return np.linalg.svd(A, full_matrices=False)
 
 
 def _rank(sv: np.ndarray) -> int:

@@ -172,7 +172,7 @@ def _status_plot(run, t0):
     change = np.flatnonzero(codes[1:] != codes[:-1]) + 1
     first, last = np.r_[0, change], np.r_[change, len(codes)] - 1
     step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
-    for k in range(len(names)):
+    for k in range(len(names) if len(codes) else 0):
         runs = codes[first] == k
         spans = list(zip(t[first[runs]], t[last[runs]] - t[first[runs]] + step))
         ax2.broken_barh(spans, (k - 0.4, 0.8), color=colours(k % 10))

@@ -83,7 +83,7 @@ class Effect:
     columns : log columns the effect needs.
     units : unit of each parameter, for reports.
     linear : True when ``contribution`` is linear in the effect's own parameters and independent of the
-        other blocks; the filters then compute its Jacobian once per log.
+        other blocks; the filters then compute its Jacobian once for each epoch.
     channels : the kinds of channel an effect of a column accepts (``magkf.effects.channels.KINDS``:
         ``temperature``, ``current``, ``throttle``, ``angle``, ``speed``, ``voltage``); the diagnosis forms
         candidates only from columns of these kinds. Empty: the effect's default column only.

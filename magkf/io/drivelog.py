@@ -423,8 +423,15 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     from .files import STDIO, standard_output, written
 
     parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
+    # every piece gets the whole table's types (a text column empty in one piece is still text there)
+    types = {
+        name: None
+        if pd.api.types.is_numeric_dtype(table[name])
+        else pa.infer_type(table[name].dropna().to_numpy(dtype=object), from_pandas=True)
+        for name in table.columns
+    }
     pieces = (
-        _arrow_piece(table.iloc[i : i + WRITE_ROWS], time_as_text=not parquet)
+        _arrow_piece(table.iloc[i : i + WRITE_ROWS], time_as_text=not parquet, types=types)
         for i in range(0, max(len(table), 1), WRITE_ROWS)
     )
     if parquet:
@@ -438,10 +445,14 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
                     writer.write_table(piece)
         return
     # plain cells, as a spreadsheet writes them, unless a text cell holds a comma, a quote or a line end
-    quoted = any(
-        table[c].astype(str).str.contains(r'[,"\r\n]').any()
-        for c in table.columns
-        if not (pd.api.types.is_numeric_dtype(table[c]) or pd.api.types.is_bool_dtype(table[c]))
+    structural = r'[,"\r\n]'
+    quoted = (
+        any(
+            table[c].astype(str).str.contains(structural).any()
+            for c in table.columns
+            if not (pd.api.types.is_numeric_dtype(table[c]) or pd.api.types.is_bool_dtype(table[c]))
+        )
+        or pd.Series([str(c) for c in table.columns]).str.contains(structural).any()
     )
     options = csv.WriteOptions() if quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")
 
@@ -467,9 +478,10 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
 WRITE_ROWS = 65_536
 
 
-def _arrow_piece(frame: pd.DataFrame, time_as_text: bool):
+def _arrow_piece(frame: pd.DataFrame, time_as_text: bool, types: dict):
     """Rows of a time-indexed table (or one with a ``time`` column) as an Arrow table: ``time`` first (as text
-    with six decimals for a CSV file); NaN a missing value (an empty CSV cell)."""
+    with six decimals for a CSV file); NaN a missing value (an empty CSV cell); ``types`` the Arrow type of
+    each column that is not numeric (None: inferred)."""
     import pyarrow as pa
 
     out = frame.reset_index() if frame.index.name == TIME else frame
@@ -479,5 +491,7 @@ def _arrow_piece(frame: pd.DataFrame, time_as_text: bool):
         if name == TIME and time_as_text:
             columns[name] = pa.array(np.char.mod("%.6f", values.to_numpy(float)))
         else:
-            columns[name] = pa.Array.from_pandas(values)  # NaN becomes a missing value: an empty cell
+            kind = types.get(name)
+            kind = pa.string() if kind is not None and pa.types.is_null(kind) else kind  # only empty cells
+            columns[name] = pa.Array.from_pandas(values, type=kind)  # NaN becomes a missing value: an empty cell
     return pa.table(columns)

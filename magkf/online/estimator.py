@@ -236,8 +236,9 @@ class Estimator:
         of the model's own whitened noise in those rows, which the gates use). Computed once for many
         blocks when ``blk`` spans them (``Block.take`` keeps it)."""
         noise, model = self.noise, self.model
-        if model.needs_attitude and model.rows == 3 and blk.frame is not None:
-            blk.W, blk.N = correlated_whitening(model.covariance(blk), blk.frame, noise.inflations)
+        cov = model.covariance(blk) if model.needs_attitude and model.rows == 3 and blk.frame is not None else None
+        if cov is not None:
+            blk.W, blk.N = correlated_whitening(cov, blk.frame, noise.inflations)
         else:
             model.whiten(blk)
             blk.N = None

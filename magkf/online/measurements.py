@@ -10,7 +10,8 @@ look at a model's name; ``MEASUREMENTS`` maps a name to its class, and ``registe
 against the reference ``B_ref``. The same equation, multiplied through by ``R C_nb^T``, reads
 ``m = R C_nb^T B_ref + b + e``: in the sensor frame it is *linear* in ``R``, ``b`` and every linear effect,
 so magkf processes it there (the Kalman update is then exact, and its Jacobian is the effects' Jacobians
-evaluated once per log). Residuals are reported in NED. Noise covariance in the sensor frame:
+evaluated once for each epoch, not at every update). Residuals are reported in NED. Noise covariance in
+the sensor frame:
 
     sensor_noise^2 I + R (reference^2 I + A) R^T
 
@@ -155,7 +156,7 @@ class MeasurementModel:
 
     def structure(self, field_body, R, heading=None):
         """What the noise of epochs with body field ``field_body`` (N, 3) and heading axis ``heading`` (N, 3)
-        at ``R`` (3, 3) is made of, computed once per log: ``(G, Gh, RRt, frame)`` with ``frame`` (N, 3, 3) the
+        at ``R`` (3, 3) is made of, computed once for each epoch: ``(G, Gh, RRt, frame)`` with ``frame`` (N, 3, 3) the
         field's frame in the sensor axes (``field_frame``: what the noise learner splits the innovations
         along) and ``G``, ``Gh``, ``RRt`` what ``whiten`` may use (None here); None for a model that needs no
         attitude."""
@@ -173,10 +174,12 @@ class MeasurementModel:
         if self.needs_attitude:
             blk.W = self.whitening(blk.B, blk.R)
 
-    def covariance(self, blk: Block) -> np.ndarray:
-        """The noise covariance (k, r, r) of the block's epochs at the current noise, nT^2 (by default
-        ``W^-1 W^-T`` of ``whiten``'s ``W``)."""
+    def covariance(self, blk: Block) -> np.ndarray | None:
+        """The noise covariance (k, r, r) of the block's epochs at the current noise, nT^2; None when the model
+        whitens its rows itself. By default ``W^-1 W^-T`` of ``whiten``'s ``W`` (which it sets on ``blk``)."""
         self.whiten(blk)
+        if blk.W is None:
+            return None
         L = np.linalg.inv(blk.W)
         return L @ np.swapaxes(L, 1, 2)
 

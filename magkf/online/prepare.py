@@ -240,7 +240,8 @@ def calibration_start(
 
 
 def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout, attitude: bool, base) -> NoiseLevels:
-    """The noise to start from: a robust scale of the residuals of a whole-log fit.
+    """The noise to start from: a robust scale of the residuals of a whole-log fit (fitted to at most
+    ``FIT_EPOCHS`` epochs spread evenly over the log; the scale over every usable epoch).
 
     With ``attitude`` (a model that uses it), the fit is a robust (Huber-weighted) linear least squares of
     ``m = H x`` (``H`` the layout's linear Jacobian) over the usable epochs, starting from ``x0``: over the
@@ -255,7 +256,7 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
             return start
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
-        fit = usable[:: max(len(usable) // FIT_EPOCHS, 1)]
+        fit = usable[:: -(-len(usable) // FIT_EPOCHS)]  # every ceil(N / FIT_EPOCHS)-th
         x = _robust_linear_fit(prep.m[fit], layout.linear_jacobian(prep.data.take(fit)), x0, start.along_var)
         R = StateLayout.R(np.asarray(x0, float))
         parts_of_e = np.empty((len(usable), 3))

@@ -267,20 +267,24 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     method = trace.method or config.filter
     n_ep, n = len(status), len(names)
     block_of = trace.block_of()
-    # The residuals before each epoch use the previous epoch's estimate (the start's for the first); with
-    # smoothing or a batch solution, the epoch's own. With smoothing the per-epoch states are the estimate
-    # at every epoch (a drift is followed); otherwise the final estimate is the best for every epoch.
+    # The residuals before each epoch use the estimate before its block (the start's for the first block),
+    # which its reading has not updated; with smoothing or a batch solution, the epoch's own. With smoothing
+    # the per-epoch states are the estimate at every epoch (a drift is followed); otherwise the final
+    # estimate is the best for every epoch. Nonlinear effects (a time lag interpolates between epochs) take
+    # the whole log at once.
     own = smoothed or method == "batch"
+    chunk = max(n_ep, 1) if layout.nonlinear else CHUNK
     x_cols = np.empty((n_ep, n))
     std_cols = np.empty((n_ep, n), np.float32)
     ned_i, mag_i = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
     ned_f, mag_f = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
-    for start in range(0, n_ep, CHUNK):
-        epochs = slice(start, min(start + CHUNK, n_ep))
+    for start in range(0, n_ep, chunk):
+        epochs = slice(start, min(start + chunk, n_ep))
         part = prep.take(epochs)
-        xs = trace.xs[block_of[epochs]]
-        x_cols[epochs], std_cols[epochs] = xs, trace.stds[block_of[epochs]]
-        prior = xs if own else np.vstack([x0 if start == 0 else x_cols[start - 1], xs[:-1]])
+        block = block_of[epochs]
+        xs = trace.xs[block]
+        x_cols[epochs], std_cols[epochs] = xs, trace.stds[block]
+        prior = xs if own else np.where((block == 0)[:, None], x0, trace.xs[np.maximum(block - 1, 0)])
         ned_i[epochs], mag_i[epochs] = residuals(part, layout, prior)
         ned_f[epochs], mag_f[epochs] = residuals(part, layout, xs if smoothed else x_final)
     used = (status == Status.USED) & updated

@@ -1,9 +1,10 @@
 """Online calibration of a whole log: ``calibrate_log(log, config) -> CalibrationRun``.
 
 Per-log work is done once and vectorised (``magkf.online.prepare``): the reference field, the attitude
-matrices, the body-frame reference, the Jacobians of the linear effects, the measurement noise, and the
-statuses known before filtering. The per-epoch loop then only gates and updates, a block of
-``config.block_s`` seconds at a time (see ``magkf.online.estimator``).
+matrices, the body-frame reference, the starting noise and the statuses known before filtering. The loop
+then gates and updates a block of ``config.block_s`` seconds at a time (see ``magkf.online.estimator``);
+the Jacobians of the linear effects and the whitening are computed for a span of blocks at once (the
+learned noise changes every few seconds).
 """
 
 from __future__ import annotations

@@ -127,7 +127,7 @@ class StateLayout:
 
     # ------------------------------------------------------------ the model
     def linear_jacobian(self, data: EpochData) -> np.ndarray:
-        """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), computed once per log."""
+        """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), evaluated once for each epoch."""
         H = np.zeros((len(data), 3, self.size))
         for effect, sl in self.blocks(include_core=True):
             if effect.linear:  # the Jacobian of a linear effect does not depend on its parameters

@@ -106,3 +106,32 @@ def test_units_are_converted_and_suspicious_units_warned(tmp):
 def test_missing_file(tmp):
     with pytest.raises(InputError, match="no such file"):
         read_drive_log(tmp / "nothing.csv")
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_a_table_written_in_pieces_reads_back_whole(tmp, monkeypatch, suffix):
+    """Written two rows at a time: a text column empty in the first piece, a boolean one with gaps and a header
+    holding a comma come back as they were, in CSV (quoted where needed) and Parquet."""
+    import pandas as pd
+
+    import magkf.io.drivelog as drivelog
+
+    monkeypatch.setattr(drivelog, "WRITE_ROWS", 2)
+    t = 1.7e9 + np.array([0.5, 1.25, 2.0, 3.0, 4.0])
+    table = pd.DataFrame(
+        {
+            "time": t,
+            "mag_x": [1.0, np.nan, 3.0, 4.0, 5.0],
+            "mag_y": [1.0, 2, 3, 4, 5],
+            "mag_z": [1.0, 2, 3, 4, 5],
+            "note": np.array([None, None, "a", "b,c", "d"], dtype=object),
+            "a,b": [1.5, 2.5, 3.5, 4.5, 5.5],
+        }
+    ).set_index("time")
+    path = tmp / f"log{suffix}"
+    drivelog.write_drive_log(table, path)
+    back = pd.read_parquet(path) if suffix == ".parquet" else pd.read_csv(path, keep_default_na=False, na_values=[""])
+    assert np.allclose(back["time"], t, rtol=0, atol=1e-6)
+    assert np.array_equal(back["mag_x"].isna(), table["mag_x"].isna().to_numpy())
+    assert list(back["note"].fillna("")) == ["", "", "a", "b,c", "d"]
+    assert np.allclose(back["a,b"], table["a,b"])
