@@ -370,7 +370,6 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
     """The raw and the calibrated field in three projections with the reference sphere, the magnitude error
     before and after, and the heading deviation against heading (compass swing) before and after."""
     import matplotlib.pyplot as plt
-    import pandas as pd
 
     from ..apply import apply_calibration
     from ..conventions import magnetic_heading_deg, wrap_deg

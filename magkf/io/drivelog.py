@@ -447,11 +447,7 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     # plain cells, as a spreadsheet writes them, unless a text cell holds a comma, a quote or a line end
     structural = r'[,"\r\n]'
     quoted = (
-        any(
-            table[c].astype(str).str.contains(structural).any()
-            for c in table.columns
-            if not (pd.api.types.is_numeric_dtype(table[c]) or pd.api.types.is_bool_dtype(table[c]))
-        )
+        any(table[c].astype(str).str.contains(structural).any() for c, kind in types.items() if kind is not None)
         or pd.Series([str(c) for c in table.columns]).str.contains(structural).any()
     )
     options = csv.WriteOptions() if quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")

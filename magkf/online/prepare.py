@@ -284,7 +284,7 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
     )
 
 
-#: Epochs whose Jacobians are held at once when a whole log is gone through.
+#: Epochs taken at once where a whole log is gone through (the starting noise's Jacobians, the per-epoch table).
 CHUNK = 65_536
 #: At most about this many epochs (evenly spaced) go into the starting noise's whole-log fit.
 FIT_EPOCHS = 50_000

@@ -13,6 +13,7 @@ from ..errors import InputError
 from ..io.calibration import Calibration
 from ..status import Status, status_counts, status_names
 from . import observability
+from .prepare import CHUNK
 from .state import StateLayout
 
 __all__ = [
@@ -115,9 +116,6 @@ def residuals(prep, layout: StateLayout, x) -> tuple[np.ndarray, np.ndarray]:
     return ned, mag
 
 
-#: Epochs whose residuals are computed at once (bounds the memory of a long log's table).
-CHUNK = 65_536
-
 #: The least attitude error the verdict reports: about what the robust scale of a minute of residuals can
 #: tell from none (0.02 deg is 17 nT across a 48 000 nT field).
 ATTITUDE_RESOLUTION_DEG = 0.02
@@ -129,7 +127,7 @@ NIS_TOLERANCE = 0.2
 
 def noise_summary(config, trace: RunTrace) -> dict:
     """The configured and learned noise of a run, and the residuals' correlation (JSON-ready)."""
-    learned = None if trace.noise is None else trace.noise[trace.block_of()] if trace.stops is not None else trace.noise
+    learned = None if trace.noise is None else trace.noise[trace.block_of()]  # per epoch, for the medians
     out = {
         "adapted": bool(config.adapt_noise) and learned is not None,
         "configured": {"sensor_nt": config.sensor_noise_nt, "attitude_deg": config.attitude_deg},
