@@ -13,6 +13,7 @@ serial process), from the summary's ``peak_rss_mb``.
 """
 
 import argparse
+import os
 import statistics
 import tempfile
 import time
@@ -42,6 +43,12 @@ def timed(logs, out: Path, client) -> tuple[float, dict]:
     return wall, result.peak_memory_mb()
 
 
+def load() -> str:
+    """The machine's load averages (other work shares the cores: read the timings with them)."""
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.1f} (1 min), {five:.1f} (5 min) on {os.cpu_count()} cores"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--logs", type=int, default=16)
@@ -54,7 +61,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         logs = make_fleet(tmp / "logs", args.logs, args.duration, args.rate)
-        print(f"{len(logs)} simulated logs of {args.duration:g} s at {args.rate:g} Hz")
+        print(f"{len(logs)} simulated logs of {args.duration:g} s at {args.rate:g} Hz; {load()}")
         runs = iter(range(10_000))
         with local_client(args.workers) as client:
             client.wait_for_workers(args.workers)
@@ -84,7 +91,7 @@ def main() -> None:
                     run_fleet(logs[:workers], tmp / f"warm{next(runs)}", client=client, plot=False)
                     for n in (4, 8, 16):
                         wall, _ = timed(logs[:n], tmp / f"out{next(runs)}", client)
-                        print(f"  {n:3d} logs, {workers} worker(s): {wall:6.1f} s")
+                        print(f"  {n:3d} logs, {workers} worker(s): {wall:6.1f} s; {load()}")
 
 
 if __name__ == "__main__":
