@@ -426,47 +426,69 @@ FEWEST = 3
 
 
 def disagreements(summary: pd.DataFrame, alpha: float = 0.01) -> pd.DataFrame:
-    """``summary`` with ``disagreement_z``, ``disagrees`` and ``disagreement`` (in words) for every log.
+    """``summary`` with ``disagreement_z``, ``disagrees``, ``disagreement`` (in words) for every log, and
+    ``vehicle_scatter`` for every log of a compared vehicle.
 
-    Each calibrated log of a vehicle with at least ``FEWEST`` of them is compared with the others of that
-    vehicle, for each of R's nine elements and b's three: the difference ``d`` between its estimate ``x_i``
-    (standard deviation ``s_i``) and the inverse-variance weighted mean ``m`` of the others has the variance
-    ``s_i^2 + 1/sum(w) + tau^2``, where ``tau^2`` is the others' scatter beyond their own standard
-    deviations (their sample variance less their mean variance, at least 0: flights of one vehicle are not
-    all alike). ``z = d / sqrt(var)``; a log disagrees when some ``|z|`` exceeds the two-sided normal
-    quantile at ``alpha`` shared (Bonferroni) among the vehicle's logs and parameters. Leaving the log out
-    keeps one flight whose offset jumped from hiding itself in the scatter it causes."""
+    The calibrated logs of a vehicle with at least ``FEWEST`` of them are compared, for each of R's nine
+    elements and b's three, by their standard deviations: a log's ``z`` is the difference between its
+    estimate ``x_i`` (standard deviation ``s_i``) and the inverse-variance weighted mean ``m`` of the other
+    logs, over ``sqrt(s_i^2 + 1 / sum(w))``. Where the log with the largest ``|z|`` exceeds the two-sided
+    normal limit at ``alpha`` shared (Bonferroni) among the vehicle's logs and parameters, it disagrees; it
+    is set aside and the others are compared again among themselves, until none exceeds the limit or fewer
+    than ``FEWEST`` remain. So a flight whose offset jumped is flagged, and the flights before and after it
+    are not measured against a mean it pulled. When every estimate is within its standard deviations of the
+    truth, a vehicle has a log flagged with probability at most about ``alpha``.
+
+    ``vehicle_scatter``: how many times their standard deviations the logs left scatter (the largest over
+    the parameters of ``sqrt(Q / (m - 1))``, Cochran's ``Q`` of the ``m`` logs left): about 1 when the
+    standard deviations account for the differences between flights; well above 1, the vehicle's
+    calibration changes between flights more than one flight's uncertainty says, and more of its logs are
+    flagged. ``disagreement_z`` is the log's largest ``|z|``."""
     from scipy.stats import norm
 
     out = summary.copy()
     out["disagreement_z"] = np.nan
     out["disagrees"] = False
     out["disagreement"] = ""
+    out["vehicle_scatter"] = np.nan
     ok = out["error"] == ""
     names = [n for n in COMPARED if n in out and f"std_{n}" in out]
     for vehicle, group in out[ok].groupby("vehicle", sort=True):
-        if len(group) < FEWEST or not names:
-            out.loc[group.index, "disagreement"] = f"not compared: {len(group)} calibrated log(s) of {vehicle}"
+        n = len(group)
+        if n < FEWEST or not names:
+            out.loc[group.index, "disagreement"] = f"not compared: {n} calibrated log(s) of {vehicle}"
             continue
         x = group[names].to_numpy(float)
-        s2 = group[[f"std_{n}" for n in names]].to_numpy(float) ** 2
-        limit = float(norm.isf(alpha / (2 * len(group) * len(names))))
+        s2 = group[[f"std_{name}" for name in names]].to_numpy(float) ** 2
+        limit = float(norm.isf(alpha / (2 * n * len(names))))
+        z, centre = np.full_like(x, np.nan), np.full_like(x, np.nan)
+        left = np.ones(n, bool)
+        while left.sum() >= FEWEST:
+            active = np.flatnonzero(left)
+            for k in active:
+                rest = left.copy()
+                rest[k] = False
+                w = 1.0 / s2[rest]
+                centre[k] = np.sum(w * x[rest], axis=0) / np.sum(w, axis=0)
+                z[k] = (x[k] - centre[k]) / np.sqrt(s2[k] + 1.0 / np.sum(w, axis=0))
+            worst = active[np.argmax(np.max(np.abs(z[active]), axis=1))]
+            if np.max(np.abs(z[worst])) <= limit:
+                break
+            left[worst] = False
+        w = 1.0 / s2[left]
+        q = np.sum(w * (x[left] - np.sum(w * x[left], axis=0) / np.sum(w, axis=0)) ** 2, axis=0)
+        out.loc[group.index, "vehicle_scatter"] = float(np.sqrt(np.max(q) / (left.sum() - 1)))
         for k, index in enumerate(group.index):
-            rest = np.arange(len(group)) != k
-            w = 1.0 / s2[rest]
-            mean = np.sum(w * x[rest], axis=0) / np.sum(w, axis=0)
-            tau2 = np.maximum(np.var(x[rest], axis=0, ddof=1) - np.mean(s2[rest], axis=0), 0.0)
-            z = (x[k] - mean) / np.sqrt(s2[k] + 1.0 / np.sum(w, axis=0) + tau2)
-            worst = np.argsort(-np.abs(z))
-            out.loc[index, "disagreement_z"] = float(np.abs(z[worst[0]]))
-            beyond = [j for j in worst if abs(z[j]) > limit]
-            out.loc[index, "disagrees"] = bool(beyond)
-            if beyond:
-                out.loc[index, "disagreement"] = "; ".join(
-                    f"{names[j]} {x[k, j] - mean[j]:+.4g}{' nT' if names[j].startswith('b') else ''} from the rest "
-                    f"of {vehicle} (z {z[j]:+.1f}, limit {limit:.1f})"
-                    for j in beyond[:3]
-                )
+            out.loc[index, "disagreement_z"] = float(np.max(np.abs(z[k])))
+            if left[k]:
+                continue
+            out.loc[index, "disagrees"] = True
+            beyond = [j for j in np.argsort(-np.abs(z[k])) if abs(z[k, j]) > limit][:3]
+            out.loc[index, "disagreement"] = "; ".join(
+                f"{names[j]} {x[k, j] - centre[k, j]:+.4g}{' nT' if names[j].startswith('b') else ''} from the "
+                f"rest of {vehicle} (z {z[k, j]:+.1f}, limit {limit:.1f})"
+                for j in beyond
+            )
     return out
 
 
