@@ -19,7 +19,16 @@ import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-__all__ = ["TaskFailed", "map_tasks", "local_client", "connect", "task_resources", "cores", "memory_limits"]
+__all__ = [
+    "TaskFailed",
+    "task_error",
+    "map_tasks",
+    "local_client",
+    "connect",
+    "task_resources",
+    "cores",
+    "memory_limits",
+]
 
 
 @dataclass(frozen=True)
@@ -27,6 +36,18 @@ class TaskFailed:
     """In place of a result: the task could not be finished by the cluster; ``error`` says why, on one line."""
 
     error: str
+
+
+def task_error(exc: BaseException) -> str:
+    """What went wrong in a task, on one line: the message of bad input (``InputError``, ``ValueError``) or
+    of a file that cannot be read or written (``OSError``, with its file name), else ``internal error:``
+    and the exception's type (a defect of magkf, or the cluster's)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) not in text:
+        return f"{exc.filename}: {text}"
+    if isinstance(exc, ValueError | OSError):
+        return text
+    return f"internal error: {type(exc).__name__}: {text}"
 
 
 def cores() -> int:
@@ -62,7 +83,7 @@ def map_tasks(func, items, client=None, progress=None) -> list:
         try:
             out[i] = future.result()
         except Exception as exc:  # raised in the task, or the worker was lost
-            out[i] = TaskFailed(" ".join(f"{type(exc).__name__}: {exc}".split()))
+            out[i] = TaskFailed(task_error(exc))
         future.release()
         report(done / len(items))
     return out

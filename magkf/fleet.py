@@ -237,14 +237,10 @@ def _reusable(folder: Path, key: str, settings: FleetSettings) -> dict | None:
     return stored.get("row")
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
 def process_log(task: LogTask) -> dict:
     """Calibrate (and diagnose) one log, write its outputs, and return its summary row; never raises: a log
     that fails gives a row whose ``error`` says why on one line. Runs on a worker."""
-    from .cluster import task_resources
+    from .cluster import task_error, task_resources
 
     started = time.perf_counter()
     folder = Path(task.folder)
@@ -266,13 +262,9 @@ def process_log(task: LogTask) -> dict:
 
         output_text(folder / MANIFEST, json.dumps(jsonable({"key": key, "row": row}), indent=1) + "\n")
         return row
-    except (InputError, ValueError, OSError) as exc:  # the log, or a setting it cannot be used with
-        where = getattr(exc, "filename", None)
-        text = _one_line(exc)
-        row["error"] = text if isinstance(exc, InputError) or not where else f"{where}: {text}"
-    except Exception as exc:  # a defect of magkf: reported in the row, the fleet goes on
-        row["error"] = f"internal error: {type(exc).__name__}: {_one_line(exc)}"
-    if not row["error"].startswith(task.path) and task.path not in row["error"]:
+    except Exception as exc:  # the log, a setting it cannot be used with, or a defect: the fleet goes on
+        row["error"] = task_error(exc)
+    if task.path not in row["error"]:
         row["error"] = f"{task.path}: {row['error']}"
     return {**row, "run_time_s": time.perf_counter() - started, **task_resources()}
 

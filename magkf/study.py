@@ -310,7 +310,7 @@ def runs(spec: StudySpec) -> list[StudyRun]:
 def run_one(task: StudyRun) -> dict:
     """Run one calibration of a study and measure it (see the module docstring); never raises: a run that
     fails has its one-line ``error``. Runs on a worker."""
-    from .cluster import task_resources
+    from .cluster import task_error, task_resources
 
     row = {"run": task.index, "setting": task.setting_index, **_shown(task.setting)}
     row |= {"source": task.recipe["name"] if task.recipe else task.log, "replicate": task.replicate, "seed": task.seed}
@@ -319,8 +319,7 @@ def run_one(task: StudyRun) -> dict:
         row |= _measure(task)
         row["error"] = ""
     except Exception as exc:  # the run's error, on one line; the study goes on
-        kind = "" if isinstance(exc, ValueError | OSError) else f"internal error: {type(exc).__name__}: "
-        row["error"] = kind + (" ".join(str(exc).split()) or type(exc).__name__)
+        row["error"] = task_error(exc)
     row["run_time_s"] = time.perf_counter() - started
     return row | task_resources()
 
@@ -494,7 +493,8 @@ def plot(result: StudyResult, path) -> None:
                 with np.errstate(invalid="ignore", divide="ignore"):
                     lo, hi = chi2.ppf(0.025, CORE * n) / n, chi2.ppf(0.975, CORE * n) / n
                 ax.fill_between(x, lo, hi, color="0.5", alpha=0.3, label="95 % band if consistent")
-                ax.set_yscale("log")
+                if np.any(mean > 0):  # no truth (recorded logs): no NEES to draw
+                    ax.set_yscale("log")
             if name == "nis_mean":
                 ax.axhline(1.0, color="k", ls=":", lw=1, label="expected 1")
             if numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() > 50:
