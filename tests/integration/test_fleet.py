@@ -283,3 +283,20 @@ def test_study_command_line(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "4 runs done, 0 failed" in proc.stdout
     assert (tmp_path / "out" / "study.png").is_file() and (tmp_path / "out" / "runs.parquet").is_file()
+
+
+def test_study_of_recorded_logs_has_no_truth_and_keeps_going(fleet):
+    spec = StudySpec.from_dict(
+        {"grid": {"b_walk": [0.01, 0.5]}, "logs": {"paths": ["V1/flight0.csv", "V1/corrupt.csv"]}}, root=fleet
+    )
+    result = run_study(spec)
+    runs = result.runs
+    assert len(runs) == 4 and runs["source"].tolist()[:2] == [
+        str(fleet / "V1" / p) for p in ("corrupt.csv", "flight0.csv")
+    ]
+    bad = runs[runs["source"].str.endswith("corrupt.csv")]
+    assert bad["error"].str.contains("corrupt.csv").all() and len(bad) == 2
+    good = runs[runs["error"] == ""]
+    assert good["nees"].isna().all() and good["final_b_error_nt"].isna().all()
+    assert (good["used_share"] > 0).all() and np.isfinite(good["nis_mean"]).all()
+    assert result.summary["n_failed"].tolist() == [1, 1]
