@@ -106,9 +106,13 @@ class StudySpec:
         if not settings:
             settings = [base]
         settings = _completed(settings)
-        for i, s in enumerate(settings):  # every setting must make a FilterConfig
+        from .effects import make_effect
+
+        for i, s in enumerate(settings):  # every setting must make a FilterConfig and its effects
             try:
                 _config(s)
+                for name in s.get("effects", []):
+                    make_effect(name)
             except ValueError as exc:
                 raise InputError(f"setting {i}: {exc}", source) from None
         recipes = [_recipe(r, i, source) for i, r in enumerate(_list(data, "recipes", source))]
@@ -187,7 +191,7 @@ def _grid(grid: dict, source: str) -> list:
     for key, values in grid.items():
         if not isinstance(values, list) or not values:
             raise InputError(f"grid.{key} must be a non-empty list of values", source)
-    _setting(dict.fromkeys(grid, []) | ({"effects": []} if "effects" in grid else {}), "grid", source)
+    _setting(dict.fromkeys(grid, []), "grid", source)  # the keys (each value is a list of settings' values)
     keys = list(grid)
     return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
 
@@ -248,8 +252,8 @@ def _recipe(recipe: dict, index: int, source: str) -> dict:
                 theta = theta if isinstance(theta, list) else [theta]
                 if not effect.accepts_simulation([float(t) for t in theta]):
                     raise InputError(
-                        f"recipes[{index}].effects.{name}: {effect.name} takes {effect.size} values "
-                        f"({', '.join(effect.parameter_names)})",
+                        f"recipes[{index}].effects.{name}: {effect.name} cannot be simulated with {theta} "
+                        f"(its parameters: {', '.join(effect.parameter_names)}; bias_drift takes its walk)",
                         source,
                     )
                 out["effects"][name] = [float(t) for t in theta]

@@ -4,8 +4,10 @@ Simulates ``--logs`` logs (default 16 of 10 minutes at 50 Hz, 3-D motion, four v
 ``magkf.fleet.run_fleet`` over them ``--repeats`` times (default 3) serially (no Dask) and on a LocalCluster of
 ``--workers`` processes (default 2), alternately, each time into a fresh output folder (nothing reused). The
 cluster is started once, and both sides first process one log (imports, caches), outside the timing. Prints
-the median wall time of each, the ratio, and the peak resident memory of each worker process (and of the
-serial process), from the summary's ``peak_rss_mb``.
+the median wall time of each, the ratio, the CPU time each run took (in this process, or in the workers:
+equal figures mean the cluster adds no work, so that on idle cores the speed-up approaches the number of
+workers), the machine's load, and the peak resident memory of each worker process (and of the serial
+process), from the summary's ``peak_rss_mb``.
 
 ``--scaling`` also times 4, 8 and 16 logs on 1 and 2 workers (one run each) for the table in docs/fleet.md.
 
@@ -14,6 +16,7 @@ serial process), from the summary's ``peak_rss_mb``.
 
 import argparse
 import os
+import resource
 import statistics
 import tempfile
 import time
@@ -34,13 +37,26 @@ def make_fleet(folder: Path, logs: int, duration_s: float, rate_hz: float) -> li
     return find_logs([folder])
 
 
-def timed(logs, out: Path, client) -> tuple[float, dict]:
-    """Wall time (s) of one fleet run into the new folder ``out``, and the peak memory (MB) per worker."""
+def own_cpu_s() -> float:
+    """CPU time (user and system, s) this process has used."""
+    used = resource.getrusage(resource.RUSAGE_SELF)
+    return used.ru_utime + used.ru_stime
+
+
+def cpu_s(client) -> float:
+    """CPU time (s) used so far by this process (``client`` None) or by all of ``client``'s workers."""
+    return own_cpu_s() if client is None else sum(client.run(own_cpu_s).values())
+
+
+def timed(logs, out: Path, client) -> tuple[float, float, dict]:
+    """Wall time (s) of one fleet run into the new folder ``out``, the CPU time (s) it took in the processes
+    that ran the logs, and the peak memory (MB) per worker."""
+    cpu = cpu_s(client)
     started = time.perf_counter()
     result = run_fleet(logs, out, client=client, plot=False)
     wall = time.perf_counter() - started
     assert (result.summary["error"] == "").all(), result.failed["error"].tolist()
-    return wall, result.peak_memory_mb()
+    return wall, cpu_s(client) - cpu, result.peak_memory_mb()
 
 
 def load() -> str:
@@ -69,19 +85,22 @@ def main() -> None:
                 run_fleet(logs[:n], tmp / f"warm{next(runs)}", client=c, plot=False)
             serial, parallel, memory = [], [], {}
             for _ in range(args.repeats):
-                wall, _ = timed(logs, tmp / f"out{next(runs)}", None)
+                wall, cpu, _ = timed(logs, tmp / f"out{next(runs)}", None)
                 serial.append(wall)
-                wall, peaks = timed(logs, tmp / f"out{next(runs)}", client)
-                parallel.append(wall)
+                wall_p, cpu_p, peaks = timed(logs, tmp / f"out{next(runs)}", client)
+                parallel.append(wall_p)
                 for worker, mb in peaks.items():
                     memory[worker] = max(memory.get(worker, 0.0), mb)
-                print(f"  serial {serial[-1]:.1f} s, {args.workers} workers {parallel[-1]:.1f} s")
+                print(
+                    f"  serial {wall:.1f} s (CPU {cpu:.1f} s), {args.workers} workers {wall_p:.1f} s "
+                    f"(CPU {cpu_p:.1f} s in the workers); {load()}"
+                )
             s, p = statistics.median(serial), statistics.median(parallel)
             print(f"median of {args.repeats}: serial {s:.1f} s, {args.workers} workers {p:.1f} s, speed-up {s / p:.2f}")
             print(
                 "peak resident memory per worker: " + ", ".join(f"{w} {mb:.0f} MB" for w, mb in sorted(memory.items()))
             )
-        _, serial_peak = timed(logs, tmp / f"out{next(runs)}", None)
+        *_, serial_peak = timed(logs, tmp / f"out{next(runs)}", None)
         print(f"peak resident memory of the serial process: {serial_peak['local']:.0f} MB")
         if args.scaling:
             print("scaling (one run each): logs, workers, wall time s")
@@ -90,7 +109,7 @@ def main() -> None:
                     client.wait_for_workers(workers)
                     run_fleet(logs[:workers], tmp / f"warm{next(runs)}", client=client, plot=False)
                     for n in (4, 8, 16):
-                        wall, _ = timed(logs[:n], tmp / f"out{next(runs)}", client)
+                        wall, *_ = timed(logs[:n], tmp / f"out{next(runs)}", client)
                         print(f"  {n:3d} logs, {workers} worker(s): {wall:6.1f} s; {load()}")
 
 
