@@ -49,6 +49,7 @@ def client():
     from magkf.cluster import local_client
 
     with local_client(2, memory_limit="2GB") as c:
+        c.wait_for_workers(2, timeout=60)
         yield c
 
 
