@@ -28,6 +28,7 @@ from __future__ import annotations
 import glob
 import hashlib
 import json
+import os
 import re
 import time
 import warnings
@@ -175,8 +176,6 @@ def check_out_dir(out_dir) -> Path:
         if not d.parent.is_dir():
             raise InputError(f"-o: folder {str(d.parent)!r} does not exist (it is not created)", str(d))
         d.mkdir()
-    import os
-
     if not os.access(d, os.W_OK):
         raise InputError("-o: folder is not writable", str(d))
     return d
@@ -218,7 +217,10 @@ def content_key(path, settings: FleetSettings) -> str:
 
     digest = hashlib.sha256()
     _file_digest(path, digest)
-    digest.update(json.dumps({"settings": settings.as_dict(), "magkf": __version__}, sort_keys=True).encode())
+    used = settings.as_dict()
+    if not settings.diagnose:  # the diagnosis's settings change nothing without it
+        del used["alpha"], used["wander_s"]
+    digest.update(json.dumps({"settings": used, "magkf": __version__}, sort_keys=True).encode())
     for named in (settings.map, *settings.effect_files):
         if named is not None:
             _file_digest(named, digest)
