@@ -134,7 +134,15 @@ def test_rerun_skips_unchanged_logs(fleet, tmp_path):
         "flight3.csv": True,
         "corrupt.csv": False,
     }
-    # changed settings: every log again
+    # the diagnosis's level changes nothing without --diagnose; changed filter settings: every log again
+    _, flags = reused(FleetSettings(alpha=0.2))
+    assert flags == {
+        "flight0.csv": True,
+        "flight1.csv": True,
+        "flight2.csv": True,
+        "flight3.csv": True,
+        "corrupt.csv": False,
+    }
     _, flags = reused(FleetSettings(config=FleetSettings().config.replace(b_walk=0.02)))
     assert not any(flags.values())
 
