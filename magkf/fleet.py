@@ -58,7 +58,9 @@ __all__ = [
 ]
 
 #: File endings taken from a folder given as a log (a file named explicitly is read whatever its ending).
-LOG_SUFFIXES = (".csv", ".parquet", ".pq", ".ulg", ".bin", ".tsv", ".txt")
+#: The endings a folder's files must have to be taken as logs. A whitespace table ending in ``.txt`` is read
+#: when named or matched by a pattern, never picked up from a folder (licences and notes end so too).
+LOG_SUFFIXES = (".csv", ".parquet", ".pq", ".ulg", ".bin", ".tsv")
 #: How a log's vehicle is named (see the module docstring).
 VEHICLE_RULES = ("parent", "name", "none")
 #: The columns that say how a task ran, not what it found: they differ between runs of the same fleet.

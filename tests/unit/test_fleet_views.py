@@ -68,10 +68,11 @@ def test_a_vehicle_whose_calibration_changes_between_flights_shows_it_in_its_sca
 
 def test_vehicle_rules_and_finding_logs(tmp_path):
     (tmp_path / "V7" / "deep").mkdir(parents=True)
-    for name in ("V7/a.csv", "V7/deep/b.ulg", "V7/notes.md", "V7_2026-05-01.bin"):
+    for name in ("V7/a.csv", "V7/deep/b.ulg", "V7/notes.md", "V7/LICENSE.txt", "V7_2026-05-01.bin"):
         (tmp_path / name).write_text("x")
     found = find_logs([tmp_path / "V7", str(tmp_path / "*.bin"), tmp_path / "V7" / "a.csv"])
     assert [p.name for p in found] == ["a.csv", "b.ulg", "V7_2026-05-01.bin"]  # each once, sorted by path
+    assert [p.name for p in find_logs([tmp_path / "V7" / "LICENSE.txt"])] == ["LICENSE.txt"]  # named: taken
     assert [p.name for p in find_logs([tmp_path], exclude=tmp_path / "V7")] == ["V7_2026-05-01.bin"]
     assert vehicle_of(found[0]) == "V7" and vehicle_of(found[1]) == "deep"
     assert vehicle_of(found[2], "name") == "V7" and vehicle_of(found[0], "name") == "a"
