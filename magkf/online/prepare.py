@@ -28,6 +28,7 @@ from .state import CORE_SIZE, StateLayout
 __all__ = [
     "PreparedLog",
     "prepare",
+    "concat_prepared",
     "initial_state",
     "initial_covariance",
     "with_initial_R",
@@ -103,6 +104,36 @@ class PreparedLog:
         """The field's frame (k, 3, 3) in the sensor axes at the epochs ``index`` at calibration ``R``
         (``measurements.sensor_frame``)."""
         return sensor_frame(np.nan_to_num(self.data.field_body[index]), self.heading[index], R)
+
+
+def concat_prepared(parts) -> PreparedLog:
+    """The epochs of the ``PreparedLog`` s ``parts`` (consecutive pieces of one log, with the same columns and
+    ``R0``) as one."""
+    parts = list(parts)
+
+    def joined(get):
+        values = [get(p) for p in parts]
+        return None if values[0] is None else np.concatenate(values)
+
+    d = [p.data for p in parts]
+    data = EpochData(
+        np.concatenate([x.time for x in d]),
+        np.concatenate([x.field_body for x in d]),
+        np.concatenate([x.field_ned for x in d]),
+        {c: np.concatenate([x.columns[c] for x in d]) for c in d[0].columns},
+        joined(lambda p: p.data.mag),
+        joined(lambda p: p.data.c_nb),
+        joined(lambda p: p.data.field_body_rate),
+        d[0].R0,
+        joined(lambda p: p.data.field_body_accel),
+    )
+    return PreparedLog(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("m", "ref", "ref_mag", "c_nb", "has_attitude")),
+        np.concatenate([p.dop for p in parts]),
+        np.concatenate([p.base for p in parts]),
+        data,
+        np.concatenate([p.heading for p in parts]),
+    )
 
 
 def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:

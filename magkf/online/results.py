@@ -112,9 +112,10 @@ class CalibrationRun:
         return np.sqrt(np.diag(self.P))
 
 
-def residuals(prep, layout: StateLayout, x) -> tuple[np.ndarray, np.ndarray]:
-    """NED residual (N, 3) and magnitude residual (N,) in nT of state ``x`` (n,) or per-epoch (N, n)."""
-    c = layout.calibrated(x, prep.m, layout.effect_terms(x, prep.data))
+def residuals(prep, layout: StateLayout, x, last=None) -> tuple[np.ndarray, np.ndarray]:
+    """NED residual (N, 3) and magnitude residual (N,) in nT of state ``x`` (n,) or per-epoch (N, n) (``last``:
+    see ``StateLayout.effect_terms``)."""
+    c = layout.calibrated(x, prep.m, layout.effect_terms(x, prep.data, last))
     ned = body_to_ned(prep.c_nb, c) - prep.ref
     mag = np.linalg.norm(c, axis=1) - prep.ref_mag
     return ned, mag
@@ -318,15 +319,17 @@ def _root_mean(acc: list) -> float:
     return float(np.sqrt(acc[1] / acc[0])) if acc[0] else float("nan")
 
 
-def epoch_columns(part, block, layout: StateLayout, trace: RunTrace, x0, own: bool) -> tuple:
+def epoch_columns(part, block, layout: StateLayout, trace: RunTrace, x0, own: bool, last=(None, None)) -> tuple:
     """The per-epoch columns of the epochs ``part`` (a ``PreparedLog``) of blocks ``block`` (k,): states (k, n)
     and standard deviations (k, n) after each epoch's block, the residuals before each epoch (NED (k, 3), magnitude
     (k,)) with the estimate before its block (``own``: its own, when smoothed or a batch solution), and the
-    residuals with the final estimate (with the per-epoch estimate when smoothed)."""
+    residuals with the final estimate (with the per-epoch estimate when smoothed). ``last``: the states (n,) at
+    which nonlinear effects are evaluated for the residuals before each epoch and for the per-epoch estimate
+    (``StateLayout.effect_terms``; None: the part's last)."""
     xs = trace.xs[block]
     prior = xs if own else np.where((block == 0)[:, None], x0, trace.xs[np.maximum(block - 1, 0)])
-    ned_i, mag_i = residuals(part, layout, prior)
-    ned_f, mag_f = residuals(part, layout, xs if trace.smoothed else trace.x)
+    ned_i, mag_i = residuals(part, layout, prior, last[0])
+    ned_f, mag_f = residuals(part, layout, xs if trace.smoothed else trace.x, last[1])
     return xs, trace.stds[block], ned_i, mag_i, ned_f, mag_f
 
 
