@@ -460,19 +460,21 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     write_frames(pieces, path, types, quoted)
 
 
-def write_frames(frames, path, types: dict | None = None, quoted: bool = False) -> None:
+def write_frames(frames, path, types: dict | None = None, quoted: bool = False, parquet: bool | None = None) -> None:
     """Write consecutive pieces ``frames`` (an iterable of time-indexed DataFrames, or with a ``time`` column, all
     with the same columns) of one table as ``write_drive_log`` writes a table, one piece at a time, so that a
     table of any length is written without being held: ``types`` the Arrow type of each column that is not
     numeric (None: numeric or inferred), ``quoted`` CSV cells quoted (a text cell holds a comma, a quote or a
-    line end). Replaced only once complete."""
+    line end); ``parquet`` Parquet or CSV whatever the name (None: Parquet for ``.parquet``). Replaced only once
+    complete."""
     import pyarrow as pa
     from pyarrow import csv
 
     from .files import STDIO, standard_output, written
 
     types = types or {}
-    parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
+    if parquet is None:
+        parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
     pieces = (_arrow_piece(frame, time_as_text=not parquet, types=types) for frame in frames)
     if parquet:
         import pyarrow.parquet as pq

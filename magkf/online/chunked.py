@@ -73,6 +73,9 @@ from .smoother import rts_smooth
 
 __all__ = [
     "CHUNK_ROWS",
+    "CHUNKED_EPOCHS",
+    "estimated_rows",
+    "states_format",
     "OVERLAP_S",
     "MARGIN_ROWS",
     "HEAD_EPOCHS",
@@ -88,6 +91,10 @@ __all__ = [
 
 #: Rows read at a time.
 CHUNK_ROWS = 262_144
+#: Logs of at least this many epochs are calibrated in chunks by ``magkf calibrate``: the whole-log path holds
+#: about 1.3 kB per epoch at its peak (1.3 GB here), the chunked path a constant few hundred MB, at the cost
+#: of reading the file five times.
+CHUNKED_EPOCHS = 1_000_000
 #: Seconds of log a piece shares with each neighbour (a time lag is interpolated exactly up to this).
 OVERLAP_S = 2.0
 #: Least epochs a piece shares with each neighbour: central differences of the field and of its rate.
@@ -156,16 +163,13 @@ class ChunkedLog:
         name = self.source
         offset, last_t, gap_warned = 0, None, False
         lo = hi = None
+        complete_epochs = 0
         for table in self._tables():
             rows = table.attrs["rows"]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 log = from_table(table, name, self.mag_unit, self.provenance, whole=False)  # rows from attrs
             log.table.attrs.clear()  # the rows are this chunk's only
-            for w in [] if self.checked else caught:
-                if not (issubclass(w.category, TimeBaseWarning) and gap_warned):
-                    gap_warned |= issubclass(w.category, TimeBaseWarning)
-                    warnings.warn(w.message, w.category, stacklevel=2)
             t = log.time
             if last_t is not None and len(t):
                 if not t[0] > last_t:
@@ -180,10 +184,15 @@ class ChunkedLog:
                         TimeBaseWarning,
                         stacklevel=2,
                     )
+            for w in [] if self.checked else caught:
+                if not (issubclass(w.category, TimeBaseWarning) and gap_warned):
+                    gap_warned |= issubclass(w.category, TimeBaseWarning)
+                    warnings.warn(w.message, w.category, stacklevel=2)
             if offset == 0 and not self.checked:  # the unit warnings from the first chunk
                 whole_log_checks(table, name, self.mag_unit, same_value=False)
             mag = log.mag
             complete = mag[np.all(np.isfinite(mag), axis=1)]
+            complete_epochs += len(complete)
             if len(complete):
                 lo = complete.min(axis=0) if lo is None else np.minimum(lo, complete.min(axis=0))
                 hi = complete.max(axis=0) if hi is None else np.maximum(hi, complete.max(axis=0))
@@ -192,7 +201,7 @@ class ChunkedLog:
             offset += len(t)
         if offset < MIN_EPOCHS:
             raise InputError(f"too few samples: {offset} epoch, a drive log needs at least {MIN_EPOCHS}", name)
-        if lo is not None and np.all(hi == lo):
+        if complete_epochs > 1 and np.all(hi == lo):
             raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", name)
         self.checked = True
 
@@ -278,6 +287,30 @@ class Spill:
         return out.reshape((-1, *self.shape))
 
 
+def estimated_rows(path) -> int:
+    """The number of records of a canonical CSV (from its size and its first lines' length) or Parquet file."""
+    path = Path(path)
+    if path.suffix.lower() in PARQUET_SUFFIXES:
+        import pyarrow.parquet as pq
+
+        try:
+            return int(pq.ParquetFile(path).metadata.num_rows)
+        except Exception:  # not Parquet after all: the reader will say what it is
+            return 0
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+        lines = head.count(b"\n")
+        return int(path.stat().st_size * max(lines - 1, 0) / max(len(head), 1)) if lines > 1 else lines
+    except OSError:
+        return 0
+
+
+def states_format(path) -> bool:
+    """Whether the per-epoch states of a long log go to ``path`` as Parquet: unless its name ends in ``.csv``."""
+    return Path(path).suffix.lower() != ".csv"
+
+
 def _scale_positions(n_usable: int) -> np.ndarray:
     """Positions among ``n_usable`` usable epochs whose residuals make the starting noise's scale: all of them up
     to ``SCALE_EPOCHS``, else ``SCALE_RUNS`` evenly spaced runs of consecutive ones, ``SCALE_EPOCHS`` in all."""
@@ -302,15 +335,16 @@ def calibrate_file(
     effects=(),
     smooth: bool = False,
     states=None,
+    states_parquet: bool | None = None,
     mag_unit: str = "nT",
     rows: int = CHUNK_ROWS,
     progress=None,
     phases=NO_PHASES,
 ) -> CalibrationRun:
     """Calibrate the canonical CSV or Parquet log ``path`` as ``calibrate_log`` does, in chunks of ``rows`` rows
-    (see the module's passes); ``states`` a file the per-epoch table is written to (CSV, or Parquet for
-    ``.parquet``), as it is computed. Returns a ``CalibrationRun`` whose ``states`` and ``fit`` are None (the
-    per-epoch table is in ``states``)."""
+    (see the module's passes); ``states`` a file the per-epoch table is written to as it is computed (CSV, or
+    Parquet for ``.parquet``; ``states_parquet`` True or False: whatever the name). Returns a
+    ``CalibrationRun`` whose ``states`` and ``fit`` are None (the per-epoch table is in ``states``)."""
     started = _time.perf_counter()
     log = ChunkedLog(path, mag_unit, rows)
     name = log.source
@@ -383,7 +417,9 @@ def calibrate_file(
             stops=stops,
         )
         with phases("per-epoch table and summary"):
-            sums = _table_pass(log, config, layout, x0, R0, trace, xs_file, stds_file, per_epoch, states, K)
+            sums = _table_pass(
+                log, config, layout, x0, R0, trace, xs_file, stds_file, per_epoch, (states, states_parquet), K
+            )
         trace = replace(trace, elapsed_s=_time.perf_counter() - started)
         summary, cal, effect_values = summarise(name, config, layout, P0, trace, sums, np.diff(stops, prepend=0))
     return CalibrationRun(cal, est.x, est.P, layout.names, None, summary, effect_values, None)
@@ -554,11 +590,11 @@ def _table_pass(log, config, layout, x0, R0, trace: RunTrace, xs_file, stds_file
                 noise,
             )
 
-    if states is None:
+    if states[0] is None:
         for _ in frames():
             pass
     else:
         import pyarrow as pa
 
-        write_frames(frames(), states, {"status": pa.string()})
+        write_frames(frames(), states[0], {"status": pa.string()}, parquet=states[1])
     return sums
