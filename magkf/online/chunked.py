@@ -54,6 +54,7 @@ from ..status import Status
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
 from .prepare import (
+    CHUNK,
     PreparedLog,
     _robust_linear_fit,
     concat_prepared,
@@ -89,8 +90,8 @@ __all__ = [
     "calibrate_file",
 ]
 
-#: Rows read at a time.
-CHUNK_ROWS = 262_144
+#: Rows read at a time (those of the whole-log path's pieces, ``prepare.CHUNK``).
+CHUNK_ROWS = CHUNK
 #: Logs of at least this many epochs are calibrated in chunks by ``magkf calibrate``: the whole-log path holds
 #: about 1.3 kB per epoch at its peak (1.3 GB here), the chunked path a constant few hundred MB, at the cost
 #: of reading the file five times.
@@ -114,12 +115,28 @@ class ChunkedLog:
     in the file), time strictly increasing across chunk edges, the whole log's checks done on the way
     (``whole_log_checks``: the magnetometer's range over every chunk, the unit warnings on the first)."""
 
-    def __init__(self, path, mag_unit: str = "nT", rows: int = CHUNK_ROWS):
+    def __init__(self, path, mag_unit: str = "nT", rows: int = CHUNK_ROWS, cache=None):
         self.path, self.mag_unit, self.rows = Path(path), mag_unit, int(rows)
         self.source = str(path)
         self.parquet = self.path.suffix.lower() in PARQUET_SUFFIXES
         self.provenance = {"format": "canonical-parquet" if self.parquet else "canonical-csv", "file": self.source}
         self.checked = False  # True once read through: later passes neither warn nor scan the layout again
+        # With a ``cache`` folder, the first reading keeps each validated chunk there as a binary array, which
+        # later readings take instead of parsing the file again; ``reference`` (a ``Spill`` of (3,) rows, set by
+        # ``pieces``) the reference field of every epoch, added to the chunks read from the cache.
+        self.cache = None if cache is None else Path(cache)
+        self.cached, self.columns, self.reference = [], None, None
+
+    def _from_cache(self) -> Iterator[tuple[int, DriveLog]]:
+        from ..conventions import REF
+
+        for offset, file in self.cached:
+            values = np.load(file)
+            table = pd.DataFrame(values[:, 1:], index=pd.Index(values[:, 0], name=TIME), columns=self.columns)
+            if self.reference is not None:
+                ref = self.reference.read(offset, offset + len(table))
+                table = table.assign(**{c: ref[:, k] for k, c in enumerate(REF)})
+            yield offset, DriveLog(table, self.source, self.provenance)
 
     def _tables(self) -> Iterator[pd.DataFrame]:
         """The raw chunks, their file rows in ``attrs["rows"]``."""
@@ -160,7 +177,11 @@ class ChunkedLog:
             raise InputError(f"not a readable CSV file ({' '.join(str(exc).split())})", name) from None
 
     def __iter__(self) -> Iterator[tuple[int, DriveLog]]:
+        if self.checked and self.cache is not None:
+            yield from self._from_cache()
+            return
         name = self.source
+        self.cached = []
         offset, last_t, gap_warned = 0, None, False
         lo = hi = None
         complete_epochs = 0
@@ -197,6 +218,11 @@ class ChunkedLog:
                 lo = complete.min(axis=0) if lo is None else np.minimum(lo, complete.min(axis=0))
                 hi = complete.max(axis=0) if hi is None else np.maximum(hi, complete.max(axis=0))
             last_t = float(t[-1]) if len(t) else last_t
+            if self.cache is not None:
+                file = self.cache / f"chunk{len(self.cached)}.npy"
+                np.save(file, np.column_stack([t, log.table.to_numpy(float)]))
+                self.cached.append((offset, file))
+                self.columns = list(log.table.columns)
             yield offset, log
             offset += len(t)
         if offset < MIN_EPOCHS:
@@ -228,16 +254,22 @@ class Piece:
         return slice(self.start + self.lo, self.start + self.hi)
 
 
-def pieces(log: ChunkedLog, config: FilterConfig, R0=None) -> Iterator[Piece]:
+def pieces(log: ChunkedLog, config: FilterConfig, R0=None, reference: Spill | None = None) -> Iterator[Piece]:
     """The log in pieces of whole blocks (``config.block_s``, counted from the log's first time), each prepared
     with the ``OVERLAP_S`` seconds (at least ``MARGIN_ROWS`` epochs) around it; ``R0`` (3, 3) the calibration
-    the effects' data carry (``prepare.with_initial_R``). The same file gives the same pieces every time."""
+    the effects' data carry (``prepare.with_initial_R``). The same file gives the same pieces every time.
+    ``reference`` (a ``Spill`` of (3,) rows): the reference field of the pieces' own epochs is appended to it,
+    and the log's later readings carry it (``ChunkedLog.reference``): IGRF is evaluated once."""
     carry, emitted, origin = None, 0, None
     chunks = iter(log)
     current = next(chunks, None)
     while current is not None:
         following = next(chunks, None)
         offset, chunk = current
+        if reference is not None and chunk.has_reference:
+            reference = None  # the log's own: nothing to keep
+        if reference is not None:
+            log.reference = reference  # read back by the later readings only
         table = chunk.table if carry is None else pd.concat([carry, chunk.table])
         start = offset - (0 if carry is None else len(carry))
         t = table.index.to_numpy(float)
@@ -253,6 +285,8 @@ def pieces(log: ChunkedLog, config: FilterConfig, R0=None) -> Iterator[Piece]:
             prep = prepare(DriveLog(table, log.source), config)
             if R0 is not None:
                 prep = replace(prep, data=replace(prep.data, R0=R0))
+            if reference is not None:
+                reference.append(prep.ref[lo:hi])
             yield Piece(start, prep, lo, hi, table.index)
         if following is not None:
             keep = max(min(hi - MARGIN_ROWS, int(np.searchsorted(t, t[hi] - OVERLAP_S))), 0)
@@ -346,9 +380,9 @@ def calibrate_file(
     Parquet for ``.parquet``; ``states_parquet`` True or False: whatever the name). Returns a
     ``CalibrationRun`` whose ``states`` and ``fit`` are None (the per-epoch table is in ``states``)."""
     started = _time.perf_counter()
-    log = ChunkedLog(path, mag_unit, rows)
-    name = log.source
     with tempfile.TemporaryDirectory(prefix="magkf-") as folder:
+        log = ChunkedLog(path, mag_unit, rows, cache=folder)
+        name = log.source
         with phases("scan (read, reference field, statuses)"):
             scan = _scan(log, config, effects, init, folder)
         with phases("start (bootstrap, noise)"):
@@ -448,7 +482,8 @@ def _scan(log: ChunkedLog, config: FilterConfig, effects, init, folder) -> _Scan
     head, head_done, any_attitude, origin, last_t = [], False, False, None, None
     first_good = first_cand = None
     linear = [e for e in effects if e.linear]
-    for piece in pieces(log, config):
+    reference = None if log.cache is None else Spill(folder, "reference", float, (3,))
+    for piece in pieces(log, config, reference=reference):
         own = piece.own
         base = mark_missing_columns(own, effects, log.source)
         base_file.append(base)
