@@ -123,11 +123,10 @@ def run_calibrate(args) -> int:
     config = common.filter_config(args)
     init = common.load_calibration(args.init)
     if args.mag != "all":
-        if _chunked(args):
-            added, _ = common.effects(args, init)
-            if not added:  # the comparison before and after added effects needs both runs' per-epoch tables
-                _calibrate_chunked(args, config, init)
-                return 0
+        # the comparison before and after added effects needs both runs' per-epoch tables
+        if not (getattr(args, "effect", None) or (init is not None and init.effects)) and _chunked(args):
+            _calibrate_chunked(args, config, init)
+            return 0
         log = common.open_log(args)
         added, _ = common.effects(args, init)  # user code runs once the inputs are read
         _calibrate_one(args, log, config, init, added, args.output, args.states)
@@ -185,10 +184,14 @@ def _per_instance(path, instance):
 def _chunked(args) -> bool:
     """Whether ``calibrate`` goes through the chunked path: a canonical CSV or Parquet file (not standard input,
     no column map) of at least ``CHUNKED_EPOCHS`` rows, calibrated by the filter, states (if any) to a file."""
+    from pathlib import Path
+
     from ..io.readers import detect_format
     from ..online.chunked import CHUNKED_EPOCHS, estimated_rows
 
-    if args.file == "-" or args.batch or args.map is not None or args.states == "-":
+    if args.file == "-" or args.batch or args.map is not None or args.states == "-" or args.mag is not None:
+        return False
+    if not Path(args.file).is_file():
         return False
     if (args.format or detect_format(args.file)) not in ("csv", "parquet"):
         return False

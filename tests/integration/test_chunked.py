@@ -118,3 +118,25 @@ def test_errors_name_the_row_in_a_late_chunk(logs, tmp_path, column, value, word
         calibrate_file(path, FilterConfig(), rows=ROWS)
     assert str(chunked.value) == str(whole.value)
     assert words in str(chunked.value) and f"row {row}" in str(chunked.value) and column in str(chunked.value)
+
+
+def test_cli_takes_the_chunked_path_for_long_logs(logs, tmp_path, monkeypatch, capsys):
+    """``magkf calibrate`` on a log at least ``CHUNKED_EPOCHS`` long: the same calibration as the whole-log path,
+    states as Parquet unless the name ends in .csv (an explicit .csv name stays CSV)."""
+    import json
+
+    import magkf.online.chunked as chunked
+    from magkf.cli import main
+
+    def calibrate(*extra):
+        capsys.readouterr()
+        assert main(["calibrate", str(logs[True]), "--smooth", "--quiet", "--json", *map(str, extra)]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    whole = calibrate()
+    monkeypatch.setattr(chunked, "CHUNKED_EPOCHS", 1_000)
+    long = calibrate("--states", tmp_path / "states", "-o", tmp_path / "cal.json")
+    assert long["R"] == whole["R"] and long["b"] == whole["b"] and long["status_counts"] == whole["status_counts"]
+    assert len(pd.read_parquet(tmp_path / "states")) == 6000
+    calibrate("--states", tmp_path / "states.csv")
+    assert len(pd.read_csv(tmp_path / "states.csv")) == 6000
