@@ -161,6 +161,8 @@ class ChunkedLog:
                 raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
             return
         records = None if self.checked else _check_layout(self.path, name, required)
+        if records is not None and np.array_equal(records, np.arange(len(records)) + HEADER_ROWS + 1):
+            records = None  # no blank lines: a record's row follows from its number
         try:
             reader = pd.read_csv(
                 self.path, keep_default_na=False, na_values=[""], skipinitialspace=True, chunksize=self.rows
@@ -345,6 +347,34 @@ def states_format(path) -> bool:
     return Path(path).suffix.lower() != ".csv"
 
 
+def _median(spill: Spill, rows: int = CHUNK_ROWS) -> float:
+    """The median of the positive numbers (k,) in ``spill``, exactly as ``np.median`` of them all, read ``rows``
+    at a time: each order statistic by bisection over the numbers' bit patterns (which order positive floats
+    as their values), one reading per bit."""
+    n = spill.rows
+    if n == 0:
+        return 0.0
+
+    def at_most(bits: int) -> int:
+        return sum(
+            int(np.count_nonzero(spill.read(a, min(a + rows, n)).view(np.int64) <= bits)) for a in range(0, n, rows)
+        )
+
+    def kth(k: int) -> float:  # the k-th smallest (0-based)
+        lo, hi = 0, int(np.array(np.inf).view(np.int64))
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if at_most(mid) > k:
+                hi = mid
+            else:
+                lo = mid + 1
+        return float(np.array(lo).view(np.float64))
+
+    if n <= rows:
+        return float(np.median(spill.read(0, n)))
+    return kth(n // 2) if n % 2 else 0.5 * (kth(n // 2 - 1) + kth(n // 2))
+
+
 def _scale_positions(n_usable: int) -> np.ndarray:
     """Positions among ``n_usable`` usable epochs whose residuals make the starting noise's scale: all of them up
     to ``SCALE_EPOCHS``, else ``SCALE_RUNS`` evenly spaced runs of consecutive ones, ``SCALE_EPOCHS`` in all."""
@@ -515,9 +545,7 @@ def _scan(log: ChunkedLog, config: FilterConfig, effects, init, folder) -> _Scan
                 )
                 or sum(len(h) for h in head) >= HEAD_EPOCHS
             )
-    all_steps = steps.read(0, steps.rows)
-    median_step = float(np.median(all_steps)) if len(all_steps) else 0.0
-    del all_steps
+    median_step = _median(steps)
     return _Scan(
         base_file,
         n_epochs,
