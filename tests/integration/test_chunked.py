@@ -152,3 +152,21 @@ def test_median_read_in_pieces_is_numpys(tmp_path, n):
     spill = Spill(tmp_path, "steps", float)
     spill.append(values)
     assert _median(spill, rows=100) == np.median(values)
+
+
+def test_without_attitude_and_from_a_calibration(logs, tmp_path):
+    """The magnitude-only start and noise (no attitude columns) and a start from a calibration (no bootstrap,
+    no starting-noise passes): the same estimates and statuses as the whole-log path."""
+    from magkf.io.calibration import Calibration
+    from magkf.io.drivelog import write_drive_log
+
+    table = read_log(logs[True]).table
+    no_attitude = tmp_path / "no_attitude.csv"
+    write_drive_log(table.drop(columns=["roll", "pitch", "yaw"]), no_attitude)
+    init = Calibration(R=np.diag([1.05, 0.97, 1.02]), b=np.array([350.0, -220.0, 480.0]), method="sinefit")
+    for path, start in ((no_attitude, None), (logs[True], init)):
+        whole = calibrate_log(read_log(path), FilterConfig(), init=start, smooth=True)
+        chunked = calibrate_file(path, FilterConfig(), init=start, smooth=True, rows=ROWS)
+        np.testing.assert_array_equal(chunked.x, whole.x)
+        assert chunked.summary.status_counts == whole.summary.status_counts
+        assert chunked.summary.init == whole.summary.init
