@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from magkf.diagnostics.fitting import GRAM_CONDITION, tall_svd
+from magkf.diagnostics.fitting import GRAM_CONDITION, gram_svd, tall_svd
 from magkf.diagnostics.inference import _wishart_bartlett
 
 
@@ -23,6 +23,29 @@ def test_tall_svd_is_lapacks(seed, small):
     assert np.allclose(np.abs(np.sum(u * u_ref, axis=0)), 1.0, atol=1e-6)
     assert np.allclose(np.abs(np.sum(vt * vt_ref, axis=1)), 1.0, atol=1e-9)
     assert np.allclose(u.T @ u, np.eye(6), atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("small", [1e-2, 1e-6, 1e-9, 0.0])
+def test_gram_svd_from_blocks_is_lapacks(seed, small):
+    """The SVD from the Gram matrix and blocks of rows (one more pass when ill-conditioned) of a tall matrix
+    with one direction ``small`` times the others (0: rank-deficient): singular values within 1e-12 of the
+    largest of LAPACK's, and the same right singular vectors where the singular values are apart."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(30_000, 6)) @ rng.normal(size=(6, 6))
+    u, s_ref, vt_ref = np.linalg.svd(A, full_matrices=False)
+    s_ref[-1] = small * s_ref[0]
+    A = (u * s_ref) @ vt_ref
+    s, vt = gram_svd(A.T @ A, lambda: (A[a : a + 7000] for a in range(0, len(A), 7000)), len(A))
+    assert np.allclose(s, s_ref, rtol=0, atol=1e-12 * s_ref[0])
+    apart = np.r_[np.diff(s_ref) < -1e-3 * s_ref[0], True] & np.r_[True, np.diff(s_ref) < -1e-3 * s_ref[0]]
+    assert np.allclose(np.abs(np.sum(vt * vt_ref, axis=1))[apart], 1.0, atol=1e-6)
+
+
+def test_gram_svd_of_zero_rows():
+    """A matrix of zeros (a candidate whose regressors all vanish): singular values zero, without overflow."""
+    s, vt = gram_svd(np.zeros((3, 3)), lambda: [np.zeros((300, 3))], 300)
+    assert np.array_equal(s, np.zeros(3)) and np.allclose(vt @ vt.T, np.eye(3))
 
 
 def test_bartlett_draws_are_wishart():
