@@ -86,9 +86,6 @@ TESTS = {
     "F": "correlation-robust F (equal-weighted cosine long-run variance, Sun 2013)",
     "L": "constancy against a random walk, correlation-robust (Nyblom 1989, Hansen 1992)",
 }
-#: The screening fit (``_screening_residual``) leaves out directions of its normalised columns whose singular
-#: value is below this share of the largest: below it, normal equations do not resolve them.
-SCREEN_CUT = 1e-6
 #: Singular values of a candidate's (column-normalised) regressors below this, once the model's span is
 #: removed, are directions the model already has: a candidate with none left is contained in it.
 RANK_TOLERANCE = 1e-4
@@ -350,11 +347,10 @@ def diagnose(
 
 def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     """Whitened residual (n, 3) of ``fit``'s model with every candidate of ``pool`` added (screening
-    regressors, one least-squares fit of the columns scaled to unit norm by their normal equations, directions
-    below ``SCREEN_CUT`` of the largest singular value left out), the regressors made and reduced a chunk at a
-    time. Nested candidates (a time lag in the eddy-current terms) make the columns dependent: the directions
-    left out are those the normal equations cannot resolve, and they change the residual by the projection of
-    the noise on a few directions of the million rows, nothing a 5-sigma screen can see."""
+    regressors, one least-squares fit of the columns scaled to unit norm, directions below ``1e-9`` of the
+    largest singular value left out, as LAPACK's ``lstsq`` with that ``rcond``), the regressors made and
+    reduced a chunk at a time (``gram_svd``: nested candidates, a time lag in the eddy-current terms, make the
+    columns dependent)."""
     regressors = [finite_regressors(effect, fit.data) for effect in pool]
 
     def rows(a, b):
@@ -365,10 +361,10 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
         X = rows(a, b)
         gram, moment = gram + X.T @ X, moment + X.T @ fit.y[3 * a : 3 * b]
     norms = np.maximum(np.sqrt(np.diag(gram)), 1e-300)
-    w, V = np.linalg.eigh(gram / np.outer(norms, norms))
-    keep = w > SCREEN_CUT**2 * w[-1]
+    s, vt = gram_svd(gram / np.outer(norms, norms), lambda: (rows(a, b) / norms for a, b in fit.chunks), len(fit.y))
+    keep = s > 1e-9 * s[0]
     # X = U S V^T: the least-squares coefficients V S^-2 V^T X^T y over the directions kept
-    beta = (V[:, keep] @ ((V[:, keep].T @ (moment / norms)) / w[keep])) / norms
+    beta = (vt[keep].T @ ((vt[keep] @ (moment / norms)) / s[keep] ** 2)) / norms
     out = np.empty_like(fit.y)
     for a, b in fit.chunks:
         out[3 * a : 3 * b] = fit.y[3 * a : 3 * b] - rows(a, b) @ beta
@@ -597,23 +593,24 @@ class _Selection:
             if not hits:
                 break
             hits.sort(key=lambda t: t.held_out_nt)
-            refits = {}
+            # taken only if significant at its own best fit and better than the model on held-out data; of
+            # those, the lowest held-out residual (only its refitted model is kept)
+            leading = None
             for t in hits[:LEADING]:
                 self.say(f"refitting the model with {t.effect.label}")
-                refits[t.effect.label] = self.refit(t.effect, fit)
-            # taken only if significant at its own best fit and better than the model on held-out data
-            leading = []
-            for t in hits[:LEADING]:
-                trial = trials[t.effect.label] = refits[t.effect.label][0]
+                trial, with_it = self.refit(t.effect, fit)
+                trials[t.effect.label] = trial
                 if self.significant(trial) and trial.held_out_nt < current:
-                    leading.append(refits[t.effect.label])
+                    if leading is None or trial.held_out_nt < leading[0].held_out_nt:
+                        leading = (trial, with_it)
                 elif self.significant(trial):
                     trial.note = f"significant, but no better than the model on held-out blocks ({current:.1f} nT)"
                     refused.add(t.effect.label)
-            if not leading:
+                del with_it
+            if leading is None:
                 continue
-            best, best_fit = min(leading, key=lambda pair: pair[0].held_out_nt)
-            best, best_fit = self._simpler(best, best_fit, hits, fit)
+            best, best_fit = self._simpler(*leading, hits, fit)
+            leading = None
             taken.append(best.candidate(True, self.dt))
             remaining = [e for e in remaining if e.label != best.effect.label]
             fit, refused = best_fit, set()
@@ -686,18 +683,25 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
         b = _bins(name, v[ok])
         best = None
         binned[name] = {}
-        keys = [k for k in np.unique(b) if np.count_nonzero(b == k) > 1]
-        centres = np.array([np.mean(v[ok][b == k]) for k in keys])
+        counts = np.bincount(b)
+        keys = np.flatnonzero(counts > 1)  # bins of more than one epoch
+        inside = counts[b] > 1
+        group, sizes, k = np.searchsorted(keys, b[inside]), counts[keys], len(keys)
+        centres = np.bincount(group, v[ok][inside], minlength=k) / sizes
         for comp, r in components.items():
-            groups = [r[ok][b == k] for k in keys]
-            if len(groups) < 2:
+            if k < 2:
                 continue
-            f, _ = stats.f_oneway(*groups)
-            k, total = len(groups), sum(len(g) for g in groups)
+            x = r[ok][inside]
+            # one-way analysis of variance from the bins' sums (as scipy.stats.f_oneway)
+            means = np.bincount(group, x, minlength=k) / sizes
+            within = np.bincount(group, (x - means[group]) ** 2, minlength=k)
+            total = len(x)
+            between = float(np.sum(sizes * (means - x.mean()) ** 2))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                f = (between / (k - 1)) / (float(np.sum(within)) / (total - k))
             p = float(stats.f.sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
-            means = np.array([g.mean() for g in groups])
             # a bin's mean varies tau times more than that of independent epochs
-            half = np.array([1.96 * g.std(ddof=1) * np.sqrt(max(tau, 1.0) / len(g)) for g in groups])
+            half = 1.96 * np.sqrt(within / (sizes - 1)) * np.sqrt(max(tau, 1.0) / sizes)
             binned[name][comp] = {"centre": centres.tolist(), "mean": means.tolist(), "ci95": half.tolist()}
             if best is None or p < best[1]:
                 best = (comp, float(p), float(np.ptp(means)))

@@ -47,7 +47,7 @@ WANDER_BLOCK_S = 10.0
 OUTLIER_SIGMA = 5.0
 #: Epochs per chunk of a pass over the diagnosed epochs (cut where a stretch of the heading wander starts):
 #: a candidate's whitened regressors are made and reduced a chunk at a time, never held for the whole log.
-CHUNK = 32768
+CHUNK = 8192
 
 
 def span_coefficients(A: np.ndarray) -> np.ndarray:
@@ -196,6 +196,12 @@ class HeadingWander:
         return np.unique(np.r_[0, at, n])
 
 
+def _chunks(n: int, wander: HeadingWander | None) -> list:
+    """``(start, stop)`` of the chunks of ``CHUNK`` epochs of ``n``, cut at the ``wander``'s stretches."""
+    edges = wander.cuts(CHUNK) if wander is not None else np.unique(np.r_[np.arange(0, n, CHUNK), n])
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
 @dataclass(frozen=True)
 class Linearised:
     """A model linearised and whitened at state ``x`` on the diagnosed epochs: ``data`` with ``R0`` of ``x``;
@@ -224,9 +230,7 @@ class Linearised:
     def chunks(self) -> list:
         """``(start, stop)`` epochs of the chunks of a pass over the epochs (``CHUNK``, cut at the wander's
         stretches)."""
-        n = len(self.W)
-        edges = self.wander.cuts(CHUNK) if self.wander is not None else np.unique(np.r_[np.arange(0, n, CHUNK), n])
-        return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+        return _chunks(len(self.W), self.wander)
 
     def whitened(self, G: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Regressors ``G`` (m, 3, q) of the epochs ``start`` to ``stop`` (default: all; the edges of
@@ -278,24 +282,32 @@ class EpochSet:
             H[:, :, sl] = effect.jacobian(x[sl], data)
             offset += effect.contribution(x[sl], data) - H[:, :, sl] @ x[sl]
         # an effect's input unknown at an epoch (a rate at a gap) adds nothing there, as in finite_regressors
-        H, offset = np.nan_to_num(H, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
+        H, offset = np.nan_to_num(H, copy=False, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
         model = measurement_model(self.config, layout, x)
         if self.noise is not None:
             model.set_noise(self.noise)
         W = model.whitening(data.field_body, R, self.heading)
         n, p = len(self.m), layout.size
-        A = (W @ H).reshape(3 * n, p)
         y = np.einsum("nij,nj->ni", W, self.m - offset).ravel()
         wander = None
         if self.wander_s:
             wander = HeadingWander(np.einsum("nij,nj->ni", W, self.heading @ R.T), data.time, self.wander_s)
-            A, y = wander.remove(A), wander.remove(y)
+            y = wander.remove(y)
+        A = H.reshape(3 * n, p)  # whitened in place, a chunk at a time
+        for a, b in _chunks(n, wander):
+            A[3 * a : 3 * b] = (W[a:b] @ H[a:b]).reshape(-1, p)
+            if wander is not None:
+                A[3 * a : 3 * b] = wander.remove(A[3 * a : 3 * b], a, b)
         # Directions in units of the parameters' prior spread (``determined``). A weaker one (the part of a field
         # anomaly that a heading offset mimics, once the heading's wander is taken out) is held where it is:
         # fitted, it would take noise as values of hundreds of thousands of nT.
         spread = np.sqrt(np.diag(layout.prior()[1]))
         gram = A.T @ A
-        sv, vt = gram_svd(spread[:, None] * gram * spread, lambda: [A * spread], len(A))
+        sv, vt = gram_svd(
+            spread[:, None] * gram * spread,
+            lambda: (A[i : i + 3 * CHUNK] * spread for i in range(0, len(A), 3 * CHUNK)),
+            len(A),
+        )
         rank = determined(sv)
         span = spread[:, None] * (vt[:rank].T / sv[:rank])  # A @ span: orthonormal
         along = span.T @ (A.T @ y)
@@ -311,5 +323,6 @@ class EpochSet:
             change = np.max(np.abs(f.x_fit - f.x) / prior_std)
             if change < REFIT_TOLERANCE or not np.all(np.isfinite(f.x_fit)):
                 break
-            f = self.at(layout, f.x_fit)
+            x_next, f = f.x_fit, None  # one linearisation held at a time
+            f = self.at(layout, x_next)
         return f

@@ -276,16 +276,20 @@ class HeldOut:
         normal equations): the smallest makes the wander a constant, so the result is never worse than the
         model without it, and whether it wanders is for ``constancy_test`` to say."""
         N, c = sum(self.N), sum(self.c)
+        # the other blocks' normal equations summed, not the block's taken off the whole: coefficients that
+        # only the block determines (a wander's knots inside it) are then exactly undetermined, not rounding
+        folds = range(len(self.N))
+        others = [(sum(self.N[:f] + self.N[f + 1 :]), sum(self.c[:f] + self.c[f + 1 :])) for f in folds]
 
-        def fitted(normal):
-            return [np.linalg.lstsq(normal - Nf, c - cf, rcond=None)[0] for Nf, cf in zip(self.N, self.c)]
+        def fitted(prior):
+            return [np.linalg.lstsq(No + prior, co, rcond=None)[0] for No, co in others]
 
         if increments is None:
-            return fitted(N)
+            return fitted(0.0)
         # steps relative to those of the unconstrained fit to all blocks, which noise inflates
         raw = float(np.mean((increments @ np.linalg.lstsq(N, c, rcond=None)[0]) ** 2))
         P = increments.T @ increments / max(raw, 1e-300)
-        trials = [fitted(N + P / step) for step in WALK_STEPS]
+        trials = [fitted(P / step) for step in WALK_STEPS]
         squares = [
             sum(yy - 2.0 * b @ cf + b @ Nf @ b for b, Nf, cf, yy in zip(beta, self.N, self.c, self.yy))
             for beta in trials
