@@ -113,7 +113,7 @@ def gram_svd(gram: np.ndarray, rows, n_rows: int) -> tuple[np.ndarray, np.ndarra
         return np.zeros(q), np.eye(q)
     scale = np.sqrt(np.maximum(w, q * np.finfo(float).eps * w[-1]))
     T = V / scale
-    second = sum((X @ T).T @ (X @ T) for X in rows())
+    second = sum(Y.T @ Y for Y in (X @ T for X in rows()))
     w2, V2 = np.linalg.eigh(second)
     _, s, vt = np.linalg.svd((np.sqrt(np.clip(w2, 0.0, None))[:, None] * V2.T) @ (scale[:, None] * V.T))
     return s, vt
