@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from magkf.diagnostics.fitting import GRAM_CONDITION, gram_svd, tall_svd
-from magkf.diagnostics.inference import _wishart_bartlett
+from magkf.diagnostics.inference import _wishart_bartlett, held_out_residual
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -46,6 +46,23 @@ def test_gram_svd_of_zero_rows():
     """A matrix of zeros (a candidate whose regressors all vanish): singular values zero, without overflow."""
     s, vt = gram_svd(np.zeros((3, 3)), lambda: [np.zeros((300, 3))], 300)
     assert np.array_equal(s, np.zeros(3)) and np.allclose(vt @ vt.T, np.eye(3))
+
+
+def test_held_out_fit_leaves_what_only_the_held_out_block_determines_at_zero():
+    """A regressor that is zero outside one held-out block: that block is predicted by the fit of the other
+    regressors on the other blocks (the column's coefficient exactly undetermined there, so zero), the same
+    whichever chunks the rows come in."""
+    rng = np.random.default_rng(3)
+    n = 3000
+    X = np.hstack([rng.normal(size=(3 * n, 3)), np.zeros((3 * n, 1))])
+    X[3000:6000, 3] = rng.normal(size=3000)  # epochs 1000 to 2000: the second of three blocks
+    y = X @ np.array([1.0, 2.0, 3.0, 5.0]) + rng.normal(size=3 * n)
+    edges = np.array([0, 1000, 2000, 3000])
+    others = np.r_[0:3000, 6000:9000]
+    beta = np.linalg.lstsq(X[others, :3], y[others], rcond=None)[0]
+    for chunks in ([(0, n)], [(0, 1500), (1500, 2600), (2600, n)]):
+        held = held_out_residual(lambda a, b: X[3 * a : 3 * b], y, edges, chunks)
+        assert np.allclose(held[3000:6000], y[3000:6000] - X[3000:6000, :3] @ beta, rtol=0, atol=1e-9)
 
 
 def test_bartlett_draws_are_wishart():
