@@ -33,7 +33,7 @@ the model used:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
@@ -58,11 +58,11 @@ from .fitting import (
     Linearised,
     determined,
     finite_regressors,
+    gram_svd,
     inliers,
-    span_basis,
-    tall_svd,
+    span_coefficients,
 )
-from .inference import constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, robust_test
+from .inference import HeldOut, constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, score_test
 
 __all__ = [
     "BINS",
@@ -270,6 +270,8 @@ def diagnose(
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
     problem = EpochSet.of(prep, used, config, _learned_noise(run, config), wander_s)
+    channels = list(prep.data.columns)
+    del prep  # the diagnosed epochs are copied out of it
     if len(problem) < 10:
         raise InputError(
             f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
@@ -280,7 +282,6 @@ def diagnose(
         for e in (candidates if candidates is not None else default_candidates(list(problem.data.columns), registry))
         if e.label not in present and all(col in problem.data.columns for col in e.columns)
     ]
-    given = problem.at(layout, x)  # the model as it is
     # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the robust scale of the residual of the
     # model with every candidate added, so that a missing effect does not hide them by inflating the scale;
     # judged before the heading wander is taken out, which would spread a burst over its stretch.
@@ -288,14 +289,13 @@ def diagnose(
     keep = inliers(_screening_residual(problem.with_wander(None).at(layout, x), [e for e in pool if not e.wanders]))
     if not keep.all():
         problem = problem.take(keep)
-        given = problem.at(layout, x)
     n = len(problem)
     if n < 10:
         raise InputError(f"too few usable epochs ({n}) to diagnose once outliers are left out", log.source)
     dt = float(np.median(np.diff(problem.data.time))) if n > 1 else 1.0
 
     # residuals in nT (NED and magnitude), with the model as it is
-    data = given.data
+    data = replace(problem.data, R0=layout.R(x))  # the model as it is
     c = layout.calibrated(x, problem.m, layout.extra_terms(x, layout.linear_jacobian(data), data))
     ned = body_to_ned(data.c_nb, c) - data.field_ned
     body = c - data.field_body
@@ -312,7 +312,7 @@ def diagnose(
     null = problem.fit(layout, x)  # the model at its own best fit over the log
     tau = integrated_time(null.r.reshape(n, 3))
     edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
-    baseline = _InNanotesla(null).rms(held_out_residual(null.A, null.y, edges))
+    baseline = _held_out_nt(null, edges)
 
     selection = _Selection(problem, pool, edges, dt, alpha, say)
     results = selection.run(null, baseline)
@@ -322,7 +322,7 @@ def diagnose(
     residuals = {"time": problem.data.time, "ned": ned, "body": body, "magnitude": mag}
     from ..effects import untried_columns
 
-    untried = untried_columns(list(prep.data.columns), registry) if candidates is None else []
+    untried = untried_columns(channels, registry) if candidates is None else []
     diagnosis = Diagnosis(
         rms,
         axis_rms,
@@ -347,15 +347,33 @@ def diagnose(
 
 def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     """Whitened residual (n, 3) of ``fit``'s model with every candidate of ``pool`` added (screening
-    regressors, one least-squares fit)."""
-    columns = [fit.A]
-    for effect in pool:
-        G = finite_regressors(effect, fit.data)
-        columns.append(fit.whitened(G))
-    A = np.hstack(columns)
-    A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-    beta = np.linalg.lstsq(A, fit.y, rcond=1e-9)[0]
-    return (fit.y - A @ beta).reshape(-1, 3)
+    regressors, one least-squares fit of the columns scaled to unit norm, directions below ``1e-9`` of the
+    largest singular value left out, as LAPACK's ``lstsq`` with that ``rcond``), the regressors made and
+    reduced a chunk at a time (``gram_svd``: nested candidates, a time lag in the eddy-current terms, make the
+    columns dependent)."""
+    regressors = [finite_regressors(effect, fit.data) for effect in pool]
+
+    def rows(a, b):
+        return np.hstack([fit.A[3 * a : 3 * b], *(fit.whitened(G[a:b], a, b) for G in regressors)])
+
+    gram, moment = 0.0, 0.0
+    for a, b in fit.chunks:
+        X = rows(a, b)
+        gram, moment = gram + X.T @ X, moment + X.T @ fit.y[3 * a : 3 * b]
+    norms = np.maximum(np.sqrt(np.diag(gram)), 1e-300)
+    s, vt = gram_svd(gram / np.outer(norms, norms), lambda: (rows(a, b) / norms for a, b in fit.chunks), len(fit.y))
+    keep = s > 1e-9 * s[0]
+    # X = U S V^T: the least-squares coefficients V S^-2 V^T X^T y over the directions kept
+    beta = (vt[keep].T @ ((vt[keep] @ (moment / norms)) / s[keep] ** 2)) / norms
+    out = np.empty_like(fit.y)
+    for a, b in fit.chunks:
+        out[3 * a : 3 * b] = fit.y[3 * a : 3 * b] - rows(a, b) @ beta
+    return out.reshape(-1, 3)
+
+
+def _held_out_nt(fit: Linearised, edges) -> float:
+    """The NED residual RMS (nT) of ``fit``'s model on held-out blocks between ``edges``."""
+    return _InNanotesla(fit).rms(held_out_residual(lambda a, b: fit.A[3 * a : 3 * b], fit.y, edges, fit.chunks))
 
 
 class _InNanotesla:
@@ -366,11 +384,11 @@ class _InNanotesla:
     def __init__(self, fit: Linearised):
         self.L = fit.unwhitening
         self.Rinv = np.linalg.inv(fit.layout.R(fit.x_fit))
-        self.c_nb = fit.data.c_nb
 
     def rms(self, residual_w: np.ndarray) -> float:
+        # the rotation to NED keeps the norm
         raw = np.einsum("nij,nj->ni", self.L, residual_w.reshape(-1, 3))
-        return float(np.sqrt(np.mean(np.sum(body_to_ned(self.c_nb, raw @ self.Rinv.T) ** 2, axis=1))))
+        return float(np.sqrt(np.mean(np.sum((raw @ self.Rinv.T) ** 2, axis=1))))
 
 
 @dataclass
@@ -405,16 +423,17 @@ class _Trial:
         )
 
 
-def _determined_part(effect, Gw, basis, value, cov):
-    """The estimate ``value`` (q,) and its covariance (q, q) of an effect whose whitened regressors ``Gw``
-    (3n, q) are its Jacobian, projected onto the directions the data determine beside the model of orthonormal
-    ``basis`` (``fitting.determined``, in units of the effect's prior spread): the others, which the model or
-    the heading's wander mimics, are held at zero. Returns ``(value, cov, directions held)``."""
+def _determined_part(effect, gram, rows, n_rows, value, cov):
+    """The estimate ``value`` (q,) and its covariance (q, q) of an effect whose whitened regressors are its
+    Jacobian, projected onto the directions the data determine beside the model (``fitting.determined``, in
+    units of the effect's prior spread): the others, which the model or the heading's wander mimics, are held
+    at zero. ``gram`` (q, q) is the Gram matrix of the regressors' part outside the model's span, ``rows()``
+    yields that part's rows (``n_rows`` in all, q) a block at a time (``gram_svd``). Returns ``(value, cov,
+    directions held)``."""
     mean, spread = effect.prior()
-    if Gw.shape[1] != len(spread):
+    if gram.shape[0] != len(spread):
         return value, cov, 0
-    scaled = (Gw - basis @ (basis.T @ Gw)) * spread
-    _, sv, vt = tall_svd(scaled, want_u=False)
+    sv, vt = gram_svd(gram * np.outer(spread, spread), lambda: (X * spread for X in rows()), n_rows)
     k = determined(sv)
     if k == len(spread):
         return value, cov, 0
@@ -448,7 +467,8 @@ class _Selection:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
         G = finite_regressors(effect, fit.data)
         names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-        return self._evaluate(effect, fit.A, fit.basis, fit.whitened(G), fit.y, names, fit, fit)
+        rows = lambda a, b: fit.whitened(G[a:b], a, b)  # noqa: E731
+        return self._evaluate(effect, fit.A, fit.span, rows, names, fit, fit)
 
     def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
         """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
@@ -460,53 +480,100 @@ class _Selection:
         with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]))
         p = fit.layout.size
         A_null = with_it.A[:, :p]
+        rows = lambda a, b: with_it.A[3 * a : 3 * b, p:]  # noqa: E731
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual
-        trial = self._evaluate(
-            effect, A_null, span_basis(A_null), with_it.A[:, p:], with_it.y, block.parameter_names, fit, with_it
-        )
+        trial = self._evaluate(effect, A_null, span_coefficients(A_null), rows, block.parameter_names, fit, with_it)
         return trial, with_it
 
-    def _evaluate(self, effect, A, basis, Gw, y, names, null: Linearised, whitened_at: Linearised) -> _Trial:
-        """The test of whitened regressors ``Gw`` (3n, q) added to a model of whitened Jacobian ``A`` (3n, p)
-        with orthonormal ``basis`` of its span, for the reading ``y`` (3n,), all whitened at the model
-        ``whitened_at``; a wandering effect's constancy test at the model ``null`` without it."""
-        n = len(self.problem)
-        norms = np.linalg.norm(Gw, axis=0)
+    def _evaluate(self, effect, A, span, rows, names, null: Linearised, model: Linearised) -> _Trial:
+        """The test of whitened regressors ``rows(a, b)`` (3 (b - a), q: those of epochs ``a`` to ``b``, one
+        chunk of ``model.chunks``) added to a model of whitened Jacobian ``A`` (3n, p) with orthonormal basis
+        ``A @ span`` of its span, for ``model``'s reading ``y``, all whitened at ``model``; a wandering effect's
+        constancy test at the model ``null`` without it.
+
+        The regressors are made a chunk at a time, twice: once for their normal equations (with ``A`` and the
+        model's residual, per held-out block), from which their part outside the model's span and its SVD
+        follow, and once for the per-epoch scores of the test, the residual it leaves and the held-out
+        residual (``HeldOut``); where the normal equations are ill-conditioned, once more (``gram_svd``)."""
+        n, chunks, y = len(self.problem), model.chunks, model.y
+        p = A.shape[1]
+        r = y - A @ (span @ (span.T @ (A.T @ y)))  # what the model's span leaves
+        held = HeldOut(y, self.edges)
+        moment = 0.0
+        for a, b in chunks:
+            G = rows(a, b)
+            held.add(np.hstack([A[3 * a : 3 * b], G]), a, b)
+            moment = moment + G.T @ r[3 * a : 3 * b]
+        normal = held.normal
+        gram, cross = normal[p:, p:], normal[:p, p:]
+        norms = np.sqrt(np.diag(gram))
         norms[norms == 0] = 1.0
-        Gn = Gw / norms
-        Gt = Gn - basis @ (basis.T @ Gn)
-        u, s, vt = tall_svd(Gt)
+        along = span.T @ (cross / norms)  # the basis's components of the normalised regressors
+        outside = np.asarray(gram / np.outer(norms, norms) - along.T @ along)  # Gram of their part outside it
+        proj = span @ along
+
+        def part(a, b, G=None):
+            """Normalised regressors of epochs ``a`` to ``b`` less their part in the model's span (3 (b - a), q)."""
+            return (rows(a, b) if G is None else G) / norms - A[3 * a : 3 * b] @ proj
+
+        s, vt = gram_svd(outside, lambda: (part(a, b) for a, b in chunks), len(y))
         rank = int(np.sum(s > RANK_TOLERANCE))
         if rank == 0:
             return _Trial(effect, None, float("nan"), float("nan"), {}, 0, "contained in the model")
-        U = u[:, :rank]
-        r = y - basis @ (basis.T @ y)
-        if effect.wanders:
-            J = null.whitened(effect.jacobian(effect.prior()[0], null.data)).reshape(n, 3, -1)
-            test = constancy_test(np.einsum("nik,ni->nk", J, null.r.reshape(n, 3)))
-        else:
-            test = robust_test(U.reshape(n, 3, rank), r.reshape(n, 3))
+        to_u = vt[:rank].T / s[:rank]  # U = part @ to_u: orthonormal
+        theta = to_u.T @ (moment / norms)  # U^T r (the span's basis is orthogonal to r)
         D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
-        increments = None if D is None else np.hstack([np.zeros((len(D), A.shape[1])), D])
-        held = held_out_residual(np.hstack([A, Gw]), y, self.edges, increments=increments)
-        in_sample = r - U @ (U.T @ r)
+        beta = held.coefficients(None if D is None else np.hstack([np.zeros((len(D), p)), D]))
+        in_sample, held_out = np.empty_like(r), np.empty_like(r)
+        scores = np.empty((n, rank))
+        for a, b in chunks:
+            G = rows(a, b)
+            U = part(a, b, G) @ to_u
+            e = r[3 * a : 3 * b] - U @ theta
+            in_sample[3 * a : 3 * b] = e
+            scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
+            held_out[3 * a : 3 * b] = held.residual(np.hstack([A[3 * a : 3 * b], G]), a, b, beta)
+        if effect.wanders:
+            J = effect.jacobian(effect.prior()[0], null.data)
+            test = constancy_test(
+                np.concatenate(
+                    [
+                        np.einsum(
+                            "nik,ni->nk",
+                            null.whitened(J[a:b], a, b).reshape(b - a, 3, -1),
+                            null.r[3 * a : 3 * b].reshape(b - a, 3),
+                        )
+                        for a, b in null.chunks
+                    ]
+                )
+            )
+        else:
+            test = score_test(scores, theta)
+        del scores
         estimate, note = {}, "not testable: the residual's correlation leaves too few independent stretches"
         if test is not None and effect.wanders:
             note = ""
         elif test is not None:
             # coefficients of G (Frisch-Waugh): theta_G = V S^-1 theta_U / norms, with the robust covariance
-            back = (vt[:rank].T / s[:rank]) / norms[:, None]
+            back = to_u / norms[:, None]
             value, cov = back @ test.theta, back @ test.cov @ back.T
-            value, cov, undetermined = _determined_part(effect, Gw, basis, value, cov)
+            value, cov, undetermined = _determined_part(
+                effect,
+                outside * np.outer(norms, norms),
+                lambda: (part(a, b) * norms for a, b in chunks),
+                len(y),
+                value,
+                cov,
+            )
             std = np.sqrt(np.clip(np.diag(cov), 0, None))
             estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in zip(names, value, std)}
             note = ""
             if undetermined:
                 plural = "s" if undetermined > 1 else ""
                 note = f"{undetermined} direction{plural} of its parameters not determined (held at the prior mean)"
-        nT = _InNanotesla(whitened_at)
-        return _Trial(effect, test, nT.rms(held), nT.rms(in_sample), estimate, rank, note)
+        nT = _InNanotesla(model)
+        return _Trial(effect, test, nT.rms(held_out), nT.rms(in_sample), estimate, rank, note)
 
     def significant(self, trial: _Trial) -> bool:
         return trial.test is not None and trial.test.p_value < self.level
@@ -526,27 +593,28 @@ class _Selection:
             if not hits:
                 break
             hits.sort(key=lambda t: t.held_out_nt)
-            refits = {}
+            # taken only if significant at its own best fit and better than the model on held-out data; of
+            # those, the lowest held-out residual (only its refitted model is kept)
+            leading = None
             for t in hits[:LEADING]:
                 self.say(f"refitting the model with {t.effect.label}")
-                refits[t.effect.label] = self.refit(t.effect, fit)
-            # taken only if significant at its own best fit and better than the model on held-out data
-            leading = []
-            for t in hits[:LEADING]:
-                trial = trials[t.effect.label] = refits[t.effect.label][0]
+                trial, with_it = self.refit(t.effect, fit)
+                trials[t.effect.label] = trial
                 if self.significant(trial) and trial.held_out_nt < current:
-                    leading.append(refits[t.effect.label])
+                    if leading is None or trial.held_out_nt < leading[0].held_out_nt:
+                        leading = (trial, with_it)
                 elif self.significant(trial):
                     trial.note = f"significant, but no better than the model on held-out blocks ({current:.1f} nT)"
                     refused.add(t.effect.label)
-            if not leading:
+                del with_it
+            if leading is None:
                 continue
-            best, best_fit = min(leading, key=lambda pair: pair[0].held_out_nt)
-            best, best_fit = self._simpler(best, best_fit, hits, fit)
+            best, best_fit = self._simpler(*leading, hits, fit)
+            leading = None
             taken.append(best.candidate(True, self.dt))
             remaining = [e for e in remaining if e.label != best.effect.label]
             fit, refused = best_fit, set()
-            current = _InNanotesla(fit).rms(held_out_residual(fit.A, fit.y, self.edges))
+            current = _held_out_nt(fit, self.edges)
             trials = {e.label: self.trial(e, fit) for e in remaining}
             for e in remaining:
                 if trials[e.label].rank == 0:
@@ -615,18 +683,25 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
         b = _bins(name, v[ok])
         best = None
         binned[name] = {}
-        keys = [k for k in np.unique(b) if np.count_nonzero(b == k) > 1]
-        centres = np.array([np.mean(v[ok][b == k]) for k in keys])
+        counts = np.bincount(b)
+        keys = np.flatnonzero(counts > 1)  # bins of more than one epoch
+        inside = counts[b] > 1
+        group, sizes, k = np.searchsorted(keys, b[inside]), counts[keys], len(keys)
+        centres = np.bincount(group, v[ok][inside], minlength=k) / sizes
         for comp, r in components.items():
-            groups = [r[ok][b == k] for k in keys]
-            if len(groups) < 2:
+            if k < 2:
                 continue
-            f, _ = stats.f_oneway(*groups)
-            k, total = len(groups), sum(len(g) for g in groups)
+            x = r[ok][inside]
+            # one-way analysis of variance from the bins' sums (as scipy.stats.f_oneway)
+            means = np.bincount(group, x, minlength=k) / sizes
+            within = np.bincount(group, (x - means[group]) ** 2, minlength=k)
+            total = len(x)
+            between = float(np.sum(sizes * (means - x.mean()) ** 2))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                f = (between / (k - 1)) / (float(np.sum(within)) / (total - k))
             p = float(stats.f.sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
-            means = np.array([g.mean() for g in groups])
             # a bin's mean varies tau times more than that of independent epochs
-            half = np.array([1.96 * g.std(ddof=1) * np.sqrt(max(tau, 1.0) / len(g)) for g in groups])
+            half = 1.96 * np.sqrt(within / (sizes - 1)) * np.sqrt(max(tau, 1.0) / sizes)
             binned[name][comp] = {"centre": centres.tolist(), "mean": means.tolist(), "ci95": half.tolist()}
             if best is None or p < best[1]:
                 best = (comp, float(p), float(np.ptp(means)))

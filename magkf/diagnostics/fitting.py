@@ -28,7 +28,9 @@ __all__ = [
     "Linearised",
     "EpochSet",
     "inliers",
-    "span_basis",
+    "span_coefficients",
+    "gram_svd",
+    "CHUNK",
     "finite_regressors",
 ]
 
@@ -43,13 +45,17 @@ REFIT_TOLERANCE = 1e-3
 WANDER_BLOCK_S = 10.0
 #: Whitened residual, in units of its robust (MAD) scale per component, beyond which an epoch is an outlier.
 OUTLIER_SIGMA = 5.0
+#: Epochs per chunk of a pass over the diagnosed epochs (cut where a stretch of the heading wander starts):
+#: a candidate's whitened regressors are made and reduced a chunk at a time, never held for the whole log.
+CHUNK = 8192
 
 
-def span_basis(A: np.ndarray) -> np.ndarray:
-    """An orthonormal basis (rows, rank) of the span of ``A`` (rows, p), directions below ``1e-9`` of the
-    largest singular value left out."""
-    u, sv, _ = tall_svd(A)
-    return u[:, : _rank(sv)]
+def span_coefficients(A: np.ndarray) -> np.ndarray:
+    """Coefficients ``M`` (p, rank) such that ``A @ M`` is an orthonormal basis of the span of ``A`` (rows, p),
+    directions below ``1e-9`` of the largest singular value left out."""
+    _, sv, vt = tall_svd(A, want_u=False)
+    rank = _rank(sv)
+    return vt[:rank].T / sv[:rank]
 
 
 #: ``tall_svd`` goes through the Gram matrix only when every singular value is at least this share of the
@@ -66,14 +72,51 @@ def tall_svd(A: np.ndarray, want_u: bool = True):
     largest, or few rows) by ``np.linalg.svd``. ``want_u`` False skips ``u`` (None)."""
     rows, q = A.shape
     if rows >= 8 * q and q > 0:
-        w, V = np.linalg.eigh(A.T @ A)
-        w, V = w[::-1].copy(), np.ascontiguousarray(V[:, ::-1])
-        if w[0] > 0 and w[-1] >= (GRAM_CONDITION**2) * w[0]:
-            s = np.sqrt(w)
-            return (A @ (V / s) if want_u else None), s, np.ascontiguousarray(V.T)
+        found = _gram_eigen(A.T @ A)
+        if found is not None:
+            s, vt = found
+            return (A @ (vt.T / s) if want_u else None), s, vt
     if not want_u:
         return None, *np.linalg.svd(A, full_matrices=False)[1:]
     return np.linalg.svd(A, full_matrices=False)
+
+
+def _gram_eigen(gram: np.ndarray):
+    """``(s, vt)`` of a matrix from its Gram matrix ``gram`` (q, q) when every singular value is at least
+    ``GRAM_CONDITION`` of the largest; else None."""
+    w, V = np.linalg.eigh(gram)
+    w, V = w[::-1].copy(), V[:, ::-1]
+    if w[0] > 0 and w[-1] >= (GRAM_CONDITION**2) * w[0]:
+        return np.sqrt(w), np.ascontiguousarray(V.T)
+    return None
+
+
+def gram_svd(gram: np.ndarray, rows, n_rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(s, vt)`` of the thin SVD of a matrix ``X`` of ``n_rows`` rows given its Gram matrix ``gram = X^T X``
+    (q, q); ``rows()`` yields ``X``'s rows a block at a time (read again only when needed). ``X @ vt.T / s``
+    are the left singular vectors.
+
+    Well conditioned (every singular value at least ``GRAM_CONDITION`` of the largest), from ``gram`` as
+    ``tall_svd``. Otherwise by one more pass (shifted Cholesky-QR2; Fukaya, Kannan, Nakatsukasa, Yamamoto and
+    Yanagisawa, SIAM J. Sci. Comput. 42 (2020) A477): ``T`` from ``gram``'s eigen-decomposition, its eigenvalues
+    floored at ``q eps`` of the largest, makes ``X T`` well conditioned; the Gram matrix of ``X T``, summed
+    over the blocks, gives ``X T = Q S2 V2^T``, and the SVD of the small ``S2 V2^T T^-1`` that of ``X``, its
+    small singular values to about ``eps`` of the largest (as LAPACK's) instead of ``sqrt(eps)``."""
+    q = gram.shape[0]
+    if q == 0 or n_rows < 8 * q:
+        return tall_svd(np.vstack(list(rows())) if q else np.zeros((n_rows, 0)), want_u=False)[1:]
+    found = _gram_eigen(gram)
+    if found is not None:
+        return found
+    w, V = np.linalg.eigh(gram)
+    if not w[-1] > 0:  # X is zero
+        return np.zeros(q), np.eye(q)
+    scale = np.sqrt(np.maximum(w, q * np.finfo(float).eps * w[-1]))
+    T = V / scale
+    second = sum(Y.T @ Y for Y in (X @ T for X in rows()))
+    w2, V2 = np.linalg.eigh(second)
+    _, s, vt = np.linalg.svd((np.sqrt(np.clip(w2, 0.0, None))[:, None] * V2.T) @ (scale[:, None] * V.T))
+    return s, vt
 
 
 def _rank(sv: np.ndarray) -> int:
@@ -91,7 +134,11 @@ def finite_regressors(effect, data) -> np.ndarray:
     """``effect.regressors(data)`` (n, 3, q) with epochs where any is not finite set to zero (they add
     nothing to a fit)."""
     G = effect.regressors(data)
-    return np.where(np.all(np.isfinite(G), axis=(1, 2))[:, None, None], G, 0.0)
+    bad = ~np.all(np.isfinite(G), axis=(1, 2))
+    if bad.any():
+        G = G if G.flags.writeable else G.copy()
+        G[bad] = 0.0
+    return G
 
 
 def inliers(residual: np.ndarray) -> np.ndarray:
@@ -130,29 +177,45 @@ class HeadingWander:
         normal = np.add.reduceat(np.swapaxes(self.Z, 1, 2) @ self.Z, self.starts, axis=0)
         self.inverse = np.linalg.pinv(normal, rcond=1e-9)  # (blocks, 2, 2)
 
-    def remove(self, X: np.ndarray) -> np.ndarray:
-        """``X`` (3n,) or (3n, k), epoch-major, less its least-squares fit by the wander of each stretch."""
-        n = len(self.block)
-        Xr = X.reshape(n, 3, -1)
+    def remove(self, X: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """``X`` (3m,) or (3m, k), epoch-major, the rows of epochs ``start`` to ``stop`` (default: all; both at
+        the start of a stretch, or the end), less its least-squares fit by the wander of each stretch."""
+        stop = len(self.block) if stop is None else stop
+        Xr = X.reshape(stop - start, 3, -1)
+        Z, block = self.Z[start:stop], self.block[start:stop] - self.block[start]
+        first, last = np.searchsorted(self.starts, [start, stop])
         # batched matrix products: about twice as fast as the same einsums on long logs
-        c = np.add.reduceat(np.swapaxes(self.Z, 1, 2) @ Xr, self.starts, axis=0)
-        coef = self.inverse @ c  # (blocks, 2, k)
-        return (Xr - self.Z @ coef[self.block]).reshape(X.shape)
+        c = np.add.reduceat(np.swapaxes(Z, 1, 2) @ Xr, self.starts[first:last] - start, axis=0)
+        coef = self.inverse[first:last] @ c  # (blocks, 2, k)
+        return (Xr - Z @ coef[block]).reshape(X.shape)
+
+    def cuts(self, size: int) -> np.ndarray:
+        """Edges (epoch indices, from 0 to n) of chunks of about ``size`` epochs, each cut at a stretch's start."""
+        n = len(self.block)
+        at = self.starts[np.searchsorted(self.starts, np.arange(size, n, size), side="right") - 1]
+        return np.unique(np.r_[0, at, n])
+
+
+def _chunks(n: int, wander: HeadingWander | None) -> list:
+    """``(start, stop)`` of the chunks of ``CHUNK`` epochs of ``n``, cut at the ``wander``'s stretches."""
+    edges = wander.cuts(CHUNK) if wander is not None else np.unique(np.r_[np.arange(0, n, CHUNK), n])
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
 @dataclass(frozen=True)
 class Linearised:
     """A model linearised and whitened at state ``x`` on the diagnosed epochs: ``data`` with ``R0`` of ``x``;
-    ``W`` (n, 3, 3) the whitening; ``A`` (3n, p) the whitened Jacobian and ``basis`` an orthonormal basis of
-    its span; ``y`` (3n,) the whitened reading and ``r`` (3n,) what the span leaves of it; ``x_fit`` the
-    least-squares estimate (kept at ``x`` in directions the data do not determine)."""
+    ``W`` (n, 3, 3) the whitening; ``A`` (3n, p) the whitened Jacobian and ``span`` (p, k) the coefficients
+    of an orthonormal basis ``A @ span`` of the directions the data determine; ``y`` (3n,) the whitened
+    reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares estimate (kept at ``x``
+    in directions the data do not determine)."""
 
     layout: StateLayout
     x: np.ndarray
     data: object
     W: np.ndarray
     A: np.ndarray
-    basis: np.ndarray
+    span: np.ndarray
     y: np.ndarray
     r: np.ndarray
     x_fit: np.ndarray
@@ -163,10 +226,18 @@ class Linearised:
         """``W^-1`` (n, 3, 3): takes whitened residuals back to nT in the sensor axes (computed once per model)."""
         return np.linalg.inv(self.W)
 
-    def whitened(self, G: np.ndarray) -> np.ndarray:
-        """Regressors ``G`` (n, 3, q) whitened, less the heading wander when it is modelled: (3n, q)."""
-        Gw = (self.W @ G).reshape(self.y.size, -1)
-        return Gw if self.wander is None else self.wander.remove(Gw)
+    @cached_property
+    def chunks(self) -> list:
+        """``(start, stop)`` epochs of the chunks of a pass over the epochs (``CHUNK``, cut at the wander's
+        stretches)."""
+        return _chunks(len(self.W), self.wander)
+
+    def whitened(self, G: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Regressors ``G`` (m, 3, q) of the epochs ``start`` to ``stop`` (default: all; the edges of
+        ``chunks``) whitened, less the heading wander when it is modelled: (3m, q)."""
+        stop = len(self.W) if stop is None else stop
+        Gw = (self.W[start:stop] @ G).reshape(3 * (stop - start), -1)
+        return Gw if self.wander is None else self.wander.remove(Gw, start, stop)
 
 
 class EpochSet:
@@ -211,28 +282,38 @@ class EpochSet:
             H[:, :, sl] = effect.jacobian(x[sl], data)
             offset += effect.contribution(x[sl], data) - H[:, :, sl] @ x[sl]
         # an effect's input unknown at an epoch (a rate at a gap) adds nothing there, as in finite_regressors
-        H, offset = np.nan_to_num(H, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
+        H, offset = np.nan_to_num(H, copy=False, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
         model = measurement_model(self.config, layout, x)
         if self.noise is not None:
             model.set_noise(self.noise)
         W = model.whitening(data.field_body, R, self.heading)
         n, p = len(self.m), layout.size
-        A = (W @ H).reshape(3 * n, p)
         y = np.einsum("nij,nj->ni", W, self.m - offset).ravel()
         wander = None
         if self.wander_s:
             wander = HeadingWander(np.einsum("nij,nj->ni", W, self.heading @ R.T), data.time, self.wander_s)
-            A, y = wander.remove(A), wander.remove(y)
+            y = wander.remove(y)
+        A = H.reshape(3 * n, p)  # whitened in place, a chunk at a time
+        for a, b in _chunks(n, wander):
+            A[3 * a : 3 * b] = (W[a:b] @ H[a:b]).reshape(-1, p)
+            if wander is not None:
+                A[3 * a : 3 * b] = wander.remove(A[3 * a : 3 * b], a, b)
         # Directions in units of the parameters' prior spread (``determined``). A weaker one (the part of a field
         # anomaly that a heading offset mimics, once the heading's wander is taken out) is held where it is:
         # fitted, it would take noise as values of hundreds of thousands of nT.
         spread = np.sqrt(np.diag(layout.prior()[1]))
-        u, sv, vt = tall_svd(A * spread)
+        gram = A.T @ A
+        sv, vt = gram_svd(
+            spread[:, None] * gram * spread,
+            lambda: (A[i : i + 3 * CHUNK] * spread for i in range(0, len(A), 3 * CHUNK)),
+            len(A),
+        )
         rank = determined(sv)
-        basis = u[:, :rank]
-        r = y - basis @ (basis.T @ y)
-        step = spread * (vt[:rank].T @ ((basis.T @ (y - A @ x)) / sv[:rank]))
-        return Linearised(layout, x, data, W, A, basis, y, r, x + step, wander)
+        span = spread[:, None] * (vt[:rank].T / sv[:rank])  # A @ span: orthonormal
+        along = span.T @ (A.T @ y)
+        r = y - A @ (span @ along)
+        step = spread * (vt[:rank].T @ ((along - span.T @ (gram @ x)) / sv[:rank]))
+        return Linearised(layout, x, data, W, A, span, y, r, x + step, wander)
 
     def fit(self, layout: StateLayout, x) -> Linearised:
         """``at`` iterated until the estimate stops moving: the model at its own best fit."""
@@ -242,5 +323,6 @@ class EpochSet:
             change = np.max(np.abs(f.x_fit - f.x) / prior_std)
             if change < REFIT_TOLERANCE or not np.all(np.isfinite(f.x_fit)):
                 break
-            f = self.at(layout, f.x_fit)
+            x_next, f = f.x_fit, None  # one linearisation held at a time
+            f = self.at(layout, x_next)
         return f

@@ -48,10 +48,12 @@ __all__ = [
     "integrated_time",
     "cosine_terms",
     "robust_test",
+    "score_test",
     "constancy_test",
     "high_passed",
     "fold_edges",
     "held_out_residual",
+    "HeldOut",
 ]
 
 #: ``K`` is at most this share of the number of independent epochs ``n / tau``: the scores' spectrum then
@@ -117,10 +119,15 @@ def robust_test(U: np.ndarray, residual: np.ndarray) -> RobustTest | None:
     model already fitted; ``residual`` (n, 3): the whitened residual of that model. Returns None when the
     scores' correlation leaves fewer cosine terms than ``q + 2`` (too few independent stretches to test).
     """
-    n, _, q = U.shape
     theta = np.einsum("nik,ni->k", U, residual)
     e = residual - np.einsum("nik,k->ni", U, theta)
-    scores = np.einsum("nik,ni->nk", U, e)
+    return score_test(np.einsum("nik,ni->nk", U, e), theta)
+
+
+def score_test(scores: np.ndarray, theta: np.ndarray) -> RobustTest | None:
+    """``robust_test`` from its per-epoch scores ``s_t = U_t^T e_t`` (n, q), ``e`` the residual with the
+    regressors, and the coefficients ``theta = U^T residual`` (q,)."""
+    n, q = scores.shape
     tau = integrated_time(scores)
     K = cosine_terms(n, tau)
     if K < q + 2:
@@ -230,32 +237,81 @@ def fold_edges(n: int, tau: float) -> np.ndarray:
     return np.linspace(0, n, folds + 1).astype(int)
 
 
-def held_out_residual(
-    A: np.ndarray, y: np.ndarray, edges: np.ndarray, rows_per_epoch: int = 3, increments: np.ndarray | None = None
-) -> np.ndarray:
-    """The residual of each block predicted by the least-squares fit of ``y ~ A`` on the other blocks.
+class HeldOut:
+    """Time-blocked cross-validation of the least-squares fit of ``y ~ X``: each block's residual predicted
+    by the fit on the other blocks, from the blocks' normal equations, made a chunk of rows at a time.
 
-    ``A`` (rows, p) and ``y`` (rows,) whitened, ``rows_per_epoch`` rows per epoch in epoch order; ``edges``
-    from ``fold_edges``; ``increments`` (m, p) the steps between knots of a wander among the coefficients:
-    they get a zero-mean Gaussian prior, so that coefficients the other blocks leave open are interpolated
-    from their neighbours. The prior's spread (the walk's step) is the one of ``WALK_STEPS`` that predicts
-    the held-out blocks best: the smallest makes the wander a constant, so the result is never worse than
-    the model without it, and whether it wanders is for ``constancy_test`` to say. Returns (rows,)."""
-    edges = np.asarray(edges) * rows_per_epoch
-    N, c = A.T @ A, A.T @ y
-    blocks = [(a, b, A[a:b].T @ A[a:b], A[a:b].T @ y[a:b]) for a, b in zip(edges[:-1], edges[1:])]
+    ``y`` (3n,) whitened, three rows an epoch; ``edges`` from ``fold_edges``. ``add`` the regressors of each
+    chunk of epochs in turn, then ``coefficients``, then ``residual`` of each chunk."""
 
-    def predicted(normal: np.ndarray) -> np.ndarray:
-        out = np.empty_like(y)
-        for a, b, Nf, cf in blocks:
-            beta = np.linalg.lstsq(normal - Nf, c - cf, rcond=None)[0]
-            out[a:b] = y[a:b] - A[a:b] @ beta
+    def __init__(self, y: np.ndarray, edges: np.ndarray):
+        self.y, self.edges = y, np.asarray(edges)
+        folds = len(self.edges) - 1
+        self.N, self.c, self.yy = [0.0] * folds, [0.0] * folds, np.zeros(folds)
+
+    def pieces(self, a: int, b: int):
+        """``(block, rows of the chunk, rows of y)`` of the chunk of epochs ``a`` to ``b`` cut at the edges."""
+        edges = self.edges
+        for f in range(np.searchsorted(edges, a, side="right") - 1, np.searchsorted(edges, b, side="left")):
+            lo, hi = max(a, edges[f]), min(b, edges[f + 1])
+            if hi > lo:
+                yield f, slice(3 * (lo - a), 3 * (hi - a)), slice(3 * lo, 3 * hi)
+
+    def add(self, X: np.ndarray, a: int, b: int) -> None:
+        """The regressors ``X`` (3 (b - a), p) of epochs ``a`` to ``b``."""
+        for f, rows, sl in self.pieces(a, b):
+            Xf, yf = X[rows], self.y[sl]
+            self.N[f], self.c[f], self.yy[f] = self.N[f] + Xf.T @ Xf, self.c[f] + Xf.T @ yf, self.yy[f] + yf @ yf
+
+    @property
+    def normal(self) -> np.ndarray:
+        """``X^T X`` over every block."""
+        return sum(self.N)
+
+    def coefficients(self, increments: np.ndarray | None = None) -> list:
+        """Each block's coefficients (p,), fitted on the others. ``increments`` (m, p) the steps between knots
+        of a wander among the coefficients: they get a zero-mean Gaussian prior, so that coefficients the
+        other blocks leave open are interpolated from their neighbours. The prior's spread (the walk's step)
+        is the one of ``WALK_STEPS`` that predicts the held-out blocks best (their sums of squares from the
+        normal equations): the smallest makes the wander a constant, so the result is never worse than the
+        model without it, and whether it wanders is for ``constancy_test`` to say."""
+        N, c = sum(self.N), sum(self.c)
+        # the other blocks' normal equations summed, not the block's taken off the whole: coefficients that
+        # only the block determines (a wander's knots inside it) are then exactly undetermined, not rounding
+        folds = range(len(self.N))
+        others = [(sum(self.N[:f] + self.N[f + 1 :]), sum(self.c[:f] + self.c[f + 1 :])) for f in folds]
+
+        def fitted(prior):
+            return [np.linalg.lstsq(No + prior, co, rcond=None)[0] for No, co in others]
+
+        if increments is None:
+            return fitted(0.0)
+        # steps relative to those of the unconstrained fit to all blocks, which noise inflates
+        raw = float(np.mean((increments @ np.linalg.lstsq(N, c, rcond=None)[0]) ** 2))
+        P = increments.T @ increments / max(raw, 1e-300)
+        trials = [fitted(P / step) for step in WALK_STEPS]
+        squares = [
+            sum(yy - 2.0 * b @ cf + b @ Nf @ b for b, Nf, cf, yy in zip(beta, self.N, self.c, self.yy))
+            for beta in trials
+        ]
+        return trials[int(np.argmin(squares))]
+
+    def residual(self, X: np.ndarray, a: int, b: int, beta: list) -> np.ndarray:
+        """The held-out residual (3 (b - a),) of epochs ``a`` to ``b`` of regressors ``X``, from ``coefficients``."""
+        out = np.empty(X.shape[0])
+        for f, rows, sl in self.pieces(a, b):
+            out[rows] = self.y[sl] - X[rows] @ beta[f]
         return out
 
-    if increments is None:
-        return predicted(N)
-    # steps relative to those of the unconstrained fit to all blocks, which noise inflates
-    raw = float(np.mean((increments @ np.linalg.lstsq(N, c, rcond=None)[0]) ** 2))
-    P = increments.T @ increments / max(raw, 1e-300)
-    trials = [predicted(N + P / step) for step in WALK_STEPS]
-    return min(trials, key=lambda r: float(r @ r))
+
+def held_out_residual(rows, y: np.ndarray, edges: np.ndarray, chunks) -> np.ndarray:
+    """``HeldOut``'s residual (3n,) of ``y`` on the regressors ``rows(a, b)`` (3 (b - a), p) of each chunk
+    ``(a, b)`` of ``chunks`` (consecutive epochs, first to last), made twice a chunk at a time."""
+    held = HeldOut(y, edges)
+    for a, b in chunks:
+        held.add(rows(a, b), a, b)
+    beta = held.coefficients()
+    out = np.empty_like(y)
+    for a, b in chunks:
+        out[3 * a : 3 * b] = held.residual(rows(a, b), a, b, beta)
+    return out

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from magkf.diagnostics.fitting import GRAM_CONDITION, tall_svd
-from magkf.diagnostics.inference import _wishart_bartlett
+from magkf.diagnostics.fitting import GRAM_CONDITION, gram_svd, tall_svd
+from magkf.diagnostics.inference import _wishart_bartlett, held_out_residual
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -23,6 +23,46 @@ def test_tall_svd_is_lapacks(seed, small):
     assert np.allclose(np.abs(np.sum(u * u_ref, axis=0)), 1.0, atol=1e-6)
     assert np.allclose(np.abs(np.sum(vt * vt_ref, axis=1)), 1.0, atol=1e-9)
     assert np.allclose(u.T @ u, np.eye(6), atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("small", [1e-2, 1e-6, 1e-9, 0.0])
+def test_gram_svd_from_blocks_is_lapacks(seed, small):
+    """The SVD from the Gram matrix and blocks of rows (one more pass when ill-conditioned) of a tall matrix
+    with one direction ``small`` times the others (0: rank-deficient): singular values within 1e-12 of the
+    largest of LAPACK's, and the same right singular vectors where the singular values are apart."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(30_000, 6)) @ rng.normal(size=(6, 6))
+    u, s_ref, vt_ref = np.linalg.svd(A, full_matrices=False)
+    s_ref[-1] = small * s_ref[0]
+    A = (u * s_ref) @ vt_ref
+    s, vt = gram_svd(A.T @ A, lambda: (A[a : a + 7000] for a in range(0, len(A), 7000)), len(A))
+    assert np.allclose(s, s_ref, rtol=0, atol=1e-12 * s_ref[0])
+    apart = np.r_[np.diff(s_ref) < -1e-3 * s_ref[0], True] & np.r_[True, np.diff(s_ref) < -1e-3 * s_ref[0]]
+    assert np.allclose(np.abs(np.sum(vt * vt_ref, axis=1))[apart], 1.0, atol=1e-6)
+
+
+def test_gram_svd_of_zero_rows():
+    """A matrix of zeros (a candidate whose regressors all vanish): singular values zero, without overflow."""
+    s, vt = gram_svd(np.zeros((3, 3)), lambda: [np.zeros((300, 3))], 300)
+    assert np.array_equal(s, np.zeros(3)) and np.allclose(vt @ vt.T, np.eye(3))
+
+
+def test_held_out_fit_leaves_what_only_the_held_out_block_determines_at_zero():
+    """A regressor that is zero outside one held-out block: that block is predicted by the fit of the other
+    regressors on the other blocks (the column's coefficient exactly undetermined there, so zero), the same
+    whichever chunks the rows come in."""
+    rng = np.random.default_rng(3)
+    n = 3000
+    X = np.hstack([rng.normal(size=(3 * n, 3)), np.zeros((3 * n, 1))])
+    X[3000:6000, 3] = rng.normal(size=3000)  # epochs 1000 to 2000: the second of three blocks
+    y = X @ np.array([1.0, 2.0, 3.0, 5.0]) + rng.normal(size=3 * n)
+    edges = np.array([0, 1000, 2000, 3000])
+    others = np.r_[0:3000, 6000:9000]
+    beta = np.linalg.lstsq(X[others, :3], y[others], rcond=None)[0]
+    for chunks in ([(0, n)], [(0, 1500), (1500, 2600), (2600, n)]):
+        held = held_out_residual(lambda a, b: X[3 * a : 3 * b], y, edges, chunks)
+        assert np.allclose(held[3000:6000], y[3000:6000] - X[3000:6000, :3] @ beta, rtol=0, atol=1e-9)
 
 
 def test_bartlett_draws_are_wishart():
