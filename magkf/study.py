@@ -465,11 +465,13 @@ def summarise(table: pd.DataFrame, spec: StudySpec) -> pd.DataFrame:
 def plot(result: StudyResult, path) -> None:
     """For each setting that varies: the final offset error, the NEES and the mean NIS of the runs against
     it (means with their 95 % intervals; the NEES with the 95 % band of a consistent filter, the NIS with
-    its expectation 1). Settings are grouped by that key's value, over the other keys."""
+    its expectation 1). Each curve holds the other settings fixed (``_curves``), so that a point never
+    averages runs of other settings."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
     from scipy.stats import chi2, t
 
     keys = result.spec.varied() or ["setting"]
@@ -477,37 +479,48 @@ def plot(result: StudyResult, path) -> None:
     panels = (("final_b_error_nt", "final offset error, nT"), ("nees", "NEES (12 states)"), ("nis_mean", "mean NIS"))
     fig, axes = plt.subplots(len(keys), 3, figsize=(13, 3.2 * len(keys) + 0.4), squeeze=False, constrained_layout=True)
     for r, key in enumerate(keys):
-        column = ok[key] if key in ok else pd.Series(np.nan, index=ok.index)
-        values = column.astype(str) if column.dtype == object else column
-        levels = sorted(values.dropna().unique(), key=_order)
-        numeric = all(isinstance(v, int | float | np.number) for v in levels)
-        x = np.array(levels, float) if numeric else np.arange(len(levels), dtype=float)
         for c, (name, label) in enumerate(panels):
             ax = axes[r, c]
-            stats = [ok.loc[values == level, name].to_numpy(float) for level in levels]
-            stats = [v[np.isfinite(v)] for v in stats]
-            mean = np.array([v.mean() if v.size else np.nan for v in stats])
-            half = np.array(
-                [t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan for v in stats]
-            )
-            ax.plot(x, mean, "o-", ms=4, color="C0", label="mean")
-            ax.fill_between(x, mean - half, mean + half, color="C0", alpha=0.25, label="95 % interval of the mean")
-            if name == "nees":
-                n = np.array([v.size for v in stats])
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    lo, hi = chi2.ppf(0.025, CORE * n) / n, chi2.ppf(0.975, CORE * n) / n
-                ax.fill_between(x, lo, hi, color="0.5", alpha=0.3, label="95 % band if consistent")
-                if np.any(mean > 0):  # no truth (recorded logs): no NEES to draw
-                    ax.set_yscale("log")
+            numeric = True
+            for i, (curve, runs_of) in enumerate(_curves(ok, key, keys)):
+                column = runs_of[key] if key in runs_of else pd.Series(np.nan, index=runs_of.index)
+                values = column.astype(str) if column.dtype == object else column
+                levels = sorted(values.dropna().unique(), key=_order)
+                numeric = all(isinstance(v, int | float | np.number) for v in levels)
+                x = np.array(levels, float) if numeric else np.arange(len(levels), dtype=float)
+                stats = [runs_of.loc[values == level, name].to_numpy(float) for level in levels]
+                stats = [v[np.isfinite(v)] for v in stats]
+                mean = np.array([v.mean() if v.size else np.nan for v in stats])
+                half = np.array(
+                    [
+                        t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan
+                        for v in stats
+                    ]
+                )
+                colour = f"C{i % 10}"
+                ax.plot(x, mean, "o-", ms=4, color=colour, label=f"mean, {curve}")
+                ax.fill_between(x, mean - half, mean + half, color=colour, alpha=0.2)
+                if name == "nees" and i == 0:
+                    n = np.array([v.size for v in stats])
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        lo, hi = chi2.ppf(0.025, CORE * n) / n, chi2.ppf(0.975, CORE * n) / n
+                    ax.fill_between(x, lo, hi, color="0.5", alpha=0.3, label="95 % band if consistent")
+                if not numeric:
+                    ax.set_xticks(x, [str(v) for v in levels], rotation=20, fontsize=7)
+                if numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() > 50:
+                    ax.set_xscale("log")
+            if name == "nees" and ok["nees"].gt(0).any():  # no truth (recorded logs): no NEES to draw
+                ax.set_yscale("log")
+                ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+                ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+                ax.yaxis.set_minor_formatter(NullFormatter())
             if name == "nis_mean":
                 ax.axhline(1.0, color="k", ls=":", lw=1, label="expected 1")
-            if numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() > 50:
-                ax.set_xscale("log")
-            if not numeric:
-                ax.set_xticks(x, [str(v) for v in levels], rotation=20, fontsize=7)
             ax.set(xlabel=key, ylabel=label)
             ax.tick_params(labelsize=7)
-            if r == 0:
+            if c == 0:
+                ax.legend(fontsize=7, title="shaded: 95 % interval of the mean", title_fontsize=7)
+            elif r == 0:
                 ax.legend(fontsize=7)
     fig.suptitle(f"study {result.spec.name}: {len(result.runs)} runs", fontsize=10)
     from .io.files import written
@@ -515,6 +528,23 @@ def plot(result: StudyResult, path) -> None:
     with written(path) as tmp:
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
+
+
+def _curves(runs: pd.DataFrame, key: str, keys: list) -> list:
+    """The curves of the plot against ``key``: ``(label, runs)`` for each combination of the other varied
+    settings under which ``key`` takes two values or more, so that a curve changes ``key`` alone; when no
+    combination does (a random sample), one curve over all runs, labelled as averaging the other settings."""
+    others = [k for k in keys if k != key and k in runs]
+    if others:
+        groups = [
+            (", ".join(f"{k}={v}" for k, v in zip(others, name if isinstance(name, tuple) else (name,))), g)
+            for name, g in runs.groupby(others, sort=True, dropna=False)
+            if key in g and g[key].nunique() >= 2
+        ]
+        if groups:
+            return groups
+        return [("averaged over the other settings", runs)]
+    return [("all runs", runs)]
 
 
 def _order(value):
