@@ -55,6 +55,7 @@ MIN_SAMPLES = 200
 BUFFER = 8192
 #: Lags (epochs) of the autocorrelation: 1, 2, 4, ... 8192 (164 s at 50 Hz: an attitude error wanders slowly).
 LAGS = 2 ** np.arange(14)
+_LAG_LIST = LAGS.tolist()
 #: The autocorrelation is averaged over this many noise windows: a short average underestimates it (an
 #: estimate from N samples is biased low by about the integrated time over N).
 CORRELATION_WINDOWS = 10.0
@@ -259,12 +260,12 @@ class NoiseLearner:
         self._sq = decay * self._sq + np.einsum("kc,k->c", z**2, weight)
         for start in range(0, len(z), _CHUNK):  # in pieces: a whole log's products would not fit
             piece = z[start : start + _CHUNK]
+            # The ring starts as zeros, so a partner from before the first innovation adds nothing.
             history = np.concatenate([self._ring, piece])
             k, n = len(piece), len(history)
-            partner = np.arange(n - k, n)[:, None] - LAGS[None, :]  # (k, lags)
-            seen = partner >= n - (self._count + k)  # the lagged partner was an innovation, not padding
-            lagged = history[partner] * seen[:, :, None]  # (k, lags, 3)
-            self._prod += np.einsum("kc,klc->cl", piece * weight[start : start + _CHUNK, None], lagged)
+            weighted = piece * weight[start : start + _CHUNK, None]
+            for j, lag in enumerate(_LAG_LIST):  # each lag's partners are one slice of the history
+                self._prod[:, j] += np.einsum("kc,kc->c", weighted, history[n - k - lag : n - lag])
             self._count += k
             self._ring[...] = history[-len(self._ring) :]  # in place: constant memory
 
@@ -322,9 +323,11 @@ def _median(a: np.ndarray) -> float:
     """The median of a non-empty 1-D array (``np.partition`` directly: ``np.median``'s own handling costs
     more than the partition on the learner's few thousand values)."""
     n = len(a)
-    lo, hi = (n - 1) // 2, n // 2
-    p = np.partition(a, (lo, hi))
-    return 0.5 * (float(p[lo]) + float(p[hi]))
+    hi = n // 2
+    p = np.partition(a, hi)
+    # the lower middle value of an even count is the largest below the upper one: one selection, not two
+    lo = float(p[:hi].max()) if n % 2 == 0 else float(p[hi])
+    return 0.5 * (lo + float(p[hi]))
 
 
 def estimate_levels(
