@@ -249,27 +249,37 @@ class Estimator:
         winsorises them itself) and give the models what it learned."""
         along, cross, field2, horizontal2, times = [], [], [], [], []
         for model, mask in parts:
-            if not np.count_nonzero(mask):
+            count = np.count_nonzero(mask)
+            if not count:
                 continue
+            pick = slice(None) if count == len(mask) else mask  # a view when every epoch is the part's
+            heading = blk.heading[pick]
             if model.needs_attitude and blk.frame is not None:
-                e = blk.m[mask] - np.einsum("kij,j->ki", blk.H[mask], x)
-                parts_of_e = np.einsum("kji,ki->kj", blk.frame[mask], e)  # along the field, h, v
+                e = blk.m[pick] - np.einsum("kij,j->ki", blk.H[pick], x)
+                parts_of_e = np.einsum("kji,ki->kj", blk.frame[pick], e)  # along the field, h, v
                 along.append(parts_of_e[:, 0])
                 cross.append(parts_of_e[:, 1:])
             else:
-                along.append(blk.ref_mag[mask] - h[mask])
+                along.append(blk.ref_mag[pick] - h[pick])
                 cross.append(None)
-            field2.append(blk.ref_mag[mask] ** 2)
-            horizontal2.append(np.einsum("ki,ki->k", blk.heading[mask], blk.heading[mask]))
-            times.append(np.asarray(t)[mask])
+            field2.append(blk.ref_mag[pick] ** 2)
+            horizontal2.append(np.einsum("ki,ki->k", heading, heading))
+            times.append(np.asarray(t)[pick])
         if not along:
             return
-        with_cross = [c for c in cross if c is not None]
-        a = np.concatenate(along)
-        cr = np.concatenate(with_cross) if len(with_cross) == len(cross) else None
-        self.learner.observe(
-            np.concatenate(times), a, cr, np.concatenate(field2), predicted, np.concatenate(horizontal2)
-        )
+        if len(along) == 1:
+            self.learner.observe(times[0], along[0], cross[0], field2[0], predicted, horizontal2[0])
+        else:
+            with_cross = [c for c in cross if c is not None]
+            cr = np.concatenate(with_cross) if len(with_cross) == len(cross) else None
+            self.learner.observe(
+                np.concatenate(times),
+                np.concatenate(along),
+                cr,
+                np.concatenate(field2),
+                predicted,
+                np.concatenate(horizontal2),
+            )
         self.model.set_noise(self.learner.levels)
 
     def _reacquire(self, t, gated, accept) -> None:

@@ -72,18 +72,23 @@ def _weighted_covariance(weights: np.ndarray, dz: np.ndarray) -> np.ndarray:
 
 
 def _nis(y: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with covariances (k, r, r)."""
+    """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with symmetric covariances (k, r, r)."""
     if S.shape[1] == 1:
         return y[:, 0] ** 2 / S[:, 0, 0]
     if S.shape[1] == 3:  # by cofactors of the upper triangle: a third of a stacked inverse's cost
-        a, b, c, d, e, f = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
-        c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-        y0, y1, y2 = y[:, 0], y[:, 1], y[:, 2]
-        quadratic = y0 * (y0 * c00 + 2.0 * (y1 * c01 + y2 * c02)) + y1 * (
-            y1 * (a * f - c * c) + 2.0 * y2 * (b * c - a * e)
-        )
-        return (quadratic + y2 * y2 * (a * d - b * b)) / (a * c00 + b * c01 + c * c02)
+        if len(S) == 1:  # one epoch (real time): in plain floats
+            (a, b, c), (_, d, e), (_, _, f) = S[0].tolist()
+            return np.array([_inverse_quadratic3(a, b, c, d, e, f, *y[0].tolist())])
+        return _inverse_quadratic3(S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2], *y.T)
     return np.einsum("ki,kij,kj->k", y, np.linalg.inv(S), y)
+
+
+def _inverse_quadratic3(a, b, c, d, e, f, y0, y1, y2):
+    """``y^T S^-1 y`` for ``S = [[a, b, c], [b, d, e], [c, e, f]]`` and ``y = (y0, y1, y2)`` (floats or arrays
+    of them), by cofactors."""
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    quadratic = y0 * (y0 * c00 + 2.0 * (y1 * c01 + y2 * c02)) + y1 * (y1 * (a * f - c * c) + 2.0 * y2 * (b * c - a * e))
+    return (quadratic + y2 * y2 * (a * d - b * b)) / (a * c00 + b * c01 + c * c02)
 
 
 class _RandomWalkFilter:
