@@ -20,6 +20,8 @@ The statuses are defined in ``magkf.status``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..config import FilterConfig
@@ -191,14 +193,18 @@ class Estimator:
         ``status``, ``updated`` and ``nis`` (k,) in place. ``h`` (k,) the calibrated magnitude at the
         estimate, nT; ``predicted`` its variance from the estimate's covariance, nT^2."""
         kf, k = self.filter, len(status)
-        width = max(self.config.gate_nt, self.config.gate_sigma * np.sqrt(self.noise.along_var))
-        off = np.abs(h - blk.ref_mag) > width
-        if np.count_nonzero(cand & off):  # the gate widens with the estimate's own uncertainty (3 sigma)
-            off = np.abs(h - blk.ref_mag) > width + 3.0 * np.sqrt(predicted)
-        status[cand & off] = GATED_MAGNITUDE
-        parts = [(model, mask & ~off) for model, mask in parts if np.count_nonzero(mask & ~off)]
-        if not parts:
-            return
+        width = max(self.config.gate_nt, self.config.gate_sigma * math.sqrt(self.noise.along_var))
+        distance = np.abs(h - blk.ref_mag)
+        gated_any = np.count_nonzero(cand & (distance > width))
+        if gated_any:  # the gate widens with the estimate's own uncertainty (3 sigma)
+            off = distance > width + 3.0 * np.sqrt(predicted)
+            status[cand & off] = GATED_MAGNITUDE
+            on = ~off
+            parts = [(model, mask & on) for model, mask in parts]
+        if gated_any or len(parts) > 1:  # else the one part's epochs are the candidates, and there are some
+            parts = [(model, mask) for model, mask in parts if np.count_nonzero(mask)]
+            if not parts:
+                return
         if blk.whitened_with is not self.noise:
             self.whiten(blk)
         part_blocks = [blk if mask.all() else blk.take(mask) for _, mask in parts]

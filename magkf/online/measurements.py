@@ -466,11 +466,28 @@ def magnitude_jacobian(x_core: np.ndarray, m_minus_e: np.ndarray):
     """
     R, b = StateLayout.R_b(x_core)
     Rinv = inverse3(R)
+    if len(m_minus_e) == 1:  # one epoch (real time, and the gate's variance per block): plain floats
+        one = _magnitude_jacobian1(Rinv.tolist(), (np.asarray(m_minus_e, float)[0] - b).tolist())
+        if one is not None:
+            return one
     c = (m_minus_e - b) @ Rinv.T
     h = np.linalg.norm(c, axis=1)
     w = (c / h[:, None]) @ Rinv
     H = np.concatenate([-(w[:, :, None] * c[:, None, :]).reshape(-1, 9), -w], axis=1)
     return h, H, w
+
+
+def _magnitude_jacobian1(Rinv: list, d: list):
+    """``magnitude_jacobian`` of one epoch from ``R^-1`` (rows, floats) and ``m - e - b`` (3 floats); None for
+    a zero field (left to numpy's handling of 0 / 0)."""
+    c = [row[0] * d[0] + row[1] * d[1] + row[2] * d[2] for row in Rinv]
+    h = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+    if h == 0.0:
+        return None
+    u = [v / h for v in c]
+    w = [u[0] * Rinv[0][j] + u[1] * Rinv[1][j] + u[2] * Rinv[2][j] for j in range(3)]
+    H = [-wi * cj for wi in w for cj in c] + [-wi for wi in w]
+    return np.array([h]), np.array([H]), np.array([w])
 
 
 def rotation_directions(R: np.ndarray, size: int) -> np.ndarray:
