@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..conventions import inverse3
+from .measurements import _whitening_stack
 
 __all__ = ["EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
 
@@ -124,7 +125,9 @@ class _RandomWalkFilter:
         """
         try:
             L = np.linalg.cholesky(self.P)
-            C = np.linalg.cholesky(np.eye(len(J)) + L.T @ J @ L)
+            C = L.T @ J @ L
+            C.ravel()[:: len(J) + 1] += 1.0
+            C = np.linalg.cholesky(C)
         except np.linalg.LinAlgError:
             return False
         M = np.linalg.solve(C, L.T)  # C^-1 L^T, so that P+ = M^T M
@@ -153,9 +156,12 @@ class EKF(_RandomWalkFilter):
     def update(self, lin: Linearisation, accept) -> np.ndarray:
         """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
         of the rows used. ``accept`` holds one boolean mask (k,) per part."""
-        ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
-        Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
-        y, H = np.concatenate(ys), np.vstack(Hs)
+        if len(lin.rows) == 1 and accept[0].all():  # every epoch of one part: no copies
+            y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
+        else:
+            ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
+            Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
+            y, H = np.concatenate(ys), np.vstack(Hs)
         self.correct(y, H)
         return H
 
@@ -254,13 +260,17 @@ class UKF(_RandomWalkFilter):
                 Pzz = _weighted_covariance(self.Wc, dz)
                 noise = Pzz - H @ self.P @ np.swapaxes(H, 1, 2)
                 noise[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
-                C = np.linalg.cholesky(0.5 * (noise + np.swapaxes(noise, 1, 2)))
+                noise = 0.5 * (noise + np.swapaxes(noise, 1, 2))
+                # the inverse Cholesky factor: written out over the stack for three rows, else LAPACK's
+                W = _whitening_stack(noise) if noise.shape[1:] == (3, 3) else np.linalg.inv(np.linalg.cholesky(noise))
             except np.linalg.LinAlgError:
                 return False
-            Hw = np.linalg.solve(C, H)  # (k, r, n)
-            yw = np.linalg.solve(C, rows.y[a][..., None])[..., 0]  # (k, r)
-            J += np.einsum("kri,krj->ij", Hw, Hw)
-            g += np.einsum("kri,kr->i", Hw, yw)
+            if W is None:  # not positive definite
+                return False
+            Hw = (W @ H).reshape(-1, self.x.size)  # (k r, n)
+            yw = (W @ rows.y[a][..., None]).ravel()  # (k r,)
+            J += Hw.T @ Hw
+            g += Hw.T @ yw
         return self._fold_information(J, g)
 
 
