@@ -11,7 +11,8 @@ Printed:
   field and attitude, start, filter loop, per-epoch table, writing), run alternately, each with its ratio
   to the floor's total; the EKF, the UKF, ``--smooth`` and ``--batch``;
 * **end to end, fresh processes** (imports included): the floor, ``magkf calibrate`` (EKF, UKF), with
-  ``--states`` as Parquet, ``diagnose`` and ``report``, wall time and ratio to the floor;
+  ``--states`` as Parquet, ``diagnose`` and ``report``, and ``--smooth`` through the chunked path that
+  ``calibrate`` takes for long logs (``magkf.online.chunked``), wall time and ratio to the floor;
 * **memory per epoch**: the peak resident set of each command (``VmHWM`` of its own process, so nothing of
   this benchmark is carried into it) above that of a process that imports the same modules and reads the
   log, divided by the epochs.
@@ -189,12 +190,18 @@ def main() -> int:
             commands["calibrate --batch"] = ["calibrate", str(path), "--batch", "-o", str(out), "--quiet"]
             commands["diagnose"] = ["diagnose", str(path), "--quiet"]
             commands["report"] = ["report", str(path), "-o", str(tmp / "report.html"), "--quiet"]
-        results = {"floor": [], "read only": [], **{k: [] for k in commands}}
+        # the chunked path (``magkf.online.chunked``), which calibrate takes for logs of CHUNKED_EPOCHS or more
+        chunked = (
+            "from magkf.online.chunked import calibrate_file; "
+            f"calibrate_file({str(path)!r}, smooth=True).calibration.save({str(out)!r}); "
+        )
+        results = {"floor": [], "read only": [], **{k: [] for k in commands}, "calibrate --smooth, chunked": []}
         for _ in range(args.repeat):
             results["floor"].append(fresh_floor(path))
             results["read only"].append(child([], read_only))
             for name, argv in commands.items():
                 results[name].append(child(argv))
+            results["calibrate --smooth, chunked"].append(child([], chunked))
         wall = {k: statistics.median(r["wall_s"] for r in v) for k, v in results.items()}
         peak = {k: statistics.median(r["peak_kb"] for r in v) for k, v in results.items()}
         base = peak["read only"]

@@ -123,6 +123,10 @@ def run_calibrate(args) -> int:
     config = common.filter_config(args)
     init = common.load_calibration(args.init)
     if args.mag != "all":
+        # the comparison before and after added effects needs both runs' per-epoch tables
+        if not (getattr(args, "effect", None) or (init is not None and init.effects)) and _chunked(args):
+            _calibrate_chunked(args, config, init)
+            return 0
         log = common.open_log(args)
         added, _ = common.effects(args, init)  # user code runs once the inputs are read
         _calibrate_one(args, log, config, init, added, args.output, args.states)
@@ -175,6 +179,65 @@ def _per_instance(path, instance):
 
     p = Path(path)
     return str(p.with_name(f"{p.stem}_mag{instance}{p.suffix}"))
+
+
+def _chunked(args) -> bool:
+    """Whether ``calibrate`` goes through the chunked path: a canonical CSV or Parquet file (not standard input,
+    no column map) of at least ``CHUNKED_EPOCHS`` rows, calibrated by the filter, states (if any) to a file."""
+    from pathlib import Path
+
+    from ..io.readers import detect_format
+    from ..online.chunked import CHUNKED_EPOCHS, estimated_rows
+
+    if args.file == "-" or args.batch or args.map is not None or args.states == "-" or args.mag is not None:
+        return False
+    if not Path(args.file).is_file():
+        return False
+    if (args.format or detect_format(args.file)) not in ("csv", "parquet"):
+        return False
+    return estimated_rows(args.file) >= CHUNKED_EPOCHS
+
+
+def _calibrate_chunked(args, config, init) -> None:
+    """``calibrate`` of a long canonical log in chunks (``magkf.online.chunked``): per-epoch states written as
+    they are computed, as Parquet unless the file's name ends in ``.csv``; the plausibility rule applied
+    before the calibration and the states are put in place."""
+    import sys
+    from contextlib import nullcontext
+    from pathlib import Path
+
+    from ..io.files import written
+    from ..online.chunked import ChunkedLog, calibrate_file, states_format
+    from ..online.run import terminal_progress
+    from ..plausibility import check_run, log_field_nt
+
+    log = ChunkedLog(args.file, args.mag_unit)
+    first = next(iter(log))[1]  # the field's magnitude for the plausibility rule, from the first chunk
+    progress = None if args.quiet else terminal_progress()
+    states, parquet = args.states, None
+    if states is not None:
+        parquet = states_format(states)
+        if parquet and Path(states).suffix.lower() not in (".parquet", ".pq"):
+            print(
+                f"magkf: {states}: per-epoch states of a long log written as Parquet (name it .csv for CSV)",
+                file=sys.stderr,
+            )
+    with written(states) if states else nullcontext() as tmp:  # put in place once the run passed the rule
+        run = calibrate_file(
+            args.file, config, init, smooth=args.smooth, states=tmp, states_parquet=parquet, progress=progress
+        )
+        summary = run.summary.as_dict()
+        summary["warnings"] = check_run(run, args.file, log_field_nt(first), init)
+    for warning in summary["warnings"]:
+        print(f"magkf: warning: {args.file}: {warning}", file=sys.stderr)
+    if args.output:
+        run.calibration.save(args.output)
+    if args.json:
+        common.print_json(summary)
+        return
+    _print_run(summary, run.names)
+    if args.output:
+        print(f"  calibration written to {args.output}")
 
 
 def _print_side_by_side(rows) -> None:

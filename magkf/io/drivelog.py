@@ -56,8 +56,10 @@ __all__ = [
     "TimeBaseWarning",
     "check_time_base",
     "from_table",
+    "whole_log_checks",
     "read_drive_log",
     "write_drive_log",
+    "write_frames",
     "table_to_write",
 ]
 
@@ -293,7 +295,12 @@ def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> 
 
 
 def from_table(
-    table: pd.DataFrame, source: str = "log", mag_unit: str = "nT", provenance: dict | None = None, row_of=None
+    table: pd.DataFrame,
+    source: str = "log",
+    mag_unit: str = "nT",
+    provenance: dict | None = None,
+    row_of=None,
+    whole: bool = True,
 ) -> DriveLog:
     """Validate a table with the canonical columns (``time`` a column, UNIX s) and build a ``DriveLog``;
     the epoch contract every reader goes through. Magnetometer values in ``mag_unit`` become nT.
@@ -303,6 +310,10 @@ def from_table(
     an unknown unit. Warns (``UnitWarning``) when the magnitudes look like another unit and
     (``TimeBaseWarning``) at a long gap. ``row_of(i)`` gives the file row of epoch ``i`` (CSV rows by
     default). The table is not copied when it needs no conversion.
+
+    ``whole`` False: ``table`` is one chunk of a longer log (``magkf.online.chunked``), whose rows are checked
+    alike; the checks of the whole log (its number of epochs, a magnetometer that never changes, the unit
+    warnings) are left to the caller (``whole_log_checks``).
     """
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
@@ -313,7 +324,7 @@ def from_table(
         raise InputError(
             f"required column missing (the table has: {', '.join(map(str, table.columns))})", name, 1, missing[0]
         )
-    if len(table) < MIN_EPOCHS:
+    if whole and len(table) < MIN_EPOCHS:
         raise InputError(f"too few samples: {len(table)} epoch, a drive log needs at least {MIN_EPOCHS}", name)
     attitude = [c for c in ATTITUDE if c in table]
     if 0 < len(attitude) < 3:
@@ -340,10 +351,6 @@ def from_table(
                 raise InputError(
                     f"value {float(v[i])!r} outside [{lo:g}, {hi:g}] {unit}".rstrip(), name, row_of(i), column
                 )
-    mag = table[list(MAG)].to_numpy(dtype=float)
-    complete = np.all(np.isfinite(mag), axis=1)
-    if complete.sum() > 1 and np.all(np.ptp(mag[complete], axis=0) == 0):
-        raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", name)
     if all(c in table for c in REF):
         ref = np.linalg.norm(table[list(REF)].to_numpy(dtype=float), axis=1)
         weak = np.flatnonzero(ref < REF_MIN_NT)
@@ -355,6 +362,23 @@ def from_table(
                 row_of(i),
                 REF[0],
             )
+    if whole:
+        whole_log_checks(table, name, mag_unit)
+    if mag_unit != "nT":
+        table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
+    return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
+
+
+def whole_log_checks(table: pd.DataFrame, name: str, mag_unit: str = "nT", same_value: bool = True) -> None:
+    """The checks of ``from_table`` that look at a whole log at once (``table`` in ``mag_unit``; a chunked reader
+    passes its first chunk with ``same_value`` False and checks that one itself): InputError for a magnetometer
+    reading the same value at every epoch; ``UnitWarning`` for magnitudes that look like another unit and for
+    attitude that looks like radians."""
+    attitude = [c for c in ATTITUDE if c in table]
+    mag = table[list(MAG)].to_numpy(dtype=float)
+    complete = np.all(np.isfinite(mag), axis=1)
+    if same_value and complete.sum() > 1 and np.all(np.ptp(mag[complete], axis=0) == 0):
+        raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", name)
     if complete.any():
         median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
         guess = likely_unit(median)
@@ -363,7 +387,7 @@ def from_table(
                 f"{name}: the magnetometer magnitudes (median {median:.4g}) look like {guess}, not "
                 f"{mag_unit}; pass --mag-unit {guess} if they are",
                 UnitWarning,
-                stacklevel=3,
+                stacklevel=4,
             )
     if attitude and len(table) >= RADIANS_MIN_EPOCHS:
         angles = np.abs(table[list(ATTITUDE)].to_numpy(dtype=float))
@@ -377,11 +401,8 @@ def from_table(
                 f"{name}: roll, pitch and yaw never leave +-pi/2, +-pi/2 and +-2 pi while yaw turns: they look like "
                 "radians, and magkf reads degrees",
                 UnitWarning,
-                stacklevel=3,
+                stacklevel=4,
             )
-    if mag_unit != "nT":
-        table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
-    return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
 
 
 def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
@@ -418,11 +439,9 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     decimals (microseconds of UNIX time). Both are written ``WRITE_ROWS`` rows at a time, so that a long
     table is never held a second time in another form."""
     import pyarrow as pa
-    from pyarrow import csv
 
-    from .files import STDIO, standard_output, written
+    from .files import STDIO
 
-    parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
     # every piece gets the whole table's types (a text column empty in one piece is still text there)
     types = {
         name: None
@@ -430,10 +449,33 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
         else pa.infer_type(table[name].dropna().to_numpy(dtype=object), from_pandas=True)
         for name in table.columns
     }
-    pieces = (
-        _arrow_piece(table.iloc[i : i + WRITE_ROWS], time_as_text=not parquet, types=types)
-        for i in range(0, max(len(table), 1), WRITE_ROWS)
+    # plain cells, as a spreadsheet writes them, unless a text cell holds a comma, a quote or a line end
+    structural = r'[,"\r\n]'
+    parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
+    quoted = not parquet and (
+        any(table[c].astype(str).str.contains(structural).any() for c, kind in types.items() if kind is not None)
+        or pd.Series([str(c) for c in table.columns]).str.contains(structural).any()
     )
+    pieces = (table.iloc[i : i + WRITE_ROWS] for i in range(0, max(len(table), 1), WRITE_ROWS))
+    write_frames(pieces, path, types, quoted)
+
+
+def write_frames(frames, path, types: dict | None = None, quoted: bool = False, parquet: bool | None = None) -> None:
+    """Write consecutive pieces ``frames`` (an iterable of time-indexed DataFrames, or with a ``time`` column, all
+    with the same columns) of one table as ``write_drive_log`` writes a table, one piece at a time, so that a
+    table of any length is written without being held: ``types`` the Arrow type of each column that is not
+    numeric (None: numeric or inferred), ``quoted`` CSV cells quoted (a text cell holds a comma, a quote or a
+    line end); ``parquet`` Parquet or CSV whatever the name (None: Parquet for ``.parquet``). Replaced only once
+    complete."""
+    import pyarrow as pa
+    from pyarrow import csv
+
+    from .files import STDIO, standard_output, written
+
+    types = types or {}
+    if parquet is None:
+        parquet = path != STDIO and Path(path).suffix.lower() in PARQUET_SUFFIXES
+    pieces = (_arrow_piece(frame, time_as_text=not parquet, types=types) for frame in frames)
     if parquet:
         import pyarrow.parquet as pq
 
@@ -444,12 +486,6 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
                 for piece in pieces:
                     writer.write_table(piece)
         return
-    # plain cells, as a spreadsheet writes them, unless a text cell holds a comma, a quote or a line end
-    structural = r'[,"\r\n]'
-    quoted = (
-        any(table[c].astype(str).str.contains(structural).any() for c, kind in types.items() if kind is not None)
-        or pd.Series([str(c) for c in table.columns]).str.contains(structural).any()
-    )
     options = csv.WriteOptions() if quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")
 
     def write(sink) -> None:

@@ -28,6 +28,7 @@ from .state import CORE_SIZE, StateLayout
 __all__ = [
     "PreparedLog",
     "prepare",
+    "concat_prepared",
     "initial_state",
     "initial_covariance",
     "with_initial_R",
@@ -103,6 +104,36 @@ class PreparedLog:
         """The field's frame (k, 3, 3) in the sensor axes at the epochs ``index`` at calibration ``R``
         (``measurements.sensor_frame``)."""
         return sensor_frame(np.nan_to_num(self.data.field_body[index]), self.heading[index], R)
+
+
+def concat_prepared(parts) -> PreparedLog:
+    """The epochs of the ``PreparedLog`` s ``parts`` (consecutive pieces of one log, with the same columns and
+    ``R0``) as one."""
+    parts = list(parts)
+
+    def joined(get):
+        values = [get(p) for p in parts]
+        return None if values[0] is None else np.concatenate(values)
+
+    d = [p.data for p in parts]
+    data = EpochData(
+        np.concatenate([x.time for x in d]),
+        np.concatenate([x.field_body for x in d]),
+        np.concatenate([x.field_ned for x in d]),
+        {c: np.concatenate([x.columns[c] for x in d]) for c in d[0].columns},
+        joined(lambda p: p.data.mag),
+        joined(lambda p: p.data.c_nb),
+        joined(lambda p: p.data.field_body_rate),
+        d[0].R0,
+        joined(lambda p: p.data.field_body_accel),
+    )
+    return PreparedLog(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("m", "ref", "ref_mag", "c_nb", "has_attitude")),
+        np.concatenate([p.dop for p in parts]),
+        np.concatenate([p.base for p in parts]),
+        data,
+        np.concatenate([p.heading for p in parts]),
+    )
 
 
 def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
@@ -249,38 +280,65 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
     its residuals understate the noise (and its correlation), which lets the filter trust its first
     minutes far too much. Without attitude, the residual magnitudes at ``x0``. ``base`` (N,) the statuses
     before filtering. The log is gone through in pieces of ``CHUNK`` epochs."""
-    start = NoiseLevels(config.sensor_noise_nt, np.radians(config.attitude_deg), config.reference_nt)
+    start = configured_noise(config)
     if attitude:
         usable = np.flatnonzero(base == Status.USED)
         if len(usable) < 50:
             return start
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
-        fit = usable[:: -(-len(usable) // FIT_EPOCHS)]  # every ceil(N / FIT_EPOCHS)-th
+        fit = usable[fit_positions(len(usable))]
         x = _robust_linear_fit(prep.m[fit], layout.linear_jacobian(prep.data.take(fit)), x0, start.along_var)
         R = StateLayout.R(np.asarray(x0, float))
         parts_of_e = np.empty((len(usable), 3))
         for i in range(0, len(usable), CHUNK):
-            idx = usable[i : i + CHUNK]
-            e = prep.m[idx] - layout.linear_jacobian(prep.data.take(idx)) @ x
-            parts_of_e[i : i + CHUNK] = np.einsum("kji,ki->kj", prep.frame(idx, R), e)
+            parts_of_e[i : i + CHUNK] = residual_parts(prep.take(usable[i : i + CHUNK]), layout, x, R)
         along, cross = parts_of_e[:, 0], parts_of_e[:, 1:]  # along the field, the heading axis, the third
     else:
         usable = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)
         if usable.sum() < 10:
             return start
-        c = StateLayout.R_b(x0)
-        along = prep.ref_mag[usable] - np.linalg.norm(calibrated_field(*c, prep.m[usable]), axis=1)
-        cross = None
-    horizontal2 = np.sum(prep.ref[usable, :2] ** 2, axis=1)
+        along, cross = magnitude_residuals(prep.take(usable), x0), None
+    return start_levels(along, cross, prep.ref_mag[usable], prep.ref[usable], config)
+
+
+def configured_noise(config: FilterConfig) -> NoiseLevels:
+    """The noise ``config`` states (sensor, attitude, reference)."""
+    return NoiseLevels(config.sensor_noise_nt, np.radians(config.attitude_deg), config.reference_nt)
+
+
+def fit_positions(n_usable: int) -> np.ndarray:
+    """Which of ``n_usable`` usable epochs (their positions among them) go into the starting noise's fit: every
+    ``ceil(n_usable / FIT_EPOCHS)``-th."""
+    return np.arange(0, n_usable, max(-(-n_usable // FIT_EPOCHS), 1))
+
+
+def residual_parts(prep: PreparedLog, layout: StateLayout, x, R) -> np.ndarray:
+    """The residuals ``m - H x`` (k, 3) nT of the epochs of ``prep`` at state ``x`` (``H`` the layout's linear
+    Jacobian) along the field, the heading axis and the third (the field's frame at calibration ``R``)."""
+    e = prep.m - layout.linear_jacobian(prep.data) @ x
+    return np.einsum("kji,ki->kj", prep.frame(slice(None), R), e)
+
+
+def magnitude_residuals(prep: PreparedLog, x0) -> np.ndarray:
+    """The magnitude residuals (k,) nT of the epochs of ``prep`` at the calibration of state ``x0``."""
+    c = StateLayout.R_b(x0)
+    return prep.ref_mag - np.linalg.norm(calibrated_field(*c, prep.m), axis=1)
+
+
+def start_levels(along, cross, ref_mag, ref, config: FilterConfig) -> NoiseLevels:
+    """The starting noise (``noise.robust_start``) from the residuals ``along`` (k,) the field and ``cross`` (k, 2)
+    across it (None: without attitude) at epochs of reference field ``ref`` (k, 3) NED nT, of magnitude
+    ``ref_mag`` (k,) nT."""
+    ref = np.asarray(ref, float)
     return robust_start(
         along,
         cross,
-        prep.ref_mag[usable] ** 2,
+        np.asarray(ref_mag, float) ** 2,
         config.reference_nt,
         config.noise_floor_nt,
-        start.attitude_rad,
-        horizontal2,
+        configured_noise(config).attitude_rad,
+        np.sum(ref[:, :2] ** 2, axis=1),
     )
 
 

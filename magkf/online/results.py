@@ -11,7 +11,7 @@ from ..conventions import body_to_ned
 from ..effects import stored_effect
 from ..errors import InputError
 from ..io.calibration import Calibration
-from ..status import Status, status_counts, status_names
+from ..status import STATUS_NAMES, Status, status_names
 from . import observability
 from .prepare import CHUNK
 from .state import StateLayout
@@ -23,7 +23,11 @@ __all__ = [
     "residuals",
     "build_run",
     "noise_summary",
-    "nis_summary",
+    "FitSums",
+    "repeated_median",
+    "epoch_columns",
+    "states_frame",
+    "summarise",
     "verdict",
 ]
 
@@ -108,9 +112,10 @@ class CalibrationRun:
         return np.sqrt(np.diag(self.P))
 
 
-def residuals(prep, layout: StateLayout, x) -> tuple[np.ndarray, np.ndarray]:
-    """NED residual (N, 3) and magnitude residual (N,) in nT of state ``x`` (n,) or per-epoch (N, n)."""
-    c = layout.calibrated(x, prep.m, layout.effect_terms(x, prep.data))
+def residuals(prep, layout: StateLayout, x, last=None) -> tuple[np.ndarray, np.ndarray]:
+    """NED residual (N, 3) and magnitude residual (N,) in nT of state ``x`` (n,) or per-epoch (N, n) (``last``:
+    see ``StateLayout.effect_terms``)."""
+    c = layout.calibrated(x, prep.m, layout.effect_terms(x, prep.data, last))
     ned = body_to_ned(prep.c_nb, c) - prep.ref
     mag = np.linalg.norm(c, axis=1) - prep.ref_mag
     return ned, mag
@@ -125,40 +130,30 @@ ATTITUDE_RESOLUTION_DEG = 0.02
 NIS_TOLERANCE = 0.2
 
 
-def noise_summary(config, trace: RunTrace) -> dict:
-    """The configured and learned noise of a run, and the residuals' correlation (JSON-ready)."""
-    learned = None if trace.noise is None else trace.noise[trace.block_of()]  # per epoch, for the medians
+def noise_summary(config, trace: RunTrace, counts=None) -> dict:
+    """The configured and learned noise of a run, and the residuals' correlation (JSON-ready); the medians are
+    over epochs, block ``k``'s learned noise counting ``counts[k]`` times (default: the trace's blocks)."""
+    learned = trace.noise
+    if learned is not None and counts is None:
+        counts = np.diff(trace.stops, prepend=0) if trace.stops is not None else np.ones(len(learned), np.int64)
     out = {
         "adapted": bool(config.adapt_noise) and learned is not None,
         "configured": {"sensor_nt": config.sensor_noise_nt, "attitude_deg": config.attitude_deg},
         "correlation_s": float(trace.correlation_s),
         "inflation": 1.0,
     }
-    if learned is not None and len(learned):
+    if learned is not None and len(learned) and np.sum(counts):
+        medians = repeated_median(learned[:, :3], counts)
         out["learned"] = {
             "sensor_nt": float(learned[-1, 0]),
             "attitude_deg": float(learned[-1, 1]),
             "heading_deg": float(learned[-1, 2]),
-            "sensor_median_nt": float(np.median(learned[:, 0])),
-            "attitude_median_deg": float(np.median(learned[:, 1])),
-            "heading_median_deg": float(np.median(learned[:, 2])),
+            "sensor_median_nt": float(medians[0]),
+            "attitude_median_deg": float(medians[1]),
+            "heading_median_deg": float(medians[2]),
         }
         out["inflation"] = float(learned[-1, 3])
     return out
-
-
-def nis_summary(nis, updated, has_attitude, inflation: float) -> dict:
-    """Mean NIS per degree of freedom of the updated epochs and its two-sided 95 % chi-square band for the
-    effective number of independent epochs (``n / inflation``)."""
-    from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
-
-    ok = updated & np.isfinite(nis)
-    dof = np.where(has_attitude[ok], 3.0, 1.0)
-    if not ok.any():
-        return {"mean": float("nan"), "band": [float("nan"), float("nan")]}
-    total_dof = max(dof.sum() / max(inflation, 1.0), 1.0)
-    band = [float(2.0 * gammaincinv(total_dof / 2.0, q) / total_dof) for q in (0.025, 0.975)]
-    return {"mean": float(np.sum(nis[ok]) / dof.sum()), "band": band}
 
 
 def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
@@ -207,17 +202,6 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     return text[0].upper() + text[1:]
 
 
-def _rms(a) -> float:
-    a = np.asarray(a, float)
-    return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
-
-
-def _rms_norm(v) -> float:
-    """RMS of the norms of the rows of ``v`` (k, 3), in float64."""
-    a = np.asarray(v, float)
-    return float(np.sqrt(np.mean(np.sum(a**2, axis=1)))) if len(a) else float("nan")
-
-
 @dataclass(frozen=True)
 class RunTrace:
     """What a run went through: the states ``xs`` (K, n) and their standard deviations ``stds`` (K, n) after
@@ -253,46 +237,113 @@ class RunTrace:
         return np.repeat(np.arange(len(self.stops)), np.diff(self.stops, prepend=0))
 
 
-def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -> CalibrationRun:
-    """Assemble a ``CalibrationRun`` from the start ``x0`` (n,), ``P0`` (n, n) and what the run went through.
+def repeated_median(values, counts) -> np.ndarray:
+    """The median of every column of ``values`` (K, c) with row ``k`` repeated ``counts[k]`` times (K,), exactly
+    as ``np.median`` of the repeated rows, without repeating them."""
+    values = np.asarray(values, float)
+    counts = np.asarray(counts, np.int64)
+    total = int(counts.sum())
+    out = np.empty(values.shape[1])
+    for j in range(values.shape[1]):
+        order = np.argsort(values[:, j], kind="stable")
+        ends = np.cumsum(counts[order])  # one past the last repeated position of each sorted value
+        lo, hi = (total - 1) // 2, total // 2
+        v = values[order, j]
+        out[j] = 0.5 * (v[np.searchsorted(ends, lo, side="right")] + v[np.searchsorted(ends, hi, side="right")])
+    return out
 
-    The per-epoch table is filled ``CHUNK`` epochs at a time, so that nothing of the size of a long log is
-    held twice. The states are float64; their standard deviations, the residuals, the NIS and the learned
-    noise are float32 (7 significant digits: 0.01 nT of a 100 000 nT residual)."""
-    status, updated, nis = trace.status, trace.updated, trace.nis
-    x_final, P_final, information, smoothed = trace.x, trace.P, trace.information, trace.smoothed
-    names = layout.names
-    method = trace.method or config.filter
-    n_ep, n = len(status), len(names)
-    block_of = trace.block_of()
-    # The residuals before each epoch use the estimate before its block (the start's for the first block),
-    # which its reading has not updated; with smoothing or a batch solution, the epoch's own. With smoothing
-    # the per-epoch states are the estimate at every epoch (a drift is followed); otherwise the final
-    # estimate is the best for every epoch. Nonlinear effects (a time lag interpolates between epochs) take
-    # the whole log at once.
-    own = smoothed or method == "batch"
-    chunk = max(n_ep, 1) if layout.nonlinear else CHUNK
-    x_cols = np.empty((n_ep, n))
-    std_cols = np.empty((n_ep, n), np.float32)
-    ned_i, mag_i = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
-    ned_f, mag_f = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
-    for start in range(0, n_ep, chunk):
-        epochs = slice(start, min(start + chunk, n_ep))
-        part = prep.take(epochs)
-        block = block_of[epochs]
-        xs = trace.xs[block]
-        x_cols[epochs], std_cols[epochs] = xs, trace.stds[block]
-        prior = xs if own else np.where((block == 0)[:, None], x0, trace.xs[np.maximum(block - 1, 0)])
-        ned_i[epochs], mag_i[epochs] = residuals(part, layout, prior)
-        ned_f[epochs], mag_f[epochs] = residuals(part, layout, xs if smoothed else x_final)
-    used = (status == Status.USED) & updated
-    vec_used = used & prep.has_attitude
-    updated_any = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
-    index = log.table.index
+
+@dataclass
+class FitSums:
+    """Running sums of the residual figures of a run, added chunk by chunk (``add``), so that the summary of a log
+    of any length is computed without holding its residuals."""
+
+    n_epochs: int = 0
+    n_updates: int = 0
+    n_updated_any: int = 0
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(len(Status), np.int64))
+    vec: list = field(default_factory=lambda: [0, 0.0, np.zeros(3)])  # epochs, sum of |e|^2, per axis
+    mag_used: list = field(default_factory=lambda: [0, 0.0])
+    vec_all: list = field(default_factory=lambda: [0, 0.0])
+    mag_all: list = field(default_factory=lambda: [0, 0.0])
+    innovation: list = field(default_factory=lambda: [0, 0.0])
+    nis: list = field(default_factory=lambda: [0.0, 0.0])  # sum of NIS, sum of degrees of freedom
+
+    def add(self, status, updated, nis, has_attitude, ned_f, mag_f, ned_i) -> None:
+        """Add the epochs of a chunk: statuses, update flags, NIS and attitude flags (k,), the residuals with the
+        final estimate ``ned_f`` (k, 3), ``mag_f`` (k,) and before each epoch ``ned_i`` (k, 3), nT."""
+        used = (status == Status.USED) & updated
+        vec_used = used & has_attitude
+        updated_any = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
+        self.n_epochs += len(status)
+        self.n_updates += int(np.count_nonzero(updated))
+        self.n_updated_any += int(np.count_nonzero(updated_any))
+        self.counts += np.bincount(np.asarray(status, np.int64), minlength=len(Status))
+        squares = np.asarray(ned_f[vec_used], float) ** 2
+        self.vec[0] += len(squares)
+        self.vec[1] += float(np.sum(squares))
+        self.vec[2] = self.vec[2] + squares.sum(axis=0)
+        _add_squares(self.mag_used, mag_f[updated_any])
+        _add_squares(self.vec_all, ned_f[np.all(np.isfinite(ned_f), axis=1)])
+        _add_squares(self.mag_all, mag_f[np.isfinite(mag_f)])
+        _add_squares(self.innovation, ned_i[vec_used])
+        ok = updated_any & np.isfinite(nis)
+        self.nis[0] += float(np.sum(nis[ok]))
+        self.nis[1] += float(np.sum(np.where(has_attitude[ok], 3.0, 1.0)))
+
+    def nis_summary(self, inflation: float) -> dict:
+        """Mean NIS per degree of freedom of the updated epochs and its two-sided 95 % chi-square band for the
+        effective number of independent epochs (``n / inflation``)."""
+        from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
+
+        total, dof = self.nis
+        if dof == 0:
+            return {"mean": float("nan"), "band": [float("nan"), float("nan")]}
+        total_dof = max(dof / max(inflation, 1.0), 1.0)
+        band = [float(2.0 * gammaincinv(total_dof / 2.0, q) / total_dof) for q in (0.025, 0.975)]
+        return {"mean": total / dof, "band": band}
+
+    @property
+    def used_share(self) -> float:
+        return self.n_updated_any / self.n_epochs if self.n_epochs else 0.0
+
+
+def _add_squares(acc: list, values) -> None:
+    """Add the count and the sum of squares (of the row norms, for (k, 3)) of ``values`` to ``acc``."""
+    a = np.asarray(values, float)
+    acc[0] += len(a)
+    acc[1] += float(np.sum(a**2))
+
+
+def _root_mean(acc: list) -> float:
+    return float(np.sqrt(acc[1] / acc[0])) if acc[0] else float("nan")
+
+
+def epoch_columns(part, block, layout: StateLayout, trace: RunTrace, x0, own: bool, last=(None, None)) -> tuple:
+    """The per-epoch columns of the epochs ``part`` (a ``PreparedLog``) of blocks ``block`` (k,): states (k, n)
+    and standard deviations (k, n) after each epoch's block, the residuals before each epoch (NED (k, 3), magnitude
+    (k,)) with the estimate before its block (``own``: its own, when smoothed or a batch solution), and the
+    residuals with the final estimate (with the per-epoch estimate when smoothed). ``last``: the states (n,) at
+    which nonlinear effects are evaluated for the residuals before each epoch and for the per-epoch estimate
+    (``StateLayout.effect_terms``; None: the part's last)."""
+    xs = trace.xs[block]
+    prior = xs if own else np.where((block == 0)[:, None], x0, trace.xs[np.maximum(block - 1, 0)])
+    ned_i, mag_i = residuals(part, layout, prior, last[0])
+    ned_f, mag_f = residuals(part, layout, xs if trace.smoothed else trace.x, last[1])
+    return xs, trace.stds[block], ned_i, mag_i, ned_f, mag_f
+
+
+#: Names of the learned-noise columns of the per-epoch table.
+NOISE_COLUMNS = ("noise_sensor_nt", "noise_attitude_deg", "noise_heading_deg", "noise_inflation")
+
+
+def states_frame(index, names, status, updated, nis, xs, stds, ned_i, mag_i, noise=None) -> pd.DataFrame:
+    """The per-epoch table (see ``CalibrationRun.states``) of the epochs ``index``; ``noise`` (k, 4) the learned
+    noise after each epoch's block (None: no such columns)."""
     frames = [
         pd.DataFrame({"status": status_names(status), "updated": updated, "nis": nis.astype(np.float32)}, index=index),
-        pd.DataFrame(x_cols, columns=names, index=index, copy=False),
-        pd.DataFrame(std_cols, columns=[f"std_{name}" for name in names], index=index, copy=False),
+        pd.DataFrame(xs, columns=names, index=index, copy=False),
+        pd.DataFrame(stds, columns=[f"std_{name}" for name in names], index=index, copy=False),
         pd.DataFrame(
             np.column_stack([ned_i, mag_i]),
             columns=["residual_n", "residual_e", "residual_d", "residual_mag"],
@@ -300,16 +351,70 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             copy=False,
         ),
     ]
-    if trace.noise is not None:
-        noise_columns = ("noise_sensor_nt", "noise_attitude_deg", "noise_heading_deg", "noise_inflation")
-        frames.append(
-            pd.DataFrame(trace.noise[block_of].astype(np.float32), columns=noise_columns, index=index, copy=False)
-        )
-    states = pd.concat(frames, axis=1)
+    if noise is not None:
+        frames.append(pd.DataFrame(noise.astype(np.float32), columns=NOISE_COLUMNS, index=index, copy=False))
+    return pd.concat(frames, axis=1)
 
+
+def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -> CalibrationRun:
+    """Assemble a ``CalibrationRun`` from the start ``x0`` (n,), ``P0`` (n, n) and what the run went through.
+
+    The per-epoch table is filled ``CHUNK`` epochs at a time, so that nothing of the size of a long log is
+    held twice. The states are float64; their standard deviations, the residuals, the NIS and the learned
+    noise are float32 (7 significant digits: 0.01 nT of a 100 000 nT residual)."""
+    status, updated, nis = trace.status, trace.updated, trace.nis
+    names = layout.names
+    n_ep, n = len(status), len(names)
+    block_of = trace.block_of()
+    # The residuals before each epoch use the estimate before its block (the start's for the first block),
+    # which its reading has not updated; with smoothing or a batch solution, the epoch's own. With smoothing
+    # the per-epoch states are the estimate at every epoch (a drift is followed); otherwise the final
+    # estimate is the best for every epoch. Nonlinear effects (a time lag interpolates between epochs) take
+    # the whole log at once.
+    own = trace.smoothed or (trace.method or config.filter) == "batch"
+    chunk = max(n_ep, 1) if layout.nonlinear else CHUNK
+    x_cols = np.empty((n_ep, n))
+    std_cols = np.empty((n_ep, n), np.float32)
+    ned_i, mag_i = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
+    ned_f, mag_f = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
+    sums = FitSums()
+    for start in range(0, n_ep, chunk):
+        epochs = slice(start, min(start + chunk, n_ep))
+        x_cols[epochs], std_cols[epochs], ned_i[epochs], mag_i[epochs], ned_f[epochs], mag_f[epochs] = epoch_columns(
+            prep.take(epochs), block_of[epochs], layout, trace, x0, own
+        )
+        sums.add(
+            status[epochs],
+            updated[epochs],
+            nis[epochs],
+            prep.has_attitude[epochs],
+            ned_f[epochs],
+            mag_f[epochs],
+            ned_i[epochs],
+        )
+    index = log.table.index
+    noise = None if trace.noise is None else trace.noise[block_of]
+    states = states_frame(index, names, status, updated, nis, x_cols, std_cols, ned_i, mag_i, noise)
+    counts = np.diff(trace.stops, prepend=0) if trace.stops is not None else np.ones(n_ep, np.int64)
+    summary, cal, effects = summarise(log.source, config, layout, P0, trace, sums, counts)
+    fit = pd.DataFrame(
+        np.column_stack([ned_f, mag_f]), columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False
+    )
+    return CalibrationRun(
+        calibration=cal, x=trace.x, P=trace.P, names=names, states=states, summary=summary, effects=effects, fit=fit
+    )
+
+
+def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: FitSums, counts) -> tuple:
+    """``(RunSummary, Calibration, effects)`` of a run from its trace (only its final state, information,
+    learned noise and figures are used, never its per-epoch arrays), the residual sums of every epoch and the
+    epochs of each block ``counts`` (K,)."""
+    x_final, P_final = trace.x, trace.P
+    names = layout.names
+    method = trace.method or config.filter
     std = np.sqrt(np.diag(P_final))
     R, b = layout.R_b(x_final)
-    obs = observability.analyse(P0, information, names, R)
+    obs = observability.analyse(P0, trace.information, names, R)
     effects = {}
     for effect, sl in layout.blocks():
         effects[effect.name] = {
@@ -320,32 +425,36 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             }
             for j, p in enumerate(effect.parameter_names)
         }
-    noise = noise_summary(config, trace)
-    nis_stats = nis_summary(nis, updated_any, prep.has_attitude, noise["inflation"])
+    noise = noise_summary(config, trace, counts)
+    nis_stats = sums.nis_summary(noise["inflation"])
+    vec_n, vec_ss, vec_axis = sums.vec
     summary = RunSummary(
         R=R.tolist(),
         b=b.tolist(),
         std=dict(zip(names, std.tolist())),
-        residual_rms_nt=_rms_norm(ned_f[vec_used]),
-        residual_rms_axis_nt={a: _rms(ned_f[vec_used, k]) for k, a in enumerate(("north", "east", "down"))},
-        residual_rms_magnitude_nt=_rms(mag_f[updated_any]),
-        residual_rms_all_nt=_rms_norm(ned_f[np.all(np.isfinite(ned_f), axis=1)]),
-        residual_rms_magnitude_all_nt=_rms(mag_f[np.isfinite(mag_f)]),
-        innovation_rms_nt=_rms_norm(ned_i[vec_used]),
+        residual_rms_nt=float(np.sqrt(vec_ss / vec_n)) if vec_n else float("nan"),
+        residual_rms_axis_nt={
+            a: (float(np.sqrt(vec_axis[k] / vec_n)) if vec_n else float("nan"))
+            for k, a in enumerate(("north", "east", "down"))
+        },
+        residual_rms_magnitude_nt=_root_mean(sums.mag_used),
+        residual_rms_all_nt=_root_mean(sums.vec_all),
+        residual_rms_magnitude_all_nt=_root_mean(sums.mag_all),
+        innovation_rms_nt=_root_mean(sums.innovation),
         nis_mean=nis_stats["mean"],
         nis_band=nis_stats["band"],
-        used_share=float(np.mean(updated_any)) if len(status) else 0.0,
+        used_share=sums.used_share,
         noise=noise,
-        verdict=verdict(noise, nis_stats, float(np.mean(updated_any)) if len(status) else 0.0, obs),
-        n_epochs=int(len(status)),
-        n_updates=int(updated.sum()),
-        status_counts=status_counts(status),
+        verdict=verdict(noise, nis_stats, sums.used_share, obs),
+        n_epochs=int(sums.n_epochs),
+        n_updates=int(sums.n_updates),
+        status_counts={name: int(k) for name, k in zip(STATUS_NAMES, sums.counts)},
         run_time_s=float(trace.elapsed_s),
-        epochs_per_second=float(len(status) / trace.elapsed_s),
+        epochs_per_second=float(sums.n_epochs / trace.elapsed_s),
         filter_loop_s=float(trace.loop_s),
         filter=method,
         measure=config.measure,
-        smoothed=bool(smoothed),
+        smoothed=bool(trace.smoothed),
         init=trace.init_how,
         reacquisitions=int(trace.reacquisitions),
         observability=obs,
@@ -377,17 +486,12 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             state_covariance=P_final if layout.has_extra else None,
             standard_errors=dict(zip(names[core], std[core].tolist())),
             quality=quality | {"undetermined": obs["text"]},
-            source=log.source,
+            source=source,
         )
     except ValueError as exc:  # a degenerate estimate (R singular): the data, not the code
         raise InputError(
             f"the estimate is degenerate ({exc}): the data do not determine R, or the magnetometer unit is wrong "
             "(--mag-unit)",
-            log.source,
+            source,
         ) from None
-    fit = pd.DataFrame(
-        np.column_stack([ned_f, mag_f]), columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False
-    )
-    return CalibrationRun(
-        calibration=cal, x=x_final, P=P_final, names=names, states=states, summary=summary, effects=effects, fit=fit
-    )
+    return summary, cal, effects

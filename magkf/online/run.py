@@ -25,7 +25,7 @@ from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, pre
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
-__all__ = ["calibrate_log", "blocks", "terminal_progress"]
+__all__ = ["calibrate_log", "ForwardPass", "blocks", "terminal_progress"]
 
 
 @names_the_log
@@ -63,38 +63,10 @@ def calibrate_log(
             P0 = deflate_bootstrap(P0, layout, start.inflation)
             noise = start if config.adapt_noise else None
         est = Estimator(layout, config, x0, P0, noise, model)
-    n_ep, n = len(prep), layout.size
     t = prep.time
-    starts, stops = blocks(t, config.block_s)
-    block_dt = np.diff(np.concatenate([[t[0]], t[stops - 1]]))
-    xs_b = np.empty((len(starts), n))
-    Ps_b = np.empty((len(starts), n, n))
-    status = np.empty(n_ep, np.int8)
-    updated = np.zeros(n_ep, bool)
-    nis = np.full(n_ep, np.nan)
-    noise_b = np.empty((len(starts), 4))  # learned sensor nT, tilt and heading deg, inflation, after each block
-    with_data = bool(layout.nonlinear)
-    every = max(len(starts) // 100, 1)
-    # Blocks are cut from spans whitened at once, cut anew where the learned noise changed (it changes at
-    # most every ESTIMATE_EVERY_S, after the block that crosses a tick).
-    span_s = ESTIMATE_EVERY_S + config.block_s
-    span_ends = stops[np.maximum(np.searchsorted(t[starts], t[starts] + span_s) - 1, np.arange(len(starts)))]
-    span, s0, s1 = None, 0, 0
+    forward = ForwardPass(est, model, R0, config, t[0] if len(t) else 0.0)
     loop_started = _time.perf_counter()
-    for j, (i0, i1) in enumerate(zip(starts.tolist(), stops.tolist())):
-        epochs = slice(i0, i1)
-        if i1 > s1 or span.whitened_with is not est.noise:
-            s0, s1 = i0, int(span_ends[j])
-            span = prep.block(slice(s0, s1), layout, model, R0, with_data)
-            est.whiten(span)
-        status[epochs], updated[epochs], nis[epochs] = est.process_block(
-            t[epochs], block_dt[j], span.take(slice(i0 - s0, i1 - s0)), base[epochs]
-        )
-        xs_b[j] = est.x
-        Ps_b[j] = est.P
-        noise_b[j] = est.noise.sensor_nt, est.noise.attitude_deg, est.noise.heading_deg, est.noise.inflation
-        if progress is not None and j % every == 0:
-            progress(j / len(starts))
+    status, updated, nis, xs_b, Ps_b, noise_b, stops, block_dt = forward.run(prep, base, progress)
     loop_s = _time.perf_counter() - loop_started
     phases.add("filter loop", loop_s)
     if progress is not None:
@@ -125,13 +97,72 @@ def calibrate_log(
         return build_run(log, prep, config, layout, x0, P0, trace)
 
 
-def blocks(time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """First and one-past-last epoch (each (K,)) of consecutive blocks of at most ``block_s`` seconds."""
+class ForwardPass:
+    """The filter's forward pass over a log given in consecutive pieces, each made of whole blocks (a whole log
+    is one piece): ``run`` filters a piece and keeps what the next one needs (the time of the last block's end).
+
+    ``est`` the ``Estimator``, ``model`` its measurement model, ``R0`` (3, 3) the calibration the Jacobians and
+    the noise structure are computed at, ``origin`` (UNIX s) the log's first time, from which blocks are
+    counted (``blocks``).
+    """
+
+    def __init__(self, est: Estimator, model, R0, config: FilterConfig, origin: float):
+        self.est, self.model, self.R0, self.config = est, model, R0, config
+        self.origin = self.last_end = float(origin)
+        self.with_data = bool(est.layout.nonlinear)
+
+    def run(self, prep, base, progress=None) -> tuple:
+        """Filter the epochs of ``prep`` (a ``PreparedLog``) with statuses before filtering ``base`` (k,).
+
+        Returns ``(status (k,) int8, updated (k,) bool, nis (k,), xs (K, n) and Ps (K, n, n) after each of its
+        K blocks, noise (K, 4) the learned sensor nT, tilt and heading deg and inflation after each block,
+        stops (K,) one past each block's last epoch, dt (K,) s each block's prediction covered)``.
+        ``progress(fraction)`` is told the share done now and then."""
+        est, config = self.est, self.config
+        n_ep, n = len(prep), est.layout.size
+        t = prep.time
+        starts, stops = blocks(t, config.block_s, self.origin)
+        block_dt = np.diff(np.concatenate([[self.last_end], t[stops - 1]]))
+        xs_b = np.empty((len(starts), n))
+        Ps_b = np.empty((len(starts), n, n))
+        status = np.empty(n_ep, np.int8)
+        updated = np.zeros(n_ep, bool)
+        nis = np.full(n_ep, np.nan)
+        noise_b = np.empty((len(starts), 4))
+        every = max(len(starts) // 100, 1)
+        # Blocks are cut from spans whitened at once, cut anew where the learned noise changed (it changes at
+        # most every ESTIMATE_EVERY_S, after the block that crosses a tick).
+        span_s = ESTIMATE_EVERY_S + config.block_s
+        span_ends = stops[np.maximum(np.searchsorted(t[starts], t[starts] + span_s) - 1, np.arange(len(starts)))]
+        span, s0, s1 = None, 0, 0
+        for j, (i0, i1) in enumerate(zip(starts.tolist(), stops.tolist())):
+            epochs = slice(i0, i1)
+            if i1 > s1 or span.whitened_with is not est.noise:
+                s0, s1 = i0, int(span_ends[j])
+                span = prep.block(slice(s0, s1), est.layout, self.model, self.R0, self.with_data)
+                est.whiten(span)
+            status[epochs], updated[epochs], nis[epochs] = est.process_block(
+                t[epochs], block_dt[j], span.take(slice(i0 - s0, i1 - s0)), base[epochs]
+            )
+            xs_b[j] = est.x
+            Ps_b[j] = est.P
+            noise_b[j] = est.noise.sensor_nt, est.noise.attitude_deg, est.noise.heading_deg, est.noise.inflation
+            if progress is not None and j % every == 0:
+                progress(j / len(starts))
+        if n_ep:
+            self.last_end = float(t[-1])
+        return status, updated, nis, xs_b, Ps_b, noise_b, stops, block_dt
+
+
+def blocks(time_s: np.ndarray, block_s: float, origin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """First and one-past-last epoch (each (K,)) of consecutive blocks of at most ``block_s`` seconds, counted
+    from ``origin`` (UNIX s; default the first time)."""
     n = len(time_s)
     if block_s <= 0 or n == 0:
         starts = np.arange(n)
     else:
-        block_id = np.floor((time_s - time_s[0]) / block_s).astype(np.int64)
+        origin = time_s[0] if origin is None else origin
+        block_id = np.floor((time_s - origin) / block_s).astype(np.int64)
         starts = np.flatnonzero(np.diff(np.concatenate([[-1], block_id])))
     return starts, np.append(starts[1:], n)
 

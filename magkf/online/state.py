@@ -149,15 +149,18 @@ class StateLayout:
             e = e + self.nonlinear_terms(x, data)
         return e
 
-    def effect_terms(self, x, data: EpochData) -> np.ndarray:
+    def effect_terms(self, x, data: EpochData, last=None) -> np.ndarray:
         """Raw-field terms (N, 3) of the effects after the core for a state (n,) or per-epoch states (N, n),
-        evaluated from the effects themselves (no precomputed Jacobian); missing inputs count as 0."""
+        evaluated from the effects themselves (no precomputed Jacobian); missing inputs count as 0. With
+        per-epoch states, a nonlinear effect is evaluated at one state for every epoch: ``last`` (n,), default
+        the last epoch's (a chunk of a log passes its whole log's last)."""
         x = np.asarray(x)
+        last = None if x.ndim == 1 else (x[-1] if last is None else np.asarray(last))
         total = np.zeros((len(data), 3))
         for effect, sl in self.blocks():
             theta = x[..., sl]
             if theta.ndim == 1 or not effect.linear:
-                total += effect.contribution(theta if theta.ndim == 1 else theta[-1], data)
+                total += effect.contribution(theta if theta.ndim == 1 else last[sl], data)
             else:
                 total += np.einsum("nij,nj->ni", effect.jacobian(theta[-1], data), theta)
         return np.nan_to_num(total)

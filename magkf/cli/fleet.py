@@ -1,0 +1,205 @@
+"""``magkf fleet`` and ``magkf study``: many logs, or many settings, on Dask (``magkf.fleet``, ``magkf.study``)."""
+
+from __future__ import annotations
+
+from . import common
+
+__all__ = ["add_parsers", "run_fleet", "run_study"]
+
+
+def add_parsers(sub) -> None:
+    """Register ``fleet`` and ``study``."""
+    p = common.command(sub, "fleet", run_fleet, "calibrate (and diagnose) every log of a fleet, on Dask")
+    p.add_argument("logs", nargs="+", metavar="LOG", help="log files, folders (every log below) or glob patterns")
+    p.add_argument("-o", "--out", dest="out_dir", required=True, metavar="DIR", help="output folder (made if missing)")
+    p.add_argument("--diagnose", action="store_true", help="also diagnose each log (diagnosis.json per log)")
+    p.add_argument(
+        "--alpha",
+        type=common.probability,
+        default=0.01,
+        help="significance level of the diagnosis and of each vehicle's disagreement test (default 0.01)",
+    )
+    p.add_argument(
+        "--vehicle-from",
+        choices=["parent", "name", "none"],
+        default="parent",
+        help="a log's vehicle: the folder holding it (default), its file name up to the first '_', or one "
+        "vehicle for all",
+    )
+    p.add_argument("--filter", metavar="ekf|ukf", help="filter (default ekf)")
+    p.add_argument("--measure", metavar="magnitude|vector|both", help="measurement model (default both)")
+    g = p.add_argument_group("reading the logs")
+    g.add_argument(
+        "--format",
+        choices=["csv", "parquet", "ulog", "dataflash", "mapped"],
+        help="the logs' format (default: from each log's first bytes and extension)",
+    )
+    g.add_argument("--map", metavar="MAP.toml", help="column map of tables in another layout (docs/column-maps.md)")
+    g.add_argument("--mag", type=common.count_in(0, 255), help="magnetometer instance of ULog or DataFlash logs")
+    g.add_argument(
+        "--logged-calibration",
+        action="store_true",
+        help="keep the autopilot's own calibration in the field (default: undo it and use the raw field)",
+    )
+    common.add_mag_unit(g)
+    common.add_filter_options(p)
+    common.add_effect_options(p, "effects to estimate with R and b (repeat the option)")
+    add_cluster_options(p)
+
+    p = common.command(sub, "study", run_study, "filter-tuning study: settings x logs x seeds, on Dask")
+    p.add_argument("spec", metavar="SPEC.toml", help="the study (see magkf.study and scripts/tuning_study.toml)")
+    p.add_argument("-o", "--out", dest="out_dir", required=True, metavar="DIR", help="output folder (made if missing)")
+    add_cluster_options(p)
+
+
+def add_cluster_options(p) -> None:
+    g = p.add_argument_group("Dask cluster (docs/fleet.md)")
+    g.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="an existing Dask scheduler (tcp://host:port); its workers must see the inputs and DIR at the same "
+        "paths (default: a local cluster)",
+    )
+    g.add_argument(
+        "--workers",
+        type=common.count_in(0, 1024),
+        help="worker processes of the local cluster (default: one per core; 0: one after the other in this "
+        "process, without Dask)",
+    )
+    g.add_argument(
+        "--memory-limit",
+        default="auto",
+        metavar="SIZE",
+        help="memory limit of each local worker, such as 2GB (default auto: the machine's memory shared out; "
+        "Dask restarts a worker that exceeds 95 %% of it, and that log's row says so)",
+    )
+    common.add_quiet_option(p)
+
+
+def _client(args):
+    """The Dask client the options ask for (a context manager giving None: serial, in this process)."""
+    from contextlib import nullcontext
+
+    from ..cluster import connect, local_client
+
+    if args.scheduler:
+        if args.workers is not None:
+            from ..errors import InputError
+
+            raise InputError("--workers is for the local cluster: leave it out with --scheduler")
+        return connect(args.scheduler)
+    if args.workers == 0:
+        return nullcontext(None)
+    limit = None if args.memory_limit.lower() in ("none", "0") else args.memory_limit
+    return local_client(args.workers, limit)
+
+
+def _progress(args):
+    from ..online.run import terminal_progress
+
+    return None if args.quiet else terminal_progress()
+
+
+def _memory_line(peaks: dict, limits: dict) -> str:
+    """``peak memory per worker: ...`` in MB, with the limit where there is one."""
+    if not peaks:
+        return "peak memory per worker: no log processed"
+    parts = []
+    for worker, peak in sorted(peaks.items()):
+        limit = limits.get(worker, 0)
+        parts.append(f"{worker} {peak:.0f} MB" + (f" (limit {limit / 1e6:.0f} MB)" if limit else ""))
+    return "peak memory per worker: " + ", ".join(parts)
+
+
+def run_fleet(args) -> int:
+    """Calibrate every log (files, folders or glob patterns; any format the readers know), each as one task on a
+    Dask cluster (local by default), and with --diagnose diagnose it. Per log, under DIR/<vehicle>/<log file>/:
+    calibration.json, states.parquet, diagnosis.json and row.json. DIR/summary.parquet and summary.csv hold one
+    row per log (residuals, used share, verdict, estimates and standard deviations, undetermined directions,
+    run time, the error of a log that failed, and whether it disagrees with the rest of its vehicle);
+    DIR/vehicles.png plots each vehicle's estimates over its flights. A log that fails does not stop the others
+    (exit status 2 only when every log failed). A log whose input and settings are unchanged since an earlier
+    run into DIR (same content hash) and whose outputs are complete is not calibrated again."""
+    from pathlib import Path
+
+    from ..effects import make_effect
+    from ..errors import InputError
+    from ..fleet import FleetSettings, check_out_dir, find_logs
+    from ..fleet import run_fleet as run
+
+    out_dir = check_out_dir(args.out_dir)
+    logs = find_logs(args.logs, exclude=out_dir)
+    for path in (args.map, *args.effect_file):
+        if path is not None and not Path(path).is_file():
+            raise InputError("no such file", path)
+    if not args.effect_file:  # a misspelt effect is refused before any log is read
+        for spec in args.effect:
+            make_effect(spec)
+    settings = FleetSettings(
+        config=common.filter_config(args),
+        diagnose=args.diagnose,
+        alpha=args.alpha,
+        effects=tuple(args.effect),
+        effect_files=tuple(str(Path(f).resolve()) for f in args.effect_file),
+        format=args.format,
+        map=args.map,
+        mag=args.mag,
+        mag_unit=args.mag_unit,
+        raw=not args.logged_calibration,
+    )
+    with _client(args) as client:
+        result = run(
+            logs, out_dir, settings, client, vehicle_from=args.vehicle_from, alpha=args.alpha, progress=_progress(args)
+        )
+    s = result.summary
+    failed, flagged = result.failed, result.flagged
+    reused = int(s["reused"].sum())
+    print(
+        f"{len(s)} logs of {s['vehicle'].nunique()} vehicle(s): {len(s) - len(failed)} calibrated"
+        f" ({reused} unchanged since an earlier run, not calibrated again), {len(failed)} failed; "
+        f"{len(flagged)} disagree with the rest of their vehicle"
+    )
+    for row in failed.itertuples():
+        print(f"  failed: {row.error}")
+    for row in flagged.itertuples():
+        print(f"  disagrees: {row.log}: {row.disagreement}")
+    print("  " + _memory_line(result.peak_memory_mb(), result.memory_limits))
+    print(
+        f"  summary: {result.files['summary_parquet']} and {result.files['summary_csv']}; plot: {result.files['plot']}"
+    )
+    if len(failed) == len(s):
+        raise InputError(f"every log failed; the first: {failed['error'].iloc[0]}")
+    return 0
+
+
+def run_study(args) -> int:
+    """Run a filter-tuning study: the settings of SPEC.toml (a grid, a list, a seeded random sample of FilterConfig
+    fields and effects) crossed with simulated log recipes or given logs and seeds, each run a task on a Dask
+    cluster (local by default). Writes DIR/runs.parquet and .csv (one row per run: final errors against truth,
+    NEES, mean NIS, used share, time), DIR/summary.parquet and .csv (one row per setting, with 95 % intervals) and
+    DIR/study.png (error, NEES and NIS against each setting). Seeds follow from the spec and each run's number:
+    the tables do not depend on the cluster."""
+    from ..fleet import check_out_dir
+    from ..study import load_spec
+    from ..study import run as run_spec
+
+    spec = load_spec(args.spec)
+    out_dir = check_out_dir(args.out_dir)
+    print(
+        f"study {spec.name}: {len(spec.settings)} settings x {spec.n_runs // len(spec.settings)} logs = "
+        f"{spec.n_runs} runs"
+    )
+    with _client(args) as client:
+        from ..cluster import memory_limits
+
+        limits = memory_limits(client)
+        result = run_spec(spec, client, progress=_progress(args))
+    files = result.write(out_dir)
+    runs = result.runs
+    failed = runs[runs["error"] != ""]
+    print(f"  {len(runs) - len(failed)} runs done, {len(failed)} failed")
+    for row in failed.head(10).itertuples():
+        print(f"  run {row.run} failed: {row.error}")
+    print("  " + _memory_line(runs.groupby("worker")["peak_rss_mb"].max().to_dict(), limits))
+    print(f"  written: {', '.join(files.values())}")
+    return 0

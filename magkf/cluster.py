@@ -1,0 +1,158 @@
+"""Many independent tasks on Dask (``dask.distributed``): a local cluster, an existing one, or none.
+
+``map_tasks(func, items, client)`` runs ``func(item)`` for every item and returns the results in the items'
+order, whatever the number of workers or the order in which tasks finish. With ``client=None`` the tasks run
+one after the other in this process (no Dask at all). Only the items travel to the workers (paths, settings,
+recipes): each task opens or simulates its own log there. A task that the cluster cannot finish (its worker
+died, for instance by exceeding its memory limit) gives a ``TaskFailed`` in its place, and the others go on.
+
+``local_client(workers, memory_limit)`` starts a ``LocalCluster`` of worker processes on 127.0.0.1 (one
+thread each: the filter is Python code that holds the GIL) with random free ports and no dashboard;
+``connect(address)`` joins an existing scheduler. ``task_resources()`` is what a task reports of the process
+it ran in: the worker's address and its peak resident memory so far.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+__all__ = [
+    "TaskFailed",
+    "task_error",
+    "map_tasks",
+    "local_client",
+    "connect",
+    "task_resources",
+    "cores",
+    "memory_limits",
+]
+
+
+@dataclass(frozen=True)
+class TaskFailed:
+    """In place of a result: the task could not be finished by the cluster; ``error`` says why, on one line."""
+
+    error: str
+
+
+def task_error(exc: BaseException) -> str:
+    """What went wrong in a task, on one line: the message of bad input (``InputError``, ``ValueError``) or
+    of a file that cannot be read or written (``OSError``, with its file name), else ``internal error:``
+    and the exception's type (a defect of magkf, or the cluster's)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) not in text:
+        return f"{exc.filename}: {text}"
+    if isinstance(exc, ValueError | OSError):
+        return text
+    return f"internal error: {type(exc).__name__}: {text}"
+
+
+def cores() -> int:
+    """The cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def map_tasks(func, items, client=None, progress=None) -> list:
+    """``[func(item) for item in items]``, on the Dask ``client``'s workers when given (else here, in order).
+
+    ``func`` must be importable by the workers (a module-level function of magkf) and should catch what it
+    can report itself; a task the cluster fails (an exception ``func`` let through, a worker lost) becomes a
+    ``TaskFailed``. ``progress(fraction)`` is called as tasks finish. Results are returned in the order of
+    ``items``."""
+    items = list(items)
+    report = progress or (lambda fraction: None)
+    if client is None:
+        out = []
+        for i, item in enumerate(items):
+            out.append(func(item))
+            report((i + 1) / max(len(items), 1))
+        return out
+    from distributed import as_completed
+
+    futures = client.map(func, items, pure=False)  # pure=False: equal items are still separate runs
+    position = {future.key: i for i, future in enumerate(futures)}
+    out = [None] * len(items)
+    for done, future in enumerate(as_completed(futures), start=1):
+        i = position[future.key]
+        try:
+            out[i] = future.result()
+        except Exception as exc:  # raised in the task, or the worker was lost
+            out[i] = TaskFailed(task_error(exc))
+        future.release()
+        report(done / len(items))
+    return out
+
+
+@contextmanager
+def local_client(workers: int | None = None, memory_limit: str | float | None = "auto"):
+    """A ``Client`` of a new ``LocalCluster``: ``workers`` processes (default one per core), one thread each,
+    each limited to ``memory_limit`` (bytes, or text such as ``"2GB"``; ``"auto"``: the machine's memory
+    shared out among the workers; None: no limit; beyond 95 % of it Dask restarts the worker), on 127.0.0.1
+    with random free ports and no dashboard. Closed when the block ends."""
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(
+        n_workers=workers or cores(),
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        scheduler_port=0,
+        dashboard_address=None,
+        memory_limit=memory_limit if memory_limit is not None else 0,
+        silence_logs=40,
+    )
+    try:
+        with Client(cluster) as client:
+            yield client
+    finally:
+        cluster.close()
+
+
+@contextmanager
+def connect(address: str, timeout_s: float = 30.0):
+    """A ``Client`` of the scheduler at ``address`` (``tcp://host:port``); closed (the cluster left running)
+    when the block ends. Raises OSError when no scheduler answers within ``timeout_s`` seconds."""
+    from distributed import Client
+
+    try:
+        client = Client(address, timeout=timeout_s)
+    except (OSError, TimeoutError) as exc:
+        raise OSError(f"no Dask scheduler answered at {address} within {timeout_s:g} s ({exc})") from None
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+def memory_limits(client) -> dict:
+    """Each worker's memory limit in bytes (0: none), by address; empty without a client."""
+    if client is None:
+        return {}
+    return {address: w.get("memory_limit", 0) or 0 for address, w in client.scheduler_info()["workers"].items()}
+
+
+def task_resources() -> dict:
+    """Where a task ran (``worker``: the Dask worker's address, or ``local``) and that process's peak resident
+    memory so far (``peak_rss_mb``, MB; NaN where the system does not tell)."""
+    worker = "local"
+    if "distributed" in sys.modules:
+        from distributed import get_worker
+
+        try:
+            worker = get_worker().address
+        except ValueError:  # not inside a worker
+            pass
+    try:
+        import resource
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kB on Linux, bytes on macOS
+        peak_mb = peak / 1024**2 if sys.platform == "darwin" else peak / 1024
+    except (ImportError, OSError):
+        peak_mb = float("nan")
+    return {"worker": worker, "peak_rss_mb": float(peak_mb)}

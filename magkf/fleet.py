@@ -1,0 +1,531 @@
+"""Every log of a fleet: each calibrated (and diagnosed), one summary row per log, and the logs that disagree
+with the rest of their vehicle.
+
+``run_fleet(logs, out_dir, settings, client)`` processes the logs as independent tasks (``magkf.cluster``:
+serially here, or on a Dask cluster). Each task opens its own log, so only its path travels to the worker,
+and writes under ``out_dir/<vehicle>/<log file name>/``:
+
+* ``calibration.json`` (``magkf.io.calibration``), ``states.parquet`` (the per-epoch estimates), with
+  ``settings.diagnose`` also ``diagnosis.json``;
+* ``row.json``, written last: the log's summary row and the content key of its input and settings (SHA-256
+  of the log's bytes, of the settings, of the column map and effect files they name, and of magkf's
+  version). A later run with the same key and every output present reuses the row instead of calibrating
+  again (``reused`` in the summary).
+
+A log that cannot be read or calibrated gives a row with ``error`` (one line naming the file, and where
+known the row and column) and no estimates; the other logs go on. The summary (``summary.parquet`` and
+``summary.csv`` in ``out_dir``) has one row per log, sorted by vehicle, start time and path; ``vehicles.png``
+plots each vehicle's estimates over its flights.
+
+Vehicle identity (``vehicle_from``): ``parent``, the name of the folder holding the log (``fleet/V12/
+2026-05-01.ulg`` belongs to ``V12``); ``name``, the log file's name up to its first ``_``
+(``V12_2026-05-01.ulg``); ``none``, one vehicle for all. ``disagreements`` compares every log of a vehicle
+with the others of that vehicle, parameter by parameter (see there).
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import os
+import re
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .config import FilterConfig
+from .errors import InputError
+
+__all__ = [
+    "FleetSettings",
+    "LogTask",
+    "FleetResult",
+    "LOG_SUFFIXES",
+    "VEHICLE_RULES",
+    "find_logs",
+    "vehicle_of",
+    "check_out_dir",
+    "content_key",
+    "process_log",
+    "run_fleet",
+    "disagreements",
+    "plot_vehicles",
+]
+
+#: File endings taken from a folder given as a log (a file named explicitly is read whatever its ending).
+#: The endings a folder's files must have to be taken as logs. A whitespace table ending in ``.txt`` is read
+#: when named or matched by a pattern, never picked up from a folder (licences and notes end so too).
+LOG_SUFFIXES = (".csv", ".parquet", ".pq", ".ulg", ".bin", ".tsv")
+#: How a log's vehicle is named (see the module docstring).
+VEHICLE_RULES = ("parent", "name", "none")
+#: The columns that say how a task ran, not what it found: they differ between runs of the same fleet.
+RUN_COLUMNS = ("run_time_s", "worker", "peak_rss_mb", "reused")
+#: The outputs of a log (``diagnosis.json`` only when diagnosed), under its folder.
+OUTPUTS = ("calibration.json", "states.parquet")
+DIAGNOSIS = "diagnosis.json"
+MANIFEST = "row.json"
+
+
+@dataclass(frozen=True)
+class FleetSettings:
+    """How every log of a fleet is read and calibrated.
+
+    ``config``: the filter's settings. ``diagnose``: also run ``magkf.diagnose`` (significance level
+    ``alpha`` over its candidates; the logged heading's error let wander over ``wander_s`` s, None: not).
+    ``effects``: effects estimated with R and b, as ``NAME[:COLUMN]`` (``magkf.effects.make_effect``), with
+    user effects from ``effect_files``. Reading (``magkf.io.readers.read_log``): ``format`` (None: detected),
+    ``map`` (a column-map TOML), ``mag`` (the magnetometer instance of a ULog or DataFlash log), ``mag_unit``,
+    ``raw`` (undo the autopilot's calibration)."""
+
+    config: FilterConfig = FilterConfig()
+    diagnose: bool = False
+    alpha: float = 0.01
+    wander_s: float | None = 10.0
+    effects: tuple = ()
+    effect_files: tuple = ()
+    format: str | None = None
+    map: str | None = None
+    mag: int | None = None
+    mag_unit: str = "nT"
+    raw: bool = True
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class LogTask:
+    """One log of a fleet: its ``path``, its ``vehicle``, the ``folder`` its outputs go to, the settings."""
+
+    path: str
+    vehicle: str
+    folder: str
+    settings: FleetSettings
+
+
+@dataclass(frozen=True)
+class FleetResult:
+    """Outcome of ``run_fleet``: ``summary`` (one row per log, see ``run_fleet``), the files written by name
+    (``summary_parquet``, ``summary_csv``, ``plot``), and each worker's memory limit in bytes (0: none)."""
+
+    summary: pd.DataFrame
+    files: dict
+    memory_limits: dict = field(default_factory=dict)
+
+    @property
+    def failed(self) -> pd.DataFrame:
+        return self.summary[self.summary["error"] != ""]
+
+    @property
+    def flagged(self) -> pd.DataFrame:
+        return self.summary[self.summary["disagrees"]]
+
+    def peak_memory_mb(self) -> dict:
+        """The peak resident memory (MB) each worker reported, by worker, over the logs processed now."""
+        done = self.summary[~self.summary["reused"].astype(bool)]
+        return done.groupby("worker")["peak_rss_mb"].max().to_dict()
+
+
+def find_logs(patterns, exclude=None) -> list[Path]:
+    """The log files named by ``patterns``: files, folders (every file with a ``LOG_SUFFIXES`` ending below
+    them) or glob patterns (``**`` crosses folders), each once, sorted; files under ``exclude`` (the output
+    folder) are left out. Raises InputError for a pattern that names no log."""
+    skip = Path(exclude).resolve() if exclude is not None else None
+    found: dict = {}
+    for pattern in patterns:
+        text = str(pattern)
+        matches = [Path(text)] if Path(text).exists() else [Path(p) for p in sorted(glob.glob(text, recursive=True))]
+        files = []
+        for match in matches:
+            if match.is_dir():
+                files.extend(p for p in sorted(match.rglob("*")) if p.is_file() and p.suffix.lower() in LOG_SUFFIXES)
+            elif match.is_file():
+                files.append(match)
+        files = [f for f in files if skip is None or not f.resolve().is_relative_to(skip)]
+        if not files:
+            raise InputError("no log file here (give files, folders or glob patterns)", text)
+        for f in files:
+            found.setdefault(f.resolve(), f)
+    return sorted(found.values(), key=lambda p: str(p))
+
+
+def vehicle_of(path, rule: str = "parent") -> str:
+    """The vehicle a log belongs to by ``rule`` (one of ``VEHICLE_RULES``, see the module docstring)."""
+    p = Path(path)
+    if rule == "parent":
+        return p.resolve().parent.name or "/"
+    if rule == "name":
+        return p.name.split("_", 1)[0] if "_" in p.name else p.stem
+    if rule == "none":
+        return "fleet"
+    raise ValueError(f"vehicle_from must be one of {', '.join(VEHICLE_RULES)}, got {rule!r}")
+
+
+def check_out_dir(out_dir) -> Path:
+    """Refuse, before any work, an output folder that is a file or cannot be made or written; the folder is
+    made when its parent exists. Returns it."""
+    d = Path(out_dir)
+    if not str(out_dir).strip():
+        raise InputError("-o: an empty folder name")
+    if d.exists() and not d.is_dir():
+        raise InputError("-o: is a file, give a folder", str(d))
+    if not d.exists():
+        if not d.parent.is_dir():
+            raise InputError(f"-o: folder {str(d.parent)!r} does not exist (it is not created)", str(d))
+        d.mkdir()
+    if not os.access(d, os.W_OK):
+        raise InputError("-o: folder is not writable", str(d))
+    return d
+
+
+def _safe(name: str) -> str:
+    """``name`` as one folder name (characters other than letters, digits, ``.``, ``_``, ``-`` become ``_``)."""
+    text = re.sub(r"[^A-Za-z0-9._-]", "_", name).lstrip(".")
+    return text or "_"
+
+
+def _folders(paths, vehicles, out_dir: Path) -> list[str]:
+    """The output folder of each log: ``out_dir/<vehicle>/<file name>``, with a short hash of the full path
+    where two logs of a vehicle share a file name."""
+    names = [out_dir / _safe(v) / _safe(Path(p).name) for p, v in zip(paths, vehicles)]
+    count: dict = {}
+    for n in names:
+        count[n] = count.get(n, 0) + 1
+    return [
+        str(
+            n
+            if count[n] == 1
+            else n.with_name(f"{n.name}-{hashlib.sha256(str(Path(p).resolve()).encode()).hexdigest()[:8]}")
+        )
+        for n, p in zip(names, paths)
+    ]
+
+
+def _file_digest(path, digest) -> None:
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+
+
+def content_key(path, settings: FleetSettings) -> str:
+    """SHA-256 (hex) of the log's bytes, the settings, the files they name (column map, effect files) and
+    magkf's version: equal keys, equal results."""
+    from . import __version__
+
+    digest = hashlib.sha256()
+    _file_digest(path, digest)
+    used = settings.as_dict()
+    if not settings.diagnose:  # the diagnosis's settings change nothing without it
+        del used["alpha"], used["wander_s"]
+    digest.update(json.dumps({"settings": used, "magkf": __version__}, sort_keys=True).encode())
+    for named in (settings.map, *settings.effect_files):
+        if named is not None:
+            _file_digest(named, digest)
+    return digest.hexdigest()
+
+
+def _reusable(folder: Path, key: str, settings: FleetSettings) -> dict | None:
+    """The stored row of an earlier run with the same ``key`` whose outputs are all present, else None."""
+    try:
+        stored = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    wanted = OUTPUTS + ((DIAGNOSIS,) if settings.diagnose else ())
+    if stored.get("key") != key or not all((folder / name).is_file() for name in wanted):
+        return None
+    return stored.get("row")
+
+
+def process_log(task: LogTask) -> dict:
+    """Calibrate (and diagnose) one log, write its outputs, and return its summary row; never raises: a log
+    that fails gives a row whose ``error`` says why on one line. Runs on a worker."""
+    from .cluster import task_error, task_resources
+
+    started = time.perf_counter()
+    folder = Path(task.folder)
+    row = {"log": task.path, "vehicle": task.vehicle, "output": task.folder, "error": "", "reused": False}
+    try:
+        key = content_key(task.path, task.settings)
+        stored = _reusable(folder, key, task.settings)
+        if stored is not None:
+            return {**stored, **row, "reused": True, **task_resources()}
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            warnings.simplefilter("ignore", RuntimeWarning)  # numpy's, on degenerate stretches
+            row.update(_calibrate(task, folder))
+        row["warnings"] = "; ".join(dict.fromkeys(" ".join(str(w.message).split()) for w in caught))
+        row["run_time_s"] = time.perf_counter() - started
+        row.update(task_resources())
+        from .io.calibration import jsonable
+        from .io.files import output_text
+
+        output_text(folder / MANIFEST, json.dumps(jsonable({"key": key, "row": row}), indent=1) + "\n")
+        return row
+    except Exception as exc:  # the log, a setting it cannot be used with, or a defect: the fleet goes on
+        row["error"] = task_error(exc)
+    if task.path not in row["error"]:
+        row["error"] = f"{task.path}: {row['error']}"
+    return {**row, "run_time_s": time.perf_counter() - started, **task_resources()}
+
+
+def _calibrate(task: LogTask, folder: Path) -> dict:
+    """Read, calibrate, check, optionally diagnose, and write one log's outputs; its row's figures."""
+    from .effects import load_effect_file, make_effect
+    from .io.calibration import jsonable
+    from .io.drivelog import write_drive_log
+    from .io.files import output_text
+    from .io.readers import read_log
+    from .online.run import calibrate_log
+    from .plausibility import check_run, log_field_nt
+
+    s = task.settings
+    log = read_log(task.path, s.format, map=s.map, mag=s.mag, mag_unit=s.mag_unit, raw=s.raw)
+    registry = {}
+    for path in s.effect_files:
+        registry.update(load_effect_file(path))
+    effects = [make_effect(spec, registry) for spec in s.effects]
+    run = calibrate_log(log, s.config, effects=effects)
+    checks = check_run(run, task.path, log_field_nt(log))
+    for text in checks:
+        warnings.warn(text, UserWarning, stacklevel=1)
+    recommended = ""
+    diagnosis = None
+    if s.diagnose:
+        from .diagnostics.diagnose import diagnose
+
+        diagnosis, _ = diagnose(log, s.config, effects=effects, alpha=s.alpha, run=run, wander_s=s.wander_s)
+        recommended = " ".join(c.option for c in diagnosis.recommended)
+    folder.mkdir(parents=True, exist_ok=True)
+    run.calibration.save(folder / "calibration.json")
+    write_drive_log(run.states, folder / "states.parquet")
+    if diagnosis is not None:
+        output_text(folder / DIAGNOSIS, json.dumps(jsonable(diagnosis.summary()), indent=2) + "\n")
+    summary = run.summary
+    t = log.time
+    out = {
+        "start_time": float(t[0]),
+        "duration_s": float(t[-1] - t[0]),
+        "n_epochs": int(summary.n_epochs),
+        "used_share": float(summary.used_share),
+        "residual_rms_nt": float(summary.residual_rms_nt),
+        "residual_rms_magnitude_nt": float(summary.residual_rms_magnitude_nt),
+        "residual_rms_all_nt": float(summary.residual_rms_all_nt),
+        "nis_mean": float(summary.nis_mean),
+        "verdict": summary.verdict,
+        "undetermined": "; ".join(u["text"] for u in summary.observability["undetermined"]),
+        "recommended_effects": recommended if s.diagnose else None,
+    }
+    std = run.std
+    for i, name in enumerate(run.names):
+        out[name] = float(run.x[i])
+        out[f"std_{name}"] = float(std[i])
+    return out
+
+
+def run_fleet(
+    logs,
+    out_dir,
+    settings: FleetSettings = FleetSettings(),
+    client=None,
+    vehicle_from: str = "parent",
+    alpha: float = 0.01,
+    progress=None,
+    plot: bool = True,
+) -> FleetResult:
+    """Process every log of ``logs`` (paths; see ``find_logs``) into ``out_dir`` (made if missing).
+
+    ``client``: a Dask ``Client`` whose workers run the logs (None: one after the other in this process).
+    ``vehicle_from``: the vehicle rule; ``alpha``: the level of the disagreement test of each vehicle
+    (``disagreements``). ``progress(fraction)`` is called as logs finish.
+
+    The summary has one row per log: ``log``, ``vehicle``, ``output`` (its folder), ``error`` (empty when it
+    was calibrated), ``start_time`` (UNIX s), ``duration_s``, ``n_epochs``, ``used_share``, the residual
+    RMS (``residual_rms_nt`` over the epochs used, ``residual_rms_magnitude_nt``, ``residual_rms_all_nt``
+    over the whole log, nT), ``nis_mean``, ``verdict`` (the fit verdict in words), ``undetermined``
+    (directions the data did not determine), ``recommended_effects`` (with ``diagnose``), every estimate
+    (``R11`` ... ``b_z``, effects' parameters) and its ``std_`` standard deviation, ``warnings``,
+    ``run_time_s``, ``worker`` and ``peak_rss_mb`` (where it ran, and that process's peak memory),
+    ``reused`` (taken from an earlier run), and the columns of ``disagreements``. Results do not depend on
+    the workers or on the order in which logs finish."""
+    from .cluster import TaskFailed, map_tasks, memory_limits
+
+    out = check_out_dir(out_dir)
+    paths = [str(p) for p in logs]
+    vehicles = [vehicle_of(p, vehicle_from) for p in paths]
+    folders = _folders(paths, vehicles, out)
+    tasks = [LogTask(p, v, f, settings) for p, v, f in zip(paths, vehicles, folders)]
+    results = map_tasks(process_log, tasks, client, progress)
+    rows = [
+        {"log": t.path, "vehicle": t.vehicle, "output": t.folder, "error": f"{t.path}: {r.error}", "reused": False}
+        if isinstance(r, TaskFailed)
+        else r
+        for t, r in zip(tasks, results)
+    ]
+    summary = _table(rows)
+    summary = disagreements(summary, alpha)
+    files = {"summary_parquet": out / "summary.parquet", "summary_csv": out / "summary.csv"}
+    from .io.drivelog import write_drive_log
+
+    write_drive_log(summary, files["summary_parquet"])
+    write_drive_log(summary, files["summary_csv"])
+    if plot:
+        files["plot"] = out / "vehicles.png"
+        plot_vehicles(summary, files["plot"])
+    return FleetResult(summary, {k: str(v) for k, v in files.items()}, memory_limits(client))
+
+
+#: The first columns of the summary, in order; estimates and the rest follow.
+FIRST = (
+    "log",
+    "vehicle",
+    "error",
+    "start_time",
+    "duration_s",
+    "n_epochs",
+    "used_share",
+    "residual_rms_nt",
+    "residual_rms_magnitude_nt",
+    "residual_rms_all_nt",
+    "nis_mean",
+    "verdict",
+    "undetermined",
+    "recommended_effects",
+)
+LAST = ("warnings", "output", "run_time_s", "worker", "peak_rss_mb", "reused")
+
+
+def _table(rows: list) -> pd.DataFrame:
+    """The rows as one table, columns in a fixed order, sorted by vehicle, start time and log."""
+    frame = pd.DataFrame(rows)
+    for name in FIRST + LAST:
+        if name not in frame:
+            frame[name] = np.nan
+    middle = [c for c in frame.columns if c not in FIRST and c not in LAST]
+    frame = frame[list(FIRST) + middle + list(LAST)]
+    text = ["log", "vehicle", "error", "verdict", "undetermined", "recommended_effects", "warnings", "output", "worker"]
+    for name in text:
+        frame[name] = frame[name].where(frame[name].notna(), "").astype(str)
+    frame["reused"] = frame["reused"].fillna(False).astype(bool)
+    frame = frame.sort_values(["vehicle", "start_time", "log"], na_position="last", kind="stable")
+    return frame.reset_index(drop=True)
+
+
+#: The parameters compared between the logs of a vehicle.
+COMPARED = ("R11", "R12", "R13", "R21", "R22", "R23", "R31", "R32", "R33", "b_x", "b_y", "b_z")
+#: The fewest calibrated logs of a vehicle for a comparison (a log against at least two others).
+FEWEST = 3
+
+
+def disagreements(summary: pd.DataFrame, alpha: float = 0.01) -> pd.DataFrame:
+    """``summary`` with ``disagreement_z``, ``disagrees``, ``disagreement`` (in words) for every log, and
+    ``vehicle_scatter`` for every log of a compared vehicle.
+
+    The calibrated logs of a vehicle with at least ``FEWEST`` of them are compared, for each of R's nine
+    elements and b's three, by their standard deviations: a log's ``z`` is the difference between its
+    estimate ``x_i`` (standard deviation ``s_i``) and the inverse-variance weighted mean ``m`` of the other
+    logs, over ``sqrt(s_i^2 + 1 / sum(w))``. Where the log with the largest ``|z|`` exceeds the two-sided
+    normal limit at ``alpha`` shared (Bonferroni) among the vehicle's logs and parameters, it disagrees; it
+    is set aside and the others are compared again among themselves, until none exceeds the limit or fewer
+    than ``FEWEST`` remain. So a flight whose offset jumped is flagged, and the flights before and after it
+    are not measured against a mean it pulled. When every estimate is within its standard deviations of the
+    truth, a vehicle has a log flagged with probability at most about ``alpha``.
+
+    ``vehicle_scatter``: how many times their standard deviations the logs left scatter (the largest over
+    the parameters of ``sqrt(Q / (m - 1))``, Cochran's ``Q`` of the ``m`` logs left): about 1 when the
+    standard deviations account for the differences between flights; well above 1, the vehicle's
+    calibration changes between flights more than one flight's uncertainty says, and more of its logs are
+    flagged. ``disagreement_z`` is the log's largest ``|z|``."""
+    from scipy.stats import norm
+
+    out = summary.copy()
+    out["disagreement_z"] = np.nan
+    out["disagrees"] = False
+    out["disagreement"] = ""
+    out["vehicle_scatter"] = np.nan
+    ok = out["error"] == ""
+    names = [n for n in COMPARED if n in out and f"std_{n}" in out]
+    for vehicle, group in out[ok].groupby("vehicle", sort=True):
+        n = len(group)
+        if n < FEWEST or not names:
+            out.loc[group.index, "disagreement"] = f"not compared: {n} calibrated log(s) of {vehicle}"
+            continue
+        x = group[names].to_numpy(float)
+        s2 = group[[f"std_{name}" for name in names]].to_numpy(float) ** 2
+        limit = float(norm.isf(alpha / (2 * n * len(names))))
+        z, centre = np.full_like(x, np.nan), np.full_like(x, np.nan)
+        left = np.ones(n, bool)
+        while left.sum() >= FEWEST:
+            active = np.flatnonzero(left)
+            for k in active:
+                rest = left.copy()
+                rest[k] = False
+                w = 1.0 / s2[rest]
+                centre[k] = np.sum(w * x[rest], axis=0) / np.sum(w, axis=0)
+                z[k] = (x[k] - centre[k]) / np.sqrt(s2[k] + 1.0 / np.sum(w, axis=0))
+            worst = active[np.argmax(np.max(np.abs(z[active]), axis=1))]
+            if np.max(np.abs(z[worst])) <= limit:
+                break
+            left[worst] = False
+        w = 1.0 / s2[left]
+        q = np.sum(w * (x[left] - np.sum(w * x[left], axis=0) / np.sum(w, axis=0)) ** 2, axis=0)
+        out.loc[group.index, "vehicle_scatter"] = float(np.sqrt(np.max(q) / (left.sum() - 1)))
+        for k, index in enumerate(group.index):
+            out.loc[index, "disagreement_z"] = float(np.max(np.abs(z[k])))
+            if left[k]:
+                continue
+            out.loc[index, "disagrees"] = True
+            beyond = [j for j in np.argsort(-np.abs(z[k])) if abs(z[k, j]) > limit][:3]
+            out.loc[index, "disagreement"] = "; ".join(
+                f"{names[j]} {x[k, j] - centre[k, j]:+.4g}{' nT' if names[j].startswith('b') else ''} from the "
+                f"rest of {vehicle} (z {z[k, j]:+.1f}, limit {limit:.1f})"
+                for j in beyond
+            )
+    return out
+
+
+def plot_vehicles(summary: pd.DataFrame, path, columns=("b_x", "b_y", "b_z", "R11", "R22", "R33")) -> None:
+    """Each vehicle's estimates over its flights (in start-time order) with 95 % bars (1.96 standard
+    deviations); logs that disagree with the rest are drawn in red. One row of panels per vehicle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = summary[summary["error"] == ""]
+    columns = [c for c in columns if c in ok]
+    vehicles = sorted(ok["vehicle"].unique()) or ["(no log calibrated)"]
+    fig, axes = plt.subplots(
+        len(vehicles),
+        max(len(columns), 1),
+        figsize=(2.6 * max(len(columns), 1) + 1, 2.2 * len(vehicles) + 0.6),
+        squeeze=False,
+        constrained_layout=True,
+    )
+    for r, vehicle in enumerate(vehicles):
+        flights = ok[ok["vehicle"] == vehicle].sort_values("start_time")
+        n = np.arange(1, len(flights) + 1)
+        bad = flights["disagrees"].to_numpy(bool)
+        for c, name in enumerate(columns):
+            ax = axes[r, c]
+            y = flights[name].to_numpy(float)
+            e = 1.96 * flights[f"std_{name}"].to_numpy(float)
+            ax.errorbar(n[~bad], y[~bad], e[~bad], fmt="o", ms=3, color="C0", capsize=2)
+            if bad.any():
+                ax.errorbar(n[bad], y[bad], e[bad], fmt="s", ms=4, color="C3", capsize=2, label="disagrees")
+            ax.set_title(f"{vehicle}: {name}" + (", nT" if name.startswith("b") else ""), fontsize=8)
+            ax.tick_params(labelsize=7)
+            if len(n):
+                ax.set_xticks(n)
+            if r == len(vehicles) - 1:
+                ax.set_xlabel("flight (by start time)", fontsize=7)
+    fig.suptitle("estimates per vehicle over its flights (bars: 95 %; red: disagrees with the rest)", fontsize=9)
+    from .io.files import written
+
+    with written(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,522 @@
+"""Filter-tuning studies: settings crossed with simulated log recipes (or given logs) and seeds, run as
+independent tasks (``magkf.cluster``), with per-run errors against truth, a summary per setting and plots.
+
+A study is a TOML file (``load_spec``) or the same as a dict (``StudySpec.from_dict``)::
+
+    [study]
+    name = "tuning"
+    seed = 500            # root of every seed of the study
+    replicates = 4        # simulated logs per recipe; the same logs for every setting
+
+    [base]                # FilterConfig fields shared by every setting
+    sensor_noise_nt = 30.0
+
+    [grid]                # every combination of these values
+    b_walk = [0.0, 0.5, 2.0]
+    filter = ["ekf", "ukf"]
+
+    [[settings]]          # and settings listed one by one
+    b_walk = 0.5
+    innovation_prob = 0.99
+
+    [sample]              # and a seeded random sample
+    count = 20
+    gate_sigma = { uniform = [3.0, 8.0] }
+    b_walk = { log_uniform = [0.01, 2.0] }
+    measure = { choice = ["both", "vector"] }
+
+    [[recipes]]           # simulated logs: magkf.sim.DriveConfig fields, and effects put in the data
+    name = "drift"
+    duration_s = 600
+    rate_hz = 20
+    effects = { bias_drift = [0.5] }
+
+    [logs]                # and/or recorded logs (no truth: errors and NEES are empty)
+    paths = ["flights/*.ulg"]
+
+A setting's keys are ``FilterConfig`` fields (the measurement model is ``measure``) and ``effects``, a list of
+``NAME[:COLUMN]`` effects estimated with R and b. Runs are numbered setting by setting, log by log; the log
+of recipe ``j``, replicate ``r`` is simulated with the seed ``SeedSequence([seed, j, r])`` and the random
+sample is drawn from ``SeedSequence([seed, "sample"])``: every figure follows from the spec and the run's
+number, whatever the cluster, the number of workers or the order in which runs finish.
+
+Per run (``run_one``): ``final_b_error_nt`` (norm of the final offset's error, nT), ``final_R_error``
+(largest error of R's elements), ``nees`` (normalised estimation error squared of the final 12 core
+parameters; 12 when the filter is consistent), ``b_rms_error_nt`` (RMS over the log of the per-epoch offset's
+error), ``nis_mean``, ``used_share``, ``gated_share``, ``run_time_s``. The true offset includes the
+contribution, at each epoch, of every simulated effect the run does not estimate (a drifting offset is
+tracked by b's random walk).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .config import FilterConfig
+from .errors import InputError
+
+__all__ = ["StudySpec", "StudyRun", "StudyResult", "load_spec", "runs", "run_one", "run", "summarise", "plot"]
+
+#: Keys of a setting besides the ``FilterConfig`` fields.
+SETTING_KEYS = ("effects",)
+#: The core parameters whose final errors the NEES weighs.
+CORE = 12
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """A study: ``settings`` (list of dicts of ``FilterConfig`` fields and ``effects``, each complete with
+    ``base``), ``recipes`` (list of dicts: ``name``, ``DriveConfig`` fields, ``effects`` {name: truth}),
+    ``logs`` (paths of recorded logs), ``replicates`` per recipe, the root ``seed``; ``source`` names the
+    file for errors."""
+
+    name: str
+    settings: list
+    recipes: list = field(default_factory=list)
+    logs: list = field(default_factory=list)
+    replicates: int = 1
+    seed: int = 0
+    source: str = "study"
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "study", root: Path | None = None) -> StudySpec:
+        """Check and expand a spec's tables (see the module docstring); ``root``: the folder relative log
+        paths and globs are taken from. Raises InputError naming ``source`` and the key at fault."""
+        known = {"study", "base", "grid", "settings", "sample", "recipes", "logs"}
+        for key in data:
+            if key not in known:
+                raise InputError(f"unknown table [{key}] (known: {', '.join(sorted(known))})", source)
+        head = _table(data, "study", source)
+        seed = _integer(head.get("seed", 0), "study.seed", source, 0)
+        replicates = _integer(head.get("replicates", 1), "study.replicates", source, 1)
+        base = _setting(_table(data, "base", source), "base", source)
+        settings = [base | s for s in _grid(_table(data, "grid", source), source)]
+        listed = data.get("settings", [])
+        if not isinstance(listed, list):
+            raise InputError("[[settings]] must be a list of tables", source)
+        settings += [base | _setting(s, f"settings[{i}]", source) for i, s in enumerate(listed)]
+        settings += [base | s for s in _sample(_table(data, "sample", source), seed, source)]
+        if not settings:
+            settings = [base]
+        settings = _completed(settings)
+        from .effects import make_effect
+
+        for i, s in enumerate(settings):  # every setting must make a FilterConfig and its effects
+            try:
+                _config(s)
+                for name in s.get("effects", []):
+                    make_effect(name)
+            except ValueError as exc:
+                raise InputError(f"setting {i}: {exc}", source) from None
+        recipes = [_recipe(r, i, source) for i, r in enumerate(_list(data, "recipes", source))]
+        logs = _logs(_table(data, "logs", source), root or Path("."), source)
+        if not recipes and not logs:
+            raise InputError("no [[recipes]] and no [logs]: nothing to run the settings on", source)
+        name = str(head.get("name", Path(source).stem))
+        return cls(name, settings, recipes, logs, replicates, seed, source)
+
+    @property
+    def n_runs(self) -> int:
+        return len(self.settings) * (len(self.recipes) * self.replicates + len(self.logs))
+
+    def varied(self) -> list:
+        """The setting keys whose values differ between settings."""
+        keys = dict.fromkeys(k for s in self.settings for k in s)
+        return [k for k in keys if len({repr(s.get(k)) for s in self.settings}) > 1]
+
+
+def load_spec(path) -> StudySpec:
+    """The study of a TOML file (relative log paths are taken from its folder)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("no such file", str(path))
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not a readable TOML file ({' '.join(str(exc).split())})", str(path)) from None
+    return StudySpec.from_dict(data, str(path), p.parent)
+
+
+def _table(data: dict, key: str, source: str) -> dict:
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise InputError(f"[{key}] must be a table", source)
+    return value
+
+
+def _list(data: dict, key: str, source: str) -> list:
+    value = data.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise InputError(f"[[{key}]] must be a list of tables", source)
+    return value
+
+
+def _integer(value, key: str, source: str, least: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise InputError(f"{key} must be a whole number of at least {least}, got {value!r}", source)
+    return value
+
+
+CONFIG_FIELDS = {f.name for f in fields(FilterConfig)}
+
+
+def _setting(values: dict, where: str, source: str) -> dict:
+    """A setting's keys checked (``FilterConfig`` fields and ``effects``)."""
+    for key, value in values.items():
+        if key not in CONFIG_FIELDS and key not in SETTING_KEYS:
+            raise InputError(f"{where}.{key}: not a FilterConfig field nor one of {', '.join(SETTING_KEYS)}", source)
+        if key == "effects" and not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
+            raise InputError(f"{where}.effects must be a list of effect names", source)
+    return dict(values)
+
+
+def _completed(settings: list) -> list:
+    """Every setting with every key any setting names (``FilterConfig``'s default where it names none), so
+    that each key's value is known for every run."""
+    defaults = FilterConfig().as_dict() | {"effects": []}
+    keys = list(dict.fromkeys(k for s in settings for k in s))
+    return [{k: s.get(k, defaults[k]) for k in keys} for s in settings]
+
+
+def _grid(grid: dict, source: str) -> list:
+    if not grid:
+        return []
+    for key, values in grid.items():
+        if not isinstance(values, list) or not values:
+            raise InputError(f"grid.{key} must be a non-empty list of values", source)
+    _setting(dict.fromkeys(grid, []), "grid", source)  # the keys (each value is a list of settings' values)
+    keys = list(grid)
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
+
+
+#: How a sampled setting is drawn: ``uniform = [lo, hi]``, ``log_uniform = [lo, hi]`` (lo > 0), ``choice``.
+DRAWS = ("uniform", "log_uniform", "choice")
+
+
+def _sample(sample: dict, seed: int, source: str) -> list:
+    if not sample:
+        return []
+    count = _integer(sample.get("count", 0), "sample.count", source, 1)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, int.from_bytes(b"sample", "big")]))
+    draws = {}
+    for key, how in sample.items():
+        if key == "count":
+            continue
+        _setting({key: None} if key != "effects" else {}, "sample", source)
+        if not (isinstance(how, dict) and len(how) == 1 and next(iter(how)) in DRAWS):
+            raise InputError(f"sample.{key} must be one of {{ {' | '.join(f'{d} = ...' for d in DRAWS)} }}", source)
+        ((kind, args),) = how.items()
+        if kind == "choice":
+            if not isinstance(args, list) or not args:
+                raise InputError(f"sample.{key}.choice must be a non-empty list", source)
+            draws[key] = [args[i] for i in rng.integers(0, len(args), count)]
+            continue
+        if not (isinstance(args, list) and len(args) == 2 and all(isinstance(a, int | float) for a in args)):
+            raise InputError(f"sample.{key}.{kind} must be [low, high]", source)
+        lo, hi = float(args[0]), float(args[1])
+        if not lo <= hi or (kind == "log_uniform" and lo <= 0):
+            raise InputError(
+                f"sample.{key}.{kind}: need low <= high{' and low > 0' if kind != 'uniform' else ''}", source
+            )
+        u = rng.uniform(0.0, 1.0, count)
+        values = lo + u * (hi - lo) if kind == "uniform" else np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo)))
+        draws[key] = [float(v) for v in values]
+    return [{k: v[i] for k, v in draws.items()} for i in range(count)]
+
+
+def _recipe(recipe: dict, index: int, source: str) -> dict:
+    """A recipe checked: ``DriveConfig`` fields (tuples given as lists), ``name``, ``effects`` {name: truth}."""
+    from .effects import make_effect
+    from .sim import DriveConfig
+
+    allowed = {f.name for f in fields(DriveConfig)} - {"seed"}
+    out = {"name": str(recipe.get("name", f"recipe{index}")), "effects": {}}
+    for key, value in recipe.items():
+        if key == "name":
+            continue
+        if key == "effects":
+            if not isinstance(value, dict):
+                raise InputError(f"recipes[{index}].effects must be a table {{ name = [truth, ...] }}", source)
+            for name, theta in value.items():
+                try:
+                    effect = make_effect(name)
+                except InputError as exc:
+                    raise InputError(f"recipes[{index}].effects.{name}: {exc.message}", source) from None
+                theta = theta if isinstance(theta, list) else [theta]
+                if not effect.accepts_simulation([float(t) for t in theta]):
+                    raise InputError(
+                        f"recipes[{index}].effects.{name}: {effect.name} cannot be simulated with {theta} "
+                        f"(its parameters: {', '.join(effect.parameter_names)}; bias_drift takes its walk)",
+                        source,
+                    )
+                out["effects"][name] = [float(t) for t in theta]
+            continue
+        if key not in allowed:
+            raise InputError(f"recipes[{index}].{key}: not a DriveConfig field (the seed comes from the study)", source)
+        out[key] = tuple(value) if isinstance(value, list) else value
+    try:
+        DriveConfig(**{k: v for k, v in out.items() if k not in ("name", "effects")})
+    except TypeError as exc:
+        raise InputError(f"recipes[{index}]: {exc}", source) from None
+    return out
+
+
+def _logs(logs: dict, root: Path, source: str) -> list:
+    paths = logs.get("paths", [])
+    if not isinstance(paths, list) or not all(isinstance(p, str) for p in paths):
+        raise InputError("logs.paths must be a list of file names or glob patterns", source)
+    if not paths:
+        return []
+    from .fleet import find_logs
+
+    return [str(p) for p in find_logs([p if Path(p).is_absolute() else str(root / p) for p in paths])]
+
+
+def _config(setting: dict) -> FilterConfig:
+    return FilterConfig(**{k: v for k, v in setting.items() if k in CONFIG_FIELDS})
+
+
+@dataclass(frozen=True)
+class StudyRun:
+    """One run: its number ``index``, its ``setting`` (index and values), the log it runs on (a ``recipe``
+    with its ``replicate`` and ``seed``, or a recorded ``log``)."""
+
+    index: int
+    setting_index: int
+    setting: dict
+    recipe: dict | None = None
+    replicate: int = 0
+    seed: int | None = None
+    log: str | None = None
+
+
+def runs(spec: StudySpec) -> list[StudyRun]:
+    """Every run of ``spec``, numbered setting by setting, then recipe by recipe and replicate by replicate,
+    then recorded log by log."""
+    out = []
+    for i, setting in enumerate(spec.settings):
+        for j, recipe in enumerate(spec.recipes):
+            for r in range(spec.replicates):
+                seed = int(np.random.SeedSequence([spec.seed, j, r]).generate_state(1)[0])
+                out.append(StudyRun(len(out), i, setting, recipe, r, seed))
+        for path in spec.logs:
+            out.append(StudyRun(len(out), i, setting, log=path))
+    return out
+
+
+def run_one(task: StudyRun) -> dict:
+    """Run one calibration of a study and measure it (see the module docstring); never raises: a run that
+    fails has its one-line ``error``. Runs on a worker."""
+    from .cluster import task_error, task_resources
+
+    row = {"run": task.index, "setting": task.setting_index, **_shown(task.setting)}
+    row |= {"source": task.recipe["name"] if task.recipe else task.log, "replicate": task.replicate, "seed": task.seed}
+    started = time.perf_counter()
+    try:
+        row |= _measure(task)
+        row["error"] = ""
+    except Exception as exc:  # the run's error, on one line; the study goes on
+        row["error"] = task_error(exc)
+    row["run_time_s"] = time.perf_counter() - started
+    return row | task_resources()
+
+
+def _shown(setting: dict) -> dict:
+    """A setting as table cells (a list of effects as text)."""
+    return {k: " ".join(v) if isinstance(v, list) else v for k, v in setting.items()}
+
+
+def _measure(task: StudyRun) -> dict:
+    from .effects import make_effect
+    from .io.drivelog import DriveLog
+    from .online.run import calibrate_log
+
+    config = _config(task.setting)
+    effects = [make_effect(name) for name in task.setting.get("effects", [])]
+    truth = None
+    if task.recipe is not None:
+        from .sim import DriveConfig, simulate_drive
+
+        drive = {k: v for k, v in task.recipe.items() if k not in ("name", "effects")}
+        hidden = [(make_effect(name), theta) for name, theta in task.recipe["effects"].items()]
+        sim = simulate_drive(DriveConfig(**drive, seed=task.seed), effects=hidden)
+        log = DriveLog(sim.table, source=f"{task.recipe['name']} seed {task.seed}")
+        estimated = {e.label for e in effects}
+        offset = sim.b + sum(
+            (c for (e, _), c in zip(sim.effects, sim.contributions) if e.label not in estimated), np.zeros(3)
+        )
+        truth = (sim.R, np.broadcast_to(offset, (len(log), 3)))
+    else:
+        from .io.readers import read_log
+
+        log = read_log(task.log)
+    result = calibrate_log(log, config, effects=effects)
+    s = result.summary
+    status = result.states["status"]
+    out = {
+        "nis_mean": float(s.nis_mean),
+        "used_share": float(s.used_share),
+        "gated_share": float(status.str.startswith("gated").mean()),
+        "final_b_error_nt": np.nan,
+        "final_R_error": np.nan,
+        "nees": np.nan,
+        "b_rms_error_nt": np.nan,
+    }
+    if truth is not None:
+        R, b_path = truth
+        err = result.x[:CORE] - np.concatenate([R.ravel(), b_path[-1]])
+        b_est = result.states[["b_x", "b_y", "b_z"]].to_numpy(float)
+        out |= {
+            "final_b_error_nt": float(np.linalg.norm(err[9:])),
+            "final_R_error": float(np.abs(err[:9]).max()),
+            "nees": float(err @ np.linalg.solve(result.P[:CORE, :CORE], err)),
+            "b_rms_error_nt": float(np.sqrt(np.mean(np.sum((b_est - b_path) ** 2, axis=1)))),
+        }
+    return out
+
+
+@dataclass(frozen=True)
+class StudyResult:
+    """Outcome of ``run``: the ``spec``, ``runs`` (one row per run) and ``summary`` (one row per setting)."""
+
+    spec: StudySpec
+    runs: pd.DataFrame
+    summary: pd.DataFrame
+
+    def write(self, out_dir) -> dict:
+        """Write ``runs`` and ``summary`` (Parquet and CSV) and ``study.png`` into ``out_dir`` (made when its
+        parent exists); returns the files by name."""
+        from .fleet import check_out_dir
+        from .io.drivelog import write_drive_log
+
+        out = check_out_dir(out_dir)
+        files = {}
+        for name, table in (("runs", self.runs), ("summary", self.summary)):
+            for suffix in ("parquet", "csv"):
+                files[f"{name}_{suffix}"] = str(out / f"{name}.{suffix}")
+                write_drive_log(table, files[f"{name}_{suffix}"])
+        files["plot"] = str(out / "study.png")
+        plot(self, files["plot"])
+        return files
+
+
+def run(spec, client=None, progress=None) -> StudyResult:
+    """Run a study: ``spec`` a ``StudySpec``, a dict of its tables, or a TOML file's path; ``client`` a Dask
+    ``Client`` (None: every run here, one after the other); ``progress(fraction)`` called as runs finish.
+    The same spec gives the same tables (but for ``run_time_s``, ``worker`` and ``peak_rss_mb``) whatever
+    the client."""
+    from .cluster import TaskFailed, map_tasks
+
+    if isinstance(spec, dict):
+        spec = StudySpec.from_dict(spec)
+    elif not isinstance(spec, StudySpec):
+        spec = load_spec(spec)
+    tasks = runs(spec)
+    results = map_tasks(run_one, tasks, client, progress)
+    rows = [
+        {"run": t.index, "setting": t.setting_index, **_shown(t.setting), "error": r.error}
+        if isinstance(r, TaskFailed)
+        else r
+        for t, r in zip(tasks, results)
+    ]
+    table = pd.DataFrame(rows).sort_values("run", kind="stable").reset_index(drop=True)
+    return StudyResult(spec, table, summarise(table, spec))
+
+
+#: The measured columns of a run, summarised per setting as a mean with its 95 % interval.
+MEASURED = ("final_b_error_nt", "final_R_error", "b_rms_error_nt", "nees", "nis_mean", "used_share", "gated_share")
+
+
+def summarise(table: pd.DataFrame, spec: StudySpec) -> pd.DataFrame:
+    """One row per setting: its values, ``n_runs``, ``n_failed``, and for each measured figure its mean over
+    the runs and the half-width ``_ci95`` of the mean's 95 % interval (Student t); ``nees_lo``/``nees_hi``:
+    the 95 % band of the mean NEES of a consistent filter over those runs (chi-square of 12 n degrees of
+    freedom, divided by n), ``nees_consistent`` whether the mean lies in it; the mean ``run_time_s``."""
+    from scipy.stats import chi2, t
+
+    rows = []
+    for i, setting in enumerate(spec.settings):
+        part = table[table["setting"] == i]
+        ok = part[part["error"] == ""]
+        row = {"setting": i, **_shown(setting), "n_runs": len(part), "n_failed": int(len(part) - len(ok))}
+        for name in MEASURED:
+            v = ok[name].to_numpy(float) if name in ok else np.zeros(0)
+            v = v[np.isfinite(v)]
+            row[name] = float(v.mean()) if v.size else np.nan
+            row[f"{name}_ci95"] = (
+                float(t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size)) if v.size > 1 else np.nan
+            )
+        n = int(np.isfinite(ok["nees"].to_numpy(float)).sum()) if "nees" in ok else 0
+        row["nees_lo"] = float(chi2.ppf(0.025, CORE * n) / n) if n else np.nan
+        row["nees_hi"] = float(chi2.ppf(0.975, CORE * n) / n) if n else np.nan
+        row["nees_consistent"] = bool(n and row["nees_lo"] <= row["nees"] <= row["nees_hi"])
+        row["run_time_s"] = float(ok["run_time_s"].mean()) if len(ok) else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def plot(result: StudyResult, path) -> None:
+    """For each setting that varies: the final offset error, the NEES and the mean NIS of the runs against
+    it (means with their 95 % intervals; the NEES with the 95 % band of a consistent filter, the NIS with
+    its expectation 1). Settings are grouped by that key's value, over the other keys."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.stats import chi2, t
+
+    keys = result.spec.varied() or ["setting"]
+    ok = result.runs[result.runs["error"] == ""] if "error" in result.runs else result.runs
+    panels = (("final_b_error_nt", "final offset error, nT"), ("nees", "NEES (12 states)"), ("nis_mean", "mean NIS"))
+    fig, axes = plt.subplots(len(keys), 3, figsize=(13, 3.2 * len(keys) + 0.4), squeeze=False, constrained_layout=True)
+    for r, key in enumerate(keys):
+        column = ok[key] if key in ok else pd.Series(np.nan, index=ok.index)
+        values = column.astype(str) if column.dtype == object else column
+        levels = sorted(values.dropna().unique(), key=_order)
+        numeric = all(isinstance(v, int | float | np.number) for v in levels)
+        x = np.array(levels, float) if numeric else np.arange(len(levels), dtype=float)
+        for c, (name, label) in enumerate(panels):
+            ax = axes[r, c]
+            stats = [ok.loc[values == level, name].to_numpy(float) for level in levels]
+            stats = [v[np.isfinite(v)] for v in stats]
+            mean = np.array([v.mean() if v.size else np.nan for v in stats])
+            half = np.array(
+                [t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan for v in stats]
+            )
+            ax.plot(x, mean, "o-", ms=4, color="C0", label="mean")
+            ax.fill_between(x, mean - half, mean + half, color="C0", alpha=0.25, label="95 % interval of the mean")
+            if name == "nees":
+                n = np.array([v.size for v in stats])
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    lo, hi = chi2.ppf(0.025, CORE * n) / n, chi2.ppf(0.975, CORE * n) / n
+                ax.fill_between(x, lo, hi, color="0.5", alpha=0.3, label="95 % band if consistent")
+                if np.any(mean > 0):  # no truth (recorded logs): no NEES to draw
+                    ax.set_yscale("log")
+            if name == "nis_mean":
+                ax.axhline(1.0, color="k", ls=":", lw=1, label="expected 1")
+            if numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() > 50:
+                ax.set_xscale("log")
+            if not numeric:
+                ax.set_xticks(x, [str(v) for v in levels], rotation=20, fontsize=7)
+            ax.set(xlabel=key, ylabel=label)
+            ax.tick_params(labelsize=7)
+            if r == 0:
+                ax.legend(fontsize=7)
+    fig.suptitle(f"study {result.spec.name}: {len(result.runs)} runs", fontsize=10)
+    from .io.files import written
+
+    with written(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+def _order(value):
+    """Sort key mixing numbers and text (numbers first)."""
+    return (0, float(value), "") if isinstance(value, int | float | np.number) else (1, 0.0, str(value))
