@@ -20,6 +20,8 @@ The statuses are defined in ``magkf.status``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..config import FilterConfig
@@ -191,14 +193,18 @@ class Estimator:
         ``status``, ``updated`` and ``nis`` (k,) in place. ``h`` (k,) the calibrated magnitude at the
         estimate, nT; ``predicted`` its variance from the estimate's covariance, nT^2."""
         kf, k = self.filter, len(status)
-        width = max(self.config.gate_nt, self.config.gate_sigma * np.sqrt(self.noise.along_var))
-        off = np.abs(h - blk.ref_mag) > width
-        if np.count_nonzero(cand & off):  # the gate widens with the estimate's own uncertainty (3 sigma)
-            off = np.abs(h - blk.ref_mag) > width + 3.0 * np.sqrt(predicted)
-        status[cand & off] = GATED_MAGNITUDE
-        parts = [(model, mask & ~off) for model, mask in parts if np.count_nonzero(mask & ~off)]
-        if not parts:
-            return
+        width = max(self.config.gate_nt, self.config.gate_sigma * math.sqrt(self.noise.along_var))
+        distance = np.abs(h - blk.ref_mag)
+        gated_any = np.count_nonzero(cand & (distance > width))
+        if gated_any:  # the gate widens with the estimate's own uncertainty (3 sigma)
+            off = distance > width + 3.0 * np.sqrt(predicted)
+            status[cand & off] = GATED_MAGNITUDE
+            on = ~off
+            parts = [(model, mask & on) for model, mask in parts]
+        if gated_any or len(parts) > 1:  # else the one part's epochs are the candidates, and there are some
+            parts = [(model, mask) for model, mask in parts if np.count_nonzero(mask)]
+            if not parts:
+                return
         if blk.whitened_with is not self.noise:
             self.whiten(blk)
         part_blocks = [blk if mask.all() else blk.take(mask) for _, mask in parts]
@@ -249,27 +255,37 @@ class Estimator:
         winsorises them itself) and give the models what it learned."""
         along, cross, field2, horizontal2, times = [], [], [], [], []
         for model, mask in parts:
-            if not np.count_nonzero(mask):
+            count = np.count_nonzero(mask)
+            if not count:
                 continue
+            pick = slice(None) if count == len(mask) else mask  # a view when every epoch is the part's
+            heading = blk.heading[pick]
             if model.needs_attitude and blk.frame is not None:
-                e = blk.m[mask] - np.einsum("kij,j->ki", blk.H[mask], x)
-                parts_of_e = np.einsum("kji,ki->kj", blk.frame[mask], e)  # along the field, h, v
+                e = blk.m[pick] - np.einsum("kij,j->ki", blk.H[pick], x)
+                parts_of_e = np.einsum("kji,ki->kj", blk.frame[pick], e)  # along the field, h, v
                 along.append(parts_of_e[:, 0])
                 cross.append(parts_of_e[:, 1:])
             else:
-                along.append(blk.ref_mag[mask] - h[mask])
+                along.append(blk.ref_mag[pick] - h[pick])
                 cross.append(None)
-            field2.append(blk.ref_mag[mask] ** 2)
-            horizontal2.append(np.einsum("ki,ki->k", blk.heading[mask], blk.heading[mask]))
-            times.append(np.asarray(t)[mask])
+            field2.append(blk.ref_mag[pick] ** 2)
+            horizontal2.append(np.einsum("ki,ki->k", heading, heading))
+            times.append(np.asarray(t)[pick])
         if not along:
             return
-        with_cross = [c for c in cross if c is not None]
-        a = np.concatenate(along)
-        cr = np.concatenate(with_cross) if len(with_cross) == len(cross) else None
-        self.learner.observe(
-            np.concatenate(times), a, cr, np.concatenate(field2), predicted, np.concatenate(horizontal2)
-        )
+        if len(along) == 1:
+            self.learner.observe(times[0], along[0], cross[0], field2[0], predicted, horizontal2[0])
+        else:
+            with_cross = [c for c in cross if c is not None]
+            cr = np.concatenate(with_cross) if len(with_cross) == len(cross) else None
+            self.learner.observe(
+                np.concatenate(times),
+                np.concatenate(along),
+                cr,
+                np.concatenate(field2),
+                predicted,
+                np.concatenate(horizontal2),
+            )
         self.model.set_noise(self.learner.levels)
 
     def _reacquire(self, t, gated, accept) -> None:

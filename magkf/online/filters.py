@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..conventions import inverse3
+from .measurements import _whitening_stack
 
 __all__ = ["EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
 
@@ -72,10 +73,23 @@ def _weighted_covariance(weights: np.ndarray, dz: np.ndarray) -> np.ndarray:
 
 
 def _nis(y: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with covariances (k, r, r)."""
+    """``y_k^T S_k^-1 y_k`` (k,) of innovations (k, r) with symmetric covariances (k, r, r)."""
     if S.shape[1] == 1:
         return y[:, 0] ** 2 / S[:, 0, 0]
-    return np.einsum("ki,kij,kj->k", y, inverse3(S) if S.shape[1:] == (3, 3) else np.linalg.inv(S), y)
+    if S.shape[1] == 3:  # by cofactors of the upper triangle: a third of a stacked inverse's cost
+        if len(S) == 1:  # one epoch (real time): in plain floats
+            (a, b, c), (_, d, e), (_, _, f) = S[0].tolist()
+            return np.array([_inverse_quadratic3(a, b, c, d, e, f, *y[0].tolist())])
+        return _inverse_quadratic3(S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2], *y.T)
+    return np.einsum("ki,kij,kj->k", y, np.linalg.inv(S), y)
+
+
+def _inverse_quadratic3(a, b, c, d, e, f, y0, y1, y2):
+    """``y^T S^-1 y`` for ``S = [[a, b, c], [b, d, e], [c, e, f]]`` and ``y = (y0, y1, y2)`` (floats or arrays
+    of them), by cofactors."""
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    quadratic = y0 * (y0 * c00 + 2.0 * (y1 * c01 + y2 * c02)) + y1 * (y1 * (a * f - c * c) + 2.0 * y2 * (b * c - a * e))
+    return (quadratic + y2 * y2 * (a * d - b * b)) / (a * c00 + b * c01 + c * c02)
 
 
 class _RandomWalkFilter:
@@ -111,7 +125,9 @@ class _RandomWalkFilter:
         """
         try:
             L = np.linalg.cholesky(self.P)
-            C = np.linalg.cholesky(np.eye(len(J)) + L.T @ J @ L)
+            C = L.T @ J @ L
+            C.ravel()[:: len(J) + 1] += 1.0
+            C = np.linalg.cholesky(C)
         except np.linalg.LinAlgError:
             return False
         M = np.linalg.solve(C, L.T)  # C^-1 L^T, so that P+ = M^T M
@@ -140,9 +156,12 @@ class EKF(_RandomWalkFilter):
     def update(self, lin: Linearisation, accept) -> np.ndarray:
         """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
         of the rows used. ``accept`` holds one boolean mask (k,) per part."""
-        ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
-        Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
-        y, H = np.concatenate(ys), np.vstack(Hs)
+        if len(lin.rows) == 1 and accept[0].all():  # every epoch of one part: no copies
+            y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
+        else:
+            ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
+            Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
+            y, H = np.concatenate(ys), np.vstack(Hs)
         self.correct(y, H)
         return H
 
@@ -241,13 +260,17 @@ class UKF(_RandomWalkFilter):
                 Pzz = _weighted_covariance(self.Wc, dz)
                 noise = Pzz - H @ self.P @ np.swapaxes(H, 1, 2)
                 noise[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
-                C = np.linalg.cholesky(0.5 * (noise + np.swapaxes(noise, 1, 2)))
+                noise = 0.5 * (noise + np.swapaxes(noise, 1, 2))
+                # the inverse Cholesky factor: written out over the stack for three rows, else LAPACK's
+                W = _whitening_stack(noise) if noise.shape[1:] == (3, 3) else np.linalg.inv(np.linalg.cholesky(noise))
             except np.linalg.LinAlgError:
                 return False
-            Hw = np.linalg.solve(C, H)  # (k, r, n)
-            yw = np.linalg.solve(C, rows.y[a][..., None])[..., 0]  # (k, r)
-            J += np.einsum("kri,krj->ij", Hw, Hw)
-            g += np.einsum("kri,kr->i", Hw, yw)
+            if W is None:  # not positive definite
+                return False
+            Hw = (W @ H).reshape(-1, self.x.size)  # (k r, n)
+            yw = (W @ rows.y[a][..., None]).ravel()  # (k r,)
+            J += Hw.T @ Hw
+            g += Hw.T @ yw
         return self._fold_information(J, g)
 
 

@@ -211,10 +211,12 @@ def attitude_structure(field_body: np.ndarray, R: np.ndarray, field_aligned: boo
     """The attitude part (N, 3, 3) of the sensor-frame vector noise per unit attitude variance (rad^2):
     ``R (|B|^2 I - B B^T) R^T`` across the field (``field_aligned``), else ``|B|^2 R R^T``."""
     B = np.asarray(field_body, float)
-    A = _EYE * np.einsum("ni,ni->n", B, B)[:, None, None]
-    if field_aligned:
-        A = A - B[:, :, None] * B[:, None, :]
-    return R @ A @ R.T
+    R = np.asarray(R, float)
+    out = np.einsum("ni,ni->n", B, B)[:, None, None] * (R @ R.T)
+    if field_aligned:  # R B B^T R^T = (R B)(R B)^T
+        RB = B @ R.T
+        out -= RB[:, :, None] * RB[:, None, :]
+    return out
 
 
 def heading_axis(c_nb: np.ndarray, field_ned: np.ndarray) -> np.ndarray:
@@ -258,7 +260,32 @@ def whitening(noise: np.ndarray) -> np.ndarray:
     """``W = L^-1`` (N, 3, 3) with ``noise = L L^T``: ``W y`` has unit, uncorrelated noise."""
     if len(noise) == 1:  # one epoch (real time): the 3x3 algebra written out beats numpy's call overhead
         return _whitening3(noise[0])[None]
+    if noise.shape[1:] == (3, 3):
+        W = _whitening_stack(noise)
+        if W is not None:
+            return W
     return np.linalg.inv(np.linalg.cholesky(noise))
+
+
+def _whitening_stack(N: np.ndarray) -> np.ndarray | None:
+    """``whitening`` of a stack (k, 3, 3), the Cholesky factor and its inverse written out over the stack (a
+    stacked ``inv`` costs several times more); None when a pivot is not positive (the caller's LAPACK path
+    then reports it)."""
+    a, b, c, d, e, f = N[:, 0, 0], N[:, 0, 1], N[:, 0, 2], N[:, 1, 1], N[:, 1, 2], N[:, 2, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l11 = np.sqrt(a)
+        l21, l31 = b / l11, c / l11
+        l22 = np.sqrt(d - l21 * l21)
+        l32 = (e - l31 * l21) / l22
+        l33 = np.sqrt(f - l31 * l31 - l32 * l32)
+    if not (np.minimum(np.minimum(l11, l22), l33) > 0).all():  # also false for NaN
+        return None
+    W = np.zeros_like(N)
+    W[:, 0, 0], W[:, 1, 1], W[:, 2, 2] = i11, i22, i33 = 1.0 / l11, 1.0 / l22, 1.0 / l33
+    W[:, 1, 0] = i21 = -l21 * i11 * i22
+    W[:, 2, 1] = -l32 * i22 * i33
+    W[:, 2, 0] = -(l31 * i11 + l32 * i21) * i33
+    return W
 
 
 def _whitening3(N: np.ndarray) -> np.ndarray:
@@ -371,17 +398,24 @@ def field_frame(field: np.ndarray, heading=None) -> np.ndarray:
     if len(field) == 1:  # one epoch (real time): plain floats beat numpy's per-call cost
         return _field_frame1(field[0], None if heading is None else heading[0])[None]
     field = np.nan_to_num(np.asarray(field, float))
-    safe = np.where(np.linalg.norm(field, axis=1, keepdims=True) > 0, field, np.array([[0.0, 0.0, 1.0]]))
-    u = safe / np.linalg.norm(safe, axis=1)[:, None]
-    basis = cross_basis(u)
+    norm = np.sqrt(np.einsum("ni,ni->n", field, field))
+    present = norm > 0
+    out = np.empty((len(field), 3, 3))
+    u = out[:, 0]
+    np.divide(field, np.where(present, norm, 1.0)[:, None], out=u)
+    u[~present] = (0.0, 0.0, 1.0)
+    second = out[:, 1]
+    ok = np.zeros(len(field), bool)
     if heading is not None:
         h = np.nan_to_num(np.asarray(heading, float))
         h = h - np.einsum("ni,ni->n", h, u)[:, None] * u
-        norm = np.linalg.norm(h, axis=1)
-        ok = norm > 1e-6 * np.linalg.norm(safe, axis=1)
-        h = h[ok] / norm[ok, None]
-        basis[ok] = np.stack([h, _cross(u[ok], h)], axis=1)
-    return np.concatenate([u[:, None, :], basis], axis=1)
+        length = np.sqrt(np.einsum("ni,ni->n", h, h))
+        ok = length > 1e-6 * np.where(present, norm, 1.0)
+        np.divide(h, np.where(ok, length, 1.0)[:, None], out=second)
+    if not ok.all():
+        second[~ok] = cross_basis(u[~ok])[:, 0]
+    out[:, 2] = _cross(u, second)
+    return out
 
 
 def _field_frame1(field, heading) -> np.ndarray:
@@ -432,11 +466,28 @@ def magnitude_jacobian(x_core: np.ndarray, m_minus_e: np.ndarray):
     """
     R, b = StateLayout.R_b(x_core)
     Rinv = inverse3(R)
+    if len(m_minus_e) == 1:  # one epoch (real time, and the gate's variance per block): plain floats
+        one = _magnitude_jacobian1(Rinv.tolist(), (np.asarray(m_minus_e, float)[0] - b).tolist())
+        if one is not None:
+            return one
     c = (m_minus_e - b) @ Rinv.T
     h = np.linalg.norm(c, axis=1)
     w = (c / h[:, None]) @ Rinv
     H = np.concatenate([-(w[:, :, None] * c[:, None, :]).reshape(-1, 9), -w], axis=1)
     return h, H, w
+
+
+def _magnitude_jacobian1(Rinv: list, d: list):
+    """``magnitude_jacobian`` of one epoch from ``R^-1`` (rows, floats) and ``m - e - b`` (3 floats); None for
+    a zero field (left to numpy's handling of 0 / 0)."""
+    c = [row[0] * d[0] + row[1] * d[1] + row[2] * d[2] for row in Rinv]
+    h = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+    if h == 0.0:
+        return None
+    u = [v / h for v in c]
+    w = [u[0] * Rinv[0][j] + u[1] * Rinv[1][j] + u[2] * Rinv[2][j] for j in range(3)]
+    H = [-wi * cj for wi in w for cj in c] + [-wi for wi in w]
+    return np.array([h]), np.array([H]), np.array([w])
 
 
 def rotation_directions(R: np.ndarray, size: int) -> np.ndarray:

@@ -55,6 +55,7 @@ MIN_SAMPLES = 200
 BUFFER = 8192
 #: Lags (epochs) of the autocorrelation: 1, 2, 4, ... 8192 (164 s at 50 Hz: an attitude error wanders slowly).
 LAGS = 2 ** np.arange(14)
+_LAG_LIST = LAGS.tolist()
 #: The autocorrelation is averaged over this many noise windows: a short average underestimates it (an
 #: estimate from N samples is biased low by about the integrated time over N).
 CORRELATION_WINDOWS = 10.0
@@ -63,6 +64,8 @@ CONVERGED = 0.1
 #: The autocorrelation sum stops where it falls below this.
 RHO_STOP = 0.05
 METHODS = ("matching", "variational")
+#: Columns of the learner's ring of innovations.
+_COLUMNS = 8
 #: Innovations whose lagged products are taken at once (bounds the memory of a whole log's start).
 _CHUNK = 16384
 #: The heading error is learned where the horizontal field is at least this share of the field (squared).
@@ -162,9 +165,10 @@ class NoiseLearner:
             method,
         )
         # The latest innovations: time (s), along (nT), along h and v (nT), the field and its horizontal
-        # part squared (nT^2).
-        self._buffer = np.full((BUFFER, 6), np.nan)
+        # part squared (nT^2), whether the state had converged (1 or 0) and whether h and v were given.
+        self._buffer = np.full((BUFFER, _COLUMNS), np.nan)
         self._next = 0
+        self._unflushed = 0  # the latest rows of the ring not yet standardised (``_flush``)
         self._predicted = 0.0
         self._ring = np.zeros((LAGS[-1], 3))  # the latest standardised innovations (along, h, v)
         self._count = 0  # innovations whose lagged products were taken
@@ -192,27 +196,25 @@ class NoiseLearner:
         t_end = float(t[-1])
         dt = 0.0 if self._t is None else max(t_end - self._t, 0.0)
         self._t = t_end
-        rows = np.full((k, 6), np.nan)
-        rows[:, 0], rows[:, 1], rows[:, 4], rows[:, 5] = t, along, field2, horizontal2
-        with_cross = cross is not None and self.attitude
-        if with_cross:
-            rows[:, 2:4] = cross
-        self._store(rows)
         self._predicted = float(predicted)
-        lv = self.levels
-        # Standardised innovations for the correlation; epochs beyond the gate (disturbances) count as gaps.
-        var_along = lv.along_var
-        z = np.zeros((k, 3))
-        z[:, 0] = along / math.sqrt(var_along)
-        if with_cross:
-            var_h, var_v = lv.across_vars(field2, horizontal2)
-            z[:, 1:] = np.asarray(cross, float) / np.sqrt(np.column_stack([var_h, var_v]))
-        z[np.abs(z).max(axis=1) > CLIP_SIGMA] = 0.0
         # While the state is still far less certain than the noise, its own error makes the innovations look
         # correlated: the correlation is measured only once it explains a small part of them.
-        if predicted <= CONVERGED * var_along:
-            self._pending.append((t, z))
+        converged = predicted <= CONVERGED * self.levels.along_var
+        if converged:
             self._measured_s += dt
+        with_cross = cross is not None and self.attitude
+        if k > BUFFER - self._unflushed:  # what the ring still holds unflushed would be overwritten
+            self._flush()
+        rows = np.full((k, _COLUMNS), np.nan)
+        rows[:, 0], rows[:, 1], rows[:, 4], rows[:, 5], rows[:, 6] = t, along, field2, horizontal2, converged
+        rows[:, 7] = with_cross
+        if with_cross:
+            rows[:, 2:4] = cross
+        if k > BUFFER:  # more than the ring holds at once (a whole log's residuals at the start)
+            self._standardise(rows)
+        else:
+            self._unflushed += k
+        self._store(rows)
         # Re-estimated on a fixed grid of times (the same epochs whether they come in blocks or one by one):
         # the levels, and the correlation of the innovations seen since the last tick, all at once.
         if self._t0 is None:
@@ -220,18 +222,50 @@ class NoiseLearner:
         tick = math.floor((float(t[0]) - self._t0) / ESTIMATE_EVERY_S)
         if tick != self._estimated:
             self._estimated = tick
-            if self.adapt:
-                lv = self._estimate()
+            self._flush()
+            lv = self._estimate() if self.adapt else self.levels
             self.levels = lv.with_inflations(*self.inflations())
+
+    def _flush(self) -> None:
+        """Standardise the innovations stored since the last flush (``_standardise``): the levels that
+        standardise them change only at ticks, so this is done once per tick rather than per call."""
+        if self._unflushed:
+            idx = (self._next - self._unflushed + np.arange(self._unflushed)) % BUFFER
+            self._unflushed = 0
+            self._standardise(self._buffer[idx])
+
+    def _standardise(self, rows: np.ndarray) -> None:
+        """Queue for the correlation the standardised innovations of ``rows`` (k, ``_COLUMNS``) observed at
+        the current levels, of the epochs observed once the state had converged; epochs beyond
+        ``CLIP_SIGMA`` (disturbances) count as gaps."""
+        lv = self.levels
+        z = np.zeros((len(rows), 3))
+        z[:, 0] = rows[:, 1] / math.sqrt(lv.along_var)
+        with_cross = rows[:, 7] == 1.0
+        if with_cross.any():
+            var_h, var_v = lv.across_vars(rows[with_cross, 4], rows[with_cross, 5])
+            z[with_cross, 1:] = rows[with_cross, 2:4] / np.sqrt(np.column_stack([var_h, var_v]))
+        z[np.abs(z).max(axis=1) > CLIP_SIGMA] = 0.0
+        converged = rows[:, 6] == 1.0
+        if converged.all():
+            self._pending.append((rows[:, 0], z))
+        elif converged.any():
+            self._pending.append((rows[converged, 0], z[converged]))
 
     def _store(self, rows: np.ndarray) -> None:
         k = min(len(rows), BUFFER)
-        idx = (self._next + np.arange(k)) % BUFFER
-        self._buffer[idx] = rows[-k:]
-        self._next = (self._next + k) % BUFFER
+        start = self._next
+        stop = start + k
+        if stop <= BUFFER:
+            self._buffer[start:stop] = rows[-k:]
+        else:  # wrapping around the ring's end
+            self._buffer[start:] = rows[len(rows) - k : len(rows) - k + BUFFER - start]
+            self._buffer[: stop - BUFFER] = rows[len(rows) - (stop - BUFFER) :]
+        self._next = stop % BUFFER
 
     def _estimate(self) -> NoiseLevels:
         """The levels from the innovations within the window (``estimate_levels``)."""
+        self._flush()
         recent = self._buffer[self._buffer[:, 0] >= self._t - self.window_s]
         if len(recent) < MIN_SAMPLES:  # too few to say more than the start did
             return self.levels
@@ -259,18 +293,19 @@ class NoiseLearner:
         self._sq = decay * self._sq + np.einsum("kc,k->c", z**2, weight)
         for start in range(0, len(z), _CHUNK):  # in pieces: a whole log's products would not fit
             piece = z[start : start + _CHUNK]
+            # The ring starts as zeros, so a partner from before the first innovation adds nothing.
             history = np.concatenate([self._ring, piece])
             k, n = len(piece), len(history)
-            partner = np.arange(n - k, n)[:, None] - LAGS[None, :]  # (k, lags)
-            seen = partner >= n - (self._count + k)  # the lagged partner was an innovation, not padding
-            lagged = history[partner] * seen[:, :, None]  # (k, lags, 3)
-            self._prod += np.einsum("kc,klc->cl", piece * weight[start : start + _CHUNK, None], lagged)
+            weighted = piece * weight[start : start + _CHUNK, None]
+            for j, lag in enumerate(_LAG_LIST):  # each lag's partners are one slice of the history
+                self._prod[:, j] += np.einsum("kc,kc->c", weighted, history[n - k - lag : n - lag])
             self._count += k
             self._ring[...] = history[-len(self._ring) :]  # in place: constant memory
 
     def correlation(self) -> np.ndarray:
         """The autocorrelation (3, len(LAGS)) of the standardised innovations along the field, along ``h`` and
         along ``v`` at ``LAGS`` epochs, of every innovation observed so far."""
+        self._flush()
         self._autocorrelate()
         return np.where(self._sq[:, None] > 0, self._prod / np.maximum(self._sq[:, None], 1e-300), 0.0)
 
@@ -322,9 +357,11 @@ def _median(a: np.ndarray) -> float:
     """The median of a non-empty 1-D array (``np.partition`` directly: ``np.median``'s own handling costs
     more than the partition on the learner's few thousand values)."""
     n = len(a)
-    lo, hi = (n - 1) // 2, n // 2
-    p = np.partition(a, (lo, hi))
-    return 0.5 * (float(p[lo]) + float(p[hi]))
+    hi = n // 2
+    p = np.partition(a, hi)
+    # the lower middle value of an even count is the largest below the upper one: one selection, not two
+    lo = float(p[:hi].max()) if n % 2 == 0 else float(p[hi])
+    return 0.5 * (lo + float(p[hi]))
 
 
 def estimate_levels(

@@ -161,7 +161,9 @@ class OnlineCalibrator:
         )
         H = layout.linear_jacobian(data)
         R = layout.R(x)
-        axis = np.nan_to_num(heading_axis(c_nb[None], ref[None]))
+        axis = heading_axis(c_nb[None], ref[None])
+        if not np.isfinite(axis).all():
+            axis = np.nan_to_num(axis)
         structure = est.structure(field_body[None], R, axis) if base[0] == Status.USED else None
         G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
         blk = Block(m[None], np.array([np.linalg.norm(ref)]), H, field_body[None], R, axis, G, Gh, RRt, frame, data)

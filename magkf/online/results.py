@@ -294,13 +294,13 @@ class FitSums:
     def nis_summary(self, inflation: float) -> dict:
         """Mean NIS per degree of freedom of the updated epochs and its two-sided 95 % chi-square band for the
         effective number of independent epochs (``n / inflation``)."""
-        from scipy.stats import chi2
+        from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
 
         total, dof = self.nis
         if dof == 0:
             return {"mean": float("nan"), "band": [float("nan"), float("nan")]}
         total_dof = max(dof / max(inflation, 1.0), 1.0)
-        band = [float(chi2.ppf(0.025, total_dof) / total_dof), float(chi2.ppf(0.975, total_dof) / total_dof)]
+        band = [float(2.0 * gammaincinv(total_dof / 2.0, q) / total_dof) for q in (0.025, 0.975)]
         return {"mean": total / dof, "band": band}
 
     @property

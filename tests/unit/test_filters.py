@@ -245,3 +245,25 @@ def test_one_epoch_field_frame_is_the_vectorised_one():
         for heading in (h, None):
             twice = None if heading is None else np.vstack([heading, heading])
             assert np.allclose(field_frame(f, heading), field_frame(np.vstack([f, f]), twice)[:1], atol=1e-12)
+
+
+def test_stacked_whitening_and_nis_are_lapacks():
+    """The whitening of a stack of 3x3 covariances written out over the stack equals the inverse of LAPACK's
+    Cholesky factor, and a covariance that is not positive definite is refused as LAPACK refuses it; the NIS
+    by cofactors equals the one through a general inverse."""
+    from magkf.online.filters import _nis
+    from magkf.online.measurements import whitening
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(50, 3, 3)) * rng.uniform(1.0, 1e3, size=(50, 1, 1))
+    cov = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(3)  # condition numbers up to about 1e5
+    W, lapack = whitening(cov), np.linalg.inv(np.linalg.cholesky(cov))
+    assert (np.abs(W - lapack).max(axis=(1, 2)) <= 1e-10 * np.abs(lapack).max(axis=(1, 2))).all()
+    assert np.allclose(W @ cov @ np.swapaxes(W, 1, 2), np.eye(3), atol=1e-9)
+    bad = cov.copy()
+    bad[7] = -bad[7]
+    with pytest.raises(np.linalg.LinAlgError):
+        whitening(bad)
+    y = rng.normal(size=(50, 3)) * 30.0
+    expected = np.einsum("ki,kij,kj->k", y, np.linalg.inv(cov), y)
+    assert np.allclose(_nis(y, cov), expected, rtol=1e-9, atol=0)
