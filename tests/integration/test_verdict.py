@@ -218,3 +218,18 @@ def test_realtime_learns_the_noise_post_processing_learns(post_processed, init, 
         assert result.noise_attitude_deg == online.estimator.noise.attitude_deg
         got[sim.config.seed] = (round(result.noise_sensor_nt, 1), round(post_nt, 1))
     assert all(abs(rt / post - 1) < 0.2 for rt, post in got.values()), got
+
+
+def test_nis_line_agrees_with_the_verdict():
+    """Outside its band but within the verdict's tolerance, the NIS line says the verdict allows it; beyond the
+    tolerance or inside the band, it says nothing more."""
+    from magkf.cli.online import nis_line
+    from magkf.online.results import NIS_TOLERANCE
+
+    band = (0.98, 1.02)
+    assert nis_line(1.0, band) == "mean NIS 1.00 per degree of freedom (inside its 95 % band [0.98, 1.02])"
+    assert nis_line(0.96, band) == (
+        "mean NIS 0.96 per degree of freedom (outside its 95 % band [0.98, 1.02]); "
+        f"within {NIS_TOLERANCE:g} of 1, as the verdict allows a learned noise model"
+    )
+    assert nis_line(1.0 + 2 * NIS_TOLERANCE, band).endswith("(outside its 95 % band [0.98, 1.02])")
