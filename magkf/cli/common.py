@@ -29,6 +29,8 @@ __all__ = [
     "effects",
     "add_mag_unit",
     "add_log_options",
+    "add_reading_options",
+    "add_model_options",
     "mag_instance",
     "open_log",
     "load_calibration",
@@ -374,25 +376,44 @@ LOG_HELP = "drive or flight log: canonical CSV or Parquet, PX4 .ulg, ArduPilot .
 def add_log_options(p, mag_all: bool = False) -> None:
     """The log argument and the options of ``magkf.io.readers.read_log``."""
     p.add_argument("file", help=LOG_HELP)
-    g = p.add_argument_group("reading the log")
+    add_reading_options(p, mag_all=mag_all)
+
+
+def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
+    """The options of ``magkf.io.readers.read_log``, for one log or, with ``many``, for every log a command
+    reads (``--mag`` then an instance number checked on parsing)."""
+    logs = "logs" if many else "log"
+    g = p.add_argument_group(f"reading the {logs}")
     g.add_argument(
         "--format",
         choices=["csv", "parquet", "ulog", "dataflash", "mapped"],
-        help="the log's format (default: from its first bytes and extension)",
+        help=f"the {logs}' format (default: from each log's first bytes and extension)"
+        if many
+        else "the log's format (default: from its first bytes and extension)",
     )
-    g.add_argument("--map", metavar="MAP.toml", help="column map of a table in another layout (docs/column-maps.md)")
-    g.add_argument(
-        "--mag",
-        metavar="N|all" if mag_all else "N",
-        help="magnetometer instance of a ULog or DataFlash log (default: the first)"
-        + ("; 'all' calibrates each and compares them" if mag_all else ""),
-    )
+    tables = "tables" if many else "a table"
+    g.add_argument("--map", metavar="MAP.toml", help=f"column map of {tables} in another layout (docs/column-maps.md)")
+    if many:
+        g.add_argument("--mag", type=count_in(0, 255), help="magnetometer instance of ULog or DataFlash logs")
+    else:
+        g.add_argument(
+            "--mag",
+            metavar="N|all" if mag_all else "N",
+            help="magnetometer instance of a ULog or DataFlash log (default: the first)"
+            + ("; 'all' calibrates each and compares them" if mag_all else ""),
+        )
     g.add_argument(
         "--logged-calibration",
         action="store_true",
         help="keep the autopilot's own calibration in the field (default: undo it and use the raw field)",
     )
     add_mag_unit(g)
+
+
+def add_model_options(p) -> None:
+    """``--filter`` and ``--measure``: the filter and the measurement model of a calibration."""
+    p.add_argument("--filter", metavar="ekf|ukf", help="filter (default ekf)")
+    p.add_argument("--measure", metavar="magnitude|vector|both", help="measurement model (default both)")
 
 
 def mag_instance(args):

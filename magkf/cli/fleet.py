@@ -26,22 +26,8 @@ def add_parsers(sub) -> None:
         help="a log's vehicle: the folder holding it (default), its file name up to the first '_', or one "
         "vehicle for all",
     )
-    p.add_argument("--filter", metavar="ekf|ukf", help="filter (default ekf)")
-    p.add_argument("--measure", metavar="magnitude|vector|both", help="measurement model (default both)")
-    g = p.add_argument_group("reading the logs")
-    g.add_argument(
-        "--format",
-        choices=["csv", "parquet", "ulog", "dataflash", "mapped"],
-        help="the logs' format (default: from each log's first bytes and extension)",
-    )
-    g.add_argument("--map", metavar="MAP.toml", help="column map of tables in another layout (docs/column-maps.md)")
-    g.add_argument("--mag", type=common.count_in(0, 255), help="magnetometer instance of ULog or DataFlash logs")
-    g.add_argument(
-        "--logged-calibration",
-        action="store_true",
-        help="keep the autopilot's own calibration in the field (default: undo it and use the raw field)",
-    )
-    common.add_mag_unit(g)
+    common.add_model_options(p)
+    common.add_reading_options(p, many=True)
     common.add_filter_options(p)
     common.add_effect_options(p, "effects to estimate with R and b (repeat the option)")
     add_cluster_options(p)

@@ -15,8 +15,7 @@ def add_parsers(sub) -> None:
     common.add_log_options(p, mag_all=True)
     p.add_argument("--init", help="offline calibration JSON to start from (sinefit, ellipsoid, or an earlier run)")
     # The names are checked by FilterConfig against the filters and the registered measurement models.
-    p.add_argument("--filter", metavar="ekf|ukf", help="filter (default ekf)")
-    p.add_argument("--measure", metavar="magnitude|vector|both", help="measurement model (default both)")
+    common.add_model_options(p)
     p.add_argument("--batch", action="store_true", help="batch least squares over the whole log instead of the filter")
     p.add_argument("--smooth", action="store_true", help="Rauch-Tung-Striebel smoothing of the per-epoch estimates")
     p.add_argument(
