@@ -21,6 +21,8 @@ __all__ = [
     "table_rows",
     "read_csv",
     "read_parquet",
+    "check_layout",
+    "checked_table",
     "numeric_column",
     "require_complete",
     "require_rows",
@@ -64,7 +66,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         return read_parquet(path, required, text_columns)
     if not path.is_file():
         raise InputError("no such file", name)
-    rows = _check_layout(path, name, required)
+    rows = check_layout(path, name, required)
     try:
         table = pd.read_csv(
             path, keep_default_na=False, na_values=[""], skipinitialspace=True, dtype={c: str for c in text_columns}
@@ -75,7 +77,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
         raise InputError(f"not a readable CSV file ({' '.join(str(exc).split())})", name) from None
     if rows is not None and len(rows) == len(table) and np.any(rows != np.arange(len(rows)) + HEADER_ROWS + 1):
         table.attrs["rows"] = rows  # blank lines (which pandas skips) among the records
-    return _checked(table, name, required, text_columns, "the file has a header but no data rows")
+    return checked_table(table, name, required, text_columns, "the file has a header but no data rows")
 
 
 def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str] = ()) -> pd.DataFrame:
@@ -89,14 +91,14 @@ def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str]
         table = pd.read_parquet(path)
     except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
         raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
-    return _checked(table, name, required, text_columns, "the file has no rows").reset_index(drop=True)
+    return checked_table(table, name, required, text_columns, "the file has no rows").reset_index(drop=True)
 
 
 #: Bytes of a CSV file scanned at a time for its field counts.
 SCAN_BYTES = 1 << 22
 
 
-def _check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
+def check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
     """Raise InputError for a header naming a column twice or lacking a ``required`` one, or a row with fewer
     or more fields than the header (pandas would fill a short row with empty cells, or take a long row's
     first field as an index). Files with quoted fields are left to the parser (None is returned); otherwise
@@ -150,7 +152,7 @@ def _check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
     return records[records > 1]
 
 
-def _checked(table: pd.DataFrame, name: str, required, text_columns, empty: str) -> pd.DataFrame:
+def checked_table(table: pd.DataFrame, name: str, required, text_columns, empty: str) -> pd.DataFrame:
     """``table`` with stripped, unique column names, the ``required`` ones present, at least one row, and every
     column but ``text_columns`` converted to finite floats (NaN where empty); InputError otherwise."""
     table.columns = [str(c).strip() for c in table.columns]

@@ -49,14 +49,13 @@ from ..conventions import MAG, TIME
 from ..errors import InputError
 from ..io.calibration import Calibration
 from ..io.drivelog import MAX_GAP_S, MIN_EPOCHS, DriveLog, TimeBaseWarning, from_table, whole_log_checks, write_frames
-from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, _check_layout, _checked
+from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, check_layout, checked_table
 from ..status import Status
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
 from .prepare import (
     CHUNK,
     PreparedLog,
-    _robust_linear_fit,
     concat_prepared,
     configured_noise,
     deflate_bootstrap,
@@ -66,6 +65,7 @@ from .prepare import (
     mark_missing_columns,
     prepare,
     residual_parts,
+    robust_linear_fit,
     start_levels,
 )
 from .results import CalibrationRun, FitSums, RunTrace, epoch_columns, states_frame, summarise
@@ -154,13 +154,13 @@ class ChunkedLog:
                     table = batch.to_pandas()
                     table.attrs["rows"] = np.arange(offset, offset + len(table)) + HEADER_ROWS + 1
                     offset += len(table)
-                    yield _checked(table, name, required, (), "the file has no rows")
+                    yield checked_table(table, name, required, (), "the file has no rows")
             except InputError:
                 raise
             except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
                 raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
             return
-        records = None if self.checked else _check_layout(self.path, name, required)
+        records = None if self.checked else check_layout(self.path, name, required)
         if records is not None and np.array_equal(records, np.arange(len(records)) + HEADER_ROWS + 1):
             records = None  # no blank lines: a record's row follows from its number
         try:
@@ -172,7 +172,7 @@ class ChunkedLog:
                 rows = np.arange(offset, offset + len(table)) + HEADER_ROWS + 1
                 table.attrs["rows"] = rows if records is None else records[rows - HEADER_ROWS - 1]
                 offset += len(table)
-                yield _checked(table, name, required, (), "the file has a header but no data rows")
+                yield checked_table(table, name, required, (), "the file has a header but no data rows")
         except pd.errors.EmptyDataError:
             raise InputError("the file is empty", name) from None
         except (pd.errors.ParserError, UnicodeDecodeError) as exc:
@@ -572,7 +572,7 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
             m.append(take.m)
             H.append(layout.linear_jacobian(take.data))
             seen += len(usable)
-        x = _robust_linear_fit(np.concatenate(m), np.concatenate(H), x0, start.along_var)
+        x = robust_linear_fit(np.concatenate(m), np.concatenate(H), x0, start.along_var)
         del m, H
         wanted = _scale_positions(scan.n_used)
     else:

@@ -35,6 +35,7 @@ __all__ = [
     "calibration_start",
     "start_noise",
     "deflate_bootstrap",
+    "robust_linear_fit",
 ]
 
 
@@ -288,7 +289,7 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
         fit = usable[fit_positions(len(usable))]
-        x = _robust_linear_fit(prep.m[fit], layout.linear_jacobian(prep.data.take(fit)), x0, start.along_var)
+        x = robust_linear_fit(prep.m[fit], layout.linear_jacobian(prep.data.take(fit)), x0, start.along_var)
         R = StateLayout.R(np.asarray(x0, float))
         parts_of_e = np.empty((len(usable), 3))
         for i in range(0, len(usable), CHUNK):
@@ -348,7 +349,7 @@ CHUNK = 65_536
 FIT_EPOCHS = 50_000
 
 
-def _robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:
+def robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:
     """``x`` (n,) minimising Huber-weighted ``|m - H x|^2`` over epochs ``m`` (N, 3) nT, ``H`` (N, 3, n), with a
     weak pull towards ``x0`` that keeps directions the log does not determine where the start put them."""
     x0 = np.asarray(x0, float)
