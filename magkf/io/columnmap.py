@@ -229,7 +229,7 @@ class ColumnMap:
             bad("decimal", "the decimal mark is also the delimiter")
         try:
             codecs.lookup(self.encoding)
-            b"".decode(self.encoding)  # a text encoding, not rot13, hex or zlib
+            "a".encode(self.encoding)  # a text encoding, not rot13, hex or zlib (empty bytes decode under any codec)
         except (LookupError, TypeError):
             bad("encoding", f"unknown text encoding {self.encoding!r}")
         missing = self.missing

@@ -401,6 +401,9 @@ def test_seconds_of_day_decrease_shorter_than_half_a_day_is_an_error(tmp_path):
         (BASIC_MAP + 'roll = "r"\n', ["[columns] pitch", "roll, pitch, yaw"]),
         (BASIC_MAP + 'mag_x = "x"\n', ["not valid TOML"]),
         (BASIC_MAP + '[file]\ncomment = "//"\n', ["[file] comment", "single character"]),
+        (BASIC_MAP + '[file]\nencoding = "rot13"\n', ["[file] encoding", "unknown text encoding 'rot13'"]),
+        (BASIC_MAP + '[file]\nencoding = "hex"\n', ["[file] encoding", "unknown text encoding 'hex'"]),
+        (BASIC_MAP + '[file]\nencoding = "x"\n', ["[file] encoding", "unknown text encoding 'x'"]),
     ],
 )
 def test_bad_map_errors_name_the_map_file_and_key(tmp_path, toml, words):
