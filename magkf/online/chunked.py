@@ -646,10 +646,9 @@ def _table_pass(log, config, layout, x0, R0, trace: RunTrace, xs_file, stds_file
                 status,
                 updated,
                 nis,
-                xs[own],
+                xs[own].astype(np.float32),
                 stds[own].astype(np.float32),
-                ned_i,
-                mag_i[own].astype(np.float32),
+                np.column_stack([ned_i, mag_i[own]]),
                 noise,
             )
 

@@ -391,6 +391,10 @@ def estimate_levels(
     return NoiseLevels(math.sqrt(sensor2), tilt, prior.reference_nt, along_i, across_i, heading, heading_i)
 
 
+#: Residuals given to the learner at once by ``robust_start``.
+START_PIECE = 16_384
+
+
 def robust_start(
     along, cross, field2, reference_nt: float, floor_nt: float, attitude_rad: float, horizontal2=None
 ) -> NoiseLevels:
@@ -405,6 +409,15 @@ def robust_start(
     prior = NoiseLevels(floor_nt, attitude_rad, reference_nt)
     levels = estimate_levels(along, cross, field2, horizontal2, prior, floor_nt)
     learner = NoiseLearner(levels, floor_nt, attitude=cross is not None, adapt=False)
-    # all at one instant, so that every epoch's lagged products weigh the same (no forgetting)
-    learner.observe(np.zeros(len(along)), along, cross, field2, horizontal2=horizontal2)
+    # All at one instant, so that every epoch's lagged products weigh the same (no forgetting); in pieces, so
+    # that the learner's working copies stay small for a long log (the ring carries the lags across them).
+    for i in range(0, len(along), START_PIECE):
+        piece = slice(i, i + START_PIECE)
+        learner.observe(
+            np.zeros(len(along[piece])),
+            along[piece],
+            None if cross is None else cross[piece],
+            field2[piece],
+            horizontal2=horizontal2[piece],
+        )
     return levels.with_inflations(*learner.measured_inflations())

@@ -344,7 +344,7 @@ def start_levels(along, cross, ref_mag, ref, config: FilterConfig) -> NoiseLevel
 
 
 #: Epochs taken at once where a whole log is gone through (the starting noise's Jacobians, the per-epoch table).
-CHUNK = 65_536
+CHUNK = 8_192
 #: At most about this many epochs (evenly spaced) go into the starting noise's whole-log fit.
 FIT_EPOCHS = 50_000
 

@@ -337,22 +337,25 @@ def epoch_columns(part, block, layout: StateLayout, trace: RunTrace, x0, own: bo
 NOISE_COLUMNS = ("noise_sensor_nt", "noise_attitude_deg", "noise_heading_deg", "noise_inflation")
 
 
-def states_frame(index, names, status, updated, nis, xs, stds, ned_i, mag_i, noise=None) -> pd.DataFrame:
-    """The per-epoch table (see ``CalibrationRun.states``) of the epochs ``index``; ``noise`` (k, 4) the learned
-    noise after each epoch's block (None: no such columns)."""
+def states_frame(index, names, status, updated, nis, xs, stds, residuals, noise=None) -> pd.DataFrame:
+    """The per-epoch table (see ``CalibrationRun.states``) of the epochs ``index``: ``residuals`` (k, 4) before each
+    epoch (north, east, down, magnitude; nT); ``noise`` (k, 4) the learned noise after each epoch's block (None: no
+    such columns). Float32 arrays are taken as they are, without a copy."""
     frames = [
         pd.DataFrame({"status": status_names(status), "updated": updated, "nis": nis.astype(np.float32)}, index=index),
         pd.DataFrame(xs, columns=names, index=index, copy=False),
         pd.DataFrame(stds, columns=[f"std_{name}" for name in names], index=index, copy=False),
         pd.DataFrame(
-            np.column_stack([ned_i, mag_i]),
+            residuals.astype(np.float32, copy=False),
             columns=["residual_n", "residual_e", "residual_d", "residual_mag"],
             index=index,
             copy=False,
         ),
     ]
     if noise is not None:
-        frames.append(pd.DataFrame(noise.astype(np.float32), columns=NOISE_COLUMNS, index=index, copy=False))
+        frames.append(
+            pd.DataFrame(noise.astype(np.float32, copy=False), columns=NOISE_COLUMNS, index=index, copy=False)
+        )
     return pd.concat(frames, axis=1)
 
 
@@ -360,8 +363,10 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     """Assemble a ``CalibrationRun`` from the start ``x0`` (n,), ``P0`` (n, n) and what the run went through.
 
     The per-epoch table is filled ``CHUNK`` epochs at a time, so that nothing of the size of a long log is
-    held twice. The states are float64; their standard deviations, the residuals, the NIS and the learned
-    noise are float32 (7 significant digits: 0.01 nT of a 100 000 nT residual)."""
+    held twice. The states, their standard deviations, the residuals, the NIS and the learned noise are float32:
+    7 significant digits, 0.01 nT of a 100 000 nT residual, and a rounding of a state below a hundredth of its
+    standard deviation unless that is below 6e-6 of the value. The calibration, ``x`` and
+    ``P`` keep float64."""
     status, updated, nis = trace.status, trace.updated, trace.nis
     names = layout.names
     n_ep, n = len(status), len(names)
@@ -373,33 +378,31 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     # the whole log at once.
     own = trace.smoothed or (trace.method or config.filter) == "batch"
     chunk = max(n_ep, 1) if layout.nonlinear else CHUNK
-    x_cols = np.empty((n_ep, n))
+    x_cols = np.empty((n_ep, n), np.float32)
     std_cols = np.empty((n_ep, n), np.float32)
-    ned_i, mag_i = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
-    ned_f, mag_f = np.empty((n_ep, 3), np.float32), np.empty(n_ep, np.float32)
+    # residuals before each epoch and with the final estimate: north, east, down, magnitude
+    before, final = np.empty((n_ep, 4), np.float32), np.empty((n_ep, 4), np.float32)
     sums = FitSums()
     for start in range(0, n_ep, chunk):
         epochs = slice(start, min(start + chunk, n_ep))
-        x_cols[epochs], std_cols[epochs], ned_i[epochs], mag_i[epochs], ned_f[epochs], mag_f[epochs] = epoch_columns(
-            prep.take(epochs), block_of[epochs], layout, trace, x0, own
+        x_cols[epochs], std_cols[epochs], before[epochs, :3], before[epochs, 3], final[epochs, :3], final[epochs, 3] = (
+            epoch_columns(prep.take(epochs), block_of[epochs], layout, trace, x0, own)
         )
         sums.add(
             status[epochs],
             updated[epochs],
             nis[epochs],
             prep.has_attitude[epochs],
-            ned_f[epochs],
-            mag_f[epochs],
-            ned_i[epochs],
+            final[epochs, :3],
+            final[epochs, 3],
+            before[epochs, :3],
         )
     index = log.table.index
-    noise = None if trace.noise is None else trace.noise[block_of]
-    states = states_frame(index, names, status, updated, nis, x_cols, std_cols, ned_i, mag_i, noise)
+    noise = None if trace.noise is None else trace.noise.astype(np.float32)[block_of]
+    states = states_frame(index, names, status, updated, nis, x_cols, std_cols, before, noise)
     counts = np.diff(trace.stops, prepend=0) if trace.stops is not None else np.ones(n_ep, np.int64)
     summary, cal, effects = summarise(log.source, config, layout, P0, trace, sums, counts)
-    fit = pd.DataFrame(
-        np.column_stack([ned_f, mag_f]), columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False
-    )
+    fit = pd.DataFrame(final, columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False)
     return CalibrationRun(
         calibration=cal, x=trace.x, P=trace.P, names=names, states=states, summary=summary, effects=effects, fit=fit
     )
