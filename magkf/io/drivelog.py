@@ -507,7 +507,7 @@ def write_frames(frames, path, types: dict | None = None, quoted: bool = False, 
 
 
 #: Rows converted and written at a time by ``write_drive_log``.
-WRITE_ROWS = 65_536
+WRITE_ROWS = 16_384
 
 
 def _arrow_piece(frame: pd.DataFrame, time_as_text: bool, types: dict):
