@@ -138,7 +138,9 @@ def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
 
     ``C_nb = Rz(yaw) Ry(pitch) Rx(roll)``, written out element by element.
     """
-    if np.ndim(yaw_deg) == 0 and np.ndim(pitch_deg) == 0 and np.ndim(roll_deg) == 0:
+    if all(isinstance(a, float) for a in (yaw_deg, pitch_deg, roll_deg)) or (
+        np.ndim(yaw_deg) == 0 and np.ndim(pitch_deg) == 0 and np.ndim(roll_deg) == 0
+    ):
         yaw, pitch, roll = math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg)
         cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
         cr, sr = math.cos(roll), math.sin(roll)
@@ -263,12 +265,23 @@ def magnetic_heading_deg(field_body, roll_deg, pitch_deg) -> np.ndarray:
     are in degrees. The field is levelled with ``Ry(pitch) Rx(roll)`` and the heading is the angle,
     clockwise from magnetic north, of the body's forward axis.
     """
+    if isinstance(roll_deg, float) and isinstance(pitch_deg, float) and np.shape(field_body) == (3,):
+        return _heading1(*np.asarray(field_body, float).tolist(), roll_deg, pitch_deg)
     f = np.asarray(field_body, float)
     p, r = np.radians(np.asarray(pitch_deg, float)), np.radians(np.asarray(roll_deg, float))
     cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
     north = f[..., 0] * cp + (f[..., 1] * sr + f[..., 2] * cr) * sp  # first row of Ry(pitch) Rx(roll) f
     east = f[..., 1] * cr - f[..., 2] * sr  # second row
     return np.degrees(np.arctan2(-east, north)) % 360.0
+
+
+def _heading1(x: float, y: float, z: float, roll_deg: float, pitch_deg: float) -> float:
+    """``magnetic_heading_deg`` of one body field (x, y, z) in plain floats (real time: numpy's per-call cost
+    would dominate)."""
+    p, r = math.radians(pitch_deg), math.radians(roll_deg)
+    cr, sr = math.cos(r), math.sin(r)
+    north = x * math.cos(p) + (y * sr + z * cr) * math.sin(p)
+    return math.degrees(math.atan2(-(y * cr - z * sr), north)) % 360.0
 
 
 def wrap_deg(angle_deg) -> np.ndarray:

@@ -74,28 +74,40 @@ def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
     rule that applies wins): ``missing_attitude``, ``gated_dop``, ``missing_position``, ``missing_mag``;
     otherwise ``used``. Codes from ``magkf.status.Status``.
     """
-    rules = (
-        (Status.MISSING_ATTITUDE, lambda: ~np.asarray(has_attitude, bool)),
-        (Status.GATED_DOP, lambda: np.asarray(dop, float) > dop_max),
-        (Status.MISSING_POSITION, lambda: ~np.all(np.isfinite(ref), axis=1)),
-        (Status.MISSING_MAG, lambda: ~np.all(np.isfinite(m), axis=1)),
-    )
     if len(m) == 1:  # one sample (real time): the same rules on scalars, without numpy's per-call cost
-        flags = (
-            not has_attitude[0],
-            float(dop[0]) > dop_max,
-            not all(map(math.isfinite, ref[0])),
-            not all(map(math.isfinite, m[0])),
-        )
-        code = Status.USED
-        for (status, _), flag in zip(rules, flags):
+        code = _USED
+        for status, flag in zip(
+            _PRECEDENCE,
+            (
+                not has_attitude[0],
+                float(dop[0]) > dop_max,
+                not all(map(math.isfinite, ref[0])),
+                not all(map(math.isfinite, m[0])),
+            ),
+        ):
             if flag:
                 code = status
         return np.array([code], dtype=np.int8)
-    base = np.full(len(m), Status.USED, dtype=np.int8)
-    for status, applies in rules:
+    base = np.full(len(m), _USED, dtype=np.int8)
+    for status, applies in zip(
+        _PRECEDENCE,
+        (
+            lambda: ~np.asarray(has_attitude, bool),
+            lambda: np.asarray(dop, float) > dop_max,
+            lambda: ~np.all(np.isfinite(ref), axis=1),
+            lambda: ~np.all(np.isfinite(m), axis=1),
+        ),
+    ):
         base[applies()] = status
     return base
+
+
+# The statuses ``epoch_status`` gives, in its order of precedence, as plain integers (enum members are slow to
+# look up in the real-time step).
+_USED = int(Status.USED)
+_PRECEDENCE = tuple(
+    int(s) for s in (Status.MISSING_ATTITUDE, Status.GATED_DOP, Status.MISSING_POSITION, Status.MISSING_MAG)
+)
 
 
 def select_dop(columns) -> np.ndarray | None:
@@ -123,16 +135,15 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
             f"a sample maps column names to values (a dict or a pandas row), not a {type(sample).__name__}"
         )
 
-    def number(name) -> float:
+    out = {}
+    for name in (*names, TIME) if time is None else names:
         try:
-            return float(sample[name])
+            out[name] = float(sample[name])
         except (KeyError, IndexError, TypeError, ValueError, OverflowError):  # OverflowError: 10**400
-            return float("nan")
-
-    out = {name: number(name) for name in names}
+            out[name] = math.nan
     if time is None:
-        time = number(TIME)
-        if not np.isfinite(time):
+        time = out[TIME]
+        if not math.isfinite(time):
             time = getattr(sample, "name", None)
     try:
         out[TIME] = float(time)

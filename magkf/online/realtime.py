@@ -16,40 +16,29 @@ UTC date has changed. Each step is the same gated update as post-processing, wit
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import (
-    ALT,
-    ATTITUDE,
-    DOP,
-    HDOP,
-    LAT,
-    LON,
-    MAG,
-    PDOP,
-    REF,
-    declination_deg,
-    euler_to_dcm,
-    magnetic_heading_deg,
-    ned_to_body,
-)
+from ..conventions import ALT, ATTITUDE, DOP, HDOP, LAT, LON, MAG, PDOP, REF, euler_to_dcm, magnetic_heading_deg
 from ..effects import restore_effects, stored_effect
 from ..effects.base import EpochData
 from ..errors import InputError
 from ..io.calibration import Calibration
-from ..io.drivelog import epoch_status, read_sample, select_dop
+from ..io.drivelog import epoch_status, read_sample
 from ..reference import ReferenceFieldCache
 from ..status import STATUS_NAMES, Status
 from .estimator import Estimator
-from .measurements import Block, heading_axis
+from .measurements import Block
 from .prepare import calibration_start
 
 __all__ = ["OnlineCalibrator", "EpochResult"]
 
 _NAN33 = np.full((3, 3), np.nan)
+# statuses as plain integers: enum members are slow to look up in the per-sample step
+_USED, _MISSING_ATTITUDE, _MISSING_COLUMN = int(Status.USED), int(Status.MISSING_ATTITUDE), int(Status.MISSING_COLUMN)
 _SAMPLE_COLUMNS = (*MAG, *ATTITUDE, *REF, LAT, LON, ALT, DOP, PDOP, HDOP)
 
 
@@ -95,7 +84,8 @@ class OnlineCalibrator:
         self.layout, x0, P0 = calibration_start(init, config, effects)
         self.estimator = Estimator(self.layout, config, x0, P0)
         self.reference = ReferenceFieldCache(config.reference_refresh_m)
-        self._columns = _SAMPLE_COLUMNS + tuple(c for e in self.layout.extra() for c in e.columns)
+        self._effect_columns = tuple(c for e in self.layout.extra() for c in e.columns)
+        self._columns = _SAMPLE_COLUMNS + self._effect_columns
         self._last_time = None
         self._last_field_body = None
 
@@ -127,64 +117,62 @@ class OnlineCalibrator:
         overrides the sample's own. Returns an ``EpochResult``."""
         v = read_sample(sample, self._columns, time)
         t = v["time"]
-        if not np.isfinite(t):
+        if not math.isfinite(t):
             raise InputError("the sample has no time (give a 'time' entry, a row named by its time, or time=...)")
         if self._last_time is not None and not t > self._last_time:
             raise InputError(f"time {t!r} s is not after the previous sample's {self._last_time!r} s", column="time")
         m = np.array([v[c] for c in MAG])
         roll, pitch, yaw = (v[c] for c in ATTITUDE)
         ref = self._reference(t, v)
-        has_att = bool(np.isfinite(roll) and np.isfinite(pitch) and np.isfinite(yaw))
+        has_att = math.isfinite(roll) and math.isfinite(pitch) and math.isfinite(yaw)
         c_nb = euler_to_dcm(yaw, pitch, roll) if has_att else _NAN33
-        field_body = ned_to_body(c_nb, ref)
-        dop = select_dop({c: v[c] for c in (DOP, PDOP, HDOP)})
+        # the reference field and the heading axis B x down (``measurements.heading_axis``) in the body frame
+        field_body, axis = np.array([ref, (ref[1], -ref[0], 0.0)]) @ c_nb
+        dop = next((v[c] for c in (DOP, PDOP, HDOP) if math.isfinite(v[c])), math.nan)  # as ``select_dop``
         base = epoch_status(m[None], ref[None], [has_att], [dop], self.config.dop_max)
-        updating = base[0] in (Status.USED, Status.MISSING_ATTITUDE)  # the latter by its magnitude
-        if updating and not all(np.isfinite(v[c]) for e in self.layout.extra() for c in e.columns):
-            base[0] = Status.MISSING_COLUMN  # an added effect lacks its channel: no update, as post-processing
+        updating = base[0] == _USED or base[0] == _MISSING_ATTITUDE  # the latter by its magnitude
+        if updating and not all(math.isfinite(v[c]) for c in self._effect_columns):
+            base[0] = _MISSING_COLUMN  # an added effect lacks its channel: no update, as post-processing
         dt = 0.0 if self._last_time is None else t - self._last_time
         rate = (field_body - self._last_field_body) / dt if dt > 0 else np.zeros(3)
         if not np.isfinite(rate).all():
             rate = np.zeros(3)
         self._last_time, self._last_field_body = t, field_body
         est, layout = self.estimator, self.layout
-        x = est.x
+        R = layout.R(est.x)
         data = EpochData(
             np.array([t]),
             field_body[None],
             ref[None],
-            {c: np.array([v[c]]) for e in layout.extra() for c in e.columns},
+            {c: np.array([v[c]]) for c in self._effect_columns},
             mag=m[None],
             c_nb=c_nb[None],
             field_body_rate=rate[None],
-            R0=layout.R(x),
+            R0=R,
         )
         H = layout.linear_jacobian(data)
-        R = layout.R(x)
-        axis = heading_axis(c_nb[None], ref[None])
-        if not np.isfinite(axis).all():
-            axis = np.nan_to_num(axis)
-        structure = est.structure(field_body[None], R, axis) if base[0] == Status.USED else None
+        axis = axis[None] if all(map(math.isfinite, axis.tolist())) else np.nan_to_num(axis[None])
+        structure = est.structure(field_body[None], R, axis) if base[0] == _USED else None
         G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
-        blk = Block(m[None], np.array([np.linalg.norm(ref)]), H, field_body[None], R, axis, G, Gh, RRt, frame, data)
+        blk = Block(m[None], np.array([math.hypot(*ref)]), H, field_body[None], R, axis, G, Gh, RRt, frame, data)
         status, updated, nis = est.process_block(np.array([t]), dt, blk, base)
         x = est.x
         R, b = layout.R_b(x)
         e = layout.extra_terms(x, H, data) if layout.has_extra else 0.0
         field = layout.calibrated(x, m[None], e)[0]
-        heading = float(magnetic_heading_deg(field, roll, pitch)) if has_att else float("nan")
+        heading = magnetic_heading_deg(field, roll, pitch) if has_att else math.nan
         return EpochResult(
             time=t,
             field_body=field,
-            magnitude_nt=float(np.linalg.norm(field)),
+            magnitude_nt=math.hypot(*field.tolist()),
             heading_mag_deg=heading,
-            heading_true_deg=float((heading + declination_deg(ref)) % 360.0),
+            heading_true_deg=(heading + math.degrees(math.atan2(ref[1], ref[0]))) % 360.0,
             status=STATUS_NAMES[int(status[0])],
             updated=bool(updated[0]),
             nis=float(nis[0]),
             R=R.copy(),
             b=b.copy(),
-            std=np.sqrt(np.diag(est.P)),
+            std=np.sqrt(est.P.diagonal()),
             x=x.copy(),
             noise_sensor_nt=float(est.noise.sensor_nt),
             noise_attitude_deg=float(est.noise.attitude_deg),
@@ -192,10 +180,10 @@ class OnlineCalibrator:
         )
 
     def _reference(self, t, v) -> np.ndarray:
-        ref = np.array([v[c] for c in REF])
-        if np.all(np.isfinite(ref)):
-            return ref
+        ref = [v[c] for c in REF]
+        if all(map(math.isfinite, ref)):
+            return np.array(ref)
         lat, lon, alt = v[LAT], v[LON], v[ALT]
-        if not (np.isfinite(lat) and np.isfinite(lon)):
+        if not (math.isfinite(lat) and math.isfinite(lon)):
             return np.full(3, np.nan)
-        return self.reference.ned(t, lat, lon, alt if np.isfinite(alt) else 0.0)
+        return self.reference.ned(t, lat, lon, alt if math.isfinite(alt) else 0.0)
