@@ -56,8 +56,12 @@ def correlated_whitening(cov, frame, inflations) -> tuple[np.ndarray, np.ndarray
     With ``M = frame cov frame^T`` the noise in the field's frame and ``D`` the inflations' square roots:
     ``W = chol(D M D)^-1 frame`` (``measurements.whitening``).
     """
-    M = frame @ cov @ np.swapaxes(frame, 1, 2)
     d = np.sqrt(np.asarray(inflations, float))
+    if len(cov) == 1:  # one epoch (real time): plain 3x3 products cost less than stacked ones
+        c, f = cov[0], frame[0]
+        W = whitening(((f @ c @ f.T) * d[:, None] * d[None, :])[None])[0] @ f
+        return W[None], (W @ c @ W.T)[None]
+    M = frame @ cov @ np.swapaxes(frame, 1, 2)
     W = whitening(M * d[:, None] * d[None, :]) @ frame
     return W, W @ cov @ np.swapaxes(W, 1, 2)
 
@@ -161,7 +165,8 @@ class Estimator:
         status = np.array(base, dtype=np.int8)
         k = len(status)
         updated = np.zeros(k, bool)
-        nis = np.full(k, np.nan)
+        nis = np.empty(k)
+        nis.fill(np.nan)  # cheaper than np.full for the one epoch of real time
         parts = self._parts(status)
         cand = parts[0][1] if len(parts) == 1 else np.logical_or.reduce([mask for _, mask in parts])
         if not np.count_nonzero(cand):
@@ -169,13 +174,13 @@ class Estimator:
         x = kf.x
         if layout.has_extra:
             blk.e = layout.extra_terms(x, blk.H, blk.data)
-        c = layout.calibrated(x, blk.m, blk.e)
-        h = np.linalg.norm(c, axis=1)
         # The variance of the calibrated magnitude that the estimate's covariance implies, at the block's
-        # first candidate (it changes little within a block), every block of the state included.
+        # first candidate (it changes little within a block), every block of the state included; and the
+        # calibrated magnitude ``h`` (k,) of every epoch (for one epoch, the magnitude model's own).
         i0 = int(np.argmax(cand))
         e0 = blk.e[i0 : i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
-        _, H0, w0 = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
+        h0, H0, w0 = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
+        h = h0 if k == 1 else np.linalg.norm(layout.calibrated(x, blk.m, blk.e), axis=1)
         if layout.has_extra:
             H0 = np.concatenate([H0[0], -w0[0] @ blk.H[i0][:, layout.EXTRA]])[None]
             predicted = float(H0[0] @ kf.P @ H0[0])
@@ -224,7 +229,8 @@ class Estimator:
             q = self._bound(self.config.huber_prob, model.rows)
             huber = np.minimum(1.0, np.sqrt(q / np.maximum(rows.nis, 1e-300)))
             if part.N is not None and model.rows == part.N.shape[1]:  # the correlation is in the whitening
-                _scale_rows(rows, np.sqrt(huber))
+                if rows.nis.max() > q:  # else every weight is 1
+                    _scale_rows(rows, np.sqrt(huber))
             else:
                 _scale_rows(rows, np.sqrt(huber / noise.inflation_along))
         accept = (parts[0][1] if len(parts) == 1 else np.logical_or.reduce([mask for _, mask in parts])) & ~gated

@@ -314,6 +314,8 @@ class Vector(MeasurementModel):
 
     def structure(self, field_body, R, heading=None):
         B = np.asarray(field_body, float)
+        if len(B) == 1:  # one epoch (real time): the same products on vectors, and the frame in plain floats
+            return _structure1(B[0], np.asarray(R, float), None if heading is None else heading[0], self.field_aligned)
         Gh = None if heading is None else heading_structure(heading, R)
         return attitude_structure(B, R, self.field_aligned), Gh, R @ R.T, sensor_frame(B, heading, R)
 
@@ -355,6 +357,18 @@ class Vector(MeasurementModel):
     def batch_residuals(self, ref, c_nb, ref_mag):
         sigma = self._sigma_cross(ref_mag)[:, None]
         return lambda c: (body_to_ned(c_nb, c) - ref) / sigma
+
+
+def _structure1(B, R, heading, field_aligned: bool) -> tuple:
+    """``Vector.structure`` of one epoch: body field ``B`` (3,) and heading axis ``heading`` (3, or None) nT at
+    calibration ``R`` (3, 3)."""
+    RB, RRt = R @ B, R @ R.T
+    G = (B @ B) * RRt
+    if field_aligned:
+        G = G - RB[:, None] * RB[None, :]
+    Rh = None if heading is None else R @ np.asarray(heading, float)
+    Gh = None if Rh is None else (Rh[:, None] * Rh[None, :])[None]
+    return G[None], Gh, RRt, _field_frame1(RB, Rh)[None]
 
 
 class Both(Vector):

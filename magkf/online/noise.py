@@ -205,7 +205,8 @@ class NoiseLearner:
         with_cross = cross is not None and self.attitude
         if k > BUFFER - self._unflushed:  # what the ring still holds unflushed would be overwritten
             self._flush()
-        rows = np.full((k, _COLUMNS), np.nan)
+        rows = np.empty((k, _COLUMNS))
+        rows.fill(np.nan)
         rows[:, 0], rows[:, 1], rows[:, 4], rows[:, 5], rows[:, 6] = t, along, field2, horizontal2, converged
         rows[:, 7] = with_cross
         if with_cross:
