@@ -32,12 +32,14 @@ __all__ = ["EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
 class Rows:
     """One model's whitened rows for k epochs: innovation ``y`` (k, r), Jacobian ``H`` (k, r, n) at the
     estimate (the information they carry), normalised innovation squared ``nis`` (k,) and, for the UKF,
-    the whitened predictions at the sigma points ``h`` (S, k, r)."""
+    the whitened predictions at the sigma points ``h`` (S, k, r); ``linear`` the rows are linear in the state
+    (``MeasurementModel.linear``: ``H`` is then their Jacobian everywhere)."""
 
     y: np.ndarray
     H: np.ndarray
     nis: np.ndarray
     h: np.ndarray | None = None
+    linear: bool = False
 
 
 @dataclass
@@ -214,7 +216,7 @@ class UKF(_RandomWalkFilter):
             S = _weighted_covariance(self.Wc, dz)
             _add_noise(S, blk)
             y = z - zp
-            rows.append(Rows(y, H, _nis(y, S), h))
+            rows.append(Rows(y, H, _nis(y, S), h, getattr(model, "linear", False)))
         return Linearisation(rows, sigmas)
 
     def update(self, lin: Linearisation, accept) -> np.ndarray:
@@ -245,11 +247,18 @@ class UKF(_RandomWalkFilter):
         by epoch by ``I + Omega``, are folded in by their information (``_fold_information``). With the
         whole ``Omega`` this is the unscented update exactly (``H P H^T + Omega + I`` is its innovation
         covariance and ``P H^T`` its cross covariance); only the linearisation error's correlation between
-        different epochs is left out, which is nil for the linear vector rows. False when it cannot be done
-        (nothing changed)."""
+        different epochs is left out, which is nil for the linear vector rows. Rows linear in the state
+        (``Rows.linear``) are folded in with their own Jacobian: for them the regression gives that Jacobian
+        and ``Omega = 0`` exactly (the sigma points' spread cancels), so only rounding would differ. False when
+        it cannot be done (nothing changed)."""
         X = (lin.sigmas - self.x) * self.Wc[:, None]  # (S, n)
         J, g = np.zeros((self.x.size, self.x.size)), np.zeros(self.x.size)
         for rows, a in zip(lin.rows, accept):
+            if rows.linear:
+                Hw, yw = rows.H[a].reshape(-1, self.x.size), rows.y[a].ravel()
+                J += Hw.T @ Hw
+                g += Hw.T @ yw
+                continue
             h = rows.h[:, a]  # (S, k, r)
             if not h.shape[1]:
                 continue

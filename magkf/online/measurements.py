@@ -142,6 +142,9 @@ class MeasurementModel:
     name: str = "measurement"
     rows: int = 1
     needs_attitude: bool = False
+    #: The rows are linear in the state (the UKF then folds them in with their Jacobian, which its sigma points'
+    #: regression would give exactly); a model says so only where it holds for every state.
+    linear: bool = False
 
     def __init__(self, config: FilterConfig, layout: StateLayout, x0):
         self.config, self.layout = config, layout
@@ -311,6 +314,11 @@ class Vector(MeasurementModel):
     rows = 3
     needs_attitude = True
     field_aligned = False
+
+    @property
+    def linear(self) -> bool:
+        """Linear in the state unless the layout holds a nonlinear effect (a time lag)."""
+        return not self.layout.nonlinear
 
     def structure(self, field_body, R, heading=None):
         B = np.asarray(field_body, float)

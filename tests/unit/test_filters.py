@@ -199,17 +199,23 @@ class _Curved:
         return self.h(sigmas)[:, None, :], self.z[None], H[None]
 
 
+@pytest.mark.parametrize("declared", [False, True])
 @pytest.mark.parametrize("seed", range(3))
-def test_ukf_folds_many_linear_rows_as_the_textbook_update(seed):
+def test_ukf_folds_many_linear_rows_as_the_textbook_update(seed, declared):
     """75 linear whitened rows on 12 states: the unscented update folded in by information (statistical linear
-    regression, no linearisation error) is the textbook update."""
+    regression, no linearisation error) is the textbook update; and so is the fold of rows whose model
+    declares them linear (``MeasurementModel.linear``), which skips the regression."""
     rng = np.random.default_rng(seed)
     n, r = 12, 75
     A = rng.normal(size=(n, n))
     P, x = A @ A.T + n * np.eye(n), rng.normal(size=n)
     Hw, zw = rng.normal(size=(r, n)), rng.normal(size=r)
     kf = FILTERS["ukf"](x, P, np.zeros(n))
-    kf.update(kf.linearise([(_Linear(Hw, zw), None)]), [np.ones(r, bool)])
+    model = _Linear(Hw, zw)
+    model.linear = declared
+    lin = kf.linearise([(model, None)])
+    assert lin.rows[0].linear is declared
+    kf.update(lin, [np.ones(r, bool)])
     x_tb, P_tb = _textbook(x, P, Hw, np.eye(r), zw)
     assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
     assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
