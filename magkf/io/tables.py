@@ -121,11 +121,14 @@ def check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
         while chunk := f.read(SCAN_BYTES):
             while chunk.endswith(b"\r") and (more := f.read(1)):  # a CR LF pair stays in one chunk
                 chunk += more
-            data = np.frombuffer(chunk, dtype=np.uint8)
-            if (data == ord('"')).any():
+            if b'"' in chunk:
                 return None
-            newline = data == ord("\n")
-            ends = np.flatnonzero(newline | (data == ord("\r")) & ~np.r_[newline[1:], False])  # LF, CR LF or CR
+            data = np.frombuffer(chunk, dtype=np.uint8)
+            if b"\r" in chunk:  # LF, CR LF or CR
+                newline = data == ord("\n")
+                ends = np.flatnonzero(newline | (data == ord("\r")) & ~np.r_[newline[1:], False])
+            else:  # LF alone: a third of the cost
+                ends = np.flatnonzero(data == ord("\n"))
             commas_before_end = np.searchsorted(np.flatnonzero(data == ord(",")), ends)  # commas before each end
             starts = np.r_[0, ends[:-1] + 1] if ends.size else np.zeros(0, int)
             counts = np.diff(commas_before_end, prepend=0)
