@@ -26,13 +26,14 @@ chunk's residuals ``r`` and Jacobian ``J`` are folded into the ``n x n`` normal 
   for ``R`` and ``b``, the effects' own ``jacobian`` for theirs), times the residual functions' derivative
   in ``c`` (a measurement model gives its residuals as a function of each epoch's calibrated field, so
   that derivative is three central differences of that function, per epoch).
-* The robust pass is iteratively reweighted Gauss-Newton. The ``soft_l1`` cost of a residual ``r`` with
-  scale ``s`` is ``s^2 (sqrt(1 + (r/s)^2) - 1)``; its derivative is ``r / sqrt(1 + (r/s)^2)``, which is the
-  derivative of ``w r^2 / 2`` with the weight ``w = (1 + (r/s)^2)^(-1/2)`` held fixed. So the weighted
-  normal equations ``(J^T W J) dx = -J^T W r`` at the current weights give a descent direction of the robust
-  cost (their right side is its gradient). The plain fit is Gauss-Newton with ``W`` the 0/1 mask of the
-  kept epochs. A step is taken whole when it lowers the cost (to within ``COST_RTOL`` of rounding),
-  else halved until it does (down to ``2^-MAX_HALVINGS``): the cost never rises.
+* The robust pass is iteratively reweighted Gauss-Newton with a backtracking line search. The
+  ``soft_l1`` cost of a residual ``r`` with scale ``s`` is ``s^2 (sqrt(1 + (r/s)^2) - 1)``; its derivative
+  is ``r / sqrt(1 + (r/s)^2)``, which is the derivative of ``w r^2 / 2`` with the weight
+  ``w = (1 + (r/s)^2)^(-1/2)`` held fixed. So the weighted normal equations ``(J^T W J) dx = -J^T W r`` at
+  the current weights give a descent direction of the robust cost (their right side is its gradient).
+  The plain fit is Gauss-Newton with ``W`` the 0/1 mask of the kept epochs. A step is taken whole when it
+  lowers the cost (to within ``COST_RTOL`` of it: the rounding of a sum over the log), else halved until
+  it does (down to ``2^-MAX_HALVINGS``): the cost never rises.
 * **Converged** when every parameter's Gauss-Newton step is below ``STEP_TOL`` of its standard deviation
   (``sqrt(diag((J^T W J)^-1))``). A pass that reaches ``MAX_ITERATIONS`` iterations, or whose step no
   fraction of lowers the cost while still above that tolerance, stops and says so in a warning naming
@@ -298,7 +299,7 @@ def batch_problem(
             prep.m[fit], prep.data.field_body[fit], config.sensor_noise_nt, x0[core], prior_std[core]
         )
     idx = np.flatnonzero(cand)
-    problem = BatchProblem(prep, layout, x0, P0, how, status, x_start, [], prior_std)
+    problem = BatchProblem(prep, layout, x0, P0, how, status, x_start, [], prior_std, CHUNK_EPOCHS)
     gate = max(config.gate_nt, config.gate_sigma * np.sqrt(model.noise.along_var))
     off = np.zeros(len(status), bool)
     for i in range(0, len(idx), problem.chunk):
