@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import time as _time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
@@ -143,11 +143,12 @@ class Solution:
 class BatchProblem:
     """The batch objective of one log, evaluated ``chunk`` epochs at a time.
 
-    ``prep`` the prepared log; ``layout`` the state layout; ``x0`` (n,) and ``P0`` (n, n) the start and its
-    covariance, ``how`` how it was found; ``status`` (N,) the statuses before the solve (the magnitude gate
-    included); ``x_start`` (n,) the state the robust pass starts from; ``groups`` the usable epochs, as
-    ``(model, epochs)`` pairs: the measurement model that takes them and their indices (k,) into the log;
-    ``prior_std`` (n,) the prior's standard deviations.
+    ``prep`` the prepared log (without the heading axis, and without the field's rates when no effect is
+    added: only the start and the effects use them); ``layout`` the state layout; ``x0`` (n,) and ``P0``
+    (n, n) the start and its covariance, ``how`` how it was found; ``status`` (N,) the statuses before the
+    solve (the magnitude gate included); ``x_start`` (n,) the state the robust pass starts from; ``groups``
+    the usable epochs, as ``(model, epochs)`` pairs: the measurement model that takes them and their
+    indices (k,) into the log; ``prior_std`` (n,) the prior's standard deviations.
     """
 
     prep: PreparedLog
@@ -272,6 +273,8 @@ def batch_problem(
         prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
     except InputError as exc:
         raise exc.located(log.source) from None
+    if not layout.has_extra:  # the field's rates are for effects alone: let them go before the start's work
+        prep = replace(prep, data=replace(prep.data, field_body_rate=None, field_body_accel=None))
     model = measurement_model(config, layout, x0)
     if init is None:  # the noise of the log, as the filter starts from it
         noise = start_noise(prep, config, x0, layout, model.needs_attitude, prep.base)
@@ -298,6 +301,7 @@ def batch_problem(
         x_start[core], _, _ = vector_least_squares(
             prep.m[fit], prep.data.field_body[fit], config.sensor_noise_nt, x0[core], prior_std[core]
         )
+    prep = replace(prep, heading=None)  # the noise's structure is the start's alone
     idx = np.flatnonzero(cand)
     problem = BatchProblem(prep, layout, x0, P0, how, status, x_start, [], prior_std, CHUNK_EPOCHS)
     gate = max(config.gate_nt, config.gate_sigma * np.sqrt(model.noise.along_var))
@@ -350,7 +354,7 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         np.sqrt(np.diag(P))[None],
         status,
         used,
-        np.full(n, np.nan),
+        np.full(n, np.nan, np.float32),
         fit.x,
         P,
         information,
@@ -359,4 +363,6 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         method="batch",
         stops=np.array([n]),
     )
-    return build_run(log, problem.prep, config, problem.layout, problem.x0, problem.P0, trace)
+    prep, layout, x0, P0 = problem.prep, problem.layout, problem.x0, problem.P0
+    del problem  # the solver's epoch indices are not kept while the per-epoch table is built
+    return build_run(log, prep, config, layout, x0, P0, trace)
