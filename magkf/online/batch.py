@@ -35,9 +35,11 @@ chunk's residuals ``r`` and Jacobian ``J`` are folded into the ``n x n`` normal 
   lowers the cost (to within ``COST_RTOL`` of it: the rounding of a sum over the log), else halved until
   it does (down to ``2^-MAX_HALVINGS``): the cost never rises.
 * **Converged** when every parameter's Gauss-Newton step is below ``STEP_TOL`` of its standard deviation
-  (``sqrt(diag((J^T W J)^-1))``). A pass that reaches ``MAX_ITERATIONS`` iterations, or whose step no
-  fraction of lowers the cost while still above that tolerance, stops and says so in a warning naming
-  the log and the size of its last step.
+  (``sqrt(diag((J^T W J)^-1))``), or when no fraction of a step below ``FLAT_STEP_TOL`` of them lowers the
+  cost (the cost is then at its minimum to rounding, and the step within what a finite-difference
+  Jacobian, as an effect's may be, can resolve). A pass that reaches ``MAX_ITERATIONS`` iterations, or
+  whose larger step no fraction of lowers the cost, stops and says so in a warning naming the log and
+  the size of its last step.
 * The covariance is ``(J^T J)^-1`` at the solution (prior rows included); the outlying epochs are found
   again at the solution.
 
@@ -77,6 +79,7 @@ __all__ = [
     "LOSS_SCALE",
     "CHUNK_EPOCHS",
     "STEP_TOL",
+    "FLAT_STEP_TOL",
     "MAX_ITERATIONS",
 ]
 
@@ -86,6 +89,8 @@ LOSS_SCALE = 3.0
 CHUNK_EPOCHS = 8192
 #: Converged when every parameter's step is below this many of its standard deviations.
 STEP_TOL = 1e-6
+#: Also converged when no fraction of a step below this many standard deviations lowers the cost.
+FLAT_STEP_TOL = 1e-3
 #: At most this many Gauss-Newton iterations per pass.
 MAX_ITERATIONS = 50
 #: A step may raise the cost by this fraction of it (the rounding of a sum over the whole log) and be taken.
@@ -257,7 +262,7 @@ class BatchProblem:
                     break
                 fraction /= 2
             else:  # no fraction of the step lowers the cost
-                return Solution(x, normal, iteration, False, largest)
+                return Solution(x, normal, iteration, largest < FLAT_STEP_TOL, largest)
             x, normal = x + fraction * dx, trial
         dx, sigma = normal.step()
         largest = float(np.max(np.abs(dx) / sigma))

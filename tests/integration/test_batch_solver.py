@@ -88,3 +88,18 @@ def test_a_pass_that_does_not_converge_says_so(drive, monkeypatch):
     said = [str(w.message) for w in record]
     for name in ("robust pass", "least-squares fit"):
         assert any(m.startswith(f"drive: the batch solver's {name} did not converge") for m in said), said
+
+
+def test_a_time_lag_is_estimated(recwarn):
+    """A nonlinear effect (its model interpolates between epochs; the log is one chunk): the delay determined by
+    the log (far from its prior's 0 +- 0.5 s), within three standard deviations of the truth, and both passes
+    converged (no warning)."""
+    lag = 0.05
+    sim = simulate_drive(
+        DriveConfig(duration_s=150, rate_hz=20, motion="3d", noise_nt=NOISE, seed=7),
+        effects=[(BUILTIN["time_lag"](), [lag])],
+    )
+    run = solve_batch(DriveLog(sim.table, "lagged"), MATCHED, effects=[BUILTIN["time_lag"]()])
+    assert run.std[12] < lag / 10
+    assert abs(run.x[12] - lag) < 3 * run.std[12], (run.x[12], run.std[12])
+    assert not [w for w in recwarn if "did not converge" in str(w.message)]
