@@ -16,11 +16,14 @@ squares, whose Jacobian gives the covariance. Epochs gated by DOP, missing value
 or the bootstrap's weak one) counts as ``n`` more residuals, under the same loss.
 
 **How it is solved.** The objective has ``n`` parameters (12 core plus the effects') but up to three
-residuals for every epoch of the log. ``scipy.optimize.least_squares`` would hold the whole log's dense
-Jacobian (rows = epochs x residuals, n columns) and several copies of it: 3 kB per epoch, 1.4 GB for an
-hour at 100 Hz. Here the log is gone through ``CHUNK_EPOCHS`` epochs at a time (``BatchProblem``), and each
-chunk's residuals ``r`` and Jacobian ``J`` are folded into the ``n x n`` normal equations ``J^T W J`` and
-``J^T W r`` and dropped: the solver holds a few bytes per epoch whatever the length of the log.
+residuals for every epoch of the log. ``scipy.optimize.least_squares`` is not used for it: it holds the
+whole log's Jacobian as a dense array (rows = epochs x residuals, ``n`` columns: 288 bytes per epoch for
+12 parameters) and several copies of it and of the whole-log residuals; with it, ``calibrate --batch``
+peaked at 1.4 GB (3.3 kB per epoch above the read log) on an hour at 100 Hz. Here the log is gone through
+``CHUNK_EPOCHS`` epochs at a time (``BatchProblem``), and each chunk's residuals ``r`` and Jacobian ``J``
+are folded into the ``n x n`` normal equations ``J^T W J`` and ``J^T W r`` and dropped: besides the
+prepared log, the solver holds the usable epochs' indices and flags (about ten bytes per epoch) whatever
+the length of the log.
 
 * The Jacobian is analytic in the state: ``dc/dx = -R^-1 dm/dx`` evaluated at ``c`` (``core_jacobian(c)``
   for ``R`` and ``b``, the effects' own ``jacobian`` for theirs), times the residual functions' derivative
@@ -38,8 +41,8 @@ chunk's residuals ``r`` and Jacobian ``J`` are folded into the ``n x n`` normal 
   (``sqrt(diag((J^T W J)^-1))``), or when no fraction of a step below ``FLAT_STEP_TOL`` of them lowers the
   cost (the cost is then at its minimum to rounding, and the step within what a finite-difference
   Jacobian, as an effect's may be, can resolve). A pass that reaches ``MAX_ITERATIONS`` iterations, or
-  whose larger step no fraction of lowers the cost, stops and says so in a warning naming the log and
-  the size of its last step.
+  whose step of ``FLAT_STEP_TOL`` or more no fraction of lowers the cost, stops and says so in a warning
+  naming the log and the size of its last step.
 * The covariance is ``(J^T J)^-1`` at the solution (prior rows included); the outlying epochs are found
   again at the solution.
 
@@ -119,11 +122,7 @@ class NormalEquations:
         """The Gauss-Newton step ``-A^-1 g`` (n,) and the parameters' standard deviations ``sqrt(diag(A^-1))`` (n,)."""
         factor, D = self._factor()
         dx = -D * cho_solve(factor, D * self.g)
-        return dx, np.sqrt(self.covariance_diagonal(factor, D))
-
-    @staticmethod
-    def covariance_diagonal(factor, D) -> np.ndarray:
-        return D**2 * np.diag(cho_solve(factor, np.eye(len(D))))
+        return dx, D * np.sqrt(np.diag(cho_solve(factor, np.eye(len(D)))))
 
     def covariance(self) -> np.ndarray:
         """``A^-1`` (n, n), symmetric."""
