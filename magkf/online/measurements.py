@@ -340,12 +340,7 @@ class Vector(MeasurementModel):
 
     def _jacobian(self, x, blk: Block) -> np.ndarray:
         """(k, 3, n) Jacobian of ``m``: the linear blocks' with the nonlinear effects' filled in."""
-        if not self.layout.nonlinear:
-            return blk.H
-        H = blk.H.copy()
-        for effect, sl in self.layout.nonlinear:
-            H[:, :, sl] = effect.jacobian(x[sl], blk.data)
-        return H
+        return self.layout.jacobian(x, blk.data, blk.H)
 
     def linearise(self, x, blk):
         h = np.einsum("kij,j->ki", blk.H, x)

@@ -44,7 +44,8 @@ class PreparedLog:
     """Per-epoch arrays of a log, computed once: ``m`` (N, 3) nT, ``ref`` (N, 3) NED nT, ``ref_mag`` (N,),
     ``c_nb`` (N, 3, 3), ``has_attitude`` (N,), ``dop`` (N,), ``base`` (N,) status before filtering (codes of
     ``magkf.status.Status``), ``data`` (``EpochData`` for the effects and the models) and ``heading``
-    (N, 3) nT the heading axis in the body frame (``measurements.heading_axis``; zero without attitude)."""
+    (N, 3) nT the heading axis in the body frame (``measurements.heading_axis``; zero without attitude; None
+    once a run no longer needs it)."""
 
     m: np.ndarray
     ref: np.ndarray
@@ -75,7 +76,7 @@ class PreparedLog:
             self.dop[index],
             self.base[index],
             self.data.take(index),
-            self.heading[index],
+            None if self.heading is None else self.heading[index],
         )
 
     def block(self, index, layout: StateLayout, model, R, with_data: bool = False) -> Block:

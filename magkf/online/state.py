@@ -134,6 +134,16 @@ class StateLayout:
                 H[:, :, sl] = effect.jacobian(np.zeros(effect.size), data)
         return H
 
+    def jacobian(self, x, data: EpochData, linear=None) -> np.ndarray:
+        """(N, 3, n) Jacobian of the raw-field model at state ``x`` (n,): the linear blocks' (``linear``, as
+        ``linear_jacobian`` gives it; computed when None) with the nonlinear effects' evaluated at ``x``."""
+        if not self.nonlinear:
+            return self.linear_jacobian(data) if linear is None else linear
+        H = self.linear_jacobian(data) if linear is None else linear.copy()
+        for effect, sl in self.nonlinear:
+            H[:, :, sl] = effect.jacobian(np.asarray(x)[sl], data)
+        return H
+
     def nonlinear_terms(self, x, data: EpochData):
         """Raw-field contribution of the nonlinear effects: (N, 3) for a state (n,), (S, N, 3) for (S, n)."""
         total = 0.0
