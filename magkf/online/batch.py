@@ -68,7 +68,7 @@ from ..io.drivelog import DriveLog
 from ..status import Status
 from .bootstrap import vector_least_squares
 from .measurements import MeasurementModel, measurement_model
-from .prepare import PreparedLog, deflate_bootstrap, fit_positions, initial_state, prepare, start_noise
+from .prepare import PreparedLog, deflate_bootstrap, fit_positions, initial_state, prepare, start_noise, without_rates
 from .results import RunTrace, build_run
 from .state import StateLayout
 
@@ -277,8 +277,7 @@ def batch_problem(
         prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
     except InputError as exc:
         raise exc.located(log.source) from None
-    if not layout.has_extra:  # the field's rates are for effects alone: let them go before the start's work
-        prep = replace(prep, data=replace(prep.data, field_body_rate=None, field_body_accel=None))
+    prep = without_rates(prep, layout)  # let them go before the start's work
     model = measurement_model(config, layout, x0)
     if init is None:  # the noise of the log, as the filter starts from it
         noise = start_noise(prep, config, x0, layout, model.needs_attitude, prep.base)

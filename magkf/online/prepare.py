@@ -32,6 +32,7 @@ __all__ = [
     "initial_state",
     "initial_covariance",
     "with_initial_R",
+    "without_rates",
     "calibration_start",
     "start_noise",
     "deflate_bootstrap",
@@ -157,6 +158,14 @@ def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     )
     heading = np.nan_to_num(heading_axis(c_nb, ref))
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
+
+
+def without_rates(prep: PreparedLog, layout: StateLayout) -> PreparedLog:
+    """``prep`` without the field's rates (``EpochData.field_body_rate``, ``field_body_accel``) when ``layout``
+    holds no effect beyond the core: effects alone read them, and a long log need not keep them."""
+    if layout.has_extra:
+        return prep
+    return replace(prep, data=replace(prep.data, field_body_rate=None, field_body_accel=None))
 
 
 def with_initial_R(prep: PreparedLog, x) -> PreparedLog:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 import time as _time
+from dataclasses import replace
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from ..io.drivelog import DriveLog
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
 from .noise import ESTIMATE_EVERY_S
-from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise
+from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise, without_rates
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
@@ -55,6 +56,7 @@ def calibrate_log(
             prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
         except InputError as exc:
             raise exc.located(log.source) from None
+        prep = without_rates(prep, layout)
         model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
         R0 = layout.R(x0)
         noise = None
@@ -93,6 +95,7 @@ def calibrate_log(
         correlation_s=est.learner.inflation() * float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
         stops=stops,
     )
+    prep = replace(prep, heading=None)  # the heading axis is the filter's alone: not kept for the table
     with phases("per-epoch table and summary"):
         return build_run(log, prep, config, layout, x0, P0, trace)
 
