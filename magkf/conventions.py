@@ -138,9 +138,7 @@ def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
 
     ``C_nb = Rz(yaw) Ry(pitch) Rx(roll)``, written out element by element.
     """
-    if all(isinstance(a, float) for a in (yaw_deg, pitch_deg, roll_deg)) or (
-        np.ndim(yaw_deg) == 0 and np.ndim(pitch_deg) == 0 and np.ndim(roll_deg) == 0
-    ):
+    if all(isinstance(a, float) and math.isfinite(a) for a in (yaw_deg, pitch_deg, roll_deg)):  # one attitude
         yaw, pitch, roll = math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg)
         cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
         cr, sr = math.cos(roll), math.sin(roll)
@@ -263,7 +261,8 @@ def magnetic_heading_deg(field_body, roll_deg, pitch_deg) -> np.ndarray:
 
     ``field_body`` is the calibrated body-frame field ``(N, 3)`` in any unit; roll and pitch ``(N,)``
     are in degrees. The field is levelled with ``Ry(pitch) Rx(roll)`` and the heading is the angle,
-    clockwise from magnetic north, of the body's forward axis.
+    clockwise from magnetic north, of the body's forward axis. One field (3,) with roll and pitch as floats
+    gives a float.
     """
     if isinstance(roll_deg, float) and isinstance(pitch_deg, float) and np.shape(field_body) == (3,):
         return _heading1(*np.asarray(field_body, float).tolist(), roll_deg, pitch_deg)
@@ -277,7 +276,9 @@ def magnetic_heading_deg(field_body, roll_deg, pitch_deg) -> np.ndarray:
 
 def _heading1(x: float, y: float, z: float, roll_deg: float, pitch_deg: float) -> float:
     """``magnetic_heading_deg`` of one body field (x, y, z) in plain floats (real time: numpy's per-call cost
-    would dominate)."""
+    would dominate); NaN for an infinite angle, as numpy gives."""
+    if not (math.isfinite(roll_deg) and math.isfinite(pitch_deg)):
+        return math.nan
     p, r = math.radians(pitch_deg), math.radians(roll_deg)
     cr, sr = math.cos(r), math.sin(r)
     north = x * math.cos(p) + (y * sr + z * cr) * math.sin(p)

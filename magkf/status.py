@@ -23,7 +23,20 @@ from enum import IntEnum
 
 import numpy as np
 
-__all__ = ["Status", "STATUS_NAMES", "status_names", "status_counts"]
+__all__ = [
+    "Status",
+    "STATUS_NAMES",
+    "status_names",
+    "status_counts",
+    "USED",
+    "GATED_DOP",
+    "GATED_MAGNITUDE",
+    "GATED_INNOVATION",
+    "MISSING_ATTITUDE",
+    "MISSING_POSITION",
+    "MISSING_MAG",
+    "MISSING_COLUMN",
+]
 
 
 class Status(IntEnum):
@@ -41,6 +54,11 @@ class Status(IntEnum):
         """The name written in files and results, e.g. ``gated_dop``."""
         return self.name.lower()
 
+
+#: Each code as a plain integer, for per-epoch loops (an enum member is slow to look up and to compare with).
+USED, GATED_DOP, GATED_MAGNITUDE, GATED_INNOVATION, MISSING_ATTITUDE, MISSING_POSITION, MISSING_MAG, MISSING_COLUMN = (
+    int(s) for s in Status
+)
 
 #: Names by code: ``STATUS_NAMES[code]``.
 STATUS_NAMES = tuple(s.label for s in Status)

@@ -36,13 +36,15 @@ from ..conventions import (
     to_nanotesla,
 )
 from ..errors import InputError
-from ..status import Status
+from ..status import GATED_DOP, MISSING_ATTITUDE, MISSING_MAG, MISSING_POSITION, USED
 from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete, table_rows
 
 __all__ = [
     "MIN_EPOCHS",
     "epoch_status",
     "select_dop",
+    "first_dop",
+    "DOP_ORDER",
     "read_sample",
     "UnitWarning",
     "DriveLog",
@@ -66,6 +68,12 @@ __all__ = [
 MIN_EPOCHS = 2
 
 
+#: The statuses ``epoch_status`` gives, in its order of precedence.
+_PRECEDENCE = (MISSING_ATTITUDE, GATED_DOP, MISSING_POSITION, MISSING_MAG)
+#: The DOP columns in the order the gate takes them.
+DOP_ORDER = (DOP, PDOP, HDOP)
+
+
 def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
     """Statuses (N,) known before filtering, the epoch rules of every log and of the real-time step.
 
@@ -75,7 +83,7 @@ def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
     otherwise ``used``. Codes from ``magkf.status.Status``.
     """
     if len(m) == 1:  # one sample (real time): the same rules on scalars, without numpy's per-call cost
-        code = _USED
+        code = USED
         for status, flag in zip(
             _PRECEDENCE,
             (
@@ -88,7 +96,7 @@ def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
             if flag:
                 code = status
         return np.array([code], dtype=np.int8)
-    base = np.full(len(m), _USED, dtype=np.int8)
+    base = np.full(len(m), USED, dtype=np.int8)
     for status, applies in zip(
         _PRECEDENCE,
         (
@@ -102,23 +110,21 @@ def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
     return base
 
 
-# The statuses ``epoch_status`` gives, in its order of precedence, as plain integers (enum members are slow to
-# look up in the real-time step).
-_USED = int(Status.USED)
-_PRECEDENCE = tuple(
-    int(s) for s in (Status.MISSING_ATTITUDE, Status.GATED_DOP, Status.MISSING_POSITION, Status.MISSING_MAG)
-)
-
-
 def select_dop(columns) -> np.ndarray | None:
     """The DOP the gate uses from a mapping of column arrays: ``dop``, else ``pdop``, else ``hdop`` (None if
     none is present). Where the chosen column is NaN at an epoch, the next one is taken there."""
     out = None
-    for name in (DOP, PDOP, HDOP):
+    for name in DOP_ORDER:
         if name in columns:
             v = np.asarray(columns[name], float)
             out = v if out is None else np.where(np.isfinite(out), out, v)
     return out
+
+
+def first_dop(values) -> float:
+    """``select_dop`` of one sample: the first finite of ``dop``, ``pdop``, ``hdop`` in ``values`` (a mapping of
+    names to floats, as ``read_sample`` gives), else NaN."""
+    return next((values[c] for c in DOP_ORDER if c in values and math.isfinite(values[c])), math.nan)
 
 
 def read_sample(sample, names, time=None) -> dict[str, float]:
@@ -448,7 +454,7 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     The CSV is written by pyarrow (about fifteen times faster than pandas' ``to_csv``): numbers in their
     shortest form that reads back to the same value, an empty cell for a missing value, and ``time`` with six
     decimals (microseconds of UNIX time). Both are written ``WRITE_ROWS`` rows at a time, so that a long
-    table is never held a second time in another form."""
+    table is never held a second time in another form (a Parquet file has one row group per piece)."""
     import pyarrow as pa
 
     from .files import STDIO

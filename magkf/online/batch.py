@@ -47,7 +47,9 @@ the length of the log.
   again at the solution.
 
 A log with a nonlinear effect (``time_lag``, whose model interpolates between epochs) is gone through in
-one chunk, so that its model sees the same neighbours as in the filters' per-epoch table.
+one chunk, the magnitude gate included, so that its model sees the same neighbours in every pass (the
+usable epochs of each model's group). The linear start in the sensor frame is fitted to at most
+``prepare.FIT_EPOCHS`` attitude epochs spread evenly over the log (every one of a shorter log).
 """
 
 from __future__ import annotations
@@ -306,7 +308,9 @@ def batch_problem(
         )
     prep = replace(prep, heading=None)  # the noise's structure is the start's alone
     idx = np.flatnonzero(cand)
-    problem = BatchProblem(prep, layout, x0, P0, how, status, x_start, [], prior_std, CHUNK_EPOCHS)
+    # one chunk for a nonlinear model (it may look at its neighbours), the magnitude gate's included
+    chunk = max(len(idx), 1) if layout.nonlinear else CHUNK_EPOCHS
+    problem = BatchProblem(prep, layout, x0, P0, how, status, x_start, [], prior_std, chunk)
     gate = max(config.gate_nt, config.gate_sigma * np.sqrt(model.noise.along_var))
     off = np.zeros(len(status), bool)
     for i in range(0, len(idx), problem.chunk):
@@ -320,8 +324,6 @@ def batch_problem(
             epochs = idx[prep.base[idx] == code]
             if len(epochs):
                 problem.groups.append((taker, epochs))
-    if layout.nonlinear:  # one chunk: a nonlinear model may look at its neighbours
-        problem.chunk = max(len(idx), 1)
     return problem
 
 

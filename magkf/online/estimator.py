@@ -25,17 +25,13 @@ import math
 import numpy as np
 
 from ..config import FilterConfig
-from ..status import Status
+from ..status import GATED_INNOVATION, GATED_MAGNITUDE, MISSING_ATTITUDE, USED
 from .filters import make_filter
 from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model, whitening
 from .noise import NoiseLearner, NoiseLevels
 from .state import StateLayout
 
 __all__ = ["Estimator", "run_model"]
-
-# Plain integers: enum members are slow to look up and to compare with in the per-block loop.
-USED, MISSING_ATTITUDE = int(Status.USED), int(Status.MISSING_ATTITUDE)
-GATED_MAGNITUDE, GATED_INNOVATION = int(Status.GATED_MAGNITUDE), int(Status.GATED_INNOVATION)
 
 
 def _scale_rows(rows, factor) -> None:
@@ -229,7 +225,7 @@ class Estimator:
             q = self._bound(self.config.huber_prob, model.rows)
             huber = np.minimum(1.0, np.sqrt(q / np.maximum(rows.nis, 1e-300)))
             if part.N is not None and model.rows == part.N.shape[1]:  # the correlation is in the whitening
-                if rows.nis.max() > q:  # else every weight is 1
+                if np.any(rows.nis > q):  # else every weight is 1
                     _scale_rows(rows, np.sqrt(huber))
             else:
                 _scale_rows(rows, np.sqrt(huber / noise.inflation_along))

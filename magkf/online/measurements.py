@@ -317,8 +317,10 @@ class Vector(MeasurementModel):
 
     @property
     def linear(self) -> bool:
-        """Linear in the state unless the layout holds a nonlinear effect (a time lag)."""
-        return not self.layout.nonlinear
+        """Linear in the state unless the layout holds a nonlinear effect (a time lag), or a subclass predicts
+        its rows in its own way."""
+        own = type(self).sigma_predict is Vector.sigma_predict and type(self).linearise is Vector.linearise
+        return own and not self.layout.nonlinear
 
     def structure(self, field_body, R, heading=None):
         B = np.asarray(field_body, float)

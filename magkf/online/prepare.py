@@ -84,7 +84,8 @@ class PreparedLog:
         """The epochs ``index`` (slice, integer array or mask) as a ``Block`` for the measurement ``model``: their
         linear Jacobian (``layout.linear_jacobian``) and noise structure (``model.structure``) at the
         calibration ``R`` (3, 3), computed for these epochs only (a long log is never held whole in them);
-        ``with_data`` keeps the epochs' ``EpochData`` (for nonlinear effects)."""
+        ``with_data`` keeps the epochs' ``EpochData`` (for nonlinear effects). Needs the heading axis (a
+        ``PreparedLog`` whose ``heading`` was let go cannot make blocks)."""
         data = self.data.take(index)
         heading = self.heading[index]
         structure = model.structure(np.nan_to_num(data.field_body), R, heading)
@@ -105,7 +106,7 @@ class PreparedLog:
 
     def frame(self, index, R) -> np.ndarray:
         """The field's frame (k, 3, 3) in the sensor axes at the epochs ``index`` at calibration ``R``
-        (``measurements.sensor_frame``)."""
+        (``measurements.sensor_frame``); needs the heading axis, as ``block`` does."""
         return sensor_frame(np.nan_to_num(self.data.field_body[index]), self.heading[index], R)
 
 
@@ -319,8 +320,8 @@ def configured_noise(config: FilterConfig) -> NoiseLevels:
 
 
 def fit_positions(n_usable: int) -> np.ndarray:
-    """Which of ``n_usable`` usable epochs (their positions among them) go into the starting noise's fit: every
-    ``ceil(n_usable / FIT_EPOCHS)``-th."""
+    """Which of ``n_usable`` usable epochs (their positions among them) go into a whole-log start's fit (the
+    starting noise's, the batch solver's linear start): every ``ceil(n_usable / FIT_EPOCHS)``-th."""
     return np.arange(0, n_usable, max(-(-n_usable // FIT_EPOCHS), 1))
 
 

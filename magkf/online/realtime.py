@@ -27,9 +27,9 @@ from ..effects import restore_effects, stored_effect
 from ..effects.base import EpochData
 from ..errors import InputError
 from ..io.calibration import Calibration
-from ..io.drivelog import epoch_status, read_sample
+from ..io.drivelog import epoch_status, first_dop, read_sample
 from ..reference import ReferenceFieldCache
-from ..status import STATUS_NAMES, Status
+from ..status import MISSING_ATTITUDE, MISSING_COLUMN, STATUS_NAMES, USED
 from .estimator import Estimator
 from .measurements import Block
 from .prepare import calibration_start
@@ -37,8 +37,6 @@ from .prepare import calibration_start
 __all__ = ["OnlineCalibrator", "EpochResult"]
 
 _NAN33 = np.full((3, 3), np.nan)
-# statuses as plain integers: enum members are slow to look up in the per-sample step
-_USED, _MISSING_ATTITUDE, _MISSING_COLUMN = int(Status.USED), int(Status.MISSING_ATTITUDE), int(Status.MISSING_COLUMN)
 _SAMPLE_COLUMNS = (*MAG, *ATTITUDE, *REF, LAT, LON, ALT, DOP, PDOP, HDOP)
 
 
@@ -128,11 +126,11 @@ class OnlineCalibrator:
         c_nb = euler_to_dcm(yaw, pitch, roll) if has_att else _NAN33
         # the reference field and the heading axis B x down (``measurements.heading_axis``) in the body frame
         field_body, axis = np.array([ref, (ref[1], -ref[0], 0.0)]) @ c_nb
-        dop = next((v[c] for c in (DOP, PDOP, HDOP) if math.isfinite(v[c])), math.nan)  # as ``select_dop``
+        dop = first_dop(v)
         base = epoch_status(m[None], ref[None], [has_att], [dop], self.config.dop_max)
-        updating = base[0] == _USED or base[0] == _MISSING_ATTITUDE  # the latter by its magnitude
+        updating = base[0] == USED or base[0] == MISSING_ATTITUDE  # the latter by its magnitude
         if updating and not all(math.isfinite(v[c]) for c in self._effect_columns):
-            base[0] = _MISSING_COLUMN  # an added effect lacks its channel: no update, as post-processing
+            base[0] = MISSING_COLUMN  # an added effect lacks its channel: no update, as post-processing
         dt = 0.0 if self._last_time is None else t - self._last_time
         rate = (field_body - self._last_field_body) / dt if dt > 0 else np.zeros(3)
         if not np.isfinite(rate).all():
@@ -152,7 +150,7 @@ class OnlineCalibrator:
         )
         H = layout.linear_jacobian(data)
         axis = axis[None] if all(map(math.isfinite, axis.tolist())) else np.nan_to_num(axis[None])
-        structure = est.structure(field_body[None], R, axis) if base[0] == _USED else None
+        structure = est.structure(field_body[None], R, axis) if base[0] == USED else None
         G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
         blk = Block(m[None], np.array([math.hypot(*ref)]), H, field_body[None], R, axis, G, Gh, RRt, frame, data)
         status, updated, nis = est.process_block(np.array([t]), dt, blk, base)

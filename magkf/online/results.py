@@ -365,7 +365,7 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     The per-epoch table is filled ``CHUNK`` epochs at a time, so that nothing of the size of a long log is
     held twice. The states, their standard deviations, the residuals, the NIS and the learned noise are float32:
     7 significant digits, 0.01 nT of a 100 000 nT residual, and a rounding of a state below a hundredth of its
-    standard deviation unless that is below 6e-6 of the value. The calibration, ``x`` and
+    standard deviation unless the standard deviation is below 6e-6 of the value. The calibration, ``x`` and
     ``P`` keep float64."""
     status, updated, nis = trace.status, trace.updated, trace.nis
     names = layout.names

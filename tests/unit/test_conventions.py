@@ -79,3 +79,19 @@ def test_tilt_compensated_heading():
     body = ned_to_body(euler_to_dcm(yaw, pitch, roll), np.broadcast_to(field, (500, 3)))
     heading = magnetic_heading_deg(body, roll, pitch)
     assert np.allclose(wrap_deg(heading - (yaw - decl)), 0, atol=1e-9)
+
+
+def test_one_field_in_plain_floats_is_the_vectorised_heading():
+    """One field with roll and pitch as floats (the real-time step's call) gives the vectorised result, NaN for
+    a missing or infinite angle included, and the same single-matrix attitude as a stack."""
+    angles = [(r, p) for r, p in RNG.uniform(-80, 80, (50, 2))] + [(np.inf, 3.0), (2.0, -np.inf), (np.nan, 1.0)]
+    for roll, pitch in angles:
+        field = RNG.normal(size=3) * 20_000
+        one = magnetic_heading_deg(field, float(roll), float(pitch))
+        stack = magnetic_heading_deg(field[None], np.array([roll]), np.array([pitch]))[0]
+        assert isinstance(one, float)
+        assert (np.isnan(one) and np.isnan(stack)) or abs(one - stack) < 1e-9
+        yaw = float(RNG.uniform(0, 360))
+        assert np.allclose(
+            euler_to_dcm(yaw, float(pitch), float(roll)), euler_to_dcm([yaw], [pitch], [roll])[0], equal_nan=True
+        )

@@ -273,3 +273,27 @@ def test_stacked_whitening_and_nis_are_lapacks():
     y = rng.normal(size=(50, 3)) * 30.0
     expected = np.einsum("ki,kij,kj->k", y, np.linalg.inv(cov), y)
     assert np.allclose(_nis(y, cov), expected, rtol=1e-9, atol=0)
+
+
+def test_only_rows_linear_for_every_state_are_declared_linear():
+    """The UKF folds rows declared linear with their own Jacobian, so only the built-in vector rows without a
+    nonlinear effect say so: not the magnitude, not a layout with a time lag, not a subclass with its own
+    prediction."""
+    from magkf.config import FilterConfig
+    from magkf.effects import make_effect
+    from magkf.online.measurements import Vector, measurement_model
+    from magkf.online.state import StateLayout
+
+    class Curved(Vector):
+        def sigma_predict(self, sigmas, x, blk):
+            return super().sigma_predict(sigmas, x, blk)
+
+    core = StateLayout.with_core()
+    x0 = np.concatenate([np.eye(3).ravel(), np.zeros(3)])
+    lag = StateLayout.with_core([make_effect("time_lag")])
+    x_lag = np.concatenate([x0, lag.prior()[0][12:]])
+    linear = {name: measurement_model(FilterConfig(measure=name), core, x0).linear for name in ("vector", "both")}
+    assert linear == {"vector": True, "both": True}
+    assert not measurement_model(FilterConfig(measure="magnitude"), core, x0).linear
+    assert not measurement_model(FilterConfig(measure="vector"), lag, x_lag).linear
+    assert not Curved(FilterConfig(), core, x0).linear
