@@ -67,10 +67,20 @@ class EpochData:
 
 
 def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Time derivative (N, 3) of ``values`` (N, 3) by central differences (one-sided at the ends)."""
+    """Time derivative (N, 3) of ``values`` (N, 3) by central differences, one-sided at the ends and beside a
+    missing value (an epoch next to a gap in the attitude takes its rate from the side that has data); NaN
+    where the epoch's own value or both its neighbours are missing."""
     if len(time_s) < 2:
         return np.zeros_like(values)
-    return np.gradient(values, time_s, axis=0)
+    rate = np.gradient(values, time_s, axis=0)
+    beside_gap = ~np.isfinite(rate) & np.isfinite(values)
+    if beside_gap.any():
+        step = np.diff(values, axis=0) / np.diff(time_s)[:, None]  # (N - 1, 3): from each epoch to the next
+        gap = np.full((1, values.shape[1]), np.nan)
+        backward, forward = np.vstack([gap, step]), np.vstack([step, gap])
+        one_sided = np.where(np.isfinite(backward), backward, forward)
+        rate[beside_gap] = one_sided[beside_gap]
+    return rate
 
 
 class Effect:

@@ -70,7 +70,16 @@ from ..io.drivelog import DriveLog
 from ..status import Status
 from .bootstrap import vector_least_squares
 from .measurements import MeasurementModel, measurement_model
-from .prepare import PreparedLog, deflate_bootstrap, fit_positions, initial_state, prepare, start_noise, without_rates
+from .prepare import (
+    PreparedLog,
+    deflate_bootstrap,
+    fit_positions,
+    initial_state,
+    mark_missing_columns,
+    prepare,
+    start_noise,
+    without_rates,
+)
 from .results import RunTrace, build_run
 from .state import StateLayout
 
@@ -275,6 +284,7 @@ def batch_problem(
 ) -> BatchProblem:
     """The batch objective of ``log``: its start, the epochs it uses and the models that take them."""
     prep = prepare(log, config)
+    prep = replace(prep, base=mark_missing_columns(prep, effects, log.source))
     try:
         prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
     except InputError as exc:

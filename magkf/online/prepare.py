@@ -175,8 +175,9 @@ def with_initial_R(prep: PreparedLog, x) -> PreparedLog:
 
 
 def mark_missing_columns(prep: PreparedLog, effects, source: str) -> np.ndarray:
-    """The base statuses with ``missing_column`` where an added effect's channel is empty; raises InputError
-    when the log lacks a channel an effect needs altogether."""
+    """The base statuses with ``missing_column`` where an added effect's channel is empty, or where a linear
+    effect's Jacobian is not finite for want of an input it derives (the field's rate where the attitude is
+    missing on both sides); raises InputError when the log lacks a channel an effect needs altogether."""
     base = prep.base.copy()
     for effect in effects:
         for c in effect.columns:
@@ -188,6 +189,13 @@ def mark_missing_columns(prep: PreparedLog, effects, source: str) -> np.ndarray:
                 )
             updating = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)  # the latter by its magnitude
             base[updating & ~np.isfinite(prep.data.columns[c])] = Status.MISSING_COLUMN
+        if effect.linear:
+            theta = effect.prior()[0]
+            for i in range(0, len(base), CHUNK):
+                epochs = slice(i, i + CHUNK)
+                J = effect.jacobian(theta, prep.data.take(epochs))
+                updating = (base[epochs] == Status.USED) | (base[epochs] == Status.MISSING_ATTITUDE)
+                base[epochs][updating & ~np.isfinite(J).all(axis=(1, 2))] = Status.MISSING_COLUMN
     return base
 
 

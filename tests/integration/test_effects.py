@@ -205,3 +205,38 @@ def test_a_log_too_short_to_diagnose_is_one_line_naming_the_file(tmp):
     assert proc.returncode == 2
     assert proc.stderr.count(str(path)) == 1 and "too few usable epochs" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_an_effect_reading_the_field_rate_across_attitude_and_position_gaps():
+    """Eddy currents (which read the body field's rate) on a log with a 10 s attitude gap and isolated missing
+    positions: the rate beside a gap comes from the side with data (exact for a linear field), an epoch with
+    neither neighbour gets ``missing_column``, and the filter and the batch solver both finish with finite
+    estimates."""
+    from magkf.effects import make_effect
+    from magkf.effects.base import rate_of_change
+    from magkf.online.batch import solve_batch
+
+    t = np.arange(10.0)
+    values = np.column_stack([3.0 * t, -t, np.ones(10)])
+    values[[4, 6, 7]] = np.nan
+    rate = rate_of_change(t, values)
+    assert np.allclose(rate[[0, 1, 2, 3, 4, 8, 9]], [3.0, -1.0, 0.0])  # 4: from its two neighbours
+    assert np.isnan(rate[[5, 6, 7]]).all()  # 5 lies between two missing epochs
+
+    sim = _sim([(make_effect("eddy_current"), TRUTH["eddy_current"])], duration=240.0)
+    table = sim.table.copy()
+    n = len(table)
+    table.iloc[n // 3 : n // 3 + 200, table.columns.get_loc("roll")] = np.nan
+    lonely = np.arange(n // 2, n // 2 + 30, 3)  # every third epoch without position: the two between lose their rate
+    table.iloc[np.concatenate([lonely, lonely + 1]), table.columns.get_loc("lat")] = np.nan
+    log = DriveLog(table, "gaps.csv")
+    for run in (
+        calibrate_log(log, FilterConfig(), effects=[make_effect("eddy_current")]),
+        solve_batch(log, FilterConfig(), effects=[make_effect("eddy_current")]),
+    ):
+        assert np.isfinite(run.x).all() and np.isfinite(run.P).all()
+        status = run.states["status"].to_numpy()
+        between = status[lonely[:-1] + 2]
+        between = between[between != "gated_dop"]  # a bad DOP goes before a missing input
+        assert len(between) >= 5 and (between == "missing_column").all()
+        assert status[n // 3 - 1] != "missing_column" and status[n // 3 + 200] != "missing_column"
