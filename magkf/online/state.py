@@ -153,11 +153,13 @@ class StateLayout:
 
     def extra_terms(self, x, H, data: EpochData | None = None) -> np.ndarray:
         """Raw-field terms (N, 3) of the effects after the core at state ``x`` (n,), with the linear blocks'
-        Jacobian ``H`` (N, 3, n) from ``linear_jacobian`` (``data`` is needed only for nonlinear effects)."""
+        Jacobian ``H`` (N, 3, n) from ``linear_jacobian`` (``data`` is needed only for nonlinear effects);
+        missing inputs count as 0, as in ``effect_terms`` (a time lag's term needs the attitude, which a
+        magnitude update does without)."""
         e = np.einsum("kij,j->ki", H[:, :, _EXTRA], np.asarray(x)[_EXTRA])
         if self.nonlinear:
             e = e + self.nonlinear_terms(x, data)
-        return e
+        return np.nan_to_num(e)
 
     def effect_terms(self, x, data: EpochData, last=None) -> np.ndarray:
         """Raw-field terms (N, 3) of the effects after the core for a state (n,) or per-epoch states (N, n),

@@ -240,3 +240,23 @@ def test_an_effect_reading_the_field_rate_across_attitude_and_position_gaps():
         between = between[between != "gated_dop"]  # a bad DOP goes before a missing input
         assert len(between) >= 5 and (between == "missing_column").all()
         assert status[n // 3 - 1] != "missing_column" and status[n // 3 + 200] != "missing_column"
+
+
+@pytest.mark.parametrize("filter_name", ["ekf", "ukf"])
+def test_real_time_time_lag_through_samples_without_attitude(filter_name):
+    """A time lag's term needs the attitude; a sample without it updates the magnitude with that term taken as
+    0 (as post-processing takes a missing input), and the state stays finite (the UKF's sigma points used to
+    stop on NaN)."""
+    from magkf import OnlineCalibrator
+    from magkf.effects import make_effect
+
+    sim = _sim([], duration=60.0)
+    rows = sim.table.reset_index().to_dict("records")
+    for i in (1, 200, 201, 202):
+        rows[i]["roll"] = np.nan
+    config = FilterConfig(filter=filter_name, measure="both")
+    online = OnlineCalibrator(Calibration(R=sim.R, b=sim.b), config, effects=[make_effect("time_lag")])
+    results = [online.step(r) for r in rows]
+    assert {results[i].status for i in (1, 200, 201, 202)} <= {"missing_attitude", "gated_magnitude"}
+    assert all(np.isfinite(r.x).all() and np.isfinite(r.field_body).all() for r in results)
+    assert results[1].updated
