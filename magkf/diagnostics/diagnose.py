@@ -450,8 +450,8 @@ class _AsTested(LinearEffect):
         self.effect, self.name, self.columns = effect, effect.name, effect.columns
         self.parameter_names = tuple(f"g{j + 1}" for j in range(size))
 
-    def design(self, data):
-        return finite_regressors(self.effect, data)
+    def jacobian(self, theta, data, rows=None):
+        return finite_regressors(self.effect, data, rows)
 
 
 class _Selection:

@@ -130,10 +130,10 @@ def determined(sv: np.ndarray) -> int:
     return min(_rank(sv), int(np.sum(sv > 1.0 / DETERMINED)))
 
 
-def finite_regressors(effect, data) -> np.ndarray:
-    """``effect.regressors(data)`` (n, 3, q) with epochs where any is not finite set to zero (they add
-    nothing to a fit)."""
-    G = effect.regressors(data)
+def finite_regressors(effect, data, rows=None) -> np.ndarray:
+    """``effect.regressors(data, rows=rows)`` (n, 3, q) with epochs where any is not finite set to zero (they
+    add nothing to a fit)."""
+    G = effect.regressors(data, rows=rows)
     bad = ~np.all(np.isfinite(G), axis=(1, 2))
     if bad.any():
         G = G if G.flags.writeable else G.copy()
