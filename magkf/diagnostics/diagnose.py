@@ -298,11 +298,15 @@ def diagnose(
     # residuals in nT (NED and magnitude), with the model as it is
     data = replace(problem.data, R0=layout.R(x))  # the model as it is
     stretches = [slice(a, a + CHUNK) for a in range(0, n, CHUNK)]
-    terms = [layout.extra_terms(x, layout.linear_jacobian(data, rows=s), data, rows=s) for s in stretches]
-    c = layout.calibrated(x, problem.m, np.concatenate(terms))
+    terms = np.concatenate(
+        [layout.extra_terms(x, layout.linear_jacobian(data, rows=s), data, rows=s) for s in stretches]
+    )
+    c = layout.calibrated(x, problem.m, terms)
+    del terms
     ned = body_to_ned(data.c_nb, c) - data.field_ned
     body = c - data.field_body
     mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
+    del c, data
     rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
     axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
     axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}
