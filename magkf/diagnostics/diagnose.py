@@ -495,13 +495,15 @@ class _Selection:
     def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
         """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
         exact time lag linearised at its estimate), and its test there. Returns the trial and that model, which
-        keeps the whitened Jacobian of ``fit``'s columns and makes the effect's again when they are read."""
+        keeps the whitened Jacobian of ``fit``'s columns and, for an effect of more than ``KEEP_COLUMNS``
+        columns, makes the effect's again when they are read."""
         block = effect
         if type(effect).regressors is not Effect.regressors:
             block = _AsTested(effect, effect.regressors(fit.data, rows=slice(0, 1)).shape[2])
         layout = StateLayout((*fit.layout.effects, block))
         p = fit.layout.size
-        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]), keep=p)
+        keep = None if block.size <= KEEP_COLUMNS else p  # a small block's columns kept too, as in ``trial``
+        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]), keep=keep)
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual
         trial = self._evaluate(effect, with_it.rows, p, None, block.parameter_names, fit, with_it)
