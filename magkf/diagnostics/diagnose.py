@@ -52,6 +52,7 @@ from ..online.run import calibrate_log
 from ..online.state import StateLayout
 from ..status import Status
 from .fitting import (
+    CHUNK,
     OUTLIER_SIGMA,
     WANDER_BLOCK_S,
     EpochSet,
@@ -86,6 +87,9 @@ TESTS = {
     "F": "correlation-robust F (equal-weighted cosine long-run variance, Sun 2013)",
     "L": "constancy against a random walk, correlation-robust (Nyblom 1989, Hansen 1992)",
 }
+#: A candidate of at most this many regressor columns has them whitened once for the whole log while it is
+#: tested (three rows an epoch: 72 bytes for three columns), instead of made again at each pass.
+KEEP_COLUMNS = 3
 #: Singular values of a candidate's (column-normalised) regressors below this, once the model's span is
 #: removed, are directions the model already has: a candidate with none left is contained in it.
 RANK_TOLERANCE = 1e-4
@@ -296,10 +300,16 @@ def diagnose(
 
     # residuals in nT (NED and magnitude), with the model as it is
     data = replace(problem.data, R0=layout.R(x))  # the model as it is
-    c = layout.calibrated(x, problem.m, layout.extra_terms(x, layout.linear_jacobian(data), data))
+    stretches = [slice(a, a + CHUNK) for a in range(0, n, CHUNK)]
+    terms = np.concatenate(
+        [layout.extra_terms(x, layout.linear_jacobian(data, rows=s), data, rows=s) for s in stretches]
+    )
+    c = layout.calibrated(x, problem.m, terms)
+    del terms
     ned = body_to_ned(data.c_nb, c) - data.field_ned
     body = c - data.field_body
     mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
+    del c, data
     rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
     axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
     axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}
@@ -351,10 +361,10 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     largest singular value left out, as LAPACK's ``lstsq`` with that ``rcond``), the regressors made and
     reduced a chunk at a time (``gram_svd``: nested candidates, a time lag in the eddy-current terms, make the
     columns dependent)."""
-    regressors = [finite_regressors(effect, fit.data) for effect in pool]
 
     def rows(a, b):
-        return np.hstack([fit.A[3 * a : 3 * b], *(fit.whitened(G[a:b], a, b) for G in regressors)])
+        regressors = (finite_regressors(effect, fit.data, slice(a, b)) for effect in pool)
+        return np.hstack([fit.rows(a, b), *(fit.whitened(G, a, b) for G in regressors)])
 
     gram, moment = 0.0, 0.0
     for a, b in fit.chunks:
@@ -373,7 +383,7 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
 
 def _held_out_nt(fit: Linearised, edges) -> float:
     """The NED residual RMS (nT) of ``fit``'s model on held-out blocks between ``edges``."""
-    return _InNanotesla(fit).rms(held_out_residual(lambda a, b: fit.A[3 * a : 3 * b], fit.y, edges, fit.chunks))
+    return _InNanotesla(fit).rms(held_out_residual(fit.rows, fit.y, edges, fit.chunks))
 
 
 class _InNanotesla:
@@ -450,8 +460,8 @@ class _AsTested(LinearEffect):
         self.effect, self.name, self.columns = effect, effect.name, effect.columns
         self.parameter_names = tuple(f"g{j + 1}" for j in range(size))
 
-    def design(self, data):
-        return finite_regressors(self.effect, data)
+    def jacobian(self, theta, data, rows=None):
+        return finite_regressors(self.effect, data, rows)
 
 
 class _Selection:
@@ -465,47 +475,60 @@ class _Selection:
 
     def trial(self, effect, fit: Linearised) -> _Trial:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
-        G = finite_regressors(effect, fit.data)
-        names = effect.parameter_names if G.shape[2] == effect.size else [f"g{j + 1}" for j in range(G.shape[2])]
-        rows = lambda a, b: fit.whitened(G[a:b], a, b)  # noqa: E731
-        return self._evaluate(effect, fit.A, fit.span, rows, names, fit, fit)
+        q = finite_regressors(effect, fit.data, slice(0, 1)).shape[2]
+        names = effect.parameter_names if q == effect.size else [f"g{j + 1}" for j in range(q)]
+
+        def whitened(a, b):
+            return fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b)
+
+        if q <= KEEP_COLUMNS:
+            kept = np.empty((len(fit.y), q))
+            for a, b in fit.chunks:
+                kept[3 * a : 3 * b] = whitened(a, b)
+            whitened = lambda a, b: kept[3 * a : 3 * b]  # noqa: E731
+
+        def rows(a, b):
+            return np.hstack([fit.rows(a, b), whitened(a, b)])
+
+        return self._evaluate(effect, rows, fit.layout.size, fit.span, names, fit, fit)
 
     def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
         """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
-        exact time lag linearised at its estimate), and its test there. Returns the trial and that model."""
+        exact time lag linearised at its estimate), and its test there. Returns the trial and that model, which
+        keeps the whitened Jacobian of ``fit``'s columns and, for an effect of more than ``KEEP_COLUMNS``
+        columns, makes the effect's again when they are read."""
         block = effect
         if type(effect).regressors is not Effect.regressors:
-            block = _AsTested(effect, effect.regressors(fit.data).shape[2])
+            block = _AsTested(effect, effect.regressors(fit.data, rows=slice(0, 1)).shape[2])
         layout = StateLayout((*fit.layout.effects, block))
-        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]))
         p = fit.layout.size
-        A_null = with_it.A[:, :p]
-        rows = lambda a, b: with_it.A[3 * a : 3 * b, p:]  # noqa: E731
+        keep = None if block.size <= KEEP_COLUMNS else p  # a small block's columns kept too, as in ``trial``
+        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]), keep=keep)
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual
-        trial = self._evaluate(effect, A_null, span_coefficients(A_null), rows, block.parameter_names, fit, with_it)
+        trial = self._evaluate(effect, with_it.rows, p, None, block.parameter_names, fit, with_it)
         return trial, with_it
 
-    def _evaluate(self, effect, A, span, rows, names, null: Linearised, model: Linearised) -> _Trial:
-        """The test of whitened regressors ``rows(a, b)`` (3 (b - a), q: those of epochs ``a`` to ``b``, one
-        chunk of ``model.chunks``) added to a model of whitened Jacobian ``A`` (3n, p) with orthonormal basis
-        ``A @ span`` of its span, for ``model``'s reading ``y``, all whitened at ``model``; a wandering effect's
-        constancy test at the model ``null`` without it.
+    def _evaluate(self, effect, rows, p, span, names, null: Linearised, model: Linearised) -> _Trial:
+        """The test of whitened regressors added to a model, from ``rows(a, b)`` (3 (b - a), p + q: those of
+        epochs ``a`` to ``b``, one chunk of ``model.chunks``): the model's whitened Jacobian ``A`` in the first
+        ``p`` columns, with orthonormal basis ``A @ span`` of its span (None: found here), then the
+        regressors; all whitened at ``model``, for ``model``'s reading ``y``; a wandering effect's constancy
+        test at the model ``null`` without it.
 
-        The regressors are made a chunk at a time, twice: once for their normal equations (with ``A`` and the
-        model's residual, per held-out block), from which their part outside the model's span and its SVD
-        follow, and once for the per-epoch scores of the test, the residual it leaves and the held-out
-        residual (``HeldOut``); where the normal equations are ill-conditioned, once more (``gram_svd``)."""
+        The rows are made a chunk at a time, twice: once for their normal equations per held-out block, from
+        which the model's span, what it leaves of ``y``, the regressors' part outside it and its SVD follow,
+        and once for the per-epoch scores of the test, the residual it leaves and the held-out residual
+        (``HeldOut``); where the normal equations are ill-conditioned, once more (``gram_svd``)."""
         n, chunks, y = len(self.problem), model.chunks, model.y
-        p = A.shape[1]
-        r = y - A @ (span @ (span.T @ (A.T @ y)))  # what the model's span leaves
         held = HeldOut(y, self.edges)
-        moment = 0.0
         for a, b in chunks:
-            G = rows(a, b)
-            held.add(np.hstack([A[3 * a : 3 * b], G]), a, b)
-            moment = moment + G.T @ r[3 * a : 3 * b]
-        normal = held.normal
+            held.add(rows(a, b), a, b)
+        normal, c = held.normal, sum(held.c)
+        if span is None:
+            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[:, :p] for a, b in chunks), len(y))
+        fitted = span @ (span.T @ c[:p])  # the model's least-squares coefficients: r = y - A fitted
+        moment = c[p:] - normal[p:, :p] @ fitted  # the regressors' products with r
         gram, cross = normal[p:, p:], normal[:p, p:]
         norms = np.sqrt(np.diag(gram))
         norms[norms == 0] = 1.0
@@ -513,9 +536,10 @@ class _Selection:
         outside = np.asarray(gram / np.outer(norms, norms) - along.T @ along)  # Gram of their part outside it
         proj = span @ along
 
-        def part(a, b, G=None):
+        def part(a, b, X=None):
             """Normalised regressors of epochs ``a`` to ``b`` less their part in the model's span (3 (b - a), q)."""
-            return (rows(a, b) if G is None else G) / norms - A[3 * a : 3 * b] @ proj
+            X = rows(a, b) if X is None else X
+            return X[:, p:] / norms - X[:, :p] @ proj
 
         s, vt = gram_svd(outside, lambda: (part(a, b) for a, b in chunks), len(y))
         rank = int(np.sum(s > RANK_TOLERANCE))
@@ -525,23 +549,26 @@ class _Selection:
         theta = to_u.T @ (moment / norms)  # U^T r (the span's basis is orthogonal to r)
         D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
         beta = held.coefficients(None if D is None else np.hstack([np.zeros((len(D), p)), D]))
-        in_sample, held_out = np.empty_like(r), np.empty_like(r)
-        scores = np.empty((n, rank))
+        in_sample, held_out = np.empty_like(y), np.empty_like(y)
+        scores = None if effect.wanders else np.empty((n, rank))  # a wander is tested on scores of its own
         for a, b in chunks:
-            G = rows(a, b)
-            U = part(a, b, G) @ to_u
-            e = r[3 * a : 3 * b] - U @ theta
+            X = rows(a, b)
+            U = part(a, b, X) @ to_u
+            e = y[3 * a : 3 * b] - X[:, :p] @ fitted - U @ theta
             in_sample[3 * a : 3 * b] = e
-            scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
-            held_out[3 * a : 3 * b] = held.residual(np.hstack([A[3 * a : 3 * b], G]), a, b, beta)
+            if scores is not None:
+                scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
+            held_out[3 * a : 3 * b] = held.residual(X, a, b, beta)
         if effect.wanders:
-            J = effect.jacobian(effect.prior()[0], null.data)
+            prior = effect.prior()[0]
             test = constancy_test(
                 np.concatenate(
                     [
                         np.einsum(
                             "nik,ni->nk",
-                            null.whitened(J[a:b], a, b).reshape(b - a, 3, -1),
+                            null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b).reshape(
+                                b - a, 3, -1
+                            ),
                             null.r[3 * a : 3 * b].reshape(b - a, 3),
                         )
                         for a, b in null.chunks

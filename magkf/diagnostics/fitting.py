@@ -50,10 +50,11 @@ OUTLIER_SIGMA = 5.0
 CHUNK = 8192
 
 
-def span_coefficients(A: np.ndarray) -> np.ndarray:
-    """Coefficients ``M`` (p, rank) such that ``A @ M`` is an orthonormal basis of the span of ``A`` (rows, p),
-    directions below ``1e-9`` of the largest singular value left out."""
-    _, sv, vt = tall_svd(A, want_u=False)
+def span_coefficients(gram: np.ndarray, rows, n_rows: int) -> np.ndarray:
+    """Coefficients ``M`` (p, rank) such that ``A @ M`` is an orthonormal basis of the span of a matrix ``A`` of
+    ``n_rows`` rows and p columns, directions below ``1e-9`` of the largest singular value left out; ``gram`` is
+    ``A^T A`` and ``rows()`` yields ``A``'s rows a block at a time (``gram_svd``)."""
+    sv, vt = gram_svd(gram, rows, n_rows)
     rank = _rank(sv)
     return vt[:rank].T / sv[:rank]
 
@@ -130,10 +131,10 @@ def determined(sv: np.ndarray) -> int:
     return min(_rank(sv), int(np.sum(sv > 1.0 / DETERMINED)))
 
 
-def finite_regressors(effect, data) -> np.ndarray:
-    """``effect.regressors(data)`` (n, 3, q) with epochs where any is not finite set to zero (they add
-    nothing to a fit)."""
-    G = effect.regressors(data)
+def finite_regressors(effect, data, rows=None) -> np.ndarray:
+    """``effect.regressors(data, rows=rows)`` (n, 3, q) with epochs where any is not finite set to zero (they
+    add nothing to a fit)."""
+    G = effect.regressors(data, rows=rows)
     bad = ~np.all(np.isfinite(G), axis=(1, 2))
     if bad.any():
         G = G if G.flags.writeable else G.copy()
@@ -205,16 +206,17 @@ def _chunks(n: int, wander: HeadingWander | None) -> list:
 @dataclass(frozen=True)
 class Linearised:
     """A model linearised and whitened at state ``x`` on the diagnosed epochs: ``data`` with ``R0`` of ``x``;
-    ``W`` (n, 3, 3) the whitening; ``A`` (3n, p) the whitened Jacobian and ``span`` (p, k) the coefficients
-    of an orthonormal basis ``A @ span`` of the directions the data determine; ``y`` (3n,) the whitened
-    reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares estimate (kept at ``x``
-    in directions the data do not determine)."""
+    ``W`` (n, 3, 3) the whitening; ``kept`` (3n, k) the first k columns of the whitened Jacobian (``rows`` gives
+    all p of them a chunk at a time, making the others again) and ``span`` (p, k) the coefficients of an
+    orthonormal basis ``A @ span`` of the directions the data determine (``A`` the whitened Jacobian); ``y``
+    (3n,) the whitened reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares
+    estimate (kept at ``x`` in directions the data do not determine)."""
 
     layout: StateLayout
     x: np.ndarray
     data: object
     W: np.ndarray
-    A: np.ndarray
+    kept: np.ndarray
     span: np.ndarray
     y: np.ndarray
     r: np.ndarray
@@ -238,6 +240,44 @@ class Linearised:
         stop = len(self.W) if stop is None else stop
         Gw = (self.W[start:stop] @ G).reshape(3 * (stop - start), -1)
         return Gw if self.wander is None else self.wander.remove(Gw, start, stop)
+
+    def rows(self, start: int, stop: int) -> np.ndarray:
+        """The whitened Jacobian's rows (3 (stop - start), p) of the epochs ``start`` to ``stop`` (the edges of
+        ``chunks``): the kept columns as kept, the others made again."""
+        k = self.kept.shape[1]
+        kept = self.kept[3 * start : 3 * stop]
+        if k == self.layout.size:
+            return kept
+        H, _ = _jacobian(self.layout, self.x, self.data, slice(start, stop), first=k)
+        return np.hstack([kept, self.whitened(H, start, stop)])
+
+    def residual(self, x) -> np.ndarray:
+        """``y - A x`` (3n,): the whitened residual of the state ``x`` (p,) (exact at ``self.x`` for nonlinear
+        effects too)."""
+        out = np.empty_like(self.y)
+        for a, b in self.chunks:
+            out[3 * a : 3 * b] = self.y[3 * a : 3 * b] - self.rows(a, b) @ x
+        return out
+
+
+def _jacobian(layout: StateLayout, x, data, rows, first: int = 0):
+    """The model's Jacobian (m, 3, p - first) in its columns from ``first`` (where a block starts) at the epochs
+    ``rows`` of ``data``, the nonlinear effects among them linearised at ``x`` (a Gauss-Newton step), and
+    what their linearisation leaves (m, 3) nT; an effect's input unknown at an epoch (a rate at a gap) adds
+    nothing there, as in ``finite_regressors``."""
+    m = len(data.take(rows))
+    H = np.zeros((m, 3, layout.size - first))
+    offset = np.zeros((m, 3))
+    for effect, sl in layout.blocks(include_core=True):
+        if sl.start < first:
+            continue
+        cols = slice(sl.start - first, sl.stop - first)
+        if effect.linear:  # the Jacobian of a linear effect does not depend on its parameters
+            H[:, :, cols] = effect.jacobian(np.zeros(effect.size), data, rows=rows)
+        else:
+            H[:, :, cols] = effect.jacobian(x[sl], data, rows=rows)
+            offset += effect.contribution(x[sl], data, rows=rows) - H[:, :, cols] @ x[sl]
+    return np.nan_to_num(H, copy=False, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
 
 
 class EpochSet:
@@ -271,58 +311,56 @@ class EpochSet:
     def __len__(self):
         return len(self.m)
 
-    def at(self, layout: StateLayout, x) -> Linearised:
-        """The model ``layout`` linearised and whitened at ``x``, and its least-squares fit."""
+    def at(self, layout: StateLayout, x, keep: int | None = None) -> Linearised:
+        """The model ``layout`` linearised and whitened at ``x``, and its least-squares fit. The first ``keep``
+        columns of the whitened Jacobian (where a block starts; default all) are kept for the whole set, the
+        others made again a chunk at a time when they are read (``Linearised.rows``)."""
         x = np.asarray(x, float)
         R = layout.R(x)
         data = replace(self.data, R0=R)
-        H = layout.linear_jacobian(data)
-        offset = np.zeros_like(self.m)  # nonlinear effects, linearised at x (a Gauss-Newton step)
-        for effect, sl in layout.nonlinear:
-            H[:, :, sl] = effect.jacobian(x[sl], data)
-            offset += effect.contribution(x[sl], data) - H[:, :, sl] @ x[sl]
-        # an effect's input unknown at an epoch (a rate at a gap) adds nothing there, as in finite_regressors
-        H, offset = np.nan_to_num(H, copy=False, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
         model = measurement_model(self.config, layout, x)
         if self.noise is not None:
             model.set_noise(self.noise)
         W = model.whitening(data.field_body, R, self.heading)
         n, p = len(self.m), layout.size
-        y = np.einsum("nij,nj->ni", W, self.m - offset).ravel()
+        keep = p if keep is None else keep
         wander = None
         if self.wander_s:
             wander = HeadingWander(np.einsum("nij,nj->ni", W, self.heading @ R.T), data.time, self.wander_s)
-            y = wander.remove(y)
-        A = H.reshape(3 * n, p)  # whitened in place, a chunk at a time
-        for a, b in _chunks(n, wander):
-            A[3 * a : 3 * b] = (W[a:b] @ H[a:b]).reshape(-1, p)
+        chunks = _chunks(n, wander)
+        y, kept = np.empty(3 * n), np.empty((3 * n, keep))
+        gram, moment = 0.0, 0.0
+        for a, b in chunks:  # whitened a chunk at a time, with the wander taken out stretch by stretch
+            H, offset = _jacobian(layout, x, data, slice(a, b))
+            ya = np.einsum("nij,nj->ni", W[a:b], self.m[a:b] - offset).ravel()
+            X = (W[a:b] @ H).reshape(-1, p)
             if wander is not None:
-                A[3 * a : 3 * b] = wander.remove(A[3 * a : 3 * b], a, b)
+                ya, X = wander.remove(ya, a, b), wander.remove(X, a, b)
+            y[3 * a : 3 * b], kept[3 * a : 3 * b] = ya, X[:, :keep]
+            gram, moment = gram + X.T @ X, moment + X.T @ ya
+        fitted = Linearised(layout, x, data, W, kept, None, y, None, None, wander)
         # Directions in units of the parameters' prior spread (``determined``). A weaker one (the part of a field
         # anomaly that a heading offset mimics, once the heading's wander is taken out) is held where it is:
         # fitted, it would take noise as values of hundreds of thousands of nT.
         spread = np.sqrt(np.diag(layout.prior()[1]))
-        gram = A.T @ A
         sv, vt = gram_svd(
-            spread[:, None] * gram * spread,
-            lambda: (A[i : i + 3 * CHUNK] * spread for i in range(0, len(A), 3 * CHUNK)),
-            len(A),
+            spread[:, None] * gram * spread, lambda: (fitted.rows(a, b) * spread for a, b in chunks), 3 * n
         )
         rank = determined(sv)
         span = spread[:, None] * (vt[:rank].T / sv[:rank])  # A @ span: orthonormal
-        along = span.T @ (A.T @ y)
-        r = y - A @ (span @ along)
+        along = span.T @ moment
+        r = fitted.residual(span @ along)
         step = spread * (vt[:rank].T @ ((along - span.T @ (gram @ x)) / sv[:rank]))
-        return Linearised(layout, x, data, W, A, span, y, r, x + step, wander)
+        return replace(fitted, span=span, r=r, x_fit=x + step)
 
-    def fit(self, layout: StateLayout, x) -> Linearised:
-        """``at`` iterated until the estimate stops moving: the model at its own best fit."""
+    def fit(self, layout: StateLayout, x, keep: int | None = None) -> Linearised:
+        """``at`` iterated until the estimate stops moving: the model at its own best fit (``keep`` as ``at``)."""
         prior_std = np.sqrt(np.diag(layout.prior()[1]))
-        f = self.at(layout, x)
+        f = self.at(layout, x, keep)
         for _ in range(REFIT_ITERATIONS):
             change = np.max(np.abs(f.x_fit - f.x) / prior_std)
             if change < REFIT_TOLERANCE or not np.all(np.isfinite(f.x_fit)):
                 break
             x_next, f = f.x_fit, None  # one linearisation held at a time
-            f = self.at(layout, x_next)
+            f = self.at(layout, x_next, keep)
         return f

@@ -84,27 +84,29 @@ class RobustTest:
 
 def integrated_time(x: np.ndarray) -> float:
     """Integrated autocorrelation time (epochs, 1 for white) of a series (n,) or the largest over the
-    columns of (n, k): ``1 + 2 sum rho(l)`` up to Sokal's window, from the FFT autocorrelation."""
+    columns of (n, k): ``1 + 2 sum rho(l)`` up to Sokal's window, from the FFT autocorrelation (a column at a
+    time: the zero-padded transform of all of them at once would hold several times their size)."""
     x = np.asarray(x, float).reshape(len(x), -1)
     n = len(x)
     if n < 8:
         return 1.0
-    x = x - x.mean(axis=0)
-    spectrum = np.abs(fft.rfft(x, n=fft.next_fast_len(2 * n), axis=0)) ** 2
-    acf = fft.irfft(spectrum, axis=0)[:n]
-    variance = acf[0]
-    ok = variance > 0
-    if not ok.any():
-        return 1.0
-    rho = acf[:, ok] / variance[ok]
-    taus = 1.0 + 2.0 * np.cumsum(rho[1:], axis=0)  # tau(M) for M = 1 ..
-    lags = np.arange(1, n)[:, None]
+    size = fft.next_fast_len(2 * n)
+    lags = np.arange(1, n)
     out = 1.0
-    for k in range(taus.shape[1]):
-        window = np.flatnonzero(lags[:, 0] >= SOKAL_C * taus[:, k])
-        tau = taus[window[0], k] if window.size else taus[-1, k]
-        out = max(out, float(tau))
+    for column in x.T:
+        column = column - column.mean()
+        acf = fft.irfft(np.abs(fft.rfft(column, n=size)) ** 2)[:n]
+        if not acf[0] > 0:
+            continue
+        taus = 1.0 + 2.0 * np.cumsum(acf[1:] / acf[0])  # tau(M) for M = 1 ..
+        window = np.flatnonzero(lags >= SOKAL_C * taus)
+        out = max(out, float(taus[window[0]] if window.size else taus[-1]))
     return out
+
+
+def _dct(x: np.ndarray) -> np.ndarray:
+    """The type-II cosine transform of the columns of ``x`` (n, k), made along contiguous rows (faster)."""
+    return fft.dct(np.ascontiguousarray(x.T), type=2).T
 
 
 def cosine_terms(n: int, tau: float) -> int:
@@ -132,7 +134,7 @@ def score_test(scores: np.ndarray, theta: np.ndarray) -> RobustTest | None:
     K = cosine_terms(n, tau)
     if K < q + 2:
         return None
-    transform = fft.dct(scores, type=2, axis=0)[1 : K + 1] * np.sqrt(2.0 / n) / 2.0  # (K, q)
+    transform = _dct(scores)[1 : K + 1] * np.sqrt(2.0 / n) / 2.0  # (K, q)
     lrv = transform.T @ transform / K  # long-run variance of one epoch's score
     cov = n * lrv  # of theta = sum of the scores under the null
     try:
@@ -187,9 +189,9 @@ def high_passed(x: np.ndarray, transform: np.ndarray | None = None) -> np.ndarra
     """``x`` (n, k) without its ``CONSTANCY_TERMS`` lowest cosine frequencies (periods longer than a quarter
     of the log): what its correlation time is measured on where a wander would otherwise dominate it.
     ``transform``: ``x``'s type-II cosine transform when already computed."""
-    c = fft.dct(x, type=2, axis=0) if transform is None else transform.copy()
+    c = _dct(x) if transform is None else transform.copy()
     c[: CONSTANCY_TERMS + 1] = 0.0
-    return fft.idct(c, type=2, axis=0)
+    return fft.idct(np.ascontiguousarray(c.T), type=2).T
 
 
 def constancy_test(scores: np.ndarray) -> RobustTest | None:
@@ -207,7 +209,7 @@ def constancy_test(scores: np.ndarray) -> RobustTest | None:
     when ``K < q + 2``.
     """
     n, q = scores.shape
-    c = fft.dct(scores, type=2, axis=0)
+    c = _dct(scores)
     tau = integrated_time(high_passed(scores, c))
     K = cosine_terms(n, tau)
     if K < q + 2:

@@ -108,7 +108,7 @@ def validate(
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
     raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
-    epochs = epochs.take(inliers((raw.y - raw.A @ x).reshape(-1, 3)))
+    epochs = epochs.take(inliers(raw.residual(x).reshape(-1, 3)))
     stored = epochs.at(layout, x)
 
     def terms(subset) -> np.ndarray:
@@ -124,10 +124,10 @@ def validate(
         fixed = epochs.less(terms(subset))
         core = StateLayout.with_core()
         fit = fixed.fit(core, x[:12])
-        res_w = (fit.y - fit.A @ fit.x_fit).reshape(-1, 3)
+        res_w = fit.residual(fit.x_fit).reshape(-1, 3)
         return res_w, _ned(fit, res_w)
 
-    res_stored = (stored.y - stored.A @ x).reshape(-1, 3)  # exact for nonlinear effects too (at x)
+    res_stored = stored.residual(x).reshape(-1, 3)  # exact for nonlinear effects too (at x)
     as_stored = _rms(_ned(stored, res_stored, x))
     with_w, with_ned = refit(effects)
     core_w, core_ned = refit(())

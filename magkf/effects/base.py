@@ -7,15 +7,24 @@ the diagnostics) sees the sensor as a sum of effects:
 
 The core effect (``magkf.effects.core.SoftHardIron``) contributes ``R B_b + b`` and is always the first
 block of the state; any further effect adds its own block without a change to the filter code.
+
+Every method that gives values per epoch (``contribution``, ``jacobian``, ``regressors``) takes ``rows``: the
+epochs of ``data`` to give them at (a slice, an integer array or a boolean mask; None, the default: all of
+them, the range [0, N)). An effect computed epoch by epoch gives at ``rows`` what it gives on
+``data.take(rows)``; one that needs other epochs (a spline along the log's time, the log's time span) reads
+them from ``data`` and gives only the rows asked for, so that a long log can be gone through a stretch at a
+time with the same numbers as at once.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FD_STEP", "EpochData", "rate_of_change", "Effect"]
+__all__ = ["FD_STEP", "EpochData", "rate_of_change", "Effect", "ROW_METHODS"]
 
 #: Relative and absolute step of the finite-difference Jacobian default.
 FD_STEP = 1e-6
@@ -48,7 +57,10 @@ class EpochData:
         return len(self.time)
 
     def take(self, index) -> EpochData:
-        """The same data at the epochs ``index`` (an integer array, a slice or a boolean mask)."""
+        """The same data at the epochs ``index`` (an integer array, a slice or a boolean mask; None: all, this
+        data itself)."""
+        if index is None:
+            return self
 
         def cut(a):
             return None if a is None else a[index]
@@ -83,6 +95,26 @@ def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
     return rate
 
 
+#: The per-epoch methods of an effect, each taking the epochs ``rows`` of its ``data``.
+ROW_METHODS = ("contribution", "jacobian", "regressors")
+
+
+def _epoch_by_epoch(method):
+    """A per-epoch method written without ``rows`` (``contribution(theta, data)``, as a user's effect may be):
+    evaluated on ``data.take(rows)``, the effect being computed epoch by epoch."""
+
+    @functools.wraps(method)
+    def at_rows(self, *args, rows=None, **kwargs):
+        if rows is not None:
+            if "data" in kwargs:
+                kwargs["data"] = kwargs["data"].take(rows)
+            else:
+                args = (*args[:-1], args[-1].take(rows))
+        return method(self, *args, **kwargs)
+
+    return at_rows
+
+
 class Effect:
     """Base class of a physical effect (subclass it in a file of its own).
 
@@ -102,7 +134,9 @@ class Effect:
         and ``regressors`` is the slow basis over which the wander is fitted for the held-out residual.
 
     Methods to implement: ``contribution``; optionally ``jacobian`` (finite differences by default),
-    ``prior`` and ``random_walk``.
+    ``prior`` and ``random_walk``. The per-epoch methods (``ROW_METHODS``) take ``rows``, the epochs of
+    ``data`` to evaluate (see the module's docstring); one written without it is taken to be computed epoch
+    by epoch and is evaluated on ``data.take(rows)``.
     """
 
     name: str = "effect"
@@ -114,6 +148,13 @@ class Effect:
     wanders: bool = False
     #: How many true parameters ``simulate`` accepts (default: the effect's own parameters).
     simulation_sizes: tuple = ()
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        for name in ROW_METHODS:
+            method = cls.__dict__.get(name)
+            if callable(method) and "rows" not in inspect.signature(method).parameters:
+                setattr(cls, name, _epoch_by_epoch(method))
 
     @property
     def label(self) -> str:
@@ -132,26 +173,29 @@ class Effect:
         """Random-walk standard deviation of each parameter per square root of a second, (k,)."""
         return np.zeros(self.size)
 
-    def contribution(self, theta, data: EpochData) -> np.ndarray:
-        """Raw-field contribution in nT: (N, 3) for ``theta`` of shape (k,), (S, N, 3) for (S, k)."""
+    def contribution(self, theta, data: EpochData, rows=None) -> np.ndarray:
+        """Raw-field contribution in nT at the epochs ``rows`` of ``data`` (None: all N): (N, 3) for ``theta``
+        of shape (k,), (S, N, 3) for (S, k)."""
         raise NotImplementedError
 
-    def jacobian(self, theta, data: EpochData) -> np.ndarray:
-        """Derivative of ``contribution`` with respect to ``theta``: (N, 3, k). Finite differences by default."""
+    def jacobian(self, theta, data: EpochData, rows=None) -> np.ndarray:
+        """Derivative of ``contribution`` with respect to ``theta`` at the epochs ``rows`` (None: all): (N, 3,
+        k). Finite differences by default."""
         theta = np.asarray(theta, float)
         step = FD_STEP * np.maximum(np.abs(theta), 1.0)
         plus = theta + np.diag(step)
         minus = theta - np.diag(step)
-        diff = self.contribution(plus, data) - self.contribution(minus, data)  # (k, N, 3)
+        diff = self.contribution(plus, data, rows=rows) - self.contribution(minus, data, rows=rows)  # (k, N, 3)
         return np.moveaxis(diff / (2 * step)[:, None, None], 0, -1)
 
-    def regressors(self, data: EpochData) -> np.ndarray:
-        """What the diagnostics test for this effect: (N, 3, q) columns the residual would follow.
+    def regressors(self, data: EpochData, rows=None) -> np.ndarray:
+        """What the diagnostics test for this effect at the epochs ``rows`` (None: all N): (N, 3, q) columns
+        the residual would follow.
 
         By default the Jacobian at the prior mean (exact for an effect linear in its parameters); an
         effect whose Jacobian cannot be told apart from the core offset (a slow drift) overrides it.
         """
-        return self.jacobian(self.prior()[0], data)
+        return self.jacobian(self.prior()[0], data, rows=rows)
 
     def increments(self) -> np.ndarray | None:
         """For an effect that ``wanders``: the matrix (m, q) taking ``regressors``' coefficients to the

@@ -32,11 +32,13 @@ class BiasDrift(LinearEffect):
         G[:, [0, 1, 2], [0, 1, 2]] = 1.0
         return G
 
-    def regressors(self, data):
-        """Hat functions in time (N, 3, 3 (DRIFT_SEGMENTS + 1)): knot ``k`` on axis ``i`` is column
-        ``3 k + i``; they sum to the constant offset."""
-        t = data.time
-        u = DRIFT_SEGMENTS * (t - t[0]) / max(t[-1] - t[0], 1e-9)
+    def regressors(self, data, rows=None):
+        """Hat functions in time (N, 3, 3 (DRIFT_SEGMENTS + 1)) at the epochs ``rows`` of ``data`` (None: all),
+        the knots spread evenly over all of ``data``'s time: knot ``k`` on axis ``i`` is column ``3 k + i``;
+        they sum to the constant offset."""
+        span = data.time
+        t = data.take(rows).time
+        u = DRIFT_SEGMENTS * (t - span[0]) / max(span[-1] - span[0], 1e-9)
         hats = np.clip(1.0 - np.abs(u[:, None] - np.arange(DRIFT_SEGMENTS + 1)), 0.0, None)  # (N, knots)
         G = np.zeros((len(t), 3, 3 * (DRIFT_SEGMENTS + 1)))
         for i in range(3):

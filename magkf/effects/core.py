@@ -41,16 +41,17 @@ class SoftHardIron(Effect):
     def random_walk(self):
         return np.concatenate([np.full(9, self.r_walk), np.full(3, self.b_walk)])
 
-    def contribution(self, theta, data: EpochData) -> np.ndarray:
+    def contribution(self, theta, data: EpochData, rows=None) -> np.ndarray:
         theta = np.asarray(theta, float)
         R = theta[..., :9].reshape(theta.shape[:-1] + (3, 3))
         b = theta[..., 9:]
+        B = data.take(rows).field_body
         if theta.ndim == 1:
-            return data.field_body @ R.T + b
-        return np.einsum("sij,nj->sni", R, data.field_body) + b[:, None, :]
+            return B @ R.T + b
+        return np.einsum("sij,nj->sni", R, B) + b[:, None, :]
 
-    def jacobian(self, theta, data: EpochData) -> np.ndarray:
-        return core_jacobian(data.field_body)
+    def jacobian(self, theta, data: EpochData, rows=None) -> np.ndarray:
+        return core_jacobian(data.take(rows).field_body)
 
 
 def core_jacobian(field_body) -> np.ndarray:

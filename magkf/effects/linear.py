@@ -10,7 +10,9 @@ __all__ = ["LinearEffect", "per_axis"]
 
 
 class LinearEffect(Effect):
-    """An effect ``m += G(data) theta`` with regressors ``G`` (N, 3, k); subclasses implement ``design``.
+    """An effect ``m += G(data) theta`` with regressors ``G`` (N, 3, k); subclasses implement ``design``,
+    epoch by epoch (row ``i`` of ``G`` from epoch ``i`` of ``data`` alone), so that the epochs ``rows`` of
+    ``contribution`` and ``jacobian`` are ``design(data.take(rows))``.
 
     ``prior_std`` and ``walk`` (per sqrt(s)) set the prior and random walk of every parameter.
     """
@@ -28,15 +30,15 @@ class LinearEffect(Effect):
     def random_walk(self):
         return np.full(self.size, float(self.walk))
 
-    def contribution(self, theta, data: EpochData) -> np.ndarray:
-        G = self.design(data)
+    def contribution(self, theta, data: EpochData, rows=None) -> np.ndarray:
+        G = self.jacobian(theta, data, rows=rows)
         theta = np.asarray(theta, float)
         if theta.ndim == 1:
             return G @ theta
         return np.einsum("nik,sk->sni", G, theta)
 
-    def jacobian(self, theta, data: EpochData) -> np.ndarray:
-        return self.design(data)
+    def jacobian(self, theta, data: EpochData, rows=None) -> np.ndarray:
+        return self.design(data.take(rows))
 
 
 def per_axis(values: np.ndarray) -> np.ndarray:

@@ -14,7 +14,9 @@ class TimeLag(Effect):
 
     The delayed field is interpolated along the log's body-frame reference (a cubic Hermite spline through
     the field and its rate, so that the first-order model is this one's derivative at ``tau = 0``), so the
-    model is exact however fast the vehicle turns. Outside the data's time span (before a filter block's first epoch, or
+    model is exact however fast the vehicle turns. At the epochs ``rows`` only, the spline is laid through the
+    few epochs around their delayed times (a cubic Hermite piece depends on its two ends alone), with the same
+    numbers as through all of them. Outside the data's time span (before a filter block's first epoch, or
     at a single real-time sample) it is extrapolated from the nearest epoch by its Taylor series in the
     field's rate and, where known, its second derivative (``EpochData.field_body_accel``). The Jacobian is
     the base class's central difference of this model, the slope of the interpolation itself.
@@ -53,14 +55,38 @@ class TimeLag(Effect):
                 out[mask] = values[k] + d * rate[k] + 0.5 * d**2 * second
         return out
 
-    def contribution(self, theta, data):
+    def contribution(self, theta, data, rows=None):
         theta = np.asarray(theta, float)
         if theta.ndim == 2:
-            return np.stack([self.contribution(th, data) for th in theta])
-        t, B = data.time, data.field_body
-        lagged = self._delayed(B, data.field_body_rate, data.field_body_accel, t, t - theta[0])
-        return (lagged - B) @ data.R0.T
+            return np.stack([self.contribution(th, data, rows=rows) for th in theta])
+        t, B, rate = data.time, data.field_body, data.field_body_rate
+        target = data.take(rows).time - theta[0]
+        span = slice(None) if rows is None else _reach(t, B, rate, target)
+        lagged = self._delayed(B[span], rate[span], _take(data.field_body_accel, span), t[span], target)
+        return (lagged - data.take(rows).field_body) @ data.R0.T
 
 
 def _take(a, mask):
     return None if a is None else a[mask]
+
+
+def _reach(t, values, rate, target) -> slice:
+    """The epochs (times ``t`` increasing) that the interpolation of ``values`` at ``target`` uses, with margin:
+    from two epochs of finite ``values`` and ``rate`` before the first target to two after the last (or the
+    data's ends, where the extrapolation starts)."""
+    n = len(t)
+    if len(target) == 0:
+        return slice(0, 0)
+
+    def usable(i, j) -> int:
+        return int(np.sum(np.all(np.isfinite(values[i:j]), axis=1) & np.all(np.isfinite(rate[i:j]), axis=1)))
+
+    first = int(np.searchsorted(t, np.min(target), side="left"))
+    last = int(np.searchsorted(t, np.max(target), side="right"))
+    lo, hi, width = first, last, 4
+    while lo > 0 and usable(lo, first) < 2:
+        lo, width = max(first - width, 0), 2 * width
+    width = 4
+    while hi < n and usable(last, hi) < 2:
+        hi, width = min(last + width, n), 2 * width
+    return slice(lo, hi)

@@ -169,7 +169,9 @@ class Estimator:
             return status, updated, nis
         x = kf.x
         if layout.has_extra:
-            blk.e = layout.extra_terms(x, blk.H, blk.data)
+            # a missing input counts as 0, as in the per-epoch table: an epoch that lacks a channel is not a
+            # candidate, and a magnitude update without attitude does without a time lag's term (which needs it)
+            blk.e = np.nan_to_num(layout.extra_terms(x, blk.H, blk.data))
         # The variance of the calibrated magnitude that the estimate's covariance implies, at the block's
         # first candidate (it changes little within a block), every block of the state included; and the
         # calibrated magnitude ``h`` (k,) of every epoch (for one epoch, the magnitude model's own).

@@ -126,12 +126,13 @@ class StateLayout:
         return np.asarray(x)[..., _CORE]
 
     # ------------------------------------------------------------ the model
-    def linear_jacobian(self, data: EpochData) -> np.ndarray:
-        """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), evaluated once for each epoch."""
-        H = np.zeros((len(data), 3, self.size))
+    def linear_jacobian(self, data: EpochData, rows=None) -> np.ndarray:
+        """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), evaluated once for each epoch,
+        at the epochs ``rows`` of ``data`` (None: all; see ``magkf.effects.base``)."""
+        H = np.zeros((len(data.take(rows)), 3, self.size))
         for effect, sl in self.blocks(include_core=True):
             if effect.linear:  # the Jacobian of a linear effect does not depend on its parameters
-                H[:, :, sl] = effect.jacobian(np.zeros(effect.size), data)
+                H[:, :, sl] = effect.jacobian(np.zeros(effect.size), data, rows=rows)
         return H
 
     def jacobian(self, x, data: EpochData, linear=None) -> np.ndarray:
@@ -144,22 +145,22 @@ class StateLayout:
             H[:, :, sl] = effect.jacobian(np.asarray(x)[sl], data)
         return H
 
-    def nonlinear_terms(self, x, data: EpochData):
-        """Raw-field contribution of the nonlinear effects: (N, 3) for a state (n,), (S, N, 3) for (S, n)."""
+    def nonlinear_terms(self, x, data: EpochData, rows=None):
+        """Raw-field contribution of the nonlinear effects at the epochs ``rows`` (None: all): (N, 3) for a state
+        (n,), (S, N, 3) for (S, n)."""
         total = 0.0
         for effect, sl in self.nonlinear:
-            total = total + effect.contribution(np.asarray(x)[..., sl], data)
+            total = total + effect.contribution(np.asarray(x)[..., sl], data, rows=rows)
         return total
 
-    def extra_terms(self, x, H, data: EpochData | None = None) -> np.ndarray:
+    def extra_terms(self, x, H, data: EpochData | None = None, rows=None) -> np.ndarray:
         """Raw-field terms (N, 3) of the effects after the core at state ``x`` (n,), with the linear blocks'
-        Jacobian ``H`` (N, 3, n) from ``linear_jacobian`` (``data`` is needed only for nonlinear effects);
-        missing inputs count as 0, as in ``effect_terms`` (a time lag's term needs the attitude, which a
-        magnitude update does without)."""
+        Jacobian ``H`` (N, 3, n) from ``linear_jacobian`` at the epochs ``rows`` of ``data`` (``data`` is needed
+        only for nonlinear effects); NaN where an effect lacks an input."""
         e = np.einsum("kij,j->ki", H[:, :, _EXTRA], np.asarray(x)[_EXTRA])
         if self.nonlinear:
-            e = e + self.nonlinear_terms(x, data)
-        return np.nan_to_num(e)
+            e = e + self.nonlinear_terms(x, data, rows=rows)
+        return e
 
     def effect_terms(self, x, data: EpochData, last=None) -> np.ndarray:
         """Raw-field terms (N, 3) of the effects after the core for a state (n,) or per-epoch states (N, n),
