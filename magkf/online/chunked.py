@@ -54,7 +54,6 @@ from ..status import Status
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
 from .prepare import (
-    CHUNK,
     PreparedLog,
     concat_prepared,
     configured_noise,
@@ -90,8 +89,9 @@ __all__ = [
     "calibrate_file",
 ]
 
-#: Rows read at a time (those of the whole-log path's pieces, ``prepare.CHUNK``).
-CHUNK_ROWS = CHUNK
+#: Rows read at a time: a piece pays a fixed cost (reading, the reference field's knots, its overlap), so it is
+#: larger than the whole-log path's table chunk (``prepare.CHUNK``).
+CHUNK_ROWS = 65_536
 #: Logs of at least this many epochs are calibrated in chunks by ``magkf calibrate``: the whole-log path holds
 #: about 1.3 kB per epoch at its peak (1.3 GB here), the chunked path a constant few hundred MB, at the cost
 #: of reading the file five times.
