@@ -14,6 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..effects.base import at_rows
 from ..online.measurements import measurement_model
 from ..online.state import StateLayout
 
@@ -265,7 +266,7 @@ def _jacobian(layout: StateLayout, x, data, rows, first: int = 0):
     ``rows`` of ``data``, the nonlinear effects among them linearised at ``x`` (a Gauss-Newton step), and
     what their linearisation leaves (m, 3) nT; an effect's input unknown at an epoch (a rate at a gap) adds
     nothing there, as in ``finite_regressors``."""
-    m = len(data.take(rows))
+    m = len(at_rows(data.time, rows))
     H = np.zeros((m, 3, layout.size - first))
     offset = np.zeros((m, 3))
     for effect, sl in layout.blocks(include_core=True):

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FD_STEP", "EpochData", "rate_of_change", "Effect", "ROW_METHODS"]
+__all__ = ["FD_STEP", "EpochData", "at_rows", "rate_of_change", "Effect", "ROW_METHODS"]
 
 #: Relative and absolute step of the finite-difference Jacobian default.
 FD_STEP = 1e-6
@@ -76,6 +76,12 @@ class EpochData:
             self.R0,
             cut(self.field_body_accel),
         )
+
+
+def at_rows(values: np.ndarray, rows) -> np.ndarray:
+    """One per-epoch array of an ``EpochData`` at the epochs ``rows`` (None: all of it, itself), without taking
+    the data's other arrays as ``EpochData.take`` does."""
+    return values if rows is None else values[rows]
 
 
 def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from .base import at_rows
 from .linear import LinearEffect
 
 __all__ = ["DRIFT_SEGMENTS", "BiasDrift"]
@@ -37,7 +38,7 @@ class BiasDrift(LinearEffect):
         the knots spread evenly over all of ``data``'s time: knot ``k`` on axis ``i`` is column ``3 k + i``;
         they sum to the constant offset."""
         span = data.time
-        t = data.take(rows).time
+        t = at_rows(span, rows)
         u = DRIFT_SEGMENTS * (t - span[0]) / max(span[-1] - span[0], 1e-9)
         hats = np.clip(1.0 - np.abs(u[:, None] - np.arange(DRIFT_SEGMENTS + 1)), 0.0, None)  # (N, knots)
         G = np.zeros((len(t), 3, 3 * (DRIFT_SEGMENTS + 1)))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..io.calibration import PARAMETER_NAMES
-from .base import Effect, EpochData
+from .base import Effect, EpochData, at_rows
 
 __all__ = ["DEFAULT_R_WALK", "DEFAULT_B_WALK", "SoftHardIron", "core_jacobian"]
 
@@ -45,13 +45,13 @@ class SoftHardIron(Effect):
         theta = np.asarray(theta, float)
         R = theta[..., :9].reshape(theta.shape[:-1] + (3, 3))
         b = theta[..., 9:]
-        B = data.take(rows).field_body
+        B = at_rows(data.field_body, rows)
         if theta.ndim == 1:
             return B @ R.T + b
         return np.einsum("sij,nj->sni", R, B) + b[:, None, :]
 
     def jacobian(self, theta, data: EpochData, rows=None) -> np.ndarray:
-        return core_jacobian(data.take(rows).field_body)
+        return core_jacobian(at_rows(data.field_body, rows))
 
 
 def core_jacobian(field_body) -> np.ndarray:

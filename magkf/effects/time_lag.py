@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from .base import Effect
+from .base import Effect, at_rows
 
 __all__ = ["TimeLag"]
 
@@ -60,10 +60,10 @@ class TimeLag(Effect):
         if theta.ndim == 2:
             return np.stack([self.contribution(th, data, rows=rows) for th in theta])
         t, B, rate = data.time, data.field_body, data.field_body_rate
-        target = data.take(rows).time - theta[0]
+        target = at_rows(t, rows) - theta[0]
         span = slice(None) if rows is None else _reach(t, B, rate, target)
         lagged = self._delayed(B[span], rate[span], _take(data.field_body_accel, span), t[span], target)
-        return (lagged - data.take(rows).field_body) @ data.R0.T
+        return (lagged - at_rows(B, rows)) @ data.R0.T
 
 
 def _take(a, mask):

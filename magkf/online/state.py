@@ -13,7 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from ..conventions import calibrated_field
-from ..effects.base import Effect, EpochData
+from ..effects.base import Effect, EpochData, at_rows
 from ..effects.core import SoftHardIron
 
 __all__ = ["StateLayout", "CORE_SIZE"]
@@ -129,7 +129,7 @@ class StateLayout:
     def linear_jacobian(self, data: EpochData, rows=None) -> np.ndarray:
         """(N, 3, n) Jacobian of the linear blocks (zero columns for nonlinear ones), evaluated once for each epoch,
         at the epochs ``rows`` of ``data`` (None: all; see ``magkf.effects.base``)."""
-        H = np.zeros((len(data.take(rows)), 3, self.size))
+        H = np.zeros((len(at_rows(data.time, rows)), 3, self.size))
         for effect, sl in self.blocks(include_core=True):
             if effect.linear:  # the Jacobian of a linear effect does not depend on its parameters
                 H[:, :, sl] = effect.jacobian(np.zeros(effect.size), data, rows=rows)
