@@ -245,7 +245,10 @@ def calibrated_field(R, b, m, e=0.0) -> np.ndarray:
 
 # ---------------------------------------------------------------- field angles and heading
 def declination_deg(field_ned) -> np.ndarray:
-    """Magnetic declination (east of true north, degrees) of NED field vectors ``(..., 3)``."""
+    """Magnetic declination (east of true north, degrees) of NED field vectors ``(..., 3)``; a float for one
+    vector (3,) given as an array (real time: in plain floats)."""
+    if isinstance(field_ned, np.ndarray) and field_ned.shape == (3,):
+        return math.degrees(math.atan2(float(field_ned[1]), float(field_ned[0])))
     f = np.asarray(field_ned, dtype=float)
     return np.degrees(np.arctan2(f[..., 1], f[..., 0]))
 

@@ -43,6 +43,20 @@ def _scale_rows(rows, factor) -> None:
         rows.h = rows.h * factor[None, :, None]
 
 
+def _any_of(parts) -> np.ndarray:
+    """The epochs (k,) that any of the ``(model, mask)`` parts takes (the one mask itself for one part)."""
+    out = parts[0][1]
+    for _, mask in parts[1:]:
+        out = out | mask
+    return out
+
+
+def _huber(q: float, nis: np.ndarray) -> np.ndarray:
+    """Huber weights (k,) of epochs of normalised innovation squared ``nis`` (k,): 1 up to the quantile ``q``,
+    ``sqrt(q / nis)`` beyond it."""
+    return np.minimum(1.0, np.sqrt(q / np.maximum(nis, 1e-300)))
+
+
 def correlated_whitening(cov, frame, inflations) -> tuple[np.ndarray, np.ndarray]:
     """The whitening ``W`` (k, 3, 3) of noise of covariance ``cov`` (k, 3, 3) inflated by ``inflations``
     (along the field, ``h``, ``v``) along the rows of ``frame`` (k, 3, 3: the field's direction, the heading
@@ -164,7 +178,7 @@ class Estimator:
         nis = np.empty(k)
         nis.fill(np.nan)  # cheaper than np.full for the one epoch of real time
         parts = self._parts(status)
-        cand = parts[0][1] if len(parts) == 1 else np.logical_or.reduce([mask for _, mask in parts])
+        cand = _any_of(parts)
         if not np.count_nonzero(cand):
             return status, updated, nis
         x = kf.x
@@ -225,13 +239,12 @@ class Estimator:
             # counts 1 / inflation of an independent one (the residuals' correlation in time), along the
             # field and across it apart.
             q = self._bound(self.config.huber_prob, model.rows)
-            huber = np.minimum(1.0, np.sqrt(q / np.maximum(rows.nis, 1e-300)))
             if part.N is not None and model.rows == part.N.shape[1]:  # the correlation is in the whitening
                 if np.any(rows.nis > q):  # else every weight is 1
-                    _scale_rows(rows, np.sqrt(huber))
+                    _scale_rows(rows, np.sqrt(_huber(q, rows.nis)))
             else:
-                _scale_rows(rows, np.sqrt(huber / noise.inflation_along))
-        accept = (parts[0][1] if len(parts) == 1 else np.logical_or.reduce([mask for _, mask in parts])) & ~gated
+                _scale_rows(rows, np.sqrt(_huber(q, rows.nis) / noise.inflation_along))
+        accept = _any_of(parts) & ~gated
         self._reacquire(t, gated, accept)
         status[gated] = GATED_INNOVATION
         if np.count_nonzero(accept):

@@ -22,7 +22,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import FilterConfig
-from ..conventions import ALT, ATTITUDE, DOP, HDOP, LAT, LON, MAG, PDOP, REF, euler_to_dcm, magnetic_heading_deg
+from ..conventions import (
+    ALT,
+    ATTITUDE,
+    DOP,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    PDOP,
+    REF,
+    declination_deg,
+    euler_to_dcm,
+    magnetic_heading_deg,
+)
 from ..effects import restore_effects, stored_effect
 from ..effects.base import EpochData
 from ..errors import InputError
@@ -164,7 +177,7 @@ class OnlineCalibrator:
             field_body=field,
             magnitude_nt=math.hypot(*field.tolist()),
             heading_mag_deg=heading,
-            heading_true_deg=(heading + math.degrees(math.atan2(ref[1], ref[0]))) % 360.0,
+            heading_true_deg=(heading + declination_deg(ref)) % 360.0,
             status=STATUS_NAMES[int(status[0])],
             updated=bool(updated[0]),
             nis=float(nis[0]),
