@@ -38,6 +38,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import stats
 
+from ..blas import one_thread
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import Effect, LinearEffect, restore_effects
@@ -222,6 +223,7 @@ def _learned_noise(run, config: FilterConfig) -> NoiseLevels | None:
     )
 
 
+@one_thread
 @names_the_log
 def diagnose(
     log: DriveLog,

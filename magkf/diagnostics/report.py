@@ -14,6 +14,7 @@ import io
 import numpy as np
 import pandas as pd
 
+from ..blas import one_thread
 from ..config import FilterConfig
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
@@ -490,6 +491,7 @@ def _advice(diag) -> list[str]:
     ]
 
 
+@one_thread
 @names_the_log
 def build_report(
     log: DriveLog,

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from ..blas import one_thread
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import restore_effects
@@ -80,6 +81,7 @@ class Validation:
         return out
 
 
+@one_thread
 @names_the_log
 def validate(
     log: DriveLog,

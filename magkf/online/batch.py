@@ -61,6 +61,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
+from ..blas import one_thread
 from ..config import FilterConfig
 from ..conventions import inverse3
 from ..effects.core import core_jacobian
@@ -337,6 +338,7 @@ def batch_problem(
     return problem
 
 
+@one_thread
 @names_the_log
 def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()):
     """Batch calibration of ``log``; returns a ``CalibrationRun`` (states constant over the log). A pass of

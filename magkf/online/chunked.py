@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..blas import one_thread
 from ..config import FilterConfig
 from ..conventions import MAG, TIME
 from ..errors import InputError
@@ -392,6 +393,7 @@ def _select(positions: np.ndarray, first: int, local: np.ndarray) -> np.ndarray:
     return local[positions[a:b] - first]
 
 
+@one_thread
 def calibrate_file(
     path,
     config: FilterConfig = FilterConfig(),

@@ -15,6 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..blas import one_thread
 from ..config import FilterConfig
 from ..errors import InputError, names_the_log
 from ..io.calibration import Calibration
@@ -29,6 +30,7 @@ from .smoother import rts_smooth
 __all__ = ["calibrate_log", "ForwardPass", "blocks", "terminal_progress"]
 
 
+@one_thread
 @names_the_log
 def calibrate_log(
     log: DriveLog,
