@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import stats
 
 from ..config import FilterConfig
 from ..conventions import body_to_ned
@@ -63,7 +62,16 @@ from .fitting import (
     inliers,
     span_coefficients,
 )
-from .inference import HeldOut, constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, score_test
+from .inference import (
+    HeldOut,
+    constancy_test,
+    f_sf,
+    fold_edges,
+    held_out_residual,
+    high_passed,
+    integrated_time,
+    score_test,
+)
 
 __all__ = [
     "BINS",
@@ -726,7 +734,7 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
             between = float(np.sum(sizes * (means - x.mean()) ** 2))
             with np.errstate(divide="ignore", invalid="ignore"):
                 f = (between / (k - 1)) / (float(np.sum(within)) / (total - k))
-            p = float(stats.f.sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
+            p = float(f_sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
             # a bin's mean varies tau times more than that of independent epochs
             half = 1.96 * np.sqrt(within / (sizes - 1)) * np.sqrt(max(tau, 1.0) / sizes)
             binned[name][comp] = {"centre": centres.tolist(), "mean": means.tolist(), "ci95": half.tolist()}
