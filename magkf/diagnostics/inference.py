@@ -92,26 +92,45 @@ def f_sf(F, dof: float, dof_denominator: float):
     return special.fdtrc(dof, dof_denominator, np.maximum(F, 0.0))
 
 
+#: Lags of the autocorrelation that ``integrated_time`` sums directly before it turns to the FFT: Sokal's window
+#: ends within them when the correlation time is below ``SHORT_LAGS / SOKAL_C`` epochs.
+SHORT_LAGS = 32
+
+
 def integrated_time(x: np.ndarray) -> float:
     """Integrated autocorrelation time (epochs, 1 for white) of a series (n,) or the largest over the
-    columns of (n, k): ``1 + 2 sum rho(l)`` up to Sokal's window, from the FFT autocorrelation (a column at a
-    time: the zero-padded transform of all of them at once would hold several times their size)."""
+    columns of (n, k): ``1 + 2 sum rho(l)`` up to Sokal's window, a column at a time. The autocorrelation is
+    summed lag by lag up to ``SHORT_LAGS`` (a few products of n, where the window of a nearly white series
+    ends), else taken from the FFT (the zero-padded transform of all columns at once would hold several
+    times their size); the window found within the first lags is the same either way."""
     x = np.asarray(x, float).reshape(len(x), -1)
     n = len(x)
     if n < 8:
         return 1.0
-    size = fft.next_fast_len(2 * n)
-    lags = np.arange(1, n)
     out = 1.0
     for column in x.T:
         column = column - column.mean()
-        acf = fft.irfft(np.abs(fft.rfft(column, n=size)) ** 2)[:n]
-        if not acf[0] > 0:
+        variance = column @ column
+        if not variance > 0:
             continue
-        taus = 1.0 + 2.0 * np.cumsum(acf[1:] / acf[0])  # tau(M) for M = 1 ..
-        window = np.flatnonzero(lags >= SOKAL_C * taus)
-        out = max(out, float(taus[window[0]] if window.size else taus[-1]))
+        short = min(SHORT_LAGS, n - 1)
+        acf = np.array([variance] + [column[:-lag] @ column[lag:] for lag in range(1, short + 1)])
+        tau = _sokal(acf, more=short < n - 1)
+        if tau is None:  # the window lies further out
+            tau = _sokal(fft.irfft(np.abs(fft.rfft(column, n=fft.next_fast_len(2 * n))) ** 2)[:n])
+        out = max(out, tau)
     return out
+
+
+def _sokal(acf: np.ndarray, more: bool = False) -> float | None:
+    """``tau(M) = 1 + 2 sum_{l <= M} acf[l] / acf[0]`` at the first lag ``M >= SOKAL_C tau(M)`` of the
+    autocovariance ``acf`` (lags 0 .., ``acf[0] > 0``); when no lag of ``acf`` reaches it, None if the series
+    has ``more`` lags, else ``tau`` at the last."""
+    taus = 1.0 + 2.0 * np.cumsum(acf[1:] / acf[0])  # tau(M) for M = 1 ..
+    window = np.flatnonzero(np.arange(1, len(acf)) >= SOKAL_C * taus)
+    if window.size:
+        return float(taus[window[0]])
+    return None if more else float(taus[-1])
 
 
 def _angle(r: np.ndarray, n: int) -> np.ndarray:

@@ -2,9 +2,17 @@
 
 import numpy as np
 import pytest
-from scipy import fft, special, stats
+from scipy import fft, signal, special, stats
 
-from magkf.diagnostics.inference import CONSTANCY_TERMS, dct_head, f_sf, high_passed
+from magkf.diagnostics.inference import (
+    CONSTANCY_TERMS,
+    SHORT_LAGS,
+    SOKAL_C,
+    dct_head,
+    f_sf,
+    high_passed,
+    integrated_time,
+)
 
 
 def test_f_sf_is_scipy_stats_f_sf():
@@ -57,3 +65,31 @@ def test_high_passed_is_the_transform_with_its_lowest_coefficients_zeroed(n):
     expected = fft.idct(c, type=2, axis=0)
     got = high_passed(x)
     assert np.max(np.abs(got - expected) / np.linalg.norm(x, axis=0)) < _fft_rounding(n)
+
+
+def _integrated_time_by_fft(x):
+    """Sokal's integrated time of each column from the whole FFT autocorrelation (the reference)."""
+    out = 1.0
+    for column in x.T:
+        column = column - column.mean()
+        acf = fft.irfft(np.abs(fft.rfft(column, n=2 * len(column))) ** 2)[: len(column)]
+        taus = 1.0 + 2.0 * np.cumsum(acf[1:] / acf[0])
+        window = np.flatnonzero(np.arange(1, len(column)) >= SOKAL_C * taus)
+        out = max(out, taus[window[0]] if window.size else taus[-1])
+    return out
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.5, 0.8, 0.97])
+def test_integrated_time_from_the_first_lags_is_that_of_the_whole_autocorrelation(phi):
+    """AR(1) series whose Sokal window ends within ``SHORT_LAGS`` (white, phi 0.5: tau 3) and beyond it
+    (phi 0.8: tau 9, 0.97: tau 66): the same integrated time as from the whole FFT autocorrelation, within
+    rounding; and near the AR(1) value ``(1 + phi) / (1 - phi)`` (within 5 standard errors of Sokal's,
+    ``tau sqrt(2 (2M + 1) / n)``)."""
+    rng = np.random.default_rng(11)
+    n = 200_000
+    x = signal.lfilter([1.0], [1.0, -phi], rng.normal(size=(n, 2)), axis=0)
+    tau = integrated_time(x)
+    assert tau == pytest.approx(_integrated_time_by_fft(x), rel=1e-12)
+    truth = (1 + phi) / (1 - phi)
+    assert abs(tau - truth) < 5 * truth * np.sqrt(2 * (2 * SOKAL_C * truth + 1) / n)
+    assert (SOKAL_C * truth < SHORT_LAGS) == (phi <= 0.5)
