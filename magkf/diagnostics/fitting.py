@@ -237,9 +237,17 @@ class Linearised:
 
     def whitened(self, G: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Regressors ``G`` (m, 3, q) of the epochs ``start`` to ``stop`` (default: all; the edges of
-        ``chunks``) whitened, less the heading wander when it is modelled: (3m, q)."""
+        ``chunks``) whitened, less the heading wander when it is modelled: (3m, q). Columns that are zero over
+        the epochs stay zero (both steps are linear) and are not computed: most of a slow drift's hat
+        functions in time are zero over a chunk."""
         stop = len(self.W) if stop is None else stop
-        Gw = (self.W[start:stop] @ G).reshape(3 * (stop - start), -1)
+        m = stop - start
+        used = np.flatnonzero(np.any(G != 0.0, axis=(0, 1)))
+        if len(used) < G.shape[2]:
+            out = np.zeros((3 * m, G.shape[2]))
+            out[:, used] = self.whitened(G[:, :, used], start, stop)
+            return out
+        Gw = (self.W[start:stop] @ G).reshape(3 * m, -1)
         return Gw if self.wander is None else self.wander.remove(Gw, start, stop)
 
     def rows(self, start: int, stop: int) -> np.ndarray:
