@@ -496,7 +496,7 @@ class _Selection:
             whitened = lambda a, b: kept[3 * a : 3 * b]  # noqa: E731
 
         def rows(a, b):
-            return np.hstack([fit.rows(a, b), whitened(a, b)])
+            return fit.rows(a, b), whitened(a, b)
 
         return self._evaluate(effect, rows, fit.layout.size, fit.span, names, fit, fit)
 
@@ -512,17 +512,22 @@ class _Selection:
         p = fit.layout.size
         keep = None if block.size <= KEEP_COLUMNS else p  # a small block's columns kept too, as in ``trial``
         with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]), keep=keep)
+
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual
-        trial = self._evaluate(effect, with_it.rows, p, None, block.parameter_names, fit, with_it)
+        def rows(a, b):
+            X = with_it.rows(a, b)
+            return X[:, :p], X[:, p:]
+
+        trial = self._evaluate(effect, rows, p, None, block.parameter_names, fit, with_it)
         return trial, with_it
 
     def _evaluate(self, effect, rows, p, span, names, null: Linearised, model: Linearised) -> _Trial:
-        """The test of whitened regressors added to a model, from ``rows(a, b)`` (3 (b - a), p + q: those of
-        epochs ``a`` to ``b``, one chunk of ``model.chunks``): the model's whitened Jacobian ``A`` in the first
-        ``p`` columns, with orthonormal basis ``A @ span`` of its span (None: found here), then the
-        regressors; all whitened at ``model``, for ``model``'s reading ``y``; a wandering effect's constancy
-        test at the model ``null`` without it.
+        """The test of whitened regressors added to a model, from ``rows(a, b)``, the rows of epochs ``a`` to
+        ``b`` (one chunk of ``model.chunks``) of the model's whitened Jacobian ``A`` (3 (b - a), p), with
+        orthonormal basis ``A @ span`` of its span (None: found here), and of the regressors (3 (b - a), q);
+        all whitened at ``model``, for ``model``'s reading ``y``; a wandering effect's constancy test at the
+        model ``null`` without it.
 
         The rows are made a chunk at a time, twice: once for their normal equations per held-out block, from
         which the model's span, what it leaves of ``y``, the regressors' part outside it and its SVD follow,
@@ -534,7 +539,7 @@ class _Selection:
             held.add(rows(a, b), a, b)
         normal, c = held.normal, sum(held.c)
         if span is None:
-            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[:, :p] for a, b in chunks), len(y))
+            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[0] for a, b in chunks), len(y))
         fitted = span @ (span.T @ c[:p])  # the model's least-squares coefficients: r = y - A fitted
         moment = c[p:] - normal[p:, :p] @ fitted  # the regressors' products with r
         gram, cross = normal[p:, p:], normal[:p, p:]
@@ -546,8 +551,8 @@ class _Selection:
 
         def part(a, b, X=None):
             """Normalised regressors of epochs ``a`` to ``b`` less their part in the model's span (3 (b - a), q)."""
-            X = rows(a, b) if X is None else X
-            return X[:, p:] / norms - X[:, :p] @ proj
+            A, G = rows(a, b) if X is None else X
+            return G / norms - A @ proj
 
         s, vt = gram_svd(outside, lambda: (part(a, b) for a, b in chunks), len(y))
         rank = int(np.sum(s > RANK_TOLERANCE))
@@ -562,7 +567,7 @@ class _Selection:
         for a, b in chunks:
             X = rows(a, b)
             U = part(a, b, X) @ to_u
-            e = y[3 * a : 3 * b] - X[:, :p] @ fitted - U @ theta
+            e = y[3 * a : 3 * b] - X[0] @ fitted - U @ theta
             in_sample[3 * a : 3 * b] = e
             if scores is not None:
                 scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))

@@ -361,11 +361,18 @@ class HeldOut:
             if hi > lo:
                 yield f, slice(3 * (lo - a), 3 * (hi - a)), slice(3 * lo, 3 * hi)
 
-    def add(self, X: np.ndarray, a: int, b: int) -> None:
-        """The regressors ``X`` (3 (b - a), p) of epochs ``a`` to ``b``."""
+    def add(self, X, a: int, b: int) -> None:
+        """The regressors ``X`` (3 (b - a), p) of epochs ``a`` to ``b``, or a tuple of blocks of their columns
+        side by side (the products taken block by block, without copying them into one array)."""
+        blocks = X if isinstance(X, tuple) else (X,)
         for f, rows, sl in self.pieces(a, b):
-            Xf, yf = X[rows], self.y[sl]
-            self.N[f], self.c[f], self.yy[f] = self.N[f] + Xf.T @ Xf, self.c[f] + Xf.T @ yf, self.yy[f] + yf @ yf
+            parts, yf = [B[rows] for B in blocks], self.y[sl]
+            upper = {(i, j): parts[i].T @ parts[j] for i in range(len(parts)) for j in range(i, len(parts))}
+            N = np.block(
+                [[upper[i, j] if i <= j else upper[j, i].T for j in range(len(parts))] for i in range(len(parts))]
+            )
+            c = np.concatenate([P.T @ yf for P in parts])
+            self.N[f], self.c[f], self.yy[f] = self.N[f] + N, self.c[f] + c, self.yy[f] + yf @ yf
 
     @property
     def normal(self) -> np.ndarray:
@@ -400,11 +407,14 @@ class HeldOut:
         ]
         return trials[int(np.argmin(squares))]
 
-    def residual(self, X: np.ndarray, a: int, b: int, beta: list) -> np.ndarray:
-        """The held-out residual (3 (b - a),) of epochs ``a`` to ``b`` of regressors ``X``, from ``coefficients``."""
-        out = np.empty(X.shape[0])
+    def residual(self, X, a: int, b: int, beta: list) -> np.ndarray:
+        """The held-out residual (3 (b - a),) of epochs ``a`` to ``b`` of regressors ``X`` (as in ``add``), from
+        ``coefficients``."""
+        blocks = X if isinstance(X, tuple) else (X,)
+        cuts = np.cumsum([0] + [B.shape[1] for B in blocks])
+        out = np.empty(3 * (b - a))
         for f, rows, sl in self.pieces(a, b):
-            out[rows] = self.y[sl] - X[rows] @ beta[f]
+            out[rows] = self.y[sl] - sum(B[rows] @ beta[f][i:j] for B, i, j in zip(blocks, cuts[:-1], cuts[1:]))
         return out
 
 
