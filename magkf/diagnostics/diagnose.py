@@ -260,10 +260,10 @@ def diagnose(
     stored = list(restore_effects(cal, registry)) if cal is not None else []
     effects = list(effects)
     adds = [e for e in effects if e.label not in {s.label for s in stored}]
+    prep = prepare(log, config)
     if run is None and (cal is None or adds):
         say("calibrating")
-        run = calibrate_log(log, config, init=cal, effects=effects or stored)
-    prep = prepare(log, config)
+        run = calibrate_log(log, config, init=cal, effects=effects or stored, prepared=prep)
     if run is not None:
         x = run.x
         layout = StateLayout.with_core(effects or stored)
