@@ -53,6 +53,7 @@ from ..status import Status
 from .fitting import (
     CHUNK,
     OUTLIER_SIGMA,
+    SPARSE_COLUMNS,
     WANDER_BLOCK_S,
     EpochSet,
     Linearised,
@@ -459,6 +460,28 @@ def _determined_part(effect, gram, rows, n_rows, value, cov):
     return mean + keep @ (value - mean), keep @ cov @ keep.T, len(spread) - k
 
 
+def _kept_sparse(whitened, chunks, q: int):
+    """Whitened regressors ``whitened(a, b)`` (3 (b - a), q) of each chunk ``(a, b)`` of ``chunks`` made once and
+    kept as their columns that are not zero over the chunk, when there are at most ``KEEP_COLUMNS`` times three
+    of those in every chunk (a slow drift's hat functions in time: up to three knots on three axes): the same
+    function, reading them back; else None (they are made again at each pass)."""
+    kept = {}
+    for a, b in chunks:
+        X = whitened(a, b)
+        used = np.flatnonzero(np.any(X != 0.0, axis=0))
+        if len(used) > 3 * KEEP_COLUMNS:
+            return None
+        kept[a] = (used, X[:, used])
+
+    def read(a, b):
+        used, values = kept[a]
+        out = np.zeros((3 * (b - a), q))
+        out[:, used] = values
+        return out
+
+    return read
+
+
 class _AsTested(LinearEffect):
     """An effect whose diagnostic regressors are not its Jacobian (a slow drift, whose Jacobian is the
     offset itself) as the linear block of those regressors, so that it can be refitted and kept in the model
@@ -494,6 +517,8 @@ class _Selection:
             for a, b in fit.chunks:
                 kept[3 * a : 3 * b] = whitened(a, b)
             whitened = lambda a, b: kept[3 * a : 3 * b]  # noqa: E731
+        elif q >= SPARSE_COLUMNS:
+            whitened = _kept_sparse(whitened, fit.chunks, q) or whitened
 
         def rows(a, b):
             return fit.rows(a, b), whitened(a, b)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy import fft, signal, special, stats
 
+from magkf.diagnostics.fitting import SPARSE_COLUMNS, HeadingWander, Linearised
 from magkf.diagnostics.inference import (
     CONSTANCY_TERMS,
     SHORT_LAGS,
@@ -93,3 +94,22 @@ def test_integrated_time_from_the_first_lags_is_that_of_the_whole_autocorrelatio
     truth = (1 + phi) / (1 - phi)
     assert abs(tau - truth) < 5 * truth * np.sqrt(2 * (2 * SOKAL_C * truth + 1) / n)
     assert (SOKAL_C * truth < SHORT_LAGS) == (phi <= 0.5)
+
+
+def test_whitened_leaves_zero_columns_zero_and_the_others_as_made_in_full():
+    """``Linearised.whitened`` of a wide block whose columns are mostly zero over the epochs (a drift's hat
+    functions) computes only the others: exactly the values of the whole block whitened and taken off the
+    heading wander, with and without the wander."""
+    rng = np.random.default_rng(5)
+    n, q = 1200, SPARSE_COLUMNS + 3
+    t = np.arange(n) * 0.05
+    W = rng.normal(size=(n, 3, 3))
+    G = np.zeros((n, 3, q))
+    G[:, :, [1, 4, 5]] = rng.normal(size=(n, 3, 3))
+    for wander in (None, HeadingWander(rng.normal(size=(n, 3)), t, 10.0)):
+        fit = Linearised(None, None, None, W, np.zeros((3 * n, 0)), None, None, None, None, wander)
+        dense = (W @ G).reshape(3 * n, q)
+        dense = dense if wander is None else wander.remove(dense)
+        got = fit.whitened(G)
+        assert np.array_equal(got, dense)
+        assert not got[:, [0, 2, 3]].any()
