@@ -366,11 +366,10 @@ class HeldOut:
         side by side (the products taken block by block, without copying them into one array)."""
         blocks = X if isinstance(X, tuple) else (X,)
         for f, rows, sl in self.pieces(a, b):
-            parts, yf = [B[rows] for B in blocks], self.y[sl]
-            upper = {(i, j): parts[i].T @ parts[j] for i in range(len(parts)) for j in range(i, len(parts))}
-            N = np.block(
-                [[upper[i, j] if i <= j else upper[j, i].T for j in range(len(parts))] for i in range(len(parts))]
-            )
+            parts, yf, k = [B[rows] for B in blocks], self.y[sl], range(len(blocks))
+            upper = {(i, j): parts[i].T @ parts[j] for i in k for j in k if i <= j}
+            # the lower blocks the upper ones transposed: N exactly symmetric, as X^T X is
+            N = np.block([[upper[i, j] if i <= j else upper[j, i].T for j in k] for i in k])
             c = np.concatenate([P.T @ yf for P in parts])
             self.N[f], self.c[f], self.yy[f] = self.N[f] + N, self.c[f] + c, self.yy[f] + yf @ yf
 
