@@ -369,24 +369,28 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     regressors, one least-squares fit of the columns scaled to unit norm, directions below ``1e-9`` of the
     largest singular value left out, as LAPACK's ``lstsq`` with that ``rcond``), the regressors made and
     reduced a chunk at a time (``gram_svd``: nested candidates, a time lag in the eddy-current terms, make the
-    columns dependent)."""
+    columns dependent). The rows are the model's and each candidate's blocks of columns, reduced block by
+    block (``HeldOut`` over a single block of the whole log) without being copied side by side, except for
+    the pass that ``gram_svd`` may make."""
 
     def rows(a, b):
         regressors = (finite_regressors(effect, fit.data, slice(a, b)) for effect in pool)
-        return np.hstack([fit.rows(a, b), *(fit.whitened(G, a, b) for G in regressors)])
+        return (fit.rows(a, b), *(fit.whitened(G, a, b) for G in regressors))
 
-    gram, moment = 0.0, 0.0
+    whole = HeldOut(fit.y, np.array([0, len(fit.y) // 3]))
     for a, b in fit.chunks:
-        X = rows(a, b)
-        gram, moment = gram + X.T @ X, moment + X.T @ fit.y[3 * a : 3 * b]
+        whole.add(rows(a, b), a, b)
+    gram, moment = whole.N[0], whole.c[0]
     norms = np.maximum(np.sqrt(np.diag(gram)), 1e-300)
-    s, vt = gram_svd(gram / np.outer(norms, norms), lambda: (rows(a, b) / norms for a, b in fit.chunks), len(fit.y))
+    s, vt = gram_svd(
+        gram / np.outer(norms, norms), lambda: (np.hstack(rows(a, b)) / norms for a, b in fit.chunks), len(fit.y)
+    )
     keep = s > 1e-9 * s[0]
     # X = U S V^T: the least-squares coefficients V S^-2 V^T X^T y over the directions kept
     beta = (vt[keep].T @ ((vt[keep] @ (moment / norms)) / s[keep] ** 2)) / norms
     out = np.empty_like(fit.y)
     for a, b in fit.chunks:
-        out[3 * a : 3 * b] = fit.y[3 * a : 3 * b] - rows(a, b) @ beta
+        out[3 * a : 3 * b] = whole.residual(rows(a, b), a, b, [beta])
     return out.reshape(-1, 3)
 
 
