@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import stats
 
 from ..blas import one_thread
 from ..config import FilterConfig
@@ -55,6 +54,7 @@ from ..status import Status
 from .fitting import (
     CHUNK,
     OUTLIER_SIGMA,
+    SPARSE_COLUMNS,
     WANDER_BLOCK_S,
     EpochSet,
     Linearised,
@@ -64,7 +64,16 @@ from .fitting import (
     inliers,
     span_coefficients,
 )
-from .inference import HeldOut, constancy_test, fold_edges, held_out_residual, high_passed, integrated_time, score_test
+from .inference import (
+    HeldOut,
+    constancy_test,
+    f_sf,
+    fold_edges,
+    held_out_residual,
+    high_passed,
+    integrated_time,
+    score_test,
+)
 
 __all__ = [
     "BINS",
@@ -254,10 +263,10 @@ def diagnose(
     stored = list(restore_effects(cal, registry)) if cal is not None else []
     effects = list(effects)
     adds = [e for e in effects if e.label not in {s.label for s in stored}]
+    prep = prepare(log, config)
     if run is None and (cal is None or adds):
         say("calibrating")
-        run = calibrate_log(log, config, init=cal, effects=effects or stored)
-    prep = prepare(log, config)
+        run = calibrate_log(log, config, init=cal, effects=effects or stored, prepared=prep)
     if run is not None:
         x = run.x
         layout = StateLayout.with_core(effects or stored)
@@ -362,24 +371,28 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     regressors, one least-squares fit of the columns scaled to unit norm, directions below ``1e-9`` of the
     largest singular value left out, as LAPACK's ``lstsq`` with that ``rcond``), the regressors made and
     reduced a chunk at a time (``gram_svd``: nested candidates, a time lag in the eddy-current terms, make the
-    columns dependent)."""
+    columns dependent). The rows are the model's and each candidate's blocks of columns, reduced block by
+    block (``HeldOut`` over a single block of the whole log) without being copied side by side, except for
+    the pass that ``gram_svd`` may make."""
 
     def rows(a, b):
         regressors = (finite_regressors(effect, fit.data, slice(a, b)) for effect in pool)
-        return np.hstack([fit.rows(a, b), *(fit.whitened(G, a, b) for G in regressors)])
+        return (fit.rows(a, b), *(fit.whitened(G, a, b) for G in regressors))
 
-    gram, moment = 0.0, 0.0
+    whole = HeldOut(fit.y, np.array([0, len(fit.y) // 3]))
     for a, b in fit.chunks:
-        X = rows(a, b)
-        gram, moment = gram + X.T @ X, moment + X.T @ fit.y[3 * a : 3 * b]
+        whole.add(rows(a, b), a, b)
+    gram, moment = whole.N[0], whole.c[0]
     norms = np.maximum(np.sqrt(np.diag(gram)), 1e-300)
-    s, vt = gram_svd(gram / np.outer(norms, norms), lambda: (rows(a, b) / norms for a, b in fit.chunks), len(fit.y))
+    s, vt = gram_svd(
+        gram / np.outer(norms, norms), lambda: (np.hstack(rows(a, b)) / norms for a, b in fit.chunks), len(fit.y)
+    )
     keep = s > 1e-9 * s[0]
     # X = U S V^T: the least-squares coefficients V S^-2 V^T X^T y over the directions kept
     beta = (vt[keep].T @ ((vt[keep] @ (moment / norms)) / s[keep] ** 2)) / norms
     out = np.empty_like(fit.y)
     for a, b in fit.chunks:
-        out[3 * a : 3 * b] = fit.y[3 * a : 3 * b] - rows(a, b) @ beta
+        out[3 * a : 3 * b] = whole.residual(rows(a, b), a, b, [beta])
     return out.reshape(-1, 3)
 
 
@@ -453,6 +466,28 @@ def _determined_part(effect, gram, rows, n_rows, value, cov):
     return mean + keep @ (value - mean), keep @ cov @ keep.T, len(spread) - k
 
 
+def _kept_sparse(whitened, chunks, q: int):
+    """Whitened regressors ``whitened(a, b)`` (3 (b - a), q) of each chunk ``(a, b)`` of ``chunks`` made once and
+    kept as their columns that are not zero over the chunk, when there are at most ``KEEP_COLUMNS`` times three
+    of those in every chunk (a slow drift's hat functions in time: up to three knots on three axes): the same
+    function, reading them back; else None (they are made again at each pass)."""
+    kept = {}
+    for a, b in chunks:
+        X = whitened(a, b)
+        used = np.flatnonzero(np.any(X != 0.0, axis=0))
+        if len(used) > 3 * KEEP_COLUMNS:
+            return None
+        kept[a] = (used, X[:, used])
+
+    def read(a, b):
+        used, values = kept[a]
+        out = np.zeros((3 * (b - a), q))
+        out[:, used] = values
+        return out
+
+    return read
+
+
 class _AsTested(LinearEffect):
     """An effect whose diagnostic regressors are not its Jacobian (a slow drift, whose Jacobian is the
     offset itself) as the linear block of those regressors, so that it can be refitted and kept in the model
@@ -488,9 +523,11 @@ class _Selection:
             for a, b in fit.chunks:
                 kept[3 * a : 3 * b] = whitened(a, b)
             whitened = lambda a, b: kept[3 * a : 3 * b]  # noqa: E731
+        elif q >= SPARSE_COLUMNS:
+            whitened = _kept_sparse(whitened, fit.chunks, q) or whitened
 
         def rows(a, b):
-            return np.hstack([fit.rows(a, b), whitened(a, b)])
+            return fit.rows(a, b), whitened(a, b)
 
         return self._evaluate(effect, rows, fit.layout.size, fit.span, names, fit, fit)
 
@@ -506,17 +543,22 @@ class _Selection:
         p = fit.layout.size
         keep = None if block.size <= KEEP_COLUMNS else p  # a small block's columns kept too, as in ``trial``
         with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]), keep=keep)
+
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual
-        trial = self._evaluate(effect, with_it.rows, p, None, block.parameter_names, fit, with_it)
+        def rows(a, b):
+            X = with_it.rows(a, b)
+            return X[:, :p], X[:, p:]
+
+        trial = self._evaluate(effect, rows, p, None, block.parameter_names, fit, with_it)
         return trial, with_it
 
     def _evaluate(self, effect, rows, p, span, names, null: Linearised, model: Linearised) -> _Trial:
-        """The test of whitened regressors added to a model, from ``rows(a, b)`` (3 (b - a), p + q: those of
-        epochs ``a`` to ``b``, one chunk of ``model.chunks``): the model's whitened Jacobian ``A`` in the first
-        ``p`` columns, with orthonormal basis ``A @ span`` of its span (None: found here), then the
-        regressors; all whitened at ``model``, for ``model``'s reading ``y``; a wandering effect's constancy
-        test at the model ``null`` without it.
+        """The test of whitened regressors added to a model, from ``rows(a, b)``, the rows of epochs ``a`` to
+        ``b`` (one chunk of ``model.chunks``) of the model's whitened Jacobian ``A`` (3 (b - a), p), with
+        orthonormal basis ``A @ span`` of its span (None: found here), and of the regressors (3 (b - a), q);
+        all whitened at ``model``, for ``model``'s reading ``y``; a wandering effect's constancy test at the
+        model ``null`` without it.
 
         The rows are made a chunk at a time, twice: once for their normal equations per held-out block, from
         which the model's span, what it leaves of ``y``, the regressors' part outside it and its SVD follow,
@@ -528,7 +570,7 @@ class _Selection:
             held.add(rows(a, b), a, b)
         normal, c = held.normal, sum(held.c)
         if span is None:
-            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[:, :p] for a, b in chunks), len(y))
+            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[0] for a, b in chunks), len(y))
         fitted = span @ (span.T @ c[:p])  # the model's least-squares coefficients: r = y - A fitted
         moment = c[p:] - normal[p:, :p] @ fitted  # the regressors' products with r
         gram, cross = normal[p:, p:], normal[:p, p:]
@@ -540,8 +582,8 @@ class _Selection:
 
         def part(a, b, X=None):
             """Normalised regressors of epochs ``a`` to ``b`` less their part in the model's span (3 (b - a), q)."""
-            X = rows(a, b) if X is None else X
-            return X[:, p:] / norms - X[:, :p] @ proj
+            A, G = rows(a, b) if X is None else X
+            return G / norms - A @ proj
 
         s, vt = gram_svd(outside, lambda: (part(a, b) for a, b in chunks), len(y))
         rank = int(np.sum(s > RANK_TOLERANCE))
@@ -556,7 +598,7 @@ class _Selection:
         for a, b in chunks:
             X = rows(a, b)
             U = part(a, b, X) @ to_u
-            e = y[3 * a : 3 * b] - X[:, :p] @ fitted - U @ theta
+            e = y[3 * a : 3 * b] - X[0] @ fitted - U @ theta
             in_sample[3 * a : 3 * b] = e
             if scores is not None:
                 scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
@@ -728,7 +770,7 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
             between = float(np.sum(sizes * (means - x.mean()) ** 2))
             with np.errstate(divide="ignore", invalid="ignore"):
                 f = (between / (k - 1)) / (float(np.sum(within)) / (total - k))
-            p = float(stats.f.sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
+            p = float(f_sf(f / max(tau, 1.0), k - 1, max((total - k) / max(tau, 1.0), 1.0)))
             # a bin's mean varies tau times more than that of independent epochs
             half = 1.96 * np.sqrt(within / (sizes - 1)) * np.sqrt(max(tau, 1.0) / sizes)
             binned[name][comp] = {"centre": centres.tolist(), "mean": means.tolist(), "ci95": half.tolist()}

@@ -49,6 +49,9 @@ OUTLIER_SIGMA = 5.0
 #: Epochs per chunk of a pass over the diagnosed epochs (cut where a stretch of the heading wander starts):
 #: a candidate's whitened regressors are made and reduced a chunk at a time, never held for the whole log.
 CHUNK = 8192
+#: A block of whitened regressors with at least this many columns is first checked for columns that are zero
+#: over the chunk (``Linearised.whitened``): a check that costs more than it saves on a few columns.
+SPARSE_COLUMNS = 12
 
 
 def span_coefficients(gram: np.ndarray, rows, n_rows: int) -> np.ndarray:
@@ -237,9 +240,17 @@ class Linearised:
 
     def whitened(self, G: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Regressors ``G`` (m, 3, q) of the epochs ``start`` to ``stop`` (default: all; the edges of
-        ``chunks``) whitened, less the heading wander when it is modelled: (3m, q)."""
+        ``chunks``) whitened, less the heading wander when it is modelled: (3m, q). In a block of at least
+        ``SPARSE_COLUMNS`` columns, those zero over the epochs stay zero (both steps are linear) and are not
+        computed: most of a slow drift's hat functions in time are zero over a chunk."""
         stop = len(self.W) if stop is None else stop
-        Gw = (self.W[start:stop] @ G).reshape(3 * (stop - start), -1)
+        m = stop - start
+        used = np.flatnonzero(np.any(G != 0.0, axis=(0, 1))) if G.shape[2] >= SPARSE_COLUMNS else ()
+        if 0 < len(used) < G.shape[2]:
+            out = np.zeros((3 * m, G.shape[2]))
+            out[:, used] = self.whitened(G[:, :, used], start, stop)
+            return out
+        Gw = (self.W[start:stop] @ G).reshape(3 * m, -1)
         return Gw if self.wander is None else self.wander.remove(Gw, start, stop)
 
     def rows(self, start: int, stop: int) -> np.ndarray:

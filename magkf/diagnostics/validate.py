@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from ..blas import one_thread
 from ..config import FilterConfig
@@ -172,8 +172,9 @@ def _check(label, with_w, without_w, with_ned, without_ned, edges, alpha) -> Eff
     k = len(d)
     sd = float(np.std(d, ddof=1)) if k > 1 else 0.0
     t = float(np.mean(d) / (sd / np.sqrt(k))) if sd > 0 else 0.0
-    p_helps = float(stats.t.sf(t, k - 1)) if k > 1 else 1.0
-    p_hurts = float(stats.t.cdf(t, k - 1)) if k > 1 else 1.0
+    # Student's t with k - 1 dof (scipy.stats.t.sf and .cdf are these, without that module's import time)
+    p_helps = float(special.stdtr(k - 1, -t)) if k > 1 else 1.0
+    p_hurts = float(special.stdtr(k - 1, t)) if k > 1 else 1.0
     w, wo = _rms(with_ned), _rms(without_ned)
     if p_helps < alpha:
         verdict = "helps beyond chance"

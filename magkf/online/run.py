@@ -23,7 +23,15 @@ from ..io.drivelog import DriveLog
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
 from .noise import ESTIMATE_EVERY_S
-from .prepare import deflate_bootstrap, initial_state, mark_missing_columns, prepare, start_noise, without_rates
+from .prepare import (
+    PreparedLog,
+    deflate_bootstrap,
+    initial_state,
+    mark_missing_columns,
+    prepare,
+    start_noise,
+    without_rates,
+)
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
@@ -40,6 +48,7 @@ def calibrate_log(
     smooth: bool = False,
     progress=None,
     phases=NO_PHASES,
+    prepared: PreparedLog | None = None,
 ) -> CalibrationRun:
     """Run the online calibration over a log.
 
@@ -47,11 +56,12 @@ def calibrate_log(
     ``Effect`` blocks; ``smooth`` adds a Rauch-Tung-Striebel pass; ``progress(fraction)`` is called now
     and then. Epochs are processed in blocks of ``config.block_s`` seconds; the per-epoch estimates are
     those after each epoch's block. ``phases`` (a ``magkf.timing.Phases``) is told the time of each phase.
+    ``prepared``: ``prepare(log, config)`` when the caller has made it already (it is not changed).
     Returns an immutable ``CalibrationRun``.
     """
     started = _time.perf_counter()
     with phases("reference field and attitude"):
-        prep = prepare(log, config)
+        prep = prepare(log, config) if prepared is None else prepared
     with phases("start (bootstrap, noise)"):
         base = mark_missing_columns(prep, effects, log.source)
         try:

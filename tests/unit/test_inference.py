@@ -1,0 +1,116 @@
+"""The diagnosis's statistical helpers against the scipy functions they stand in for (seeded)."""
+
+import numpy as np
+import pytest
+from scipy import fft, signal, special, stats
+
+from magkf.diagnostics.fitting import SPARSE_COLUMNS, HeadingWander, Linearised
+from magkf.diagnostics.inference import (
+    CONSTANCY_TERMS,
+    SHORT_LAGS,
+    SOKAL_C,
+    dct_head,
+    f_sf,
+    high_passed,
+    integrated_time,
+)
+
+
+def test_f_sf_is_scipy_stats_f_sf():
+    """``f_sf`` gives ``scipy.stats.f.sf``'s values over statistics from below 0 to far in the tail, integer
+    and fractional degrees of freedom (as the binned analysis of variance uses), and at inf and nan; the t
+    distribution's sf and cdf used by the validation are ``special.stdtr`` likewise."""
+    rng = np.random.default_rng(3)
+    F = np.r_[-1.0, 0.0, rng.uniform(0.0, 5.0, 40), 50.0, 1e3, np.inf, np.nan]
+    for dof, den in [(1, 1990), (3, 1988), (9, 1982), (11, 0.7), (11, 3512.4)]:
+        np.testing.assert_allclose(f_sf(F, dof, den), stats.f.sf(F, dof, den), rtol=1e-14, atol=0)
+    t = np.r_[-np.inf, rng.normal(0.0, 3.0, 40), np.inf]
+    for dof in (1, 4, 9):
+        np.testing.assert_allclose(special.stdtr(dof, -t), stats.t.sf(t, dof), rtol=1e-14, atol=0)
+        np.testing.assert_allclose(special.stdtr(dof, t), stats.t.cdf(t, dof), rtol=1e-14, atol=0)
+
+
+def _fft_rounding(n: int) -> float:
+    """A bound of the rounding error of an FFT-based transform of n points relative to the 2-norm of the
+    data, per coefficient: the FFT's norm-wise bound ``eps log2 L`` (relative to the norm of all ``L`` outputs,
+    Higham, "Accuracy and stability of numerical algorithms", 2nd ed., section 24.1), that norm ``sqrt(L)``
+    times the data's for a convolution with a chirp of modulus 1, with one output taking all of the error at
+    worst; ``L`` at most ``2 n + 2000`` (the transform's length), twice for the two transforms compared."""
+    size = 2 * n + 2000
+    return 2.0 * np.finfo(float).eps * np.log2(size) * np.sqrt(size)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 97, 1000, 4096, 10007, 65536, 350906, 360000, 1000003])
+def test_dct_head_is_scipy_dct(n):
+    """``dct_head`` gives ``scipy.fft.dct``'s first coefficients for lengths that are primes, powers of two,
+    round and of a large prime factor (the hour's 350 906 = 2 x 175 453), on a random walk with a mean (whose
+    low coefficients are far larger than the rest) transformed with white data a million times smaller (two
+    columns go through one transform), and on white data alone, each within an FFT's rounding of its own
+    norm (about ``1e-12`` of it at a million points, ``7e-13`` seen)."""
+    rng = np.random.default_rng(n)
+    x = np.c_[5.0 + np.cumsum(rng.normal(size=n)), 1e-6 * rng.normal(size=n), rng.normal(size=n)]
+    m = min(n, 2000)
+    expected = fft.dct(x, type=2, axis=0)[:m]
+    got = dct_head(x, m)
+    assert got.shape == (m, 3)
+    assert np.max(np.abs(got - expected) / np.linalg.norm(x, axis=0)) < _fft_rounding(n)
+
+
+@pytest.mark.parametrize("n", [5, 9, 1000, 10007, 350906])
+def test_high_passed_is_the_transform_with_its_lowest_coefficients_zeroed(n):
+    """``high_passed`` equals zeroing the ``CONSTANCY_TERMS + 1`` lowest type-II cosine coefficients and
+    transforming back with scipy, within rounding (relative to the data's RMS)."""
+    rng = np.random.default_rng(n)
+    x = np.c_[rng.normal(size=n), 3.0 + np.cumsum(rng.normal(size=n)), np.sin(np.arange(n) / (n / 7.0))]
+    c = fft.dct(x, type=2, axis=0)
+    c[: CONSTANCY_TERMS + 1] = 0.0
+    expected = fft.idct(c, type=2, axis=0)
+    got = high_passed(x)
+    assert np.max(np.abs(got - expected) / np.linalg.norm(x, axis=0)) < _fft_rounding(n)
+
+
+def _integrated_time_by_fft(x):
+    """Sokal's integrated time of each column from the whole FFT autocorrelation (the reference)."""
+    out = 1.0
+    for column in x.T:
+        column = column - column.mean()
+        acf = fft.irfft(np.abs(fft.rfft(column, n=2 * len(column))) ** 2)[: len(column)]
+        taus = 1.0 + 2.0 * np.cumsum(acf[1:] / acf[0])
+        window = np.flatnonzero(np.arange(1, len(column)) >= SOKAL_C * taus)
+        out = max(out, taus[window[0]] if window.size else taus[-1])
+    return out
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.5, 0.8, 0.97])
+def test_integrated_time_from_the_first_lags_is_that_of_the_whole_autocorrelation(phi):
+    """AR(1) series whose Sokal window ends within ``SHORT_LAGS`` (white, phi 0.5: tau 3) and beyond it
+    (phi 0.8: tau 9, 0.97: tau 66): the same integrated time as from the whole FFT autocorrelation, within
+    rounding; and near the AR(1) value ``(1 + phi) / (1 - phi)`` (within 5 standard errors of Sokal's,
+    ``tau sqrt(2 (2M + 1) / n)``)."""
+    rng = np.random.default_rng(11)
+    n = 200_000
+    x = signal.lfilter([1.0], [1.0, -phi], rng.normal(size=(n, 2)), axis=0)
+    tau = integrated_time(x)
+    assert tau == pytest.approx(_integrated_time_by_fft(x), rel=1e-12)
+    truth = (1 + phi) / (1 - phi)
+    assert abs(tau - truth) < 5 * truth * np.sqrt(2 * (2 * SOKAL_C * truth + 1) / n)
+    assert (SOKAL_C * truth < SHORT_LAGS) == (phi <= 0.5)
+
+
+def test_whitened_leaves_zero_columns_zero_and_the_others_as_made_in_full():
+    """``Linearised.whitened`` of a wide block whose columns are mostly zero over the epochs (a drift's hat
+    functions) computes only the others: exactly the values of the whole block whitened and taken off the
+    heading wander, with and without the wander."""
+    rng = np.random.default_rng(5)
+    n, q = 1200, SPARSE_COLUMNS + 3
+    t = np.arange(n) * 0.05
+    W = rng.normal(size=(n, 3, 3))
+    G = np.zeros((n, 3, q))
+    G[:, :, [1, 4, 5]] = rng.normal(size=(n, 3, 3))
+    for wander in (None, HeadingWander(rng.normal(size=(n, 3)), t, 10.0)):
+        fit = Linearised(None, None, None, W, np.zeros((3 * n, 0)), None, None, None, None, wander)
+        dense = (W @ G).reshape(3 * n, q)
+        dense = dense if wander is None else wander.remove(dense)
+        got = fit.whitened(G)
+        assert np.array_equal(got, dense)
+        assert not got[:, [0, 2, 3]].any()
