@@ -16,19 +16,40 @@ and the caller's setting is restored when they return.
 from __future__ import annotations
 
 import functools
+import threading
 
 __all__ = ["one_thread"]
 
+_lock = threading.Lock()
+_running = 0  # entry points running now, in any thread
+_limiter = None  # threadpoolctl's limiter of the first of them, which holds the caller's setting
+
 
 def one_thread(function):
-    """Decorate ``function`` so that BLAS uses one thread while it runs (see the module's docstring)."""
+    """Decorate ``function`` so that BLAS uses one thread while it runs (see the module's docstring).
+
+    Calls may nest (``diagnose`` calibrates) and may run in several threads at once: the first to start sets
+    the limit and the last to end restores the setting the first one found. (OpenBLAS 0.3.30 was seen to
+    ignore a limit set from a thread other than the main one once the main thread had set and restored one;
+    Dask's workers run with one BLAS thread anyway.)"""
 
     @functools.wraps(function)
     def wrapper(*args, **kwargs):
-        import scipy.special  # noqa: F401  (loads scipy's BLAS, so that it is limited too; the gates need it)
-        from threadpoolctl import threadpool_limits
+        global _running, _limiter
+        with _lock:
+            if _running == 0:
+                import scipy.special  # noqa: F401  (loads scipy's BLAS, so that it is limited too; the gates need it)
+                from threadpoolctl import threadpool_limits
 
-        with threadpool_limits(limits=1, user_api="blas"):
+                _limiter = threadpool_limits(limits=1, user_api="blas")
+            _running += 1
+        try:
             return function(*args, **kwargs)
+        finally:
+            with _lock:
+                _running -= 1
+                if _running == 0:
+                    _limiter.restore_original_limits()
+                    _limiter = None
 
     return wrapper

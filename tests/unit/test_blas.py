@@ -51,3 +51,35 @@ def test_entry_points_are_wrapped():
 
     for entry in (calibrate_log, solve_batch, calibrate_file, diagnose, build_report, validate):
         assert entry.__code__ is one_thread(len).__code__, entry.__name__
+
+
+def test_concurrent_and_nested_calls_restore_the_setting_once_all_return():
+    import threading
+
+    import magkf.blas
+
+    started, release = threading.Barrier(3), threading.Event()
+
+    @one_thread
+    def inner():
+        return magkf.blas._running
+
+    @one_thread
+    def work(out):
+        started.wait(timeout=30)
+        release.wait(timeout=30)
+        out.append(inner())  # nested: counted, not limited again
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        before, counts = _threads(), []
+        threads = [threading.Thread(target=work, args=(counts,)) for _ in range(2)]
+        for t in threads:
+            t.start()
+        started.wait(timeout=30)  # both inside
+        assert magkf.blas._running == 2
+        release.set()
+        for t in threads:
+            t.join(timeout=30)
+        assert sorted(counts) in ([2, 3], [3, 3])  # the nested call ran while its caller was counted
+        assert magkf.blas._running == 0 and magkf.blas._limiter is None
+        assert _threads() == before  # restored once, by the last to end, to what the first found
