@@ -4,8 +4,9 @@ magkf's linear algebra is many small and medium products: the filter's 12 x 12 u
 summed a chunk at a time, whitened regressors of a few columns. OpenBLAS (numpy's and scipy's BLAS) splits
 the larger of them over threads, and its idle threads wait for the next call by spinning, which takes a core
 from whatever else runs: on a 2-core machine with one other busy process, ``magkf diagnose`` of a 20-minute
-log took 18 to 30 s with OpenBLAS's default threads and 6.4 to 6.7 s with one, and the fleet's parallel
-workers compete the same way. The measured effect of one thread on an idle machine is in the README.
+log took 18 to 30 s with OpenBLAS's default threads and 6.4 to 6.7 s with one; on the idle machine the two
+took the same time (5.0 s, and 2.7 s for calibrating a 1-hour log). Dask's workers already run with one
+BLAS thread (its nanny sets ``OPENBLAS_NUM_THREADS=1``).
 
 ``one_thread`` decorates magkf's entry points (a log calibrated, solved, diagnosed, reported, validated):
 while they run, every BLAS library loaded in the process uses one thread (threadpoolctl's
