@@ -278,15 +278,15 @@ class Estimator:
             pick = slice(None) if count == len(mask) else mask  # a view when every epoch is the part's
             heading = blk.heading[pick]
             if model.needs_attitude and blk.frame is not None:
-                e = blk.m[pick] - np.einsum("kij,j->ki", blk.H[pick], x)
-                parts_of_e = np.einsum("kji,ki->kj", blk.frame[pick], e)  # along the field, h, v
+                e = blk.m[pick] - blk.H[pick] @ x
+                parts_of_e = (blk.frame[pick] @ e[:, :, None])[:, :, 0]  # along the field, h, v
                 along.append(parts_of_e[:, 0])
                 cross.append(parts_of_e[:, 1:])
             else:
                 along.append(blk.ref_mag[pick] - h[pick])
                 cross.append(None)
             field2.append(blk.ref_mag[pick] ** 2)
-            horizontal2.append(np.einsum("ki,ki->k", heading, heading))
+            horizontal2.append((heading * heading).sum(axis=1))
             times.append(np.asarray(t)[pick])
         if not along:
             return

@@ -345,10 +345,10 @@ class Vector(MeasurementModel):
         return self.layout.jacobian(x, blk.data, blk.H)
 
     def linearise(self, x, blk):
-        h = np.einsum("kij,j->ki", blk.H, x)
+        h = blk.H @ x
         if self.layout.nonlinear:
             h = h + self.layout.nonlinear_terms(x, blk.data)
-        y = np.einsum("kij,kj->ki", blk.W, blk.m - h)
+        y = (blk.W @ (blk.m - h)[:, :, None])[:, :, 0]
         return y, blk.W @ self._jacobian(x, blk)
 
     def sigma_predict(self, sigmas, x, blk):
