@@ -189,7 +189,7 @@ class Estimator:
         # The variance of the calibrated magnitude that the estimate's covariance implies, at the block's
         # first candidate (it changes little within a block), every block of the state included; and the
         # calibrated magnitude ``h`` (k,) of every epoch (for one epoch, the magnitude model's own).
-        i0 = int(np.argmax(cand))
+        i0 = int(cand.argmax())
         e0 = blk.e[i0 : i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
         h0, H0, w0 = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
         h = h0 if k == 1 else np.linalg.norm(layout.calibrated(x, blk.m, blk.e), axis=1)
@@ -224,13 +224,13 @@ class Estimator:
                 return
         if blk.whitened_with is not self.noise:
             self.whiten(blk)
-        part_blocks = [blk if mask.all() else blk.take(mask) for _, mask in parts]
+        part_blocks = [blk if np.count_nonzero(mask) == len(mask) else blk.take(mask) for _, mask in parts]
         lin = kf.linearise([(model, b) for (model, _), b in zip(parts, part_blocks)])
         gated = np.zeros(k, bool)
         accept_parts = []
         noise = self.noise
         for (model, mask), rows, part in zip(parts, lin.rows, part_blocks):
-            idx = np.flatnonzero(mask)
+            idx = mask.nonzero()[0]
             nis[idx] = rows.nis
             refused = rows.nis > self._bound(self.config.innovation_prob, model.rows)
             gated[idx[refused]] = True
@@ -240,7 +240,7 @@ class Estimator:
             # field and across it apart.
             q = self._bound(self.config.huber_prob, model.rows)
             if part.N is not None and model.rows == part.N.shape[1]:  # the correlation is in the whitening
-                if np.any(rows.nis > q):  # else every weight is 1
+                if np.count_nonzero(rows.nis > q):  # else every weight is 1
                     _scale_rows(rows, np.sqrt(_huber(q, rows.nis)))
             else:
                 _scale_rows(rows, np.sqrt(_huber(q, rows.nis) / noise.inflation_along))

@@ -52,7 +52,7 @@ class Linearisation:
 
 def _guard(P: np.ndarray) -> np.ndarray:
     """``P`` (symmetric) with its eigenvalues clipped if a diagonal element is not positive."""
-    if P.ravel()[:: P.shape[0] + 1].min() <= 0:
+    if np.count_nonzero(P.ravel()[:: P.shape[0] + 1] <= 0):
         w, v = np.linalg.eigh(P)
         P = (v * np.maximum(w, 1e-18 * max(w.max(), 1e-300))) @ v.T
     return P
@@ -158,7 +158,7 @@ class EKF(_RandomWalkFilter):
     def update(self, lin: Linearisation, accept) -> np.ndarray:
         """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
         of the rows used. ``accept`` holds one boolean mask (k,) per part."""
-        if len(lin.rows) == 1 and accept[0].all():  # every epoch of one part: no copies
+        if len(lin.rows) == 1 and np.count_nonzero(accept[0]) == len(accept[0]):  # every epoch of one part: no copies
             y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
         else:
             ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]

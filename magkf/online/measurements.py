@@ -439,12 +439,12 @@ def field_frame(field: np.ndarray, heading=None) -> np.ndarray:
 
 def _field_frame1(field, heading) -> np.ndarray:
     """``field_frame`` (3, 3) of one epoch's field (3,) and heading axis (3, or None)."""
-    f = [float(v) if math.isfinite(v) else 0.0 for v in field]
+    f = [v if math.isfinite(v) else 0.0 for v in np.asarray(field, float).tolist()]
     norm = math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
     u = [v / norm for v in f] if norm > 0 else [0.0, 0.0, 1.0]
     second = None
     if heading is not None:
-        h = [float(v) if math.isfinite(v) else 0.0 for v in heading]
+        h = [v if math.isfinite(v) else 0.0 for v in np.asarray(heading, float).tolist()]
         along = h[0] * u[0] + h[1] * u[1] + h[2] * u[2]
         h = [a - along * b for a, b in zip(h, u)]
         length = math.sqrt(h[0] ** 2 + h[1] ** 2 + h[2] ** 2)
