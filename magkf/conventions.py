@@ -138,17 +138,25 @@ def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
 
     ``C_nb = Rz(yaw) Ry(pitch) Rx(roll)``, written out element by element.
     """
-    if all(isinstance(a, float) and math.isfinite(a) for a in (yaw_deg, pitch_deg, roll_deg)):  # one attitude
+    one = all(isinstance(a, float) and math.isfinite(a) for a in (yaw_deg, pitch_deg, roll_deg))
+    if one:  # one attitude (real time): plain floats
         yaw, pitch, roll = math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg)
         cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
         cr, sr = math.cos(roll), math.sin(roll)
     else:
         yaw, pitch, roll = (np.radians(np.asarray(a, dtype=float)) for a in (yaw_deg, pitch_deg, roll_deg))
         cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    rows = (
+        (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+        (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+        (-sp, cp * sr, cp * cr),
+    )
+    if one:
+        return np.array(rows)
     out = np.empty(np.shape(cy) + (3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = -sp, cp * sr, cp * cr
+    for i, row in enumerate(rows):
+        for j, value in enumerate(row):
+            out[..., i, j] = value
     return out
 
 
