@@ -10,8 +10,10 @@ whitened (unit noise):
 ``EKF`` linearises each model at the estimate and updates in the Joseph form (expanded so that it is
 exactly symmetric), with a positive-definiteness guard. ``UKF`` draws sigma points fresh from the
 current ``(x, P)`` at every update (never stale ones from an earlier prediction) with FilterPy's
-``MerweScaledSigmaPoints``, and the models predict all of them in one vectorised call. Both expose
-``x``, ``P``, ``predict(dt)``, ``linearise``, ``update``, ``inflate`` and ``copy``; nothing else.
+``MerweScaledSigmaPoints``, and the models predict all of them in one vectorised call; rows linear in the
+state, for which the unscented transform is exact, it takes as the EKF does. Both expose ``x``, ``P``,
+``predict(dt)``, ``linearise``, ``update``, ``correct`` (the Kalman update of given whitened rows),
+``inflate`` and ``copy``; nothing else.
 ``FILTERS`` maps a name to its class.
 """
 
@@ -117,6 +119,14 @@ class _RandomWalkFilter:
         """An independent copy (state, covariance and settings)."""
         return copy.deepcopy(self)
 
+    def _rows_at_estimate(self, model, blk, linear: bool = False) -> Rows:
+        """``model``'s rows of ``blk`` linearised at the estimate, with per-epoch NIS ``y^T (H P H^T + N)^-1 y``
+        (``N`` the block's whitened noise, ``Block.N``)."""
+        y, H = model.linearise(self.x, blk)
+        S = H @ self.P @ H.transpose(0, 2, 1)
+        _add_noise(S, blk)
+        return Rows(y, H, _nis(y, S), linear=linear)
+
     def _fold_information(self, J, g) -> bool:
         """Update with the information ``J = H^T H`` (n, n) and ``g = H^T y`` (n,) of whitened rows; False
         (nothing changed) when ``P`` is not positive definite.
@@ -137,35 +147,6 @@ class _RandomWalkFilter:
         self.x = self.x + P @ g
         self.P = 0.5 * (P + P.T)
         return True
-
-
-class EKF(_RandomWalkFilter):
-    """Extended Kalman filter: ``x0`` (n,), ``P0`` (n, n), ``q_rate`` (n,) random-walk variance per second."""
-
-    name = "ekf"
-
-    def linearise(self, parts) -> Linearisation:
-        """Rows of each ``(model, block)`` at the estimate, with per-epoch NIS ``y^T (H P H^T + N)^-1 y``
-        (``N`` the block's whitened noise, ``Block.N``)."""
-        rows = []
-        for model, blk in parts:
-            y, H = model.linearise(self.x, blk)
-            S = H @ self.P @ H.transpose(0, 2, 1)
-            _add_noise(S, blk)
-            rows.append(Rows(y, H, _nis(y, S)))
-        return Linearisation(rows)
-
-    def update(self, lin: Linearisation, accept) -> np.ndarray:
-        """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
-        of the rows used. ``accept`` holds one boolean mask (k,) per part."""
-        if len(lin.rows) == 1 and np.count_nonzero(accept[0]) == len(accept[0]):  # every epoch of one part: no copies
-            y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
-        else:
-            ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
-            Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
-            y, H = np.concatenate(ys), np.vstack(Hs)
-        self.correct(y, H)
-        return H
 
     def correct(self, y, H, R=None) -> None:
         """Update with innovation ``y`` (r,), Jacobian ``H`` (r, n) and noise ``R`` (r, r; default the
@@ -191,32 +172,72 @@ class EKF(_RandomWalkFilter):
         self.P = _guard(self.P + (M + M.T))
 
 
+class EKF(_RandomWalkFilter):
+    """Extended Kalman filter: ``x0`` (n,), ``P0`` (n, n), ``q_rate`` (n,) random-walk variance per second."""
+
+    name = "ekf"
+
+    def linearise(self, parts) -> Linearisation:
+        """Rows of each ``(model, block)`` at the estimate (``_rows_at_estimate``)."""
+        return Linearisation([self._rows_at_estimate(model, blk) for model, blk in parts])
+
+    def update(self, lin: Linearisation, accept) -> np.ndarray:
+        """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
+        of the rows used. ``accept`` holds one boolean mask (k,) per part."""
+        if len(lin.rows) == 1 and np.count_nonzero(accept[0]) == len(accept[0]):  # every epoch of one part: no copies
+            y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
+        else:
+            ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
+            Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
+            y, H = np.concatenate(ys), np.vstack(Hs)
+        self.correct(y, H)
+        return H
+
+
 class UKF(_RandomWalkFilter):
     """Unscented Kalman filter with Van der Merwe's scaled sigma points (FilterPy's
     ``MerweScaledSigmaPoints``; ``alpha=1, beta=2, kappa=0``: all mean weights equal and positive).
-    The prediction of a random walk is exact without sigma points."""
+    The prediction of a random walk is exact without sigma points.
+
+    Rows linear in the state (``MeasurementModel.linear``: the vector models without a nonlinear effect) are
+    taken at the estimate as the EKF takes them: the unscented transform of a linear function is exact, so
+    its sigma points would give the same innovation, innovation covariance, cross covariance and update, to
+    rounding. Sigma points are drawn, and FilterPy loaded, only for the other rows (the magnitude where the
+    attitude is missing, a time lag's)."""
 
     name = "ukf"
 
     def __init__(self, x0, P0, q_rate, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
-        from filterpy.kalman import MerweScaledSigmaPoints
-
         super().__init__(x0, P0, q_rate)
-        self.points = MerweScaledSigmaPoints(len(self.x), alpha=alpha, beta=beta, kappa=kappa)
-        self.Wm, self.Wc = self.points.Wm, self.points.Wc
+        self.alpha, self.beta, self.kappa = alpha, beta, kappa
+        self._points = None
+
+    @property
+    def points(self):
+        """FilterPy's ``MerweScaledSigmaPoints`` for the state (made when rows first need sigma points)."""
+        if self._points is None:
+            from filterpy.kalman import MerweScaledSigmaPoints
+
+            self._points = MerweScaledSigmaPoints(len(self.x), alpha=self.alpha, beta=self.beta, kappa=self.kappa)
+        return self._points
 
     def linearise(self, parts) -> Linearisation:
-        """Sigma-point predictions of each ``(model, block)`` from one fresh set of sigma points."""
-        sigmas = self.points.sigma_points(self.x, self.P)
-        rows = []
+        """Rows of each ``(model, block)``: those of a linear model at the estimate (``_rows_at_estimate``), the
+        others predicted at one fresh set of sigma points (drawn only if there are such rows)."""
+        sigmas, rows = None, []
         for model, blk in parts:
+            if getattr(model, "linear", False):
+                rows.append(self._rows_at_estimate(model, blk, linear=True))
+                continue
+            if sigmas is None:
+                sigmas = self.points.sigma_points(self.x, self.P)
             h, z, H = model.sigma_predict(sigmas, self.x, blk)
-            zp = np.tensordot(self.Wm, h, axes=1)
+            zp = np.tensordot(self.points.Wm, h, axes=1)
             dz = h - zp
-            S = _weighted_covariance(self.Wc, dz)
+            S = _weighted_covariance(self.points.Wc, dz)
             _add_noise(S, blk)
             y = z - zp
-            rows.append(Rows(y, H, _nis(y, S), h, getattr(model, "linear", False)))
+            rows.append(Rows(y, H, _nis(y, S), h))
         return Linearisation(rows, sigmas)
 
     def update(self, lin: Linearisation, accept) -> np.ndarray:
@@ -224,17 +245,23 @@ class UKF(_RandomWalkFilter):
         (r, n) of the rows used (the information they carry).
 
         Rows that outnumber the states are folded in by their information (``_fold_sigma_rows``); otherwise
-        the textbook update with the stacked innovation covariance."""
-        S_count = len(lin.sigmas)
+        rows that are all linear by the Kalman update (``correct``), and any others by the textbook unscented
+        update with the stacked innovation covariance (a linear row's predictions at the sigma points are its
+        Jacobian times them)."""
         H_lin = np.vstack([r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)])
         if len(H_lin) > self.x.size and self._fold_sigma_rows(lin, accept):
             return H_lin
         y = np.concatenate([r.y[a].ravel() for r, a in zip(lin.rows, accept)])
-        h = np.hstack([r.h[:, a].reshape(S_count, -1) for r, a in zip(lin.rows, accept)])
-        zp = self.Wm @ h
+        if lin.sigmas is None:
+            self.correct(y, H_lin)
+            return H_lin
+        sigmas, Wm, Wc = lin.sigmas, self.points.Wm, self.points.Wc
+        predicted = [np.tensordot(sigmas, r.H, axes=([1], [2])) if r.h is None else r.h for r in lin.rows]
+        h = np.hstack([p[:, a].reshape(len(sigmas), -1) for p, a in zip(predicted, accept)])
+        zp = Wm @ h
         dz = h - zp
-        S = (dz.T * self.Wc) @ dz + np.eye(len(y))
-        Pxz = ((lin.sigmas - self.x).T * self.Wc) @ dz
+        S = (dz.T * Wc) @ dz + np.eye(len(y))
+        Pxz = ((sigmas - self.x).T * Wc) @ dz
         K = np.linalg.solve(S, Pxz.T).T
         self.x = self.x + K @ y
         P = self.P - (K @ S) @ K.T
@@ -251,7 +278,7 @@ class UKF(_RandomWalkFilter):
         (``Rows.linear``) are folded in with their own Jacobian: for them the regression gives that Jacobian
         and ``Omega = 0`` exactly (the sigma points' spread cancels), so only rounding would differ. False when
         it cannot be done (nothing changed)."""
-        X = (lin.sigmas - self.x) * self.Wc[:, None]  # (S, n)
+        X = None  # the weighted sigma-point deviations (S, n), for the first row that is not linear
         J, g = np.zeros((self.x.size, self.x.size)), np.zeros(self.x.size)
         for rows, a in zip(lin.rows, accept):
             if rows.linear:
@@ -262,11 +289,13 @@ class UKF(_RandomWalkFilter):
             h = rows.h[:, a]  # (S, k, r)
             if not h.shape[1]:
                 continue
-            dz = h - np.tensordot(self.Wm, h, axes=1)
+            if X is None:
+                X = (lin.sigmas - self.x) * self.points.Wc[:, None]
+            dz = h - np.tensordot(self.points.Wm, h, axes=1)
             Pxz = np.tensordot(dz, X, axes=([0], [0]))  # (k, r, n)
             try:
                 H = np.linalg.solve(self.P, Pxz.reshape(-1, self.x.size).T).T.reshape(Pxz.shape)
-                Pzz = _weighted_covariance(self.Wc, dz)
+                Pzz = _weighted_covariance(self.points.Wc, dz)
                 noise = Pzz - H @ self.P @ np.swapaxes(H, 1, 2)
                 noise[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
                 noise = 0.5 * (noise + np.swapaxes(noise, 1, 2))

@@ -195,7 +195,8 @@ class _Curved:
         )
 
     def sigma_predict(self, sigmas, x, blk):
-        H = np.array([[1.0, 0.6 * x[1]], [0.2 * x[1], 1.0 + 0.2 * x[0]], [1.0 + 0.2 * x[0], -1.0]])
+        H = np.zeros((3, len(x)))  # the rows depend on the first two states only
+        H[:, :2] = [[1.0, 0.6 * x[1]], [0.2 * x[1], 1.0 + 0.2 * x[0]], [1.0 + 0.2 * x[0], -1.0]]
         return self.h(sigmas)[:, None, :], self.z[None], H[None]
 
 
@@ -232,6 +233,44 @@ def test_ukf_fold_keeps_the_linearisation_error_of_a_curved_epoch(seed):
     kf = FILTERS["ukf"](x, P, np.zeros(2))
     kf.update(kf.linearise([(_Curved(z), None)]), [np.ones(1, bool)])
     x_tb, P_tb = _unscented_textbook(x, P, _Curved.h, z)
+    assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
+    assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ukf_update_of_linear_and_curved_rows_together_is_filterpys(seed):
+    """Two rows declared linear (taken at the estimate, no sigma points) and three curved rows of one epoch:
+    five rows on six states, fewer than the states, so the textbook update rather than the fold. It is
+    FilterPy's unscented update of all five rows, whose sigma points predict the linear rows exactly."""
+    rng = np.random.default_rng(seed)
+    n = 6
+    A = rng.normal(size=(n, n))
+    P, x = A @ A.T + np.eye(n), rng.normal(size=n)
+    Hw = rng.normal(size=(2, n))
+    zw, z = Hw @ x + rng.normal(size=2), _Curved.h(x) + rng.normal(size=3)
+    linear = _Linear(Hw, zw)
+    linear.linear = True
+    kf = FILTERS["ukf"](x, P, np.zeros(n))
+    lin = kf.linearise([(linear, None), (_Curved(z), None)])
+    assert lin.rows[0].h is None and lin.rows[1].h is not None
+    kf.update(lin, [np.ones(2, bool), np.ones(1, bool)])
+    x_tb, P_tb = _unscented_textbook(x, P, lambda s: np.concatenate([Hw @ s, _Curved.h(s)]), np.concatenate([zw, z]))
+    assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
+    assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
+
+
+def test_ukf_of_linear_rows_alone_draws_no_sigma_points():
+    """Rows declared linear alone: the UKF's update is the Kalman update, and no sigma points are drawn."""
+    x, P, H, R, z = _problem(4)
+    R = np.diag(np.diag(R))
+    Hw, _, zw = _whitened(H, R, z, x)
+    linear = _Linear(Hw, zw)
+    linear.linear = True
+    kf = FILTERS["ukf"](x, P, np.zeros(len(x)))
+    lin = kf.linearise([(linear, None)])
+    assert lin.sigmas is None and kf._points is None
+    kf.update(lin, [np.ones(len(z), bool)])
+    x_tb, P_tb = _textbook(x, P, H, R, z)
     assert np.allclose(kf.x, x_tb, rtol=1e-9, atol=1e-9)
     assert np.allclose(kf.P, P_tb, rtol=1e-8, atol=1e-9)
 
