@@ -250,6 +250,13 @@ def test_realtime_matches_post_processing_epoch_by_epoch():
     assert np.isfinite(last.heading_true_deg) and last.R.shape == (3, 3) and last.std.shape == (12,)
 
 
+def test_realtime_ukf_makes_its_sigma_points_at_the_start():
+    """Made at the first epoch without attitude instead, the UKF's sigma points (FilterPy loaded) would hold
+    that step for a few hundred milliseconds."""
+    online = OnlineCalibrator(Calibration(R=np.eye(3), b=np.zeros(3)), MATCHED.replace(filter="ukf"))
+    assert online.estimator.filter._points is not None
+
+
 def test_realtime_memory_is_constant():
     import tracemalloc
 
