@@ -13,7 +13,8 @@ current ``(x, P)`` at every update (never stale ones from an earlier prediction)
 ``MerweScaledSigmaPoints``, and the models predict all of them in one vectorised call; rows linear in the
 state, for which the unscented transform is exact, it takes as the EKF does. Both expose ``x``, ``P``,
 ``predict(dt)``, ``linearise``, ``update``, ``correct`` (the Kalman update of given whitened rows),
-``inflate`` and ``copy``; nothing else.
+``inflate``, ``copy`` and ``prepare(models)`` (whatever the filter loads for those models, loaded now
+rather than at the first update that needs it); nothing else.
 ``FILTERS`` maps a name to its class.
 """
 
@@ -33,9 +34,10 @@ __all__ = ["EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
 @dataclass
 class Rows:
     """One model's whitened rows for k epochs: innovation ``y`` (k, r), Jacobian ``H`` (k, r, n) at the
-    estimate (the information they carry), normalised innovation squared ``nis`` (k,) and, for the UKF,
-    the whitened predictions at the sigma points ``h`` (S, k, r); ``linear`` the rows are linear in the state
-    (``MeasurementModel.linear``: ``H`` is then their Jacobian everywhere)."""
+    estimate (the information they carry), normalised innovation squared ``nis`` (k,) and, for the UKF's
+    rows that are not linear, the whitened predictions at the sigma points ``h`` (S, k, r; None otherwise);
+    ``linear`` the rows are linear in the state (``MeasurementModel.linear``: ``H`` is then their Jacobian
+    everywhere)."""
 
     y: np.ndarray
     H: np.ndarray
@@ -119,6 +121,21 @@ class _RandomWalkFilter:
         """An independent copy (state, covariance and settings)."""
         return copy.deepcopy(self)
 
+    def prepare(self, models) -> None:
+        """Load now what an update of ``models``' rows will need (nothing for this filter)."""
+
+    def _update_at_estimate(self, lin: Linearisation, accept) -> np.ndarray:
+        """Update with the accepted epochs of every part at once, by their rows at the estimate (``correct``);
+        returns the whitened Jacobian (r, n) of the rows used. ``accept`` holds one boolean mask (k,) per part."""
+        if len(lin.rows) == 1 and np.count_nonzero(accept[0]) == len(accept[0]):  # every epoch of one part: no copies
+            y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
+        else:
+            ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
+            Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
+            y, H = np.concatenate(ys), np.vstack(Hs)
+        self.correct(y, H)
+        return H
+
     def _rows_at_estimate(self, model, blk, linear: bool = False) -> Rows:
         """``model``'s rows of ``blk`` linearised at the estimate, with per-epoch NIS ``y^T (H P H^T + N)^-1 y``
         (``N`` the block's whitened noise, ``Block.N``)."""
@@ -181,22 +198,13 @@ class EKF(_RandomWalkFilter):
         """Rows of each ``(model, block)`` at the estimate (``_rows_at_estimate``)."""
         return Linearisation([self._rows_at_estimate(model, blk) for model, blk in parts])
 
-    def update(self, lin: Linearisation, accept) -> np.ndarray:
-        """Update with the accepted epochs of every part at once; returns the whitened Jacobian (r, n)
-        of the rows used. ``accept`` holds one boolean mask (k,) per part."""
-        if len(lin.rows) == 1 and np.count_nonzero(accept[0]) == len(accept[0]):  # every epoch of one part: no copies
-            y, H = lin.rows[0].y.ravel(), lin.rows[0].H.reshape(-1, self.x.size)
-        else:
-            ys = [r.y[a].ravel() for r, a in zip(lin.rows, accept)]
-            Hs = [r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)]
-            y, H = np.concatenate(ys), np.vstack(Hs)
-        self.correct(y, H)
-        return H
+    update = _RandomWalkFilter._update_at_estimate
 
 
 class UKF(_RandomWalkFilter):
     """Unscented Kalman filter with Van der Merwe's scaled sigma points (FilterPy's
-    ``MerweScaledSigmaPoints``; ``alpha=1, beta=2, kappa=0``: all mean weights equal and positive).
+    ``MerweScaledSigmaPoints``; ``alpha=1, beta=2, kappa=0``: the centre's mean weight 0, the others'
+    ``1 / 2n``).
     The prediction of a random walk is exact without sigma points.
 
     Rows linear in the state (``MeasurementModel.linear``: the vector models without a nonlinear effect) are
@@ -209,17 +217,23 @@ class UKF(_RandomWalkFilter):
 
     def __init__(self, x0, P0, q_rate, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
         super().__init__(x0, P0, q_rate)
-        self.alpha, self.beta, self.kappa = alpha, beta, kappa
+        self._scaling = (alpha, beta, kappa)
         self._points = None
 
-    @property
-    def points(self):
-        """FilterPy's ``MerweScaledSigmaPoints`` for the state (made when rows first need sigma points)."""
+    def _merwe(self):
+        """FilterPy's ``MerweScaledSigmaPoints`` for the state, made at the first call."""
         if self._points is None:
             from filterpy.kalman import MerweScaledSigmaPoints
 
-            self._points = MerweScaledSigmaPoints(len(self.x), alpha=self.alpha, beta=self.beta, kappa=self.kappa)
+            alpha, beta, kappa = self._scaling
+            self._points = MerweScaledSigmaPoints(len(self.x), alpha=alpha, beta=beta, kappa=kappa)
         return self._points
+
+    def prepare(self, models) -> None:
+        """Make the sigma points (FilterPy loaded) now if any of ``models`` (None entries skipped) is not
+        linear; a model that is never needs them."""
+        if any(m is not None and not getattr(m, "linear", False) for m in models):
+            self._merwe()
 
     def linearise(self, parts) -> Linearisation:
         """Rows of each ``(model, block)``: those of a linear model at the estimate (``_rows_at_estimate``), the
@@ -230,11 +244,12 @@ class UKF(_RandomWalkFilter):
                 rows.append(self._rows_at_estimate(model, blk, linear=True))
                 continue
             if sigmas is None:
-                sigmas = self.points.sigma_points(self.x, self.P)
+                points = self._merwe()
+                sigmas = points.sigma_points(self.x, self.P)
             h, z, H = model.sigma_predict(sigmas, self.x, blk)
-            zp = np.tensordot(self.points.Wm, h, axes=1)
+            zp = np.tensordot(points.Wm, h, axes=1)
             dz = h - zp
-            S = _weighted_covariance(self.points.Wc, dz)
+            S = _weighted_covariance(points.Wc, dz)
             _add_noise(S, blk)
             y = z - zp
             rows.append(Rows(y, H, _nis(y, S), h))
@@ -247,15 +262,15 @@ class UKF(_RandomWalkFilter):
         Rows that outnumber the states are folded in by their information (``_fold_sigma_rows``); otherwise
         rows that are all linear by the Kalman update (``correct``), and any others by the textbook unscented
         update with the stacked innovation covariance (a linear row's predictions at the sigma points are its
-        Jacobian times them)."""
+        Jacobian times them). With no sigma points drawn (every row linear) it is the EKF's update."""
+        if lin.sigmas is None:
+            return self._update_at_estimate(lin, accept)
         H_lin = np.vstack([r.H[a].reshape(-1, self.x.size) for r, a in zip(lin.rows, accept)])
         if len(H_lin) > self.x.size and self._fold_sigma_rows(lin, accept):
             return H_lin
         y = np.concatenate([r.y[a].ravel() for r, a in zip(lin.rows, accept)])
-        if lin.sigmas is None:
-            self.correct(y, H_lin)
-            return H_lin
-        sigmas, Wm, Wc = lin.sigmas, self.points.Wm, self.points.Wc
+        points = self._merwe()
+        sigmas, Wm, Wc = lin.sigmas, points.Wm, points.Wc
         predicted = [np.tensordot(sigmas, r.H, axes=([1], [2])) if r.h is None else r.h for r in lin.rows]
         h = np.hstack([p[:, a].reshape(len(sigmas), -1) for p, a in zip(predicted, accept)])
         zp = Wm @ h
@@ -275,8 +290,8 @@ class UKF(_RandomWalkFilter):
         whole ``Omega`` this is the unscented update exactly (``H P H^T + Omega + I`` is its innovation
         covariance and ``P H^T`` its cross covariance); only the linearisation error's correlation between
         different epochs is left out, which is nil for the linear vector rows. Rows linear in the state
-        (``Rows.linear``) are folded in with their own Jacobian: for them the regression gives that Jacobian
-        and ``Omega = 0`` exactly (the sigma points' spread cancels), so only rounding would differ. False when
+        (``Rows.linear``, which have no sigma-point predictions) are folded in with their own Jacobian: for them
+        the regression would give that Jacobian and ``Omega = 0`` exactly (the sigma points' spread cancels). False when
         it cannot be done (nothing changed)."""
         X = None  # the weighted sigma-point deviations (S, n), for the first row that is not linear
         J, g = np.zeros((self.x.size, self.x.size)), np.zeros(self.x.size)
@@ -290,12 +305,13 @@ class UKF(_RandomWalkFilter):
             if not h.shape[1]:
                 continue
             if X is None:
-                X = (lin.sigmas - self.x) * self.points.Wc[:, None]
-            dz = h - np.tensordot(self.points.Wm, h, axes=1)
+                points = self._merwe()
+                X = (lin.sigmas - self.x) * points.Wc[:, None]
+            dz = h - np.tensordot(points.Wm, h, axes=1)
             Pxz = np.tensordot(dz, X, axes=([0], [0]))  # (k, r, n)
             try:
                 H = np.linalg.solve(self.P, Pxz.reshape(-1, self.x.size).T).T.reshape(Pxz.shape)
-                Pzz = _weighted_covariance(self.points.Wc, dz)
+                Pzz = _weighted_covariance(points.Wc, dz)
                 noise = Pzz - H @ self.P @ np.swapaxes(H, 1, 2)
                 noise[:, np.arange(h.shape[2]), np.arange(h.shape[2])] += 1.0
                 noise = 0.5 * (noise + np.swapaxes(noise, 1, 2))

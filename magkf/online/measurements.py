@@ -142,8 +142,9 @@ class MeasurementModel:
     name: str = "measurement"
     rows: int = 1
     needs_attitude: bool = False
-    #: The rows are linear in the state (the UKF then folds them in with their Jacobian, which its sigma points'
-    #: regression would give exactly); a model says so only where it holds for every state.
+    #: The rows are linear in the state; a model says so only where it holds for every state. The UKF then
+    #: takes them at the estimate through ``linearise`` (which such a model must implement), as the EKF does:
+    #: the unscented transform of a linear function is exact, so its sigma points would give the same.
     linear: bool = False
 
     def __init__(self, config: FilterConfig, layout: StateLayout, x0):

@@ -94,9 +94,11 @@ class OnlineCalibrator:
         effects = restore_effects(init) if effects is None else tuple(effects)
         self.layout, x0, P0 = calibration_start(init, config, effects)
         self.estimator = Estimator(self.layout, config, x0, P0)
-        # The UKF's sigma points (and FilterPy) made now, not at the first epoch that needs them (one without
-        # attitude), where loading them would hold that step for a few hundred milliseconds.
-        getattr(self.estimator.filter, "points", None)
+        # What the filter needs for these models (the UKF's sigma points and FilterPy, where a model is not
+        # linear) made now, not at the first epoch that needs it (one without attitude), where loading it
+        # would hold that step for a few hundred milliseconds.
+        model = self.estimator.model
+        self.estimator.filter.prepare((model, model.fallback))
         self.reference = ReferenceFieldCache(config.reference_refresh_m)
         self._effect_columns = tuple(c for e in self.layout.extra() for c in e.columns)
         self._columns = _SAMPLE_COLUMNS + self._effect_columns

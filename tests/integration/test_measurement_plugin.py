@@ -93,3 +93,31 @@ def test_added_model_runs_through_the_realtime_step(registered, drive):
     assert statuses.count("used") > 0.99 * len(statuses)
     std = np.sqrt(np.diag(online.calibration.covariance))
     assert _z(online.calibration.state, std, drive).max() < Z_MAX
+
+
+class LinearIsotropicVector(IsotropicVector):
+    """The same rows declared linear in the state: the UKF takes them at the estimate through ``linearise``
+    and never asks for sigma-point predictions."""
+
+    name = "isotropic_vector_linear"
+    linear = True
+
+    def sigma_predict(self, sigmas, x, blk):
+        raise AssertionError("a linear model's rows are taken at the estimate")
+
+
+def test_linear_model_under_the_ukf_is_taken_at_the_estimate(registered, drive):
+    """A model declared linear runs through the UKF without sigma points, and the UKF's estimate is then the
+    EKF's: the unscented transform of a linear function is exact (the same update to rounding)."""
+    register_measurement(LinearIsotropicVector)
+    try:
+        config = registered.replace(measure=LinearIsotropicVector.name)
+        ukf = calibrate_log(DriveLog(drive.table), config.replace(filter="ukf"))
+        ekf = calibrate_log(DriveLog(drive.table), config.replace(filter="ekf"))
+        online = OnlineCalibrator(Calibration(R=drive.R, b=drive.b), config.replace(filter="ukf"))
+    finally:
+        del MEASUREMENTS[LinearIsotropicVector.name]
+    assert online.estimator.filter._points is None  # no sigma points made for a model that never needs them
+    assert list(ukf.states["status"]) == list(ekf.states["status"])
+    assert np.allclose(ukf.x, ekf.x, rtol=0, atol=1e-9 * ekf.std.max())
+    assert _z(ukf.x, ukf.std, drive).max() < Z_MAX
