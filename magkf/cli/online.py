@@ -84,11 +84,11 @@ def nis_line(mean: float, band) -> str:
     """The mean NIS per degree of freedom against its 95 % band ``(lo, hi)``, in words; outside the band but
     within ``NIS_TOLERANCE`` of 1, it says that the verdict allows that (the band of thousands of epochs is
     narrower than the approximations of a learned noise model), so that the line and the verdict agree."""
-    from ..online.results import NIS_TOLERANCE
+    from ..online.results import NIS_TOLERANCE, band_text
 
     lo, hi = band
     line = f"mean NIS {mean:.2f} per degree of freedom ({'inside' if lo <= mean <= hi else 'outside'} its 95 % band"
-    line += f" [{lo:.2f}, {hi:.2f}])"
+    line += f" {band_text(lo, hi)})"
     if not lo <= mean <= hi and abs(mean - 1.0) <= NIS_TOLERANCE:
         line += f"; within {NIS_TOLERANCE:g} of 1, as the verdict allows a learned noise model"
     return line

@@ -29,6 +29,7 @@ __all__ = [
     "states_frame",
     "summarise",
     "verdict",
+    "band_text",
 ]
 
 
@@ -130,6 +131,14 @@ ATTITUDE_RESOLUTION_DEG = 0.02
 NIS_TOLERANCE = 0.2
 
 
+def band_text(lo: float, hi: float) -> str:
+    """``[lo, hi]`` with two decimals, or as many more as it takes for the last one shown to be at most half
+    the band's width: a million epochs' band is ``[0.998, 1.002]``, not ``[1.00, 1.00]``."""
+    width = hi - lo
+    digits = 2 if not np.isfinite(width) or width <= 0 else max(2, int(np.ceil(-np.log10(width / 2) - 1e-9)))
+    return f"[{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
 def noise_summary(config, trace: RunTrace, counts=None) -> dict:
     """The configured and learned noise of a run, and the residuals' correlation (JSON-ready); the medians are
     over epochs, block ``k``'s learned noise counting ``counts[k]`` times (default: the trace's blocks)."""
@@ -187,7 +196,7 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     mean = nis_stats["mean"]
     if np.isfinite(mean) and not lo <= mean <= hi and abs(mean - 1.0) > NIS_TOLERANCE:
         words.append(
-            f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band [{lo:.2f}, {hi:.2f}]: "
+            f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: "
             "the noise model does not fit"
         )
         misses = True

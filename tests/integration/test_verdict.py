@@ -233,3 +233,18 @@ def test_nis_line_agrees_with_the_verdict():
         f"within {NIS_TOLERANCE:g} of 1, as the verdict allows a learned noise model"
     )
     assert nis_line(1.0 + 2 * NIS_TOLERANCE, band).endswith("(outside its 95 % band [0.98, 1.02])")
+
+
+def test_a_narrow_nis_band_is_shown_with_the_digits_that_tell_its_ends_apart():
+    """A million epochs' band, a few thousandths wide, is not printed as the point [1.00, 1.00]."""
+    from scipy import stats
+
+    from magkf.cli.online import nis_line
+    from magkf.online.results import band_text
+
+    dof = 3 * 1_000_000
+    band = tuple(stats.chi2.ppf([0.025, 0.975], dof) / dof)
+    assert band_text(*band) == "[0.998, 1.002]"
+    assert "outside its 95 % band [0.998, 1.002]" in nis_line(0.98, band)
+    assert band_text(0.99, 1.01) == "[0.99, 1.01]" and band_text(0.5, 1.5) == "[0.50, 1.50]"
+    assert band_text(float("nan"), 1.0) == "[nan, 1.00]"
