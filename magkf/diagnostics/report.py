@@ -18,6 +18,7 @@ from ..blas import one_thread
 from ..config import FilterConfig
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
+from ..online.results import band_text
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
 from .fitting import WANDER_BLOCK_S
@@ -269,7 +270,7 @@ def _noise_section(run, t0: float) -> list[str]:
         [
             (
                 _fixed(s.nis_mean),
-                f"[{_fixed(lo)}, {_fixed(hi)}]",
+                band_text(lo, hi),
                 f"{100 * s.used_share:.1f}",
                 _fixed(s.residual_rms_nt),
                 _fixed(s.residual_rms_all_nt),
