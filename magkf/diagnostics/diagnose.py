@@ -841,11 +841,16 @@ def _describe(results, signals, selection, baseline: float) -> str:
     return text
 
 
-def _nis_per_dof(states, epochs) -> float:
-    """Mean NIS per degree of freedom over ``epochs`` (mask) of a run's states: 3 for an epoch with a
-    vector residual, 1 for a magnitude-only one."""
-    nis = states["nis"].to_numpy()[epochs]
-    dof = np.where(np.isfinite(states["residual_n"].to_numpy()[epochs]), 3.0, 1.0)
+def _nis_per_dof(run: CalibrationRun, epochs) -> float:
+    """Mean NIS per degree of freedom over ``epochs`` (mask) of ``run``'s states: the rows its measurement gives
+    an epoch with a vector residual (one with attitude) and one without (``measurements.nis_rows``; 3 and 1
+    for a measurement that is not registered)."""
+    from ..online.measurements import MEASUREMENTS, nis_rows
+
+    model = MEASUREMENTS.get(run.summary.measure)
+    rows = (3, 1) if model is None else nis_rows(model)
+    nis = run.states["nis"].to_numpy()[epochs]
+    dof = np.where(np.isfinite(run.states["residual_n"].to_numpy()[epochs]), *map(float, rows))
     ok = np.isfinite(nis)
     return float(np.sum(nis[ok]) / np.sum(dof[ok])) if ok.any() else float("nan")
 
@@ -863,7 +868,7 @@ def compare_runs(before: CalibrationRun, after: CalibrationRun) -> dict:
         rss = float(np.sum(ned**2))
         out[label] = {
             "residual_rms_nt": float(np.sqrt(rss / max(len(ned), 1))),
-            "nis_mean": _nis_per_dof(run.states, both),
+            "nis_mean": _nis_per_dof(run, both),
             "aic": float(nrows * np.log(rss / nrows) + 2 * k),
             "bic": float(nrows * np.log(rss / nrows) + k * np.log(nrows)),
             "n_parameters": k,

@@ -54,6 +54,7 @@ from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, check_layout, checked_tab
 from ..status import Status
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
+from .measurements import nis_rows
 from .prepare import (
     PreparedLog,
     concat_prepared,
@@ -481,6 +482,7 @@ def calibrate_file(
             noise=noise_b,
             correlation_s=est.learner.inflation() * scan.median_step_s,
             stops=stops,
+            nis_rows=nis_rows(model),
         )
         with phases("per-epoch table and summary"):
             sums = _table_pass(
@@ -617,7 +619,7 @@ def _smooth(folder, xs_file: Spill, Ps_file: Spill, dt, q_rate) -> tuple[Spill, 
 
 def _table_pass(log, config, layout, x0, R0, trace: RunTrace, xs_file, stds_file, per_epoch, states, K) -> FitSums:
     """Pass 5: the per-epoch table of every piece (written to ``states`` if given) and the residual sums."""
-    sums = FitSums()
+    sums = FitSums(rows=trace.nis_rows)
     stops = trace.stops
     own_prior = trace.smoothed
     # nonlinear effects are evaluated at the whole log's last per-epoch state, as over a whole log

@@ -54,6 +54,7 @@ __all__ = [
     "MEASUREMENTS",
     "register_measurement",
     "measurement_model",
+    "nis_rows",
     "vector_noise",
     "attitude_structure",
     "heading_axis",
@@ -561,7 +562,16 @@ class Magnitude(MeasurementModel):
         return ((blk.ref_mag - h) / sd)[:, None], (H / sd[:, None])[:, None, :]
 
     def sigma_predict(self, sigmas, x, blk):
+        """The whitened magnitude at each sigma point (S, k, 1). As the run's only measurement, a sigma point
+        is taken less its step along the rotations of ``R`` (the projector of ``linearise``): a magnitude cannot
+        see them, but a sigma point's step along one (a fraction of a radian while ``R``'s orientation is
+        open) is no rotation to second order and shrinks the magnitude by about half its square (a percent of
+        the field), which biased the predicted magnitude by hundreds of nT and taught the noise learner that
+        much noise. The cross covariance still takes the whole step, as the EKF's gain does."""
         layout = self.layout
+        if self._projector is not None:
+            x = np.asarray(x, float)
+            sigmas = x + (sigmas - x) @ self._projector  # the projector is symmetric
         mc = blk.m - blk.e
         if layout.has_extra:  # the other effects' terms move with the sigma points too
             mc = mc[None] - np.einsum(
@@ -576,6 +586,16 @@ class Magnitude(MeasurementModel):
     def batch_residuals(self, ref, c_nb, ref_mag):
         sigma = self._sigma_total()
         return lambda c: ((np.linalg.norm(c, axis=1) - ref_mag) / sigma)[:, None]
+
+
+def nis_rows(model) -> tuple[int, int]:
+    """The rows ``model`` (a ``MeasurementModel``, or its class) gives an epoch with attitude and one without
+    (its fallback's, 1 when it has none, as a class has not; the model's own when it needs no attitude): the
+    degrees of freedom of those epochs' NIS."""
+    if not model.needs_attitude:
+        return model.rows, model.rows
+    fallback = getattr(model, "fallback", None)
+    return model.rows, fallback.rows if fallback is not None else 1
 
 
 # ---------------------------------------------------------------- registry

@@ -218,7 +218,9 @@ class RunTrace:
     epoch); statuses (N,), update flags (N,) and NIS (N,); the final state ``x`` (n,) and ``P`` (n, n); the
     whitened information of the updates (n, n); how it started, how long it took (s), and the run's
     options; ``noise`` (K, 4) the noise the filter had learned after each block (sensor nT, tilt and heading
-    deg, inflation) and ``correlation_s`` the residuals' integrated correlation time at the end, s."""
+    deg, inflation) and ``correlation_s`` the residuals' integrated correlation time at the end, s;
+    ``nis_rows`` the measurement's rows (the NIS's degrees of freedom) at an epoch with attitude and at one
+    without (``measurements.nis_rows``)."""
 
     xs: np.ndarray
     stds: np.ndarray
@@ -237,6 +239,7 @@ class RunTrace:
     noise: np.ndarray | None = None
     correlation_s: float = 0.0
     stops: np.ndarray | None = None
+    nis_rows: tuple = (3, 1)
 
     def block_of(self) -> np.ndarray:
         """The block (N,) of every epoch."""
@@ -265,8 +268,10 @@ def repeated_median(values, counts) -> np.ndarray:
 @dataclass
 class FitSums:
     """Running sums of the residual figures of a run, added chunk by chunk (``add``), so that the summary of a log
-    of any length is computed without holding its residuals."""
+    of any length is computed without holding its residuals. ``rows``: the NIS's degrees of freedom at an epoch
+    with attitude and at one without (``RunTrace.nis_rows``)."""
 
+    rows: tuple = (3, 1)
     n_epochs: int = 0
     n_updates: int = 0
     n_updated_any: int = 0
@@ -298,7 +303,7 @@ class FitSums:
         _add_squares(self.innovation, ned_i[vec_used])
         ok = updated_any & np.isfinite(nis)
         self.nis[0] += float(np.sum(nis[ok]))
-        self.nis[1] += float(np.sum(np.where(has_attitude[ok], 3.0, 1.0)))
+        self.nis[1] += float(np.sum(np.where(has_attitude[ok], *map(float, self.rows))))
 
     def nis_summary(self, inflation: float) -> dict:
         """Mean NIS per degree of freedom of the updated epochs and its two-sided 95 % chi-square band for the
@@ -391,7 +396,7 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     std_cols = np.empty((n_ep, n), np.float32)
     # residuals before each epoch and with the final estimate: north, east, down, magnitude
     before, final = np.empty((n_ep, 4), np.float32), np.empty((n_ep, 4), np.float32)
-    sums = FitSums()
+    sums = FitSums(rows=trace.nis_rows)
     for start in range(0, n_ep, chunk):
         epochs = slice(start, min(start + chunk, n_ep))
         x_cols[epochs], std_cols[epochs], before[epochs, :3], before[epochs, 3], final[epochs, :3], final[epochs, 3] = (

@@ -22,6 +22,7 @@ from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model
+from .measurements import nis_rows
 from .noise import ESTIMATE_EVERY_S
 from .prepare import (
     PreparedLog,
@@ -106,6 +107,7 @@ def calibrate_log(
         noise=noise_b,
         correlation_s=est.learner.inflation() * float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
         stops=stops,
+        nis_rows=nis_rows(model),
     )
     prep = replace(prep, heading=None)  # the heading axis is the filter's alone: not kept for the table
     with phases("per-epoch table and summary"):
