@@ -298,7 +298,9 @@ def _calibration_index(params: dict, device_id: int | None) -> int | None:
     return None
 
 
-def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str, int, dict]:
+def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str, int, dict, str | None]:
+    """``(topic, instance, data, why)`` of the magnetometer to read: instance ``mag``, or by default the one
+    ``_default_instance`` gives; ``why`` says in words why a default other than the lowest instance was read."""
     sensor, vehicle = _datasets(ulog, "sensor_mag"), _datasets(ulog, "vehicle_magnetometer")
     if raw and sensor:
         topic, sets = "sensor_mag", sensor
@@ -308,10 +310,37 @@ def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str
         raise InputError("no vehicle_magnetometer (calibrated magnetometer) topic; read with raw=True", name)
     else:
         raise InputError("no magnetometer topic (sensor_mag or vehicle_magnetometer) in the log", name)
-    instance = min(sets) if mag is None else mag
+    instance, why = min(sets), None
+    if mag is not None:
+        instance = mag
+    elif topic == "sensor_mag":
+        instance, why = _default_instance(sets, ulog.initial_parameters)
     if instance not in sets:
         raise InputError(f"{topic} has no instance {mag}; instances: {sorted(sets)}", name)
-    return topic, instance, sets[instance]
+    if why is not None:
+        why = f"{topic}[{instance}] read: {why}; --mag {min(sets)} reads instance {min(sets)}"
+    return topic, instance, sets[instance], why
+
+
+def _default_instance(sets: dict, params: dict) -> tuple[int, str | None]:
+    """The ``sensor_mag`` instance read when none is asked for, and why when it is not the lowest: PX4's
+    primary magnetometer (the one whose ``device_id`` is ``CAL_MAG_PRIME``) if it is logged and not disabled,
+    else the lowest instance not disabled (``CAL_MAGn_EN = 0``), else the lowest."""
+
+    def device(instance):
+        ids = sets[instance].get("device_id")
+        return int(ids[0]) if ids is not None and len(ids) else None
+
+    def enabled(instance):
+        index = _calibration_index(params, device(instance))
+        return index is None or params.get(f"CAL_MAG{index}_EN") != 0
+
+    lowest, prime = min(sets), params.get("CAL_MAG_PRIME")
+    for instance in sorted(sets):
+        if prime is not None and device(instance) == prime and enabled(instance):
+            return instance, None if instance == lowest else f"PX4's primary magnetometer (CAL_MAG_PRIME = {prime})"
+    instance = next((i for i in sorted(sets) if enabled(i)), lowest)
+    return instance, None if instance == lowest else "the lowest instance not disabled in PX4 (CAL_MAGn_EN)"
 
 
 def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> tuple[pd.DataFrame, dict]:
@@ -323,7 +352,8 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     note), ``hdop, vdop`` and the auxiliary ``eph`` (m), ``fix_type`` (the lower of the two bracketing
     GNSS samples), ``current_a`` (A), ``throttle`` (0..1) and ``temp_c`` (degC), each where logged.
 
-    ``raw=True`` (default) returns ``sensor_mag`` instance ``mag`` (default the lowest instance):
+    ``raw=True`` (default) returns ``sensor_mag`` instance ``mag`` (default PX4's primary magnetometer,
+    ``CAL_MAG_PRIME``, unless it is disabled; else the lowest instance not disabled):
     the measurement in the magnetometer's own sensor frame, not rotated by
     ``SENS_BOARD_ROT`` / ``CAL_MAGn_ROT`` (see the module docstring; up to PX4 v1.11 the ``CAL_MAGn`` offsets
     and scales may already be subtracted). Without ``sensor_mag``, or with ``raw=False``, the calibrated
@@ -346,7 +376,9 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     name = str(path)
     ulog = _load(path)
     notes: list[str] = []
-    topic, instance, m = _pick_magnetometer(ulog, mag, raw, name)
+    topic, instance, m, why = _pick_magnetometer(ulog, mag, raw, name)
+    if why is not None:
+        notes.append(why)
     calibrated = topic == "vehicle_magnetometer"
     if calibrated:
         notes.append(

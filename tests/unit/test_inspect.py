@@ -125,12 +125,14 @@ def test_px4_log(logs):
     assert report["position"]["lon_deg"] == pytest.approx(10.408, abs=0.01)
     names = [s["name"] for s in report["streams"]]
     assert names == ["sensor_mag[0]", "sensor_mag[1]", "vehicle_magnetometer[0]"]
-    assert [s["used"] for s in report["streams"]] == [True, False, False]
+    assert [s["used"] for s in report["streams"]] == [False, True, False]  # PX4's primary one
     assert report["units"]["magnetometer"]["autopilot_calibration"] == "possibly applied"
     assert {"too_short", "level", "field_ratio"} <= codes(report)
-    assert any("CAL_MAG0_EN = 0" in note for note in report["notes"])
+    assert any("PX4's primary magnetometer" in note for note in report["notes"])
     assert_fits_screen(report)
-    assert "CAL_MAG0_EN = 0" in format_inspection(report)
+    disabled = inspect_log(read_log(PX4, mag=0))
+    assert [s["used"] for s in disabled["streams"]] == [True, False, False]
+    assert "CAL_MAG0_EN = 0" in format_inspection(disabled)
 
 
 def test_example_drive():

@@ -76,16 +76,20 @@ def test_sample_log_provenance(sample):
     assert prov["columns"]["current_a"].startswith("battery_status")
     assert set(prov["columns"]) == set(table.columns)
     assert "device_id" not in table.columns
+    # by default PX4's primary magnetometer (CAL_MAG_PRIME), the external one; instance 0 is disabled
     assert prov["magnetometer"] | {"rate_hz": None} == {
         "topic": "sensor_mag",
-        "instance": 0,
-        "device_id": 589858,
+        "instance": 1,
+        "device_id": 592905,
         "rate_hz": None,
         "calibrated": False,
         "fields": "sensor_mag.x, sensor_mag.y, sensor_mag.z",
-        "calibration_index": 0,
+        "calibration_index": 1,
     }
-    assert prov["rotation"]["SENS_BOARD_ROT"] == 4 and prov["rotation"]["CAL_MAG0_ROT"] == -1
+    assert prov["notes"][0] == (
+        "sensor_mag[1] read: PX4's primary magnetometer (CAL_MAG_PRIME = 592905); --mag 0 reads instance 0"
+    )
+    assert prov["rotation"]["SENS_BOARD_ROT"] == 4 and prov["rotation"]["CAL_MAG1_ROT"] == 0
     assert prov["rotation"]["applied"] is False
     assert prov["parameters"]["CAL_MAG1_ID"] == 592905
     assert "time_utc_usec" in prov["time_base"]
@@ -95,6 +99,16 @@ def test_sample_log_provenance(sample):
         ("vehicle_magnetometer", 0, 319),
     ]
     assert magnetometer_instances(SAMPLE) == prov["magnetometers"]
+
+
+def test_an_instance_asked_for_is_read_with_what_is_known_of_it():
+    """``mag=0`` reads the disabled internal magnetometer, and the notes say it is disabled and not primary."""
+    _, prov = read_ulog(SAMPLE, mag=0)
+    assert prov["magnetometer"]["instance"] == 0 and prov["magnetometer"]["device_id"] == 589858
+    assert prov["rotation"]["CAL_MAG0_ROT"] == -1
+    assert "the chosen magnetometer is disabled in PX4 (CAL_MAG0_EN = 0)" in prov["notes"]
+    assert any("not PX4's primary one (CAL_MAG_PRIME = 592905)" in note for note in prov["notes"])
+    assert not any(note.startswith("sensor_mag[") for note in prov["notes"])
 
 
 def test_calibrated_magnetometer_on_request():
