@@ -31,7 +31,12 @@ def add_parsers(sub) -> None:
     p.add_argument("cal", help="calibration JSON")
     p.add_argument("--to", required=True, choices=["ardupilot", "px4"], help="autopilot")
     p.add_argument(
-        "--instance", type=int, help="compass instance (ArduPilot 1 to 3, default 1; PX4 CAL_MAGn, default 0)"
+        "--instance",
+        type=int,
+        help=(
+            "compass instance (ArduPilot 1 to 3, PX4 CAL_MAGn 0 to 3; default: the magnetometer the calibration "
+            "is of, from its log, else ArduPilot 1 and PX4 0)"
+        ),
     )
     p.add_argument("-o", "--output", required=True, metavar="FILE.param", help="parameter file to write")
     p.add_argument("--json", action="store_true", help="print the parameters as JSON")
@@ -89,23 +94,26 @@ def run_export(args) -> int:
     loads. The rotation part of R cannot be held by either autopilot's symmetric matrix: the angle it leaves is
     reported. See docs/autopilot-logs.md."""
     from ..errors import InputError
-    from ..io.autopilot import to_ardupilot, to_px4, write_param_file
+    from ..io.autopilot import export_instance, to_ardupilot, to_px4, write_param_file
     from ..io.calibration import Calibration
 
-    lo, hi, default = (1, 3, 1) if args.to == "ardupilot" else (0, 3, 0)
-    instance = default if args.instance is None else args.instance
-    if not lo <= instance <= hi:
-        raise InputError(f"--instance {instance}: {args.to} compass instances are {lo} to {hi}")
+    lo, hi = (1, 3) if args.to == "ardupilot" else (0, 3)
+    if args.instance is not None and not lo <= args.instance <= hi:
+        raise InputError(f"--instance {args.instance}: {args.to} compass instances are {lo} to {hi}")
     cal = Calibration.load(args.cal)
+    if args.instance is None:
+        instance, why = export_instance(cal, args.to)
+    else:
+        instance, why = args.instance, f"compass {args.instance}, asked for with --instance"
     try:
         params = (to_ardupilot if args.to == "ardupilot" else to_px4)(cal, instance)
     except InputError as exc:  # about the calibration
         raise exc.located(args.cal) from None
     write_param_file(params, args.output)
     if args.json:
-        common.print_json(params.summary())
+        common.print_json(params.summary() | {"instance_chosen": why})
         return 0
-    print(f"{args.to} parameters of {args.cal} written to {args.output}:")
+    print(f"{args.to} parameters of {args.cal} written to {args.output}, as {why}:")
     for name, value in params.values.items():
         print(f"  {name:18s} {value:.9g}")
     print(f"  rotation the parameters cannot hold: {params.residual_rotation_deg:.3f} deg")

@@ -67,6 +67,7 @@ __all__ = [
     "ParameterSet",
     "apply_ardupilot",
     "apply_px4",
+    "export_instance",
     "read_param_file",
     "to_ardupilot",
     "to_px4",
@@ -98,6 +99,31 @@ MAV_PARAM_TYPE_REAL32 = 9
 #: PX4 holds up to four magnetometer calibrations (``Magnetometer::MAX_SENSOR_COUNT``).
 PX4_INSTANCES = range(4)
 AP_INSTANCES = (1, 2, 3)
+
+
+def export_instance(cal, autopilot: str) -> tuple[int, str]:
+    """The compass whose parameters ``cal`` should be written as by default, and why, in words: the
+    magnetometer it was calibrated from when it came from that autopilot's log (``Calibration.magnetometer``:
+    PX4's ``CAL_MAGn`` slot holding its ``device_id``, ArduPilot's ``MAG`` instance ``i`` as compass ``i + 1``),
+    else the first compass (ArduPilot 1, PX4 0). ``autopilot`` is ``ardupilot`` or ``px4``."""
+    mag = cal.magnetometer or {}
+    fmt = mag.get("format")
+    if autopilot == "px4" and fmt == "px4-ulog" and mag.get("calibration_index") is not None:
+        n = int(mag["calibration_index"])
+        return n, f"CAL_MAG{n}, the slot of the magnetometer it was calibrated from (device_id {mag.get('device_id')})"
+    if autopilot == "ardupilot" and fmt == "ardupilot-dataflash" and mag.get("instance") is not None:
+        n = int(mag["instance"]) + 1
+        return n, f"compass {n}, the one it was calibrated from (MAG instance {mag['instance']})"
+    first = 1 if autopilot == "ardupilot" else 0
+    if autopilot == "px4" and fmt == "px4-ulog":
+        why = f"no CAL_MAGn_ID of the log matches its magnetometer (device_id {mag.get('device_id')})"
+    elif fmt in ("px4-ulog", "ardupilot-dataflash"):
+        why = f"the calibration is of a magnetometer in a {fmt} log, not one of this autopilot's"
+    else:
+        why = "the calibration does not say which magnetometer it is of"
+    return first, f"compass {first} ({why}; --instance picks another)"
+
+
 AXES = "XYZ"
 CURRENT_COLUMN = "current_a"
 #: Integer parameters (written as INT32 in QGroundControl files).

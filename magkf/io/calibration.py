@@ -100,6 +100,10 @@ class Calibration:
     standard_errors : standard errors of those named parameters.
     quality : fit statistics (``residual_rms``, ``coverage``, ...).
     source : the data the calibration was computed from.
+    magnetometer : which of an autopilot log's magnetometers it calibrates (``DriveLog.magnetometer``: the
+        log's ``format``, the ``instance`` read and what the reader knows of it, such as PX4's
+        ``calibration_index`` or ArduPilot's ``parameter_set``), or None; ``magkf export`` writes that
+        magnetometer's parameters by default.
     effects : ``StoredEffect`` of each physical effect estimated with the core, in state order.
     state_covariance : (n, n) array over the core then every effect's parameters, or None.
     """
@@ -112,6 +116,7 @@ class Calibration:
     standard_errors: dict = field(default_factory=dict)
     quality: dict = field(default_factory=dict)
     source: str | None = None
+    magnetometer: dict | None = None
     effects: tuple = ()
     state_covariance: np.ndarray | None = None
 
@@ -178,6 +183,8 @@ class Calibration:
                 out[key] = jsonable(value)
         if self.source is not None:
             out["source"] = self.source
+        if self.magnetometer is not None:
+            out["magnetometer"] = jsonable(self.magnetometer)
         if self.effects:
             out["effects"] = [e.to_dict() for e in self.effects]
         if self.state_covariance is not None:
@@ -220,6 +227,8 @@ class Calibration:
             extras[key] = value
         if not isinstance(data.get("source", ""), str):
             raise InputError("key 'source' must be a string", source)
+        if not isinstance(data.get("magnetometer", {}), dict):
+            raise InputError("key 'magnetometer' must be a JSON object", source)
         method = data.get("method", "unspecified")
         if not isinstance(method, str):
             raise InputError("key 'method' must be a string", source)
@@ -242,6 +251,7 @@ class Calibration:
                 method=method,
                 covariance=cov,
                 source=data.get("source"),
+                magnetometer=data.get("magnetometer"),
                 effects=effects,
                 state_covariance=state_cov,
                 **extras,

@@ -462,6 +462,15 @@ def _time_offset(gps: dict, path: str) -> tuple[float, str]:
     )
 
 
+def _known_dop(hdop):
+    """``GPS.HDop`` with ArduPilot's unknown DOP (``UNKNOWN_DOP_COUNTS``, which the int16 field shows as
+    -0.01) as NaN; NaN where the message has no such field."""
+    if hdop is None:
+        return np.nan
+    hdop = np.asarray(hdop, float)
+    return np.where(hdop < 0.0, np.nan, hdop)
+
+
 def read_dataflash(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5):
     """Read an ArduPilot DataFlash log into the canonical drive log.
 
@@ -558,14 +567,14 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
             elif "Und" in gpa:
                 und = interpolate_linear(t_gps, stream_time(gpa), np.where(gpa_fix, gpa["Und"], np.nan))[0]
                 alt, alt_text = alt_msl - und, "GPS.Alt - GPA.Und (MSL + geoid height -> m above WGS-84)"
-            vdop = np.where(gpa_fix, gpa["VDop"], np.nan)
+            vdop = np.where(gpa_fix & (gpa["VDop"] < UNKNOWN_DOP_COUNTS * 0.01), gpa["VDop"], np.nan)
             frame["vdop"] = interpolate_linear(t, stream_time(gpa), vdop, max_gap_s)[0]
             columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
         for name, values, text in (
             ("lat", lat, "GPS.Lat (deg)"),
             ("lon", lon, "GPS.Lng (deg)"),
             ("alt", alt, alt_text),
-            ("hdop", np.where(fix, gps.get("HDop", np.nan), np.nan), "GPS.HDop"),
+            ("hdop", np.where(fix, _known_dop(gps.get("HDop")), np.nan), "GPS.HDop"),
         ):
             frame[name] = interpolate_linear(t, t_gps, values, max_gap_s)[0]
             columns[name] = f"{text}, only GPS Status >= 3 (3-D fix), linear"

@@ -231,6 +231,13 @@ class DriveLog:
         return np.full(len(self), np.nan) if dop is None else dop
 
     @property
+    def magnetometer(self) -> dict | None:
+        """Which of an autopilot log's magnetometers was read (the reader's ``provenance["magnetometer"]`` with
+        the log's ``format``), or None for a log that holds one (a canonical CSV or Parquet file)."""
+        mag = self.provenance.get("magnetometer")
+        return None if not isinstance(mag, dict) else {"format": self.provenance.get("format"), **mag}
+
+    @property
     def auxiliary(self) -> list[str]:
         """Names of the auxiliary channels (every column without a fixed meaning)."""
         return [c for c in self.table.columns if c not in CORE_COLUMNS]

@@ -268,3 +268,37 @@ def test_a_closed_pipe_ends_quietly():
         f"{sys.executable} -m magkf check {DATAFLASH} | head -1", shell=True, capture_output=True, text=True
     )
     assert "Traceback" not in proc.stderr and proc.stdout.startswith("magkf check")
+
+
+def test_export_writes_the_compass_the_calibration_came_from(tmp):
+    """A calibration from an autopilot log records its magnetometer, and export writes that compass's
+    parameters unless told otherwise: ArduPilot's MAG instance i as compass i + 1, PX4's CAL_MAGn slot of the
+    magnetometer's device_id; a calibration of another autopilot's log, or of none, gets the first compass."""
+    from magkf.io.dataflash import write_dataflash
+
+    sim = simulate_drive(DriveConfig(duration_s=300, rate_hz=10, seed=8))
+    write_dataflash(sim.table, tmp / "flight.bin")
+    cli_json("calibrate", tmp / "flight.bin", "-o", tmp / "ap.json")
+    cal = Calibration.load(tmp / "ap.json")
+    assert cal.magnetometer["format"] == "ardupilot-dataflash" and cal.magnetometer["instance"] == 0
+    assert Calibration.from_dict(cal.to_dict()).magnetometer == cal.magnetometer  # kept through the file
+    assert cli_json("export", tmp / "ap.json", "--to", "ardupilot", "-o", tmp / "a.param")["instance"] == 1
+    second = cal.to_dict() | {"magnetometer": cal.magnetometer | {"instance": 1}}
+    (tmp / "ap2.json").write_text(json.dumps(second))
+    assert (
+        "COMPASS_OFS2_X" in cli_json("export", tmp / "ap2.json", "--to", "ardupilot", "-o", tmp / "b.param")["values"]
+    )
+    assert cli_json("export", tmp / "ap2.json", "--to", "px4", "-o", tmp / "c.param")["instance"] == 0
+    assert (
+        cli_json("export", tmp / "ap2.json", "--to", "ardupilot", "--instance", 3, "-o", tmp / "d.param")["instance"]
+        == 3
+    )
+    px4 = cal.to_dict() | {
+        "magnetometer": {"format": "px4-ulog", "instance": 1, "device_id": 592905, "calibration_index": 1}
+    }
+    (tmp / "px4.json").write_text(json.dumps(px4))
+    summary = cli_json("export", tmp / "px4.json", "--to", "px4", "-o", tmp / "p.param")
+    assert summary["instance"] == 1 and "CAL_MAG1_XOFF" in summary["values"] and "592905" in summary["instance_chosen"]
+    bare = Calibration(R=cal.R, b=cal.b)
+    bare.save(tmp / "bare.json")
+    assert cli_json("export", tmp / "bare.json", "--to", "px4", "-o", tmp / "q.param")["instance"] == 0

@@ -19,6 +19,7 @@ from magkf.io.dataflash import (
     read_dataflash,
     write_dataflash,
 )
+from magkf.io.readers import read_log
 from magkf.io.timebase import GPS_EPOCH_UNIX, gps_to_unix, leap_seconds
 
 REAL = Path(__file__).resolve().parents[2] / "data" / "real"
@@ -449,6 +450,19 @@ def test_write_dataflash_identity_parameters_and_no_position(tmp_path):
     assert np.abs(raw["mag_x"] - table["mag_x"].to_numpy()).max() <= 50.0
     assert np.isnan(raw["lat"]).all() and (raw["fix_type"] == 1).all()
     np.testing.assert_allclose(raw["throttle"], table["throttle"], rtol=1e-6)  # written x100 for ArduPlane
+
+
+def test_unknown_dop_reads_as_missing(tmp_path):
+    """A receiver that gives no DOP logs ArduPilot's unknown value (UINT16_MAX hundredths: HDop, an int16, shows
+    -0.01; VDop, a uint16, 655.35): read as missing, not as a DOP of -0.01 that the epoch contract refuses."""
+    table = drive_table(n=50).drop(columns=["hdop", "vdop"])
+    path = tmp_path / "nodop.bin"
+    write_dataflash(table, path)
+    df, _ = read_dataflash(path)
+    assert "hdop" not in df or df["hdop"].isna().all()
+    assert "vdop" not in df or df["vdop"].isna().all()
+    log = read_log(path)  # the epoch contract's checks pass
+    assert np.isfinite(log.table["lat"]).all()
 
 
 def test_write_dataflash_gps_time_across_a_leap_second(tmp_path):
