@@ -387,16 +387,34 @@ def from_table(
                 REF[0],
             )
     if whole:
-        whole_log_checks(table, name, mag_unit)
+        fmt = (provenance or {}).get("format", "canonical")
+        fix = _UNIT_FIX.get(fmt, "pass --mag-unit {unit} if they are")
+        whole_log_checks(table, name, mag_unit, fix=fix)
     if mag_unit != "nT":
         table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
     return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
 
 
-def whole_log_checks(table: pd.DataFrame, name: str, mag_unit: str = "nT", same_value: bool = True) -> None:
+#: What to do about magnitudes that look like another unit, by the reader's ``format`` (``{unit}`` the unit
+#: they look like): an autopilot log's reader knows the unit; a column map's reader warns itself (None).
+_UNIT_FIX = {
+    "mapped-table": None,
+    "px4-ulog": "the log may hold another sensor's values, or a field scaled by the autopilot",
+    "ardupilot-dataflash": "the log may hold another sensor's values, or a field scaled by the autopilot",
+}
+
+
+def whole_log_checks(
+    table: pd.DataFrame,
+    name: str,
+    mag_unit: str = "nT",
+    same_value: bool = True,
+    fix: str | None = "pass --mag-unit {unit} if they are",
+) -> None:
     """The checks of ``from_table`` that look at a whole log at once (``table`` in ``mag_unit``; a chunked reader
     passes its first chunk with ``same_value`` False and checks that one itself): InputError for a magnetometer
-    reading the same value at every epoch; ``UnitWarning`` for magnitudes that look like another unit and for
+    reading the same value at every epoch; ``UnitWarning`` for magnitudes that look like another unit (``fix``:
+    what to do about it, ``{unit}`` the unit they look like; None: the reader has warned already) and for
     attitude that looks like radians."""
     attitude = [c for c in ATTITUDE if c in table]
     mag = table[list(MAG)].to_numpy(dtype=float)
@@ -406,10 +424,10 @@ def whole_log_checks(table: pd.DataFrame, name: str, mag_unit: str = "nT", same_
     if complete.any():
         median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
         guess = likely_unit(median)
-        if guess is not None and guess != mag_unit:
+        if guess is not None and guess != mag_unit and fix is not None:
             warnings.warn(
                 f"{name}: the magnetometer magnitudes (median {median:.4g}) look like {guess}, not "
-                f"{mag_unit}; pass --mag-unit {guess} if they are",
+                f"{mag_unit}; {fix.format(unit=guess)}",
                 UnitWarning,
                 stacklevel=4,
             )

@@ -57,11 +57,12 @@ def read_log(
 ) -> DriveLog:
     """Read any supported log into a validated ``DriveLog`` (see the module's table of formats).
 
-    ``format`` overrides the detection; ``map`` (a TOML column map) selects the mapped-table reader for
-    a text or Parquet file; ``mag`` picks a magnetometer instance of a ULog or DataFlash log (default the
-    first); ``mag_unit`` is the unit of a canonical table's magnetometer columns; ``raw`` undoes the
-    autopilot's calibration where it was applied; ``max_gap_s`` is the longest gap across which a slower
-    stream is interpolated. Raises InputError (one line naming the file) for anything it cannot read.
+        ``format`` overrides the detection; ``map`` (a TOML column map) selects the mapped-table reader for
+        a text or Parquet file; ``mag`` picks a magnetometer instance of a ULog or DataFlash log (default the
+        first); ``mag_unit`` is the unit of a canonical table's magnetometer columns (InputError for another format,
+    whose unit its map or the log states); ``raw`` undoes the
+        autopilot's calibration where it was applied; ``max_gap_s`` is the longest gap across which a slower
+        stream is interpolated. Raises InputError (one line naming the file) for anything it cannot read.
     """
     name = str(path)
     if not Path(path).is_file():
@@ -71,6 +72,9 @@ def read_log(
         raise InputError(f"unknown format {kind!r}; use one of {', '.join(FORMATS)}", name)
     if mag is not None and kind not in ("ulog", "dataflash"):
         raise InputError(f"a {kind} table holds one magnetometer: --mag applies to ULog and DataFlash logs", name)
+    if mag_unit != "nT" and kind not in ("csv", "parquet"):
+        where = "its column map's [units] mag" if kind == "mapped" else "the log itself"
+        raise InputError(f"--mag-unit applies to a canonical table: a {kind} log's unit comes from {where}", name)
     if kind in ("csv", "parquet"):
         return read_drive_log(path, mag_unit)
     if kind == "mapped":

@@ -135,3 +135,37 @@ def test_a_table_written_in_pieces_reads_back_whole(tmp, monkeypatch, suffix):
     assert np.array_equal(back["mag_x"].isna(), table["mag_x"].isna().to_numpy())
     assert list(back["note"].fillna("")) == ["", "", "a", "b,c", "d"]
     assert np.allclose(back["a,b"], table["a,b"])
+
+
+def test_a_unit_warning_says_what_the_reader_allows(tmp):
+    """The advice follows the format: ``--mag-unit`` for a canonical table, nothing more from the epoch checks for a
+    mapped table (its reader warns, naming the map's [units]), and no ``--mag-unit`` for an autopilot log, which
+    states its unit."""
+    from magkf.io.drivelog import from_table
+
+    table = read_drive_log(_write(tmp, GOOD)).table.reset_index()
+    table[["mag_x", "mag_y", "mag_z"]] /= 1000.0  # uT values
+    with pytest.warns(UnitWarning, match="pass --mag-unit uT"):
+        from_table(table, "a.csv", provenance={"format": "canonical-csv"})
+    with pytest.warns(UnitWarning, match="look like uT") as caught:
+        from_table(table, "a.bin", provenance={"format": "ardupilot-dataflash"})
+    assert "--mag-unit" not in str(caught[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from_table(table, "a.tsv", provenance={"format": "mapped-table"})
+
+
+@pytest.mark.parametrize("log", ["real/ardupilot_box_center_0003.bin", "real/px4_cubeorange_vtol_sample_log_small.ulg"])
+def test_mag_unit_is_refused_where_the_log_states_its_unit(log):
+    proc = run_cli("check", DATA / log, "--mag-unit", "uT")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert str(DATA / log) in proc.stderr and "--mag-unit applies to a canonical table" in proc.stderr
+
+
+def test_mag_unit_is_refused_with_a_column_map(tmp):
+    survey_map = DATA.parent / "docs" / "examples" / "survey_map.toml"
+    path = tmp / "survey.tsv"
+    path.write_text("time\tx\ty\tz\n")
+    proc = run_cli("check", path, "--map", survey_map, "--mag-unit", "uT")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "its column map's [units] mag" in proc.stderr
