@@ -279,6 +279,11 @@ RANGES = {
 MAX_GAP_S = 5.0
 
 
+#: Finer units a time in UNIX seconds may have been given in, by how many make a second.
+_FINER_UNITS = {"milliseconds": 1e3, "microseconds": 1e6, "nanoseconds": 1e9}
+_SHORT = {"milliseconds": "ms", "microseconds": "us", "nanoseconds": "ns"}
+
+
 class TimeBaseWarning(UserWarning):
     """The log's clock has a gap longer than ``MAX_GAP_S``."""
 
@@ -293,12 +298,16 @@ def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> 
     bad = np.flatnonzero((t < lo) | (t > hi))
     if bad.size:
         i = int(bad[0])
-        hint = (
-            "it looks like time since boot or since the start; give UTC, e.g. with a column map's "
-            'time_epoch = "start" and start_utc'
-            if t[i] < 1e7
-            else "it is not UNIX seconds (UTC)"
-        )
+        scaled = next((unit for unit, per in _FINER_UNITS.items() if lo <= t[i] / per <= hi), None)
+        if t[i] < 1e7:
+            hint = (
+                "it looks like time since boot or since the start; give UTC, e.g. with a column map's "
+                'time_epoch = "start" and start_utc'
+            )
+        elif scaled is not None:
+            hint = f'it looks like UNIX {scaled}: give seconds (a column map: [units] time = "{_SHORT[scaled]}")'
+        else:
+            hint = "it is not UNIX seconds (UTC)"
         raise InputError(f"time {float(t[i])!r} s is outside 1990 to 2100: {hint}", name, row_of(i), TIME)
     step = np.diff(t)
     not_increasing = np.flatnonzero(step <= 0)
@@ -308,7 +317,16 @@ def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> 
             f"time not strictly increasing ({float(t[i])!r} after {float(t[i - 1])!r})", name, row_of(i), TIME
         )
     gaps = np.flatnonzero(step > max_gap_s)
-    if gaps.size:
+    if gaps.size > step.size / 2:  # most intervals are gaps: the time's unit, not the log, is the likely fault
+        median = float(np.median(step))
+        warnings.warn(
+            f"{name}: the epochs are {median:.3g} s apart (median; {gaps.size} of {step.size} intervals longer than "
+            f"{max_gap_s:g} s), slower than a magnetometer logs: check the time's unit (read as milliseconds, they "
+            f"would be {median / 1000:.3g} s apart)",
+            TimeBaseWarning,
+            stacklevel=3,
+        )
+    elif gaps.size:
         i = int(gaps[0]) + 1
         warnings.warn(
             f"{name}: the clock jumps by {step[i - 1]:.3g} s at row {row_of(i)} ({gaps.size} gap(s) longer "

@@ -169,3 +169,18 @@ def test_mag_unit_is_refused_with_a_column_map(tmp):
     proc = run_cli("check", path, "--map", survey_map, "--mag-unit", "uT")
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
     assert "its column map's [units] mag" in proc.stderr
+
+
+def test_a_time_in_a_finer_unit_is_named():
+    """UNIX milliseconds or microseconds are refused with the unit they look like; a log whose every interval is a
+    gap is warned about its time's unit, not about one jump of its clock."""
+    from magkf.io.drivelog import TimeBaseWarning, check_time_base
+
+    t = 1.7e9 + np.arange(100) * 0.05
+    for per, unit in ((1e3, "milliseconds"), (1e6, "microseconds")):
+        with pytest.raises(InputError, match=f"looks like UNIX {unit}"):
+            check_time_base(t * per, "log.csv")
+    with pytest.warns(TimeBaseWarning, match=r"50 s apart .*99 of 99 .*0\.05 s apart"):
+        check_time_base(1.7e9 + np.arange(100) * 50.0, "log.csv")
+    with pytest.warns(TimeBaseWarning, match="the clock jumps by 60 s at row 52"):
+        check_time_base(np.r_[t[:50], t[50:] + 60.0], "log.csv")
