@@ -16,6 +16,7 @@ import pandas as pd
 
 from ..blas import one_thread
 from ..config import FilterConfig
+from ..effects.channels import channel_unit
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
 from ..online.results import band_text
@@ -121,10 +122,8 @@ SIGNAL_LABELS = {
 def _signal_label(name: str) -> str:
     if name in SIGNAL_LABELS:
         return SIGNAL_LABELS[name]
-    for suffix, unit in (("_c", "deg C"), ("_a", "A"), ("_v", "V"), ("_mps", "m/s"), ("_deg", "deg"), ("_nt", "nT")):
-        if name.endswith(suffix):
-            return f"{name}, {unit}"
-    return name
+    unit = channel_unit(name)
+    return name if unit is None else f"{name}, {unit}"
 
 
 def _states_plot(run, t0):
@@ -133,10 +132,11 @@ def _states_plot(run, t0):
     s = run.states
     shown = _thinned(len(s))
     t = s.index.to_numpy()[shown] - t0
-    groups = [("offset b, nT", ["b_x", "b_y", "b_z"]), ("diagonal of R", ["R11", "R22", "R33"])]
-    extra = [n for n in run.names[12:]]
-    if extra:
-        groups.append(("added effects", extra))
+    groups = [("offset b, nT", ["b_x", "b_y", "b_z"]), ("diagonal of R (no unit)", ["R11", "R22", "R33"])]
+    for effect, parameters in run.effects.items():  # one panel per added effect, in its own unit
+        units = {p["unit"] for p in parameters.values()}
+        unit = units.pop() if len(units) == 1 else "units of each"
+        groups.append((f"{effect}, {unit}", [f"{effect}.{name}" for name in parameters]))
     fig, axes = plt.subplots(len(groups), 1, figsize=(10, 2.6 * len(groups)), constrained_layout=True, squeeze=False)
     for ax, (title, names) in zip(axes[:, 0], groups):
         for name in names:

@@ -9,7 +9,7 @@ suffix: ``temp_c``, ``current_a``, ``speed_mps``, ``wheel_deg``) or a key word i
 
 from __future__ import annotations
 
-__all__ = ["KINDS", "channel_kind"]
+__all__ = ["KINDS", "UNIT_SUFFIXES", "channel_kind", "channel_unit"]
 
 #: Kind -> (unit suffixes, words in the name), in the order they are tried.
 KINDS = {
@@ -20,6 +20,31 @@ KINDS = {
     "speed": (("_mps", "_kmh", "_kph"), ("speed", "velocity")),
     "angle": (("_deg", "_rad"), ("angle",)),
 }
+
+
+#: Unit suffix of a column name -> the unit it names, longest suffixes first.
+UNIT_SUFFIXES = {
+    "_degc": "degC",
+    "_mps": "m/s",
+    "_kmh": "km/h",
+    "_kph": "km/h",
+    "_pct": "%",
+    "_deg": "deg",
+    "_rad": "rad",
+    "_ma": "mA",
+    "_mv": "mV",
+    "_nt": "nT",
+    "_c": "degC",
+    "_k": "K",
+    "_a": "A",
+    "_v": "V",
+}
+
+
+def channel_unit(name: str) -> str | None:
+    """The unit the column ``name``'s suffix names (``current_a``: ``A``), or None when it names none."""
+    lower = name.lower()
+    return next((unit for suffix, unit in UNIT_SUFFIXES.items() if lower.endswith(suffix)), None)
 
 
 def channel_kind(name: str) -> str | None:

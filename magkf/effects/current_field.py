@@ -1,5 +1,6 @@
 """``current_field``: a field proportional to an electrical load, as in compass-motor compensation."""
 
+from .channels import channel_unit
 from .linear import LinearEffect, per_axis
 
 __all__ = ["CurrentField"]
@@ -14,12 +15,18 @@ class CurrentField(LinearEffect):
 
     name = "current_field"
     parameter_names = ("c_x", "c_y", "c_z")
-    units = ("nT/unit",) * 3
     channels = ("current", "throttle")
     prior_std = 1000.0
 
     def __init__(self, column: str = "current_a"):
         self.columns = (column,)
+
+    @property
+    def units(self) -> tuple:
+        """nT per unit of the channel, as its name's suffix gives it (``current_a``: nT/A), else per unit of the
+        column itself (``throttle``: nT/(throttle))."""
+        column = self.columns[0]
+        return (f"nT/{channel_unit(column) or f'({column})'}",) * 3
 
     def design(self, data):
         return per_axis(data.columns[self.columns[0]])

@@ -260,3 +260,15 @@ def test_real_time_time_lag_through_samples_without_attitude(filter_name):
     assert {results[i].status for i in (1, 200, 201, 202)} <= {"missing_attitude", "gated_magnitude"}
     assert all(np.isfinite(r.x).all() for r in results)
     assert results[1].updated
+
+
+def test_a_load_effect_is_in_nanotesla_per_unit_of_its_channel():
+    """``current_field``'s coefficients are nT per unit of the channel its name gives (nT/A on ``current_a``), and
+    nT per unit of the column itself on a channel whose name gives none."""
+    from magkf.effects.channels import channel_unit
+    from magkf.effects.current_field import CurrentField
+
+    assert CurrentField().units == ("nT/A",) * 3
+    assert CurrentField("load_ma").units == ("nT/mA",) * 3
+    assert CurrentField("throttle").units == ("nT/(throttle)",) * 3
+    assert [channel_unit(c) for c in ("temp_c", "speed_mps", "wheel_deg", "throttle")] == ["degC", "m/s", "deg", None]
