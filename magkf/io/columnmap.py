@@ -233,7 +233,7 @@ class ColumnMap:
         except (LookupError, TypeError):
             bad("encoding", f"unknown text encoding {self.encoding!r}")
         missing = self.missing
-        if isinstance(missing, str) or not all(isinstance(m, str) for m in missing):
+        if not isinstance(missing, (list, tuple)) or not all(isinstance(m, str) for m in missing):
             bad("missing", f"{missing!r} is not a list of strings")
         object.__setattr__(self, "missing", tuple(missing))
         if self.format is not None:

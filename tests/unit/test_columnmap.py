@@ -571,3 +571,14 @@ def test_property_values_come_back_exactly_or_input_error(generated):
 def load_column_map_text(text: str) -> ColumnMap:
     with tempfile.TemporaryDirectory() as tmp:
         return load_column_map(write(Path(tmp) / "map.toml", text))
+
+
+@pytest.mark.parametrize("value", ["true", "3", '"NaN"', "{ a = 1 }"])
+def test_missing_that_is_not_a_list_of_strings_is_refused_naming_it(tmp_path, value):
+    """``[file] missing`` must be a list of strings: a boolean or a number is refused as such, not a TypeError."""
+    write(
+        tmp_path / "map.toml",
+        f'[file]\nmissing = {value}\n[columns]\ntime = "t"\nmag_x = "x"\nmag_y = "y"\nmag_z = "z"\n',
+    )
+    with pytest.raises(InputError, match=r"\[file\] missing: .* is not a list of strings"):
+        load_column_map(tmp_path / "map.toml")
