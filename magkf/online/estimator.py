@@ -279,6 +279,9 @@ class Estimator:
             heading = blk.heading[pick]
             if model.needs_attitude and blk.frame is not None:
                 e = blk.m[pick] - blk.H[pick] @ x
+                if self.layout.nonlinear:  # their terms, which the linear Jacobian's zero columns leave out
+                    extra = self.layout.EXTRA
+                    e = e - (blk.e[pick] - blk.H[pick][:, :, extra] @ x[extra])
                 parts_of_e = (blk.frame[pick] @ e[:, :, None])[:, :, 0]  # along the field, h, v
                 along.append(parts_of_e[:, 0])
                 cross.append(parts_of_e[:, 1:])

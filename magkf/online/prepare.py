@@ -308,7 +308,12 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
         fit = usable[fit_positions(len(usable))]
-        x = robust_linear_fit(prep.m[fit], layout.linear_jacobian(prep.data.take(fit)), x0, start.along_var)
+        data = prep.data.take(fit)
+        # nonlinear effects (a time lag) linearised at x0: left out, their terms would read as noise
+        linear = layout.linear_jacobian(data)
+        H = layout.jacobian(x0, data, linear)
+        offset = np.nan_to_num(layout.nonlinear_terms(x0, data) - (H - linear) @ x0) if layout.nonlinear else 0.0
+        x = robust_linear_fit(prep.m[fit] - offset, H, x0, start.along_var)
         R = StateLayout.R(np.asarray(x0, float))
         parts_of_e = np.empty((len(usable), 3))
         for i in range(0, len(usable), CHUNK):
@@ -335,8 +340,11 @@ def fit_positions(n_usable: int) -> np.ndarray:
 
 def residual_parts(prep: PreparedLog, layout: StateLayout, x, R) -> np.ndarray:
     """The residuals ``m - H x`` (k, 3) nT of the epochs of ``prep`` at state ``x`` (``H`` the layout's linear
-    Jacobian) along the field, the heading axis and the third (the field's frame at calibration ``R``)."""
+    Jacobian, less the nonlinear effects' terms at ``x``; a missing input counts as 0) along the field, the
+    heading axis and the third (the field's frame at calibration ``R``)."""
     e = prep.m - layout.linear_jacobian(prep.data) @ x
+    if layout.nonlinear:
+        e = e - np.nan_to_num(layout.nonlinear_terms(x, prep.data))
     return np.einsum("kji,ki->kj", prep.frame(slice(None), R), e)
 
 
