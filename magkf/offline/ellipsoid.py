@@ -163,7 +163,7 @@ class EllipsoidResult:
     ``|R^-1 (S_m - b)| - field`` (data units after calibration); ``magnitude_spread_before`` and
     ``_after`` are the standard deviations of the magnitude divided by its mean, raw and calibrated;
     ``coverage`` the visited share of the sphere or circle; ``poorly_determined`` lists parameters
-    whose standard error is large.
+    whose standard error is large (all of them when the refinement did not converge: ``converged`` False).
     """
 
     axes: int
@@ -180,6 +180,7 @@ class EllipsoidResult:
     n_samples: int
     poorly_determined: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
+    converged: bool = True
 
     def to_calibration(self, source: str | None = None) -> Calibration:
         """A 3x3 calibration; for two axes the z row and offset are identity and zero (not calibrated)."""
@@ -252,8 +253,14 @@ class EllipsoidCalibrator(Calibrator):
         names = parameter_names(d)
         algebraic = dict(zip(names, _readable(x_alg, d)))
         warnings = []
+        converged = True
         if self.refine:
-            x, se = _refine(X, x_alg, F, d)
+            x, se, converged = _refine(X, x_alg, F, d)
+            if not converged:
+                warnings.append(
+                    f"the refinement did not converge in {MAX_ITERATIONS} iterations: the samples do not determine "
+                    "the ellipsoid"
+                )
         else:
             x, se = x_alg, np.full(x_alg.size, np.nan)
         K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
@@ -283,6 +290,7 @@ class EllipsoidCalibrator(Calibrator):
             n_samples=len(X),
             poorly_determined=poorly,
             warnings=warnings,
+            converged=converged,
         )
         return self
 
@@ -311,10 +319,20 @@ def _magnitudes(X, x, d) -> np.ndarray:
     return np.linalg.norm(np.linalg.solve(K, (X - b).T), axis=0)
 
 
+#: Iterations of the refinement's Levenberg-Marquardt solve before it stops unconverged: a well-posed fit takes
+#: under ten; samples that do not determine the ellipsoid (a patch of the sphere) wander for tens of thousands
+#: (16 s on 6 000 samples), towards an ellipsoid of any size through the patch.
+MAX_ITERATIONS = 200
+
+
 def _least_squares(X, x0, F, d, weight=None):
+    """The Levenberg-Marquardt solve of the magnitude residual from ``x0``; ``status`` 0 when it stopped at
+    ``MAX_ITERATIONS``."""
     scale = np.concatenate([np.abs(x0[:d]), np.full(len(x0) - 2 * d, 1e-2), np.full(d, F)])
     w = 1.0 if weight is None else weight
-    return least_squares(lambda p: (_magnitudes(X, p, d) - F) * w, x0, method="lm", x_scale=scale)
+    return least_squares(
+        lambda p: (_magnitudes(X, p, d) - F) * w, x0, method="lm", x_scale=scale, max_nfev=MAX_ITERATIONS
+    )
 
 
 def _radial_variance(X, x, d) -> np.ndarray:
@@ -348,10 +366,13 @@ def _refine(X, x0, F, d):
     with raw noise of the estimated variance (fixed seed, so a fit is repeatable), refitted, and the
     shift of the estimate is the bias. The standard errors include the bootstrap's own scatter.
     """
-    x = _least_squares(X, x0, F, d).x
+    first = _least_squares(X, x0, F, d)
+    x = first.x
     radial = _radial_variance(X, x, d)
     fit = _least_squares(X, x, F, d, 1 / np.sqrt(radial))
     x = fit.x
+    if first.status == 0 or fit.status == 0:  # no minimum in reach: nothing is determined
+        return x, np.full(len(x), np.nan), False
     K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
     u = np.linalg.solve(K, (X - b).T).T
     u /= np.linalg.norm(u, axis=1)[:, None]
@@ -367,7 +388,7 @@ def _refine(X, x0, F, d):
         se = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         se = np.full(len(x), np.nan)
-    return x - shift, se
+    return x - shift, se, True
 
 
 def _scales(d, F, x):

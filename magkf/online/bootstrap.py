@@ -133,20 +133,43 @@ def _heading_spread(field_body: np.ndarray) -> float:
     return float(360.0 - np.diff(np.concatenate([a, [a[0] + 360.0]])).max())
 
 
+def _plausible_fit(m, field: float):
+    """``(fit, why)``: the ellipsoid fit (``EllipsoidResult``) of readings ``m`` (k, 3) to a field of ``field`` nT,
+    or None and why, in words, when the fit fails or its calibration would be refused
+    (``plausibility.check_calibration``): over a small patch
+    of the sphere a fit can converge on a huge ellipsoid through it (offsets of 1e9 nT, sensitivities of 1e4,
+    with standard errors that look small against them, were seen over 0.5 % of it)."""
+    from ..offline.ellipsoid import EllipsoidCalibrator
+    from ..plausibility import check_calibration
+
+    try:
+        fit = EllipsoidCalibrator(3, field).fit(m, "log").result_
+        check_calibration(fit.R, fit.b / field, "log")
+    except InputError as exc:
+        return None, exc.message
+    if not fit.converged:
+        return None, f"it did not converge, over {100 * fit.coverage:.0f} % of the sphere"
+    return fit, None
+
+
 def bootstrap_magnitude(m, reference_magnitude, time, span_s: float) -> Bootstrap:
     """Bootstrap without attitude: an ellipsoid fit to ``m`` (N, 3) with the median reference magnitude."""
-    from ..offline.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix
+    from ..offline.ellipsoid import parameter_names, patent_matrix
     from .measurements import rotation_directions
 
     stretch = time <= time[0] + span_s
     if stretch.sum() < 200:
         stretch = np.ones(len(m), bool)
     field = float(np.median(reference_magnitude[stretch]))
-    try:
-        fit = EllipsoidCalibrator(3, field).fit(m[stretch], "log").result_
-    except InputError:
-        fit = EllipsoidCalibrator(3, field).fit(m, "log").result_
+    fit, why = _plausible_fit(m[stretch], field)
+    if fit is None and not stretch.all():  # the whole log, which may turn through more of the sphere
         stretch = np.ones(len(m), bool)
+        fit, why = _plausible_fit(m, field)
+    if fit is None:
+        raise InputError(
+            f"the magnitudes do not determine a starting calibration (an ellipsoid fit to them: {why}); turn the "
+            "sensor through more orientations, or give --init CAL.json"
+        )
     x = np.concatenate([fit.R.ravel(), fit.b])
     names = parameter_names(3)
     p = np.array([fit.parameters[n] for n in names])

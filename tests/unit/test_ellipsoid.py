@@ -123,3 +123,17 @@ def test_field_from_igrf(tmp):
     r = cli_json("ellipsoid", tmp / "s.csv", "--field", "igrf", "--lat", 48.1, "--lon", 11.6, "--date", "2026-06-01")
     assert r["field"] == pytest.approx(f["magnitude_nt"])
     assert np.allclose([r["parameters"][n] for n in ("kx", "ky", "kz")], TRUTH3[0], rtol=1e-9)
+
+
+def test_a_patch_of_the_sphere_stops_unconverged():
+    """The first 120 s of a simulated drive turn the field through under 1 % of the sphere: the refinement stops
+    at its iteration limit instead of wandering for tens of thousands of iterations (16 s) to an ellipsoid with
+    offsets of 1e9, says so, and marks every parameter poorly determined."""
+    from magkf.sim import DriveConfig, simulate_drive
+
+    sim = simulate_drive(DriveConfig(seed=1))
+    t = sim.table.index.to_numpy()
+    m = sim.table[["mag_x", "mag_y", "mag_z"]].to_numpy()[t <= t[0] + 120.0]
+    r = EllipsoidCalibrator(3, 50_000.0).fit(m[np.all(np.isfinite(m), axis=1)]).result_
+    assert not r.converged and r.coverage < 0.01
+    assert len(r.poorly_determined) == 9 and any("did not converge" in w for w in r.warnings)
