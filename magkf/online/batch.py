@@ -106,8 +106,10 @@ CHUNK_EPOCHS = 8192
 STEP_TOL = 1e-6
 #: Also converged when no fraction of a step below this many standard deviations lowers the cost.
 FLAT_STEP_TOL = 1e-3
-#: At most this many Gauss-Newton iterations per pass.
-MAX_ITERATIONS = 50
+#: At most this many Gauss-Newton iterations per pass. The robust pass's reweighting converges linearly: a
+#: parameter the log determines to a small fraction of its prior (a 0.05 s time lag to 1.2e-4 s over 150 s)
+#: took 50 to 100 iterations to step below ``STEP_TOL`` of its standard deviation.
+MAX_ITERATIONS = 100
 #: A step may raise the cost by this fraction of it (the rounding of a sum over the whole log) and be taken.
 COST_RTOL = 1e-12
 #: A step is halved at most this many times before the pass stops.

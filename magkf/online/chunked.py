@@ -68,6 +68,7 @@ from .prepare import (
     residual_parts,
     robust_linear_fit,
     start_levels,
+    start_rows,
 )
 from .results import CalibrationRun, FitSums, RunTrace, epoch_columns, states_frame, summarise
 from .run import ForwardPass
@@ -572,9 +573,10 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
         m, H, seen = [], [], 0
         for piece in pieces(log, config, R0):
             usable = np.flatnonzero(scan.base.read(piece.epochs.start, piece.epochs.stop) == Status.USED)
-            take = piece.own.take(_select(positions, seen, usable))
-            m.append(take.m)
-            H.append(layout.linear_jacobian(take.data))
+            chosen = _select(positions, seen, usable)
+            rows = start_rows(layout, x0, piece.prep.data, piece.own.m[chosen], piece.lo + chosen)
+            m.append(rows[0])
+            H.append(rows[1])
             seen += len(usable)
         x = robust_linear_fit(np.concatenate(m), np.concatenate(H), x0, start.along_var)
         del m, H
@@ -588,8 +590,11 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
         base = scan.base.read(piece.epochs.start, piece.epochs.stop)
         ok = (base == Status.USED) if attitude else (base == Status.USED) | (base == Status.MISSING_ATTITUDE)
         usable = np.flatnonzero(ok)
-        take = piece.own.take(_select(wanted, seen, usable))
-        parts.append(residual_parts(take, layout, x, R0) if attitude else magnitude_residuals(take, x0))
+        chosen = _select(wanted, seen, usable)
+        take = piece.own.take(chosen)
+        parts.append(
+            residual_parts(piece.prep, layout, x, R0, piece.lo + chosen) if attitude else magnitude_residuals(take, x0)
+        )
         ref_mag.append(take.ref_mag)
         ref.append(take.ref)
         seen += len(usable)

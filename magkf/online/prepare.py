@@ -308,16 +308,11 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
         fit = usable[fit_positions(len(usable))]
-        data = prep.data.take(fit)
-        # nonlinear effects (a time lag) linearised at x0: left out, their terms would read as noise
-        linear = layout.linear_jacobian(data)
-        H = layout.jacobian(x0, data, linear)
-        offset = np.nan_to_num(layout.nonlinear_terms(x0, data) - (H - linear) @ x0) if layout.nonlinear else 0.0
-        x = robust_linear_fit(prep.m[fit] - offset, H, x0, start.along_var)
+        x = robust_linear_fit(*start_rows(layout, x0, prep.data, prep.m[fit], fit), x0, start.along_var)
         R = StateLayout.R(np.asarray(x0, float))
         parts_of_e = np.empty((len(usable), 3))
         for i in range(0, len(usable), CHUNK):
-            parts_of_e[i : i + CHUNK] = residual_parts(prep.take(usable[i : i + CHUNK]), layout, x, R)
+            parts_of_e[i : i + CHUNK] = residual_parts(prep, layout, x, R, usable[i : i + CHUNK])
         along, cross = parts_of_e[:, 0], parts_of_e[:, 1:]  # along the field, the heading axis, the third
     else:
         usable = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)
@@ -338,14 +333,32 @@ def fit_positions(n_usable: int) -> np.ndarray:
     return np.arange(0, n_usable, max(-(-n_usable // FIT_EPOCHS), 1))
 
 
-def residual_parts(prep: PreparedLog, layout: StateLayout, x, R) -> np.ndarray:
-    """The residuals ``m - H x`` (k, 3) nT of the epochs of ``prep`` at state ``x`` (``H`` the layout's linear
-    Jacobian, less the nonlinear effects' terms at ``x``; a missing input counts as 0) along the field, the
-    heading axis and the third (the field's frame at calibration ``R``)."""
-    e = prep.m - layout.linear_jacobian(prep.data) @ x
+def start_rows(layout: StateLayout, x0, data, m, rows) -> tuple[np.ndarray, np.ndarray]:
+    """The readings ``m`` (k, 3) nT and Jacobian (k, 3, n) of the start's linear fit at the epochs ``rows`` (k,)
+    of ``data``: the layout's linear Jacobian with the nonlinear effects (a time lag) linearised at ``x0`` (left
+    out, their terms would read as noise), and the readings less what that linearisation leaves at ``x0``.
+    ``data`` holds the epochs around ``rows`` too, which a time lag interpolates between."""
+    linear = layout.linear_jacobian(data, rows=rows)
+    if not layout.nonlinear:
+        return m, linear
+    x0 = np.asarray(x0, float)
+    H = linear.copy()
+    for effect, sl in layout.nonlinear:
+        H[:, :, sl] = effect.jacobian(x0[sl], data, rows=rows)
+    offset = layout.nonlinear_terms(x0, data, rows=rows) - (H - linear) @ x0
+    return m - np.nan_to_num(offset), np.nan_to_num(H)
+
+
+def residual_parts(prep: PreparedLog, layout: StateLayout, x, R, rows=None) -> np.ndarray:
+    """The residuals ``m - H x`` (k, 3) nT at the epochs ``rows`` of ``prep`` (None: all) at state ``x`` (``H`` the
+    layout's linear Jacobian, less the nonlinear effects' terms at ``x``, which ``prep``'s epochs around ``rows``
+    serve; a missing input counts as 0) along the field, the heading axis and the third (the field's frame at
+    calibration ``R``)."""
+    index = slice(None) if rows is None else rows
+    e = prep.m[index] - layout.linear_jacobian(prep.data, rows=rows) @ x
     if layout.nonlinear:
-        e = e - np.nan_to_num(layout.nonlinear_terms(x, prep.data))
-    return np.einsum("kji,ki->kj", prep.frame(slice(None), R), e)
+        e = e - np.nan_to_num(layout.nonlinear_terms(x, prep.data, rows=rows))
+    return np.einsum("kji,ki->kj", prep.frame(index, R), e)
 
 
 def magnitude_residuals(prep: PreparedLog, x0) -> np.ndarray:
