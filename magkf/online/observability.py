@@ -89,7 +89,8 @@ def _sentence(groups, ratio) -> str:
     if not groups:
         return "a combination of parameters remains at its prior"
     if len(groups) == 1:
-        return f"{groups[0]} remains at its prior (data carried {ratio:.2g} of the prior's information)"
+        verb = "remain at their" if groups[0].endswith(" parameters") else "remains at its"
+        return f"{groups[0]} {verb} prior (data carried {ratio:.2g} of the prior's information)"
     joined = ", ".join(groups[:-1]) + " and " + groups[-1]
     return f"{joined} trade off; they remain at their prior (data carried {ratio:.2g} of the prior's information)"
 
