@@ -168,7 +168,7 @@ def noise_summary(config, trace: RunTrace, counts=None) -> dict:
 def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     """What the learned noise, the NIS and the used share say about the fit, in words."""
     if not noise["adapted"]:
-        return "the noise was not learned (a batch solution, or adapt_noise off): no verdict on the fit"
+        return _fixed_noise_verdict(nis_stats, used_share)
     words = []
     configured = noise["configured"]["sensor_nt"]
     learned = noise.get("learned", {}).get("sensor_median_nt")
@@ -208,6 +208,27 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     text = "; ".join(words)
     if misses:
         text += ": the model misses something; run magkf diagnose"
+    return text[0].upper() + text[1:]
+
+
+def _fixed_noise_verdict(nis_stats: dict, used_share: float) -> str:
+    """The verdict of a run whose noise was not learned: a batch solution has no NIS to judge; a filter with the
+    noise held as stated (``--fixed-noise``) is judged by its mean NIS against the band that noise implies."""
+    lo, hi = nis_stats["band"]
+    mean = nis_stats["mean"]
+    if not np.isfinite(mean):
+        return "the noise was not learned (a batch solution): no verdict on the fit"
+    words = []
+    if not lo <= mean <= hi:
+        words.append(
+            f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: the stated "
+            "noise, or the model, does not fit the data"
+        )
+    if used_share < 0.5:
+        words.append(f"only {100 * used_share:.0f} % of the epochs were used")
+    if not words:
+        return f"the model fits the data at the stated noise (held fixed; mean NIS {mean:.2f} per degree of freedom)"
+    text = "; ".join(words) + " (the noise was held fixed: learning it, the default, tells which)"
     return text[0].upper() + text[1:]
 
 

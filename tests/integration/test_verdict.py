@@ -248,3 +248,17 @@ def test_a_narrow_nis_band_is_shown_with_the_digits_that_tell_its_ends_apart():
     assert "outside its 95 % band [0.998, 1.002]" in nis_line(0.98, band)
     assert band_text(0.99, 1.01) == "[0.99, 1.01]" and band_text(0.5, 1.5) == "[0.50, 1.50]"
     assert band_text(float("nan"), 1.0) == "[nan, 1.00]"
+
+
+def test_a_filter_with_fixed_noise_is_judged_by_its_nis():
+    """Held fixed, the stated noise is still judged: stated right, the model fits at it; stated three times too
+    small, the mean NIS (about 9) leaves its band and the verdict says so. A batch solution has no NIS to judge."""
+    from magkf.online.batch import solve_batch
+
+    sim = simulate_drive(DriveConfig(duration_s=300, rate_hz=20, noise_nt=30.0, seed=21))
+    log = DriveLog(sim.table)
+    right = FilterConfig(sensor_noise_nt=30.0, attitude_deg=0.0, reference_nt=0.0, adapt_noise=False)
+    assert calibrate_log(log, right).summary.verdict.startswith("the model fits the data at the stated noise")
+    small = calibrate_log(log, right.replace(sensor_noise_nt=10.0)).summary.verdict
+    assert "outside its 95 % band" in small and "does not fit" in small
+    assert "no verdict" in solve_batch(log, right).summary.verdict
