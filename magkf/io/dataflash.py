@@ -511,6 +511,9 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
         notes.append(
             f"{len(stream['table']['TimeUS']) - len(table['TimeUS'])} MAG samples with a repeated TimeUS dropped"
         )
+    backwards = int(np.count_nonzero(np.diff(stream["table"]["TimeUS"].astype(np.int64)) < 0))
+    if backwards:
+        notes.append(f"MAG samples out of time order at {backwards} place(s) in the file: read sorted by TimeUS")
     t_us = table["TimeUS"]
 
     gps = _by_time(_select(log.table("GPS"), 0))

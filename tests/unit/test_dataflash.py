@@ -492,3 +492,21 @@ def test_write_dataflash_errors(tmp_path):
     with pytest.raises(InputError, match="int16") as err:
         write_dataflash(big, tmp_path / "b.bin")
     assert "mag_z" in str(err.value) and "b.bin" in str(err.value)
+
+
+def test_mag_samples_out_of_time_order_are_sorted_and_noted(tmp_path):
+    """Two instance-0 MAG messages swapped in the file: read in time order, as before, and now said in a note."""
+    rng = np.random.default_rng(7)
+    path, _ = synthetic_log(tmp_path / "synthetic.bin", rng)
+    straight, _ = read_dataflash(path, mag=0)
+    data = bytearray(path.read_bytes())
+    mag_type = 129 + ["MSG", "PARM", "MAG"].index("MAG")  # the writer numbers types from 129 in definition order
+    size = 3 + 8 + 1 + 2 * 9 + 1 + 4  # header, then MAG's QBhhhhhhhhhBI
+    starts = [i for i in range(len(data) - 2) if data[i : i + 3] == bytes([0xA3, 0x95, mag_type])]
+    first, third = starts[10], starts[12]  # instance 0 at two times (instance 1 between them)
+    data[first : first + size], data[third : third + size] = data[third : third + size], data[first : first + size]
+    swapped = tmp_path / "swapped.bin"
+    swapped.write_bytes(bytes(data))
+    table, prov = read_dataflash(swapped, mag=0)
+    np.testing.assert_array_equal(table["time"].to_numpy(), straight["time"].to_numpy())
+    assert "MAG samples out of time order at 1 place(s) in the file: read sorted by TimeUS" in prov["notes"]
