@@ -26,6 +26,7 @@ from .measurements import nis_rows
 from .noise import ESTIMATE_EVERY_S
 from .prepare import (
     PreparedLog,
+    check_magnitude_start,
     deflate_bootstrap,
     initial_state,
     mark_missing_columns,
@@ -71,6 +72,11 @@ def calibrate_log(
             raise exc.located(log.source) from None
         prep = without_rates(prep, layout)
         model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
+        if not model.needs_attitude:
+            try:
+                check_magnitude_start(prep, layout, P0, base)
+            except InputError as exc:
+                raise exc.located(log.source) from None
         R0 = layout.R(x0)
         noise = None
         if init is None:  # bootstrapped: the noise starts from the log's robust scale too

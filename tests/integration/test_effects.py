@@ -12,7 +12,7 @@ from magkf.io.drivelog import DriveLog
 from magkf.online.run import calibrate_log
 from magkf.sim import DriveConfig, simulate_drive
 
-from ..conftest import ROOT, cli_json
+from ..conftest import ROOT, cli_json, run_cli
 
 NOISE = 30.0
 MATCHED = FilterConfig(sensor_noise_nt=NOISE, attitude_deg=0.0, reference_nt=0.0, r_walk=0.0, b_walk=0.0)
@@ -303,3 +303,18 @@ def test_a_field_anomaly_started_at_the_calibration_the_filter_runs_at():
     diag = [0, 4, 8]
     z = np.concatenate([(run.x[diag] - np.diag(sim.R)) / run.std[diag], (run.x[12:] - truth) / run.std[12:]])
     assert np.all(np.abs(z) < 4.0), z
+
+
+def test_the_magnitude_alone_refuses_an_effect_too_wide_for_its_linearisation(tmp):
+    """A load effect's default prior at a drone's currents spreads its terms over about the whole field: the
+    magnitude filter is refused in one line that names the way out; the batch solution recovers the truth."""
+    sim = _sim([(BUILTIN["current_field"](), TRUTH["current_field"])], seed=0)
+    path = tmp / "load.csv"
+    sim.table.reset_index().to_csv(path, index=False)
+    proc = run_cli("calibrate", path, "--measure", "magnitude", "--effect", "current_field")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "with the magnitude alone, current_field:current_a" in proc.stderr and "--batch" in proc.stderr
+    batch = cli_json("calibrate", path, "--measure", "magnitude", "--effect", "current_field", "--batch")
+    c = np.array([batch["effects"]["current_field"][p]["value"] for p in ("c_x", "c_y", "c_z")])
+    std = np.array([batch["effects"]["current_field"][p]["std"] for p in ("c_x", "c_y", "c_z")])
+    assert np.all(np.abs(c - TRUTH["current_field"]) < 4 * std), (c, std)
