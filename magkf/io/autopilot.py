@@ -104,15 +104,16 @@ AP_INSTANCES = (1, 2, 3)
 def export_instance(cal, autopilot: str) -> tuple[int, str]:
     """The compass whose parameters ``cal`` should be written as by default, and why, in words: the
     magnetometer it was calibrated from when it came from that autopilot's log (``Calibration.magnetometer``:
-    PX4's ``CAL_MAGn`` slot holding its ``device_id``, ArduPilot's ``MAG`` instance ``i`` as compass ``i + 1``),
-    else the first compass (ArduPilot 1, PX4 0). ``autopilot`` is ``ardupilot`` or ``px4``."""
+    PX4's ``CAL_MAGn`` slot holding its ``device_id``; ArduPilot's parameter set, ``compass``, which the reader
+    finds through ``COMPASS_PRIOn_ID`` since ``MAG.I`` is a priority, else ``MAG`` instance ``i`` as compass
+    ``i + 1``), else the first compass (ArduPilot 1, PX4 0). ``autopilot`` is ``ardupilot`` or ``px4``."""
     mag = cal.magnetometer or {}
     fmt = mag.get("format")
     if autopilot == "px4" and fmt == "px4-ulog" and mag.get("calibration_index") is not None:
         n = int(mag["calibration_index"])
         return n, f"CAL_MAG{n}, the slot of the magnetometer it was calibrated from (device_id {mag.get('device_id')})"
     if autopilot == "ardupilot" and fmt == "ardupilot-dataflash" and mag.get("instance") is not None:
-        n = int(mag["instance"]) + 1
+        n = int(mag.get("compass", int(mag["instance"]) + 1))
         return n, f"compass {n}, the one it was calibrated from (MAG instance {mag['instance']})"
     first = 1 if autopilot == "ardupilot" else 0
     if autopilot == "px4" and fmt == "px4-ulog":

@@ -601,6 +601,7 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     k = _state_index(params, chosen)
     if k < 3:
         suffix = ("", "2", "3")[k]
+        magnetometer["compass"] = k + 1  # the parameter set's number, which export writes (not the priority)
         magnetometer["parameter_set"] = (
             f"COMPASS_OFS{suffix}, COMPASS_DIA{suffix}, COMPASS_ODI{suffix}, COMPASS_SCALE{suffix}"
         )

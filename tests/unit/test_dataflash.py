@@ -510,3 +510,18 @@ def test_mag_samples_out_of_time_order_are_sorted_and_noted(tmp_path):
     table, prov = read_dataflash(swapped, mag=0)
     np.testing.assert_array_equal(table["time"].to_numpy(), straight["time"].to_numpy())
     assert "MAG samples out of time order at 1 place(s) in the file: read sorted by TimeUS" in prov["notes"]
+
+
+def test_a_reordered_priority_is_exported_as_its_parameter_set(tmp_path):
+    """Since ArduPilot 4.0 ``MAG.I`` is a priority: instance 0 is the compass whose ``COMPASS_DEV_IDn`` is
+    ``COMPASS_PRIO1_ID``. Made the second parameter set here, its calibration is exported as compass 2."""
+    from magkf.io.autopilot import export_instance
+    from magkf.io.calibration import Calibration
+
+    params = {"COMPASS_DEV_ID": 111.0, "COMPASS_DEV_ID2": 222.0, "COMPASS_PRIO1_ID": 222.0}
+    path = tmp_path / "prio.bin"
+    write_dataflash(drive_table(n=50), path, parameters=params)
+    _, prov = read_dataflash(path)
+    mag = {"format": prov["format"], **prov["magnetometer"]}
+    assert mag["instance"] == 0 and mag["compass"] == 2 and mag["parameter_set"].startswith("COMPASS_OFS2")
+    assert export_instance(Calibration(np.eye(3), np.zeros(3), magnetometer=mag), "ardupilot")[0] == 2
