@@ -323,24 +323,35 @@ def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str
 
 
 def _default_instance(sets: dict, params: dict) -> tuple[int, str | None]:
-    """The ``sensor_mag`` instance read when none is asked for, and why when it is not the lowest: PX4's
-    primary magnetometer (the one whose ``device_id`` is ``CAL_MAG_PRIME``) if it is logged and not disabled,
-    else the lowest instance not disabled (``CAL_MAGn_EN = 0``), else the lowest."""
+    """The ``sensor_mag`` instance read when none is asked for, and why when it is not the lowest: PX4's primary
+    magnetometer, the one whose ``device_id`` is ``CAL_MAG_PRIME`` (up to PX4 1.11), if it is logged and not
+    disabled; else the one of highest ``CAL_MAGn_PRIO`` (PX4 1.12 on: 0 disables, the highest is preferred);
+    else the lowest instance not disabled (``CAL_MAGn_EN = 0`` or ``CAL_MAGn_PRIO = 0``); else the lowest."""
 
     def device(instance):
         ids = sets[instance].get("device_id")
         return int(ids[0]) if ids is not None and len(ids) else None
 
+    def slot(instance):
+        return _calibration_index(params, device(instance))
+
     def enabled(instance):
-        index = _calibration_index(params, device(instance))
-        return index is None or params.get(f"CAL_MAG{index}_EN") != 0
+        n = slot(instance)
+        return n is None or (params.get(f"CAL_MAG{n}_EN") != 0 and params.get(f"CAL_MAG{n}_PRIO") != 0)
 
     lowest, prime = min(sets), params.get("CAL_MAG_PRIME")
-    for instance in sorted(sets):
-        if prime is not None and device(instance) == prime and enabled(instance):
+    on = [i for i in sorted(sets) if enabled(i)]
+    for instance in on:
+        if prime is not None and device(instance) == prime:
             return instance, None if instance == lowest else f"PX4's primary magnetometer (CAL_MAG_PRIME = {prime})"
-    instance = next((i for i in sorted(sets) if enabled(i)), lowest)
-    return instance, None if instance == lowest else "the lowest instance not disabled in PX4 (CAL_MAGn_EN)"
+    ranked = [(params[f"CAL_MAG{slot(i)}_PRIO"], -i) for i in on if f"CAL_MAG{slot(i)}_PRIO" in params]
+    if prime is None and ranked:
+        priority, instance = max(ranked)
+        instance = -instance
+        why = f"PX4's highest-priority magnetometer (CAL_MAG{slot(instance)}_PRIO = {priority:g})"
+        return instance, None if instance == lowest else why
+    instance = on[0] if on else lowest
+    return instance, None if instance == lowest else "the lowest instance not disabled in PX4"
 
 
 def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> tuple[pd.DataFrame, dict]:
@@ -466,8 +477,9 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     rotation = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("SENS_BOARD_")}
     if cal_index is not None:
         rotation[f"CAL_MAG{cal_index}_ROT"] = params.get(f"CAL_MAG{cal_index}_ROT")
-        if params.get(f"CAL_MAG{cal_index}_EN") == 0:
-            notes.append(f"the chosen magnetometer is disabled in PX4 (CAL_MAG{cal_index}_EN = 0)")
+        for key in (f"CAL_MAG{cal_index}_EN", f"CAL_MAG{cal_index}_PRIO"):
+            if params.get(key) == 0:
+                notes.append(f"the chosen magnetometer is disabled in PX4 ({key} = 0)")
     if "CAL_MAG_PRIME" in params and device_id is not None and params["CAL_MAG_PRIME"] != device_id:
         notes.append(
             f"the chosen magnetometer (device_id {device_id}) is not PX4's primary one "

@@ -224,3 +224,20 @@ def test_gnss_gaps_and_span_give_missing_positions(tmp_path):
     missing = np.isnan(out["lat"].to_numpy())
     assert np.array_equal(np.flatnonzero(missing), np.arange(99, 120))
     assert np.all(out["fix_type"][99:120] == 0) and np.all(out["fix_type"][120:] == 3)
+
+
+def test_the_default_magnetometer_follows_px4s_parameters():
+    """Up to PX4 1.11 ``CAL_MAG_PRIME`` names the primary (unless ``CAL_MAGn_EN`` is 0); from 1.12 the highest
+    ``CAL_MAGn_PRIO`` is preferred and 0 disables; without either, the lowest instance."""
+    from magkf.io.ulog import _default_instance
+
+    sets = {0: {"device_id": np.array([11])}, 1: {"device_id": np.array([22])}, 2: {"device_id": np.array([33])}}
+    ids = {"CAL_MAG0_ID": 11, "CAL_MAG1_ID": 22, "CAL_MAG2_ID": 33}
+    assert _default_instance(sets, ids)[0] == 0
+    assert _default_instance(sets, ids | {"CAL_MAG_PRIME": 33})[0] == 2
+    assert _default_instance(sets, ids | {"CAL_MAG_PRIME": 33, "CAL_MAG2_EN": 0, "CAL_MAG0_EN": 0})[0] == 1
+    prio = ids | {"CAL_MAG0_PRIO": 50, "CAL_MAG1_PRIO": 75, "CAL_MAG2_PRIO": 75}
+    instance, why = _default_instance(sets, prio)
+    assert instance == 1 and why == "PX4's highest-priority magnetometer (CAL_MAG1_PRIO = 75)"
+    assert _default_instance(sets, prio | {"CAL_MAG1_PRIO": 0})[0] == 2
+    assert _default_instance(sets, ids | {"CAL_MAG0_PRIO": 0})[0] == 1
