@@ -258,7 +258,7 @@ class EllipsoidCalibrator(Calibrator):
             x, se, converged = _refine(X, x_alg, F, d)
             if not converged:
                 warnings.append(
-                    f"the refinement did not converge in {MAX_ITERATIONS} iterations: the samples do not determine "
+                    f"the refinement did not converge in {MAX_ITERATIONS} evaluations: the samples do not determine "
                     "the ellipsoid"
                 )
         else:
@@ -319,9 +319,10 @@ def _magnitudes(X, x, d) -> np.ndarray:
     return np.linalg.norm(np.linalg.solve(K, (X - b).T), axis=0)
 
 
-#: Iterations of the refinement's Levenberg-Marquardt solve before it stops unconverged: a well-posed fit takes
-#: under ten; samples that do not determine the ellipsoid (a patch of the sphere) wander for tens of thousands
-#: (16 s on 6 000 samples), towards an ellipsoid of any size through the patch.
+#: Evaluations of the magnitude residual (those of its finite-difference Jacobian not counted, as scipy counts
+#: them from 1.16 on) before the refinement's Levenberg-Marquardt solve stops unconverged: a well-posed fit
+#: takes under ten; samples that do not determine the ellipsoid (a patch of the sphere) wander for tens of
+#: thousands (16 s on 6 000 samples), towards an ellipsoid of any size through the patch.
 MAX_ITERATIONS = 200
 
 
@@ -368,10 +369,12 @@ def _refine(X, x0, F, d):
     """
     first = _least_squares(X, x0, F, d)
     x = first.x
+    if first.status == 0:  # no minimum in reach: nothing is determined
+        return x, np.full(len(x), np.nan), False
     radial = _radial_variance(X, x, d)
     fit = _least_squares(X, x, F, d, 1 / np.sqrt(radial))
     x = fit.x
-    if first.status == 0 or fit.status == 0:  # no minimum in reach: nothing is determined
+    if fit.status == 0:
         return x, np.full(len(x), np.nan), False
     K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
     u = np.linalg.solve(K, (X - b).T).T
