@@ -192,13 +192,10 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
             f"1/{noise['inflation']:.0f} of an independent one)"
         )
         misses = True
-    lo, hi = nis_stats["band"]
     mean = nis_stats["mean"]
-    if np.isfinite(mean) and not lo <= mean <= hi and abs(mean - 1.0) > NIS_TOLERANCE:
-        words.append(
-            f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: "
-            "the noise model does not fit"
-        )
+    nis_words = _nis_misfit(nis_stats, "the noise model does not fit")
+    if nis_words:
+        words.append(nis_words)
         misses = True
     if used_share < 0.5:
         words.append(f"only {100 * used_share:.0f} % of the epochs were used")
@@ -211,19 +208,27 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     return text[0].upper() + text[1:]
 
 
+def _nis_misfit(nis_stats: dict, meaning: str) -> str | None:
+    """The sentence for a mean NIS per degree of freedom outside its 95 % band and further than ``NIS_TOLERANCE``
+    from 1 (with thousands of epochs the band is narrower than a noise model's approximations), ending in
+    ``meaning``; None when it is within either, or not known."""
+    lo, hi = nis_stats["band"]
+    mean = nis_stats["mean"]
+    if not np.isfinite(mean) or lo <= mean <= hi or abs(mean - 1.0) <= NIS_TOLERANCE:
+        return None
+    return f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: {meaning}"
+
+
 def _fixed_noise_verdict(nis_stats: dict, used_share: float) -> str:
     """The verdict of a run whose noise was not learned: a batch solution has no NIS to judge; a filter with the
     noise held as stated (``--fixed-noise``) is judged by its mean NIS against the band that noise implies."""
-    lo, hi = nis_stats["band"]
     mean = nis_stats["mean"]
     if not np.isfinite(mean):
-        return "the noise was not learned (a batch solution): no verdict on the fit"
+        return "no NIS to judge the fit by (a batch solution, or no epoch updated the filter): no verdict"
     words = []
-    if not lo <= mean <= hi:
-        words.append(
-            f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: the stated "
-            "noise, or the model, does not fit the data"
-        )
+    nis_words = _nis_misfit(nis_stats, "the stated noise, or the model, does not fit the data")
+    if nis_words:
+        words.append(nis_words)
     if used_share < 0.5:
         words.append(f"only {100 * used_share:.0f} % of the epochs were used")
     if not words:
