@@ -57,12 +57,12 @@ def read_log(
 ) -> DriveLog:
     """Read any supported log into a validated ``DriveLog`` (see the module's table of formats).
 
-        ``format`` overrides the detection; ``map`` (a TOML column map) selects the mapped-table reader for
-        a text or Parquet file; ``mag`` picks a magnetometer instance of a ULog or DataFlash log (default the
-        first); ``mag_unit`` is the unit of a canonical table's magnetometer columns (InputError for another format,
-    whose unit its map or the log states); ``raw`` undoes the
-        autopilot's calibration where it was applied; ``max_gap_s`` is the longest gap across which a slower
-        stream is interpolated. Raises InputError (one line naming the file) for anything it cannot read.
+    ``format`` overrides the detection; ``map`` (a TOML column map) selects the mapped-table reader for a text
+    or Parquet file; ``mag`` picks a magnetometer instance of a ULog or DataFlash log (default: PX4's primary
+    one, ArduPilot's first by priority; see each reader); ``mag_unit`` is the unit of a canonical table's
+    magnetometer columns (InputError for another format, whose unit its map or the log states); ``raw`` undoes
+    the autopilot's calibration where it was applied; ``max_gap_s`` is the longest gap across which a slower
+    stream is interpolated. Raises InputError (one line naming the file) for anything it cannot read.
     """
     name = str(path)
     if not Path(path).is_file():

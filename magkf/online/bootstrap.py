@@ -146,7 +146,7 @@ def _plausible_fit(m, field: float):
         fit = EllipsoidCalibrator(3, field).fit(m, "log").result_
         check_calibration(fit.R, fit.b / field, "log")
     except InputError as exc:
-        return None, exc.message
+        return None, exc.message.replace(" (nothing written)", "")
     if not fit.converged:
         return None, f"it did not converge, over {100 * fit.coverage:.0f} % of the sphere"
     return fit, None

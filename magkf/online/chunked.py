@@ -57,6 +57,7 @@ from .estimator import Estimator, run_model
 from .measurements import nis_rows
 from .prepare import (
     PreparedLog,
+    check_magnitude_start,
     concat_prepared,
     configured_noise,
     deflate_bootstrap,
@@ -424,9 +425,14 @@ def calibrate_file(
                 _, layout, x0, P0, how = initial_state(scan.head, config, init, effects)
             except InputError as exc:
                 raise exc.located(name) from None
+            model = run_model(config, layout, x0, magnitude_only=not scan.any_attitude)
+            if not model.needs_attitude:  # on the epochs the start saw, as calibrate_log does on the whole log
+                try:
+                    check_magnitude_start(scan.head, layout, P0, scan.head.base)
+                except InputError as exc:
+                    raise exc.located(name) from None
             scan.head = None
             R0 = layout.R(x0)
-            model = run_model(config, layout, x0, magnitude_only=not scan.any_attitude)
             noise = None
             if init is None:
                 start = _start_noise(log, config, scan, layout, x0, R0, model.needs_attitude)

@@ -580,6 +580,8 @@ class Magnitude(MeasurementModel):
         R, b = layout.R_b(sigmas)
         c = calibrated_field(R[:, None], b[:, None, :], mc)  # (S, k, 3): every sigma point's calibration
         _, H, sd = self._linear(x, blk)
+        if self._projector is not None:  # the information it carries, as ``linearise`` gives it
+            H = H @ self._projector
         h = np.linalg.norm(c, axis=2) / sd  # (S, k), whitened
         return h[..., None], (blk.ref_mag / sd)[:, None], (H / sd[:, None])[:, None, :]
 

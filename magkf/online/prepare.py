@@ -283,9 +283,9 @@ def check_magnitude_start(prep: PreparedLog, layout: StateLayout, P0, base) -> N
             raise InputError(
                 f"with the magnitude alone, {effect.label}'s starting uncertainty spreads its terms over "
                 f"{spread:.3g} nT, {100 * spread / field:.0f} % of the field: more than the filter's linearisation "
-                f"of the magnitude holds ({100 * MAGNITUDE_EFFECT_SPREAD:g} %); calibrate with --batch, measure "
-                "the vector too (--measure both, with attitude), or start from a calibration that stores the effect "
-                "(--init)"
+                f"of the magnitude holds ({100 * MAGNITUDE_EFFECT_SPREAD:g} %); calibrate with the batch solver "
+                "(magkf calibrate --batch), measure the vector too (--measure both, with attitude), or start from a "
+                "calibration that stores the effect (--init, --cal)"
             )
 
 
