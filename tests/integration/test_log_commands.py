@@ -283,7 +283,9 @@ def test_export_writes_the_compass_the_calibration_came_from(tmp):
     assert cal.magnetometer["format"] == "ardupilot-dataflash" and cal.magnetometer["instance"] == 0
     assert Calibration.from_dict(cal.to_dict()).magnetometer == cal.magnetometer  # kept through the file
     assert cli_json("export", tmp / "ap.json", "--to", "ardupilot", "-o", tmp / "a.param")["instance"] == 1
-    second = cal.to_dict() | {"magnetometer": cal.magnetometer | {"instance": 1}}
+    second = cal.to_dict() | {
+        "magnetometer": {"format": "ardupilot-dataflash", "instance": 1}
+    }  # no parameter set known
     (tmp / "ap2.json").write_text(json.dumps(second))
     assert (
         "COMPASS_OFS2_X" in cli_json("export", tmp / "ap2.json", "--to", "ardupilot", "-o", tmp / "b.param")["values"]
