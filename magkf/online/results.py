@@ -166,13 +166,40 @@ def noise_summary(config, trace: RunTrace, counts=None) -> dict:
 
 
 def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
-    """What the learned noise, the NIS and the used share say about the fit, in words."""
-    if not noise["adapted"]:
-        return _fixed_noise_verdict(nis_stats, used_share)
-    words = []
+    """What the learned noise, the NIS and the used share say about the fit, in words. A run whose noise was held
+    as stated (``--fixed-noise``) is judged by its NIS and used share alone; one without NIS (a batch solution)
+    gets no verdict."""
+    mean = nis_stats["mean"]
+    fixed = not noise["adapted"]
+    if fixed and not np.isfinite(mean):
+        return "no NIS to judge the fit by (a batch solution, or no epoch updated the filter): no verdict"
+    words, misses = ([], False) if fixed else _learned_noise_words(noise)
+    meaning = "the stated noise, or the model, does not fit the data" if fixed else "the noise model does not fit"
+    nis_words = _nis_misfit(nis_stats, meaning)
+    if nis_words:
+        words.append(nis_words)
+        misses = True
+    if used_share < 0.5:
+        words.append(f"only {100 * used_share:.0f} % of the epochs were used")
+    if not words and fixed:
+        return f"the model fits the data at the stated noise (held fixed; mean NIS {mean:.2f} per degree of freedom)"
+    if not words:
+        nis = f", mean NIS {mean:.2f} per degree of freedom" if np.isfinite(mean) else ""
+        return f"the model fits the data at the level of the noise (residuals white{nis})"
+    text = "; ".join(words)
+    if fixed:
+        text += " (the noise was held fixed: learning it, the default, tells which)"
+    elif misses:
+        text += ": the model misses something; run magkf diagnose"
+    return text[0].upper() + text[1:]
+
+
+def _learned_noise_words(noise: dict) -> tuple[list, bool]:
+    """What the learned noise says against the configured one: sentences, and whether they mean the model misses
+    something."""
+    words, misses = [], False
     configured = noise["configured"]["sensor_nt"]
     learned = noise.get("learned", {}).get("sensor_median_nt")
-    misses = False
     if learned is not None and learned > 3 * configured:
         words.append(
             f"residuals are {learned / configured:.0f} times the stated sensor noise "
@@ -192,20 +219,7 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
             f"1/{noise['inflation']:.0f} of an independent one)"
         )
         misses = True
-    mean = nis_stats["mean"]
-    nis_words = _nis_misfit(nis_stats, "the noise model does not fit")
-    if nis_words:
-        words.append(nis_words)
-        misses = True
-    if used_share < 0.5:
-        words.append(f"only {100 * used_share:.0f} % of the epochs were used")
-    if not words:
-        nis = f", mean NIS {mean:.2f} per degree of freedom" if np.isfinite(mean) else ""
-        return f"the model fits the data at the level of the noise (residuals white{nis})"
-    text = "; ".join(words)
-    if misses:
-        text += ": the model misses something; run magkf diagnose"
-    return text[0].upper() + text[1:]
+    return words, misses
 
 
 def _nis_misfit(nis_stats: dict, meaning: str) -> str | None:
@@ -217,24 +231,6 @@ def _nis_misfit(nis_stats: dict, meaning: str) -> str | None:
     if not np.isfinite(mean) or lo <= mean <= hi or abs(mean - 1.0) <= NIS_TOLERANCE:
         return None
     return f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: {meaning}"
-
-
-def _fixed_noise_verdict(nis_stats: dict, used_share: float) -> str:
-    """The verdict of a run whose noise was not learned: a batch solution has no NIS to judge; a filter with the
-    noise held as stated (``--fixed-noise``) is judged by its mean NIS against the band that noise implies."""
-    mean = nis_stats["mean"]
-    if not np.isfinite(mean):
-        return "no NIS to judge the fit by (a batch solution, or no epoch updated the filter): no verdict"
-    words = []
-    nis_words = _nis_misfit(nis_stats, "the stated noise, or the model, does not fit the data")
-    if nis_words:
-        words.append(nis_words)
-    if used_share < 0.5:
-        words.append(f"only {100 * used_share:.0f} % of the epochs were used")
-    if not words:
-        return f"the model fits the data at the stated noise (held fixed; mean NIS {mean:.2f} per degree of freedom)"
-    text = "; ".join(words) + " (the noise was held fixed: learning it, the default, tells which)"
-    return text[0].upper() + text[1:]
 
 
 @dataclass(frozen=True)
