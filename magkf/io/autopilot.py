@@ -99,6 +99,10 @@ MAV_PARAM_TYPE_REAL32 = 9
 #: PX4 holds up to four magnetometer calibrations (``Magnetometer::MAX_SENSOR_COUNT``).
 PX4_INSTANCES = range(4)
 AP_INSTANCES = (1, 2, 3)
+AXES = "XYZ"
+CURRENT_COLUMN = "current_a"
+#: Integer parameters (written as INT32 in QGroundControl files).
+INTEGER_PARAMETERS = ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP")
 
 
 def export_instance(cal, autopilot: str) -> tuple[int, str]:
@@ -123,12 +127,6 @@ def export_instance(cal, autopilot: str) -> tuple[int, str]:
     else:
         why = "the calibration does not say which magnetometer it is of"
     return first, f"compass {first} ({why}; --instance picks another)"
-
-
-AXES = "XYZ"
-CURRENT_COLUMN = "current_a"
-#: Integer parameters (written as INT32 in QGroundControl files).
-INTEGER_PARAMETERS = ("COMPASS_MOTCT", "CAL_MAG_COMP_TYP")
 
 
 @dataclass(frozen=True)

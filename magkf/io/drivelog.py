@@ -279,9 +279,8 @@ RANGES = {
 MAX_GAP_S = 5.0
 
 
-#: Finer units a time in UNIX seconds may have been given in, by how many make a second.
-_FINER_UNITS = {"milliseconds": 1e3, "microseconds": 1e6, "nanoseconds": 1e9}
-_SHORT = {"milliseconds": "ms", "microseconds": "us", "nanoseconds": "ns"}
+#: Finer units a time in UNIX seconds may have been given in: (how many make a second, a column map's name).
+_FINER_UNITS = {"milliseconds": (1e3, "ms"), "microseconds": (1e6, "us"), "nanoseconds": (1e9, "ns")}
 
 
 class TimeBaseWarning(UserWarning):
@@ -298,14 +297,15 @@ def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> 
     bad = np.flatnonzero((t < lo) | (t > hi))
     if bad.size:
         i = int(bad[0])
-        scaled = next((unit for unit, per in _FINER_UNITS.items() if lo <= t[i] / per <= hi), None)
+        scaled = next((unit for unit, (per, _) in _FINER_UNITS.items() if lo <= t[i] / per <= hi), None)
         if t[i] < 1e7:
             hint = (
                 "it looks like time since boot or since the start; give UTC, e.g. with a column map's "
                 'time_epoch = "start" and start_utc'
             )
         elif scaled is not None:
-            hint = f'it looks like UNIX {scaled}: give seconds (a column map: [units] time = "{_SHORT[scaled]}")'
+            short = _FINER_UNITS[scaled][1]
+            hint = f'it looks like UNIX {scaled}: give seconds (a column map: [units] time = "{short}")'
         else:
             hint = "it is not UNIX seconds (UTC)"
         raise InputError(f"time {float(t[i])!r} s is outside 1990 to 2100: {hint}", name, row_of(i), TIME)
@@ -405,8 +405,7 @@ def from_table(
                 REF[0],
             )
     if whole:
-        fmt = (provenance or {}).get("format", "canonical")
-        fix = _UNIT_FIX.get(fmt, "pass --mag-unit {unit} if they are")
+        fix = _UNIT_FIX.get((provenance or {}).get("format"), "pass --mag-unit {unit} if they are")
         whole_log_checks(table, name, mag_unit, fix=fix)
     if mag_unit != "nT":
         table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})

@@ -344,11 +344,10 @@ def _default_instance(sets: dict, params: dict) -> tuple[int, str | None]:
     for instance in on:
         if prime is not None and device(instance) == prime:
             return instance, None if instance == lowest else f"PX4's primary magnetometer (CAL_MAG_PRIME = {prime})"
-    ranked = [(params[f"CAL_MAG{slot(i)}_PRIO"], -i) for i in on if f"CAL_MAG{slot(i)}_PRIO" in params]
-    if prime is None and ranked:
-        priority, instance = max(ranked)
-        instance = -instance
-        why = f"PX4's highest-priority magnetometer (CAL_MAG{slot(instance)}_PRIO = {priority:g})"
+    priority = {i: params[f"CAL_MAG{slot(i)}_PRIO"] for i in on if f"CAL_MAG{slot(i)}_PRIO" in params}
+    if prime is None and priority:
+        instance = max(priority, key=lambda i: (priority[i], -i))  # the lowest instance among equals
+        why = f"PX4's highest-priority magnetometer (CAL_MAG{slot(instance)}_PRIO = {priority[instance]:g})"
         return instance, None if instance == lowest else why
     instance = on[0] if on else lowest
     return instance, None if instance == lowest else "the lowest instance not disabled in PX4"
@@ -364,7 +363,8 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     GNSS samples), ``current_a`` (A), ``throttle`` (0..1) and ``temp_c`` (degC), each where logged.
 
     ``raw=True`` (default) returns ``sensor_mag`` instance ``mag`` (default PX4's primary magnetometer,
-    ``CAL_MAG_PRIME``, unless it is disabled; else the lowest instance not disabled):
+    ``CAL_MAG_PRIME`` or the highest ``CAL_MAGn_PRIO``, unless it is disabled; else the lowest instance not
+    disabled: ``_default_instance``):
     the measurement in the magnetometer's own sensor frame, not rotated by
     ``SENS_BOARD_ROT`` / ``CAL_MAGn_ROT`` (see the module docstring; up to PX4 v1.11 the ``CAL_MAGn`` offsets
     and scales may already be subtracted). Without ``sensor_mag``, or with ``raw=False``, the calibrated

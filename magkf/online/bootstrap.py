@@ -135,10 +135,10 @@ def _heading_spread(field_body: np.ndarray) -> float:
 
 def _plausible_fit(m, field: float):
     """``(fit, why)``: the ellipsoid fit (``EllipsoidResult``) of readings ``m`` (k, 3) to a field of ``field`` nT,
-    or None and why, in words, when the fit fails or its calibration would be refused
-    (``plausibility.check_calibration``): over a small patch
-    of the sphere a fit can converge on a huge ellipsoid through it (offsets of 1e9 nT, sensitivities of 1e4,
-    with standard errors that look small against them, were seen over 0.5 % of it)."""
+    or None and why, in words, when the fit fails, does not converge, or its calibration would be refused
+    (``plausibility.check_calibration``): over a small patch of the sphere a fit can wander to a huge ellipsoid
+    through it (offsets of 1e9 nT and sensitivities of 1e4, with standard errors that look small against them,
+    were seen over 0.5 % of it)."""
     from ..offline.ellipsoid import EllipsoidCalibrator
     from ..plausibility import check_calibration
 
