@@ -35,7 +35,7 @@ _EXPORTS = {
     "diagnose": "magkf.diagnostics.diagnose",
     "build_report": "magkf.diagnostics.report",
     "apply_calibration": "magkf.apply",
-    "Calibration": "magkf.io.calibration",
+    "Calibration": "magkf.calibration",
     "DriveLog": "magkf.io.drivelog",
     "read_drive_log": "magkf.io.drivelog",
     "SineFitCalibrator": "magkf.offline.sinefit",

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from .calibration import Calibration
 from .conventions import declination_deg, magnetic_heading_deg
 from .errors import names_the_log
-from .io.calibration import Calibration
 from .io.drivelog import DriveLog
 
 __all__ = ["COLUMNS", "apply_calibration", "effect_terms"]

@@ -5,7 +5,7 @@ with the rest of their vehicle.
 serially here, or on a Dask cluster). Each task opens its own log, so only its path travels to the worker,
 and writes under ``out_dir/<vehicle>/<log file name>/``:
 
-* ``calibration.json`` (``magkf.io.calibration``), ``states.parquet`` (the per-epoch estimates), with
+* ``calibration.json`` (``magkf.calibration``), ``states.parquet`` (the per-epoch estimates), with
   ``settings.diagnose`` also ``diagnosis.json``;
 * ``row.json``, written last: the log's summary row and the content key of its input and settings (SHA-256
   of the log's bytes, of the settings, of the column map and effect files they name, and of magkf's
@@ -261,8 +261,8 @@ def process_log(task: LogTask) -> dict:
         row["warnings"] = "; ".join(dict.fromkeys(" ".join(str(w.message).split()) for w in caught))
         row["run_time_s"] = time.perf_counter() - started
         row.update(task_resources())
-        from .io.calibration import jsonable
-        from .io.files import output_text
+        from .calibration import jsonable
+        from .files import output_text
 
         output_text(folder / MANIFEST, json.dumps(jsonable({"key": key, "row": row}), indent=1) + "\n")
         return row
@@ -275,10 +275,10 @@ def process_log(task: LogTask) -> dict:
 
 def _calibrate(task: LogTask, folder: Path) -> dict:
     """Read, calibrate, check, optionally diagnose, and write one log's outputs; its row's figures."""
+    from .calibration import jsonable
     from .effects import load_effect_file, make_effect
-    from .io.calibration import jsonable
+    from .files import output_text
     from .io.drivelog import write_drive_log
-    from .io.files import output_text
     from .io.readers import read_log
     from .online.run import calibrate_log
     from .plausibility import check_run, log_field_nt
@@ -524,7 +524,7 @@ def plot_vehicles(summary: pd.DataFrame, path, columns=("b_x", "b_y", "b_z", "R1
             if r == len(vehicles) - 1:
                 ax.set_xlabel("flight (by start time)", fontsize=7)
     fig.suptitle("estimates per vehicle over its flights (bars: 95 %; red: disagrees with the rest)", fontsize=9)
-    from .io.files import written
+    from .files import written
 
     with written(path) as tmp:
         fig.savefig(tmp, dpi=100)

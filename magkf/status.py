@@ -2,7 +2,7 @@
 
 Codes are small integers (``Status``, an ``IntEnum``) stored as ``int8`` arrays; their names (the
 strings written in ``--states`` files and returned by the real-time step) are the lower-case member
-names. Listed by code; where several apply, ``magkf.io.drivelog.epoch_status`` says which wins
+names. Listed by code; where several apply, ``epoch_status`` says which wins
 (of ``missing_attitude``, ``gated_dop``, ``missing_position`` and ``missing_mag``, the last that applies);
 the filter's gates and ``missing_column`` then apply to the epochs still to be updated:
 
@@ -19,9 +19,12 @@ the filter's gates and ``missing_column`` then apply to the epochs still to be u
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 
 import numpy as np
+
+from .conventions import DOP, HDOP, PDOP
 
 __all__ = [
     "Status",
@@ -36,6 +39,10 @@ __all__ = [
     "MISSING_POSITION",
     "MISSING_MAG",
     "MISSING_COLUMN",
+    "epoch_status",
+    "select_dop",
+    "first_dop",
+    "DOP_ORDER",
 ]
 
 
@@ -73,3 +80,62 @@ def status_counts(codes) -> dict[str, int]:
     """Number of epochs with each status, by name, every status listed."""
     counts = np.bincount(np.asarray(codes, dtype=np.int64), minlength=len(Status))
     return {name: int(n) for name, n in zip(STATUS_NAMES, counts)}
+
+
+#: The statuses ``epoch_status`` gives, in its order of precedence.
+_PRECEDENCE = (MISSING_ATTITUDE, GATED_DOP, MISSING_POSITION, MISSING_MAG)
+#: The DOP columns in the order the gate takes them.
+DOP_ORDER = (DOP, PDOP, HDOP)
+
+
+def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
+    """Statuses (N,) known before filtering, the epoch rules of every log and of the real-time step.
+
+    ``m`` (N, 3) raw magnetometer, ``ref`` (N, 3) reference field (NaN where there is none), ``has_attitude``
+    (N,) bool, ``dop`` (N,) (NaN when not logged, which passes the gate). In order of precedence (the last
+    rule that applies wins): ``missing_attitude``, ``gated_dop``, ``missing_position``, ``missing_mag``;
+    otherwise ``used``. Codes from ``magkf.status.Status``.
+    """
+    if len(m) == 1:  # one sample (real time): the same rules on scalars, without numpy's per-call cost
+        code = USED
+        for status, flag in zip(
+            _PRECEDENCE,
+            (
+                not has_attitude[0],
+                float(dop[0]) > dop_max,
+                not all(map(math.isfinite, ref[0])),
+                not all(map(math.isfinite, m[0])),
+            ),
+        ):
+            if flag:
+                code = status
+        return np.array([code], dtype=np.int8)
+    base = np.full(len(m), USED, dtype=np.int8)
+    for status, applies in zip(
+        _PRECEDENCE,
+        (
+            lambda: ~np.asarray(has_attitude, bool),
+            lambda: np.asarray(dop, float) > dop_max,
+            lambda: ~np.all(np.isfinite(ref), axis=1),
+            lambda: ~np.all(np.isfinite(m), axis=1),
+        ),
+    ):
+        base[applies()] = status
+    return base
+
+
+def select_dop(columns) -> np.ndarray | None:
+    """The DOP the gate uses from a mapping of column arrays: ``dop``, else ``pdop``, else ``hdop`` (None if
+    none is present). Where the chosen column is NaN at an epoch, the next one is taken there."""
+    out = None
+    for name in DOP_ORDER:
+        if name in columns:
+            v = np.asarray(columns[name], float)
+            out = v if out is None else np.where(np.isfinite(out), out, v)
+    return out
+
+
+def first_dop(values) -> float:
+    """``select_dop`` of one sample: the first finite of ``dop``, ``pdop``, ``hdop`` in ``values`` (a mapping of
+    names to floats, as ``read_sample`` gives), else NaN."""
+    return next((values[c] for c in DOP_ORDER if c in values and math.isfinite(values[c])), math.nan)

@@ -523,7 +523,7 @@ def plot(result: StudyResult, path) -> None:
             elif r == 0:
                 ax.legend(fontsize=7)
     fig.suptitle(f"study {result.spec.name}: {len(result.runs)} runs", fontsize=10)
-    from .io.files import written
+    from .files import written
 
     with written(path) as tmp:
         fig.savefig(tmp, dpi=100)

@@ -32,7 +32,7 @@ from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, Unscen
 
 from magkf.cli import main as cli_main
 from magkf.config import FilterConfig
-from magkf.io.calibration import Calibration
+from magkf.calibration import Calibration
 from magkf.online.realtime import OnlineCalibrator
 from magkf.sim import DriveConfig, simulate_drive
 

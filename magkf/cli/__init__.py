@@ -3,7 +3,7 @@
 Exit status 0 on success; 2 on bad usage or bad input, with one line on standard error (``InputError``
 names the file, row and column where it applies; ``ValueError`` is a setting that cannot be used; an
 ``OSError`` a file that cannot be read or written); 1 with one line for an internal error, whose traceback
-``--debug`` shows. Output paths are checked before any work (``magkf.io.files``); ``-`` is standard
+``--debug`` shows. Output paths are checked before any work (``magkf.files``); ``-`` is standard
 output for ``-o`` and ``--states``, standard input for a log.
 """
 
@@ -97,7 +97,7 @@ def _run(args, pending: list) -> int:
         print(f"magkf: error: {text}" + (f" [warned before: {'; '.join(before)}]" if before else ""), file=sys.stderr)
 
     try:
-        from ..io.files import STDIO, check_outputs, messages_to_stderr
+        from ..files import STDIO, check_outputs, messages_to_stderr
 
         outputs, inputs = _files(args)
         check_outputs(outputs, inputs)

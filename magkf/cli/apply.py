@@ -19,7 +19,7 @@ def add_parsers(sub) -> None:
 def run_apply(args) -> int:
     """Apply a calibration file to a drive log; every epoch is written with a status."""
     from ..apply import apply_calibration
-    from ..io.calibration import Calibration
+    from ..calibration import Calibration
     from ..io.drivelog import write_drive_log
 
     cal = Calibration.load(args.cal)

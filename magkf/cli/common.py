@@ -52,7 +52,7 @@ def command(sub, name: str, run, help: str):
 
 def print_json(data) -> None:
     """Print ``data`` as JSON (numpy values converted; NaN as null)."""
-    from ..io.calibration import jsonable
+    from ..calibration import jsonable
 
     print(json.dumps(jsonable(data), indent=2))
 
@@ -60,8 +60,8 @@ def print_json(data) -> None:
 def write_json_result(args, summary: dict) -> bool:
     """Write ``summary`` to ``-o`` (JSON) if given, print it with ``--json``; True when printed (the command
     then prints nothing else)."""
-    from ..io.calibration import jsonable
-    from ..io.files import output_text
+    from ..calibration import jsonable
+    from ..files import output_text
 
     if args.output:
         output_text(args.output, json.dumps(jsonable(summary), indent=2) + "\n")
@@ -476,6 +476,6 @@ def _from_standard_input(read, format):
 
 def load_calibration(path):
     """The calibration file ``path``, or None."""
-    from ..io.calibration import Calibration
+    from ..calibration import Calibration
 
     return Calibration.load(path) if path else None

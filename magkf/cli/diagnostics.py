@@ -157,7 +157,7 @@ def run_report(args) -> int:
     """Calibrate (with any --effect), diagnose, and write one HTML file with the plots embedded: gates, estimates over
     time, residuals, ranking, before/after."""
     from ..diagnostics.report import build_report
-    from ..io.files import output_text
+    from ..files import output_text
 
     if not args.output:
         raise InputError("give -o REPORT.html")

@@ -45,7 +45,7 @@ def add_parsers(sub) -> None:
 def run_check(args) -> int:
     """One screen on a log of any supported format: streams and rates, units decided and why, time base, heading and
     tilt coverage, DOP, the measurement models it allows and what will limit the calibration."""
-    from ..io.inspect import format_inspection, inspect_log
+    from ..diagnostics.inspect import format_inspection, inspect_log
 
     report = inspect_log(common.open_log(args), dop_max=args.dop_max)
     if args.json:
@@ -61,10 +61,10 @@ def run_convert(args) -> int:
     import json
     from pathlib import Path
 
+    from ..calibration import jsonable
     from ..errors import InputError
-    from ..io.calibration import jsonable
+    from ..files import check_outputs, output_text
     from ..io.drivelog import write_drive_log
-    from ..io.files import check_outputs, output_text
 
     out = Path(args.output)
     if args.output == "-":
@@ -93,9 +93,9 @@ def run_export(args) -> int:
     """Write a calibration file as the parameters an autopilot applies, in the parameter-file format its ground station
     loads. The rotation part of R cannot be held by either autopilot's symmetric matrix: the angle it leaves is
     reported. See docs/autopilot-logs.md."""
+    from ..calibration import Calibration
     from ..errors import InputError
     from ..io.autopilot import export_instance, to_ardupilot, to_px4, write_param_file
-    from ..io.calibration import Calibration
 
     lo, hi = (1, 3) if args.to == "ardupilot" else (0, 3)
     if args.instance is not None and not lo <= args.instance <= hi:

@@ -215,7 +215,7 @@ def _calibrate_chunked(args, config, init) -> None:
     from contextlib import nullcontext
     from pathlib import Path
 
-    from ..io.files import written
+    from ..files import written
     from ..online.chunked import ChunkedLog, calibrate_file, states_format
     from ..online.run import terminal_progress
     from ..plausibility import check_run, log_field_nt

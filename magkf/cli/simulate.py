@@ -83,8 +83,8 @@ def run_simulate(args) -> int:
     """Simulate a turntable run (sine fit) or a drive log, with a truth JSON."""
     import numpy as np
 
-    from ..io.calibration import Calibration, jsonable
-    from ..io.files import output_text
+    from ..calibration import Calibration, jsonable
+    from ..files import output_text
     from ..sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
 
     truth = Calibration.load(args.truth_cal) if args.truth_cal else None

@@ -38,12 +38,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..blas import one_thread
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import Effect, LinearEffect, restore_effects
 from ..effects import candidates as default_candidates
 from ..errors import InputError, names_the_log
-from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..online.noise import NoiseLevels
 from ..online.prepare import prepare

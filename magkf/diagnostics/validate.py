@@ -25,11 +25,11 @@ import numpy as np
 from scipy import special
 
 from ..blas import one_thread
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import restore_effects
 from ..errors import InputError, names_the_log
-from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..online.prepare import prepare
 from ..online.state import StateLayout

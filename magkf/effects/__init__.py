@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibration import Calibration, StoredEffect
 from ..errors import InputError
-from ..io.calibration import Calibration, StoredEffect
 from .base import Effect, EpochData
 from .bias_drift import BiasDrift
 from .channels import channel_kind

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io.calibration import PARAMETER_NAMES
+from ..calibration import PARAMETER_NAMES
 from .base import Effect, EpochData, at_rows
 
 __all__ = ["DEFAULT_R_WALK", "DEFAULT_B_WALK", "SoftHardIron", "core_jacobian"]

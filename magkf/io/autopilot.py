@@ -58,10 +58,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..calibration import jsonable
 from ..conventions import NT_PER_UNIT
 from ..errors import InputError
-from .calibration import jsonable
-from .files import output_text
+from ..files import output_text
 
 __all__ = [
     "ParameterSet",
@@ -160,7 +160,7 @@ class ParameterSet:
 
 # ---------------------------------------------------------------- export
 def to_ardupilot(cal, instance: int = 1, field_unit: str = "mG") -> ParameterSet:
-    """ArduPilot ``COMPASS_*`` parameters reproducing ``cal`` (a ``magkf.io.calibration.Calibration``).
+    """ArduPilot ``COMPASS_*`` parameters reproducing ``cal`` (a ``magkf.calibration.Calibration``).
 
     ``instance`` is the compass number 1..3. Offsets and motor compensation are in ``field_unit`` (ArduPilot's
     drivers deliver milligauss: keep the default unless the raw field reaching ``correct_field`` is in
@@ -211,7 +211,7 @@ def to_ardupilot(cal, instance: int = 1, field_unit: str = "mG") -> ParameterSet
 
 
 def to_px4(cal, instance: int = 0) -> ParameterSet:
-    """PX4 ``CAL_MAGn_*`` parameters reproducing ``cal`` (a ``magkf.io.calibration.Calibration``).
+    """PX4 ``CAL_MAGn_*`` parameters reproducing ``cal`` (a ``magkf.calibration.Calibration``).
 
     ``instance`` is the calibration slot ``n`` (0..3). Offsets in gauss, scale matrix dimensionless; a
     ``current_field`` effect on ``current_a`` becomes ``CAL_MAGn_X/Y/ZCOMP`` (G/kA) with ``CAL_MAG_COMP_TYP = 2``.

@@ -36,15 +36,11 @@ from ..conventions import (
     to_nanotesla,
 )
 from ..errors import InputError
-from ..status import GATED_DOP, MISSING_ATTITUDE, MISSING_MAG, MISSING_POSITION, USED
+from ..status import select_dop
 from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete, table_rows
 
 __all__ = [
     "MIN_EPOCHS",
-    "epoch_status",
-    "select_dop",
-    "first_dop",
-    "DOP_ORDER",
     "read_sample",
     "UnitWarning",
     "DriveLog",
@@ -66,65 +62,6 @@ __all__ = [
 ]
 
 MIN_EPOCHS = 2
-
-
-#: The statuses ``epoch_status`` gives, in its order of precedence.
-_PRECEDENCE = (MISSING_ATTITUDE, GATED_DOP, MISSING_POSITION, MISSING_MAG)
-#: The DOP columns in the order the gate takes them.
-DOP_ORDER = (DOP, PDOP, HDOP)
-
-
-def epoch_status(m, ref, has_attitude, dop, dop_max: float) -> np.ndarray:
-    """Statuses (N,) known before filtering, the epoch rules of every log and of the real-time step.
-
-    ``m`` (N, 3) raw magnetometer, ``ref`` (N, 3) reference field (NaN where there is none), ``has_attitude``
-    (N,) bool, ``dop`` (N,) (NaN when not logged, which passes the gate). In order of precedence (the last
-    rule that applies wins): ``missing_attitude``, ``gated_dop``, ``missing_position``, ``missing_mag``;
-    otherwise ``used``. Codes from ``magkf.status.Status``.
-    """
-    if len(m) == 1:  # one sample (real time): the same rules on scalars, without numpy's per-call cost
-        code = USED
-        for status, flag in zip(
-            _PRECEDENCE,
-            (
-                not has_attitude[0],
-                float(dop[0]) > dop_max,
-                not all(map(math.isfinite, ref[0])),
-                not all(map(math.isfinite, m[0])),
-            ),
-        ):
-            if flag:
-                code = status
-        return np.array([code], dtype=np.int8)
-    base = np.full(len(m), USED, dtype=np.int8)
-    for status, applies in zip(
-        _PRECEDENCE,
-        (
-            lambda: ~np.asarray(has_attitude, bool),
-            lambda: np.asarray(dop, float) > dop_max,
-            lambda: ~np.all(np.isfinite(ref), axis=1),
-            lambda: ~np.all(np.isfinite(m), axis=1),
-        ),
-    ):
-        base[applies()] = status
-    return base
-
-
-def select_dop(columns) -> np.ndarray | None:
-    """The DOP the gate uses from a mapping of column arrays: ``dop``, else ``pdop``, else ``hdop`` (None if
-    none is present). Where the chosen column is NaN at an epoch, the next one is taken there."""
-    out = None
-    for name in DOP_ORDER:
-        if name in columns:
-            v = np.asarray(columns[name], float)
-            out = v if out is None else np.where(np.isfinite(out), out, v)
-    return out
-
-
-def first_dop(values) -> float:
-    """``select_dop`` of one sample: the first finite of ``dop``, ``pdop``, ``hdop`` in ``values`` (a mapping of
-    names to floats, as ``read_sample`` gives), else NaN."""
-    return next((values[c] for c in DOP_ORDER if c in values and math.isfinite(values[c])), math.nan)
 
 
 def read_sample(sample, names, time=None) -> dict[str, float]:
@@ -499,7 +436,7 @@ def write_drive_log(table: pd.DataFrame, path) -> None:
     table is never held a second time in another form (a Parquet file has one row group per piece)."""
     import pyarrow as pa
 
-    from .files import STDIO
+    from ..files import STDIO
 
     # every piece gets the whole table's types (a text column empty in one piece is still text there)
     types = {
@@ -529,7 +466,7 @@ def write_frames(frames, path, types: dict | None = None, quoted: bool = False, 
     import pyarrow as pa
     from pyarrow import csv
 
-    from .files import STDIO, standard_output, written
+    from ..files import STDIO, standard_output, written
 
     types = types or {}
     if parquet is None:

@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..calibration import Calibration
 from ..conventions import MAG
 from ..errors import InputError
-from ..io.calibration import Calibration
 from .base import Calibrator
 
 __all__ = [

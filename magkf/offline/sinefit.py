@@ -35,9 +35,9 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
+from ..calibration import Calibration
 from ..conventions import ANGLE, MAG, PLANE, wrap_deg
 from ..errors import InputError
-from ..io.calibration import Calibration
 from ..io.tables import read_csv, require_complete, require_rows
 from .base import Calibrator
 
@@ -532,7 +532,7 @@ def read_turntable(path, mag_unit: str = "nT") -> pd.DataFrame:
 
 def read_curves(path) -> tuple[dict, dict]:
     """Fitted curves from JSON ``{"xy": {"x": [A, C_deg, D], "y": ..., "z": ...}, "xz": {"x": ..., "z": ...}}``."""
-    from ..io.calibration import read_json
+    from ..calibration import read_json
 
     name = str(path)
     data = read_json(path, "curves file")

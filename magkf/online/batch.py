@@ -62,11 +62,11 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from ..blas import one_thread
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import inverse3
 from ..effects.core import core_jacobian
 from ..errors import InputError, names_the_log
-from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..status import Status
 from .bootstrap import vector_least_squares

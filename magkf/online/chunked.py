@@ -45,10 +45,10 @@ import numpy as np
 import pandas as pd
 
 from ..blas import one_thread
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import MAG, TIME
 from ..errors import InputError
-from ..io.calibration import Calibration
 from ..io.drivelog import MAX_GAP_S, MIN_EPOCHS, DriveLog, TimeBaseWarning, from_table, whole_log_checks, write_frames
 from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, check_layout, checked_table
 from ..status import Status

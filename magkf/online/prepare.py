@@ -2,7 +2,7 @@
 
 ``prepare`` evaluates, for every epoch of a ``DriveLog``, the reference field (IGRF or ``ref_*``), the
 attitude matrices, the body-frame reference and its rate, and the statuses known before filtering (the
-epoch rules of ``magkf.io.drivelog.epoch_status``). ``initial_state`` gives the state layout and the
+epoch rules of ``magkf.status.epoch_status``). ``initial_state`` gives the state layout and the
 initial estimate: from an offline calibration, or bootstrapped from the log itself.
 """
 
@@ -12,14 +12,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import calibrated_field, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
 from ..effects.core import SoftHardIron
 from ..errors import InputError
-from ..io.calibration import Calibration
-from ..io.drivelog import DriveLog, epoch_status
-from ..status import Status
+from ..io.drivelog import DriveLog
+from ..status import Status, epoch_status
 from .bootstrap import PRIOR_B_STD, PRIOR_R_STD, bootstrap_magnitude, bootstrap_vector
 from .measurements import MEASUREMENTS, Block, heading_axis, sensor_frame
 from .noise import NoiseLevels, robust_start

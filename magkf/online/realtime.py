@@ -9,7 +9,7 @@ A sample carries ``time`` (UNIX s), ``mag_x, mag_y, mag_z`` (nT), and when avail
 yaw`` (deg), ``lat, lon, alt`` (or ``ref_n, ref_e, ref_d``), ``dop`` and the auxiliary columns the
 effects need: a dict, or a pandas row (whose name is its time, as in ``log.table.iterrows()``). Missing
 keys, None or NaN values mean missing, and the epoch gets the status the same rules give a whole log
-(``magkf.io.drivelog.epoch_status``). The reference field is evaluated lazily and
+(``magkf.status.epoch_status``). The reference field is evaluated lazily and
 cached (``ReferenceFieldCache``): again only after the vehicle has moved ``reference_refresh_m`` or the
 UTC date has changed. Each step is the same gated update as post-processing, with a block of one epoch.
 """
@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import (
     ALT,
@@ -39,10 +40,9 @@ from ..conventions import (
 from ..effects import restore_effects, stored_effect
 from ..effects.base import EpochData
 from ..errors import InputError
-from ..io.calibration import Calibration
-from ..io.drivelog import epoch_status, first_dop, read_sample
+from ..io.drivelog import read_sample
 from ..reference import ReferenceFieldCache
-from ..status import MISSING_ATTITUDE, MISSING_COLUMN, STATUS_NAMES, USED
+from ..status import MISSING_ATTITUDE, MISSING_COLUMN, STATUS_NAMES, USED, epoch_status, first_dop
 from .estimator import Estimator
 from .measurements import Block
 from .prepare import calibration_start

@@ -7,10 +7,10 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import pandas as pd
 
+from ..calibration import Calibration
 from ..conventions import body_to_ned
 from ..effects import stored_effect
 from ..errors import InputError
-from ..io.calibration import Calibration
 from ..status import STATUS_NAMES, Status, status_names
 from . import observability
 from .prepare import CHUNK

@@ -16,9 +16,9 @@ from dataclasses import replace
 import numpy as np
 
 from ..blas import one_thread
+from ..calibration import Calibration
 from ..config import FilterConfig
 from ..errors import InputError, names_the_log
-from ..io.calibration import Calibration
 from ..io.drivelog import DriveLog
 from ..timing import NO_PHASES
 from .estimator import Estimator, run_model

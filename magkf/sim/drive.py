@@ -20,11 +20,11 @@ from datetime import UTC, datetime
 import numpy as np
 import pandas as pd
 
+from ..calibration import Calibration
 from ..conventions import ATTITUDE, MAG, REF, TIME, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
-from ..io.calibration import Calibration
+from ..files import output_text
 from ..io.drivelog import write_drive_log
-from ..io.files import output_text
 from ..offline.sinefit import SineFitParameters
 from ..reference import igrf_ned
 from .disturbance import simulate_disturbances

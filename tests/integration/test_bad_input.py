@@ -14,7 +14,7 @@ import pytest
 from magkf.cli import main
 from magkf.conventions import ATTITUDE, MAG
 from magkf.errors import InputError
-from magkf.io.files import check_outputs, written
+from magkf.files import check_outputs, written
 from magkf.sim import DriveConfig, simulate_drive
 
 from ..conftest import DATA
@@ -245,8 +245,8 @@ def test_the_real_time_step_refuses_what_post_processing_refuses(files):
     import numpy as np
 
     from magkf import OnlineCalibrator
+    from magkf.calibration import Calibration
     from magkf.config import FilterConfig
-    from magkf.io.calibration import Calibration
 
     cal = Calibration.load(files / "cal.json")
     rows = list(__import__("pandas").read_csv(files / "log.csv").head(3).to_dict("records"))

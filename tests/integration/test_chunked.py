@@ -157,7 +157,7 @@ def test_median_read_in_pieces_is_numpys(tmp_path, n):
 def test_without_attitude_and_from_a_calibration(logs, tmp_path):
     """The magnitude-only start and noise (no attitude columns) and a start from a calibration (no bootstrap,
     no starting-noise passes): the same estimates and statuses as the whole-log path."""
-    from magkf.io.calibration import Calibration
+    from magkf.calibration import Calibration
     from magkf.io.drivelog import write_drive_log
 
     table = read_log(logs[True]).table

@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from magkf.calibration import Calibration
 from magkf.io.autopilot import apply_ardupilot, apply_px4, read_param_file
-from magkf.io.calibration import Calibration
 from magkf.io.drivelog import read_drive_log
 from magkf.io.readers import detect_format, read_log
 from magkf.sim import DriveConfig, simulate_drive

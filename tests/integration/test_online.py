@@ -6,12 +6,12 @@ import pytest
 from scipy import stats
 
 from magkf.apply import apply_calibration
+from magkf.calibration import Calibration
 from magkf.config import FilterConfig
 from magkf.conventions import wrap_deg
 from magkf.diagnostics.diagnose import compare_runs
 from magkf.effects.base import Effect, EpochData
 from magkf.effects.core import SoftHardIron, core_jacobian
-from magkf.io.calibration import Calibration
 from magkf.io.drivelog import DriveLog
 from magkf.offline.sinefit import SineFitCalibrator, SineFitParameters
 from magkf.online.batch import solve_batch

@@ -8,9 +8,9 @@ import re
 import numpy as np
 import pytest
 
+from magkf.calibration import Calibration
 from magkf.config import FilterConfig
 from magkf.diagnostics.report import build_report
-from magkf.io.calibration import Calibration
 from magkf.io.drivelog import DriveLog, write_drive_log
 from magkf.online.realtime import OnlineCalibrator
 from magkf.online.run import calibrate_log

@@ -20,8 +20,8 @@ import numpy as np
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
+from magkf.calibration import FORMAT, VERSION, Calibration, StoredEffect
 from magkf.errors import InputError
-from magkf.io.calibration import FORMAT, VERSION, Calibration, StoredEffect
 
 FOLDER = Path(tempfile.mkdtemp(prefix="magkf-property-"))
 atexit.register(shutil.rmtree, FOLDER, ignore_errors=True)

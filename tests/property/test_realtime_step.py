@@ -16,10 +16,10 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from magkf import EpochResult, OnlineCalibrator
+from magkf.calibration import Calibration
 from magkf.conventions import ATTITUDE, MAG, REF, euler_to_dcm, ned_to_body
 from magkf.effects import make_effect
 from magkf.errors import InputError
-from magkf.io.calibration import Calibration
 from magkf.io.drivelog import RANGES, TIME_RANGE_S
 from magkf.reference import VALID_RANGE_S, igrf_ned
 from magkf.status import STATUS_NAMES

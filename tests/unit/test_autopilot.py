@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 
+from magkf.calibration import Calibration, StoredEffect
 from magkf.errors import InputError
 from magkf.io.autopilot import (
     ParameterSet,
@@ -17,7 +18,6 @@ from magkf.io.autopilot import (
     to_px4,
     write_param_file,
 )
-from magkf.io.calibration import Calibration, StoredEffect
 
 FIELD_NT = 50_000.0
 NT_PER_MG = 100.0

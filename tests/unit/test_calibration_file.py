@@ -3,8 +3,8 @@ import json
 import numpy as np
 import pytest
 
+from magkf.calibration import VERSION, Calibration
 from magkf.errors import InputError
-from magkf.io.calibration import VERSION, Calibration
 
 from ..conftest import DATA, run_cli
 

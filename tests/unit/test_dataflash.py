@@ -515,8 +515,8 @@ def test_mag_samples_out_of_time_order_are_sorted_and_noted(tmp_path):
 def test_a_reordered_priority_is_exported_as_its_parameter_set(tmp_path):
     """Since ArduPilot 4.0 ``MAG.I`` is a priority: instance 0 is the compass whose ``COMPASS_DEV_IDn`` is
     ``COMPASS_PRIO1_ID``. Made the second parameter set here, its calibration is exported as compass 2."""
+    from magkf.calibration import Calibration
     from magkf.io.autopilot import export_instance
-    from magkf.io.calibration import Calibration
 
     params = {"COMPASS_DEV_ID": 111.0, "COMPASS_DEV_ID2": 222.0, "COMPASS_PRIO1_ID": 222.0}
     path = tmp_path / "prio.bin"

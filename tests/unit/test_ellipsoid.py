@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from magkf.calibration import Calibration
 from magkf.errors import InputError
-from magkf.io.calibration import Calibration
 from magkf.offline.ellipsoid import EllipsoidCalibrator, parameter_names, patent_matrix, patent_parameters
 
 from ..conftest import DATA, cli_json, run_cli

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from magkf.conventions import ATTITUDE, MAG, TIME
-from magkf.io.drivelog import DriveLog
-from magkf.io.inspect import (
+from magkf.diagnostics.inspect import (
     MAX_LINES,
     MAX_WIDTH,
     SPHERE_CELLS,
@@ -17,6 +16,7 @@ from magkf.io.inspect import (
     inspect_log,
     sphere_cell,
 )
+from magkf.io.drivelog import DriveLog
 from magkf.io.readers import read_log
 from magkf.sim import DriveConfig, simulate_drive
 

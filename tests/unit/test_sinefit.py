@@ -91,7 +91,7 @@ def test_human_output_and_calibration_file(tmp):
     )
     assert proc.returncode == 0, proc.stderr
     assert "alpha_deg" in proc.stdout and "residual RMS" in proc.stdout
-    from magkf.io.calibration import Calibration
+    from magkf.calibration import Calibration
 
     cal = Calibration.load(tmp / "cal.json")
     assert cal.method == "sinefit-exact"

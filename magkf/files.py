@@ -11,7 +11,7 @@ import tempfile
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
 
-from ..errors import InputError
+from .errors import InputError
 
 __all__ = ["STDIO", "check_outputs", "written", "output_text", "standard_output", "messages_to_stderr"]
 

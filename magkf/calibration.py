@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import calibrated_field
-from ..errors import InputError
+from .conventions import calibrated_field
+from .errors import InputError
 
 __all__ = ["FORMAT", "VERSION", "PARAMETER_NAMES", "StoredEffect", "Calibration", "jsonable"]
 
@@ -193,7 +193,7 @@ class Calibration:
 
     def save(self, path) -> None:
         """Write the calibration file ``path`` (JSON, UTF-8; ``-``: standard output), replacing it only once
-        complete (``magkf.io.files``)."""
+        complete (``magkf.files``)."""
         from .files import output_text
 
         output_text(path, json.dumps(self.to_dict(), indent=2) + "\n")

@@ -19,7 +19,7 @@ What is measured, and how
     is applied; the provenance says whether the reader returned a calibrated field.
 
     *Coverage*, over the epochs the calibration can use (status ``used`` from
-    ``magkf.io.drivelog.epoch_status``; without attitude, also ``missing_attitude``): the share of the
+    ``magkf.status.epoch_status``; without attitude, also ``missing_attitude``): the share of the
     ``360 / HEADING_BIN_DEG`` yaw bins visited and the heading span (360 deg minus the largest gap between
     visited yaws, the quantity ``magkf.online.bootstrap`` requires to be at least 120 deg); the share of
     ``SPHERE_CELLS`` equal-area cells of the unit sphere visited by the sensor-frame direction
@@ -49,9 +49,9 @@ import numpy as np
 
 from ..conventions import ALT, DOP, HDOP, LAT, LON, PDOP, declination_deg, inclination_deg
 from ..errors import InputError, names_the_log
+from ..io.drivelog import DriveLog
 from ..online.bootstrap import MIN_EPOCHS as BOOTSTRAP_MIN_EPOCHS
-from ..status import Status, status_counts
-from .drivelog import DriveLog, epoch_status
+from ..status import Status, epoch_status, status_counts
 
 __all__ = [
     "inspect_log",
