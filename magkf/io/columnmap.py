@@ -86,7 +86,8 @@ from ..conventions import (
     quaternion_to_euler,
 )
 from ..errors import InputError
-from .drivelog import UnitWarning
+from .drivelog import DriveLog, UnitWarning, from_table
+from .readers import LogReader
 
 __all__ = ["ColumnMap", "load_column_map", "read_mapped"]
 
@@ -791,3 +792,18 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         "ignored": ignored,
     }
     return table, provenance
+
+
+class MappedTable(LogReader):
+    """Any text or Parquet table whose columns a TOML column map names (``read_mapped``,
+    ``docs/column-maps.md``); chosen by ``--map``, never by the file's content."""
+
+    name = "mapped"
+    title = "mapped table"
+    options = frozenset({"map"})
+
+    def read(self, path, map=None) -> DriveLog:
+        if map is None:
+            raise InputError("a mapped table needs a column map (--map MAP.toml)", str(path))
+        table, provenance = read_mapped(path, map)
+        return from_table(table, str(path), "nT", provenance)

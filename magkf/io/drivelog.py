@@ -37,6 +37,7 @@ from ..conventions import (
 )
 from ..errors import InputError
 from ..status import select_dop
+from .readers import LogReader
 from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete, table_rows
 
 __all__ = [
@@ -523,3 +524,29 @@ def _arrow_piece(frame: pd.DataFrame, time_as_text: bool, types: dict):
             kind = pa.string() if kind is not None and pa.types.is_null(kind) else kind  # only empty cells
             columns[name] = pa.Array.from_pandas(values, type=kind)  # NaN becomes a missing value: an empty cell
     return pa.table(columns)
+
+
+def record_number(i: int) -> int:
+    """Binary logs have no rows: an epoch is named by its 1-based record number among the magnetometer's."""
+    return int(i) + 1
+
+
+class CanonicalCsv(LogReader):
+    """magkf's canonical table as CSV (``docs/data-contract.md``), read by ``read_drive_log``."""
+
+    name = "csv"
+    title = "canonical CSV"
+    extensions = (".csv",)
+    options = frozenset({"mag_unit"})
+
+    def read(self, path, mag_unit: str = "nT") -> DriveLog:
+        return read_drive_log(path, mag_unit)
+
+
+class CanonicalParquet(CanonicalCsv):
+    """The canonical table's Parquet twin (the same columns and units), read by ``read_drive_log``."""
+
+    name = "parquet"
+    title = "canonical Parquet"
+    magic = (b"PAR1",)
+    extensions = tuple(PARQUET_SUFFIXES)

@@ -1,10 +1,11 @@
 """One door for every log format: ``read_log(path, format=None, **options) -> DriveLog``.
 
-The reader is chosen by the file's first bytes (ULog ``ULog\\x01\\x12\\x35``, DataFlash ``\\xa3\\x95``,
-Parquet ``PAR1``), then by its extension; a text table is the canonical CSV unless a column map is
-given. Every reader hands its table to ``magkf.io.drivelog.from_table`` (the epoch contract: the
-canonical columns, units and checks), and the ``DriveLog`` carries the reader's provenance: which topic,
-message or column each canonical column came from, and what was converted or undone.
+Each format is one ``LogReader`` class, registered in ``magkf.plugins.READERS``. The reader is chosen by
+the file's first bytes (each reader's ``magic``: ULog ``ULog\\x01\\x12\\x35``, DataFlash ``\\xa3\\x95``,
+Parquet ``PAR1``), then by its extension; a text table is the canonical CSV unless a column map is given.
+Every reader hands its table to ``magkf.io.drivelog.from_table`` (the epoch contract: the canonical
+columns, units and checks), and the ``DriveLog`` carries the reader's provenance: which topic, message or
+column each canonical column came from, and what was converted or undone.
 
 =============  ====================================  ==========================================
 format         reader                                options
@@ -15,34 +16,119 @@ format         reader                                options
 ``dataflash``  ArduPilot (``magkf.io.dataflash``)    ``mag`` (instance), ``raw``, ``max_gap_s``
 ``mapped``     any table (``magkf.io.columnmap``)    ``map`` (TOML file or ``ColumnMap``)
 =============  ====================================  ==========================================
+
+A new format is one subclass of ``LogReader`` in a file of its own, registered with
+``READERS.register`` or an entry point in the ``magkf.readers`` group (see ``docs/plugins.md``).
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
 
 from ..errors import InputError
-from .drivelog import DriveLog, from_table, read_drive_log
+from ..plugins import READERS
 
-__all__ = ["read_log", "detect_format", "magnetometer_instances", "FORMATS"]
+if TYPE_CHECKING:
+    from .drivelog import DriveLog
 
-FORMATS = ("csv", "parquet", "ulog", "dataflash", "mapped")
-_MAGIC = ((b"ULog\x01\x12\x35", "ulog"), (b"\xa3\x95", "dataflash"), (b"PAR1", "parquet"))
-_EXTENSIONS = {".ulg": "ulog", ".bin": "dataflash", ".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
+__all__ = ["LogReader", "read_log", "detect_format", "reader_for", "magnetometer_instances", "OPTIONS"]
+
+#: The options ``read_log`` passes on, with the command-line flag that sets each (None: the API only).
+OPTIONS = {"map": "--map", "mag": "--mag", "mag_unit": "--mag-unit", "raw": "--logged-calibration", "max_gap_s": None}
+#: Each option's value when the user did not give it.
+_DEFAULTS = {"map": None, "mag": None, "mag_unit": "nT", "raw": True, "max_gap_s": 0.5}
+#: How many first bytes of a file the readers' ``magic`` are compared with.
+HEAD_BYTES = 16
+
+
+class LogReader(ABC):
+    """A log format: which files it recognises, how it reads one, which magnetometers one holds.
+
+    Subclass it, give the class attributes, implement ``read``, and register the class
+    (``magkf.plugins.READERS.register``). ``read_log`` then detects the format, refuses the options the
+    reader does not take (naming the readers that do), and passes the others on.
+
+    Attributes
+    ----------
+    name : str
+        The format's name, as ``--format`` takes it (``"ulog"``).
+    title : str
+        The format in words, for messages (``"PX4 ULog"``).
+    magic : tuple of bytes
+        First bytes that identify a file of this format; empty for a text format.
+    extensions : tuple of str
+        Lower-case file extensions (``".ulg"``) that identify the format when no magic does.
+    options : frozenset of str
+        The ``read_log`` options the reader takes, of ``OPTIONS`` (``"mag"``, ``"raw"``, ...).
+    instances_of_magnetometer : bool
+        Whether one file may hold several magnetometers (``--mag`` picks one).
+    """
+
+    name: ClassVar[str] = "reader"
+    title: ClassVar[str] = "log"
+    magic: ClassVar[tuple[bytes, ...]] = ()
+    extensions: ClassVar[tuple[str, ...]] = ()
+    options: ClassVar[frozenset[str]] = frozenset()
+    instances_of_magnetometer: ClassVar[bool] = False
+
+    def recognises(self, path: Path, head: bytes) -> bool:
+        """Whether the file at ``path``, which starts with ``head`` (its first ``HEAD_BYTES`` bytes), is of
+        this format by its content (by default: it starts with one of ``magic``)."""
+        return any(head.startswith(m) for m in self.magic)
+
+    @abstractmethod
+    def read(self, path, **options) -> DriveLog:
+        """Read the log at ``path`` into a validated ``DriveLog``.
+
+        Parameters
+        ----------
+        path : str or pathlib.Path
+            The log file, as the user named it (messages name it so).
+        **options
+            Those of ``options`` that the user gave (see ``OPTIONS``), else their defaults.
+
+        Returns
+        -------
+        DriveLog
+            The canonical epochs (time in UNIX s, field in nT, angles in degrees) with the reader's
+            provenance (``DriveLog.provenance``).
+
+        Raises
+        ------
+        InputError
+            One line naming the file (and the row, record or column) for anything the reader cannot read.
+        """
+
+    def instances(self, path) -> list[dict]:
+        """The magnetometers the log holds: one dict each, with at least ``instance`` (what ``--mag`` takes;
+        None for a format that holds one)."""
+        return [{"instance": None}]
 
 
 def detect_format(path) -> str:
-    """The format of ``path`` from its first bytes, else its extension, else ``csv``."""
+    """The format of ``path``: the first reader that recognises its first bytes, else the one its extension
+    names, else ``csv``."""
     path = Path(path)
     try:
         with open(path, "rb") as f:
-            head = f.read(8)
+            head = f.read(HEAD_BYTES)
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc.strerror})", str(path)) from None
-    for magic, name in _MAGIC:
-        if head.startswith(magic):
-            return name
-    return _EXTENSIONS.get(path.suffix.lower(), "csv")
+    readers = [READERS[name]() for name in READERS]
+    for reader in readers:
+        if reader.recognises(path, head):
+            return reader.name
+    suffix = path.suffix.lower()
+    return next((reader.name for reader in readers if suffix in reader.extensions), "csv")
+
+
+def reader_for(name: str, source: str = "") -> LogReader:
+    """The registered reader of the format ``name``; InputError naming ``source`` if there is none."""
+    if name not in READERS:
+        raise InputError(f"unknown format {name!r}; use one of {', '.join(READERS)}", source or None)
+    return READERS[name]()
 
 
 def read_log(
@@ -57,53 +143,55 @@ def read_log(
 ) -> DriveLog:
     """Read any supported log into a validated ``DriveLog`` (see the module's table of formats).
 
-    ``format`` overrides the detection; ``map`` (a TOML column map) selects the mapped-table reader for a text
-    or Parquet file; ``mag`` picks a magnetometer instance of a ULog or DataFlash log (default: PX4's primary
-    one, ArduPilot's first by priority; see each reader); ``mag_unit`` is the unit of a canonical table's
-    magnetometer columns (InputError for another format, whose unit its map or the log states); ``raw`` undoes
-    the autopilot's calibration where it was applied; ``max_gap_s`` is the longest gap across which a slower
-    stream is interpolated. Raises InputError (one line naming the file) for anything it cannot read.
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The log file.
+    format : str, optional
+        A registered format's name; overrides the detection (``detect_format``).
+    map : str, pathlib.Path or ColumnMap, optional
+        A TOML column map: selects the mapped-table reader for a text or Parquet file.
+    mag : int, optional
+        The magnetometer instance of a log that holds several (default: the autopilot's primary one; see
+        each reader).
+    mag_unit : str
+        Unit of a canonical table's magnetometer columns (``nT``, ``uT``, ``mG``, ``G``).
+    raw : bool
+        Undo the autopilot's calibration where it was applied.
+    max_gap_s : float
+        Longest gap (s) across which a slower stream is interpolated.
+
+    Returns
+    -------
+    DriveLog
+
+    Raises
+    ------
+    InputError
+        One line naming the file, for anything it cannot read, and for an option the format does not take.
     """
     name = str(path)
     if not Path(path).is_file():
         raise InputError("no such file", name)
-    kind = format or ("mapped" if map is not None else detect_format(path))
-    if kind not in FORMATS:
-        raise InputError(f"unknown format {kind!r}; use one of {', '.join(FORMATS)}", name)
-    if mag is not None and kind not in ("ulog", "dataflash"):
-        raise InputError(f"a {kind} table holds one magnetometer: --mag applies to ULog and DataFlash logs", name)
-    if mag_unit != "nT" and kind not in ("csv", "parquet"):
-        where = "its column map's [units] mag" if kind == "mapped" else "the log itself"
-        raise InputError(f"--mag-unit applies to a canonical table: a {kind} log's unit comes from {where}", name)
-    if kind in ("csv", "parquet"):
-        return read_drive_log(path, mag_unit)
-    if kind == "mapped":
-        from .columnmap import read_mapped
-
-        if map is None:
-            raise InputError("a mapped table needs a column map (--map MAP.toml)", name)
-        table, provenance = read_mapped(path, map)
-        return from_table(table, name, "nT", provenance)
-    if kind == "ulog":
-        from .ulog import read_ulog as reader
-    else:
-        from .dataflash import read_dataflash as reader
-    table, provenance = reader(path, mag=mag, raw=raw, max_gap_s=max_gap_s)
-    return from_table(table, name, "nT", provenance, row_of=_record)
+    reader = reader_for(format or ("mapped" if map is not None else detect_format(path)), name)
+    given = {"map": map, "mag": mag, "mag_unit": mag_unit, "raw": raw, "max_gap_s": max_gap_s}
+    _refuse_options(reader, {k: v for k, v in given.items() if v != _DEFAULTS[k]}, name)
+    return reader.read(path, **{k: v for k, v in given.items() if k in reader.options})
 
 
-def _record(i: int) -> int:
-    """Binary logs have no rows: an epoch is named by its 1-based record number among the magnetometer's."""
-    return int(i) + 1
+def _refuse_options(reader: LogReader, given: dict, source: str) -> None:
+    """InputError naming ``source`` for the first option in ``given`` that ``reader`` does not take."""
+    if "mag" in given and "mag" not in reader.options:
+        takers = " and ".join(READERS[n].title for n in READERS if "mag" in READERS[n].options)
+        raise InputError(f"a {reader.name} table holds one magnetometer: --mag applies to {takers} logs", source)
+    if "mag_unit" in given and "mag_unit" not in reader.options:
+        where = "its column map's [units] mag" if "map" in reader.options else "the log itself"
+        raise InputError(
+            f"--mag-unit applies to a canonical table: a {reader.name} log's unit comes from {where}", source
+        )
 
 
 def magnetometer_instances(path, format: str | None = None) -> list[dict]:
-    """The magnetometers a ULog or DataFlash log holds (``[{"instance": ..., ...}]``); one for other formats."""
-    kind = format or detect_format(path)
-    if kind == "ulog":
-        from .ulog import magnetometer_instances as instances
-    elif kind == "dataflash":
-        from .dataflash import magnetometer_instances as instances
-    else:
-        return [{"instance": None}]
-    return instances(path)
+    """The magnetometers a log holds (``[{"instance": ..., ...}]``; one, of instance None, for a format that
+    holds one)."""
+    return reader_for(format or detect_format(path), str(path)).instances(path)
