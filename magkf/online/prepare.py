@@ -1,34 +1,44 @@
-"""Per-log work done once and vectorised, and the start of a run.
+"""Per-log work done once and vectorised, per-epoch work of a stream, and the start of a run.
 
 ``prepare`` evaluates, for every epoch of a ``DriveLog``, the reference field (IGRF or ``ref_*``), the
 attitude matrices, the body-frame reference and its rate, and the statuses known before filtering (the
-epoch rules of ``magkf.status.epoch_status``). ``initial_state`` gives the state layout and the
-initial estimate: from an offline calibration, or bootstrapped from the log itself.
+epoch rules of ``magkf.status.epoch_status``); ``prepare_epoch`` does the same for one sample of a stream (the
+real-time step). ``prepare_run`` gives the start of a run over a log, for the whole-log filter, the chunked
+filter and the batch solver alike: the statuses with the effects' missing channels (``mark_missing_columns``),
+the state layout and the initial estimate (``initial_state``: from an offline calibration, or bootstrapped
+from the log itself), the measurement model and the starting noise (``start_noise``).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..calibration import Calibration
 from ..config import FilterConfig
-from ..conventions import calibrated_field, euler_to_dcm, ned_to_body
+from ..conventions import ATTITUDE, MAG, TIME, calibrated_field, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
 from ..effects.core import SoftHardIron
 from ..errors import InputError
 from ..io.drivelog import DriveLog
-from ..status import Status, epoch_status
+from ..status import MISSING_ATTITUDE, MISSING_COLUMN, USED, Status, epoch_status, first_dop
 from .bootstrap import PRIOR_B_STD, PRIOR_R_STD, bootstrap_magnitude, bootstrap_vector
-from .measurements import MEASUREMENTS, Block, heading_axis, sensor_frame
+from .estimator import Estimator, run_model
+from .measurements import MEASUREMENTS, Block, MeasurementModel, heading_axis, sensor_frame
 from .noise import NoiseLevels, robust_start
 from .state import CORE_SIZE, StateLayout
 
 __all__ = [
     "PreparedLog",
     "prepare",
+    "PreparedEpoch",
+    "prepare_epoch",
     "concat_prepared",
+    "RunSetup",
+    "prepare_run",
     "initial_state",
     "initial_covariance",
     "with_initial_R",
@@ -110,33 +120,27 @@ class PreparedLog:
         return sensor_frame(np.nan_to_num(self.data.field_body[index]), self.heading[index], R)
 
 
+def _joined(values):
+    """The arrays ``values`` (one per piece) end to end, or None when the pieces hold none (the first says)."""
+    values = list(values)
+    return None if values[0] is None else np.concatenate(values)
+
+
 def concat_prepared(parts) -> PreparedLog:
     """The epochs of the ``PreparedLog`` s ``parts`` (consecutive pieces of one log, with the same columns and
     ``R0``) as one."""
     parts = list(parts)
-
-    def joined(get):
-        values = [get(p) for p in parts]
-        return None if values[0] is None else np.concatenate(values)
-
     d = [p.data for p in parts]
     data = EpochData(
-        np.concatenate([x.time for x in d]),
-        np.concatenate([x.field_body for x in d]),
-        np.concatenate([x.field_ned for x in d]),
+        *(_joined(getattr(x, f) for x in d) for f in ("time", "field_body", "field_ned")),
         {c: np.concatenate([x.columns[c] for x in d]) for c in d[0].columns},
-        joined(lambda p: p.data.mag),
-        joined(lambda p: p.data.c_nb),
-        joined(lambda p: p.data.field_body_rate),
+        *(_joined(getattr(x, f) for x in d) for f in ("mag", "c_nb", "field_body_rate")),
         d[0].R0,
-        joined(lambda p: p.data.field_body_accel),
+        _joined(x.field_body_accel for x in d),
     )
+    fields = ("m", "ref", "ref_mag", "c_nb", "has_attitude", "dop", "base")
     return PreparedLog(
-        *(np.concatenate([getattr(p, f) for p in parts]) for f in ("m", "ref", "ref_mag", "c_nb", "has_attitude")),
-        np.concatenate([p.dop for p in parts]),
-        np.concatenate([p.base for p in parts]),
-        data,
-        np.concatenate([p.heading for p in parts]),
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in fields), data, _joined(p.heading for p in parts)
     )
 
 
@@ -159,6 +163,104 @@ def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     )
     heading = np.nan_to_num(heading_axis(c_nb, ref))
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
+
+
+_NAN33 = np.full((3, 3), np.nan)
+
+
+@dataclass(frozen=True)
+class PreparedEpoch:
+    """One sample of a stream, prepared as ``prepare`` prepares a log's epochs (``prepare_epoch``).
+
+    ``time`` UNIX s; ``m`` (3,) nT; ``ref`` (3,) NED nT (NaN where unknown); ``has_attitude``; ``c_nb`` (3, 3)
+    (NaN without attitude); ``field_body`` (3,) nT the reference in the body frame; ``heading`` (1, 3) nT the
+    heading axis in the body frame (``measurements.heading_axis``; zero where not finite); ``base`` (1,) int8 the
+    status before filtering (a code of ``magkf.status.Status``); ``data`` the epoch's ``EpochData`` (one epoch).
+    """
+
+    time: float
+    m: np.ndarray
+    ref: np.ndarray
+    has_attitude: bool
+    c_nb: np.ndarray
+    field_body: np.ndarray
+    heading: np.ndarray
+    base: np.ndarray
+    data: EpochData
+
+    def block(self, layout: StateLayout, model: MeasurementModel, R) -> Block:
+        """The epoch as a ``Block`` of one for the measurement ``model``, as ``PreparedLog.block`` makes one, with
+        its data: the linear Jacobian (``layout.linear_jacobian``) and, for an epoch the vector model may use
+        (status used), the noise structure (``model.structure``) at the calibration ``R`` (3, 3)."""
+        body = self.field_body[None]
+        structure = model.structure(body, R, self.heading) if self.base[0] == USED else None
+        G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
+        ref_mag = np.array([math.hypot(*self.ref)])
+        H = layout.linear_jacobian(self.data)
+        return Block(self.m[None], ref_mag, H, body, R, self.heading, G, Gh, RRt, frame, self.data)
+
+
+def prepare_epoch(
+    values: Mapping[str, float], ref, config: FilterConfig, columns=(), previous=None, R0=None
+) -> PreparedEpoch:
+    """One sample prepared as ``prepare`` prepares the epochs of a log, by the same epoch rules: the attitude
+    matrix, the reference in the body frame and its rate, the heading axis and the status before filtering
+    (``magkf.status.epoch_status``, and ``missing_column`` where an effect's channel is empty, as
+    ``mark_missing_columns`` marks a log).
+
+    Parameters
+    ----------
+    values : mapping
+        The sample's values by column name (``io.drivelog.read_sample``: floats, NaN where missing): ``time``
+        (UNIX s), ``mag_*`` (nT), ``roll, pitch, yaw`` (deg), ``dop``, ``pdop``, ``hdop`` and ``columns``.
+    ref : array_like
+        (3,) NED nT the reference field at the sample (NaN where unknown).
+    config : FilterConfig
+        Gives ``dop_max``.
+    columns : tuple of str
+        The auxiliary channels the effects need (the epoch's ``EpochData.columns``).
+    previous : tuple or None
+        ``(time, field_body)`` of the stream's previous epoch (UNIX s, (3,) nT), for the rate of change of the
+        body-frame field: a backward difference here (``prepare`` takes a central one, which needs the next
+        epoch), zero for the first epoch or where it is not finite.
+    R0 : ndarray or None
+        (3, 3) the calibration the effects' data carry (``EpochData.R0``; None: the identity).
+
+    Returns
+    -------
+    PreparedEpoch
+    """
+    t = values[TIME]
+    m = np.array([values[c] for c in MAG])
+    roll, pitch, yaw = (values[c] for c in ATTITUDE)
+    ref = np.asarray(ref, float)
+    has_att = math.isfinite(roll) and math.isfinite(pitch) and math.isfinite(yaw)
+    c_nb = euler_to_dcm(yaw, pitch, roll) if has_att else _NAN33
+    # the reference field and the heading axis B x down (``measurements.heading_axis``) in the body frame
+    field_body, axis = np.array([ref, (ref[1], -ref[0], 0.0)]) @ c_nb
+    base = epoch_status(m[None], ref[None], [has_att], [first_dop(values)], config.dop_max)
+    if (base[0] == USED or base[0] == MISSING_ATTITUDE) and not all(math.isfinite(values[c]) for c in columns):
+        base[0] = MISSING_COLUMN  # an added effect lacks its channel: no update (the latter by its magnitude)
+    data = EpochData(
+        np.array([t]),
+        field_body[None],
+        ref[None],
+        {c: np.array([values[c]]) for c in columns},
+        mag=m[None],
+        c_nb=c_nb[None],
+        field_body_rate=_backward_rate(t, field_body, previous)[None],
+        R0=np.eye(3) if R0 is None else R0,
+    )
+    heading = axis[None] if all(map(math.isfinite, axis.tolist())) else np.nan_to_num(axis[None])
+    return PreparedEpoch(t, m, ref, has_att, c_nb, field_body, heading, base, data)
+
+
+def _backward_rate(t: float, field_body, previous) -> np.ndarray:
+    """(3,) nT/s the rate of ``field_body`` (3,) nT at ``t`` (UNIX s) from the epoch ``previous``
+    (``(time, field_body)``, or None); zero where it cannot be taken."""
+    dt = 0.0 if previous is None else t - previous[0]
+    rate = (field_body - previous[1]) / dt if dt > 0 else np.zeros(3)
+    return rate if np.isfinite(rate).all() else np.zeros(3)
 
 
 def without_rates(prep: PreparedLog, layout: StateLayout) -> PreparedLog:
@@ -208,32 +310,45 @@ def initial_covariance(init: Calibration, config: FilterConfig) -> np.ndarray:
 
 def initial_core(prep: PreparedLog, config: FilterConfig, effects=()):
     """Initial ``(x, P, how)`` of the core block bootstrapped from the log (and of ``effects``, when the
-    bootstrap fitted them with it: then ``x`` and ``P`` cover 12 + their parameters)."""
+    bootstrap fitted them with it: then ``x`` and ``P`` cover 12 + their parameters).
+
+    With attitude (a model that uses it, and at least 50 epochs used whose linear effects have their channels):
+    ``bootstrap.bootstrap_vector``, jointly with ``effects`` when all of them are linear; else
+    ``bootstrap.bootstrap_magnitude`` over the epochs used or without attitude (at least 200).
+    """
     good = prep.base == Status.USED
     linear = [e for e in effects if e.linear]
     if linear:
         good &= np.all([np.isfinite(prep.data.columns[c]) for e in linear for c in e.columns] or [True], axis=0)
     if good.sum() >= 50 and MEASUREMENTS[config.measure].needs_attitude:
-        m, B, t = prep.m[good], prep.data.field_body[good], prep.time[good]
-        boot = bootstrap_vector(m, B, t, config.sensor_noise_nt, config.bootstrap_s)
-        if linear and len(linear) == len(effects):
-            # Effects whose regressors use the calibration (a field anomaly is seen through R) fitted with the
-            # core, their regressors made at the R of the fit before: twice, so that they are made at the R the
-            # filter then runs at (``with_initial_R``) to within the second fit's change. Made at the core-only
-            # fit's R alone, 3 % off the joint fit's, the anomaly's prior along the direction the data cannot
-            # see was 102 nT instead of 1 618, and R's scale came out 4 standard deviations off.
-            d = prep.data.take(good)
-            extra_prior = tuple(np.concatenate(v) for v in zip(*(e.prior() for e in effects)))
-            for _ in range(2):
-                d = replace(d, R0=StateLayout.R(boot.x))
-                extra = np.concatenate([e.jacobian(e.prior()[0], d) for e in effects], axis=2)
-                boot = bootstrap_vector(m, B, t, config.sensor_noise_nt, config.bootstrap_s, extra, extra_prior)
+        boot = _vector_bootstrap(prep, good, config, effects if linear and len(linear) == len(effects) else ())
     else:
         cand = (prep.base == Status.USED) | (prep.base == Status.MISSING_ATTITUDE)
         if cand.sum() < 200:
             raise InputError(f"too few usable epochs ({int(cand.sum())}) to bootstrap a calibration; give --init")
         boot = bootstrap_magnitude(prep.m[cand], prep.ref_mag[cand], prep.time[cand], config.bootstrap_s)
     return boot.x, boot.P, f"{boot.method} ({boot.n_epochs} epochs, {boot.span_s:.0f} s)"
+
+
+def _vector_bootstrap(prep: PreparedLog, good, config: FilterConfig, effects=()):
+    """``bootstrap.bootstrap_vector`` over the epochs ``good`` (N,) bool of ``prep``, with the linear ``effects``
+    fitted jointly with the core (none: the core alone)."""
+    m, B, t = prep.m[good], prep.data.field_body[good], prep.time[good]
+    boot = bootstrap_vector(m, B, t, config.sensor_noise_nt, config.bootstrap_s)
+    if not effects:
+        return boot
+    # Effects whose regressors use the calibration (a field anomaly is seen through R) fitted with the core,
+    # their regressors made at the R of the fit before: twice, so that they are made at the R the filter then
+    # runs at (``with_initial_R``) to within the second fit's change. Made at the core-only fit's R alone, 3 %
+    # off the joint fit's, the anomaly's prior along the direction the data cannot see was 102 nT instead of
+    # 1 618, and R's scale came out 4 standard deviations off.
+    d = prep.data.take(good)
+    extra_prior = tuple(np.concatenate(v) for v in zip(*(e.prior() for e in effects)))
+    for _ in range(2):
+        d = replace(d, R0=StateLayout.R(boot.x))
+        extra = np.concatenate([e.jacobian(e.prior()[0], d) for e in effects], axis=2)
+        boot = bootstrap_vector(m, B, t, config.sensor_noise_nt, config.bootstrap_s, extra, extra_prior)
+    return boot
 
 
 def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | None, effects=()):
@@ -253,6 +368,120 @@ def initial_state(prep: PreparedLog, config: FilterConfig, init: Calibration | N
     x0[: len(x_init)] = x_init
     P0[: len(x_init), : len(x_init)] = P_init
     return with_initial_R(prep, x_init), layout, x0, P0, how
+
+
+@dataclass(frozen=True)
+class RunSetup:
+    """The start of a run over a log (``prepare_run``), the same for the whole-log filter
+    (``run.calibrate_log``), the chunked filter (``chunked.calibrate_file``) and the batch solver
+    (``batch.batch_problem``).
+
+    ``prep`` the prepared epochs the start was found from, their effects' data at the initial ``R``
+    (``with_initial_R``) and without the field's rates when no effect is added (``without_rates``); ``base``
+    (N,) int8 their statuses before filtering, with the effects' missing channels (``mark_missing_columns``);
+    ``layout`` the state layout; ``x0`` (n,) and ``P0`` (n, n) the initial estimate and its covariance (a
+    bootstrap's deflated by the starting noise's correlation, ``deflate_bootstrap``); ``how`` where the start
+    came from, in words; ``model`` the measurement model of the run; ``noise`` the starting ``NoiseLevels``
+    (None: the model's configured noise; so with ``init``, or with ``config.adapt_noise`` False).
+    """
+
+    prep: PreparedLog
+    base: np.ndarray
+    layout: StateLayout
+    x0: np.ndarray
+    P0: np.ndarray
+    how: str
+    model: MeasurementModel
+    noise: NoiseLevels | None
+
+    @property
+    def R0(self) -> np.ndarray:
+        """(3, 3) the initial calibration, at which the Jacobians and the noise structure are computed."""
+        return self.layout.R(self.x0)
+
+    def estimator(self, config: FilterConfig) -> Estimator:
+        """A filter (``Estimator``) starting from this setup, with the gates and noise of ``config``."""
+        return Estimator(self.layout, config, self.x0, self.P0, self.noise, self.model)
+
+
+#: ``(layout, x0, attitude) -> NoiseLevels``: the starting noise of a run at the start ``x0`` (n,) of state
+#: ``layout``, for a model that uses the attitude or not (``start_noise``'s arguments beside the log's).
+NoiseStart = Callable[[StateLayout, np.ndarray, bool], NoiseLevels]
+
+
+def prepare_run(
+    prep: PreparedLog,
+    config: FilterConfig,
+    init: Calibration | None = None,
+    effects=(),
+    source: str | None = None,
+    *,
+    any_attitude: bool | None = None,
+    noise_start: NoiseStart | None = None,
+    batch: bool = False,
+) -> RunSetup:
+    """The start of a run over the epochs ``prep``: the one sequence of the whole-log, chunked and batch paths.
+
+    1. the statuses before filtering: ``prep.base`` with the effects' missing channels (``mark_missing_columns``);
+    2. the layout and initial estimate (``initial_state``): from ``init``, else bootstrapped from ``prep``;
+       ``prep`` without the field's rates when no effect is added (``without_rates``);
+    3. the measurement model (``estimator.run_model``): the magnitude alone when no epoch has attitude; with the
+       magnitude alone and linear effects, their starting spread checked (``check_magnitude_start``);
+    4. bootstrapped (no ``init``): the starting noise (``start_noise``, or ``noise_start``), by whose correlation
+       the bootstrap's information is deflated (``deflate_bootstrap``); kept when ``config.adapt_noise``.
+
+    Parameters
+    ----------
+    prep : PreparedLog
+        The prepared epochs (``prepare``): the whole log, or (chunked) its first stretch, which the bootstrap
+        and the checks see.
+    config : FilterConfig
+        The run's settings.
+    init : Calibration or None
+        An offline calibration to start from (None: a bootstrap from ``prep``).
+    effects : sequence of Effect
+        The effect blocks added to the core.
+    source : str or None
+        The log's name, which InputErrors are located at.
+    any_attitude : bool or None
+        Whether any epoch of the log has attitude (None: any of ``prep``'s; a chunked log's scan knows).
+    noise_start : callable or None
+        ``(layout, x0, attitude) -> NoiseLevels`` the starting noise (None: ``start_noise`` over ``prep``);
+        a chunked log's is computed in passes over the file.
+    batch : bool
+        For the batch solver: the model ``config.measure`` names whatever the attitude (the epochs without
+        it go to its fallback), no check of the magnitude's starting spread (the batch solver is what its
+        refusal recommends), and the bootstrap sees the statuses of step 1 rather than ``prep.base``.
+
+    Returns
+    -------
+    RunSetup
+
+    Raises
+    ------
+    InputError
+        When the log lacks an effect's channel, is too short to bootstrap from, or (the magnitude alone) the
+        effects' starting uncertainty is beyond the filter's linearisation; located at ``source``.
+    """
+    base = mark_missing_columns(prep, effects, source)
+    try:
+        prep, layout, x0, P0, how = initial_state(replace(prep, base=base) if batch else prep, config, init, effects)
+        prep = without_rates(prep, layout)
+        attitude = bool(prep.has_attitude.any()) if any_attitude is None else any_attitude
+        model = run_model(config, layout, x0, magnitude_only=not (batch or attitude))
+        if not (batch or model.needs_attitude):
+            check_magnitude_start(prep, layout, P0, base)
+    except InputError as exc:
+        raise exc.located(source) from None
+    noise = None
+    if init is None:  # bootstrapped: the noise starts from the log's robust scale too
+        if noise_start is None:
+            start = start_noise(prep, config, x0, layout, model.needs_attitude, base)
+        else:
+            start = noise_start(layout, x0, model.needs_attitude)
+        P0 = deflate_bootstrap(P0, layout, start.inflation)
+        noise = start if config.adapt_noise else None
+    return RunSetup(prep, base, layout, x0, P0, how, model, noise)
 
 
 #: The largest spread (one standard deviation, at the 95th percentile of the epochs) that the start's uncertainty

@@ -18,26 +18,17 @@ import numpy as np
 from ..blas import one_thread
 from ..calibration import Calibration
 from ..config import FilterConfig
-from ..errors import InputError, names_the_log
+from ..errors import names_the_log
 from ..io.drivelog import DriveLog
 from ..timing import NO_PHASES
-from .estimator import Estimator, run_model
+from .estimator import Estimator
 from .measurements import nis_rows
 from .noise import ESTIMATE_EVERY_S
-from .prepare import (
-    PreparedLog,
-    check_magnitude_start,
-    deflate_bootstrap,
-    initial_state,
-    mark_missing_columns,
-    prepare,
-    start_noise,
-    without_rates,
-)
+from .prepare import PreparedLog, RunSetup, prepare, prepare_run
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
 
-__all__ = ["calibrate_log", "ForwardPass", "blocks", "terminal_progress"]
+__all__ = ["calibrate_log", "filter_trace", "ForwardPass", "blocks", "terminal_progress"]
 
 
 @one_thread
@@ -65,59 +56,55 @@ def calibrate_log(
     with phases("reference field and attitude"):
         prep = prepare(log, config) if prepared is None else prepared
     with phases("start (bootstrap, noise)"):
-        base = mark_missing_columns(prep, effects, log.source)
-        try:
-            prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
-        except InputError as exc:
-            raise exc.located(log.source) from None
-        prep = without_rates(prep, layout)
-        model = run_model(config, layout, x0, magnitude_only=not prep.has_attitude.any())
-        if not model.needs_attitude:
-            try:
-                check_magnitude_start(prep, layout, P0, base)
-            except InputError as exc:
-                raise exc.located(log.source) from None
-        R0 = layout.R(x0)
-        noise = None
-        if init is None:  # bootstrapped: the noise starts from the log's robust scale too
-            start = start_noise(prep, config, x0, layout, model.needs_attitude, base)
-            P0 = deflate_bootstrap(P0, layout, start.inflation)
-            noise = start if config.adapt_noise else None
-        est = Estimator(layout, config, x0, P0, noise, model)
-    t = prep.time
-    forward = ForwardPass(est, model, R0, config, t[0] if len(t) else 0.0)
+        setup = prepare_run(prep, config, init, effects, log.source)
+        est = setup.estimator(config)
+    prep, t = setup.prep, setup.prep.time
+    forward = ForwardPass(est, setup.model, setup.R0, config, t[0] if len(t) else 0.0)
     loop_started = _time.perf_counter()
-    status, updated, nis, xs_b, Ps_b, noise_b, stops, block_dt = forward.run(prep, base, progress)
+    status, updated, nis, xs_b, Ps_b, noise_b, stops, block_dt = forward.run(prep, setup.base, progress)
     loop_s = _time.perf_counter() - loop_started
     phases.add("filter loop", loop_s)
     if progress is not None:
         progress(1.0)
     if smooth:
         with phases("smoother"):
-            xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, layout.q_rate())
+            xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, setup.layout.q_rate())
     # The calibration is the estimate at the end of the log (smoothing leaves the last estimate as it is).
-    trace = RunTrace(
-        xs_b,
-        np.sqrt(np.einsum("bii->bi", Ps_b)),
-        status,
-        updated,
-        nis,
-        est.x,
-        est.P,
-        est.information,
-        how,
-        _time.perf_counter() - started,
-        smooth,
-        est.reacquisitions,
-        loop_s,
+    trace = filter_trace(
+        est,
+        setup,
+        float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
+        xs=xs_b,
+        stds=np.sqrt(np.einsum("bii->bi", Ps_b)),
+        status=status,
+        updated=updated,
+        nis=nis,
+        elapsed_s=_time.perf_counter() - started,
+        smoothed=smooth,
+        loop_s=loop_s,
         noise=noise_b,
-        correlation_s=est.learner.inflation() * float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
         stops=stops,
-        nis_rows=nis_rows(model),
     )
     prep = replace(prep, heading=None)  # the heading axis is the filter's alone: not kept for the table
     with phases("per-epoch table and summary"):
-        return build_run(log, prep, config, layout, x0, P0, trace)
+        return build_run(log, prep, config, setup.layout, setup.x0, setup.P0, trace)
+
+
+def filter_trace(est: Estimator, setup: RunSetup, step_s: float, **per_epoch) -> RunTrace:
+    """The ``RunTrace`` of a filter run started from ``setup`` (``prepare.prepare_run``) and ended with ``est``: its
+    final estimate, information, reacquisitions and learned correlation time (``step_s`` the log's median time
+    step, s), and the start's description; ``per_epoch`` the trace's other fields (``RunTrace``: the per-block
+    states, the per-epoch statuses, the times)."""
+    return RunTrace(
+        x=est.x,
+        P=est.P,
+        information=est.information,
+        init_how=setup.how,
+        reacquisitions=est.reacquisitions,
+        correlation_s=est.learner.inflation() * step_s,
+        nis_rows=nis_rows(setup.model),
+        **per_epoch,
+    )
 
 
 class ForwardPass:
