@@ -70,17 +70,8 @@ from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
 from ..status import Status
 from .bootstrap import vector_least_squares
-from .measurements import MeasurementModel, measurement_model
-from .prepare import (
-    PreparedLog,
-    deflate_bootstrap,
-    fit_positions,
-    initial_state,
-    mark_missing_columns,
-    prepare,
-    start_noise,
-    without_rates,
-)
+from .measurements import MeasurementModel
+from .prepare import PreparedLog, fit_positions, prepare, prepare_run
 from .results import RunTrace, build_run
 from .state import StateLayout
 
@@ -285,59 +276,61 @@ class BatchProblem:
 def batch_problem(
     log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()
 ) -> BatchProblem:
-    """The batch objective of ``log``: its start, the epochs it uses and the models that take them."""
-    prep = prepare(log, config)
-    prep = replace(prep, base=mark_missing_columns(prep, effects, log.source))
-    try:
-        prep, layout, x0, P0, how = initial_state(prep, config, init, effects)
-    except InputError as exc:
-        raise exc.located(log.source) from None
-    prep = without_rates(prep, layout)  # let them go before the start's work
-    model = measurement_model(config, layout, x0)
-    if init is None:  # the noise of the log, as the filter starts from it
-        noise = start_noise(prep, config, x0, layout, model.needs_attitude, prep.base)
-        P0 = deflate_bootstrap(P0, layout, noise.inflation)
-        if config.adapt_noise:
-            model.set_noise(noise)
-    status = prep.base.copy()
+    """The batch objective of ``log``: its start (``prepare.prepare_run``, as the filter's, with the model
+    ``config.measure`` names), the epochs it uses and the models that take them."""
+    setup = prepare_run(prepare(log, config), config, init, effects, log.source, batch=True)
+    prep, layout, model, status = setup.prep, setup.layout, setup.model, setup.base.copy()
+    if setup.noise is not None:  # the noise of the log, as the filter starts from it
+        model.set_noise(setup.noise)
     # Each epoch goes to the model that can use it: the model itself, or its fallback without attitude.
     takes = {Status.USED: model, Status.MISSING_ATTITUDE: model.fallback if model.needs_attitude else model}
+    takes = {code: taker for code, taker in takes.items() if taker is not None}
     cand = np.zeros(len(status), bool)
-    for code, taker in takes.items():
-        if taker is not None:
-            cand |= status == code
+    for code in takes:
+        cand |= status == code
     if cand.sum() < 3 * layout.size:
         raise InputError(f"too few usable epochs ({int(cand.sum())}) for a batch calibration", log.source)
-    prior_std = np.sqrt(np.diag(P0))
-    # Linear start in the sensor frame where attitude exists (from at most prepare.FIT_EPOCHS epochs spread
-    # evenly over the log: a start needs no more), then the magnitude gate with it.
+    prior_std = np.sqrt(np.diag(setup.P0))
+    x_start = setup.x0.copy()
     att = np.flatnonzero(cand & prep.has_attitude)
-    x_start = x0.copy()
-    core = layout.CORE
     if init is None and len(att) >= 3 * 12 and not effects:
-        fit = att[fit_positions(len(att))]
-        x_start[core], _, _ = vector_least_squares(
-            prep.m[fit], prep.data.field_body[fit], config.sensor_noise_nt, x0[core], prior_std[core]
-        )
+        x_start[layout.CORE] = _linear_start(prep, att, config, setup.x0, prior_std)
     prep = replace(prep, heading=None)  # the noise's structure is the start's alone
     idx = np.flatnonzero(cand)
     # one chunk for a nonlinear model (it may look at its neighbours), the magnitude gate's included
     chunk = max(len(idx), 1) if layout.nonlinear else CHUNK_EPOCHS
-    problem = BatchProblem(prep, layout, x0, P0, how, status, x_start, [], prior_std, chunk)
-    gate = max(config.gate_nt, config.gate_sigma * np.sqrt(model.noise.along_var))
-    off = np.zeros(len(status), bool)
-    for i in range(0, len(idx), problem.chunk):
-        epochs = idx[i : i + problem.chunk]
-        c, _ = problem.calibrated(x_start, epochs)
-        off[epochs] = np.abs(np.linalg.norm(c, axis=1) - prep.ref_mag[epochs]) > gate
+    problem = BatchProblem(prep, layout, setup.x0, setup.P0, setup.how, status, x_start, [], prior_std, chunk)
+    off = _magnitude_gated(problem, idx, max(config.gate_nt, config.gate_sigma * np.sqrt(model.noise.along_var)))
     status[off] = Status.GATED_MAGNITUDE
     idx = idx[~off[idx]]
     for code, taker in takes.items():
-        if taker is not None:
-            epochs = idx[prep.base[idx] == code]
-            if len(epochs):
-                problem.groups.append((taker, epochs))
+        epochs = idx[setup.base[idx] == code]
+        if len(epochs):
+            problem.groups.append((taker, epochs))
     return problem
+
+
+def _linear_start(prep: PreparedLog, att, config: FilterConfig, x0, prior_std) -> np.ndarray:
+    """The core (12,) of the robust pass's start: a linear least-squares fit in the sensor frame
+    (``bootstrap.vector_least_squares``) to at most ``prepare.FIT_EPOCHS`` of the usable epochs with attitude
+    ``att`` (k,), spread evenly over the log (a start needs no more), under the prior ``x0``, ``prior_std`` (n,)."""
+    core = StateLayout.CORE
+    fit = att[fit_positions(len(att))]
+    x, _, _ = vector_least_squares(
+        prep.m[fit], prep.data.field_body[fit], config.sensor_noise_nt, x0[core], prior_std[core]
+    )
+    return x
+
+
+def _magnitude_gated(problem: BatchProblem, idx, gate: float) -> np.ndarray:
+    """Epochs (N,) bool among ``idx`` (k,) whose calibrated field at the robust pass's start is more than ``gate``
+    nT off the reference magnitude (the magnitude gate with the starting estimate), in ``problem``'s chunks."""
+    off = np.zeros(len(problem.status), bool)
+    for i in range(0, len(idx), problem.chunk):
+        epochs = idx[i : i + problem.chunk]
+        c, _ = problem.calibrated(problem.x_start, epochs)
+        off[epochs] = np.abs(np.linalg.norm(c, axis=1) - problem.prep.ref_mag[epochs]) > gate
+    return off
 
 
 @one_thread
