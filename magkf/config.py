@@ -10,42 +10,79 @@ __all__ = ["FilterConfig"]
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Settings of ``magkf calibrate`` and ``OnlineCalibrator``.
+    """Settings of ``magkf calibrate`` and ``OnlineCalibrator``, with their units and defaults.
 
-    Measurement noise (from which every measurement covariance follows)
-        ``sensor_noise_nt``: noise of each magnetometer axis, nT. ``attitude_deg``: attitude uncertainty
-        of the INS, degrees (1 sigma, each axis). With ``adapt_noise`` (the default) both are only the
-        prior: the noise is learned from the log (``magkf.online.noise``), starting from a robust scale
-        of a first whole-log fit, forgetting over ``noise_window_s`` seconds, by ``noise_method``
-        (``variational``, the default, or ``matching``: innovation covariance matching; compared in
-        ``scripts/noise_study.py``), never below ``noise_floor_nt``; tilt and heading errors apart;
-        the correlation of the residuals in time is measured and each epoch counts accordingly.
-        ``reference_nt``: uncertainty of each reference-field component, nT (crustal anomalies,
-        model error, diurnal variation); not learned.
-    Process noise (random walk)
-        ``r_walk``: of each element of ``R``, per sqrt(s); ``b_walk``: of each offset, nT per sqrt(s).
-    Gates
-        ``dop_max``: no update where ``dop > dop_max``.
-        magnitude gate: no update where ``| |calibrated m| - |B_ref| |`` exceeds ``gate_sigma`` standard
-        deviations of the (learned) total-field noise, or ``gate_nt`` nT if that is wider, plus 3 sigma
-        of the calibrated magnitude implied by the estimate's covariance.
-        ``innovation_prob``: no update where the normalised innovation squared (in units of the learned
-        noise) exceeds the chi-square quantile of this probability (degrees of freedom = measurement
-        size). ``huber_prob``: beyond this quantile and up to the gate, an epoch is down-weighted (Huber
-        weight ``sqrt(q / NIS)``) instead of refused, so that heavy tails do not starve the filter.
-        ``max_gated_s``: after this many seconds of consecutive innovation gating with good DOP and
-        magnitude, the covariance is inflated so that the filter can re-acquire (0 disables).
-    Initialisation
-        ``bootstrap_s``: length of the first stretch used by the batch bootstrap when no calibration is
-        given, s. ``init_r_std`` and ``init_b_std``: standard deviations given to an offline calibration
-        that carries no covariance.
-    Other
-        ``filter``: ``ekf`` or ``ukf`` (``magkf.online.filters``). ``measure``: ``magnitude``, ``vector``,
-        ``both`` or a registered model's name (``magkf.online.measurements``).
-        ``reference_refresh_m``: distance after which the real-time path re-evaluates IGRF, m.
-        ``block_s``: duration of the blocks of epochs that update the filter together when
-        post-processing a log, s (each epoch is still gated on its own; see ``magkf.online.estimator``).
-        0 updates epoch by epoch, as the real-time path does.
+    Measurement noise, from which every measurement covariance follows: ``sensor_noise_nt``,
+    ``attitude_deg`` and ``reference_nt``. With ``adapt_noise`` (the default) the first two are only the
+    prior: the noise is learned from the log (``magkf.online.noise``), starting from a robust scale of a first
+    whole-log fit, forgetting over ``noise_window_s`` seconds, by ``noise_method``, never below
+    ``noise_floor_nt``; tilt and heading errors apart; the correlation of the residuals in time is measured
+    and each epoch counts accordingly. Process noise (random walk): ``r_walk``, ``b_walk``. Gates:
+    ``dop_max``, the magnitude gate (``gate_sigma``, ``gate_nt``), ``innovation_prob``, ``huber_prob``,
+    ``max_gated_s``. Initialisation: ``bootstrap_s``, ``init_r_std``, ``init_b_std``.
+
+    Parameters
+    ----------
+    filter : str, default "ekf"
+        ``ekf``, ``ukf`` or a registered filter's name (``magkf.plugins.FILTERS``).
+    measure : str, default "both"
+        ``magnitude``, ``vector``, ``both`` or a registered model's name (``magkf.plugins.MEASUREMENTS``).
+    sensor_noise_nt : float, default 30.0
+        Noise of each magnetometer axis, nT.
+    attitude_deg : float, default 0.1
+        Attitude uncertainty of the INS, degrees (1 sigma, each axis).
+    reference_nt : float, default 10.0
+        Uncertainty of each reference-field component, nT (crustal anomalies, model error, diurnal
+        variation); not learned.
+    r_walk : float, default 1e-7
+        Random walk of each element of ``R``, per sqrt(s).
+    b_walk : float, default 0.01
+        Random walk of each offset, nT per sqrt(s).
+    dop_max : float, default 5.0
+        No update where ``dop > dop_max``.
+    gate_nt : float, default 0.0
+        Magnitude gate: no update where ``| |calibrated m| - |B_ref| |`` exceeds ``gate_sigma`` standard
+        deviations of the (learned) total-field noise, or ``gate_nt`` nT if that is wider, plus 3 sigma of
+        the calibrated magnitude implied by the estimate's covariance.
+    gate_sigma : float, default 5.0
+        The magnitude gate's width in standard deviations of the (learned) total-field noise (``gate_nt``).
+    innovation_prob : float, default 0.999
+        No update where the normalised innovation squared (in units of the learned noise) exceeds the
+        chi-square quantile of this probability (degrees of freedom = measurement size).
+    huber_prob : float, default 0.99
+        Beyond this quantile and up to the gate, an epoch is down-weighted (Huber weight ``sqrt(q / NIS)``)
+        instead of refused, so that heavy tails do not starve the filter.
+    adapt_noise : bool, default True
+        Learn the sensor and attitude noise from the log; else keep them as configured.
+    noise_method : str, default "variational"
+        How the noise is learned: ``variational``, or ``matching`` (innovation covariance matching);
+        compared in ``scripts/noise_study.py``.
+    noise_window_s : float, default 60.0
+        The noise learner forgets over this many seconds.
+    noise_floor_nt : float, default 1.0
+        The learned noise is never below this, nT.
+    max_gated_s : float, default 30.0
+        After this many seconds of consecutive innovation gating with good DOP and magnitude, the covariance
+        is inflated so that the filter can re-acquire (0 disables).
+    bootstrap_s : float, default 120.0
+        Length of the first stretch used by the batch bootstrap when no calibration is given, s.
+    init_r_std : float, default 0.02
+        Standard deviation given to each element of ``R`` of an offline calibration that carries no
+        covariance.
+    init_b_std : float, default 300.0
+        Standard deviation given to each offset of an offline calibration that carries no covariance, nT.
+    reference_refresh_m : float, default 2000.0
+        Distance after which the real-time path re-evaluates IGRF, m.
+    block_s : float, default 1.0
+        Duration of the blocks of epochs that update the filter together when post-processing a log, s (each
+        epoch is still gated on its own; see ``magkf.online.estimator``). 0 updates epoch by epoch, as the
+        real-time path does.
+
+    Raises
+    ------
+    ValueError
+        A setting out of its range (not finite, negative, not positive where it must be, beyond its largest
+        value) or an unknown filter, measurement model or noise method.
     """
 
     filter: str = "ekf"
@@ -107,7 +144,26 @@ class FilterConfig:
             raise ValueError("innovation_prob must lie between 0 and 1")
 
     def replace(self, **changes) -> FilterConfig:
+        """A copy with some settings changed.
+
+        Parameters
+        ----------
+        **changes
+            Settings by name, as the constructor takes them.
+
+        Returns
+        -------
+        FilterConfig
+            The new settings, checked as the constructor checks them.
+        """
         return replace(self, **changes)
 
     def as_dict(self) -> dict:
+        """The settings as a dictionary.
+
+        Returns
+        -------
+        dict
+            Setting name -> value, in the order of the fields.
+        """
         return asdict(self)
