@@ -19,7 +19,7 @@ from ..config import FilterConfig
 from ..effects.channels import channel_unit
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
-from ..online.results import band_text
+from ..online.verdict import band_text
 from ..online.run import calibrate_log
 from .diagnose import compare_runs, diagnose
 from .fitting import WANDER_BLOCK_S

@@ -16,6 +16,9 @@ from . import observability
 from .prepare import CHUNK
 from .state import StateLayout
 
+# the verdict's thresholds and the band's text are also imported from here (the command line's NIS line)
+from .verdict import ATTITUDE_RESOLUTION_DEG, NIS_TOLERANCE, band_text, verdict  # noqa: F401
+
 __all__ = [
     "CalibrationRun",
     "RunSummary",
@@ -28,8 +31,6 @@ __all__ = [
     "epoch_columns",
     "states_frame",
     "summarise",
-    "verdict",
-    "band_text",
 ]
 
 
@@ -122,23 +123,6 @@ def residuals(prep, layout: StateLayout, x, last=None) -> tuple[np.ndarray, np.n
     return ned, mag
 
 
-#: The least attitude error the verdict reports: about what the robust scale of a minute of residuals can
-#: tell from none (0.02 deg is 17 nT across a 48 000 nT field).
-ATTITUDE_RESOLUTION_DEG = 0.02
-#: The verdict calls the noise model wrong when the mean NIS per degree of freedom is outside its 95 % band
-#: *and* further than this from 1: with thousands of epochs the band is a few per cent wide, narrower than
-#: the approximations of a learned noise model.
-NIS_TOLERANCE = 0.2
-
-
-def band_text(lo: float, hi: float) -> str:
-    """``[lo, hi]`` with two decimals, or as many more as it takes for the last one shown to be at most half
-    the band's width: a million epochs' band is ``[0.998, 1.002]``, not ``[1.00, 1.00]``."""
-    width = hi - lo
-    digits = 2 if not np.isfinite(width) or width <= 0 else max(2, int(np.ceil(-np.log10(width / 2) - 1e-9)))
-    return f"[{lo:.{digits}f}, {hi:.{digits}f}]"
-
-
 def noise_summary(config, trace: RunTrace, counts=None) -> dict:
     """The configured and learned noise of a run, and the residuals' correlation (JSON-ready); the medians are
     over epochs, block ``k``'s learned noise counting ``counts[k]`` times (default: the trace's blocks)."""
@@ -163,74 +147,6 @@ def noise_summary(config, trace: RunTrace, counts=None) -> dict:
         }
         out["inflation"] = float(learned[-1, 3])
     return out
-
-
-def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
-    """What the learned noise, the NIS and the used share say about the fit, in words. A run whose noise was held
-    as stated (``--fixed-noise``) is judged by its NIS and used share alone; one without NIS (a batch solution)
-    gets no verdict."""
-    mean = nis_stats["mean"]
-    fixed = not noise["adapted"]
-    if fixed and not np.isfinite(mean):
-        return "no NIS to judge the fit by (a batch solution, or no epoch updated the filter): no verdict"
-    words, misses = ([], False) if fixed else _learned_noise_words(noise)
-    meaning = "the stated noise, or the model, does not fit the data" if fixed else "the noise model does not fit"
-    nis_words = _nis_misfit(nis_stats, meaning)
-    if nis_words:
-        words.append(nis_words)
-        misses = True
-    if used_share < 0.5:
-        words.append(f"only {100 * used_share:.0f} % of the epochs were used")
-    if not words and fixed:
-        return f"the model fits the data at the stated noise (held fixed; mean NIS {mean:.2f} per degree of freedom)"
-    if not words:
-        nis = f", mean NIS {mean:.2f} per degree of freedom" if np.isfinite(mean) else ""
-        return f"the model fits the data at the level of the noise (residuals white{nis})"
-    text = "; ".join(words)
-    if fixed:
-        text += " (the noise was held fixed: learning it, the default, tells which)"
-    elif misses:
-        text += ": the model misses something; run magkf diagnose"
-    return text[0].upper() + text[1:]
-
-
-def _learned_noise_words(noise: dict) -> tuple[list, bool]:
-    """What the learned noise says against the configured one: sentences, and whether they mean the model misses
-    something."""
-    words, misses = [], False
-    configured = noise["configured"]["sensor_nt"]
-    learned = noise.get("learned", {}).get("sensor_median_nt")
-    if learned is not None and learned > 3 * configured:
-        words.append(
-            f"residuals are {learned / configured:.0f} times the stated sensor noise "
-            f"({learned:.0f} nT against {configured:g} nT)"
-        )
-        misses = True
-    elif learned is not None and learned < configured / 3:
-        words.append(f"the sensor is quieter than stated ({learned:.1f} nT against {configured:g} nT)")
-    for key, what in (("attitude_median_deg", "a tilt error"), ("heading_median_deg", "a heading error")):
-        att = noise.get("learned", {}).get(key)
-        if att is not None and att > max(3 * noise["configured"]["attitude_deg"], ATTITUDE_RESOLUTION_DEG):
-            words.append(f"the field across the reference scatters as {what} of {att:.2g} deg")
-            misses = True
-    if noise["inflation"] > 2:
-        words.append(
-            f"correlated over about {noise['correlation_s']:.2g} s (each epoch counts as "
-            f"1/{noise['inflation']:.0f} of an independent one)"
-        )
-        misses = True
-    return words, misses
-
-
-def _nis_misfit(nis_stats: dict, meaning: str) -> str | None:
-    """The sentence for a mean NIS per degree of freedom outside its 95 % band and further than ``NIS_TOLERANCE``
-    from 1 (with thousands of epochs the band is narrower than a noise model's approximations), ending in
-    ``meaning``; None when it is within either, or not known."""
-    lo, hi = nis_stats["band"]
-    mean = nis_stats["mean"]
-    if not np.isfinite(mean) or lo <= mean <= hi or abs(mean - 1.0) <= NIS_TOLERANCE:
-        return None
-    return f"mean NIS {mean:.2f} per degree of freedom outside its 95 % band {band_text(lo, hi)}: {meaning}"
 
 
 @dataclass(frozen=True)
