@@ -45,12 +45,39 @@ def calibrate_log(
 ) -> CalibrationRun:
     """Run the online calibration over a log.
 
-    ``init`` is an offline calibration (else a bootstrap from the log); ``effects`` are extra
-    ``Effect`` blocks; ``smooth`` adds a Rauch-Tung-Striebel pass; ``progress(fraction)`` is called now
-    and then. Epochs are processed in blocks of ``config.block_s`` seconds; the per-epoch estimates are
-    those after each epoch's block. ``phases`` (a ``magkf.timing.Phases``) is told the time of each phase.
-    ``prepared``: ``prepare(log, config)`` when the caller has made it already (it is not changed).
-    Returns an immutable ``CalibrationRun``.
+    Epochs are processed in blocks of ``config.block_s`` seconds; the per-epoch estimates are those after
+    each epoch's block. The calibration is the estimate at the end of the log.
+
+    Parameters
+    ----------
+    log : DriveLog
+        The drive or flight log.
+    config : FilterConfig, optional
+        The filter's settings.
+    init : Calibration or None, optional
+        An offline calibration to start from; else a bootstrap from the log.
+    effects : sequence of Effect, optional
+        Extra ``Effect`` blocks, estimated with ``R, b``.
+    smooth : bool, optional
+        Add a Rauch-Tung-Striebel pass.
+    progress : callable or None, optional
+        ``progress(fraction)`` is called now and then.
+    phases : magkf.timing.Phases, optional
+        Told the time of each phase.
+    prepared : PreparedLog or None, optional
+        ``prepare(log, config)`` when the caller has made it already (it is not changed).
+
+    Returns
+    -------
+    CalibrationRun
+        The immutable result: calibration, per-epoch states, summary.
+
+    Raises
+    ------
+    InputError
+        The log cannot be calibrated (too few usable epochs, magnitudes that determine no starting
+        calibration, a column an effect needs missing, an effect too wide for the magnitude alone); it names
+        the log.
     """
     started = _time.perf_counter()
     with phases("reference field and attitude"):
