@@ -5,7 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields, replace
 
-__all__ = ["FilterConfig"]
+__all__ = ["FilterConfig", "NOISE_METHODS"]
+
+#: How the noise is learned from the innovations (``magkf.online.noise``).
+NOISE_METHODS = ("matching", "variational")
 
 
 @dataclass(frozen=True)
@@ -109,8 +112,7 @@ class FilterConfig:
     block_s: float = 1.0
 
     def __post_init__(self):
-        from .online.filters import FILTERS
-        from .online.measurements import MEASUREMENTS
+        from .plugins import FILTERS, MEASUREMENTS
 
         for f in fields(self):
             value = getattr(self, f.name)
@@ -134,10 +136,8 @@ class FilterConfig:
             raise ValueError("gate_nt must not be negative")
         if not 0 < self.huber_prob < 1:
             raise ValueError("huber_prob must lie between 0 and 1")
-        from .online.noise import METHODS
-
-        if self.noise_method not in METHODS:
-            raise ValueError(f"noise_method must be one of {', '.join(METHODS)}, got {self.noise_method!r}")
+        if self.noise_method not in NOISE_METHODS:
+            raise ValueError(f"noise_method must be one of {', '.join(NOISE_METHODS)}, got {self.noise_method!r}")
         if self.block_s < 0:
             raise ValueError("block_s must not be negative")
         if not 0 < self.innovation_prob < 1:

@@ -133,6 +133,17 @@ class Registry(Mapping[str, type[T]], Generic[T]):
         self._loaded[name] = cls
         return cls
 
+    def unregister(self, name: str) -> None:
+        """Forget the plug-in ``name`` (a registered or another package's one; magkf's own stay)."""
+        if name in self._builtin:
+            raise PluginError(f"{self.kind} {name!r} is one of magkf's own and stays")
+        if name not in self:
+            raise KeyError(name)
+        del self._specs[name]
+        self._loaded.pop(name, None)
+
+    __delitem__ = unregister
+
     def is_builtin(self, name: str) -> bool:
         """Whether ``name`` is one of magkf's own plug-ins of this kind."""
         return name in self._builtin

@@ -9,6 +9,7 @@ from datetime import UTC, datetime
 
 from ..conventions import NT_PER_UNIT
 from ..errors import InputError
+from ..plugins import EFFECTS, FILTERS, MEASUREMENTS, READERS
 
 __all__ = [
     "command",
@@ -315,8 +316,7 @@ def add_effect_options(p, what: str) -> None:
         action="append",
         default=[],
         metavar="NAME[:COLUMN]",
-        help=f"{what}: temperature_bias, temperature_scale, current_field, time_lag, field_anomaly, "
-        "bias_drift, eddy_current, or one from --effect-file",
+        help=f"{what}: {', '.join(EFFECTS)}, or one from --effect-file",
     )
     g.add_argument(
         "--effect-file",
@@ -386,7 +386,7 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
     g = p.add_argument_group(f"reading the {logs}")
     g.add_argument(
         "--format",
-        choices=["csv", "parquet", "ulog", "dataflash", "mapped"],
+        choices=list(READERS),
         help=f"the {logs}' format (default: from each log's first bytes and extension)"
         if many
         else "the log's format (default: from its first bytes and extension)",
@@ -412,8 +412,8 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
 
 def add_model_options(p) -> None:
     """``--filter`` and ``--measure``: the filter and the measurement model of a calibration."""
-    p.add_argument("--filter", metavar="ekf|ukf", help="filter (default ekf)")
-    p.add_argument("--measure", metavar="magnitude|vector|both", help="measurement model (default both)")
+    p.add_argument("--filter", metavar="|".join(FILTERS), help="filter (default ekf)")
+    p.add_argument("--measure", metavar="|".join(MEASUREMENTS), help="measurement model (default both)")
 
 
 def mag_instance(args):
@@ -446,8 +446,11 @@ def open_log(args, mag="option"):
     return _from_standard_input(read, args.format)
 
 
-#: A log's file name extension by ``--format``, for one read from standard input.
-SUFFIX = {"csv": ".csv", "parquet": ".parquet", "ulog": ".ulg", "dataflash": ".bin", "mapped": ".csv", None: ".csv"}
+def suffix(format: str | None) -> str:
+    """A log's file name extension by ``--format`` (the reader's first, else ``.csv``), for one read from
+    standard input."""
+    extensions = READERS[format].extensions if format is not None else ()
+    return extensions[0] if extensions else ".csv"
 
 
 def _from_standard_input(read, format):
@@ -457,7 +460,7 @@ def _from_standard_input(read, format):
     import sys
     import tempfile
 
-    fd, tmp = tempfile.mkstemp(suffix=SUFFIX[format])
+    fd, tmp = tempfile.mkstemp(suffix=suffix(format))
     try:
         with os.fdopen(fd, "wb") as f:
             shutil.copyfileobj(sys.stdin.buffer, f)

@@ -1,8 +1,11 @@
 """Physical effects: blocks of parameters that add to the raw magnetometer reading.
 
 Built-ins (``--effect NAME[:COLUMN]``): ``temperature_bias``, ``temperature_scale``, ``current_field``,
-``time_lag``, ``field_anomaly``, ``bias_drift``, ``eddy_current``. A user effect is a subclass of
-``Effect`` (or ``LinearEffect``) in a file of its own, loaded with ``load_effect_file``.
+``time_lag``, ``field_anomaly``, ``bias_drift``, ``eddy_current``. Every effect is registered in
+``magkf.plugins.EFFECTS``: magkf's own, another package's (entry-point group ``magkf.effects``), one
+registered in the program (``EFFECTS.register``), and those of a file of its own loaded with
+``load_effect_file`` (``--effect-file``). Every function here finds effects there; the ``registry``
+argument some take is a further mapping of name to class, looked up first.
 """
 
 from __future__ import annotations
@@ -15,27 +18,24 @@ import numpy as np
 
 from ..calibration import Calibration, StoredEffect
 from ..errors import InputError
+from ..plugins import EFFECTS
 from .base import Effect, EpochData
-from .bias_drift import BiasDrift
 from .channels import channel_kind
 from .core import SoftHardIron
-from .current_field import CurrentField
-from .eddy_current import EddyCurrent
-from .field_anomaly import FieldAnomaly
 from .linear import LinearEffect
-from .temperature_bias import TemperatureBias
-from .temperature_scale import TemperatureScale
-from .time_lag import TimeLag
 
-BUILTIN = {
-    cls.name: cls
-    for cls in (TemperatureBias, TemperatureScale, CurrentField, TimeLag, FieldAnomaly, BiasDrift, EddyCurrent)
-}
+#: magkf's own effects, by name (each also in ``EFFECTS``).
+BUILTIN = {name: EFFECTS[name] for name in EFFECTS if EFFECTS.is_builtin(name)}
+
+
+def _known(registry: dict | None) -> dict:
+    """Every effect class by name: ``registry`` (a mapping of name to class) over ``EFFECTS``."""
+    return {**{name: EFFECTS[name] for name in EFFECTS}, **(registry or {})}
 
 
 def make_effect(spec: str, registry: dict | None = None) -> Effect:
-    """An effect from ``NAME`` or ``NAME:COLUMN`` (built-ins, or a registry of user effect classes)."""
-    registry = {**BUILTIN, **(registry or {})}
+    """An effect from ``NAME`` or ``NAME:COLUMN`` (a registered effect, or one of ``registry``)."""
+    registry = _known(registry)
     name, _, column = spec.partition(":")
     if name not in registry:
         raise InputError(f"unknown effect {name!r}; known: {', '.join(sorted(registry))}")
@@ -47,16 +47,57 @@ def make_effect(spec: str, registry: dict | None = None) -> Effect:
 
 
 def load_effect_file(path) -> dict:
-    """The ``Effect`` subclasses defined in a Python file, by name (``{name: class}``).
+    """Register the ``Effect`` subclasses a Python file defines (in ``EFFECTS``) and return them by name.
 
-    The file is run as Python with the user's rights, as ``import`` would: load only files you trust. A
-    failure inside it (``sys.exit`` included) is an InputError naming the file; so is a name that is a
-    built-in effect's."""
+    The file is run as Python with the user's rights, as ``import`` would: load only files you trust. Each
+    class found is tried on a few plausible epochs (``_tried``) before it is registered. Loading the same
+    file again registers its classes again.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        A ``.py`` file.
+
+    Returns
+    -------
+    dict of str to type
+        The effect classes the file defines, by ``name``.
+
+    Raises
+    ------
+    InputError
+        Naming the file: it is missing or not Python, it fails to load (``sys.exit`` included), it defines no
+        effect, an effect's name is a built-in's, or an effect fails on the test epochs.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError("no such effect file", str(path))
     if path.suffix != ".py":
         raise InputError("an effect file is Python source ending in .py", str(path))
+    module = _run_file(path)
+    found = {
+        obj.name: obj
+        for obj in vars(module).values()
+        if inspect.isclass(obj)
+        and issubclass(obj, Effect)
+        and obj.__module__ == module.__name__
+        and not inspect.isabstract(obj)
+        and obj.name not in ("effect", "core")
+    }
+    if not found:
+        raise InputError("the file defines no Effect subclass with a name", str(path))
+    clash = sorted(name for name in found if EFFECTS.is_builtin(name))
+    if clash:
+        raise InputError(f"effect {clash[0]!r} is a built-in effect's name: give yours another", str(path))
+    for name, cls in found.items():
+        _tried(name, cls, str(path))
+    for cls in found.values():
+        EFFECTS.register(cls, replace=True)
+    return found
+
+
+def _run_file(path: Path):
+    """The module the Python file ``path`` makes; InputError naming it when running it fails."""
     spec = importlib.util.spec_from_file_location(f"magkf_user_effect_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
     try:
@@ -66,62 +107,57 @@ def load_effect_file(path) -> dict:
     except BaseException as exc:  # the user's code, sys.exit included: reported on one line
         what = " ".join(str(exc).split())
         raise InputError(f"the effect file failed to load: {type(exc).__name__}: {what}", str(path)) from None
-    found = {
-        obj.name: obj
-        for obj in vars(module).values()
-        if inspect.isclass(obj)
-        and issubclass(obj, Effect)
-        and obj.__module__ == module.__name__
-        and obj.name not in ("effect", "core")
-    }
-    if not found:
-        raise InputError("the file defines no Effect subclass with a name", str(path))
-    clash = sorted(set(found) & set(BUILTIN))
-    if clash:
-        raise InputError(f"effect {clash[0]!r} is a built-in effect's name: give yours another", str(path))
-    for name, cls in found.items():
-        _tried(name, cls, str(path))
-    return found
+    return module
+
+
+def _test_epochs(effect: Effect, n: int) -> EpochData:
+    """``n`` plausible epochs for trying ``effect``: a mid-latitude field, small rates, its columns from 1 to 2."""
+    rng = np.random.default_rng(0)
+    field_ned = np.tile([20_000.0, 1_000.0, 43_000.0], (n, 1))
+    return EpochData(
+        time=1.78e9 + np.arange(n, dtype=float),
+        field_body=field_ned + rng.normal(0, 100, (n, 3)),
+        field_ned=field_ned,
+        columns={c: np.linspace(1.0, 2.0, n) for c in effect.columns},
+        mag=field_ned + rng.normal(0, 100, (n, 3)),
+        c_nb=np.tile(np.eye(3), (n, 1, 1)),
+        field_body_rate=rng.normal(0, 10, (n, 3)),
+    )
 
 
 def _tried(name: str, cls, source: str) -> None:
-    """Raise InputError naming ``source`` unless the effect class ``cls`` can be made with its defaults and its
-    ``design`` gives finite regressors of shape (N, 3, size) on a few plausible epochs."""
-    from .base import EpochData
-
+    """Raise InputError naming ``source`` unless the effect class ``cls`` can be made with its defaults and, at
+    its prior mean on a few plausible epochs, gives a finite ``contribution`` (N, 3) and ``jacobian``
+    (N, 3, size), linear or not."""
     n = 4
-    rng = np.random.default_rng(0)
-    field_ned = np.tile([20_000.0, 1_000.0, 43_000.0], (n, 1))
     try:
         effect = cls()
-        data = EpochData(
-            time=1.78e9 + np.arange(n, dtype=float),
-            field_body=field_ned + rng.normal(0, 100, (n, 3)),
-            field_ned=field_ned,
-            columns={c: np.linspace(1.0, 2.0, n) for c in effect.columns},
-            mag=field_ned + rng.normal(0, 100, (n, 3)),
-            c_nb=np.tile(np.eye(3), (n, 1, 1)),
-            field_body_rate=rng.normal(0, 10, (n, 3)),
-        )
-        G = np.asarray(effect.design(data), dtype=float)
+        data = _test_epochs(effect, n)
+        theta = np.asarray(effect.prior()[0], dtype=float)
+        values = {
+            "contribution()": (np.asarray(effect.contribution(theta, data), dtype=float), (n, 3)),
+            "jacobian()": (np.asarray(effect.jacobian(theta, data), dtype=float), (n, 3, effect.size)),
+        }
     except Exception as exc:  # the user's code: reported on one line
         what = " ".join(str(exc).split())
         raise InputError(f"effect {name!r} fails on test epochs: {type(exc).__name__}: {what}", source) from None
-    if G.shape != (n, 3, effect.size):
-        raise InputError(
-            f"effect {name!r}: design() gives shape {G.shape} for {n} epochs, expected ({n}, 3, {effect.size})", source
-        )
-    if not np.isfinite(G).all() or np.abs(G).max(initial=0.0) > 1e9:
-        raise InputError(
-            f"effect {name!r}: design() gives values that are not finite or beyond 1e9 on test epochs", source
-        )
+    for method, (value, shape) in values.items():
+        if value.shape != shape:
+            raise InputError(
+                f"effect {name!r}: {method} gives shape {value.shape} for {n} epochs, expected {shape}", source
+            )
+        if not np.isfinite(value).all() or np.abs(value).max(initial=0.0) > 1e9:
+            raise InputError(
+                f"effect {name!r}: {method} gives values that are not finite or beyond 1e9 on test epochs", source
+            )
 
 
 def candidates(columns, registry: dict | None = None) -> list[Effect]:
     """Every effect that can be tried on a log with these auxiliary ``columns``: effects without a column
     once; an effect of a column on every column of a kind it declares (``Effect.channels``, read by
-    ``channel_kind``), or on its default column only when it declares none."""
-    registry = {**BUILTIN, **(registry or {})}
+    ``channel_kind``), or on its default column only when it declares none. Every registered effect
+    (``EFFECTS``) is a candidate, and those of ``registry``."""
+    registry = _known(registry)
     out = []
     for cls in registry.values():
         default = _default_column(cls)
@@ -156,9 +192,9 @@ def stored_effect(effect: Effect, values, stds) -> StoredEffect:
 
 def restore_effects(cal: Calibration, registry: dict | None = None) -> tuple[Effect, ...]:
     """The effects a calibration file stores, rebuilt with their settings (user effects need their classes
-    in ``registry``, from ``load_effect_file``); raises InputError naming the calibration's source when one
+    registered, e.g. by ``load_effect_file``); raises InputError naming the calibration's source when one
     cannot be rebuilt or its parameters do not match."""
-    registry = {**BUILTIN, **(registry or {})}
+    registry = _known(registry)
     out = []
     for stored in cal.effects:
         cls = registry.get(stored.name)
@@ -190,6 +226,7 @@ __all__ = [
     "LinearEffect",
     "SoftHardIron",
     "BUILTIN",
+    "EFFECTS",
     "make_effect",
     "load_effect_file",
     "candidates",

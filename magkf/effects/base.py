@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,8 +122,9 @@ def _epoch_by_epoch(method):
     return at_rows
 
 
-class Effect:
-    """Base class of a physical effect (subclass it in a file of its own).
+class Effect(ABC):
+    """The interface of a physical effect (a plug-in kind: ``magkf.plugins.EFFECTS``); subclass it in a file of
+    its own.
 
     Class attributes
     ----------------
@@ -179,10 +181,10 @@ class Effect:
         """Random-walk standard deviation of each parameter per square root of a second, (k,)."""
         return np.zeros(self.size)
 
+    @abstractmethod
     def contribution(self, theta, data: EpochData, rows=None) -> np.ndarray:
         """Raw-field contribution in nT at the epochs ``rows`` of ``data`` (None: all N): (N, 3) for ``theta``
         of shape (k,), (S, N, 3) for (S, k)."""
-        raise NotImplementedError
 
     def jacobian(self, theta, data: EpochData, rows=None) -> np.ndarray:
         """Derivative of ``contribution`` with respect to ``theta`` at the epochs ``rows`` (None: all): (N, 3,

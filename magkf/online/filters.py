@@ -15,20 +15,22 @@ state, for which the unscented transform is exact, it takes as the EKF does. Bot
 ``predict(dt)``, ``linearise``, ``update``, ``correct`` (the Kalman update of given whitened rows),
 ``inflate``, ``copy`` and ``prepare(models)`` (whatever the filter loads for those models, loaded now
 rather than at the first update that needs it); nothing else.
-``FILTERS`` maps a name to its class.
+``FILTERS`` (``magkf.plugins``) maps a name to its class; ``Filter`` is the interface a new filter implements.
 """
 
 from __future__ import annotations
 
 import copy
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..conventions import inverse3
+from ..plugins import FILTERS
 from .measurements import _whitening_stack
 
-__all__ = ["EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
+__all__ = ["Filter", "EKF", "UKF", "FILTERS", "Rows", "Linearisation", "make_filter"]
 
 
 @dataclass
@@ -98,7 +100,71 @@ def _inverse_quadratic3(a, b, c, d, e, f, y0, y1, y2):
     return (quadratic + y2 * y2 * (a * d - b * b)) / (a * c00 + b * c01 + c * c02)
 
 
-class _RandomWalkFilter:
+class Filter(ABC):
+    """The interface of a filter over the calibration's parameter state (a plug-in kind:
+    ``magkf.plugins.FILTERS``).
+
+    The estimator (``magkf.online.estimator``) drives it block by block: ``predict`` over the time since the
+    last block, ``linearise`` the measurement models' rows of the block, its own gates decide which epochs
+    to accept, then ``update`` with those. A filter is constructed as ``cls(x0, P0, q_rate)``.
+
+    Parameters
+    ----------
+    x0 : ndarray, shape (n,)
+        Initial state: ``R`` row-major, ``b`` (nT), then each effect's parameters.
+    P0 : ndarray, shape (n, n)
+        Initial covariance, in the state's units squared.
+    q_rate : ndarray, shape (n,)
+        Random-walk variance of each state per second.
+
+    Attributes
+    ----------
+    name : str
+        The name ``FilterConfig(filter=...)`` and ``--filter`` take.
+    x : ndarray, shape (n,)
+        The estimate.
+    P : ndarray, shape (n, n)
+        Its covariance.
+    """
+
+    name: str = "filter"
+    x: np.ndarray
+    P: np.ndarray
+
+    @abstractmethod
+    def predict(self, dt: float) -> None:
+        """Propagate ``x`` and ``P`` over ``dt`` seconds."""
+
+    @abstractmethod
+    def linearise(self, parts) -> Linearisation:
+        """The rows of each ``(model, block)`` pair of ``parts`` (``MeasurementModel``, ``Block``): whitened
+        innovations, Jacobians and per-epoch NIS (``Rows``), for the gates to judge."""
+
+    @abstractmethod
+    def update(self, lin: Linearisation, accept) -> np.ndarray:
+        """Update with the accepted epochs of ``lin`` (``accept``: one boolean mask (k,) per part); returns
+        the whitened Jacobian (r, n) of the rows used (the information the update carried)."""
+
+    @abstractmethod
+    def correct(self, y, H, R=None) -> None:
+        """The Kalman update of given rows: innovation ``y`` (r,), Jacobian ``H`` (r, n), noise ``R`` (r, r;
+        None: whitened rows, the identity)."""
+
+    @abstractmethod
+    def inflate(self, P_add) -> None:
+        """``P += P_add`` (n, n): widen the covariance so that the filter can re-acquire."""
+
+    @abstractmethod
+    def copy(self) -> Filter:
+        """An independent copy (state, covariance and settings)."""
+
+    def prepare(self, models) -> None:
+        """Load now what an update of ``models``' rows will need (nothing by default), rather than at the first
+        update that needs it."""
+        return None
+
+
+class _RandomWalkFilter(Filter):
     """What the EKF and the UKF share: the state, the exact random-walk prediction, inflation, a copy."""
 
     name = "filter"
@@ -328,11 +394,9 @@ class UKF(_RandomWalkFilter):
         return self._fold_information(J, g)
 
 
-FILTERS = {cls.name: cls for cls in (EKF, UKF)}
-
-
-def make_filter(name: str, x0, P0, q_rate):
-    """The filter ``name`` (``ekf`` or ``ukf``) started at ``x0`` (n,), ``P0`` (n, n)."""
+def make_filter(name: str, x0, P0, q_rate) -> Filter:
+    """The registered filter ``name`` (``magkf.plugins.FILTERS``: ``ekf``, ``ukf``, ...) started at ``x0``
+    (n,), ``P0`` (n, n) with random-walk variances ``q_rate`` (n,) per second."""
     try:
         cls = FILTERS[name]
     except KeyError:

@@ -42,6 +42,7 @@ import numpy as np
 from ..config import FilterConfig
 from ..conventions import body_to_ned, calibrated_field, inverse3, ned_to_body
 from ..effects.base import EpochData
+from ..plugins import MEASUREMENTS
 from .noise import NoiseLevels
 from .state import StateLayout
 
@@ -601,15 +602,30 @@ def nis_rows(model) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------- registry
-MEASUREMENTS: dict[str, type[MeasurementModel]] = {cls.name: cls for cls in (Magnitude, Vector, Both)}
-
-
 def register_measurement(cls: type[MeasurementModel]) -> type[MeasurementModel]:
-    """Make a measurement model available by its ``name`` (for ``FilterConfig(measure=...)``); a decorator."""
+    """Make a measurement model available by its ``name`` (for ``FilterConfig(measure=...)`` and ``--measure``);
+    a decorator. The same as ``magkf.plugins.MEASUREMENTS.register(cls)``.
+
+    Parameters
+    ----------
+    cls : type
+        A subclass of ``MeasurementModel`` with a ``name``.
+
+    Returns
+    -------
+    type
+        ``cls``.
+
+    Raises
+    ------
+    TypeError
+        ``cls`` is not a ``MeasurementModel`` subclass.
+    magkf.plugins.PluginError
+        Its name is one of magkf's own models' or another's already registered.
+    """
     if not (isinstance(cls, type) and issubclass(cls, MeasurementModel)):
         raise TypeError("a measurement model is a subclass of MeasurementModel")
-    MEASUREMENTS[cls.name] = cls
-    return cls
+    return MEASUREMENTS.register(cls, replace=True)
 
 
 def measurement_model(config: FilterConfig, layout: StateLayout, x0) -> MeasurementModel:

@@ -43,6 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import NOISE_METHODS
+
 __all__ = ["NoiseLevels", "NoiseLearner", "estimate_levels", "robust_start", "CLIP_SIGMA", "METHODS"]
 
 #: Squared innovations are winsorised at this many standard deviations of the current estimate.
@@ -63,7 +65,7 @@ CORRELATION_WINDOWS = 10.0
 CONVERGED = 0.1
 #: The autocorrelation sum stops where it falls below this.
 RHO_STOP = 0.05
-METHODS = ("matching", "variational")
+METHODS = NOISE_METHODS
 #: Columns of the learner's ring of innovations.
 _COLUMNS = 8
 #: Innovations whose lagged products are taken at once (bounds the memory of a whole log's start).
