@@ -57,12 +57,41 @@ _SAMPLE_COLUMNS = (*MAG, *ATTITUDE, *REF, LAT, LON, ALT, DOP, PDOP, HDOP)
 class EpochResult:
     """What ``OnlineCalibrator.step`` returns for one sample.
 
-    ``field_body`` (3,) calibrated body field, nT (with the estimate after this step); ``magnitude_nt``;
-    ``heading_mag_deg`` and ``heading_true_deg`` (NaN without attitude or position); ``status`` (a name
-    of ``magkf.status``), ``updated``, ``nis``; ``R`` (3, 3), ``b`` (3,), ``std`` (n,) the current
-    estimate's standard deviations in state order, ``x`` (n,) the whole state; ``noise_sensor_nt`` (nT per
-    axis), ``noise_attitude_deg`` (tilt) and ``noise_heading_deg`` (deg, 1 sigma) the measurement noise
-    the estimator uses after this step (learned from the innovations, ``magkf.online.noise``).
+    The field and headings are computed with the estimate after this step.
+
+    Parameters
+    ----------
+    time : float
+        The sample's time, UNIX s.
+    field_body : numpy.ndarray
+        (3,) calibrated body field, nT (with the estimate after this step).
+    magnitude_nt : float
+        Its magnitude, nT.
+    heading_mag_deg : float
+        Magnetic heading, deg (NaN without attitude or position).
+    heading_true_deg : float
+        True heading, deg (NaN without attitude or position).
+    status : str
+        The epoch's status, a name of ``magkf.status``.
+    updated : bool
+        Whether the sample updated the filter.
+    nis : float
+        Its normalised innovation squared.
+    R : numpy.ndarray
+        (3, 3) the current estimate of ``R``.
+    b : numpy.ndarray
+        (3,) the current estimate of the offsets, nT.
+    std : numpy.ndarray
+        (n,) the current estimate's standard deviations in state order.
+    x : numpy.ndarray
+        (n,) the whole state.
+    noise_sensor_nt : float
+        Sensor noise the estimator uses after this step, nT per axis (1 sigma; learned from the
+        innovations, ``magkf.online.noise``).
+    noise_attitude_deg : float
+        Tilt noise the estimator uses after this step, deg (1 sigma, learned likewise).
+    noise_heading_deg : float
+        Heading noise the estimator uses after this step, deg (1 sigma, learned likewise).
     """
 
     time: float
@@ -85,8 +114,30 @@ class EpochResult:
 class OnlineCalibrator:
     """Streaming calibration from an initial calibration (``init``) with its covariance.
 
-    ``config`` gives the noise, gates and random walks; ``effects`` extra ``Effect`` blocks with their
-    own priors. Memory does not grow with the number of steps.
+    Memory does not grow with the number of steps.
+
+    Parameters
+    ----------
+    init : Calibration
+        The calibration to start from, with its covariance.
+    config : FilterConfig, optional
+        The noise, gates and random walks.
+    effects : sequence of Effect or None, optional
+        Extra ``Effect`` blocks with their own priors; None: the effects ``init`` stores, at their stored
+        values.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The current estimate.
+    config : FilterConfig
+        The settings given.
+
+    Examples
+    --------
+    >>> cal = OnlineCalibrator.from_file("cal.json")  # doctest: +SKIP
+    >>> result = cal.step({"time": 1.7e9, "mag_x": 21000.0, ...})  # doctest: +SKIP
+    >>> result.field_body, result.status  # doctest: +SKIP
     """
 
     def __init__(self, init: Calibration, config: FilterConfig = FilterConfig(), effects=None):
@@ -107,15 +158,44 @@ class OnlineCalibrator:
 
     @classmethod
     def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=None, registry=None) -> OnlineCalibrator:
-        """Start from a calibration file (JSON), with the effects it stores at their stored values and
-        covariance (user effects need their classes in ``registry``, from ``load_effect_file``), or with
-        ``effects`` instead when given (those the file stores start from it, the others from their priors)."""
+        """Start from a calibration file (JSON).
+
+        The effects the file stores start at their stored values and covariance, unless ``effects`` is given.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The calibration file (JSON).
+        config : FilterConfig, optional
+            The noise, gates and random walks.
+        effects : sequence of Effect or None, optional
+            The effects to estimate instead of the file's (those the file stores start from it, the others
+            from their priors); None: the file's own.
+        registry : dict or None, optional
+            Classes of user effects, from ``load_effect_file``, which the file's user effects need.
+
+        Returns
+        -------
+        OnlineCalibrator
+            Started from the file's calibration.
+
+        Raises
+        ------
+        InputError
+            The file cannot be read or is not a valid calibration.
+        """
         init = Calibration.load(path)
         return cls(init, config, restore_effects(init, registry) if effects is None else effects)
 
     @property
     def calibration(self) -> Calibration:
-        """The current estimate as a calibration with its 12x12 covariance, and its effects."""
+        """The current estimate as a calibration with its 12x12 covariance, and its effects.
+
+        Returns
+        -------
+        Calibration
+            ``R``, ``b``, their (12, 12) covariance and the effects' estimates.
+        """
         x, P, core = self.estimator.x, self.estimator.P, self.layout.CORE
         R, b = self.layout.R_b(x)
         std = np.sqrt(np.diag(P))
@@ -129,8 +209,27 @@ class OnlineCalibrator:
         )
 
     def step(self, sample, time: float | None = None) -> EpochResult:
-        """Process one sample (a mapping of column names to values, or a pandas row); ``time`` (UNIX s)
-        overrides the sample's own. Returns an ``EpochResult``."""
+        """Process one sample.
+
+        Parameters
+        ----------
+        sample : mapping or pandas.Series
+            Column names to values (canonical names, nT and degrees), or a pandas row. Its time is its
+            ``time`` entry, else a pandas row's name.
+        time : float or None, optional
+            UNIX s; overrides the sample's own.
+
+        Returns
+        -------
+        EpochResult
+            The calibrated field, headings, status and the estimate after this step.
+
+        Raises
+        ------
+        InputError
+            The sample is not a mapping, holds a number beyond the range a log may hold, has no time, or its
+            time is not after the previous sample's.
+        """
         v = read_sample(sample, self._columns, time)
         t = v["time"]
         if not math.isfinite(t):
