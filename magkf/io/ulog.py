@@ -45,6 +45,7 @@ import contextlib
 import io
 import struct
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -354,6 +355,212 @@ def _default_instance(sets: dict, params: dict) -> tuple[int, str | None]:
     return instance, None if instance == lowest else "the lowest instance not disabled in PX4"
 
 
+class _Magnetometer(NamedTuple):
+    """The magnetometer stream read: its topic and instance, and its samples in time order."""
+
+    topic: str
+    instance: int
+    #: The topic's logged fields (arrays over all its samples).
+    data: dict
+    #: The three field names of x, y, z.
+    fields: tuple[str, ...]
+    #: (n,) sample times, us since boot (int64, strictly increasing).
+    us: np.ndarray
+    #: (n, 3) field, G.
+    gauss: np.ndarray
+    #: (n,) indices of the kept samples into ``data``.
+    rows: np.ndarray
+    #: True for PX4's calibrated ``vehicle_magnetometer``.
+    calibrated: bool
+
+
+class _Gnss(NamedTuple):
+    """The GNSS stream read: topic, instance, logged fields, and its position, DOP and fix (``_gnss_fields``)."""
+
+    topic: str
+    instance: int
+    data: dict
+    #: Canonical column -> (m,) values per GNSS sample.
+    values: dict
+    #: Canonical column -> ``topic.field (conversion)``.
+    source: dict
+    #: (m,) ``fix_type`` (float).
+    fix: np.ndarray
+
+
+def _magnetometer(ulog, mag: int | None, raw: bool, name: str, notes: list) -> _Magnetometer:
+    """The chosen magnetometer (``_pick_magnetometer``) in time order, repeated times dropped; why it was
+    chosen, whether it is calibrated and what was dropped go to ``notes``."""
+    topic, instance, m, why = _pick_magnetometer(ulog, mag, raw, name)
+    if why is not None:
+        notes.append(why)
+    calibrated = topic == "vehicle_magnetometer"
+    if calibrated:
+        notes.append(
+            "the magnetometer is PX4's calibrated vehicle_magnetometer (offsets, scales and rotation "
+            "to the body FRD frame applied by PX4), not the raw sensor_mag" + ("" if raw else " (raw=False)")
+        )
+    mag_us = _sample_us(m)
+    fields = ("x", "y", "z") if topic == "sensor_mag" else tuple(f"magnetometer_ga[{k}]" for k in range(3))
+    mag_g = np.column_stack([m[f].astype(float) for f in fields])
+    order = np.argsort(mag_us, kind="stable")
+    keep = np.r_[True, np.diff(mag_us[order]) > 0]
+    if not keep.all():
+        notes.append(f"{int((~keep).sum())} {topic} samples with a repeated timestamp were dropped")
+    rows = order[keep]
+    return _Magnetometer(topic, instance, m, fields, mag_us[rows], mag_g[rows], rows, calibrated)
+
+
+def _gnss(ulog, name: str, notes: list) -> _Gnss:
+    """The lowest instance of the first GNSS topic logged (``_GNSS_TOPICS``), with its position, DOP and fix;
+    InputError naming ``name`` if there is none (no UTC time)."""
+    topic = next((tp for tp in _GNSS_TOPICS if _datasets(ulog, tp)), None)
+    if topic is None:
+        raise InputError(
+            "ULog timestamps are time since boot and no GNSS UTC time: no vehicle_gps_position or sensor_gps topic",
+            name,
+        )
+    sets = _datasets(ulog, topic)
+    instance = min(sets)
+    values, source, fix = _gnss_fields(sets[instance], topic, notes)
+    return _Gnss(topic, instance, sets[instance], values, source, fix)
+
+
+def _magnetometer_columns(mag: _Magnetometer, offset_us: float) -> tuple[dict, dict]:
+    """``time`` (UNIX s) and ``mag_x, mag_y, mag_z`` (nT) of every epoch, and their provenance."""
+    table = {TIME: (mag.us.astype(float) + offset_us) / 1e6}
+    columns = {TIME: f"{mag.topic}.timestamp_sample (us since boot) + GNSS UTC offset"}
+    for k, column in enumerate(MAG):
+        table[column] = mag.gauss[:, k] * NT_PER_GAUSS
+        columns[column] = f"{mag.topic}.{mag.fields[k]} (G x 1e5 -> nT)"
+    return table, columns
+
+
+def _attitude_columns(ulog, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
+    """``roll, pitch, yaw`` (deg) at the epochs ``t`` (s after ``ref_us``) from ``vehicle_attitude.q`` by slerp,
+    and their provenance; empty (noted) without the topic."""
+    att = _datasets(ulog, "vehicle_attitude")
+    if 0 not in att:
+        notes.append("no vehicle_attitude topic: roll, pitch and yaw are absent")
+        return {}, {}
+    a = att[0]
+    q_src = np.column_stack([a[f"q[{k}]"].astype(float) for k in range(4)])
+    q, _ = interpolate_quaternions(t, (_sample_us(a) - ref_us) * 1e-6, q_src, max_gap_s)
+    yaw, pitch, roll = quaternion_to_euler(q)
+    text = "vehicle_attitude.q (scalar first, FRD -> NED; slerp; ZYX Euler, deg)"
+    return {ROLL: roll, PITCH: pitch, YAW: yaw}, dict.fromkeys((ROLL, PITCH, YAW), text)
+
+
+def _gnss_columns(gnss: _Gnss, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
+    """Position, DOP (linear) and ``fix_type`` (the lower of the bracketing samples) at the epochs ``t`` (s after
+    ``ref_us``), and their provenance; a GNSS stream slower than ``max_gap_s`` is noted."""
+    t_gnss = (gnss.data["timestamp"].astype(np.int64) - ref_us) * 1e-6
+    gap = float(np.median(np.diff(t_gnss))) if len(t_gnss) > 1 else 0.0
+    if gap > max_gap_s:
+        notes.append(
+            f"{gnss.topic} is logged every {gap:.2f} s, more than max_gap_s = {max_gap_s} s: "
+            "positions are missing; raise max_gap_s"
+        )
+    table, columns = {}, {}
+    for column, values in gnss.values.items():
+        table[column], _ = interpolate_linear(t, t_gnss, values, max_gap_s)
+        columns[column] = gnss.source[column] + " (linear)"
+    i, _, valid = bracket(t, t_gnss, max_gap_s)
+    fix = gnss.fix
+    table["fix_type"] = np.where(valid, np.minimum(fix[i], fix[np.minimum(i + 1, len(fix) - 1)]), np.nan)
+    columns["fix_type"] = f"{gnss.topic}.fix_type (lower of the bracketing samples)"
+    return table, columns
+
+
+def _auxiliary_columns(
+    ulog, mag: _Magnetometer, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list
+) -> tuple[dict, dict]:
+    """``current_a`` (A), ``throttle`` (0..1) and the magnetometer's ``temp_c`` (degC), each where logged, and
+    their provenance; a temperature field of NaN only is noted."""
+    table, columns = {}, {}
+    for column, found in (
+        ("current_a", _battery(ulog, t, ref_us, max_gap_s)),
+        ("throttle", _throttle(ulog, t, ref_us, max_gap_s)),
+    ):
+        if found is not None:
+            table[column], columns[column] = found
+    if "temperature" in mag.data:
+        temp = mag.data["temperature"].astype(float)[mag.rows]
+        if np.isfinite(temp).any():
+            table["temp_c"], columns["temp_c"] = temp, f"{mag.topic}.temperature (degC)"
+        else:
+            notes.append(f"{mag.topic}.temperature is not logged (NaN): no temp_c")
+    return table, columns
+
+
+def _px4_calibration(ulog, mag: _Magnetometer, notes: list) -> tuple[dict, int | None, int | None, dict]:
+    """``(parameters, device_id, calibration_index, rotation)`` of the chosen magnetometer: the logged
+    ``CAL_MAG*``, its ``CAL_MAGn`` slot and the rotation parameters; a disabled or non-primary choice is noted."""
+    params = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("CAL_MAG")}
+    device_id = int(mag.data["device_id"][0]) if "device_id" in mag.data else None
+    cal_index = _calibration_index(params, device_id)
+    rotation = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("SENS_BOARD_")}
+    if cal_index is not None:
+        rotation[f"CAL_MAG{cal_index}_ROT"] = params.get(f"CAL_MAG{cal_index}_ROT")
+        for key in (f"CAL_MAG{cal_index}_EN", f"CAL_MAG{cal_index}_PRIO"):
+            if params.get(key) == 0:
+                notes.append(f"the chosen magnetometer is disabled in PX4 ({key} = 0)")
+    if "CAL_MAG_PRIME" in params and device_id is not None and params["CAL_MAG_PRIME"] != device_id:
+        notes.append(
+            f"the chosen magnetometer (device_id {device_id}) is not PX4's primary one "
+            f"(CAL_MAG_PRIME = {params['CAL_MAG_PRIME']})"
+        )
+    rotation["applied"] = mag.calibrated
+    rotation["meaning"] = (
+        "CAL_MAGn_ROT (external) or SENS_BOARD_ROT (internal, -1 in CAL_MAGn_ROT) rotate "
+        "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer only"
+    )
+    return params, device_id, cal_index, rotation
+
+
+def _px4_version(ulog, topic: str, notes: list) -> str | None:
+    """PX4's version (``major.minor.patch``, None if not logged); notes that ``sensor_mag`` may be
+    offset-corrected before v1.12, and the calibration parameters changed during the log."""
+    version = _version(ulog)
+    if topic == "sensor_mag" and version is not None and tuple(map(int, version.split("."))) < (1, 12):
+        notes.append(
+            f"PX4 {version}: up to v1.11 the driver applied the CAL_MAGn offsets and scales before "
+            "publishing sensor_mag, so the values may already be offset-corrected (not rotated)"
+        )
+    changed = sorted({k for _, k, _ in ulog.changed_parameters if k.startswith(("CAL_MAG", "SENS_BOARD"))})
+    if changed:
+        notes.append(f"parameters changed during the log (initial values reported): {', '.join(changed)}")
+    return version
+
+
+def _provenance(ulog, name: str, mag: _Magnetometer, gnss: _Gnss, columns: dict, time_base: str, notes: list) -> dict:
+    """The JSON-able provenance of ``read_ulog`` (see there); PX4's calibration and version notes go to
+    ``notes`` first."""
+    params, device_id, cal_index, rotation = _px4_calibration(ulog, mag, notes)
+    version = _px4_version(ulog, mag.topic, notes)
+    return {
+        "format": "px4-ulog",
+        "file": name,
+        "px4_version": version,
+        "columns": columns,
+        "magnetometer": {
+            "topic": mag.topic,
+            "instance": int(mag.instance),
+            "device_id": device_id,
+            "rate_hz": _rate_hz(mag.us),
+            "calibrated": mag.calibrated,
+            "fields": ", ".join(f"{mag.topic}.{f}" for f in mag.fields),
+            "calibration_index": cal_index,
+        },
+        "magnetometers": _instances(ulog),
+        "gnss": {"topic": gnss.topic, "instance": int(gnss.instance)},
+        "parameters": params,
+        "rotation": rotation,
+        "time_base": time_base,
+        "notes": notes,
+    }
+
+
 def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> tuple[pd.DataFrame, dict]:
     """Read a PX4 ULog file as a canonical drive log.
 
@@ -388,141 +595,24 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     name = str(path)
     ulog = _load(path)
     notes: list[str] = []
-    topic, instance, m, why = _pick_magnetometer(ulog, mag, raw, name)
-    if why is not None:
-        notes.append(why)
-    calibrated = topic == "vehicle_magnetometer"
-    if calibrated:
-        notes.append(
-            "the magnetometer is PX4's calibrated vehicle_magnetometer (offsets, scales and rotation "
-            "to the body FRD frame applied by PX4), not the raw sensor_mag" + ("" if raw else " (raw=False)")
-        )
-    mag_us = _sample_us(m)
-    fields = ("x", "y", "z") if topic == "sensor_mag" else tuple(f"magnetometer_ga[{k}]" for k in range(3))
-    mag_g = np.column_stack([m[f].astype(float) for f in fields])
-    order = np.argsort(mag_us, kind="stable")
-    keep = np.r_[True, np.diff(mag_us[order]) > 0]
-    if not keep.all():
-        notes.append(f"{int((~keep).sum())} {topic} samples with a repeated timestamp were dropped")
-    rows = order[keep]
-    mag_us, mag_g = mag_us[rows], mag_g[rows]
-
-    gnss_topic = next((tp for tp in _GNSS_TOPICS if _datasets(ulog, tp)), None)
-    if gnss_topic is None:
-        raise InputError(
-            "ULog timestamps are time since boot and no GNSS UTC time: no vehicle_gps_position or sensor_gps topic",
-            name,
-        )
-    gnss_sets = _datasets(ulog, gnss_topic)
-    gnss_instance = min(gnss_sets)
-    g = gnss_sets[gnss_instance]
-    gnss_values, gnss_source, fix = _gnss_fields(g, gnss_topic, notes)
-    offset_us, time_base = _utc_offset_us(g, fix, gnss_topic, name)
-
-    ref_us = int(mag_us[0])
-    t = (mag_us - ref_us) * 1e-6
-    table = {TIME: (mag_us.astype(float) + offset_us) / 1e6}
-    field_text = ", ".join(f"{topic}.{f}" for f in fields)
-    columns = {TIME: f"{topic}.timestamp_sample (us since boot) + GNSS UTC offset"}
-    for k, column in enumerate(MAG):
-        table[column] = mag_g[:, k] * NT_PER_GAUSS
-        columns[column] = f"{topic}.{fields[k]} (G x 1e5 -> nT)"
-
-    att = _datasets(ulog, "vehicle_attitude")
-    if 0 in att:
-        a = att[0]
-        q_src = np.column_stack([a[f"q[{k}]"].astype(float) for k in range(4)])
-        q, _ = interpolate_quaternions(t, (_sample_us(a) - ref_us) * 1e-6, q_src, max_gap_s)
-        yaw, pitch, roll = quaternion_to_euler(q)
-        table[ROLL], table[PITCH], table[YAW] = roll, pitch, yaw
-        for column in (ROLL, PITCH, YAW):
-            columns[column] = "vehicle_attitude.q (scalar first, FRD -> NED; slerp; ZYX Euler, deg)"
-    else:
-        notes.append("no vehicle_attitude topic: roll, pitch and yaw are absent")
-
-    t_gnss = (g["timestamp"].astype(np.int64) - ref_us) * 1e-6
-    gap = float(np.median(np.diff(t_gnss))) if len(t_gnss) > 1 else 0.0
-    if gap > max_gap_s:
-        notes.append(
-            f"{gnss_topic} is logged every {gap:.2f} s, more than max_gap_s = {max_gap_s} s: "
-            "positions are missing; raise max_gap_s"
-        )
-    for column, values in gnss_values.items():
-        table[column], _ = interpolate_linear(t, t_gnss, values, max_gap_s)
-        columns[column] = gnss_source[column] + " (linear)"
-    i, _, valid = bracket(t, t_gnss, max_gap_s)
-    table["fix_type"] = np.where(valid, np.minimum(fix[i], fix[np.minimum(i + 1, len(fix) - 1)]), np.nan)
-    columns["fix_type"] = f"{gnss_topic}.fix_type (lower of the bracketing samples)"
-
-    for column, found in (
-        ("current_a", _battery(ulog, t, ref_us, max_gap_s)),
-        ("throttle", _throttle(ulog, t, ref_us, max_gap_s)),
+    magnetometer = _magnetometer(ulog, mag, raw, name, notes)
+    gnss = _gnss(ulog, name, notes)
+    offset_us, time_base = _utc_offset_us(gnss.data, gnss.fix, gnss.topic, name)
+    ref_us = int(magnetometer.us[0])
+    t = (magnetometer.us - ref_us) * 1e-6
+    table, columns = _magnetometer_columns(magnetometer, offset_us)
+    for values, sources in (
+        _attitude_columns(ulog, t, ref_us, max_gap_s, notes),
+        _gnss_columns(gnss, t, ref_us, max_gap_s, notes),
+        _auxiliary_columns(ulog, magnetometer, t, ref_us, max_gap_s, notes),
     ):
-        if found is not None:
-            table[column], columns[column] = found
-    if "temperature" in m:
-        temp = m["temperature"].astype(float)[rows]
-        if np.isfinite(temp).any():
-            table["temp_c"], columns["temp_c"] = temp, f"{topic}.temperature (degC)"
-        else:
-            notes.append(f"{topic}.temperature is not logged (NaN): no temp_c")
-
+        table |= values
+        columns |= sources
     for column in (HDOP, VDOP, "eph"):
         if column in table and not np.isfinite(table[column]).any():
             del table[column], columns[column]
-    frame = pd.DataFrame(table)
-
-    params = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("CAL_MAG")}
-    device_id = int(m["device_id"][0]) if "device_id" in m else None
-    cal_index = _calibration_index(params, device_id)
-    rotation = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("SENS_BOARD_")}
-    if cal_index is not None:
-        rotation[f"CAL_MAG{cal_index}_ROT"] = params.get(f"CAL_MAG{cal_index}_ROT")
-        for key in (f"CAL_MAG{cal_index}_EN", f"CAL_MAG{cal_index}_PRIO"):
-            if params.get(key) == 0:
-                notes.append(f"the chosen magnetometer is disabled in PX4 ({key} = 0)")
-    if "CAL_MAG_PRIME" in params and device_id is not None and params["CAL_MAG_PRIME"] != device_id:
-        notes.append(
-            f"the chosen magnetometer (device_id {device_id}) is not PX4's primary one "
-            f"(CAL_MAG_PRIME = {params['CAL_MAG_PRIME']})"
-        )
-    rotation["applied"] = calibrated
-    rotation["meaning"] = (
-        "CAL_MAGn_ROT (external) or SENS_BOARD_ROT (internal, -1 in CAL_MAGn_ROT) rotate "
-        "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer only"
-    )
-    version = _version(ulog)
-    if topic == "sensor_mag" and version is not None and tuple(map(int, version.split("."))) < (1, 12):
-        notes.append(
-            f"PX4 {version}: up to v1.11 the driver applied the CAL_MAGn offsets and scales before "
-            "publishing sensor_mag, so the values may already be offset-corrected (not rotated)"
-        )
-    changed = sorted({k for _, k, _ in ulog.changed_parameters if k.startswith(("CAL_MAG", "SENS_BOARD"))})
-    if changed:
-        notes.append(f"parameters changed during the log (initial values reported): {', '.join(changed)}")
-
-    provenance = {
-        "format": "px4-ulog",
-        "file": name,
-        "px4_version": version,
-        "columns": columns,
-        "magnetometer": {
-            "topic": topic,
-            "instance": int(instance),
-            "device_id": device_id,
-            "rate_hz": _rate_hz(mag_us),
-            "calibrated": calibrated,
-            "fields": field_text,
-            "calibration_index": cal_index,
-        },
-        "magnetometers": _instances(ulog),
-        "gnss": {"topic": gnss_topic, "instance": int(gnss_instance)},
-        "parameters": params,
-        "rotation": rotation,
-        "time_base": time_base,
-        "notes": notes,
-    }
-    return frame.reset_index(drop=True), provenance
+    provenance = _provenance(ulog, name, magnetometer, gnss, columns, time_base, notes)
+    return pd.DataFrame(table).reset_index(drop=True), provenance
 
 
 # ---------------------------------------------------------------- writing
