@@ -336,8 +336,37 @@ def _magnitude_gated(problem: BatchProblem, idx, gate: float) -> np.ndarray:
 @one_thread
 @names_the_log
 def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()):
-    """Batch calibration of ``log``; returns a ``CalibrationRun`` (states constant over the log). A pass of
-    the solver that does not converge says so in a warning."""
+    """Batch calibration of ``log``: the online calibration's model solved by robust least squares.
+
+    A robust pass (soft L1) finds the outlying epochs, then a least-squares fit without them gives the
+    estimate; the outlying epochs get the status ``gated_innovation``.
+
+    Parameters
+    ----------
+    log : DriveLog
+        The drive or flight log.
+    config : FilterConfig, optional
+        The settings (noise, gates, measurement model).
+    init : Calibration or None, optional
+        An offline calibration to start from; else a bootstrap from the log.
+    effects : sequence of Effect, optional
+        Extra ``Effect`` blocks, estimated with ``R, b``.
+
+    Returns
+    -------
+    CalibrationRun
+        The result, its states constant over the log.
+
+    Raises
+    ------
+    InputError
+        The log cannot be calibrated (as ``calibrate_log``); it names the log.
+
+    Warns
+    -----
+    UserWarning
+        A pass of the solver that does not converge says so, with the size of its last step.
+    """
     started = _time.perf_counter()
     problem = batch_problem(log, config, init, effects)
     # Robust pass (soft L1) to find the outlying epochs, then least squares without them.

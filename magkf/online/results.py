@@ -38,20 +38,70 @@ __all__ = [
 class RunSummary:
     """The figures of a run, each with its unit.
 
-    ``R`` (3x3) and ``b`` (3, nT) the final estimate, ``std`` the standard deviation of every state by name.
-    Residuals, all with the final estimate (the smoothed per-epoch estimate when smoothed):
-    ``residual_rms_nt`` the RMS of the NED residual norm (nT) over the epochs *used* with attitude,
-    ``residual_rms_axis_nt`` the same per NED axis, ``residual_rms_magnitude_nt`` the RMS magnitude
-    residual over the epochs used (with or without attitude); ``residual_rms_all_nt`` and
-    ``residual_rms_magnitude_all_nt`` the same over the *whole log* (every epoch with a magnetometer
-    reading and a reference; attitude for the vector figure), gated epochs included.
-    ``innovation_rms_nt`` the RMS NED residual norm with the estimate before each epoch. ``nis_mean`` the
-    mean normalised innovation squared per degree of freedom of the epochs used, ``nis_band`` its 95 %
-    band for the effective number of independent epochs; ``used_share`` the share of epochs used.
-    ``noise``: the configured and the learned noise (sensor nT, attitude deg), the residuals' correlation
-    time (s) and the inflation of each epoch's noise it implies. ``verdict``: what these say, in words.
-    ``status_counts`` the epochs of each status. ``observability``: the directions the data did not
-    determine (``text`` says it in words).
+    Residuals are all computed with the final estimate (the smoothed per-epoch estimate when smoothed).
+    Plain Python values (lists, dicts, floats), so that ``as_dict`` is ready for JSON.
+
+    Parameters
+    ----------
+    R : list
+        (3, 3) the final estimate of ``R``.
+    b : list
+        (3,) the final estimate of the offsets, nT.
+    std : dict
+        The standard deviation of every state, by name.
+    residual_rms_nt : float
+        The RMS of the NED residual norm, nT, over the epochs *used* with attitude.
+    residual_rms_axis_nt : dict
+        The same per NED axis (``north``, ``east``, ``down``), nT.
+    residual_rms_magnitude_nt : float
+        The RMS magnitude residual, nT, over the epochs used (with or without attitude).
+    residual_rms_all_nt : float
+        ``residual_rms_nt`` over the *whole log* (every epoch with a magnetometer reading, a reference and
+        attitude), gated epochs included, nT.
+    residual_rms_magnitude_all_nt : float
+        ``residual_rms_magnitude_nt`` over the *whole log* (every epoch with a magnetometer reading and a
+        reference), gated epochs included, nT.
+    innovation_rms_nt : float
+        The RMS NED residual norm with the estimate before each epoch, nT.
+    nis_mean : float
+        The mean normalised innovation squared per degree of freedom of the epochs used.
+    nis_band : list
+        Its 95 % band ``[low, high]`` for the effective number of independent epochs.
+    used_share : float
+        The share of epochs used.
+    noise : dict
+        The configured and the learned noise (sensor nT, attitude deg), the residuals' correlation time (s)
+        and the inflation of each epoch's noise it implies.
+    verdict : str
+        What these figures say, in words.
+    n_epochs : int
+        The epochs of the log.
+    n_updates : int
+        The epochs that updated the estimate.
+    status_counts : dict
+        The epochs of each status, by name.
+    run_time_s : float
+        The run's duration, s.
+    epochs_per_second : float
+        ``n_epochs / run_time_s``.
+    filter_loop_s : float
+        The time spent in the filter loop, part of ``run_time_s``, s (NaN where there is none).
+    filter : str
+        The filter (``ekf``, ``ukf``, ...) or the method (``batch``).
+    measure : str
+        The measurement model.
+    smoothed : bool
+        Whether the estimates were smoothed (Rauch-Tung-Striebel).
+    init : str
+        How the run started (the calibration given, or the bootstrap), in words.
+    reacquisitions : int
+        How often the covariance was inflated after ``max_gated_s`` of innovation gating.
+    observability : dict
+        The directions the data did not determine (``text`` says it in words).
+    effects : dict
+        Every effect's parameters by name: ``{"value", "std", "unit"}``.
+    config : dict
+        The settings of the run (``FilterConfig.as_dict``).
     """
 
     R: list
@@ -84,7 +134,13 @@ class RunSummary:
     config: dict
 
     def as_dict(self) -> dict:
-        """JSON-ready mapping of every field."""
+        """JSON-ready mapping of every field.
+
+        Returns
+        -------
+        dict
+            Field name -> value.
+        """
         return asdict(self)
 
 
@@ -92,12 +148,29 @@ class RunSummary:
 class CalibrationRun:
     """Outcome of ``calibrate_log`` or ``solve_batch``.
 
-    ``calibration``: the final ``R``, ``b`` with their 12x12 covariance. ``x`` (n,) and ``P`` (n, n):
-    the final state. ``states``: DataFrame indexed by time with ``status``, ``updated``, ``nis``, every
-    state and its ``std_`` column, and the residuals ``residual_n, residual_e, residual_d`` (NED, nT) and
-    ``residual_mag`` (nT) computed with the estimate before each epoch. ``summary``: a ``RunSummary``.
-    ``names``: state names. ``fit``: DataFrame indexed by time of the residuals with the final estimate
-    (with the smoothed per-epoch estimate when smoothed): ``fit_n, fit_e, fit_d`` (NED, nT) and ``fit_mag``.
+    An immutable value: the final calibration and state, the per-epoch table and the run's figures.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The final ``R``, ``b`` with their 12x12 covariance.
+    x : numpy.ndarray
+        (n,) the final state.
+    P : numpy.ndarray
+        (n, n) its covariance.
+    names : list of str
+        State names.
+    states : pandas.DataFrame
+        Indexed by time, with ``status``, ``updated``, ``nis``, every state and its ``std_`` column, and the
+        residuals ``residual_n, residual_e, residual_d`` (NED, nT) and ``residual_mag`` (nT) computed with the
+        estimate before each epoch.
+    summary : RunSummary
+        The run's figures.
+    effects : dict, optional
+        Every effect's parameters by name, as in ``RunSummary.effects``.
+    fit : pandas.DataFrame or None, optional
+        Indexed by time, the residuals with the final estimate (with the smoothed per-epoch estimate when
+        smoothed): ``fit_n, fit_e, fit_d`` (NED, nT) and ``fit_mag`` (nT).
     """
 
     calibration: Calibration
@@ -111,6 +184,7 @@ class CalibrationRun:
 
     @property
     def std(self) -> np.ndarray:
+        """(n,) the final state's standard deviations, in the order of ``names``."""
         return np.sqrt(np.diag(self.P))
 
 
