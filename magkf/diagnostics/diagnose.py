@@ -246,16 +246,52 @@ def diagnose(
     wander_s: float | None = WANDER_BLOCK_S,
     progress=None,
 ):
-    """Diagnose ``log``; returns ``(Diagnosis, run)``.
+    """Diagnose ``log``: compare the model with the measurements and test which effect is missing.
 
     The model is the calibration ``cal`` with the effects it stores (used as it is when ``effects`` adds
     nothing to them), or the online filter's estimate with ``effects`` added (started from ``cal`` if
-    given), or an existing ``run``. ``candidates`` are the effects to test (default: every built-in, and
-    every effect of ``registry``, that the log's channels allow); those already in the model are skipped.
-    ``alpha`` in (0, 1) is the significance level over all candidates. ``wander_s``: the logged heading's
-    error is let wander, a straight line over each stretch of that many seconds, and taken out of the
-    residuals and regressors before anything is fitted or tested (``fitting.HeadingWander``; None: the
-    logged heading is taken as exact). ``progress``: called with a few words at each stage.
+    given), or an existing ``run``. Gross outliers (disturbances) are left out before the candidates are
+    tested (docs/diagnosis.md says how it decides).
+
+    Parameters
+    ----------
+    log : DriveLog
+        The drive or flight log.
+    config : FilterConfig, optional
+        The filter's settings, for the run the model comes from.
+    cal : Calibration or None, optional
+        A calibration: the model itself, or the filter's start when ``effects`` adds to its effects.
+    effects : sequence of Effect, optional
+        Effects added to the model.
+    candidates : sequence of Effect or None, optional
+        The effects to test (default: every built-in, and every effect of ``registry``, that the log's
+        channels allow); those already in the model are skipped.
+    alpha : float, optional
+        The significance level over all candidates, in (0, 1).
+    run : CalibrationRun or None, optional
+        An existing run to take as the model.
+    registry : dict or None, optional
+        Name -> class of user effects (``load_effect_file``), tested as candidates too.
+    wander_s : float or None, optional
+        The logged heading's error is let wander, a straight line over each stretch of that many seconds,
+        and taken out of the residuals and regressors before anything is fitted or tested
+        (``fitting.HeadingWander``); None: the logged heading is taken as exact.
+    progress : callable or None, optional
+        Called with a few words at each stage.
+
+    Returns
+    -------
+    diagnosis : Diagnosis
+        The residuals, every candidate's test and the decision (``candidates_frame()``: one row a
+        candidate).
+    run : CalibrationRun
+        The run the model comes from (``run`` itself when given).
+
+    Raises
+    ------
+    InputError
+        ``alpha`` outside (0, 1), fewer than ten epochs left once the outliers are out, or a log that cannot
+        be calibrated; it names the log.
     """
     say = progress or (lambda text: None)
     if not 0.0 < alpha < 1.0:

@@ -504,10 +504,41 @@ def build_report(
     wander_s=WANDER_BLOCK_S,
     progress=None,
 ) -> str:
-    """The report of ``log`` as a self-contained HTML string: the run with ``config`` (a ``FilterConfig``)
-    started from ``cal`` (a ``Calibration`` or None) with ``effects`` added, and its diagnosis at level
-    ``alpha`` over the built-in candidates and those of ``registry``. ``progress``: called with a few
-    words at each stage."""
+    """The report of ``log`` as a self-contained HTML string.
+
+    The report shows the run with ``config`` started from ``cal`` with ``effects`` added, and its
+    diagnosis (``diagnose``) at level ``alpha`` over the built-in candidates and those of ``registry``.
+
+    Parameters
+    ----------
+    log : DriveLog
+        The drive or flight log.
+    config : FilterConfig, optional
+        The filter's settings.
+    cal : Calibration or None, optional
+        The calibration the run starts from; None: a bootstrap from the log.
+    effects : sequence of Effect, optional
+        Effects added to the model.
+    registry : dict or None, optional
+        Name -> class of user effects (``load_effect_file``), tested as candidates too.
+    alpha : float, optional
+        The diagnosis's significance level over all candidates, in (0, 1).
+    wander_s : float or None, optional
+        The stretch over which the logged heading's error is let wander, s (``diagnose``); None: the logged
+        heading is taken as exact.
+    progress : callable or None, optional
+        Called with a few words at each stage.
+
+    Returns
+    -------
+    str
+        The HTML page, figures included.
+
+    Raises
+    ------
+    InputError
+        A log that cannot be calibrated or diagnosed (as ``diagnose``).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
