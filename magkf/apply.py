@@ -44,15 +44,32 @@ def effect_terms(log: DriveLog, cal: Calibration, registry: dict | None = None) 
 
 @names_the_log
 def apply_calibration(log: DriveLog, cal: Calibration, registry: dict | None = None) -> pd.DataFrame:
-    """Every epoch of ``log`` corrected with ``cal`` and the effects it stores; a DataFrame indexed by time.
+    """Every epoch of ``log`` corrected with ``cal`` and the effects it stores.
 
-    Columns: ``field_x, field_y, field_z`` (calibrated body field ``R^-1 (m - b - e)``, nT, with ``e`` the
-    stored effects' contribution, ``effect_terms``),
-    ``magnitude_nt``, ``heading_mag_deg`` (tilt-compensated, clockwise from magnetic north),
-    ``declination_deg`` (from ``ref_*`` or IGRF), ``heading_true_deg`` and ``status``:
-    ``ok``, ``missing_mag`` (no field), ``missing_effect_input`` (a stored effect lacks its channel, or the
-    attitude and position it needs), ``missing_attitude`` (field but no heading) or ``missing_position``
-    (magnetic heading but no true heading).
+    Parameters
+    ----------
+    log : DriveLog
+        The drive or flight log.
+    cal : Calibration
+        The calibration, with the effects it stores at their stored values.
+    registry : dict or None, optional
+        Name -> class of the user effects ``cal`` stores (``load_effect_file``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Indexed by time, with the columns ``COLUMNS``: ``field_x, field_y, field_z`` (calibrated body field
+        ``R^-1 (m - b - e)``, nT, with ``e`` the stored effects' contribution, ``effect_terms``),
+        ``magnitude_nt``, ``heading_mag_deg`` (tilt-compensated, clockwise from magnetic north),
+        ``declination_deg`` (from ``ref_*`` or IGRF), ``heading_true_deg`` and ``status``: ``ok``,
+        ``missing_mag`` (no field), ``missing_effect_input`` (a stored effect lacks its channel, or the
+        attitude and position it needs), ``missing_attitude`` (field but no heading) or ``missing_position``
+        (magnetic heading but no true heading).
+
+    Raises
+    ------
+    InputError
+        An IGRF date out of range, or an effect ``cal`` stores whose class is not known; it names the log.
     """
     terms = effect_terms(log, cal, registry)
     field = cal.correct(log.mag - terms)
