@@ -90,22 +90,49 @@ class StoredEffect:
 class Calibration:
     """A magnetometer calibration: raw ``m = R @ B_b + b`` (nT), correction ``B_b = R^-1 (m - b)``.
 
-    Attributes
+    An immutable value: ``R``, ``b`` and the covariances are stored as read-only arrays. Saved and loaded
+    as the versioned JSON calibration file of the data contract, losslessly.
+
+    Parameters
     ----------
-    R : (3, 3) array, dimensionless.
-    b : (3,) array, nT.
-    method : how it was obtained (``sinefit-exact``, ``ellipsoid``, ...).
-    covariance : (12, 12) array over ``R`` row-major then ``b``, or None.
-    parameters : method-specific named parameters (for example ``alpha_deg``).
-    standard_errors : standard errors of those named parameters.
-    quality : fit statistics (``residual_rms``, ``coverage``, ...).
-    source : the data the calibration was computed from.
-    magnetometer : which of an autopilot log's magnetometers it calibrates (``DriveLog.magnetometer``: the
-        log's ``format``, the ``instance`` read and what the reader knows of it, such as PX4's
+    R : array_like
+        (3, 3), dimensionless.
+    b : array_like
+        (3,), nT.
+    method : str, optional
+        How it was obtained (``sinefit-exact``, ``ellipsoid``, ...).
+    covariance : array_like or None, optional
+        (12, 12) over ``R`` row-major then ``b``, or None.
+    parameters : dict, optional
+        Method-specific named parameters (for example ``alpha_deg``).
+    standard_errors : dict, optional
+        Standard errors of those named parameters.
+    quality : dict, optional
+        Fit statistics (``residual_rms``, ``coverage``, ...).
+    source : str or None, optional
+        The data the calibration was computed from.
+    magnetometer : dict or None, optional
+        Which of an autopilot log's magnetometers it calibrates (``DriveLog.magnetometer``: the log's
+        ``format``, the ``instance`` read and what the reader knows of it, such as PX4's
         ``calibration_index`` or ArduPilot's ``parameter_set``), or None; ``magkf export`` writes that
         magnetometer's parameters by default.
-    effects : ``StoredEffect`` of each physical effect estimated with the core, in state order.
-    state_covariance : (n, n) array over the core then every effect's parameters, or None.
+    effects : tuple of StoredEffect, optional
+        ``StoredEffect`` of each physical effect estimated with the core, in state order.
+    state_covariance : array_like or None, optional
+        (n, n) over the core then every effect's parameters, or None.
+
+    Raises
+    ------
+    ValueError
+        ``R`` not 3x3 or ``b`` not of length 3, either not finite, ``R`` singular, or a covariance of the
+        wrong shape.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> cal = Calibration(R=np.eye(3), b=[100.0, -50.0, 20.0], method="example")
+    >>> cal.correct([20100.0, -50.0, 45020.0])
+    array([20000.,     0., 45000.])
     """
 
     R: np.ndarray
@@ -150,11 +177,33 @@ class Calibration:
 
     # ------------------------------------------------------------ use
     def correct(self, mag_nt) -> np.ndarray:
-        """Calibrated body field ``R^-1 (m - b)`` (nT) of raw readings ``(N, 3)`` or ``(3,)``."""
+        """Calibrated body field ``R^-1 (m - b)`` (nT) of raw readings.
+
+        Parameters
+        ----------
+        mag_nt : array_like
+            Raw readings ``(N, 3)`` or ``(3,)``, nT.
+
+        Returns
+        -------
+        numpy.ndarray
+            The body field, nT, of the readings' shape.
+        """
         return calibrated_field(self.R, self.b, mag_nt)
 
     def distort(self, field_body_nt) -> np.ndarray:
-        """Raw reading ``R B + b`` (nT) of body-frame fields ``(N, 3)`` or ``(3,)``."""
+        """Raw reading ``R B + b`` (nT) of body-frame fields.
+
+        Parameters
+        ----------
+        field_body_nt : array_like
+            Body-frame fields ``(N, 3)`` or ``(3,)``, nT.
+
+        Returns
+        -------
+        numpy.ndarray
+            The raw readings, nT, of the fields' shape.
+        """
         return np.asarray(field_body_nt, dtype=float) @ self.R.T + self.b
 
     @property
@@ -168,12 +217,24 @@ class Calibration:
         return np.concatenate([self.state, *(np.asarray(e.values, float) for e in self.effects)])
 
     def without_effects(self) -> Calibration:
-        """The same calibration with its core only."""
+        """The same calibration with its core only.
+
+        Returns
+        -------
+        Calibration
+            Without effects and without the state covariance.
+        """
         return replace(self, effects=(), state_covariance=None)
 
     # ------------------------------------------------------------ file
     def to_dict(self) -> dict:
-        """A JSON-ready dictionary with the contract's keys."""
+        """A JSON-ready dictionary with the contract's keys.
+
+        Returns
+        -------
+        dict
+            ``format``, ``version``, ``method``, ``R``, ``b``, and each optional key that has a value.
+        """
         out = {"format": FORMAT, "version": VERSION, "method": self.method, "R": self.R.tolist(), "b": self.b.tolist()}
         if self.covariance is not None:
             out["covariance"] = self.covariance.tolist()
@@ -192,15 +253,39 @@ class Calibration:
         return out
 
     def save(self, path) -> None:
-        """Write the calibration file ``path`` (JSON, UTF-8; ``-``: standard output), replacing it only once
-        complete (``magkf.files``)."""
+        """Write the calibration file ``path``, replacing it only once complete (``magkf.files``).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The file (JSON, UTF-8); ``-``: standard output.
+        """
         from .files import output_text
 
         output_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
     def from_dict(cls, data, source: str = "calibration") -> Calibration:
-        """Build a calibration from a parsed JSON object, raising InputError if it is malformed."""
+        """Build a calibration from a parsed JSON object.
+
+        Parameters
+        ----------
+        data : dict
+            The parsed JSON object (``to_dict``'s keys).
+        source : str, optional
+            What it was read from, named in errors.
+
+        Returns
+        -------
+        Calibration
+            The calibration it holds.
+
+        Raises
+        ------
+        InputError
+            The object is malformed (not an object, another format or a newer version, a key of the wrong
+            type or shape, values beyond a calibration's range, an effect stored twice).
+        """
         if not isinstance(data, dict):
             raise InputError("a calibration file must hold one JSON object", source)
         fmt = data.get("format", FORMAT)
@@ -261,7 +346,23 @@ class Calibration:
 
     @classmethod
     def load(cls, path) -> Calibration:
-        """Read a calibration file, raising InputError (naming the file) if it is missing or malformed."""
+        """Read a calibration file.
+
+        Parameters
+        ----------
+        path : str or path-like
+            The calibration file (JSON, UTF-8).
+
+        Returns
+        -------
+        Calibration
+            The calibration it holds.
+
+        Raises
+        ------
+        InputError
+            The file is missing or malformed; it names the file.
+        """
         name = str(path)
         return cls.from_dict(read_json(path, "calibration file"), name)
 
