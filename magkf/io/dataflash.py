@@ -499,13 +499,49 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     notes: list[str] = []
     if log.end_damaged():
         log.truncated = True
+    streams, stream, table = _chosen_stream(log, mag, notes)
+    gps = _by_time(_select(log.table("GPS"), 0))
+    offset, time_base = _time_offset(gps, source)
+    t = table["TimeUS"] * 1e-6 + offset
+    params = _parameters(log)
+    firmware = _firmware(log)
+    columns: dict[str, str] = {"time": f"{stream['message']}.TimeUS (boot us -> UTC s via GPS GWk/GMS)"}
+    frame = {"time": t}
+    raw_text = _magnetometer_columns(table, stream, params, raw, firmware, frame, columns, notes)
+    _attitude(log, t, offset, max_gap_s, frame, columns, notes)
+    _position(log, gps, t, offset, max_gap_s, frame, columns, notes)
+    _auxiliary(log, t, offset, max_gap_s, firmware, frame, columns)
+    _damage(log, notes)
+    summaries = [_summary(s) for s in streams]
+    wanted = ("COMPASS_", "AHRS_ORIENTATION")
+    provenance = {
+        "format": "ardupilot-dataflash",
+        "file": source,
+        "columns": columns,
+        "magnetometer": _magnetometer_summary(summaries, stream["instance"], params),
+        "magnetometers": summaries,
+        "parameters": {k: float(v[-1]) for k, (_, v) in sorted(params.items()) if k.startswith(wanted)},
+        "firmware": firmware,
+        "raw_reconstruction": raw_text,
+        "time_base": time_base,
+        "notes": notes,
+    }
+    changed = sorted(k for k, (_, v) in params.items() if k.startswith(wanted) and np.ptp(v) > 0)
+    if changed:
+        notes.append(f"parameters changed during the log (last values listed): {', '.join(changed)}")
+    return frame, provenance
+
+
+def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict], dict, dict]:
+    """``(streams, stream, table)``: every magnetometer stream (``_mag_streams``), the one of instance ``mag``
+    (default the first), and its messages in time order; repeated or out-of-order times go to ``notes``."""
     streams = _mag_streams(log)
     if not streams:
-        raise InputError("no MAG message (no magnetometer logged)", source=source)
+        raise InputError("no MAG message (no magnetometer logged)", source=log.path)
     instances = [s["instance"] for s in streams]
     chosen = instances[0] if mag is None else int(mag)
     if chosen not in instances:
-        raise InputError(f"no magnetometer instance {chosen}; the log has {instances}", source=source)
+        raise InputError(f"no magnetometer instance {chosen}; the log has {instances}", source=log.path)
     stream = next(s for s in streams if s["instance"] == chosen)
     table = _by_time(stream["table"])
     if len(table["TimeUS"]) < len(stream["table"]["TimeUS"]):
@@ -515,18 +551,16 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     backwards = int(np.count_nonzero(np.diff(stream["table"]["TimeUS"].astype(np.int64)) < 0))
     if backwards:
         notes.append(f"MAG samples out of time order at {backwards} place(s) in the file: read sorted by TimeUS")
-    t_us = table["TimeUS"]
+    return streams, stream, table
 
-    gps = _by_time(_select(log.table("GPS"), 0))
-    offset, time_base = _time_offset(gps, source)
-    t = t_us * 1e-6 + offset
-    params = _parameters(log)
-    firmware = _firmware(log)
-    columns: dict[str, str] = {"time": f"{stream['message']}.TimeUS (boot us -> UTC s via GPS GWk/GMS)"}
-    frame = {"time": t}
 
+def _magnetometer_columns(
+    table: dict, stream: dict, params: dict, raw: bool, firmware: str, frame: dict, columns: dict, notes: list
+) -> str:
+    """Add ``mag_x, mag_y, mag_z`` (nT; raw, or as logged for ``raw=False``) and ``mag_health`` (where logged) of
+    the ``MAG`` messages ``table`` to ``frame`` and their sources to ``columns``; returns what was undone."""
     if raw:
-        field, raw_text = _reconstruct_raw(table, params, chosen, firmware, notes)
+        field, raw_text = _reconstruct_raw(table, params, stream["instance"], firmware, notes)
         for axis, name in zip("XYZ", MAG):
             columns[name] = f"{stream['message']}.Mag{axis} (mG, calibration undone -> raw, x100 -> nT)"
     else:
@@ -539,65 +573,98 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     if "Health" in table:
         frame["mag_health"] = table["Health"]
         columns["mag_health"] = f"{stream['message']}.Health (1 healthy)"
+    return raw_text
 
-    def stream_time(tab):
-        return tab["TimeUS"] * 1e-6 + offset
 
+def _stream_time(table: dict, offset: float) -> np.ndarray:
+    """UNIX time (s, UTC) of a message table's ``TimeUS`` (boot us), given UTC - boot time ``offset`` (s)."""
+    return table["TimeUS"] * 1e-6 + offset
+
+
+def _attitude(log: _Log, t, offset: float, max_gap_s: float, frame: dict, columns: dict, notes: list) -> None:
+    """Add ``roll, pitch, yaw`` (deg) at the epochs ``t`` (UNIX s) from ``ATT`` (slerp) to ``frame`` and their
+    sources to ``columns``; a log without ``ATT`` is noted."""
     att = _by_time(log.table("ATT"))
-    if att:
-        q = euler_to_quaternion(att["Yaw"], att["Pitch"], att["Roll"])
-        q_t, _ = interpolate_quaternions(t, stream_time(att), q, max_gap_s)
-        yaw, pitch, roll = quaternion_to_euler(q_t)
-        frame.update(roll=roll, pitch=pitch, yaw=yaw)
-        for name, field_name in (("roll", "Roll"), ("pitch", "Pitch"), ("yaw", "Yaw")):
-            columns[name] = f"ATT.{field_name} (deg; slerp of quaternions from Roll/Pitch/Yaw)"
-    else:
+    if not att:
         notes.append("no ATT message: no attitude")
+        return
+    q = euler_to_quaternion(att["Yaw"], att["Pitch"], att["Roll"])
+    q_t, _ = interpolate_quaternions(t, _stream_time(att, offset), q, max_gap_s)
+    yaw, pitch, roll = quaternion_to_euler(q_t)
+    frame.update(roll=roll, pitch=pitch, yaw=yaw)
+    for name, field_name in (("roll", "Roll"), ("pitch", "Pitch"), ("yaw", "Yaw")):
+        columns[name] = f"ATT.{field_name} (deg; slerp of quaternions from Roll/Pitch/Yaw)"
 
-    if gps and {"Status", "Lat", "Lng"} <= gps.keys():
-        fix = gps["Status"] >= 3
-        t_gps = stream_time(gps)
-        lat = np.where(fix, gps["Lat"], np.nan)
-        lon = np.where(fix, gps["Lng"], np.nan)
-        alt_msl = np.where(fix, gps.get("Alt", np.nan), np.nan)
-        gpa = _by_time(_select(log.table("GPA"), 0))
-        alt, alt_text = alt_msl, "GPS.Alt (m above MSL: no undulation logged, not above the ellipsoid)"
-        if gpa:
-            idx = np.clip(np.searchsorted(gps["TimeUS"], gpa["TimeUS"]), 0, len(gps["TimeUS"]) - 1)
-            gpa_fix = (gps["TimeUS"][idx] == gpa["TimeUS"]) & fix[idx]
-            if "AEl" in gpa:
-                ell = np.where(gpa_fix & (gpa["AEl"] > -2.1e7), gpa["AEl"], np.nan)
-                alt, alt_text = interpolate_linear(t_gps, stream_time(gpa), ell)[0], "GPA.AEl (m above WGS-84)"
-            elif "Und" in gpa:
-                und = interpolate_linear(t_gps, stream_time(gpa), np.where(gpa_fix, gpa["Und"], np.nan))[0]
-                alt, alt_text = alt_msl - und, "GPS.Alt - GPA.Und (MSL + geoid height -> m above WGS-84)"
-            vdop = np.where(gpa_fix & (gpa["VDop"] < UNKNOWN_DOP_COUNTS * 0.01), gpa["VDop"], np.nan)
-            frame["vdop"] = interpolate_linear(t, stream_time(gpa), vdop, max_gap_s)[0]
-            columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
-        for name, values, text in (
-            ("lat", lat, "GPS.Lat (deg)"),
-            ("lon", lon, "GPS.Lng (deg)"),
-            ("alt", alt, alt_text),
-            ("hdop", np.where(fix, _known_dop(gps.get("HDop")), np.nan), "GPS.HDop"),
-        ):
-            frame[name] = interpolate_linear(t, t_gps, values, max_gap_s)[0]
-            columns[name] = f"{text}, only GPS Status >= 3 (3-D fix), linear"
-        i, _, valid = bracket(t, t_gps, max_gap_s)
-        frame["fix_type"] = np.where(valid, gps["Status"][i], np.nan)
-        columns["fix_type"] = "GPS.Status of the sample at or before the epoch (0 none, 1 no fix, 2 2-D, 3 3-D, ...)"
-        if not fix.any():
-            notes.append("the GNSS never had a 3-D fix: no position")
-    else:
+
+def _position(
+    log: _Log, gps: dict, t, offset: float, max_gap_s: float, frame: dict, columns: dict, notes: list
+) -> None:
+    """Add ``vdop`` (from ``GPA``), ``lat, lon`` (deg), ``alt`` (m), ``hdop`` (3-D fix only, linear) and
+    ``fix_type`` at the epochs ``t`` (UNIX s) to ``frame`` and their sources to ``columns``; a log without a
+    GPS position or without a 3-D fix is noted."""
+    if not (gps and {"Status", "Lat", "Lng"} <= gps.keys()):
         notes.append("no GPS position logged")
+        return
+    fix = gps["Status"] >= 3
+    t_gps = _stream_time(gps, offset)
+    gpa = _by_time(_select(log.table("GPA"), 0))
+    gpa_fix = _gpa_fix(gps, gpa, fix) if gpa else None
+    alt, alt_text = _ellipsoid_height(gps, gpa, gpa_fix, fix, t_gps, offset)
+    if gpa:
+        vdop = np.where(gpa_fix & (gpa["VDop"] < UNKNOWN_DOP_COUNTS * 0.01), gpa["VDop"], np.nan)
+        frame["vdop"] = interpolate_linear(t, _stream_time(gpa, offset), vdop, max_gap_s)[0]
+        columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
+    for name, values, text in (
+        ("lat", np.where(fix, gps["Lat"], np.nan), "GPS.Lat (deg)"),
+        ("lon", np.where(fix, gps["Lng"], np.nan), "GPS.Lng (deg)"),
+        ("alt", alt, alt_text),
+        ("hdop", np.where(fix, _known_dop(gps.get("HDop")), np.nan), "GPS.HDop"),
+    ):
+        frame[name] = interpolate_linear(t, t_gps, values, max_gap_s)[0]
+        columns[name] = f"{text}, only GPS Status >= 3 (3-D fix), linear"
+    i, _, valid = bracket(t, t_gps, max_gap_s)
+    frame["fix_type"] = np.where(valid, gps["Status"][i], np.nan)
+    columns["fix_type"] = "GPS.Status of the sample at or before the epoch (0 none, 1 no fix, 2 2-D, 3 3-D, ...)"
+    if not fix.any():
+        notes.append("the GNSS never had a 3-D fix: no position")
 
-    _auxiliary(log, t, offset, max_gap_s, firmware, frame, columns)
+
+def _gpa_fix(gps: dict, gpa: dict, fix: np.ndarray) -> np.ndarray:
+    """Per ``GPA`` message (M,): True where it has the ``TimeUS`` of a ``GPS`` message with a 3-D fix."""
+    idx = np.clip(np.searchsorted(gps["TimeUS"], gpa["TimeUS"]), 0, len(gps["TimeUS"]) - 1)
+    return (gps["TimeUS"][idx] == gpa["TimeUS"]) & fix[idx]
+
+
+def _ellipsoid_height(
+    gps: dict, gpa: dict, gpa_fix: np.ndarray | None, fix: np.ndarray, t_gps, offset: float
+) -> tuple[np.ndarray, str]:
+    """Height (m) at the GPS samples (times ``t_gps``, UNIX s; NaN without a 3-D fix) and its source: above
+    WGS-84 from ``GPA.AEl`` or from ``GPS.Alt`` and ``GPA.Und`` (of the ``GPA`` messages where ``gpa_fix``),
+    else ``GPS.Alt`` above mean sea level."""
+    alt_msl = np.where(fix, gps.get("Alt", np.nan), np.nan)
+    if not gpa:
+        return alt_msl, "GPS.Alt (m above MSL: no undulation logged, not above the ellipsoid)"
+    if "AEl" in gpa:
+        ell = np.where(gpa_fix & (gpa["AEl"] > -2.1e7), gpa["AEl"], np.nan)
+        return interpolate_linear(t_gps, _stream_time(gpa, offset), ell)[0], "GPA.AEl (m above WGS-84)"
+    if "Und" in gpa:
+        und = interpolate_linear(t_gps, _stream_time(gpa, offset), np.where(gpa_fix, gpa["Und"], np.nan))[0]
+        return alt_msl - und, "GPS.Alt - GPA.Und (MSL + geoid height -> m above WGS-84)"
+    return alt_msl, "GPS.Alt (m above MSL: no undulation logged, not above the ellipsoid)"
+
+
+def _damage(log: _Log, notes: list) -> None:
+    """Warn of a log truncated or damaged at its end, and note it and the bytes skipped between messages."""
     if log.truncated:
-        warnings.warn(f"{source}: the log is truncated or damaged at its end; read up to the damage", stacklevel=3)
+        warnings.warn(f"{log.path}: the log is truncated or damaged at its end; read up to the damage", stacklevel=4)
         notes.append("truncated: messages cut off by the end of the file were dropped")
     if log.skipped_bytes:
         notes.append(f"{log.skipped_bytes} bytes between messages were not valid messages and were skipped")
 
-    summaries = [_summary(s) for s in streams]
+
+def _magnetometer_summary(summaries: list[dict], chosen: int, params: dict) -> dict:
+    """The chosen magnetometer's ``_summary``, with its compass parameter set (number, names, device id,
+    external, orientation) where it has one."""
     magnetometer = dict(next(s for s in summaries if s["instance"] == chosen))
     k = _state_index(params, chosen)
     if k < 3:
@@ -613,23 +680,7 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
         ):
             if name in params:
                 magnetometer[key] = int(params[name][1][-1])
-    wanted = ("COMPASS_", "AHRS_ORIENTATION")
-    provenance = {
-        "format": "ardupilot-dataflash",
-        "file": source,
-        "columns": columns,
-        "magnetometer": magnetometer,
-        "magnetometers": summaries,
-        "parameters": {k: float(v[-1]) for k, (_, v) in sorted(params.items()) if k.startswith(wanted)},
-        "firmware": firmware,
-        "raw_reconstruction": raw_text,
-        "time_base": time_base,
-        "notes": notes,
-    }
-    changed = sorted(k for k, (_, v) in params.items() if k.startswith(wanted) and np.ptp(v) > 0)
-    if changed:
-        notes.append(f"parameters changed during the log (last values listed): {', '.join(changed)}")
-    return frame, provenance
+    return magnetometer
 
 
 def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, frame: dict, columns: dict) -> None:
@@ -849,11 +900,6 @@ def write_dataflash(
     name = str(path)
     frame, t = table_to_write(table, name)
     time_us = _START_US + np.rint((t - t[0]) * 1e6).astype(np.int64)
-    sample_ms = (time_us // 1000) % 2**32
-
-    def col(column: str) -> np.ndarray:
-        return frame[column].to_numpy(float) if column in frame else np.full(len(frame), np.nan)
-
     w = DataFlashWriter()
     for message in ("PARM", "MSG", "MAG", "ATT", "GPS", "GPA"):
         w.define(message)
@@ -862,8 +908,28 @@ def write_dataflash(
     if parameters:
         values = np.array([float(v) for v in parameters.values()], np.float32)
         w.write("PARM", TimeUS=_HEADER_US, Name=np.array(list(parameters)), Value=values, Default=values)
+    _write_magnetometer(w, frame, time_us, parameters, name)
+    _write_attitude(w, frame, time_us)
+    _write_gnss(w, frame, t, time_us)
+    _write_auxiliary(w, frame, time_us, firmware)
+    w.save(path)
 
-    mag_mg = np.column_stack([col(c) for c in MAG]) / NT_PER_MILLIGAUSS
+
+def _column(frame: pd.DataFrame, column: str) -> np.ndarray:
+    """Column ``column`` of ``frame`` as floats (N,), all NaN where the table lacks it."""
+    return frame[column].to_numpy(float) if column in frame else np.full(len(frame), np.nan)
+
+
+def _sample_ms(time_us: np.ndarray) -> np.ndarray:
+    """Boot time in ms modulo 2**32 (``SMS`` fields) of boot times ``time_us`` (us)."""
+    return (time_us // 1000) % 2**32
+
+
+def _write_magnetometer(w: DataFlashWriter, frame: pd.DataFrame, time_us, parameters: dict, name: str) -> None:
+    """``MAG`` instance 0 at the rows with a finite field: ``mag_x, mag_y, mag_z`` (nT) in mG, corrected with
+    the compass parameters of ``parameters`` and truncated to int16; InputError naming ``name``, the row and
+    the column where a corrected component does not fit."""
+    mag_mg = np.column_stack([_column(frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
     rows = np.all(np.isfinite(mag_mg), axis=1)
     offsets, diagonals, offdiagonals, scale = _firmware_compass(parameters)
     mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
@@ -884,7 +950,11 @@ def write_dataflash(
         S=time_us[rows] % 2**32,
     )
 
-    roll, pitch, yaw = col(ROLL), col(PITCH), col(YAW)
+
+def _write_attitude(w: DataFlashWriter, frame: pd.DataFrame, time_us) -> None:
+    """``ATT`` at the rows with a finite attitude: ``roll`` wrapped to [-180, 180), ``pitch``, ``yaw`` wrapped to
+    [0, 360) (deg)."""
+    roll, pitch, yaw = _column(frame, ROLL), _column(frame, PITCH), _column(frame, YAW)
     rows = np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(yaw)
     w.write(
         "ATT",
@@ -894,13 +964,18 @@ def write_dataflash(
         Yaw=np.rint(yaw[rows] % 360.0 * 100.0) % 36_000 / 100.0,
     )
 
-    lat, lon, alt = col(LAT), col(LON), col(ALT)
-    rows = np.isfinite(col("fix_type")) if "fix_type" in frame else np.ones(len(t), bool)
+
+def _write_gnss(w: DataFlashWriter, frame: pd.DataFrame, t, time_us) -> None:
+    """``GPS`` and ``GPA`` at the rows with a finite ``fix_type`` (every row without that column): status,
+    GPS week and ms of ``t`` (UNIX s), position, DOP (unknown where NaN) and speed (see ``write_dataflash``)."""
+    lat, lon, alt = _column(frame, LAT), _column(frame, LON), _column(frame, ALT)
+    rows = np.isfinite(_column(frame, "fix_type")) if "fix_type" in frame else np.ones(len(t), bool)
     fix = np.isfinite(lat) & np.isfinite(lon)
-    status = col("fix_type")[rows] if "fix_type" in frame else np.where(fix, 3, 1)[rows]
+    status = _column(frame, "fix_type")[rows] if "fix_type" in frame else np.where(fix, 3, 1)[rows]
     has_alt = fix & np.isfinite(alt)
     week, ms = np.divmod(_unix_to_gps_ms(t[rows]), int(SECONDS_PER_WEEK * 1000))
-    hdop, vdop = col(HDOP)[rows], col(VDOP)[rows]
+    hdop, vdop = _column(frame, HDOP)[rows], _column(frame, VDOP)[rows]
+    sample_ms = _sample_ms(time_us)
     w.write(
         "GPS",
         TimeUS=time_us[rows],
@@ -911,7 +986,7 @@ def write_dataflash(
         Lat=np.where(fix, np.nan_to_num(lat), 0.0)[rows],
         Lng=np.where(fix, np.nan_to_num(lon), 0.0)[rows],
         Alt=np.where(has_alt, np.nan_to_num(alt), 0.0)[rows],
-        Spd=np.nan_to_num(col("speed_mps"))[rows],
+        Spd=np.nan_to_num(_column(frame, "speed_mps"))[rows],
         U=1,
     )
     w.write(
@@ -923,8 +998,13 @@ def write_dataflash(
         AEl=np.where(has_alt, np.nan_to_num(alt), UNKNOWN_ALT_ELLIPSOID_CM * 0.01)[rows],
     )
 
+
+def _write_auxiliary(w: DataFlashWriter, frame: pd.DataFrame, time_us, firmware: str) -> None:
+    """``BARO`` (``temp_c``; ``Alt`` relative to the first finite ``alt``), ``BAT`` (``current_a``) and ``CTUN``
+    (``throttle``, x100 for ArduPlane), each defined and written at its finite rows if the table has any."""
+    alt = _column(frame, ALT)
     ground = alt[np.isfinite(alt)][0] if np.isfinite(alt).any() else 0.0
-    temp, current, throttle = col("temp_c"), col("current_a"), col("throttle")
+    temp, current, throttle = _column(frame, "temp_c"), _column(frame, "current_a"), _column(frame, "throttle")
     if np.isfinite(temp).any():
         rows = np.isfinite(temp)
         w.define("BARO")
@@ -933,7 +1013,7 @@ def write_dataflash(
             TimeUS=time_us[rows],
             Alt=np.nan_to_num(alt[rows] - ground),
             Temp=temp[rows],
-            SMS=sample_ms[rows],
+            SMS=_sample_ms(time_us)[rows],
             Health=1,
         )
     if np.isfinite(current).any():
@@ -944,7 +1024,6 @@ def write_dataflash(
         rows = np.isfinite(throttle)
         w.define("CTUN")
         w.write("CTUN", TimeUS=time_us[rows], ThO=throttle[rows] * (100.0 if firmware.startswith("ArduPlane") else 1.0))
-    w.save(path)
 
 
 class DataFlashReader(LogReader):
