@@ -106,12 +106,20 @@ class UnitWarning(UserWarning):
 
 @dataclass(frozen=True)
 class DriveLog:
-    """A drive log: ``table`` is a DataFrame indexed by ``time`` (UNIX s) with the canonical columns,
-    magnetic columns converted to nT; ``source`` names the file; ``provenance`` says where each column
-    came from and what the reader converted or undid (JSON-ready; see ``magkf.io.readers``). Build one
-    with ``from_table`` (the epoch contract) or a reader.
+    """A drive log: the canonical table of a log's epochs, where it came from and how it was read.
 
-    Array properties have shape (N,) or (N, 3); missing values are NaN.
+    Build one with ``from_table`` (the epoch contract) or a reader (``read_drive_log``,
+    ``magkf.io.readers.read_log``). Array properties have shape (N,) or (N, 3); missing values are NaN.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Indexed by ``time`` (UNIX s) with the canonical columns, magnetic columns converted to nT.
+    source : str, optional
+        Names the file.
+    provenance : dict, optional
+        Where each column came from and what the reader converted or undid (JSON-ready; see
+        ``magkf.io.readers``).
     """
 
     table: pd.DataFrame
@@ -133,6 +141,7 @@ class DriveLog:
 
     @property
     def has_attitude(self) -> bool:
+        """True when the log has the attitude columns ``roll, pitch, yaw``."""
         return all(c in self.table for c in ATTITUDE)
 
     @property
@@ -149,10 +158,24 @@ class DriveLog:
 
     @property
     def has_position(self) -> bool:
+        """True when the log has the position columns ``lat, lon``."""
         return LAT in self.table and LON in self.table
 
     def column(self, name: str, default: float = np.nan) -> np.ndarray:
-        """(N,) values of a column, or ``default`` throughout when the log has no such column."""
+        """(N,) values of a column, or ``default`` throughout when the log has no such column.
+
+        Parameters
+        ----------
+        name : str
+            The column.
+        default : float, optional
+            The value throughout when the log has no such column.
+
+        Returns
+        -------
+        numpy.ndarray
+            (N,) float values.
+        """
         if name in self.table:
             return self.table[name].to_numpy(dtype=float)
         return np.full(len(self), default, dtype=float)
@@ -170,8 +193,11 @@ class DriveLog:
 
     @property
     def magnetometer(self) -> dict | None:
-        """Which of an autopilot log's magnetometers was read (the reader's ``provenance["magnetometer"]`` with
-        the log's ``format``), or None for a log that holds one (a canonical CSV or Parquet file)."""
+        """Which of an autopilot log's magnetometers was read, or None for a log that holds one.
+
+        The reader's ``provenance["magnetometer"]`` with the log's ``format``; None for a canonical CSV or
+        Parquet file.
+        """
         mag = self.provenance.get("magnetometer")
         return None if not isinstance(mag, dict) else {"format": self.provenance.get("format"), **mag}
 
@@ -181,7 +207,18 @@ class DriveLog:
         return [c for c in self.table.columns if c not in CORE_COLUMNS]
 
     def reference_ned(self, **kwargs) -> np.ndarray:
-        """(N, 3) reference field in NED, nT: the log's ``ref_*`` columns, else IGRF at each epoch."""
+        """(N, 3) reference field in NED, nT: the log's ``ref_*`` columns, else IGRF at each epoch.
+
+        Parameters
+        ----------
+        **kwargs
+            Passed to ``magkf.reference.igrf_ned`` (``knot_spacing_m``) when IGRF is evaluated.
+
+        Returns
+        -------
+        numpy.ndarray
+            (N, 3) north, east, down, nT.
+        """
         if self.has_reference:
             return self.table[list(REF)].to_numpy(dtype=float)
         from ..reference import igrf_ned
@@ -403,9 +440,26 @@ def whole_log_checks(
 
 
 def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
-    """Read and validate a canonical drive log, CSV or its Parquet twin (``.parquet``); magnetometer values in
-    ``mag_unit`` become nT. Raises InputError (one line naming file, row and column) for a missing file or
-    column, a non-numeric or non-finite cell, and everything ``from_table`` checks."""
+    """Read and validate a canonical drive log, CSV or its Parquet twin (``.parquet``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The log file.
+    mag_unit : str, optional
+        The unit of its magnetometer values (``nT``, ``uT``, ``mG`` or ``G``), which become nT.
+
+    Returns
+    -------
+    DriveLog
+        The log, its provenance naming the format and the file.
+
+    Raises
+    ------
+    InputError
+        One line naming file, row and column, for a missing file or column, a non-numeric or non-finite
+        cell, and everything ``from_table`` checks.
+    """
     name = str(path)
     parquet = Path(path).suffix.lower() in PARQUET_SUFFIXES
     table = read_csv(path, required=(TIME, *MAG))
