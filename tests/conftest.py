@@ -26,3 +26,32 @@ def cli_json(*args):
 @pytest.fixture
 def tmp(tmp_path):
     return tmp_path
+
+
+def refuse_processes(monkeypatch, layer: str) -> None:
+    """Make starting a process fail within one test of ``layer`` (``"unit"``, ``"property"``).
+
+    ``subprocess.Popen`` (behind ``subprocess.run``, ``run_cli`` and ``cli_json``), ``os.system`` and
+    ``multiprocessing``'s ``Process.start`` (behind process pools and a Dask ``LocalCluster`` of processes)
+    raise ``RuntimeError`` naming the layer, so that the tests of the library functions stay in one process
+    and a test of the ``magkf`` command goes to ``tests/integration``.
+
+    Parameters
+    ----------
+    monkeypatch : pytest.MonkeyPatch
+        The test's monkeypatch; the patches end with the test.
+    layer : str
+        The test folder, named in the message.
+    """
+    import multiprocessing.process
+    import os
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError(
+            f"a {layer} test must not start a process (subprocess, the magkf command, a process pool or a "
+            f"LocalCluster): call the library function, or move the test to tests/integration"
+        )
+
+    monkeypatch.setattr(subprocess, "Popen", refuse)
+    monkeypatch.setattr(os, "system", refuse)
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refuse)

@@ -363,6 +363,7 @@ def test_the_documents_link_only_inside_the_repository():
             assert (doc.parent / target).exists(), (doc.name, target)
 
 
+@pytest.mark.slow
 def test_the_small_items_a_new_user_hits(files, capsys, tmp_path):
     # --mounting with a leading minus, as the README writes it
     status, out, _ = run(capsys, "simulate", "drive", "-o", tmp_path / "m.csv", "--duration", 5, "--mounting", "-y,x,z")

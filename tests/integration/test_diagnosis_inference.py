@@ -183,6 +183,7 @@ def test_each_builtin_travels_with_the_calibration(name, tmp):
     assert online.calibration.effects[0].label == effect.label
 
 
+@pytest.mark.slow
 def test_apply_and_diagnose_use_the_stored_effects(tmp):
     effect, theta = BUILTIN["current_field"](), np.array([12.0, -8.0, 5.0])
     sim = _log(21, effects=[(effect, theta)])

@@ -91,6 +91,7 @@ def test_no_false_alarms_without_a_hidden_effect():
     assert alarms <= stats.binom.ppf(0.999, runs, alpha), alarms
 
 
+@pytest.mark.slow
 def test_user_effect_through_the_command_line(tmp):
     path = ROOT / "docs" / "examples" / "wheel_magnet.py"
     wheel = load_effect_file(path)["wheel_magnet"]()
@@ -142,6 +143,7 @@ def test_unknown_effect_and_bad_effect_file(tmp):
         load_effect_file(tmp / "broken.py")
 
 
+@pytest.mark.slow
 def test_diagnose_json_and_self_contained_report(tmp):
     sim = _sim([(BUILTIN["current_field"](), [12.0, -8.0, 5.0])], duration=300.0)
     sim.write(tmp / "log.csv")
@@ -308,6 +310,7 @@ def test_a_field_anomaly_started_at_the_calibration_the_filter_runs_at():
     assert np.all(np.abs(z) < 4.0), z
 
 
+@pytest.mark.slow
 def test_the_magnitude_alone_refuses_an_effect_too_wide_for_its_linearisation(tmp):
     """A load effect's default prior at a drone's currents spreads its terms over about the whole field: the
     magnitude filter is refused in one line that names the way out; the batch solution recovers the truth."""

@@ -89,6 +89,7 @@ def test_fleet_rows_corrupt_log_and_jumped_flight(fleet, serial):
     assert Path(serial.files["summary_csv"]).is_file() and Path(serial.files["summary_parquet"]).is_file()
 
 
+@pytest.mark.slow
 def test_two_workers_give_the_serial_summary(fleet, serial, client, tmp_path):
     parallel = run_fleet(find_logs([fleet]), tmp_path, client=client, plot=False)
     pd.testing.assert_frame_equal(_outcome(parallel.summary), _outcome(serial.summary))
@@ -153,6 +154,7 @@ def _start(command: list, log: Path) -> subprocess.Popen:
         return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=log.parent)
 
 
+@pytest.mark.slow
 def test_scheduler_option_against_a_scheduler_and_worker_on_localhost(fleet, serial, tmp_path):
     dask = str(Path(sys.executable).with_name("dask"))
     info = tmp_path / "scheduler.json"
@@ -215,6 +217,7 @@ def test_scheduler_option_against_a_scheduler_and_worker_on_localhost(fleet, ser
                     p.wait()
 
 
+@pytest.mark.slow
 def test_fleet_command_line(fleet, tmp_path):
     proc = run_cli("fleet", fleet / "V2", "-o", tmp_path / "out", "--workers", "0", "--diagnose")
     assert proc.returncode == 0, proc.stderr
@@ -247,6 +250,7 @@ STUDY = {
 }
 
 
+@pytest.mark.slow
 def test_study_same_tables_serial_and_on_two_workers(client, tmp_path):
     spec = StudySpec.from_dict(STUDY)
     assert spec.n_runs == 9 and spec.varied() == ["b_walk", "innovation_prob"]
@@ -282,6 +286,7 @@ def test_study_sample_is_seeded_and_spec_errors_name_the_key(tmp_path):
     assert proc.stderr.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_study_command_line(tmp_path):
     spec = tmp_path / "s.toml"
     spec.write_text(

@@ -36,6 +36,7 @@ def test_formats_are_detected_by_content_not_name(tmp):
     assert read_log(renamed).provenance["format"] == "ardupilot-dataflash"
 
 
+@pytest.mark.slow
 def test_convert_to_parquet_and_back_is_lossless(drive, tmp):
     _, path = drive
     out = tmp / "drive.parquet"
@@ -49,6 +50,7 @@ def test_convert_to_parquet_and_back_is_lossless(drive, tmp):
     pd.testing.assert_frame_equal(a.table, read_drive_log(csv).table)
 
 
+@pytest.mark.slow
 def test_binary_logs_convert_with_their_provenance(tmp):
     out = tmp / "ap.csv"
     cli_json("convert", DATAFLASH, "-o", out)
@@ -59,6 +61,7 @@ def test_binary_logs_convert_with_their_provenance(tmp):
     assert pd.Timestamp(log.time[0], unit="s").date().isoformat() == "2025-01-03"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", [ULOG, DATAFLASH])
 def test_every_command_reads_binary_logs(path, tmp):
     cal = tmp / "cal.json"
@@ -67,6 +70,7 @@ def test_every_command_reads_binary_logs(path, tmp):
     assert out["n_epochs"] > 0
 
 
+@pytest.mark.slow
 def test_calibrate_reads_the_same_log_from_csv_and_parquet(drive, tmp):
     _, path = drive
     out = tmp / "d.parquet"
@@ -183,6 +187,7 @@ def test_export_round_trip_through_the_command_line(autopilot, tmp):
     assert np.allclose(field, cal.correct(m), rtol=1e-9, atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "path,expected",
     [
@@ -206,7 +211,7 @@ def test_check_prints_one_screen_per_sample_log(path, expected):
     "command,name",
     [
         (["sinefit", "--field", "50000", "--inclination", "43"], "turntable_example.csv"),
-        (["ellipsoid", "--columns", "mx,my,mz"], "ckexplorer_acc_mag_log.csv"),
+        pytest.param(["ellipsoid", "--columns", "mx,my,mz"], "ckexplorer_acc_mag_log.csv", marks=pytest.mark.slow),
     ],
 )
 def test_offline_commands_read_parquet_like_csv(command, name, tmp):
@@ -270,6 +275,7 @@ def test_a_closed_pipe_ends_quietly():
     assert "Traceback" not in proc.stderr and proc.stdout.startswith("magkf check")
 
 
+@pytest.mark.slow
 def test_export_writes_the_compass_the_calibration_came_from(tmp):
     """A calibration from an autopilot log records its magnetometer, and export writes that compass's
     parameters unless told otherwise: ArduPilot's MAG instance i as compass i + 1, PX4's CAL_MAGn slot of the

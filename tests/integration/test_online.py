@@ -164,6 +164,7 @@ def test_batch_agrees_with_filter(constant_log, measure):
     assert np.all(np.abs(flt.x - bat.x) < flt.std), np.abs(flt.x - bat.x) / flt.std
 
 
+@pytest.mark.slow
 def test_block_updates_match_epoch_by_epoch(constant_log):
     _, log = constant_log
     blocks = calibrate_log(log, MATCHED)
@@ -293,6 +294,7 @@ def test_realtime_memory_is_constant():
     assert grown < 50_000, grown  # bytes, over 1800 steps: nothing kept per step
 
 
+@pytest.mark.slow
 def test_main_job_on_shipped_log(tmp):
     s = cli_json("calibrate", DATA / "example_drive.csv", "-o", tmp / "cal.json")
     import json
@@ -314,6 +316,7 @@ def test_bad_options_exit_2(tmp):
         assert proc.returncode == 2 and proc.stderr.startswith("magkf: error:") and repr(value) in proc.stderr
 
 
+@pytest.mark.slow
 def test_magnitude_start_is_not_taken_from_a_patch_of_the_sphere():
     """Seed 1's first 120 s turn the field through 0.5 % of the sphere: an ellipsoid fitted there wandered to offsets
     of 1e9 nT (16 s of iterations) and the run returned them. The start now comes from the whole log, the

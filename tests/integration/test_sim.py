@@ -61,6 +61,7 @@ def test_bad_mounting():
         mounting_matrix("x,x,z")
 
 
+@pytest.mark.slow
 def test_simulate_command(tmp):
     info = cli_json(
         "simulate",

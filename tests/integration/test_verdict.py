@@ -39,6 +39,7 @@ def _calibrate(tmp_path, table, *options):
 
 
 # ---------------------------------------------------------------- magkf calibrate
+@pytest.mark.slow
 def test_calibrate_prints_learned_noise_nis_band_and_verdict(tmp_path):
     sim = simulate_drive(_log(seed=11))
     path, out = _calibrate(tmp_path, sim.table)
@@ -70,6 +71,7 @@ def test_calibrate_prints_learned_noise_nis_band_and_verdict(tmp_path):
     assert "nan" not in out.lower()
 
 
+@pytest.mark.slow
 def test_unmodelled_field_gets_a_verdict_that_the_model_misses_something(tmp_path):
     sim = simulate_drive(_log(seed=12, interference_nt=300.0))
     _, out = _calibrate(tmp_path, sim.table)
@@ -97,6 +99,7 @@ def test_clean_log_learns_the_simulated_noise(clean_runs):
     assert np.all(np.abs(learned / NOISE - 1) < 0.12), learned
 
 
+@pytest.mark.slow
 def test_log_without_attitude_prints_finite_magnitude_residuals(tmp_path):
     # No disturbances: the magnitude-only bootstrap (ellipsoid) is not the subject here.
     sim = simulate_drive(_log(seed=13, disturbances=0))
@@ -110,6 +113,7 @@ def test_log_without_attitude_prints_finite_magnitude_residuals(tmp_path):
 
 
 # ---------------------------------------------------------------- magkf diagnose
+@pytest.mark.slow
 def test_diagnose_prints_the_verdict_or_that_the_noise_was_not_learned(tmp_path):
     sim = simulate_drive(_log(seed=14, interference_nt=300.0))
     path = tmp_path / "log.csv"
@@ -124,6 +128,7 @@ def test_diagnose_prints_the_verdict_or_that_the_noise_was_not_learned(tmp_path)
 
 
 # ---------------------------------------------------------------- the HTML report
+@pytest.mark.slow
 def test_report_has_the_noise_and_verdict_section(tmp_path):
     sim = simulate_drive(_log(seed=15, noise_correlation_s=0.5, attitude_wander_deg=(0.3, 0.3, 1.0)))
     page = build_report(DriveLog(sim.table, "sim"), FilterConfig())
@@ -204,6 +209,7 @@ def post_processed():
     return earlier, out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start_nt", [1.0, 900.0])
 @pytest.mark.parametrize("init", ["earlier run", "no covariance"])
 def test_realtime_learns_the_noise_post_processing_learns(post_processed, init, start_nt):

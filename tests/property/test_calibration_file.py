@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
@@ -103,6 +104,7 @@ def same(a: Calibration, b: Calibration) -> None:
     assert json.dumps(a.to_dict()) == json.dumps(b.to_dict())
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=60)
 @given(calibrations())
 def test_a_calibration_saved_and_loaded_is_the_same(cal):

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 from hypothesis import assume, event, given, settings
 from hypothesis import strategies as st
 
@@ -348,6 +349,7 @@ def test_a_valid_drive_log_reads_back_exactly(data):
     check_log(log, grid, path)
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=120)
 @given(corrupted(drive_logs(min_rows=1, max_rows=5)))
 def test_a_damaged_drive_log_is_read_validly_or_refused_naming_the_file(case):
@@ -377,6 +379,7 @@ def out_of_range(name: str, unit: str) -> st.SearchStrategy[str]:
 FAULTS = ("bad_cell", "out_of_range", "empty_time", "time_back", "ragged", "duplicate", "missing", "few_rows")
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=100)
 @given(st.data())
 def test_every_fault_is_reported_at_its_row_and_column(data):
@@ -501,6 +504,7 @@ def expected_faults(table: Table, at: list[int | None]) -> set[tuple]:
     return faults
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=150)
 @given(st.data())
 def test_read_csv_gives_the_cells_or_names_a_fault(data):
@@ -734,6 +738,7 @@ def check_mapped(result, data: bytes, path: str, map_path: str) -> None:
         assert table[column].to_numpy().dtype == float and not np.isinf(table[column].to_numpy()).any()
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=60)
 @given(mapped_tables(), st.sampled_from(["\n", "\r\n"]), st.booleans())
 def test_a_valid_mapped_table_reads_back_exactly(case, newline, bom):
@@ -826,6 +831,7 @@ def damaged_maps(draw, case: Mapped) -> str | bytes:
     return text
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=100)
 @given(st.data())
 def test_a_damaged_column_map_is_used_validly_or_refused_naming_it(data):
@@ -869,6 +875,7 @@ def load_column_map_text(text: str):
     return load_column_map(path)
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=80)
 @given(st.data())
 def test_a_damaged_mapped_table_is_read_validly_or_refused_naming_the_file(data):

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pandas as pd
+import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
@@ -23,6 +24,9 @@ from magkf.errors import InputError
 from magkf.io.drivelog import RANGES, TIME_RANGE_S
 from magkf.reference import VALID_RANGE_S, igrf_ned
 from magkf.status import STATUS_NAMES
+
+#: Eighty generated runs of up to eight samples through the calibrator: seconds.
+pytestmark = pytest.mark.slow
 
 PROPERTY = settings(max_examples=60, deadline=None, derandomize=True, database=None)
 

@@ -37,6 +37,7 @@ def upper(p: float, n: int) -> float:
     return binom.isf(0.001, n, p) / n
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flights", [3, 5, 10])
 def test_false_alarms_when_the_standard_deviations_are_right(flights):
     out = disagreements(table(flights, seed=flights), ALPHA)
@@ -46,6 +47,7 @@ def test_false_alarms_when_the_standard_deviations_are_right(flights):
     assert 0.8 < out.groupby("vehicle")["vehicle_scatter"].first().median() < 2.0
 
 
+@pytest.mark.slow
 def test_a_jumped_offset_is_found_and_its_vehicle_s_other_logs_are_not_flagged():
     out = disagreements(table(5, jump=10.0, seed=1), 0.01)
     first = out[out["first"]]
@@ -54,6 +56,7 @@ def test_a_jumped_offset_is_found_and_its_vehicle_s_other_logs_are_not_flagged()
     assert out.loc[~out["first"], "disagrees"].mean() <= upper(0.01 / 5, len(out) - VEHICLES)
 
 
+@pytest.mark.slow
 def test_a_vehicle_whose_calibration_changes_between_flights_shows_it_in_its_scatter():
     out = disagreements(table(10, scatter=3.0, seed=2), ALPHA)
     assert out.groupby("vehicle")["vehicle_scatter"].first().median() > 2.0

@@ -40,7 +40,9 @@ def _fft_rounding(n: int) -> float:
     return 2.0 * np.finfo(float).eps * np.log2(size) * np.sqrt(size)
 
 
-@pytest.mark.parametrize("n", [1, 2, 7, 97, 1000, 4096, 10007, 65536, 350906, 360000, 1000003])
+@pytest.mark.parametrize(
+    "n", [1, 2, 7, 97, 1000, 4096, 10007, 65536, 350906, 360000, pytest.param(1000003, marks=pytest.mark.slow)]
+)
 def test_dct_head_is_scipy_dct(n):
     """``dct_head`` gives ``scipy.fft.dct``'s first coefficients for lengths that are primes, powers of two,
     round and of a large prime factor (the hour's 350 906 = 2 x 175 453), on a random walk with a mean (whose

@@ -22,6 +22,7 @@ def _ts(*args):
     return datetime(*args, tzinfo=UTC).timestamp()
 
 
+@pytest.mark.slow
 def test_fast_path_matches_ppigrf_on_an_hour_at_100hz():
     t, lat, lon, alt = _track(_ts(2026, 3, 1, 12), 1.0, 100.0)
     fast = igrf_ned(t, lat, lon, alt)
