@@ -183,7 +183,18 @@ class EllipsoidResult:
     converged: bool = True
 
     def to_calibration(self, source: str | None = None) -> Calibration:
-        """A 3x3 calibration; for two axes the z row and offset are identity and zero (not calibrated)."""
+        """A 3x3 calibration; for two axes the z row and offset are identity and zero (not calibrated).
+
+        Parameters
+        ----------
+        source : str or None, optional
+            The data the calibration was computed from.
+
+        Returns
+        -------
+        Calibration
+            Method ``ellipsoid`` or ``ellipse``, with the parameters, standard errors and fit statistics.
+        """
         R, b = np.eye(3), np.zeros(3)
         R[: self.axes, : self.axes], b[: self.axes] = self.R, self.b
         quality = {k: v for k, v in self.summary().items() if k not in ("R", "b", "parameters", "standard_errors")}
@@ -220,18 +231,73 @@ class EllipsoidResult:
 class EllipsoidCalibrator(Calibrator):
     """Ellipsoid (``axes=3``) or ellipse (``axes=2``) calibration of a vector sensor.
 
-    ``field`` is the true magnitude in data units (1.0 for a unit sphere, 9.80665 for an
-    accelerometer in m/s^2, an IGRF magnitude in nT for a magnetometer). ``refine=False`` stops after
-    the algebraic fit. ``fit(X)`` takes samples (N, axes), an array or a DataFrame (its ``mag_x, mag_y
-    [, mag_z]`` columns when present, else its first ``axes`` columns), and returns ``self``; the result
-    is ``result_`` (and ``R_``, ``b_``, ``calibration_``). The scikit-learn contract of
-    ``magkf.offline.base``.
+    ``fit(X)`` takes samples (N, axes), an array or a DataFrame (its ``mag_x, mag_y [, mag_z]`` columns when
+    present, else its first ``axes`` columns), and returns ``self``; the result is ``result_`` (and ``R_``,
+    ``b_``, ``calibration_``). The scikit-learn contract of ``magkf.offline.base``: the settings are stored as
+    given and checked by ``fit``.
+
+    Parameters
+    ----------
+    axes : int, optional
+        3 for an ellipsoid, 2 for an ellipse.
+    field : float, optional
+        The true magnitude in data units (1.0 for a unit sphere, 9.80665 for an accelerometer in m/s^2, an
+        IGRF magnitude in nT for a magnetometer).
+    refine : bool, optional
+        False stops after the algebraic fit.
+
+    Attributes
+    ----------
+    result_ : EllipsoidResult
+        The fit: ``R``, ``b``, the patent's parameters, their standard errors, residual, coverage, warnings.
+    R_ : numpy.ndarray
+        Fitted ``R`` of ``m = R B + b``: (3, 3), or (2, 2) for an ellipse.
+    b_ : numpy.ndarray
+        Fitted ``b`` in the data's units: (3,), or (2,) for an ellipse.
+    calibration_ : Calibration
+        The fitted calibration (3x3; for two axes the z row and offset are identity and zero).
+
+    Examples
+    --------
+    >>> fit = EllipsoidCalibrator(axes=3, field=1.0).fit(samples)  # doctest: +SKIP
+    >>> fit.R_, fit.b_, fit.get_params()  # doctest: +SKIP
     """
 
     def __init__(self, axes: int = 3, field: float = 1.0, refine: bool = True):
         self.axes, self.field, self.refine = axes, field, refine
 
     def fit(self, X, source: str = "data") -> EllipsoidCalibrator:
+        """Fit an ellipsoid (ellipse) to samples turned through all directions.
+
+        An algebraic (quadric) least-squares fit, decomposed into the patent's ``K = K1 K2`` (sensitivities
+        ``k``, non-orthogonality angles, offsets ``S_0``), then, with ``refine``, a weighted nonlinear least
+        squares on the magnitude residual ``|K^-1 (S_m - S_0)| - field`` with its noise bias removed, which
+        gives the standard errors. Warnings (in ``result_.warnings``) say when the refinement did not
+        converge, which parameters are poorly determined, and when the calibrated directions cover less than
+        30 % of the sphere (circle).
+
+        Parameters
+        ----------
+        X : array_like or pandas.DataFrame
+            Samples (N, axes) in data units; a DataFrame's ``mag_x, mag_y [, mag_z]`` columns when present,
+            else its first ``axes`` columns. At least ``4 * (parameters + 1)`` samples: 40 for an ellipsoid,
+            24 for an ellipse.
+        source : str, optional
+            What the samples were read from, named in errors.
+
+        Returns
+        -------
+        EllipsoidCalibrator
+            ``self``, fitted: ``result_``, ``R_``, ``b_``, ``calibration_``.
+
+        Raises
+        ------
+        ValueError
+            ``axes`` not 2 or 3, ``field`` not positive, or samples not of shape (N, axes).
+        InputError
+            Too few samples, samples that cannot determine the fit (close to a plane for 3 axes, to a line
+            for 2), or a fitted surface that is not an ellipsoid (ellipse).
+        """
         if self.axes not in (2, 3):
             raise ValueError("axes must be 2 or 3")
         if not float(self.field) > 0:
