@@ -6,7 +6,7 @@ canonical CSV or Parquet file read ``rows`` rows at a time, in passes over the f
 1. **scan**: every chunk is read and validated as ``read_drive_log`` validates a whole log (one-line errors
    naming the file, the row and the column; time strictly increasing across chunk edges), prepared
    (``prepare.prepare``: reference field, attitude, statuses) and its statuses before filtering kept on
-   disk; the log's first stretch is kept for the bootstrap (``prepare.initial_state``);
+   disk; the log's first stretch is kept for the start of the run (``prepare.prepare_run``: the bootstrap);
 2. **fit sample** (bootstrapped, with attitude): the evenly spaced usable epochs of the starting noise's fit
    (``prepare.fit_positions``), the same epochs as the whole-log path takes;
 3. **noise scale** (bootstrapped): the residuals of the usable epochs at that fit, for the starting noise
@@ -53,26 +53,23 @@ from ..io.drivelog import MAX_GAP_S, MIN_EPOCHS, DriveLog, TimeBaseWarning, from
 from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, check_layout, checked_table
 from ..status import Status
 from ..timing import NO_PHASES
-from .estimator import Estimator, run_model
-from .measurements import nis_rows
 from .prepare import (
     PreparedLog,
-    check_magnitude_start,
+    RunSetup,
     concat_prepared,
     configured_noise,
-    deflate_bootstrap,
     fit_positions,
-    initial_state,
     magnitude_residuals,
     mark_missing_columns,
     prepare,
+    prepare_run,
     residual_parts,
     robust_linear_fit,
     start_levels,
     start_rows,
 )
 from .results import CalibrationRun, FitSums, RunTrace, epoch_columns, states_frame, summarise
-from .run import ForwardPass
+from .run import ForwardPass, filter_trace
 from .smoother import rts_smooth
 
 __all__ = [
@@ -186,56 +183,84 @@ class ChunkedLog:
         if self.checked and self.cache is not None:
             yield from self._from_cache()
             return
-        name = self.source
         self.cached = []
-        offset, last_t, gap_warned = 0, None, False
-        lo = hi = None
-        complete_epochs = 0
+        checks = _ReadChecks(self.source, quiet=self.checked)
+        offset = 0
         for table in self._tables():
-            rows = table.attrs["rows"]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                log = from_table(table, name, self.mag_unit, self.provenance, whole=False)  # rows from attrs
+                log = from_table(table, self.source, self.mag_unit, self.provenance, whole=False)  # rows from attrs
             log.table.attrs.clear()  # the rows are this chunk's only
-            t = log.time
-            if last_t is not None and len(t):
-                if not t[0] > last_t:
-                    raise InputError(
-                        f"time not strictly increasing ({float(t[0])!r} after {last_t!r})", name, int(rows[0]), TIME
-                    )
-                if t[0] - last_t > MAX_GAP_S and not (gap_warned or self.checked):
-                    gap_warned = True
-                    warnings.warn(
-                        f"{name}: the clock jumps by {t[0] - last_t:.3g} s at row {int(rows[0])}; the filter's random "
-                        "walk spans each gap",
-                        TimeBaseWarning,
-                        stacklevel=2,
-                    )
-            for w in [] if self.checked else caught:
-                if not (issubclass(w.category, TimeBaseWarning) and gap_warned):
-                    gap_warned |= issubclass(w.category, TimeBaseWarning)
-                    warnings.warn(w.message, w.category, stacklevel=2)
+            checks.edge(log.time, table.attrs["rows"])
+            checks.pass_on(caught)
             if offset == 0 and not self.checked:  # the unit warnings from the first chunk
-                whole_log_checks(table, name, self.mag_unit, same_value=False)
-            mag = log.mag
-            complete = mag[np.all(np.isfinite(mag), axis=1)]
-            complete_epochs += len(complete)
-            if len(complete):
-                lo = complete.min(axis=0) if lo is None else np.minimum(lo, complete.min(axis=0))
-                hi = complete.max(axis=0) if hi is None else np.maximum(hi, complete.max(axis=0))
-            last_t = float(t[-1]) if len(t) else last_t
+                whole_log_checks(table, self.source, self.mag_unit, same_value=False)
+            checks.extent(log.mag)
             if self.cache is not None:
-                file = self.cache / f"chunk{len(self.cached)}.npy"
-                np.save(file, np.column_stack([t, log.table.to_numpy(float)]))
-                self.cached.append((offset, file))
-                self.columns = list(log.table.columns)
+                self._keep(offset, log)
             yield offset, log
-            offset += len(t)
-        if offset < MIN_EPOCHS:
-            raise InputError(f"too few samples: {offset} epoch, a drive log needs at least {MIN_EPOCHS}", name)
-        if complete_epochs > 1 and np.all(hi == lo):
-            raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", name)
+            offset += len(log.time)
+        checks.finish(offset)
         self.checked = True
+
+    def _keep(self, offset: int, log: DriveLog) -> None:
+        """Keep the validated chunk ``log`` (its first epoch the log's ``offset``-th) in the cache folder."""
+        file = self.cache / f"chunk{len(self.cached)}.npy"
+        np.save(file, np.column_stack([log.time, log.table.to_numpy(float)]))
+        self.cached.append((offset, file))
+        self.columns = list(log.table.columns)
+
+
+class _ReadChecks:
+    """The checks of a log read in chunks that span the chunks (``ChunkedLog``): time strictly increasing across
+    their edges, a clock gap warned about once, the chunks' own warnings passed on (not when ``quiet``: a later
+    reading of a checked log), and the magnetometer's range over the whole log (``finish``). ``name`` the file."""
+
+    def __init__(self, name: str, quiet: bool):
+        self.name, self.quiet = name, quiet
+        self.last_t, self.gap_warned = None, False
+        self.lo = self.hi = None
+        self.complete_epochs = 0
+
+    def edge(self, t, rows) -> None:
+        """Check the chunk of times ``t`` (k,) UNIX s, at the file's ``rows`` (k,), against the chunk before."""
+        last_t = self.last_t
+        if last_t is not None and len(t):
+            if not t[0] > last_t:
+                raise InputError(
+                    f"time not strictly increasing ({float(t[0])!r} after {last_t!r})", self.name, int(rows[0]), TIME
+                )
+            if t[0] - last_t > MAX_GAP_S and not (self.gap_warned or self.quiet):
+                self.gap_warned = True
+                warnings.warn(
+                    f"{self.name}: the clock jumps by {t[0] - last_t:.3g} s at row {int(rows[0])}; the filter's random "
+                    "walk spans each gap",
+                    TimeBaseWarning,
+                    stacklevel=3,
+                )
+        self.last_t = float(t[-1]) if len(t) else last_t
+
+    def pass_on(self, caught) -> None:
+        """Warn again the warnings ``caught`` reading a chunk (a clock gap once in the whole log)."""
+        for w in [] if self.quiet else caught:
+            if not (issubclass(w.category, TimeBaseWarning) and self.gap_warned):
+                self.gap_warned |= issubclass(w.category, TimeBaseWarning)
+                warnings.warn(w.message, w.category, stacklevel=3)
+
+    def extent(self, mag) -> None:
+        """Add the readings ``mag`` (k, 3) nT of a chunk to the range of the complete ones."""
+        complete = mag[np.all(np.isfinite(mag), axis=1)]
+        self.complete_epochs += len(complete)
+        if len(complete):
+            self.lo = complete.min(axis=0) if self.lo is None else np.minimum(self.lo, complete.min(axis=0))
+            self.hi = complete.max(axis=0) if self.hi is None else np.maximum(self.hi, complete.max(axis=0))
+
+    def finish(self, n_epochs: int) -> None:
+        """The whole log's checks once its ``n_epochs`` epochs are read: enough of them, a magnetometer that moves."""
+        if n_epochs < MIN_EPOCHS:
+            raise InputError(f"too few samples: {n_epochs} epoch, a drive log needs at least {MIN_EPOCHS}", self.name)
+        if self.complete_epochs > 1 and np.all(self.hi == self.lo):
+            raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", self.name)
 
 
 @dataclass(frozen=True)
@@ -417,87 +442,99 @@ def calibrate_file(
     started = _time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="magkf-") as folder:
         log = ChunkedLog(path, mag_unit, rows, cache=folder)
-        name = log.source
         with phases("scan (read, reference field, statuses)"):
             scan = _scan(log, config, effects, init, folder)
         with phases("start (bootstrap, noise)"):
-            try:
-                _, layout, x0, P0, how = initial_state(scan.head, config, init, effects)
-            except InputError as exc:
-                raise exc.located(name) from None
-            model = run_model(config, layout, x0, magnitude_only=not scan.any_attitude)
-            if not model.needs_attitude:  # on the epochs the start saw, as calibrate_log does on the whole log
-                try:
-                    check_magnitude_start(scan.head, layout, P0, scan.head.base)
-                except InputError as exc:
-                    raise exc.located(name) from None
-            scan.head = None
-            R0 = layout.R(x0)
-            noise = None
-            if init is None:
-                start = _start_noise(log, config, scan, layout, x0, R0, model.needs_attitude)
-                P0 = deflate_bootstrap(P0, layout, start.inflation)
-                noise = start if config.adapt_noise else None
-            est = Estimator(layout, config, x0, P0, noise, model)
+            setup = _start(log, config, init, effects, scan)
+            est = setup.estimator(config)
         loop_started = _time.perf_counter()
-        n, K = layout.size, 0
-        xs_file, stds_file = Spill(folder, "xs", float, (n,)), Spill(folder, "stds", float, (n,))
-        Ps_file = Spill(folder, "Ps", float, (n, n)) if smooth else None
-        per_epoch = {
-            "status": Spill(folder, "status", np.int8),
-            "updated": Spill(folder, "updated", bool),
-            "nis": Spill(folder, "nis", float),
-        }
-        noise_b, stops, dt = [], [], []
-        forward = ForwardPass(est, model, R0, config, scan.origin)
-        for piece in pieces(log, config, R0):
-            status, updated, nis, xs_b, Ps_b, noise_k, stops_k, dt_k = forward.run(
-                piece.own, scan.base.read(piece.epochs.start, piece.epochs.stop)
-            )
-            for key, values in zip(per_epoch, (status, updated, nis)):
-                per_epoch[key].append(values)
-            xs_file.append(xs_b)
-            stds_file.append(np.sqrt(np.einsum("bii->bi", Ps_b)))
-            if smooth:
-                Ps_file.append(Ps_b)
-            noise_b.append(noise_k)
-            stops.append(stops_k + piece.epochs.start)
-            dt.append(dt_k)
-            K += len(xs_b)
-            if progress is not None:
-                progress(piece.epochs.stop / scan.n_epochs)
-        noise_b, stops, dt = np.concatenate(noise_b), np.concatenate(stops), np.concatenate(dt)
+        out = _filter_pass(log, config, setup, est, scan, folder, smooth, progress)
         loop_s = _time.perf_counter() - loop_started
         phases.add("filter loop", loop_s)
         if smooth:
             with phases("smoother"):
-                xs_file, stds_file = _smooth(folder, xs_file, Ps_file, dt, layout.q_rate())
-        trace = RunTrace(
-            None,
-            None,
-            None,
-            None,
-            None,
-            est.x,
-            est.P,
-            est.information,
-            how,
-            0.0,
-            smooth,
-            est.reacquisitions,
-            loop_s,
-            noise=noise_b,
-            correlation_s=est.learner.inflation() * scan.median_step_s,
-            stops=stops,
-            nis_rows=nis_rows(model),
+                out.xs, out.stds = _smooth(folder, out.xs, out.Ps, out.dt, setup.layout.q_rate())
+        trace = filter_trace(
+            est,
+            setup,
+            scan.median_step_s,
+            **dict.fromkeys(("xs", "stds", "status", "updated", "nis")),  # on disk, in ``out``
+            elapsed_s=0.0,
+            smoothed=smooth,
+            loop_s=loop_s,
+            noise=out.noise,
+            stops=out.stops,
         )
         with phases("per-epoch table and summary"):
-            sums = _table_pass(
-                log, config, layout, x0, R0, trace, xs_file, stds_file, per_epoch, (states, states_parquet), K
-            )
+            sums = _table_pass(log, config, setup, trace, out, (states, states_parquet))
         trace = replace(trace, elapsed_s=_time.perf_counter() - started)
-        summary, cal, effect_values = summarise(name, config, layout, P0, trace, sums, np.diff(stops, prepend=0))
+        layout = setup.layout
+        summary, cal, effect_values = summarise(
+            log.source, config, layout, setup.P0, trace, sums, np.diff(out.stops, prepend=0)
+        )
     return CalibrationRun(cal, est.x, est.P, layout.names, None, summary, effect_values, None)
+
+
+def _start(log: ChunkedLog, config: FilterConfig, init, effects, scan: _Scan) -> RunSetup:
+    """The start of the run (``prepare.prepare_run``) from the scan's first stretch, with the starting noise of
+    passes 2 and 3 (``_start_noise``); the setup keeps no epochs (its ``prep`` is None: pieces are read again)."""
+    head, scan.head = scan.head, None
+
+    def noise_start(layout, x0, attitude: bool):
+        return _start_noise(log, config, scan, layout, x0, layout.R(x0), attitude)
+
+    setup = prepare_run(
+        head, config, init, effects, log.source, any_attitude=scan.any_attitude, noise_start=noise_start
+    )
+    return replace(setup, prep=None)
+
+
+@dataclass
+class _Filtered:
+    """What the filter pass (pass 4) leaves: on disk, the states ``xs`` (K, n), their standard deviations ``stds``
+    (K, n) and (with smoothing) covariances ``Ps`` (K, n, n) after each block, and the per-epoch ``status``,
+    ``updated`` and ``nis`` (``per_epoch``); held, per block, the learned ``noise`` (K, 4), the ``stops`` (K,)
+    one past each block's last epoch and the time ``dt`` (K,) s each block's prediction covered."""
+
+    xs: Spill
+    stds: Spill
+    Ps: Spill | None
+    per_epoch: dict
+    noise: np.ndarray
+    stops: np.ndarray
+    dt: np.ndarray
+
+
+def _filter_pass(log, config, setup: RunSetup, est, scan: _Scan, folder, smooth: bool, progress) -> _Filtered:
+    """Pass 4: the forward pass (``run.ForwardPass``) of ``est`` piece by piece, its results written to ``folder``."""
+    n = setup.layout.size
+    xs_file, stds_file = Spill(folder, "xs", float, (n,)), Spill(folder, "stds", float, (n,))
+    Ps_file = Spill(folder, "Ps", float, (n, n)) if smooth else None
+    per_epoch = {
+        "status": Spill(folder, "status", np.int8),
+        "updated": Spill(folder, "updated", bool),
+        "nis": Spill(folder, "nis", float),
+    }
+    noise_b, stops, dt = [], [], []
+    forward = ForwardPass(est, setup.model, setup.R0, config, scan.origin)
+    for piece in pieces(log, config, setup.R0):
+        status, updated, nis, xs_b, Ps_b, noise_k, stops_k, dt_k = forward.run(
+            piece.own, scan.base.read(piece.epochs.start, piece.epochs.stop)
+        )
+        for key, values in zip(per_epoch, (status, updated, nis)):
+            per_epoch[key].append(values)
+        xs_file.append(xs_b)
+        stds_file.append(np.sqrt(np.einsum("bii->bi", Ps_b)))
+        if smooth:
+            Ps_file.append(Ps_b)
+        noise_b.append(noise_k)
+        stops.append(stops_k + piece.epochs.start)
+        dt.append(dt_k)
+        if progress is not None:
+            progress(piece.epochs.stop / scan.n_epochs)
+    return _Filtered(
+        xs_file, stds_file, Ps_file, per_epoch, np.concatenate(noise_b), np.concatenate(stops), np.concatenate(dt)
+    )
 
 
 @dataclass
@@ -628,8 +665,11 @@ def _smooth(folder, xs_file: Spill, Ps_file: Spill, dt, q_rate) -> tuple[Spill, 
     return xs_out, stds_out
 
 
-def _table_pass(log, config, layout, x0, R0, trace: RunTrace, xs_file, stds_file, per_epoch, states, K) -> FitSums:
-    """Pass 5: the per-epoch table of every piece (written to ``states`` if given) and the residual sums."""
+def _table_pass(log, config, setup: RunSetup, trace: RunTrace, out: _Filtered, states) -> FitSums:
+    """Pass 5: the per-epoch table of every piece (written to ``states``, ``(path, parquet)``, if given) and the
+    residual sums."""
+    layout, x0, R0 = setup.layout, setup.x0, setup.R0
+    xs_file, stds_file, per_epoch, K = out.xs, out.stds, out.per_epoch, out.xs.rows
     sums = FitSums(rows=trace.nis_rows)
     stops = trace.stops
     own_prior = trace.smoothed

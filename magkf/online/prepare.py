@@ -377,15 +377,16 @@ class RunSetup:
     (``batch.batch_problem``).
 
     ``prep`` the prepared epochs the start was found from, their effects' data at the initial ``R``
-    (``with_initial_R``) and without the field's rates when no effect is added (``without_rates``); ``base``
-    (N,) int8 their statuses before filtering, with the effects' missing channels (``mark_missing_columns``);
+    (``with_initial_R``) and without the field's rates when no effect is added (``without_rates``; None where
+    the run reads its epochs again piece by piece, as a chunked log's does); ``base`` (N,) int8 their statuses
+    before filtering, with the effects' missing channels (``mark_missing_columns``);
     ``layout`` the state layout; ``x0`` (n,) and ``P0`` (n, n) the initial estimate and its covariance (a
     bootstrap's deflated by the starting noise's correlation, ``deflate_bootstrap``); ``how`` where the start
     came from, in words; ``model`` the measurement model of the run; ``noise`` the starting ``NoiseLevels``
     (None: the model's configured noise; so with ``init``, or with ``config.adapt_noise`` False).
     """
 
-    prep: PreparedLog
+    prep: PreparedLog | None
     base: np.ndarray
     layout: StateLayout
     x0: np.ndarray

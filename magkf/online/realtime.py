@@ -8,10 +8,11 @@
 A sample carries ``time`` (UNIX s), ``mag_x, mag_y, mag_z`` (nT), and when available ``roll, pitch,
 yaw`` (deg), ``lat, lon, alt`` (or ``ref_n, ref_e, ref_d``), ``dop`` and the auxiliary columns the
 effects need: a dict, or a pandas row (whose name is its time, as in ``log.table.iterrows()``). Missing
-keys, None or NaN values mean missing, and the epoch gets the status the same rules give a whole log
-(``magkf.status.epoch_status``). The reference field is evaluated lazily and
-cached (``ReferenceFieldCache``): again only after the vehicle has moved ``reference_refresh_m`` or the
-UTC date has changed. Each step is the same gated update as post-processing, with a block of one epoch.
+keys, None or NaN values mean missing, and the epoch is prepared by the rules that prepare a whole log
+(``prepare.prepare_epoch``: the status of ``magkf.status.epoch_status``, the body-frame reference, the
+heading axis). The reference field is evaluated lazily and cached (``ReferenceFieldCache``): again only
+after the vehicle has moved ``reference_refresh_m`` or the UTC date has changed. Each step is the same gated
+update as post-processing, with a block of one epoch.
 """
 
 from __future__ import annotations
@@ -32,24 +33,22 @@ from ..conventions import (
     LON,
     MAG,
     PDOP,
+    PITCH,
     REF,
+    ROLL,
     declination_deg,
-    euler_to_dcm,
     magnetic_heading_deg,
 )
 from ..effects import restore_effects, stored_effect
-from ..effects.base import EpochData
 from ..errors import InputError
 from ..io.drivelog import read_sample
 from ..reference import ReferenceFieldCache
-from ..status import MISSING_ATTITUDE, MISSING_COLUMN, STATUS_NAMES, USED, epoch_status, first_dop
+from ..status import STATUS_NAMES
 from .estimator import Estimator
-from .measurements import Block
-from .prepare import calibration_start
+from .prepare import PreparedEpoch, calibration_start, prepare_epoch
 
 __all__ = ["OnlineCalibrator", "EpochResult"]
 
-_NAN33 = np.full((3, 3), np.nan)
 _SAMPLE_COLUMNS = (*MAG, *ATTITUDE, *REF, LAT, LON, ALT, DOP, PDOP, HDOP)
 
 
@@ -231,60 +230,44 @@ class OnlineCalibrator:
             time is not after the previous sample's.
         """
         v = read_sample(sample, self._columns, time)
-        t = v["time"]
+        t = self._checked_time(v["time"])
+        est, layout = self.estimator, self.layout
+        R = layout.R(est.x)
+        previous = None if self._last_time is None else (self._last_time, self._last_field_body)
+        epoch = prepare_epoch(v, self._reference(t, v), self.config, self._effect_columns, previous, R)
+        dt = 0.0 if self._last_time is None else t - self._last_time
+        self._last_time, self._last_field_body = t, epoch.field_body
+        block = epoch.block(layout, est.model, R)
+        status, updated, nis = est.process_block(np.array([t]), dt, block, epoch.base)
+        return self._result(epoch, v, block.H, int(status[0]), bool(updated[0]), float(nis[0]))
+
+    def _checked_time(self, t: float) -> float:
+        """The sample's time ``t`` (UNIX s), or InputError when it is missing or not after the previous sample's."""
         if not math.isfinite(t):
             raise InputError("the sample has no time (give a 'time' entry, a row named by its time, or time=...)")
         if self._last_time is not None and not t > self._last_time:
             raise InputError(f"time {t!r} s is not after the previous sample's {self._last_time!r} s", column="time")
-        m = np.array([v[c] for c in MAG])
-        roll, pitch, yaw = (v[c] for c in ATTITUDE)
-        ref = self._reference(t, v)
-        has_att = math.isfinite(roll) and math.isfinite(pitch) and math.isfinite(yaw)
-        c_nb = euler_to_dcm(yaw, pitch, roll) if has_att else _NAN33
-        # the reference field and the heading axis B x down (``measurements.heading_axis``) in the body frame
-        field_body, axis = np.array([ref, (ref[1], -ref[0], 0.0)]) @ c_nb
-        dop = first_dop(v)
-        base = epoch_status(m[None], ref[None], [has_att], [dop], self.config.dop_max)
-        updating = base[0] == USED or base[0] == MISSING_ATTITUDE  # the latter by its magnitude
-        if updating and not all(math.isfinite(v[c]) for c in self._effect_columns):
-            base[0] = MISSING_COLUMN  # an added effect lacks its channel: no update, as post-processing
-        dt = 0.0 if self._last_time is None else t - self._last_time
-        rate = (field_body - self._last_field_body) / dt if dt > 0 else np.zeros(3)
-        if not np.isfinite(rate).all():
-            rate = np.zeros(3)
-        self._last_time, self._last_field_body = t, field_body
+        return t
+
+    def _result(self, epoch: PreparedEpoch, v, H, status: int, updated: bool, nis: float) -> EpochResult:
+        """The ``EpochResult`` of the sample ``epoch`` (its values ``v`` by column name, its linear Jacobian ``H``
+        (1, 3, n)) with the estimate after its update, which gave it ``status`` (a code of ``magkf.status``),
+        ``updated`` and ``nis``."""
         est, layout = self.estimator, self.layout
-        R = layout.R(est.x)
-        data = EpochData(
-            np.array([t]),
-            field_body[None],
-            ref[None],
-            {c: np.array([v[c]]) for c in self._effect_columns},
-            mag=m[None],
-            c_nb=c_nb[None],
-            field_body_rate=rate[None],
-            R0=R,
-        )
-        H = layout.linear_jacobian(data)
-        axis = axis[None] if all(map(math.isfinite, axis.tolist())) else np.nan_to_num(axis[None])
-        structure = est.structure(field_body[None], R, axis) if base[0] == USED else None
-        G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)
-        blk = Block(m[None], np.array([math.hypot(*ref)]), H, field_body[None], R, axis, G, Gh, RRt, frame, data)
-        status, updated, nis = est.process_block(np.array([t]), dt, blk, base)
         x = est.x
         R, b = layout.R_b(x)
-        e = layout.extra_terms(x, H, data) if layout.has_extra else 0.0
-        field = layout.calibrated(x, m[None], e)[0]
-        heading = magnetic_heading_deg(field, roll, pitch) if has_att else math.nan
+        e = layout.extra_terms(x, H, epoch.data) if layout.has_extra else 0.0
+        field = layout.calibrated(x, epoch.m[None], e)[0]
+        heading = magnetic_heading_deg(field, v[ROLL], v[PITCH]) if epoch.has_attitude else math.nan
         return EpochResult(
-            time=t,
+            time=epoch.time,
             field_body=field,
             magnitude_nt=math.hypot(*field.tolist()),
             heading_mag_deg=heading,
-            heading_true_deg=(heading + declination_deg(ref)) % 360.0,
-            status=STATUS_NAMES[int(status[0])],
-            updated=bool(updated[0]),
-            nis=float(nis[0]),
+            heading_true_deg=(heading + declination_deg(epoch.ref)) % 360.0,
+            status=STATUS_NAMES[status],
+            updated=updated,
+            nis=nis,
             R=R.copy(),
             b=b.copy(),
             std=np.sqrt(est.P.diagonal()),
