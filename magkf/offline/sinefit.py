@@ -80,7 +80,31 @@ def arc_span_deg(angle_deg) -> float:
 # ---------------------------------------------------------------- the nine parameters
 @dataclass(frozen=True)
 class SineFitParameters:
-    """The paper's nine calibration parameters: angles in degrees, sensitivities, offsets ``b`` in nT."""
+    """The paper's nine calibration parameters: angles in degrees, sensitivities, offsets ``b`` in nT.
+
+    They make the lower-triangular ``K`` of eq. (1) (``matrix``), which is ``R`` in ``m = R B + b``::
+
+        K = [[kx,                          0,                           0          ],
+             [ky sin(alpha),               ky cos(alpha),               0          ],
+             [kz cos(beta) sin(gamma),     kz sin(beta) sin(gamma),     kz cos(gamma)]]
+
+    Parameters
+    ----------
+    alpha_deg : float
+        The angle by which the sensor's Ym axis, in the XY plane, is turned from Y, degrees.
+    beta_deg : float
+        The angle between X and the projection of the sensor's Zm axis on the XY plane, degrees.
+    gamma_deg : float
+        The angle between the sensor's Zm axis and Z, degrees.
+    kx : float
+        Sensitivity of the X axis.
+    ky : float
+        Sensitivity of the Y axis.
+    kz : float
+        Sensitivity of the Z axis.
+    b : tuple of float, optional
+        (3,) offsets, nT.
+    """
 
     alpha_deg: float
     beta_deg: float
@@ -96,7 +120,13 @@ class SineFitParameters:
         return float(np.degrees(np.arccos(np.cos(np.radians(self.beta_deg)) * np.sin(np.radians(self.gamma_deg)))))
 
     def matrix(self) -> np.ndarray:
-        """The lower-triangular ``K`` of eq. (1), shape (3, 3); it is ``R`` in ``m = R B + b``."""
+        """The lower-triangular ``K`` of eq. (1), shape (3, 3); it is ``R`` in ``m = R B + b``.
+
+        Returns
+        -------
+        numpy.ndarray
+            (3, 3) ``K``.
+        """
         a, be, g = np.radians([self.alpha_deg, self.beta_deg, self.gamma_deg])
         return np.array(
             [
@@ -107,17 +137,53 @@ class SineFitParameters:
         )
 
     def as_vector(self) -> np.ndarray:
-        """``(alpha, beta, gamma, kx, ky, kz, bx, by, bz)`` with angles in degrees, shape (9,)."""
+        """``(alpha, beta, gamma, kx, ky, kz, bx, by, bz)`` with angles in degrees, shape (9,).
+
+        Returns
+        -------
+        numpy.ndarray
+            (9,) the parameters in that order.
+        """
         return np.array([self.alpha_deg, self.beta_deg, self.gamma_deg, self.kx, self.ky, self.kz, *self.b], float)
 
     @classmethod
     def from_vector(cls, v) -> SineFitParameters:
+        """Parameters of a vector in ``as_vector``'s order.
+
+        Parameters
+        ----------
+        v : array_like
+            (9,) ``(alpha, beta, gamma, kx, ky, kz, bx, by, bz)``, angles in degrees, offsets in nT.
+
+        Returns
+        -------
+        SineFitParameters
+            The nine parameters.
+        """
         v = [float(x) for x in v]
         return cls(*v[:6], b=tuple(v[6:9]))
 
     @classmethod
     def from_matrix(cls, K, b) -> SineFitParameters:
-        """Parameters of a lower-triangular ``K`` (3, 3) and offsets ``b`` (3,)."""
+        """Parameters of a lower-triangular ``K`` (3, 3) and offsets ``b`` (3,).
+
+        Parameters
+        ----------
+        K : array_like
+            (3, 3) lower triangular.
+        b : array_like
+            (3,) offsets, nT.
+
+        Returns
+        -------
+        SineFitParameters
+            The nine parameters.
+
+        Raises
+        ------
+        ValueError
+            ``K`` is not lower triangular.
+        """
         K = np.asarray(K, float)
         if np.any(np.abs(np.triu(K, 1)) > 1e-12 * np.abs(K).max()):
             raise ValueError("K must be lower triangular")
@@ -130,6 +196,13 @@ class SineFitParameters:
         )
 
     def as_dict(self) -> dict:
+        """The parameters by name (``PARAMETER_NAMES``: angles in degrees, ``b_x, b_y, b_z`` in nT).
+
+        Returns
+        -------
+        dict
+            Name -> value.
+        """
         return dict(zip(PARAMETER_NAMES, self.as_vector().tolist()))
 
 
@@ -333,18 +406,69 @@ def paper_from_curves(curves_xy: dict, curves_xz: dict, field_nt: float, inclina
 class SineFitCalibrator(Calibrator):
     """Sine-fit calibration from a two-plane turntable run.
 
-    ``field_nt`` is the field magnitude (nT), ``inclination_deg`` its inclination, ``method`` ``exact``
-    or ``paper``. ``fit(table)`` takes the columns ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT) as a
-    DataFrame or anything ``pandas.DataFrame`` accepts (a dict of arrays, a structured array) and returns
-    ``self``; the result is ``result_`` (and ``R_``, ``b_``, ``calibration_``). The scikit-learn contract
-    of ``magkf.offline.base``.
+    ``fit(table)`` takes the columns ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT) as a DataFrame or anything
+    ``pandas.DataFrame`` accepts (a dict of arrays, a structured array) and returns ``self``; the result is
+    ``result_`` (and ``R_``, ``b_``, ``calibration_``). The scikit-learn contract of ``magkf.offline.base``:
+    the settings are stored as given and checked by ``fit``.
+
+    Parameters
+    ----------
+    field_nt : float
+        The field magnitude, nT.
+    inclination_deg : float
+        Its inclination, degrees.
+    method : str, optional
+        ``exact`` (the corrected method, the default) or ``paper`` (the published equations).
+
+    Attributes
+    ----------
+    result_ : SineFitResult
+        The fit: the nine parameters, their standard errors (NaN for ``paper``), the sine curves, the
+        residual.
+    R_ : numpy.ndarray
+        (3, 3) fitted ``R`` of ``m = R B + b``.
+    b_ : numpy.ndarray
+        (3,) fitted offsets, nT.
+    calibration_ : Calibration
+        The fitted calibration.
+
+    Examples
+    --------
+    >>> cal = SineFitCalibrator(field_nt=50_000, inclination_deg=43).fit(table).calibration_  # doctest: +SKIP
     """
 
     def __init__(self, field_nt: float, inclination_deg: float, method: str = "exact"):
         self.field_nt, self.inclination_deg, self.method = field_nt, inclination_deg, method
 
     def fit(self, table, source: str = "turntable data") -> SineFitCalibrator:
-        """Fit a turntable table with columns ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT)."""
+        """Fit a turntable table with columns ``plane, angle_deg, mag_x, mag_y, mag_z`` (nT).
+
+        A sine ``A sin(theta + C) + D`` is fitted to each axis in each plane (``xy``, ``xz``); the published
+        equations give the parameters from the curves (``paper``), and the exact method refines them by
+        least squares on every sample, with standard errors (``exact``).
+
+        Parameters
+        ----------
+        table : pandas.DataFrame or mapping
+            The turntable run: ``plane`` (``xy`` or ``xz``), ``angle_deg`` (table angle, degrees) and
+            ``mag_x, mag_y, mag_z`` (nT); anything ``pandas.DataFrame`` accepts. At least 8 samples per plane,
+            spanning at least 180 deg of table angle.
+        source : str, optional
+            What the table was read from, named in errors.
+
+        Returns
+        -------
+        SineFitCalibrator
+            ``self``, fitted: ``result_``, ``R_``, ``b_``, ``calibration_``.
+
+        Raises
+        ------
+        ValueError
+            An unknown ``method``, or a field magnitude that is not positive.
+        InputError
+            A required column missing, too few samples in a plane, or a plane spanning less than 180 deg of
+            table angle (degenerate geometry).
+        """
         if self.method not in ("paper", "exact"):
             raise ValueError(f"unknown method {self.method!r}; use 'paper' or 'exact'")
         if not float(self.field_nt) > 0:
