@@ -25,11 +25,38 @@ class Calibrator:
         return [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
 
     def get_params(self, deep: bool = True) -> dict:
-        """The settings, by name."""
+        """The settings, by name.
+
+        Parameters
+        ----------
+        deep : bool, optional
+            Accepted for scikit-learn's contract; the settings hold no estimators.
+
+        Returns
+        -------
+        dict
+            Setting name -> value, as given.
+        """
         return {name: getattr(self, name) for name in self._param_names()}
 
     def set_params(self, **params) -> Calibrator:
-        """Change settings; returns ``self``. An unknown name is a ValueError."""
+        """Change settings; returns ``self``.
+
+        Parameters
+        ----------
+        **params
+            Settings by name, stored as given (``fit`` checks them).
+
+        Returns
+        -------
+        Calibrator
+            ``self``.
+
+        Raises
+        ------
+        ValueError
+            An unknown setting's name.
+        """
         known = self._param_names()
         for name, value in params.items():
             if name not in known:
@@ -43,6 +70,7 @@ class Calibrator:
 
     @property
     def result_(self):
+        """The fitted result; ``NotFittedError`` before ``fit``."""
         try:
             return self._result
         except AttributeError:
