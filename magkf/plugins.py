@@ -61,6 +61,7 @@ class Registry(Mapping[str, type[T]], Generic[T]):
     def __init__(self, kind: str, group: str, interface: str, builtins: dict[str, str]):
         self.kind, self.group, self.interface = kind, group, interface
         self._specs: dict[str, str] = dict(builtins)
+        self._origins: dict[str, str] = dict.fromkeys(builtins, "magkf")
         self._builtin = frozenset(builtins)
         self._loaded: dict[str, type[T]] = {}
         self._entry_points_read = False
@@ -130,6 +131,7 @@ class Registry(Mapping[str, type[T]], Generic[T]):
             if not replace and not _same_definition(present, cls):
                 raise PluginError(f"a {self.kind} named {name!r} is registered already ({self._specs[name]})")
         self._specs[name] = f"{cls.__module__}:{cls.__qualname__}"
+        self._origins[name] = "registered"
         self._loaded[name] = cls
         return cls
 
@@ -140,6 +142,7 @@ class Registry(Mapping[str, type[T]], Generic[T]):
         if name not in self:
             raise KeyError(name)
         del self._specs[name]
+        self._origins.pop(name, None)
         self._loaded.pop(name, None)
 
     __delitem__ = unregister
@@ -149,10 +152,17 @@ class Registry(Mapping[str, type[T]], Generic[T]):
         return name in self._builtin
 
     def source(self, name: str) -> str:
-        """Where the plug-in ``name`` comes from: its ``"module:Class"``."""
+        """Where the plug-in ``name`` is defined: its ``"module:Class"``."""
         if name not in self:
             raise KeyError(name)
         return self._specs[name]
+
+    def origin(self, name: str) -> str:
+        """How the plug-in ``name`` became known: ``magkf`` (magkf's own), ``entry point DIST`` (an installed
+        package's entry point), or ``registered`` (by the running program, or an effect file)."""
+        if name not in self:
+            raise KeyError(name)
+        return self._origins[name]
 
     # ------------------------------------------------------------------ inside
     def _read_entry_points(self) -> None:
@@ -160,7 +170,10 @@ class Registry(Mapping[str, type[T]], Generic[T]):
             return
         self._entry_points_read = True
         for ep in metadata.entry_points(group=self.group):
-            self._specs.setdefault(ep.name, ep.value)
+            if ep.name not in self._specs:
+                self._specs[ep.name] = ep.value
+                dist = getattr(ep, "dist", None)
+                self._origins[ep.name] = f"entry point of {dist.name}" if dist is not None else "entry point"
 
     def _check(self, cls, name: str) -> None:
         base = _load(self.interface, f"the {self.kind} interface")

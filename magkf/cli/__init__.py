@@ -16,13 +16,13 @@ import warnings
 
 from .. import __version__
 from ..errors import InputError
-from . import apply, diagnostics, fleet, logs, offline, online, simulate
+from . import apply, diagnostics, fleet, logs, offline, online, plugins, simulate
 from .common import Note
 
 __all__ = ["main", "build_parser"]
 
 #: The modules that add the commands, in the order ``--help`` lists them.
-COMMANDS = (online, diagnostics, apply, logs, offline, simulate, fleet)
+COMMANDS = (online, diagnostics, apply, logs, offline, simulate, fleet, plugins)
 
 
 #: Options that name files a command writes, and files it reads (argparse ``dest`` -> the option's name).

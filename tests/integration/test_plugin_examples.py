@@ -52,6 +52,12 @@ def test_a_reader_in_one_file_reads_its_format_everywhere(drive, tmp_path, capsy
         for column in drive.table.columns:
             assert np.allclose(log.table[column], drive.table[column], rtol=1e-15, atol=0), column
         assert log.provenance["format"] == "jsonl"
+        # magkf plugins lists it, with where it comes from
+        capsys.readouterr()
+        assert main(["plugins", "--json"]) == 0
+        readers = {r["name"]: r for r in json.loads(capsys.readouterr().out)["readers"]}
+        assert readers["jsonl"]["origin"] == "registered" and readers["jsonl"]["summary"].startswith("JSON Lines")
+        assert readers["ulog"]["origin"] == "magkf"
         # the command line offers it (--format) and calibrates through it
         assert main(["calibrate", str(path), "--format", "jsonl", "-o", str(tmp_path / "cal.json"), "--quiet"]) == 0
         # and its errors name the file and line, like every reader's

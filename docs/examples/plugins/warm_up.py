@@ -12,6 +12,8 @@ from magkf.effects import Effect
 
 
 class WarmUp(Effect):
+    """Offset settling after power-on: ``a exp(-t / tau)`` (nT) on each axis, ``t`` the logged uptime (s)."""
+
     name = "warm_up"
     parameter_names = ("a_x", "a_y", "a_z", "tau")
     units = ("nT", "nT", "nT", "s")
