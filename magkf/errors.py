@@ -8,9 +8,24 @@ __all__ = ["InputError", "names_the_log"]
 class InputError(ValueError):
     """Bad input data, a malformed file or geometry that cannot determine a fit.
 
-    ``source`` names the file (or what was passed), ``row`` is the line number in that file counting
-    the header as row 1, ``column`` the column name; each may be None where it does not apply.
+    The one exception magkf raises for bad input, so the command line can print it on one line:
     ``str(error)`` is a single line such as ``log.csv, row 7, column 'mag_x': not a number: 'abc'``.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong.
+    source : str or None, optional
+        Names the file (or what was passed).
+    row : int or None, optional
+        The line number in that file, counting the header as row 1.
+    column : str or None, optional
+        The column name.
+
+    Attributes
+    ----------
+    message, source, row, column
+        As given; each of the last three may be None where it does not apply.
     """
 
     def __init__(self, message: str, source: str | None = None, row: int | None = None, column: str | None = None):
@@ -24,7 +39,18 @@ class InputError(ValueError):
         super().__init__(" ".join(text.split()))
 
     def located(self, source: str) -> InputError:
-        """This error, naming ``source`` when it names no file yet."""
+        """Return this error, naming ``source`` when it names no file yet.
+
+        Parameters
+        ----------
+        source : str
+            The file to name.
+
+        Returns
+        -------
+        InputError
+            This error itself when it names a file already, else a copy that names ``source``.
+        """
         if self.source is not None:
             return self
         return InputError(self.message, source, self.row, self.column)

@@ -47,6 +47,35 @@ __all__ = [
 
 
 class Status(IntEnum):
+    """The status of an epoch: why it did or did not update the estimate.
+
+    Codes are small integers stored as ``int8`` arrays; their names (``label``: the strings written in
+    ``--states`` files and returned by the real-time step) are the lower-case member names. Where several
+    apply, ``epoch_status`` says which wins (of ``missing_attitude``, ``gated_dop``, ``missing_position`` and
+    ``missing_mag``, the last that applies); the filter's gates and ``missing_column`` then apply to the
+    epochs still to be updated.
+
+    Attributes
+    ----------
+    USED : int
+        0, updated with the configured measurement.
+    GATED_DOP : int
+        1, ``dop > dop_max``: no update.
+    GATED_MAGNITUDE : int
+        2, ``| |calibrated m| - |B_ref| | > gate_nt + 3 sigma``: no update.
+    GATED_INNOVATION : int
+        3, normalised innovation squared above the chi-square bound: no update.
+    MISSING_ATTITUDE : int
+        4, no attitude: an update with the measurement model's fallback for such epochs (magnitude only),
+        when it has one.
+    MISSING_POSITION : int
+        5, no reference field (no position and no ``ref_*``): no update.
+    MISSING_MAG : int
+        6, a magnetometer value is missing: no update.
+    MISSING_COLUMN : int
+        7, a column an added effect needs is empty at this epoch: no update.
+    """
+
     USED = 0
     GATED_DOP = 1
     GATED_MAGNITUDE = 2
