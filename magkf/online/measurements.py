@@ -603,8 +603,10 @@ def nis_rows(model) -> tuple[int, int]:
 
 # ---------------------------------------------------------------- registry
 def register_measurement(cls: type[MeasurementModel]) -> type[MeasurementModel]:
-    """Make a measurement model available by its ``name`` (for ``FilterConfig(measure=...)`` and ``--measure``);
-    a decorator. The same as ``magkf.plugins.MEASUREMENTS.register(cls)``.
+    """Make a measurement model available by its ``name``; a decorator.
+
+    The name is then known to ``FilterConfig(measure=...)`` and ``--measure``. The same as
+    ``magkf.plugins.MEASUREMENTS.register(cls)``.
 
     Parameters
     ----------
