@@ -123,28 +123,36 @@ def _epoch_by_epoch(method):
 
 
 class Effect(ABC):
-    """The interface of a physical effect (a plug-in kind: ``magkf.plugins.EFFECTS``); subclass it in a file of
-    its own.
+    """The interface of a physical effect (a plug-in kind: ``magkf.plugins.EFFECTS``).
 
-    Class attributes
-    ----------------
-    name : the name accepted by ``--effect``.
-    parameter_names : names of the parameters, in state order.
-    columns : log columns the effect needs.
-    units : unit of each parameter, for reports.
-    linear : True when ``contribution`` is linear in the effect's own parameters and independent of the
-        other blocks; the filters then compute its Jacobian once for each epoch.
-    channels : the kinds of channel an effect of a column accepts (``magkf.effects.channels.KINDS``:
-        ``temperature``, ``current``, ``throttle``, ``angle``, ``speed``, ``voltage``); the diagnosis forms
-        candidates only from columns of these kinds. Empty: the effect's default column only.
-    wanders : True when the parameters follow a random walk rather than holding a value (a drifting
-        offset): the diagnosis then tests their constancy (Nyblom's test on the scores of ``jacobian``)
-        and ``regressors`` is the slow basis over which the wander is fitted for the held-out residual.
+    Subclass it in a file of its own. Methods to implement: ``contribution``; optionally ``jacobian`` (finite
+    differences by default), ``prior`` and ``random_walk``. The per-epoch methods (``ROW_METHODS``) take
+    ``rows``, the epochs of ``data`` to evaluate (see the module's docstring); one written without it is
+    taken to be computed epoch by epoch and is evaluated on ``data.take(rows)``.
 
-    Methods to implement: ``contribution``; optionally ``jacobian`` (finite differences by default),
-    ``prior`` and ``random_walk``. The per-epoch methods (``ROW_METHODS``) take ``rows``, the epochs of
-    ``data`` to evaluate (see the module's docstring); one written without it is taken to be computed epoch
-    by epoch and is evaluated on ``data.take(rows)``.
+    Attributes
+    ----------
+    name : str
+        Class attribute: the name accepted by ``--effect``.
+    parameter_names : tuple of str
+        Class attribute: names of the parameters, in state order.
+    columns : tuple of str
+        Class attribute: log columns the effect needs.
+    units : tuple of str
+        Class attribute: unit of each parameter, for reports.
+    linear : bool
+        Class attribute: True when ``contribution`` is linear in the effect's own parameters and independent
+        of the other blocks; the filters then compute its Jacobian once for each epoch.
+    channels : tuple of str
+        Class attribute: the kinds of channel an effect of a column accepts
+        (``magkf.effects.channels.KINDS``: ``temperature``, ``current``, ``throttle``, ``angle``, ``speed``,
+        ``voltage``); the diagnosis forms candidates only from columns of these kinds. Empty: the effect's
+        default column only.
+    wanders : bool
+        Class attribute: True when the parameters follow a random walk rather than holding a value (a
+        drifting offset): the diagnosis then tests their constancy (Nyblom's test on the scores of
+        ``jacobian``) and ``regressors`` is the slow basis over which the wander is fitted for the held-out
+        residual.
     """
 
     name: str = "effect"
