@@ -164,6 +164,7 @@ def read_log(
     Returns
     -------
     DriveLog
+        The log, indexed by time; its ``provenance`` says where each column came from.
 
     Raises
     ------
