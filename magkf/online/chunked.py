@@ -557,9 +557,8 @@ def _scan(log: ChunkedLog, config: FilterConfig, effects, init, folder) -> _Scan
     """Pass 1: validate, prepare and keep the statuses, the counts and the bootstrap's stretch."""
     base_file, steps = Spill(folder, "base", np.int8), Spill(folder, "steps", float)
     n_epochs = n_used = n_magnitude = 0
-    head, head_done, any_attitude, origin, last_t = [], False, False, None, None
-    first_good = first_cand = None
-    linear = [e for e in effects if e.linear]
+    any_attitude, origin, last_t = False, None, None
+    head = _Head(config, effects, init is not None)
     reference = None if log.cache is None else Spill(folder, "reference", float, (3,))
     for piece in pieces(log, config, reference=reference):
         own = piece.own
@@ -573,37 +572,48 @@ def _scan(log: ChunkedLog, config: FilterConfig, effects, init, folder) -> _Scan
         n_used += int(np.count_nonzero(base == Status.USED))
         n_magnitude += int(np.count_nonzero((base == Status.USED) | (base == Status.MISSING_ATTITUDE)))
         any_attitude |= bool(own.has_attitude.any())
-        if not head_done:  # the bootstrap's stretch: bootstrap_s after the first good and the first usable epoch
-            head.append(own)
-            good = own.base == Status.USED
-            for e in linear:
-                for c in e.columns:
-                    good &= np.isfinite(own.data.columns[c])
-            cand = (own.base == Status.USED) | (own.base == Status.MISSING_ATTITUDE)
-            if first_good is None and good.any():
-                first_good = t[np.argmax(good)]
-            if first_cand is None and cand.any():
-                first_cand = t[np.argmax(cand)]
-            head_done = (
-                (init is not None)
-                or (
-                    first_good is not None
-                    and first_cand is not None
-                    and t[-1] > max(first_good, first_cand) + config.bootstrap_s
-                )
-                or sum(len(h) for h in head) >= HEAD_EPOCHS
-            )
+        head.add(own)
     median_step = _median(steps)
-    return _Scan(
-        base_file,
-        n_epochs,
-        n_used,
-        n_magnitude,
-        concat_prepared(head) if head else None,
-        any_attitude,
-        float(origin),
-        median_step,
-    )
+    return _Scan(base_file, n_epochs, n_used, n_magnitude, head.prepared(), any_attitude, float(origin), median_step)
+
+
+class _Head:
+    """The log's first stretch, kept for the start of the run (``prepare.prepare_run``): the pieces up to
+    ``config.bootstrap_s`` after both the first good epoch (used, the linear ``effects``' channels present) and
+    the first usable one (used or without attitude), at most ``HEAD_EPOCHS`` epochs; the first piece alone when
+    the run starts ``from_calibration`` (no bootstrap)."""
+
+    def __init__(self, config: FilterConfig, effects, from_calibration: bool):
+        self.span_s, self.from_calibration = config.bootstrap_s, from_calibration
+        self.columns = [c for e in effects if e.linear for c in e.columns]
+        self.parts, self.epochs, self.done = [], 0, False
+        self.first_good = self.first_cand = None
+
+    def add(self, own: PreparedLog) -> None:
+        """Keep the piece ``own`` (its own epochs) while the stretch is not complete."""
+        if self.done:
+            return
+        self.parts.append(own)
+        self.epochs += len(own)
+        t = own.time
+        good = own.base == Status.USED
+        for c in self.columns:
+            good &= np.isfinite(own.data.columns[c])
+        cand = (own.base == Status.USED) | (own.base == Status.MISSING_ATTITUDE)
+        if self.first_good is None and good.any():
+            self.first_good = t[np.argmax(good)]
+        if self.first_cand is None and cand.any():
+            self.first_cand = t[np.argmax(cand)]
+        found = self.first_good is not None and self.first_cand is not None
+        self.done = (
+            self.from_calibration
+            or (found and t[-1] > max(self.first_good, self.first_cand) + self.span_s)
+            or self.epochs >= HEAD_EPOCHS
+        )
+
+    def prepared(self) -> PreparedLog | None:
+        """The stretch as one ``PreparedLog`` (None: no piece)."""
+        return concat_prepared(self.parts) if self.parts else None
 
 
 def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
