@@ -35,6 +35,9 @@ from magkf.io.readers import read_log
 from magkf.io.ulog import write_ulog
 from magkf.sim import DriveConfig, simulate_drive
 
+#: One drive written in five formats and calibrated five times (the module's fixture): seconds.
+pytestmark = pytest.mark.slow
+
 SURVEY_MAP = Path(__file__).resolve().parents[2] / "docs" / "examples" / "survey_map.toml"
 K_SIGMA = 4.0
 #: The largest field magnitude (nT) on Earth (about 66 000 nT near the south magnetic pole) bounds |B|.

@@ -207,11 +207,12 @@ def test_check_prints_one_screen_per_sample_log(path, expected):
     assert report["models"] and "limits" in report
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "command,name",
     [
         (["sinefit", "--field", "50000", "--inclination", "43"], "turntable_example.csv"),
-        pytest.param(["ellipsoid", "--columns", "mx,my,mz"], "ckexplorer_acc_mag_log.csv", marks=pytest.mark.slow),
+        (["ellipsoid", "--columns", "mx,my,mz"], "ckexplorer_acc_mag_log.csv"),
     ],
 )
 def test_offline_commands_read_parquet_like_csv(command, name, tmp):

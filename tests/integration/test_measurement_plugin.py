@@ -81,6 +81,7 @@ def test_added_model_runs_through_the_batch_solver(registered, drive):
     assert _z(run.x, run.std, drive).max() < Z_MAX
 
 
+@pytest.mark.slow
 def test_added_model_runs_through_the_realtime_step(registered, drive):
     rng = np.random.default_rng(5)
     start = Calibration(

@@ -277,6 +277,7 @@ def test_realtime_ukf_makes_its_sigma_points_at_the_start():
     assert online.estimator.filter._points is not None
 
 
+@pytest.mark.slow
 def test_realtime_memory_is_constant():
     import tracemalloc
 

@@ -272,6 +272,7 @@ def loaded(text: bytes):
     return result, str(path)
 
 
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=150)
 @given(st.data())
 def test_a_damaged_calibration_file_is_loaded_validly_or_refused_naming_it(data):

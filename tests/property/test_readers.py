@@ -339,6 +339,7 @@ def check_log(log, grid: Grid, path: str) -> None:
 
 
 # ---------------------------------------------------------------- read_drive_log
+@pytest.mark.slow
 @settings(PROPERTY, max_examples=50)
 @given(st.data())
 def test_a_valid_drive_log_reads_back_exactly(data):
