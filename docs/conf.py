@@ -43,7 +43,8 @@ numpydoc_show_class_members = False
 numpydoc_attributes_as_param_list = True
 numpydoc_xref_param_type = False
 # numpydoc's validation is off in the build: the plug-in interfaces' docstrings (filters, measurement models,
-# effects, readers) do not all have Parameters and Returns sections yet. The public API passes
+# effects, readers; ``MeasurementModel``'s methods among them) do not all have Parameters and Returns sections
+# yet. The rest of the public API passes
 # ``python -m numpydoc validate magkf.<module>.<name>`` for GL08, PR01, PR02 and RT01, but for two false
 # positives: the signature of an enum (``Status``) and a function whose parameter is named ``cls``
 # (``register_measurement``), which numpydoc drops from the signature.
