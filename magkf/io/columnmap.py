@@ -144,6 +144,155 @@ def _key(name: str) -> str:
     return f"[{section}] {name}"
 
 
+def _one_of(name: str, allowed: tuple, optional: bool = False) -> tuple:
+    """The rule that setting ``name`` is one of ``allowed`` (or unset, when ``optional``)."""
+
+    def rule(cmap) -> bool:
+        value = getattr(cmap, name)
+        return (optional and value is None) or value in allowed
+
+    return name, rule, "unknown value {value!r}; use one of " + ", ".join(map(str, allowed))
+
+
+def _column_spec(spec) -> bool:
+    """True for a file column's name (a non-empty string) or its 1-based position (an int, not a bool)."""
+    return not isinstance(spec, bool) and (
+        (isinstance(spec, str) and spec != "") or (isinstance(spec, int) and spec >= 1)
+    )
+
+
+def _single_character(value) -> bool:
+    """True for an unset value or one character other than a line end."""
+    return value is None or (isinstance(value, str) and len(value) == 1 and value not in "\r\n")
+
+
+def _line_count(value) -> bool:
+    """True for an unset value or an integer >= 0 (not a bool)."""
+    return value is None or (not isinstance(value, bool) and isinstance(value, int) and value >= 0)
+
+
+def _text_encoding(name) -> bool:
+    """True for a text encoding Python knows, not rot13, hex or zlib (empty bytes decode under any codec)."""
+    try:
+        codecs.lookup(name)
+        "a".encode(name)
+    except (LookupError, TypeError):
+        return False
+    return True
+
+
+def _strings(value) -> bool:
+    """True for a list or tuple of strings."""
+    return isinstance(value, (list, tuple)) and all(isinstance(m, str) for m in value)
+
+
+def _nt_per_count(value) -> bool:
+    """True for a finite, non-zero int or float (not a bool, nor an int beyond the float range like 10**400)."""
+    return (
+        not isinstance(value, bool)
+        and isinstance(value, (int, float))
+        and abs(value) <= sys.float_info.max
+        and value != 0
+    )
+
+
+#: The checks of a map's ``[file]`` keys and ``keep_unmapped``, made in this order, as ``(key, rule, message)``:
+#: ``rule(cmap)`` is True when the setting is acceptable; else the message, formatted with ``value`` (the key's
+#: value) and ``map``, is refused.
+_FILE_RULES = (
+    ("keep_unmapped", lambda m: isinstance(m.keep_unmapped, bool), "{value!r} is not true or false"),
+    _one_of("format", FORMATS, optional=True),
+    ("delimiter", lambda m: _single_character(m.delimiter), "{value!r} is not a single character"),
+    ("comment", lambda m: _single_character(m.comment), "{value!r} is not a single character"),
+    (
+        "comment",
+        lambda m: m.comment is None or m.comment not in (m.delimiter, m.decimal, " ", "\t"),
+        "{value!r} cannot also be the delimiter, the decimal mark or blank",
+    ),
+    ("header", lambda m: _line_count(m.header), "{value!r} is not a line count (an integer >= 0)"),
+    ("skip_rows", lambda m: _line_count(m.skip_rows), "{value!r} is not a line count (an integer >= 0)"),
+    (
+        "header",
+        lambda m: not m.header or m.header > m.skip_rows,
+        "line {value} is among the {map.skip_rows} skipped lines ([file] skip_rows)",
+    ),
+    _one_of("decimal", (".", ",")),
+    ("decimal", lambda m: m.decimal != m.delimiter, "the decimal mark is also the delimiter"),
+    ("encoding", lambda m: _text_encoding(m.encoding), "unknown text encoding {value!r}"),
+    ("missing", lambda m: _strings(m.missing), "{value!r} is not a list of strings"),
+)
+#: The checks of a map's ``[units]`` keys, made in this order, as ``_FILE_RULES``.
+_UNIT_RULES = (
+    _one_of("mag", MAG_UNITS),
+    (
+        "mag_scale_nt_per_count",
+        lambda m: m.mag != "counts" or _nt_per_count(m.mag_scale_nt_per_count),
+        '{value!r}: [units] mag = "counts" needs a finite, non-zero number of nT per count',
+    ),
+    (
+        "ref",
+        lambda m: not (m.mag == "counts" and m.ref is None and REF[0] in m.columns),
+        "say the unit of ref_n, ref_e, ref_d (nT, uT, mG or G): they cannot be counts",
+    ),
+    (
+        "mag_scale_nt_per_count",
+        lambda m: m.mag == "counts" or m.mag_scale_nt_per_count is None,
+        'only applies with [units] mag = "counts", not {map.mag!r}',
+    ),
+    _one_of("ref", tuple(NT_PER_UNIT), optional=True),
+    _one_of("angles", ("deg", "rad")),
+    _one_of("latlon", ("deg", "rad")),
+    _one_of("time", tuple(PER_SECOND)),
+    _one_of("time_epoch", TIME_EPOCHS),
+    _one_of("quaternion_order", ("wxyz", "xyzw")),
+    _one_of("quaternion_frame", ("body_to_ned", "ned_to_body")),
+    (
+        "start_utc",
+        lambda m: m.start_utc is None or m.time_epoch == "start",
+        'only applies with [units] time_epoch = "start"',
+    ),
+    (
+        "date_utc",
+        lambda m: m.date_utc is None or m.time_epoch == "seconds_of_day",
+        'only applies with [units] time_epoch = "seconds_of_day"',
+    ),
+)
+
+
+def _refuse(cmap, name: str, message: str):
+    """Raise InputError naming the map (``cmap.source``) and the key of setting ``name``."""
+    raise InputError(f"{_key(name)}: {message}", cmap.source)
+
+
+def _check_rules(cmap, rules: tuple) -> None:
+    """Refuse the first of ``rules`` (``_FILE_RULES``, ``_UNIT_RULES``) that ``cmap`` breaks."""
+    for name, rule, message in rules:
+        if not rule(cmap):
+            _refuse(cmap, name, message.format(value=getattr(cmap, name), map=cmap))
+
+
+def _check_columns(columns: dict, source: str) -> None:
+    """InputError naming the map ``source`` and the ``[columns]`` key of the first problem: a value that names
+    no file column, a required column not mapped, a group (attitude, quaternion, reference, position) mapped in
+    part, or the attitude mapped twice."""
+
+    def refuse(name: str, message: str):
+        raise InputError(f"[columns] {name}: {message}", source)
+
+    for name, spec in columns.items():
+        if not _column_spec(spec):
+            refuse(name, f"{spec!r} is neither a column name nor a 1-based column position")
+    for name in (TIME, *MAG):
+        if name not in columns:
+            refuse(name, "required: say which file column holds it")
+    for group in (ATTITUDE, QUATERNION, REF, (LAT, LON)):
+        absent = [c for c in group if c not in columns]
+        if 0 < len(absent) < len(group):
+            refuse(absent[0], f"give all of {', '.join(group)} or none")
+    if ROLL in columns and QUATERNION[0] in columns:
+        refuse(QUATERNION[0], "the attitude is given twice: map roll, pitch, yaw or q0..q3, not both")
+
+
 @dataclass(frozen=True)
 class ColumnMap:
     """A parsed and validated column map; each field is the TOML key of the same name.
@@ -178,104 +327,24 @@ class ColumnMap:
     description: str = field(default="", compare=False)
 
     def __post_init__(self):
-        def bad(name: str, message: str, key: str | None = None):
-            raise InputError(f"{key or _key(name)}: {message}", self.source)
-
-        def bad_column(name: str, message: str):
-            bad(name, message, f"[columns] {name}")
-
-        def one_of(name: str, allowed):
-            value = getattr(self, name)
-            if value not in allowed:
-                bad(name, f"unknown value {value!r}; use one of {', '.join(map(str, allowed))}")
-
+        """Validate every setting (InputError naming ``source`` and the key of the first problem, in the order
+        of ``_check_columns``, ``_FILE_RULES``, ``_check_layout`` and ``_UNIT_RULES``); store ``columns``
+        read-only, ``missing`` as a tuple, ``start_utc`` as an aware UTC datetime and ``date_utc`` as a date."""
         columns = dict(self.columns)
-        for name, spec in columns.items():
-            if (
-                isinstance(spec, bool)
-                or not isinstance(spec, (str, int))
-                or spec == ""
-                or (isinstance(spec, int) and spec < 1)
-            ):
-                bad_column(name, f"{spec!r} is neither a column name nor a 1-based column position")
+        _check_columns(columns, self.source)
         object.__setattr__(self, "columns", MappingProxyType(columns))
-        for name in (TIME, *MAG):
-            if name not in columns:
-                bad_column(name, "required: say which file column holds it")
-        for group in (ATTITUDE, QUATERNION, REF, (LAT, LON)):
-            given = [c for c in group if c in columns]
-            if 0 < len(given) < len(group):
-                bad_column(next(c for c in group if c not in columns), f"give all of {', '.join(group)} or none")
-        if ROLL in columns and QUATERNION[0] in columns:
-            bad_column(QUATERNION[0], "the attitude is given twice: map roll, pitch, yaw or q0..q3, not both")
-        if not isinstance(self.keep_unmapped, bool):
-            bad("keep_unmapped", f"{self.keep_unmapped!r} is not true or false")
-
-        if self.format is not None:
-            one_of("format", FORMATS)
-        for name in ("delimiter", "comment"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, str) or len(value) != 1 or value in "\r\n"):
-                bad(name, f"{value!r} is not a single character")
-        if self.comment is not None and self.comment in (self.delimiter, self.decimal, " ", "\t"):
-            bad("comment", f"{self.comment!r} cannot also be the delimiter, the decimal mark or blank")
-        for name, minimum in (("header", 0), ("skip_rows", 0)):
-            value = getattr(self, name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < minimum):
-                bad(name, f"{value!r} is not a line count (an integer >= {minimum})")
-        if self.header and self.header <= self.skip_rows:
-            bad("header", f"line {self.header} is among the {self.skip_rows} skipped lines ([file] skip_rows)")
-        one_of("decimal", (".", ","))
-        if self.decimal == self.delimiter:
-            bad("decimal", "the decimal mark is also the delimiter")
-        try:
-            codecs.lookup(self.encoding)
-            "a".encode(self.encoding)  # a text encoding, not rot13, hex or zlib (empty bytes decode under any codec)
-        except (LookupError, TypeError):
-            bad("encoding", f"unknown text encoding {self.encoding!r}")
-        missing = self.missing
-        if not isinstance(missing, (list, tuple)) or not all(isinstance(m, str) for m in missing):
-            bad("missing", f"{missing!r} is not a list of strings")
-        object.__setattr__(self, "missing", tuple(missing))
+        if _strings(self.missing):
+            object.__setattr__(self, "missing", tuple(self.missing))
+        _check_rules(self, _FILE_RULES)
         if self.format is not None:
             _check_layout(self, self.format, "this map")
-
-        one_of("mag", MAG_UNITS)
-        scale = self.mag_scale_nt_per_count
-        if self.mag == "counts":
-            if (
-                isinstance(scale, bool)
-                or not isinstance(scale, (int, float))
-                or not (abs(scale) <= sys.float_info.max and scale != 0)  # finite, and a float (not 10**400)
-            ):
-                bad(
-                    "mag_scale_nt_per_count",
-                    f'{scale!r}: [units] mag = "counts" needs a finite, non-zero number of nT per count',
-                )
-            if self.ref is None and REF[0] in columns:
-                bad("ref", "say the unit of ref_n, ref_e, ref_d (nT, uT, mG or G): they cannot be counts")
-        elif scale is not None:
-            bad("mag_scale_nt_per_count", f'only applies with [units] mag = "counts", not {self.mag!r}')
-        if self.ref is not None:
-            one_of("ref", tuple(NT_PER_UNIT))
-        one_of("angles", ("deg", "rad"))
-        one_of("latlon", ("deg", "rad"))
-        one_of("time", tuple(PER_SECOND))
-        one_of("time_epoch", TIME_EPOCHS)
-        one_of("quaternion_order", ("wxyz", "xyzw"))
-        one_of("quaternion_frame", ("body_to_ned", "ned_to_body"))
-
-        needed = {"start": "start_utc", "seconds_of_day": "date_utc"}.get(self.time_epoch)
-        for name in ("start_utc", "date_utc"):
-            if name != needed and getattr(self, name) is not None:
-                bad(
-                    name,
-                    f'only applies with [units] time_epoch = "{"start" if name == "start_utc" else "seconds_of_day"}"',
-                )
-        if needed == "start_utc" and self.start_utc is not None:
-            object.__setattr__(self, "start_utc", _utc_datetime(self.start_utc, lambda m: bad("start_utc", m)))
-        elif needed == "date_utc" and self.date_utc is not None:
-            object.__setattr__(self, "date_utc", _utc_date(self.date_utc, lambda m: bad("date_utc", m)))
+        _check_rules(self, _UNIT_RULES)
+        if self.time_epoch == "start" and self.start_utc is not None:
+            object.__setattr__(
+                self, "start_utc", _utc_datetime(self.start_utc, lambda m: _refuse(self, "start_utc", m))
+            )
+        elif self.time_epoch == "seconds_of_day" and self.date_utc is not None:
+            object.__setattr__(self, "date_utc", _utc_date(self.date_utc, lambda m: _refuse(self, "date_utc", m)))
 
     @property
     def mag_nt_per_unit(self) -> float:
@@ -388,10 +457,26 @@ def _split_lines(text: str) -> list[str]:
 def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
     """Read a csv, tsv or whitespace table, keeping the file line number of every record."""
     name = str(path)
-    raw = path.read_bytes()
+    text = _decode(path.read_bytes(), cmap, name)
+    header_line, header_text, data_lines, rows = _lines(text, cmap, fmt, name)
+    options = _parser_options(cmap, fmt)
+    names = None
+    if header_line is not None:
+        names = _header_names(header_text, options, name, header_line)
+        data_lines.insert(0, header_text)
+    frame = _parse(data_lines, names, options, cmap, name, rows, header_line)
+    if names is None:
+        names = [f"column_{k + 1}" for k in range(frame.shape[1])]
+    frame.columns = range(frame.shape[1])
+    return _RawTable(frame=frame, names=names, rows=np.asarray(rows), header_row=header_line or 1)
+
+
+def _decode(raw: bytes, cmap: ColumnMap, name: str) -> str:
+    """The file's bytes as text in the map's encoding (a UTF-8 byte-order mark dropped); InputError naming the
+    file ``name``, the line and the byte within it where they are not such text."""
     encoding = "utf-8-sig" if codecs.lookup(cmap.encoding).name == "utf-8" else cmap.encoding
     try:
-        text = raw.decode(encoding)
+        return raw.decode(encoding)
     except UnicodeError as exc:  # UnicodeDecodeError, or a bare UnicodeError (punycode)
         if not isinstance(exc, UnicodeDecodeError):
             raise InputError(f"not {cmap.encoding} text ({' '.join(str(exc).split())})", name) from None
@@ -401,6 +486,12 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
             name,
             raw[: exc.start].count(b"\n") + 1,
         ) from None
+
+
+def _lines(text: str, cmap: ColumnMap, fmt: str, name: str) -> tuple[int | None, str | None, list[str], list[int]]:
+    """``(header_line, header_text, data_lines, rows)``: the header's line number and text (None without one)
+    and the data lines with their line numbers; skipped, blank and comment lines left out, and the rest of a
+    line after a comment."""
     blank = " \t" if fmt == "whitespace" else " "
     comment = cmap.comment
     header_line, header_text = None, None
@@ -410,11 +501,7 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
             continue
         content = line.strip(blank)
         if number == cmap.header:
-            if comment and content.startswith(comment):
-                content = content[1:].strip(blank)
-            if not content:
-                raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source} is an empty line", name, number)
-            header_line, header_text = number, content
+            header_line, header_text = number, _header_line(content, cmap, blank, name, number)
             continue
         if not content or (comment and content.startswith(comment)):
             continue
@@ -425,6 +512,23 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
             line = line[: line.index(comment)].rstrip(blank)
         data_lines.append(line)
         rows.append(number)
+    _check_lines(cmap, header_line, rows, name)
+    return header_line, header_text, data_lines, rows
+
+
+def _header_line(content: str, cmap: ColumnMap, blank: str, name: str, number: int) -> str:
+    """The text of the header at line ``number`` (``content``: the line without surrounding blanks), a leading
+    comment character dropped; InputError naming the file and line if nothing is left."""
+    if cmap.comment and content.startswith(cmap.comment):
+        content = content[1:].strip(blank)
+    if not content:
+        raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source} is an empty line", name, number)
+    return content
+
+
+def _check_lines(cmap: ColumnMap, header_line: int | None, rows: list[int], name: str) -> None:
+    """InputError naming the file ``name`` if the header the map places is past its end, or it has no header
+    and no data, or no data rows."""
     if cmap.header and header_line is None:
         raise InputError(f"{_key('header')} = {cmap.header} in {cmap.source}, but the file has fewer lines", name)
     if header_line is None and cmap.header != 0:
@@ -432,31 +536,47 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
     if not rows:
         raise InputError("the file has no data rows", name, header_line)
 
-    sep = {"csv": cmap.delimiter or ",", "tsv": "\t", "whitespace": r"\s+"}[fmt]
-    options = {
-        "sep": sep,
+
+def _parser_options(cmap: ColumnMap, fmt: str) -> dict:
+    """The options of ``pandas.read_csv`` (C engine) for a ``fmt`` file read through ``cmap``."""
+    return {
+        "sep": {"csv": cmap.delimiter or ",", "tsv": "\t", "whitespace": r"\s+"}[fmt],
         "engine": "c",
-        "comment": comment,
+        "comment": cmap.comment,
         "decimal": cmap.decimal,
         "keep_default_na": False,
         "skip_blank_lines": False,
         "skipinitialspace": fmt != "whitespace",
         "low_memory": False,
     }
-    if header_line is None:
-        fed_rows = np.asarray(rows)
-        names = None
-    else:
-        fed_rows = np.asarray([header_line, *rows])
-        try:
-            first = pd.read_csv(io.StringIO(header_text), header=None, na_filter=False, dtype=str, **options)
-        except pd.errors.ParserError as exc:  # an unclosed quote, for one
-            raise InputError(f"cannot read the header: {str(exc).split('. ')[-1].strip()}", name, header_line) from None
-        names = [str(v).strip() or f"column_{k + 1}" for k, v in enumerate(first.iloc[0].tolist())]
-        for k, column in enumerate(names):
-            if column in names[:k]:
-                raise InputError("the column appears twice in the header", name, header_line, column)
-        data_lines.insert(0, header_text)
+
+
+def _header_names(header_text: str, options: dict, name: str, header_line: int) -> list[str]:
+    """The column names of the header (``column_k`` for a blank one); InputError naming the file ``name``, the
+    header's line and the column for an unreadable header or a column named twice."""
+    try:
+        first = pd.read_csv(io.StringIO(header_text), header=None, na_filter=False, dtype=str, **options)
+    except pd.errors.ParserError as exc:  # an unclosed quote, for one
+        raise InputError(f"cannot read the header: {str(exc).split('. ')[-1].strip()}", name, header_line) from None
+    names = [str(v).strip() or f"column_{k + 1}" for k, v in enumerate(first.iloc[0].tolist())]
+    for k, column in enumerate(names):
+        if column in names[:k]:
+            raise InputError("the column appears twice in the header", name, header_line, column)
+    return names
+
+
+def _parse(
+    data_lines: list[str],
+    names: list[str] | None,
+    options: dict,
+    cmap: ColumnMap,
+    name: str,
+    rows: list[int],
+    header_line: int | None,
+) -> pd.DataFrame:
+    """The cells of ``data_lines`` (the header first unless ``names`` is None), the map's ``missing`` texts as
+    NaN; InputError naming the file ``name`` and the line (of ``rows``) for a record of the wrong length or a
+    quoted cell spanning lines."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", pd.errors.ParserWarning)
@@ -474,6 +594,7 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         if found is None:
             raise InputError(f"not a readable table ({' '.join(str(exc).split())})", name) from None
         expected, line, saw = map(int, found.groups())
+        fed_rows = rows if header_line is None else [header_line, *rows]
         raise InputError(
             f"{saw} fields where {'the header has' if names else 'the first row has'} {expected}",
             name,
@@ -481,10 +602,7 @@ def _read_text(path: Path, cmap: ColumnMap, fmt: str) -> _RawTable:
         ) from None
     if len(frame) != len(rows):
         raise InputError("a quoted cell spans several lines; magkf reads one record per line", name)
-    if names is None:
-        names = [f"column_{k + 1}" for k in range(frame.shape[1])]
-    frame.columns = range(frame.shape[1])
-    return _RawTable(frame=frame, names=names, rows=np.asarray(rows), header_row=header_line or 1)
+    return frame
 
 
 def _read_parquet(path: Path) -> _RawTable:
@@ -636,6 +754,164 @@ def _resolve(spec: str | int, key: str, raw: _RawTable, cmap: ColumnMap, source:
     return raw.names.index(spec)
 
 
+@dataclass(frozen=True)
+class _Mapped:
+    """A table as read, with the position of the file column that each ``[columns]`` key of the map names: the
+    key's cells as numbers, and refusals that name the file, row and column."""
+
+    raw: _RawTable
+    cmap: ColumnMap
+    source: str
+    #: ``[columns]`` key -> position of its file column.
+    positions: dict[str, int]
+
+    def column(self, key: str) -> str:
+        """The name of the file column that ``key`` maps."""
+        return self.raw.names[self.positions[key]]
+
+    def cells(self, key: str) -> np.ndarray:
+        """(N,) floats of the file column that ``key`` maps (``_numeric``)."""
+        k = self.positions[key]
+        return _numeric(self.raw.frame[k], self.raw, self.source, self.raw.names[k], self.cmap.decimal)
+
+    def check_range(self, key: str, file_values: np.ndarray, values: np.ndarray, conversion: str) -> None:
+        """InputError at the first finite file value of ``key`` that ``conversion`` made infinite."""
+        overflow = np.flatnonzero(~np.isfinite(values) & np.isfinite(file_values))
+        if overflow.size:
+            i = int(overflow[0])
+            raise InputError(
+                f"{float(file_values[i])!r} is out of range once converted ({conversion})",
+                self.source,
+                int(self.raw.rows[i]),
+                self.column(key),
+            )
+
+
+def _data_format(path: Path, cmap: ColumnMap) -> str:
+    """The format of the data file ``path`` (the map's, else its extension's), once the file and the map's
+    ``[file]`` keys are known to fit it; InputError naming the file otherwise."""
+    source = str(path)
+    if not path.is_file():
+        raise InputError("no such file", source)
+    fmt = cmap.format or EXTENSION_FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        raise InputError(
+            f"cannot tell the format from the extension {path.suffix!r}: set {_key('format')} "
+            f"({', '.join(FORMATS)}) in {cmap.source}",
+            source,
+        )
+    _check_layout(cmap, fmt, source)
+    return fmt
+
+
+def _time_column(mapped: _Mapped) -> tuple[np.ndarray, str]:
+    """(N,) UNIX seconds of every record, and how they were read; InputError at a time that does not increase."""
+    file_time = mapped.cells(TIME)
+    time_values, time_base = _unix_time(file_time, mapped.cmap, mapped.raw, mapped.source, mapped.column(TIME))
+    mapped.check_range(TIME, file_time, time_values, time_base)
+    back = np.flatnonzero(np.diff(time_values) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        hint = (
+            " (a midnight rollover is a decrease of more than 43 200 s)"
+            if mapped.cmap.time_epoch == "seconds_of_day"
+            else ""
+        )
+        raise InputError(
+            f"time not strictly increasing ({float(file_time[i])!r} after {float(file_time[i - 1])!r}){hint}",
+            mapped.source,
+            int(mapped.raw.rows[i]),
+            mapped.column(TIME),
+        )
+    return time_values, time_base
+
+
+def _mapped_columns(mapped: _Mapped) -> tuple[dict, dict, str]:
+    """``(out, described, time_base)``: every mapped column in magkf's units (``time`` first, then the attitude
+    from a quaternion, then the other keys in the map's order), its source and conversion in words, and how
+    the time was read."""
+    cmap = mapped.cmap
+    time_values, time_base = _time_column(mapped)
+    out, described = {TIME: time_values}, {TIME: f"{mapped.column(TIME)} ({time_base})"}
+    if QUATERNION[0] in mapped.positions:
+        q = np.column_stack([mapped.cells(k) for k in QUATERNION])
+        quaternion_columns = [mapped.column(k) for k in QUATERNION]
+        angles = _quaternion_attitude(q, cmap, mapped.raw, mapped.source, quaternion_columns[0])
+        for name, values in zip(ATTITUDE, angles):
+            out[name] = values
+            described[name] = (
+                f"{', '.join(quaternion_columns)} (quaternion {cmap.quaternion_order}, "
+                f"{cmap.quaternion_frame} -> ZYX Euler {name}, deg)"
+            )
+    for key in cmap.columns:
+        if key in (TIME, *QUATERNION):
+            continue
+        file_values = mapped.cells(key)
+        with np.errstate(over="ignore"):
+            out[key], conversion = _convert(key, file_values, cmap)
+        mapped.check_range(key, file_values, out[key], conversion)
+        described[key] = f"{mapped.column(key)} ({conversion})"
+    return out, described, time_base
+
+
+def _unmapped_columns(mapped: _Mapped, out: dict, described: dict) -> dict[str, str]:
+    """Add the file's unmapped numeric columns to ``out`` as auxiliary channels (with ``keep_unmapped``) and
+    their sources to ``described``; returns the columns left out, with the reason."""
+    cmap, raw = mapped.cmap, mapped.raw
+    ignored = {}
+    used = set(mapped.positions.values())
+    for k, column in enumerate(raw.names):
+        if k in used:
+            continue
+        if not cmap.keep_unmapped:
+            ignored[column] = "unmapped (keep_unmapped = false)"
+        elif column in out or column in CORE_COLUMNS or column in QUATERNION:
+            ignored[column] = "unmapped, and its name is a canonical column"
+        elif not _is_numeric_column(raw.frame[k]):
+            ignored[column] = "unmapped text column"
+        else:
+            out[column] = _numeric(
+                raw.frame[k],
+                raw,
+                mapped.source,
+                column,
+                cmap.decimal,
+                f" (an unmapped column; set [columns] keep_unmapped = false in {cmap.source} "
+                "to leave such columns out)",
+            )
+            described[column] = f"{column} (unmapped, auxiliary, as is)"
+    return ignored
+
+
+def _check_unit(out: dict, cmap: ColumnMap, source: str) -> None:
+    """Warn (UnitWarning) when the median field magnitude, in nT, looks like another unit than the map's."""
+    mag = np.column_stack([out[c] for c in MAG])
+    complete = np.all(np.isfinite(mag), axis=1)
+    if not complete.any():
+        return
+    with np.errstate(over="ignore"):
+        median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
+    guess = likely_unit(median)
+    if guess not in (None, "nT"):
+        warnings.warn(
+            f"{source}: the magnetometer magnitudes (median {median:.4g} nT after conversion) look "
+            f"like {guess}, not {cmap.mag}; check {_key('mag')} in {cmap.source}",
+            UnitWarning,
+            stacklevel=3,
+        )
+
+
+def _units(cmap: ColumnMap) -> dict:
+    """The map's ``[units]`` that apply, JSON-able (dates as ISO 8601), for the provenance."""
+    units = {f.name: getattr(cmap, f.name) for f in fields(cmap) if f.name in SECTIONS["units"]}
+    units = {k: (v.isoformat() if isinstance(v, (date, datetime)) else v) for k, v in units.items() if v is not None}
+    if REF[0] in cmap.columns:
+        units["ref"] = cmap.ref_unit
+    if QUATERNION[0] not in cmap.columns:
+        del units["quaternion_order"], units["quaternion_frame"]
+    return units
+
+
 def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame, dict]:
     """Read a table through a column map into the canonical drive log.
 
@@ -670,128 +946,25 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
     cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
     path = Path(path)
     source = str(path)
-    if not path.is_file():
-        raise InputError("no such file", source)
-    fmt = cmap.format or EXTENSION_FORMATS.get(path.suffix.lower())
-    if fmt is None:
-        raise InputError(
-            f"cannot tell the format from the extension {path.suffix!r}: set {_key('format')} "
-            f"({', '.join(FORMATS)}) in {cmap.source}",
-            source,
-        )
-    _check_layout(cmap, fmt, source)
+    fmt = _data_format(path, cmap)
     raw = _read_parquet(path) if fmt == "parquet" else _read_text(path, cmap, fmt)
-
     positions = {key: _resolve(spec, key, raw, cmap, source) for key, spec in cmap.columns.items()}
-
-    def cells(key: str) -> np.ndarray:
-        k = positions[key]
-        return _numeric(raw.frame[k], raw, source, raw.names[k], cmap.decimal)
-
-    def out_of_range(key: str, file_values: np.ndarray, values: np.ndarray, conversion: str) -> None:
-        overflow = np.flatnonzero(~np.isfinite(values) & np.isfinite(file_values))
-        if overflow.size:
-            i = int(overflow[0])
-            raise InputError(
-                f"{float(file_values[i])!r} is out of range once converted ({conversion})",
-                source,
-                int(raw.rows[i]),
-                raw.names[positions[key]],
-            )
-
-    out, described = {}, {}
-    file_time = cells(TIME)
-    time_values, time_base = _unix_time(file_time, cmap, raw, source, raw.names[positions[TIME]])
-    out_of_range(TIME, file_time, time_values, time_base)
-    back = np.flatnonzero(np.diff(time_values) <= 0)
-    if back.size:
-        i = int(back[0]) + 1
-        hint = (
-            " (a midnight rollover is a decrease of more than 43 200 s)" if cmap.time_epoch == "seconds_of_day" else ""
-        )
-        raise InputError(
-            f"time not strictly increasing ({float(file_time[i])!r} after {float(file_time[i - 1])!r}){hint}",
-            source,
-            int(raw.rows[i]),
-            raw.names[positions[TIME]],
-        )
-    out[TIME], described[TIME] = time_values, f"{raw.names[positions[TIME]]} ({time_base})"
-
-    if QUATERNION[0] in positions:
-        q = np.column_stack([cells(k) for k in QUATERNION])
-        quaternion_columns = [raw.names[positions[k]] for k in QUATERNION]
-        angles = _quaternion_attitude(q, cmap, raw, source, quaternion_columns[0])
-        for name, values in zip(ATTITUDE, angles):
-            out[name] = values
-            described[name] = (
-                f"{', '.join(quaternion_columns)} (quaternion {cmap.quaternion_order}, "
-                f"{cmap.quaternion_frame} -> ZYX Euler {name}, deg)"
-            )
-    for key in cmap.columns:
-        if key in (TIME, *QUATERNION):
-            continue
-        file_values = cells(key)
-        with np.errstate(over="ignore"):
-            out[key], conversion = _convert(key, file_values, cmap)
-        out_of_range(key, file_values, out[key], conversion)
-        described[key] = f"{raw.names[positions[key]]} ({conversion})"
-
-    ignored = {}
-    used = set(positions.values())
-    for k, column in enumerate(raw.names):
-        if k in used:
-            continue
-        if not cmap.keep_unmapped:
-            ignored[column] = "unmapped (keep_unmapped = false)"
-        elif column in out or column in CORE_COLUMNS or column in QUATERNION:
-            ignored[column] = "unmapped, and its name is a canonical column"
-        elif not _is_numeric_column(raw.frame[k]):
-            ignored[column] = "unmapped text column"
-        else:
-            out[column] = _numeric(
-                raw.frame[k],
-                raw,
-                source,
-                column,
-                cmap.decimal,
-                f" (an unmapped column; set [columns] keep_unmapped = false in {cmap.source} "
-                "to leave such columns out)",
-            )
-            described[column] = f"{column} (unmapped, auxiliary, as is)"
-
-    mag = np.column_stack([out[c] for c in MAG])
-    complete = np.all(np.isfinite(mag), axis=1)
-    if complete.any():
-        with np.errstate(over="ignore"):
-            median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
-        guess = likely_unit(median)
-        if guess not in (None, "nT"):
-            warnings.warn(
-                f"{source}: the magnetometer magnitudes (median {median:.4g} nT after conversion) look "
-                f"like {guess}, not {cmap.mag}; check {_key('mag')} in {cmap.source}",
-                UnitWarning,
-                stacklevel=2,
-            )
-
+    mapped = _Mapped(raw, cmap, source, positions)
+    out, described, time_base = _mapped_columns(mapped)
+    ignored = _unmapped_columns(mapped, out, described)
+    _check_unit(out, cmap, source)
     order = [c for c in CORE_COLUMNS if c in out] + [c for c in out if c not in CORE_COLUMNS]
-    table = pd.DataFrame({c: out[c] for c in order})
-    units = {f.name: getattr(cmap, f.name) for f in fields(cmap) if f.name in SECTIONS["units"]}
-    units = {k: (v.isoformat() if isinstance(v, (date, datetime)) else v) for k, v in units.items() if v is not None}
-    if REF[0] in cmap.columns:
-        units["ref"] = cmap.ref_unit
-    if QUATERNION[0] not in cmap.columns:
-        del units["quaternion_order"], units["quaternion_frame"]
     provenance = {
         "format": "mapped-table",
         "file": source,
         "map": cmap.source,
         "file_format": fmt,
         "columns": {c: described[c] for c in order},
-        "units": units,
+        "units": _units(cmap),
         "time_base": time_base,
         "ignored": ignored,
     }
-    return table, provenance
+    return pd.DataFrame({c: out[c] for c in order}), provenance
 
 
 class MappedTable(LogReader):
