@@ -25,10 +25,12 @@ are folded into the ``n x n`` normal equations ``J^T W J`` and ``J^T W r`` and d
 prepared log, the solver holds the usable epochs' indices and flags (about ten bytes per epoch) whatever
 the length of the log.
 
-* The Jacobian is analytic in the state: ``dc/dx = -R^-1 dm/dx`` evaluated at ``c`` (``core_jacobian(c)``
-  for ``R`` and ``b``, the effects' own ``jacobian`` for theirs), times the residual functions' derivative
-  in ``c`` (a measurement model gives its residuals as a function of each epoch's calibrated field, so
-  that derivative is three central differences of that function, per epoch).
+* Each model gives its residuals and their Jacobian (``MeasurementModel.batch_residuals``). The built-in
+  ones give the residuals above as a function of each epoch's calibrated field (``measurements.
+  field_residuals``): their Jacobian is analytic in the state, ``dc/dx = -R^-1 dm/dx`` evaluated at ``c``
+  (``core_jacobian(c)`` for ``R`` and ``b``, the effects' own ``jacobian`` for theirs), times the residual
+  functions' derivative in ``c``, three central differences of that function per epoch. Any other model's
+  are its rows whitened by its noise at the start, ``W (predict - measure)``, with ``W jacobian``.
 * The robust pass is iteratively reweighted Gauss-Newton with a backtracking line search. The
   ``soft_l1`` cost of a residual ``r`` with scale ``s`` is ``s^2 (sqrt(1 + (r/s)^2) - 1)``; its derivative
   is ``r / sqrt(1 + (r/s)^2)``, which is the derivative of ``w r^2 / 2`` with the weight
@@ -64,13 +66,12 @@ from scipy.linalg import cho_factor, cho_solve
 from ..blas import one_thread
 from ..calibration import Calibration
 from ..config import FilterConfig
-from ..conventions import inverse3
-from ..effects.core import core_jacobian
+from ..effects.base import EpochData
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
 from ..status import Status
 from .bootstrap import vector_least_squares
-from .measurements import MeasurementModel
+from .measurements import Block, MeasurementModel
 from .prepare import PreparedLog, fit_positions, prepare, prepare_run
 from .results import RunTrace, build_run
 from .state import StateLayout
@@ -105,8 +106,6 @@ MAX_ITERATIONS = 100
 COST_RTOL = 1e-12
 #: A step is halved at most this many times before the pass stops.
 MAX_HALVINGS = 10
-#: Central-difference step of the residual functions in the calibrated field, relative to its length.
-FIELD_STEP = 1e-4
 
 
 @dataclass(frozen=True)
@@ -186,32 +185,23 @@ class BatchProblem:
         return layout.calibrated(x, self.prep.m[epochs], terms), data
 
     def residuals(self, x, model: MeasurementModel, epochs, jacobian: bool = False):
-        """Normalised residuals ``r`` (k, q) of ``epochs`` (k,) at state ``x`` (n,) for ``model``; with
-        ``jacobian``, ``(r, J)`` with ``J = dr/dx`` (k, q, n)."""
+        """Normalised residuals ``r`` (k, q) of ``epochs`` (k,) at state ``x`` (n,) for ``model``
+        (``MeasurementModel.batch_residuals``, with its noise at the start ``x0``); with ``jacobian``, ``(r, J)``
+        with ``J = dr/dx`` (k, q, n)."""
+        return model.batch_residuals(x, self.block(epochs), jacobian, noise_at=self.x0)
+
+    def block(self, epochs) -> Block:
+        """The log's ``epochs`` (k,) as the models see them (``Block``): the readings, the reference magnitude,
+        the body field, the start's ``R`` (the noise's), and the epochs' ``EpochData`` (without effects, only
+        the time, the fields and the attitude); without the linear Jacobian (``Block.H`` None), which a model
+        that needs it makes."""
         prep = self.prep
-        f = model.batch_residuals(prep.ref[epochs], prep.c_nb[epochs], prep.ref_mag[epochs])
-        c, data = self.calibrated(x, epochs)
-        r = f(c)
-        if not jacobian:
-            return r
-        # dr/dc (k, q, 3): each epoch's residuals are a function of its own calibrated field
-        h = FIELD_STEP * np.maximum(np.linalg.norm(c, axis=1), 1.0)
-        drdc = np.empty(r.shape + (3,))
-        for a in range(3):
-            shifted = c.copy()
-            shifted[:, a] += h
-            up = f(shifted)
-            shifted[:, a] -= 2 * h
-            drdc[:, :, a] = (up - f(shifted)) / (2 * h[:, None])
-        # dc/dx = -R^-1 dm/dx with m = R c + b + e(x): the core's Jacobian at c, the effects' their own
-        layout = self.layout
-        if data is None:
-            dmdx = core_jacobian(c)
+        if self.layout.has_extra:
+            data = prep.data.take(epochs)
         else:
-            dmdx = np.nan_to_num(layout.jacobian(x, data))  # missing inputs count as 0, as in effect_terms
-            dmdx[:, :, layout.CORE] = core_jacobian(c)
-        dcdx = -(inverse3(layout.R(x)) @ dmdx)
-        return r, drdc @ dcdx
+            d = prep.data
+            data = EpochData(d.time[epochs], d.field_body[epochs], prep.ref[epochs], c_nb=prep.c_nb[epochs])
+        return Block(prep.m[epochs], prep.ref_mag[epochs], None, data.field_body, self.layout.R(self.x0), data=data)
 
     def normal_equations(self, x, scale: float | None = None, keep=None) -> NormalEquations:
         """The normal equations at state ``x`` (n,): under the ``soft_l1`` loss of ``scale`` (IRLS weights), or

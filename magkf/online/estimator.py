@@ -27,7 +27,7 @@ import numpy as np
 from ..config import FilterConfig
 from ..status import GATED_INNOVATION, GATED_MAGNITUDE, MISSING_ATTITUDE, USED
 from .filters import make_filter
-from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model, whitening
+from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model
 from .noise import NoiseLearner, NoiseLevels
 from .state import StateLayout
 
@@ -55,25 +55,6 @@ def _huber(q: float, nis: np.ndarray) -> np.ndarray:
     """Huber weights (k,) of epochs of normalised innovation squared ``nis`` (k,): 1 up to the quantile ``q``,
     ``sqrt(q / nis)`` beyond it."""
     return np.minimum(1.0, np.sqrt(q / np.maximum(nis, 1e-300)))
-
-
-def correlated_whitening(cov, frame, inflations) -> tuple[np.ndarray, np.ndarray]:
-    """The whitening ``W`` (k, 3, 3) of noise of covariance ``cov`` (k, 3, 3) inflated by ``inflations``
-    (along the field, ``h``, ``v``) along the rows of ``frame`` (k, 3, 3: the field's direction, the heading
-    axis and the third, in the sensor axes; ``measurements.field_frame``), and ``N = W cov W^T`` (k, 3, 3),
-    the covariance of the un-inflated noise in the whitened rows.
-
-    With ``M = frame cov frame^T`` the noise in the field's frame and ``D`` the inflations' square roots:
-    ``W = chol(D M D)^-1 frame`` (``measurements.whitening``).
-    """
-    d = np.sqrt(np.asarray(inflations, float))
-    if len(cov) == 1:  # one epoch (real time): plain 3x3 products cost less than stacked ones
-        c, f = cov[0], frame[0]
-        W = whitening(((f @ c @ f.T) * d[:, None] * d[None, :])[None])[0] @ f
-        return W[None], (W @ c @ W.T)[None]
-    M = frame @ cov @ np.swapaxes(frame, 1, 2)
-    W = whitening(M * d[:, None] * d[None, :]) @ frame
-    return W, W @ cov @ np.swapaxes(W, 1, 2)
 
 
 def run_model(config: FilterConfig, layout: StateLayout, x0, magnitude_only: bool = False) -> MeasurementModel:
@@ -202,7 +183,7 @@ class Estimator:
         self._gate_and_update(t, blk, h, predicted, parts, cand, status, updated, nis)
         # What the block's innovations teach about the noise applies from the next block on: a span of
         # blocks is whitened at once (``whiten``), and a block's gates and update use one noise throughout.
-        self._learn(t, x, blk, h, parts, predicted)
+        self._learn(t, x, blk, parts, predicted)
         return status, updated, nis
 
     def _gate_and_update(self, t, blk: Block, h, predicted, parts, cand, status, updated, nis) -> None:
@@ -224,7 +205,7 @@ class Estimator:
                 return
         if blk.whitened_with is not self.noise:
             self.whiten(blk)
-        part_blocks = [blk if np.count_nonzero(mask) == len(mask) else blk.take(mask) for _, mask in parts]
+        part_blocks = [self._part_block(model, blk, mask) for model, mask in parts]
         lin = kf.linearise([(model, b) for (model, _), b in zip(parts, part_blocks)])
         gated = np.zeros(k, bool)
         accept_parts = []
@@ -239,7 +220,7 @@ class Estimator:
             # counts 1 / inflation of an independent one (the residuals' correlation in time), along the
             # field and across it apart.
             q = self._bound(self.config.huber_prob, model.rows)
-            if part.N is not None and model.rows == part.N.shape[1]:  # the correlation is in the whitening
+            if part.N is not None:  # the correlation is in the whitening (``MeasurementModel.whiten``)
                 if np.count_nonzero(rows.nis > q):  # else every weight is 1
                     _scale_rows(rows, np.sqrt(_huber(q, rows.nis)))
             else:
@@ -252,42 +233,40 @@ class Estimator:
             self.information += H.T @ H
             updated[accept] = True
 
+    def _part_block(self, model, blk: Block, mask) -> Block:
+        """The epochs ``mask`` (k,) of ``blk`` for ``model``: the run's model takes the block as it was whitened
+        for it, the fallback takes it without the run's model's noise structure and whitening
+        (``Block.for_fallback``)."""
+        part = blk if np.count_nonzero(mask) == len(mask) else blk.take(mask)
+        return part if model is self.model else part.for_fallback()
+
     def whiten(self, blk: Block) -> None:
-        """Set the whitening of ``blk``'s epochs at the current noise (``Block.W``, ``Block.N``): the model's,
-        with the residuals' correlation in time folded in for a three-row model (its rows are then whitened
-        by the noise inflated along the field's frame, ``correlated_whitening``, and ``N`` is the covariance
-        of the model's own whitened noise in those rows, which the gates use). Computed once for many
-        blocks when ``blk`` spans them (``Block.take`` keeps it)."""
-        noise, model = self.noise, self.model
-        cov = model.covariance(blk) if model.needs_attitude and model.rows == 3 and blk.frame is not None else None
-        if cov is not None:
-            blk.W, blk.N = correlated_whitening(cov, blk.frame, noise.inflations)
-        else:
-            model.whiten(blk)
-            blk.N = None
+        """Set the whitening of ``blk``'s epochs at the current noise (``Block.W``, ``Block.N``): the model's
+        (``MeasurementModel.whiten``), with the residuals' correlation in time folded in along the field's
+        frame where the model's rows allow it (``N`` is then the covariance of the model's own whitened noise
+        in those rows, which the gates use). Computed once for many blocks when ``blk`` spans them
+        (``Block.take`` keeps it)."""
+        noise = self.noise
+        self.model.whiten(self.x, blk, noise.inflations)
         blk.whitened_with = noise
 
-    def _learn(self, t, x, blk: Block, h, parts, predicted: float) -> None:
+    def _learn(self, t, x, blk: Block, parts, predicted: float) -> None:
         """Show the noise learner the innovations of the candidate epochs (before any gate: the learner
-        winsorises them itself) and give the models what it learned."""
+        winsorises them itself) and give the models what it learned. Each model gives its innovations at the
+        estimate ``x`` (``MeasurementModel.innovation``), split along the field and across it by its own
+        frame (``along_across``; the block's frame is the run's model's, none for the fallback)."""
         along, cross, field2, horizontal2, times = [], [], [], [], []
         for model, mask in parts:
             count = np.count_nonzero(mask)
             if not count:
                 continue
             pick = slice(None) if count == len(mask) else mask  # a view when every epoch is the part's
+            frame = blk.frame if model is self.model else None
+            innovation = model.innovation(x, blk if model is self.model else blk.for_fallback())[pick]
+            a, c = model.along_across(innovation, None if frame is None else frame[pick])
+            along.append(a)
+            cross.append(c)
             heading = blk.heading[pick]
-            if model.needs_attitude and blk.frame is not None:
-                e = blk.m[pick] - blk.H[pick] @ x
-                if self.layout.nonlinear:  # their terms, which the linear Jacobian's zero columns leave out
-                    extra = self.layout.EXTRA
-                    e = e - (blk.e[pick] - blk.H[pick][:, :, extra] @ x[extra])
-                parts_of_e = (blk.frame[pick] @ e[:, :, None])[:, :, 0]  # along the field, h, v
-                along.append(parts_of_e[:, 0])
-                cross.append(parts_of_e[:, 1:])
-            else:
-                along.append(blk.ref_mag[pick] - h[pick])
-                cross.append(None)
             field2.append(blk.ref_mag[pick] ** 2)
             horizontal2.append((heading * heading).sum(axis=1))
             times.append(np.asarray(t)[pick])

@@ -67,7 +67,7 @@ def _guard(P: np.ndarray) -> np.ndarray:
 def _add_noise(S: np.ndarray, blk) -> None:
     """Add the whitened noise of ``blk`` (``Block.N``, or the identity) to innovation covariances (k, r, r)."""
     N = getattr(blk, "N", None)
-    if N is not None and S.shape[1] == N.shape[1]:
+    if N is not None:  # the block was whitened for the model whose rows these are (``Estimator._part_block``)
         S += N
     else:
         r = S.shape[1]

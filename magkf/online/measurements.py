@@ -1,10 +1,16 @@
 """Measurement models of the online calibration, one class each: ``magnitude``, ``vector`` and ``both``.
 
-A model knows which epochs it can use (``needs_attitude``, and ``fallback``: the model for the epochs it
-cannot use), its noise, its linearisation of a block of epochs for the EKF (whitened innovation and
-Jacobian), its prediction at sigma points for the UKF, and its normalised residuals for the batch
-solver. The filters, the estimator, the batch solver and the real-time path call these methods and never
-look at a model's name; ``MEASUREMENTS`` maps a name to its class, and ``register_measurement`` adds one.
+A model is filter-neutral, as navlie's and Stone Soup's are: for a block of epochs it gives what it measures
+(``measure``), what a state or a stack of states predicts (``predict``), the prediction's Jacobian
+(``jacobian``) and the noise (``covariance``), and which epochs it can use (``needs_attitude``, and
+``fallback``: the model for the epochs it cannot use). ``MeasurementModel`` declares these four as abstract
+methods and gives every estimator its rows from them alone: the EKF's whitened innovation and Jacobian
+(``linearise``), the UKF's whitened predictions at sigma points (``sigma_predict``), the batch solver's
+normalised residuals (``batch_residuals``), the noise learner's innovations (``innovation``, split along the
+field by ``along_across``) and the estimator's whitening (``whiten``). The built-in models override these
+with faster forms of the same numbers (``tests/unit/test_model_equivalence.py`` compares them). The filters,
+the estimator, the batch solver and the real-time path call these methods and never look at a model's name
+or its number of rows; ``MEASUREMENTS`` maps a name to its class, and ``register_measurement`` adds one.
 
 **Vector** (``vector``, ``both``). The NED components of the calibrated field, ``C_nb R^-1 (m - b - e)``,
 against the reference ``B_ref``. The same equation, multiplied through by ``R C_nb^T``, reads
@@ -29,19 +35,29 @@ along both cross directions. For ``vector``, ``A = tilt^2 |B|^2 I + (heading^2 -
 measurement of a run, it cannot see a rotation ``R -> R Q``: its Jacobian is projected off those
 directions (an observability-constrained EKF), so the filter gains no spurious information there.
 
+**Batch residuals of the built-in models.** The batch solver's objective for them is the patent's, in
+terms of the calibrated field ``c``: the total-field residual ``|c| - |B_ref|`` and the NED residual
+``C_nb c - B_ref`` (``vector``: all three components; ``both``: the two across the reference field), each
+divided by a standard deviation of the same noise levels (``_sigma_total``, ``_sigma_cross``). These are
+not the filter's rows whitened (another frame, and a diagonal noise), so ``batch_residuals`` of these models
+is their own; a model that does not override it gets its filter rows whitened (``field_residuals`` is the
+calibrated-field form's machinery).
+
 Shapes: a block of k epochs; ``r`` rows per epoch (``Model.rows``); n states; S sigma points.
 """
 
 from __future__ import annotations
 
+import abc
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..config import FilterConfig
 from ..conventions import body_to_ned, calibrated_field, inverse3, ned_to_body
 from ..effects.base import EpochData
+from ..effects.core import core_jacobian
 from ..plugins import MEASUREMENTS
 from .noise import NoiseLevels
 from .state import StateLayout
@@ -66,6 +82,9 @@ __all__ = [
     "field_frame",
     "sensor_frame",
     "whitening",
+    "correlated_whitening",
+    "field_residuals",
+    "FIELD_STEP",
     "magnitude_jacobian",
     "rotation_directions",
 ]
@@ -78,18 +97,21 @@ class Block:
     """k consecutive epochs as the models see them.
 
     ``m`` (k, 3) raw nT; ``ref_mag`` (k,) reference magnitude nT; ``H`` (k, 3, n) Jacobian of the linear
-    blocks (``StateLayout.linear_jacobian``); ``B`` (k, 3) the reference field in the body frame and ``R``
-    (3, 3) the calibration at which the vector noise is evaluated; ``heading`` (k, 3) nT the heading axis
-    ``B x down`` in the body frame (``heading_axis``); ``G`` (k, 3, 3) the tilt part of the vector noise
-    per unit variance, ``Gh`` (k, 3, 3) the heading part and ``RRt`` (3, 3) the reference part,
-    precomputed (``Vector.structure``; None to compute them from ``B``, ``heading`` and ``R``), ``frame``
-    (k, 3, 3) the unit field in the sensor frame, the horizontal direction across it and the third, as
-    rows (``field_frame``; None for a model that needs no attitude); ``data`` the epochs' ``EpochData``
-    (needed by nonlinear effects); ``e`` (k, 3) raw-field terms of the added effects at the current
-    estimate; ``W`` (k, 3, 3) the whitening at the current noise, set by the model (``Vector.whiten``) and
-    then by the estimator, which folds the residuals' correlation in time into it; ``N`` (k, 3, 3) the
-    covariance of the noise whitened by ``W`` as the gates see it (None: the identity); ``whitened_with`` the
-    ``NoiseLevels`` that ``W`` and ``N`` were computed at (None: not yet whitened).
+    blocks (``StateLayout.linear_jacobian``; None in the batch solver's blocks, made by the models that need
+    it); ``B`` (k, 3) the reference field in the body frame and ``R`` (3, 3) the calibration at which the
+    vector noise is evaluated; ``heading`` (k, 3) nT the heading axis ``B x down`` in the body frame
+    (``heading_axis``); ``G`` (k, 3, 3) the tilt part of the vector noise per unit variance, ``Gh`` (k, 3, 3)
+    the heading part and ``RRt`` (3, 3) the reference part, precomputed (``Vector.structure``; None to compute
+    them from ``B``, ``heading`` and ``R``), ``frame`` (k, 3, r) the unit field in the sensor frame, the
+    horizontal direction across it and the third, as rows in the model's r rows (``structure``; None for a
+    model that needs no attitude); ``data`` the epochs' ``EpochData`` (needed by nonlinear effects); ``e``
+    (k, 3) raw-field terms of the added effects at the current estimate (set by the estimator); ``W`` (k, r,
+    r) the whitening of the model's rows at the current noise, with the residuals' correlation in time folded
+    in (``MeasurementModel.whiten``, which the estimator calls; None: the model whitens its rows at the
+    estimate); ``N`` (k, r, r) the covariance of the noise whitened by ``W`` as the gates see it (None: the
+    identity); ``whitened_with`` the ``NoiseLevels`` that ``W`` and ``N`` were computed at (None: not yet
+    whitened). ``G``, ``Gh``, ``RRt``, ``frame``, ``W`` and ``N`` belong to the model the block was made for
+    (``for_fallback`` clears them for its fallback).
     """
 
     m: np.ndarray
@@ -117,7 +139,7 @@ class Block:
         return Block(
             self.m[index],
             self.ref_mag[index],
-            self.H[index],
+            cut(self.H),
             cut(self.B),
             self.R,
             cut(self.heading),
@@ -132,26 +154,72 @@ class Block:
             self.whitened_with,
         )
 
+    def for_fallback(self) -> Block:
+        """The same epochs for the fallback model: without the noise structure and the whitening, which are the
+        model's the block was made for."""
+        return replace(self, G=None, Gh=None, RRt=None, frame=None, W=None, N=None)
 
-class MeasurementModel:
-    """Base class of a measurement model (subclass it and ``register_measurement`` it).
 
-    Class attributes: ``name``; ``rows`` per epoch; ``needs_attitude``. Constructed with the run's
-    ``config``, ``layout`` and initial state ``x0``; ``fallback`` is the model for the epochs this one
-    cannot use (epochs without attitude), or None.
+#: The methods every measurement model implements (``MeasurementModel``'s abstract methods).
+REQUIRED = ("measure", "predict", "jacobian", "covariance")
+
+
+class MeasurementModel(abc.ABC):
+    """Base class of a measurement model: subclass it, implement ``measure``, ``predict``, ``jacobian`` and
+    ``covariance``, and ``register_measurement`` it.
+
+    A model compares ``rows`` rows per epoch of what it measures with what a state predicts. From its four
+    methods the base class gives every estimator its rows: ``linearise`` (EKF), ``sigma_predict`` (UKF),
+    ``batch_residuals`` (batch solver), ``innovation`` and ``along_across`` (noise learner), ``whiten`` (the
+    estimator's whitening of a span of blocks). Rows are whitened by the inverse Cholesky factor ``W = L^-1``
+    of the covariance ``L L^T`` (``whitening``). A subclass may override any of these with a faster form of
+    the same numbers, as the built-in models do.
+
+    Parameters
+    ----------
+    config : FilterConfig
+        The run's settings (the configured noise is the start of ``noise``).
+    layout : StateLayout
+        The state's blocks: ``R`` row-major and ``b`` (nT) first, then each effect's parameters.
+    x0 : ndarray, shape (n,)
+        The initial state.
+
+    Attributes
+    ----------
+    name : str
+        The name ``FilterConfig(measure=...)`` and ``--measure`` take.
+    rows : int
+        Rows per epoch, ``r``: the degrees of freedom of an epoch's NIS.
+    needs_attitude : bool
+        The model takes epochs with attitude only; ``fallback`` takes the others.
+    linear : bool
+        The rows are linear in the state, for every state; the UKF then takes them at the estimate through
+        ``linearise``, as the EKF does (the unscented transform of a linear function is exact, so its sigma
+        points would give the same).
+    noise_depends_on_state : bool
+        ``covariance`` changes with the state: the rows are then whitened at the estimate in every update
+        (``whiten`` leaves ``Block.W`` None), and the residuals' correlation in time counts as the along-field
+        inflation. False: the noise is whitened once for a span of blocks, the correlation folded in.
+    fallback : MeasurementModel or None
+        The model for the epochs this one cannot use (epochs without attitude).
+    projector : ndarray, shape (n, n), or None
+        The rows are taken blind to the state directions the (symmetric) projector removes: ``linearise``'s
+        and ``sigma_predict``'s Jacobian is projected by it and sigma points move along them no more (an
+        observability-constrained filter). None: every direction is seen.
+    noise : NoiseLevels
+        The noise levels ``covariance`` is evaluated at (``set_noise``).
     """
 
     name: str = "measurement"
     rows: int = 1
     needs_attitude: bool = False
-    #: The rows are linear in the state; a model says so only where it holds for every state. The UKF then
-    #: takes them at the estimate through ``linearise`` (which such a model must implement), as the EKF does:
-    #: the unscented transform of a linear function is exact, so its sigma points would give the same.
     linear: bool = False
+    noise_depends_on_state: bool = False
 
     def __init__(self, config: FilterConfig, layout: StateLayout, x0):
         self.config, self.layout = config, layout
         self.fallback: MeasurementModel | None = None
+        self.projector: np.ndarray | None = None
         self.noise = NoiseLevels(config.sensor_noise_nt, np.radians(config.attitude_deg), config.reference_nt)
 
     def set_noise(self, noise: NoiseLevels) -> None:
@@ -160,56 +228,281 @@ class MeasurementModel:
         if self.fallback is not None:
             self.fallback.set_noise(noise)
 
+    # ------------------------------------------------------------ the model: implement these four
+    @abc.abstractmethod
+    def measure(self, blk: Block) -> np.ndarray:
+        """What the model measures at the block's epochs.
+
+        Parameters
+        ----------
+        blk : Block
+            k epochs.
+
+        Returns
+        -------
+        ndarray, shape (k, r)
+            The measured rows, nT.
+        """
+
+    @abc.abstractmethod
+    def predict(self, x, blk: Block) -> np.ndarray:
+        """What a state, or each state of a stack, predicts of the measured rows.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n,) or (S, n)
+            One state, or a stack of states (the UKF's sigma points).
+        blk : Block
+            k epochs.
+
+        Returns
+        -------
+        ndarray, shape (k, r) or (S, k, r)
+            The predicted rows, nT: (k, r) for one state, (S, k, r) for a stack.
+        """
+
+    @abc.abstractmethod
+    def jacobian(self, x, blk: Block) -> np.ndarray:
+        """The derivative of ``predict`` with respect to the state.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n,)
+            The state.
+        blk : Block
+            k epochs.
+
+        Returns
+        -------
+        ndarray, shape (k, r, n)
+            ``d predict / d x`` at ``x``: nT per unit of each state.
+        """
+
+    @abc.abstractmethod
+    def covariance(self, x, blk: Block) -> np.ndarray:
+        """The noise covariance of the measured rows at the current noise levels (``noise``).
+
+        Parameters
+        ----------
+        x : ndarray, shape (n,)
+            The estimate. A model whose ``noise_depends_on_state`` is False may ignore it (the built-in vector
+            models evaluate their noise at ``blk.R``, the calibration the block was prepared at).
+        blk : Block
+            k epochs.
+
+        Returns
+        -------
+        ndarray, shape (k, r, r)
+            Symmetric positive definite, nT^2.
+        """
+
+    # ------------------------------------------------------------ what the estimators use, from those four
     def structure(self, field_body, R, heading=None):
         """What the noise of epochs with body field ``field_body`` (N, 3) and heading axis ``heading`` (N, 3)
-        at ``R`` (3, 3) is made of, computed once for each epoch: ``(G, Gh, RRt, frame)`` with ``frame`` (N, 3, 3) the
-        field's frame in the sensor axes (``field_frame``: what the noise learner splits the innovations
-        along) and ``G``, ``Gh``, ``RRt`` what ``whiten`` may use (None here); None for a model that needs no
-        attitude."""
+        at ``R`` (3, 3) is made of, computed once for each epoch: ``(G, Gh, RRt, frame)`` with ``frame`` (N, 3, r)
+        the field's frame in the model's rows (``field_frame``: what the noise learner splits the innovations
+        along, and the correlation in time is folded in along) and ``G``, ``Gh``, ``RRt`` what ``covariance``
+        may use (None here); None for a model that needs no attitude. By default the rows are taken to be
+        the field vector in the sensor axes (``sensor_frame``)."""
         if not self.needs_attitude:
             return None
         return None, None, None, sensor_frame(field_body, heading, R)
 
     def whitening(self, field_body, R) -> np.ndarray | None:
-        """Whitening (k, 3, 3) of the epochs' vector noise at calibration ``R`` (None: not needed)."""
+        """Whitening (k, 3, 3) of the epochs' vector noise at calibration ``R`` for the diagnostics (None: the
+        model has none)."""
         return None
 
-    def whiten(self, blk: Block) -> None:
-        """Set ``blk.W``, the whitening at the current noise, for the block's epochs (by default
-        ``whitening(blk.B, blk.R)``; nothing for a model that needs none)."""
-        if self.needs_attitude:
-            blk.W = self.whitening(blk.B, blk.R)
+    def whiten(self, x, blk: Block, inflations=(1.0, 1.0, 1.0)) -> None:
+        """Set ``blk.W``, the whitening of the block's rows at the current noise, and ``blk.N``, the covariance
+        of the un-inflated noise in the whitened rows (None: the identity).
 
-    def covariance(self, blk: Block) -> np.ndarray | None:
-        """The noise covariance (k, r, r) of the block's epochs at the current noise, nT^2; None when the model
-        whitens its rows itself. By default ``W^-1 W^-T`` of ``whiten``'s ``W`` (which it sets on ``blk``)."""
-        self.whiten(blk)
-        if blk.W is None:
-            return None
-        L = np.linalg.inv(blk.W)
-        return L @ np.swapaxes(L, 1, 2)
+        Where the block has the field's frame (``structure``) and it spans the rows, the noise is inflated by
+        ``inflations`` (along the field, ``h``, ``v``: the residuals' correlation in time, in epochs) along
+        its rows (``correlated_whitening``); otherwise ``W`` is the plain whitening of ``covariance`` and
+        ``N`` None. A model whose ``noise_depends_on_state`` leaves both None: ``linearise`` whitens its rows
+        at the estimate.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n,)
+            The estimate.
+        blk : Block
+            k epochs (a span of blocks), changed in place.
+        inflations : tuple of 3 float
+            Along the field, along ``h``, along ``v``; at least 1.
+        """
+        if self.noise_depends_on_state:
+            blk.W = blk.N = None
+            return
+        cov = self.covariance(x, blk)
+        if blk.frame is not None and blk.frame.shape[1:] == cov.shape[1:]:
+            blk.W, blk.N = correlated_whitening(cov, blk.frame, inflations)
+        else:
+            blk.W, blk.N = whitening(cov), None
+
+    def _whitening_at(self, x, blk: Block) -> np.ndarray:
+        """The whitening (k, r, r) of the block's rows: ``blk.W`` where ``whiten`` set it, else the inverse
+        Cholesky factor of ``covariance`` at ``x``."""
+        return blk.W if blk.W is not None else whitening(self.covariance(x, blk))
 
     def linearise(self, x, blk: Block) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened innovation ``y`` (k, r) and Jacobian ``H`` (k, r, n) at state ``x`` (n,)."""
-        raise NotImplementedError
+        """The EKF's rows at state ``x`` (n,): the whitened innovation ``y = W (measure - predict)`` (k, r) and
+        the whitened Jacobian ``W jacobian`` (k, r, n), projected by ``projector``."""
+        W = self._whitening_at(x, blk)
+        y = np.einsum("kij,kj->ki", W, self.measure(blk) - self.predict(x, blk))
+        H = W @ self.jacobian(x, blk)
+        if self.projector is not None:
+            H = H @ self.projector
+        return y, H
 
     def sigma_predict(self, sigmas, x, blk: Block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Whitened predictions ``h`` (S, k, r) at ``sigmas`` (S, n), the whitened measurement ``z`` (k, r),
-        and the whitened Jacobian (k, r, n) at ``x`` (for the information the update carries)."""
-        raise NotImplementedError
+        """The UKF's rows: whitened predictions ``h`` (S, k, r) at ``sigmas`` (S, n), the whitened measurement
+        ``z`` (k, r), and the whitened Jacobian (k, r, n) at the estimate ``x`` (n,) (the information the update
+        carries), all whitened as ``linearise``'s. With a ``projector``, a sigma point is taken less its step
+        along the directions the model cannot see."""
+        x = np.asarray(x, float)
+        W = self._whitening_at(x, blk)
+        if self.projector is not None:
+            sigmas = x + (sigmas - x) @ self.projector  # the projector is symmetric
+        h = np.einsum("kij,skj->ski", W, self.predict(sigmas, blk))
+        z = np.einsum("kij,kj->ki", W, self.measure(blk))
+        H = W @ self.jacobian(x, blk)
+        if self.projector is not None:
+            H = H @ self.projector
+        return h, z, H
 
-    def batch_residuals(self, ref, c_nb, ref_mag):
-        """A function ``f(c) -> (k, q)``: residuals in units of their standard deviations of calibrated
-        fields ``c`` (k, 3) nT at epochs with reference ``ref`` (k, 3), attitude ``c_nb`` (k, 3, 3), nT."""
-        raise NotImplementedError
+    def batch_residuals(self, x, blk: Block, jacobian: bool = False, noise_at=None):
+        """The batch solver's residuals: ``W (predict - measure)`` (k, q) at state ``x`` (n,), in units of their
+        standard deviations, with ``W`` the whitening of ``covariance`` at ``noise_at`` (n,; default ``x``),
+        held fixed; with ``jacobian``, ``(r, J)`` with ``J = W jacobian`` (k, q, n). Here ``q = r``; a model
+        may give other residuals of the same epochs (the built-in ones do, ``field_residuals``). A block
+        without the linear Jacobian (``blk.H`` None) has it made here."""
+        if blk.H is None:
+            blk = replace(blk, H=self.layout.linear_jacobian(blk.data))
+        W = whitening(self.covariance(x if noise_at is None else noise_at, blk))
+        r = np.einsum("kij,kj->ki", W, self.predict(x, blk) - self.measure(blk))
+        return (r, W @ self.jacobian(x, blk)) if jacobian else r
 
-    # Noise of the batch solver's residuals: the same as the filter's.
+    def innovation(self, x, blk: Block) -> np.ndarray:
+        """``measure - predict`` (k, r) at the estimate ``x`` (n,), nT, as the noise learner takes it (before
+        whitening). The estimator has put the effects' terms at ``x`` in ``blk.e``, which an override may
+        use instead of computing them again."""
+        return self.measure(blk) - self.predict(x, blk)
+
+    def along_across(self, innovation, frame=None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The innovations split as the noise learner takes them.
+
+        Parameters
+        ----------
+        innovation : ndarray, shape (k, r)
+            ``innovation``'s, nT.
+        frame : ndarray, shape (k, 3, r), or None
+            The field's frame in the rows (``structure``'s; None where the model has none).
+
+        Returns
+        -------
+        along : ndarray, shape (k,)
+            Along the field, nT.
+        across : ndarray, shape (k, 2), or None
+            Along ``h`` and ``v``, nT; None where the rows do not see across the field.
+
+        Raises
+        ------
+        NotImplementedError
+            A model of several rows without a frame (override this to say how its rows split).
+        """
+        if frame is not None:
+            parts = (frame @ innovation[:, :, None])[:, :, 0]
+            return parts[:, 0], parts[:, 1:]
+        if innovation.shape[1] != 1:
+            raise NotImplementedError(
+                f"measurement model {self.name!r}: {innovation.shape[1]} rows without the field's frame "
+                "(give structure a frame, or override along_across)"
+            )
+        return innovation[:, 0], None
+
+    # Noise of the built-in models' batch residuals: the filter's levels.
     def _sigma_total(self) -> float:
         return float(np.sqrt(self.noise.along_var))
 
     def _sigma_cross(self, ref_mag) -> np.ndarray:
         attitude = max(self.noise.attitude_rad, self.noise.heading)
         return np.sqrt(self.noise.along_var + (attitude * ref_mag) ** 2)
+
+
+def correlated_whitening(cov, frame, inflations) -> tuple[np.ndarray, np.ndarray]:
+    """The whitening ``W`` (k, 3, 3) of noise of covariance ``cov`` (k, 3, 3) inflated by ``inflations``
+    (along the field, ``h``, ``v``) along the rows of ``frame`` (k, 3, 3: the field's direction, the heading
+    axis and the third, in the model's rows; ``field_frame``), and ``N = W cov W^T`` (k, 3, 3), the covariance
+    of the un-inflated noise in the whitened rows.
+
+    With ``M = frame cov frame^T`` the noise in the field's frame and ``D`` the inflations' square roots:
+    ``W = chol(D M D)^-1 frame`` (``whitening``).
+    """
+    d = np.sqrt(np.asarray(inflations, float))
+    if len(cov) == 1:  # one epoch (real time): plain 3x3 products cost less than stacked ones
+        c, f = cov[0], frame[0]
+        W = whitening(((f @ c @ f.T) * d[:, None] * d[None, :])[None])[0] @ f
+        return W[None], (W @ c @ W.T)[None]
+    M = frame @ cov @ np.swapaxes(frame, 1, 2)
+    W = whitening(M * d[:, None] * d[None, :]) @ frame
+    return W, W @ cov @ np.swapaxes(W, 1, 2)
+
+
+#: Central-difference step of ``field_residuals``' functions in the calibrated field, relative to its length.
+FIELD_STEP = 1e-4
+
+
+def field_residuals(layout: StateLayout, x, blk: Block, f, jacobian: bool = False):
+    """Residuals given as a function of each epoch's calibrated field, and their Jacobian in the state.
+
+    Parameters
+    ----------
+    layout : StateLayout
+        The state's blocks.
+    x : ndarray, shape (n,)
+        The state.
+    blk : Block
+        k epochs, with their ``EpochData`` (``blk.data``: the effects' inputs).
+    f : callable
+        ``f(c) -> (k, q)``: the residuals, in units of their standard deviations, of calibrated fields ``c``
+        (k, 3) nT, each epoch's from its own field.
+    jacobian : bool
+        Also give the Jacobian.
+
+    Returns
+    -------
+    r : ndarray, shape (k, q)
+        ``f(c)`` at ``c = R^-1 (m - b - e)`` of ``x`` (missing effect inputs count as 0).
+    J : ndarray, shape (k, q, n)
+        With ``jacobian``: ``dr/dx = dr/dc dc/dx``, with ``dr/dc`` three central differences of ``f`` (step
+        ``FIELD_STEP`` of the field's length) and ``dc/dx = -R^-1 dm/dx`` analytic (``core_jacobian(c)`` for
+        ``R`` and ``b``, the effects' own ``jacobian`` for theirs).
+    """
+    data = blk.data if layout.has_extra else None
+    terms = 0.0 if data is None else layout.effect_terms(x, data)
+    c = layout.calibrated(x, blk.m, terms)
+    r = f(c)
+    if not jacobian:
+        return r
+    # dr/dc (k, q, 3): each epoch's residuals are a function of its own calibrated field
+    h = FIELD_STEP * np.maximum(np.linalg.norm(c, axis=1), 1.0)
+    drdc = np.empty(r.shape + (3,))
+    for a in range(3):
+        shifted = c.copy()
+        shifted[:, a] += h
+        up = f(shifted)
+        shifted[:, a] -= 2 * h
+        drdc[:, :, a] = (up - f(shifted)) / (2 * h[:, None])
+    # dc/dx = -R^-1 dm/dx with m = R c + b + e(x): the core's Jacobian at c, the effects' their own
+    if data is None:
+        dmdx = core_jacobian(c)
+    else:
+        dmdx = np.nan_to_num(layout.jacobian(x, data))  # missing inputs count as 0, as in effect_terms
+        dmdx[:, :, layout.CORE] = core_jacobian(c)
+    dcdx = -(inverse3(layout.R(x)) @ dmdx)
+    return r, drdc @ dcdx
 
 
 # ---------------------------------------------------------------- vector
@@ -263,13 +556,16 @@ def compose_noise(noise: NoiseLevels, G, Gh, RRt) -> np.ndarray:
 
 
 def whitening(noise: np.ndarray) -> np.ndarray:
-    """``W = L^-1`` (N, 3, 3) with ``noise = L L^T``: ``W y`` has unit, uncorrelated noise."""
-    if len(noise) == 1:  # one epoch (real time): the 3x3 algebra written out beats numpy's call overhead
-        return _whitening3(noise[0])[None]
+    """``W = L^-1`` (N, r, r) with ``noise = L L^T`` (N, r, r), nT^-1 for noise in nT^2: ``W y`` has unit,
+    uncorrelated noise. Raises ``numpy.linalg.LinAlgError`` where a covariance is not positive definite."""
     if noise.shape[1:] == (3, 3):
+        if len(noise) == 1:  # one epoch (real time): the 3x3 algebra written out beats numpy's call overhead
+            return _whitening3(noise[0])[None]
         W = _whitening_stack(noise)
         if W is not None:
             return W
+    elif noise.shape[1:] == (1, 1) and (noise > 0).all():
+        return 1.0 / np.sqrt(noise)
     return np.linalg.inv(np.linalg.cholesky(noise))
 
 
@@ -318,13 +614,43 @@ class Vector(MeasurementModel):
     needs_attitude = True
     field_aligned = False
 
+    def __init__(self, config, layout, x0):
+        super().__init__(config, layout, x0)
+        self._fast = _keeps_model(self, Vector)
+
     @property
     def linear(self) -> bool:
         """Linear in the state unless the layout holds a nonlinear effect (a time lag), or a subclass predicts
         its rows in its own way."""
         own = type(self).sigma_predict is Vector.sigma_predict and type(self).linearise is Vector.linearise
-        return own and not self.layout.nonlinear
+        return own and self._fast and not self.layout.nonlinear
 
+    # ------------------------------------------------------------ the model
+    def measure(self, blk):
+        """The raw reading ``m`` (k, 3), nT in the sensor axes."""
+        return blk.m
+
+    def predict(self, x, blk):
+        """``R C_nb^T B_ref + b + e`` (k, 3), or (S, k, 3) for a stack of states (S, n): the linear blocks'
+        Jacobian times the state, and the nonlinear effects' terms, nT."""
+        x = np.asarray(x, float)
+        h = blk.H @ x if x.ndim == 1 else np.tensordot(x, blk.H, axes=([1], [2]))
+        if self.layout.nonlinear:
+            h = h + self.layout.nonlinear_terms(x, blk.data)
+        return h
+
+    def jacobian(self, x, blk):
+        """(k, 3, n): the linear blocks' Jacobian with the nonlinear effects' filled in at ``x``."""
+        return self.layout.jacobian(x, blk.data, blk.H)
+
+    def covariance(self, x, blk):
+        """The sensor-frame noise (k, 3, 3) at ``blk.R`` (``compose_noise`` of the block's structure, or
+        ``vector_noise``), nT^2; the same for every state."""
+        if blk.G is None:
+            return vector_noise(blk.B, blk.R, self.noise, self.field_aligned, blk.heading)
+        return compose_noise(self.noise, blk.G, blk.Gh, blk.RRt)
+
+    # ------------------------------------------------------------ the same numbers, faster
     def structure(self, field_body, R, heading=None):
         B = np.asarray(field_body, float)
         if len(B) == 1:  # one epoch (real time): the same products on vectors, and the frame in plain floats
@@ -335,35 +661,45 @@ class Vector(MeasurementModel):
     def whitening(self, field_body, R, heading=None):
         return whitening(vector_noise(field_body, R, self.noise, self.field_aligned, heading))
 
-    def whiten(self, blk):
-        blk.W = whitening(self.covariance(blk))
-
-    def covariance(self, blk):
-        if blk.G is None:
-            return vector_noise(blk.B, blk.R, self.noise, self.field_aligned, blk.heading)
-        return compose_noise(self.noise, blk.G, blk.Gh, blk.RRt)
-
-    def _jacobian(self, x, blk: Block) -> np.ndarray:
-        """(k, 3, n) Jacobian of ``m``: the linear blocks' with the nonlinear effects' filled in."""
-        return self.layout.jacobian(x, blk.data, blk.H)
-
     def linearise(self, x, blk):
+        if not self._fast:
+            return super().linearise(x, blk)
         h = blk.H @ x
         if self.layout.nonlinear:
             h = h + self.layout.nonlinear_terms(x, blk.data)
         y = (blk.W @ (blk.m - h)[:, :, None])[:, :, 0]
-        return y, blk.W @ self._jacobian(x, blk)
+        return y, blk.W @ self.jacobian(x, blk)
 
     def sigma_predict(self, sigmas, x, blk):
+        if not self._fast:
+            return super().sigma_predict(sigmas, x, blk)
         WH = blk.W @ blk.H
         h = np.tensordot(sigmas, WH, axes=([1], [2]))  # (S, k, 3)
         if self.layout.nonlinear:
             h = h + np.einsum("kij,skj->ski", blk.W, self.layout.nonlinear_terms(sigmas, blk.data))
         z = np.einsum("kij,kj->ki", blk.W, blk.m)
-        return h, z, blk.W @ self._jacobian(x, blk)
+        return h, z, blk.W @ self.jacobian(x, blk)
 
-    def batch_residuals(self, ref, c_nb, ref_mag):
-        sigma = self._sigma_cross(ref_mag)[:, None]
+    def innovation(self, x, blk):
+        if not self._fast:
+            return super().innovation(x, blk)
+        e = blk.m - blk.H @ x
+        if self.layout.nonlinear:  # their terms (in ``blk.e``), which the linear Jacobian's zero columns leave out
+            extra = self.layout.EXTRA
+            e = e - (blk.e - blk.H[:, :, extra] @ x[extra])
+        return e
+
+    # ------------------------------------------------------------ the batch solver's own residuals
+    def batch_residuals(self, x, blk, jacobian=False, noise_at=None):
+        """The NED residuals ``(C_nb c - B_ref) / sigma`` (k, 3) of the calibrated field ``c`` at ``x``, with
+        ``sigma`` the cross-field standard deviation (``_sigma_cross``), and their Jacobian (``field_residuals``).
+        ``noise_at`` is not used: the noise does not depend on the state."""
+        return field_residuals(self.layout, x, blk, self.field_function(blk), jacobian)
+
+    def field_function(self, blk):
+        """``f(c) -> (k, q)``: the batch residuals of calibrated fields ``c`` (k, 3) nT at the block's epochs."""
+        ref, c_nb = blk.data.field_ned, blk.data.c_nb
+        sigma = self._sigma_cross(blk.ref_mag)[:, None]
         return lambda c: (body_to_ned(c_nb, c) - ref) / sigma
 
 
@@ -390,8 +726,11 @@ class Both(Vector):
         super().__init__(config, layout, x0)
         self.fallback = Magnitude(config, layout, x0, primary=False)
 
-    def batch_residuals(self, ref, c_nb, ref_mag):
-        total = self.fallback.batch_residuals(ref, c_nb, ref_mag)
+    def field_function(self, blk):
+        """The total-field residual (``Magnitude.field_function``) and the NED residual's two components across
+        the reference field, along ``h`` and ``v`` (``field_frame``), each over its standard deviation."""
+        total = self.fallback.field_function(blk)
+        ref, c_nb, ref_mag = blk.data.field_ned, blk.data.c_nb, blk.ref_mag
         basis = field_frame(ref, heading_axis_ned(ref))[:, 1:]
         var_h, var_v = self.noise.across_vars(ref_mag**2, ref[:, 0] ** 2 + ref[:, 1] ** 2)
         sigma = np.sqrt(np.column_stack([var_h, var_v]))
@@ -527,39 +866,97 @@ class Magnitude(MeasurementModel):
     """The calibrated field magnitude against the reference's; needs no attitude.
 
     ``primary``: the run's only measurement, whose Jacobian is then projected off the rotations of the
-    initial ``R`` (no magnitude can see them); False when it serves as another model's fallback.
+    initial ``R`` (``projector``: no magnitude can see them); False when it serves as another model's fallback.
     """
 
     name = "magnitude"
     rows = 1
     needs_attitude = False
+    noise_depends_on_state = True
 
     def __init__(self, config, layout, x0, primary: bool = True):
         super().__init__(config, layout, x0)
-        self._projector = None
         if primary:
             N = rotation_directions(layout.R(x0), layout.size)
-            self._projector = np.eye(layout.size) - N @ np.linalg.solve(N.T @ N, N.T)
+            self.projector = np.eye(layout.size) - N @ np.linalg.solve(N.T @ N, N.T)
+        self._fast = _keeps_model(self, Magnitude)
 
-    def _noise_sd(self, w) -> np.ndarray:
-        """Standard deviation (k,) of the magnitude: ``sqrt(sensor^2 |w|^2 + reference^2)``, nT."""
+    # ------------------------------------------------------------ the model
+    def measure(self, blk):
+        """The reference's magnitude ``|B_ref|`` (k, 1), nT."""
+        return blk.ref_mag[:, None]
+
+    def predict(self, x, blk):
+        """The calibrated magnitude ``|R^-1 (m - b - e)|`` (k, 1), or (S, k, 1) for a stack of states (S, n), nT;
+        the effects' terms ``e`` at each state (``_terms``)."""
+        x = np.asarray(x, float)
+        R, b = self.layout.R_b(x)
+        e = self._terms(x, blk)
+        if x.ndim == 1:
+            return np.linalg.norm(calibrated_field(R, b, blk.m, e), axis=1)[:, None]
+        c = calibrated_field(R[:, None], b[:, None, :], blk.m - e)  # (S, k, 3): every state's calibration
+        return np.linalg.norm(c, axis=2)[..., None]
+
+    def jacobian(self, x, blk):
+        """(k, 1, n): ``-w_i c_j`` for ``R_ij``, ``-w`` for ``b`` and ``-w^T de/dtheta`` for an effect's
+        parameters, with ``c`` the calibrated field and ``w = u^T R^-1`` (``magnitude_jacobian``)."""
+        layout = self.layout
+        h, H_core, w = magnitude_jacobian(layout.core_of(x), blk.m - self._terms(x, blk))
+        H = np.zeros((len(h), layout.size))
+        H[:, layout.CORE] = H_core
+        if layout.has_extra:
+            H[:, layout.EXTRA] = -np.einsum("ki,kij->kj", w, self._terms_jacobian(x, blk))
+        return H[:, None, :]
+
+    def covariance(self, x, blk):
+        """``sensor^2 |w|^2 + reference^2`` (k, 1, 1) at ``x``, nT^2: the sensor's noise through ``R^-1`` along
+        the calibrated field."""
+        _, _, w = magnitude_jacobian(self.layout.core_of(x), blk.m - self._terms(x, blk))
+        return self._noise_var(w)[:, None, None]
+
+    def _terms(self, x, blk):
+        """The effects' raw-field terms (k, 3), or (S, k, 3) for a stack of states, nT; 0 without effects.
+        Missing inputs count as 0, as in the estimator's ``blk.e``."""
+        layout = self.layout
+        if not layout.has_extra:
+            return 0.0
+        if np.ndim(x) == 1:
+            return np.nan_to_num(layout.extra_terms(x, blk.H, blk.data))
+        e = np.einsum("kij,sj->ski", blk.H[:, :, layout.EXTRA], x[:, layout.EXTRA])
+        if layout.nonlinear:
+            e = e + layout.nonlinear_terms(x, blk.data)
+        return np.nan_to_num(e)
+
+    def _terms_jacobian(self, x, blk) -> np.ndarray:
+        """``de/dtheta`` (k, 3, n - 12) of the effects after the core at ``x`` (missing inputs: 0)."""
+        layout = self.layout
+        if not layout.nonlinear:
+            return blk.H[:, :, layout.EXTRA]
+        return np.nan_to_num(layout.jacobian(x, blk.data, blk.H)[:, :, layout.EXTRA])
+
+    def _noise_var(self, w) -> np.ndarray:
+        """Variance (k,) of the magnitude: ``sensor^2 |w|^2 + reference^2``, nT^2."""
         n = self.noise
-        return np.sqrt(n.sensor_nt**2 * np.einsum("ki,ki->k", w, w) + n.reference_nt**2)
+        return n.sensor_nt**2 * np.einsum("ki,ki->k", w, w) + n.reference_nt**2
 
+    # ------------------------------------------------------------ the same numbers, faster
     def _linear(self, x, blk):
-        """Magnitude ``h`` (k,), Jacobian (k, n) and noise sd (k,) at ``x``."""
+        """Magnitude ``h`` (k,), Jacobian (k, n) and noise sd (k,) at the estimate ``x`` (the effects' terms
+        from ``blk.e``)."""
         layout = self.layout
         h, H_core, w = magnitude_jacobian(layout.core_of(x), blk.m - blk.e)
         H = np.zeros((len(h), layout.size))
         H[:, layout.CORE] = H_core
         if layout.has_extra:
-            H[:, layout.EXTRA] = -np.einsum("ki,kij->kj", w, blk.H[:, :, layout.EXTRA])
-        return h, H, self._noise_sd(w)
+            H[:, layout.EXTRA] = -np.einsum("ki,kij->kj", w, self._terms_jacobian(x, blk))
+        return h, H, np.sqrt(self._noise_var(w))
 
     def linearise(self, x, blk):
+        if not self._fast:
+            return super().linearise(x, blk)
         h, H, sd = self._linear(x, blk)
-        if self._projector is not None:
-            H = H @ self._projector
+        if self.projector is not None:
+            H = H @ self.projector
         return ((blk.ref_mag - h) / sd)[:, None], (H / sd[:, None])[:, None, :]
 
     def sigma_predict(self, sigmas, x, blk):
@@ -569,26 +966,54 @@ class Magnitude(MeasurementModel):
         open) is no rotation to second order and shrinks the magnitude by about half its square (a percent of
         the field), which biased the predicted magnitude by hundreds of nT and taught the noise learner that
         much noise. The cross covariance still takes the whole step, as the EKF's gain does."""
+        if not self._fast:
+            return super().sigma_predict(sigmas, x, blk)
         layout = self.layout
-        if self._projector is not None:
+        if self.projector is not None:
             x = np.asarray(x, float)
-            sigmas = x + (sigmas - x) @ self._projector  # the projector is symmetric
+            sigmas = x + (sigmas - x) @ self.projector  # the projector is symmetric
         mc = blk.m - blk.e
-        if layout.has_extra:  # the other effects' terms move with the sigma points too
+        if layout.nonlinear:  # every effect's terms at each sigma point
+            mc = blk.m - self._terms(sigmas, blk)
+        elif layout.has_extra:  # the other effects' terms move with the sigma points too
             mc = mc[None] - np.einsum(
                 "kij,sj->ski", blk.H[:, :, layout.EXTRA], sigmas[:, layout.EXTRA] - np.asarray(x)[layout.EXTRA]
             )
         R, b = layout.R_b(sigmas)
         c = calibrated_field(R[:, None], b[:, None, :], mc)  # (S, k, 3): every sigma point's calibration
         _, H, sd = self._linear(x, blk)
-        if self._projector is not None:  # the information it carries, as ``linearise`` gives it
-            H = H @ self._projector
+        if self.projector is not None:  # the information it carries, as ``linearise`` gives it
+            H = H @ self.projector
         h = np.linalg.norm(c, axis=2) / sd  # (S, k), whitened
         return h[..., None], (blk.ref_mag / sd)[:, None], (H / sd[:, None])[:, None, :]
 
-    def batch_residuals(self, ref, c_nb, ref_mag):
-        sigma = self._sigma_total()
+    def innovation(self, x, blk):
+        if not self._fast:
+            return super().innovation(x, blk)
+        if len(blk.m) == 1:  # one epoch (real time): in plain floats
+            h = magnitude_jacobian(self.layout.core_of(x), blk.m - blk.e)[0]
+        else:
+            h = np.linalg.norm(self.layout.calibrated(x, blk.m, blk.e), axis=1)
+        return (blk.ref_mag - h)[:, None]
+
+    # ------------------------------------------------------------ the batch solver's own residuals
+    def batch_residuals(self, x, blk, jacobian=False, noise_at=None):
+        """The total-field residual ``(|c| - |B_ref|) / sigma`` (k, 1) of the calibrated field ``c`` at ``x``,
+        with ``sigma`` the along-field standard deviation (``_sigma_total``), and its Jacobian
+        (``field_residuals``). ``noise_at`` is not used."""
+        return field_residuals(self.layout, x, blk, self.field_function(blk), jacobian)
+
+    def field_function(self, blk):
+        """``f(c) -> (k, 1)``: the batch residual of calibrated fields ``c`` (k, 3) nT at the block's epochs."""
+        sigma, ref_mag = self._sigma_total(), blk.ref_mag
         return lambda c: ((np.linalg.norm(c, axis=1) - ref_mag) / sigma)[:, None]
+
+
+def _keeps_model(model: MeasurementModel, cls: type) -> bool:
+    """Whether ``model``'s class keeps ``cls``'s four model methods (``REQUIRED``): ``cls``'s faster forms of the
+    estimators' rows hold only then, and a subclass that predicts in its own way gets the generic ones."""
+    own = type(model)
+    return all(getattr(own, name) is getattr(cls, name) for name in REQUIRED)
 
 
 def nis_rows(model) -> tuple[int, int]:
