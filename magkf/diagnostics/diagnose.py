@@ -296,10 +296,40 @@ def diagnose(
     say = progress or (lambda text: None)
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
+    run, layout, x, problem, channels = _diagnosed(log, config, cal, list(effects), run, registry, wander_s, say)
+    present = {e.label for e in layout.extra()}
+    pool = _pool(candidates, problem, registry, present)
+    problem = _without_outliers(problem, layout, x, pool, log)
+    residuals = _model_residuals(problem, layout, x, run)
+    tests = _tested(problem, layout, x, pool, alpha, say)
+    from ..effects import untried_columns
+
+    untried = untried_columns(channels, registry) if candidates is None else []
+    return _diagnosis(problem, residuals, tests, untried, sorted(present), wander_s), run
+
+
+def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, registry, wander_s, say):
+    """The model and the epochs it is judged on: ``(run, layout, x, problem, channels)``, ``problem`` the
+    ``EpochSet`` of ``_model``'s epochs, ``channels`` the names of the log's auxiliary channels. The log's
+    prepared arrays are let go once the diagnosed epochs are copied out of them."""
     stored = list(restore_effects(cal, registry)) if cal is not None else []
-    effects = list(effects)
-    adds = [e for e in effects if e.label not in {s.label for s in stored}]
     prep = prepare(log, config)
+    run, layout, x, used = _model(log, config, cal, effects, stored, run, prep, say)
+    problem = EpochSet.of(prep, used, config, _learned_noise(run, config), wander_s)
+    channels = list(prep.data.columns)
+    if len(problem) < 10:
+        raise InputError(
+            f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
+        )
+    return run, layout, x, problem, channels
+
+
+def _model(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list, run, prep, say):
+    """The model diagnosed, ``(run, layout, x, used)``: the run (the filter's, made here unless ``run`` is given or
+    ``cal`` with its ``stored`` effects is the model as it is; None then), the state layout, the state (n,) and
+    the epochs judged (mask (N,)): those the run used or its innovation gate refused, else the epochs the
+    calibration can use, with every column the model's effects read."""
+    adds = [e for e in effects if e.label not in {s.label for s in stored}]
     if run is None and (cal is None or adds):
         say("calibrating")
         run = calibrate_log(log, config, init=cal, effects=effects or stored, prepared=prep)
@@ -320,19 +350,20 @@ def diagnose(
     for effect in layout.extra():
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
-    problem = EpochSet.of(prep, used, config, _learned_noise(run, config), wander_s)
-    channels = list(prep.data.columns)
-    del prep  # the diagnosed epochs are copied out of it
-    if len(problem) < 10:
-        raise InputError(
-            f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
-        )
-    present = {e.label for e in layout.extra()}
-    pool = [
-        e
-        for e in (candidates if candidates is not None else default_candidates(list(problem.data.columns), registry))
-        if e.label not in present and all(col in problem.data.columns for col in e.columns)
-    ]
+    return run, layout, x, used
+
+
+def _pool(candidates, problem: EpochSet, registry, present: set) -> list:
+    """The candidate effects to test: ``candidates`` (default: every built-in, and every effect of ``registry``,
+    that the diagnosed epochs' channels allow) less those already in the model (labels ``present``) and those
+    reading a column the epochs do not have."""
+    offered = candidates if candidates is not None else default_candidates(list(problem.data.columns), registry)
+    return [e for e in offered if e.label not in present and all(col in problem.data.columns for col in e.columns)]
+
+
+def _without_outliers(problem: EpochSet, layout: StateLayout, x, pool: list, log: DriveLog) -> EpochSet:
+    """``problem`` with its gross outliers (disturbances) left out, judged at the model ``layout``, ``x`` with the
+    candidates of ``pool`` added; raises ``InputError`` when fewer than ten epochs are left."""
     # Gross outliers (disturbances) out: beyond OUTLIER_SIGMA times the robust scale of the residual of the
     # model with every candidate added, so that a missing effect does not hide them by inflating the scale;
     # judged before the heading wander is taken out, which would spread a burst over its stretch.
@@ -343,9 +374,26 @@ def diagnose(
     n = len(problem)
     if n < 10:
         raise InputError(f"too few usable epochs ({n}) to diagnose once outliers are left out", log.source)
-    dt = float(np.median(np.diff(problem.data.time))) if n > 1 else 1.0
+    return problem
 
-    # residuals in nT (NED and magnitude), with the model as it is
+
+@dataclass(frozen=True)
+class _Residuals:
+    """The model's residuals as it is, on the diagnosed epochs: NED ``ned`` (n, 3), sensor-frame ``body`` (n, 3)
+    and magnitude ``mag`` (n,), nT; the RMS of the NED norm ``rms`` (nT) and the figures of
+    ``Diagnosis.residual_rms_axis_nt`` (``axis_rms``)."""
+
+    ned: np.ndarray
+    body: np.ndarray
+    mag: np.ndarray
+    rms: float
+    axis_rms: dict
+
+
+def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residuals:
+    """The residuals in nT (NED, sensor frame and magnitude) of the model ``layout``, ``x`` as it is, and with
+    ``run`` the mean NIS of the epochs the filter updated with."""
+    n = len(problem)
     data = replace(problem.data, R0=layout.R(x))  # the model as it is
     stretches = [slice(a, a + CHUNK) for a in range(0, n, CHUNK)]
     terms = np.concatenate(
@@ -364,42 +412,60 @@ def diagnose(
     if run is not None:  # normalised innovations of the filter, on the epochs it updated with
         nis = run.states["nis"].to_numpy()[(run.states["status"] == "used").to_numpy()]
         axis_rms["nis_mean"] = float(np.nanmean(nis)) if np.isfinite(nis).any() else float("nan")
+    return _Residuals(ned, body, mag, rms, axis_rms)
 
+
+@dataclass(frozen=True)
+class _Tests:
+    """The candidates tested by the decision rule: the ``selection`` (its level and the count tested), the
+    ``results`` (``Candidate``s, taken ones first), the residual's integrated autocorrelation time ``tau``
+    (epochs), the median epoch interval ``dt`` (s) and the model's own held-out residual ``baseline`` (nT)."""
+
+    selection: _Selection
+    results: list
+    tau: float
+    dt: float
+    baseline: float
+
+
+def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float, say) -> _Tests:
+    """The model refitted to the whole log (its own best fit), then the candidates of ``pool`` tested against it
+    and taken or not by the decision rule at level ``alpha``."""
+    n = len(problem)
+    dt = float(np.median(np.diff(problem.data.time))) if n > 1 else 1.0
     say(f"fitting the model to {n} epochs")
     null = problem.fit(layout, x)  # the model at its own best fit over the log
     tau = integrated_time(null.r.reshape(n, 3))
     edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
     baseline = _held_out_nt(null, edges)
-
     selection = _Selection(problem, pool, edges, dt, alpha, say)
-    results = selection.run(null, baseline)
-    signals, binned = _signals(problem.data, ned, mag, alpha, tau)
-    largest = _largest(problem.data.time, ned)
-    text = _describe(results, signals, selection, baseline)
-    residuals = {"time": problem.data.time, "ned": ned, "body": body, "magnitude": mag}
-    from ..effects import untried_columns
+    return _Tests(selection, selection.run(null, baseline), tau, dt, baseline)
 
-    untried = untried_columns(channels, registry) if candidates is None else []
-    diagnosis = Diagnosis(
-        rms,
-        axis_rms,
-        n,
+
+def _diagnosis(problem: EpochSet, res: _Residuals, tests: _Tests, untried: list, model_effects: list, wander_s):
+    """The ``Diagnosis`` of the tested candidates: the residual figures, the signals the residual follows, its
+    largest stretches and the advice in words."""
+    selection, alpha = tests.selection, tests.selection.alpha
+    signals, binned = _signals(problem.data, res.ned, res.mag, alpha, tests.tau)
+    return Diagnosis(
+        res.rms,
+        res.axis_rms,
+        len(problem),
         alpha,
-        results,
+        tests.results,
         signals,
-        largest,
-        text,
+        _largest(problem.data.time, res.ned),
+        _describe(tests.results, signals, selection, tests.baseline),
         binned,
-        residuals,
-        residual_rms_held_out_nt=baseline,
+        {"time": problem.data.time, "ned": res.ned, "body": res.body, "magnitude": res.mag},
+        residual_rms_held_out_nt=tests.baseline,
         n_tested=selection.m,
         level=selection.level,
-        correlation_s=tau * dt,
+        correlation_s=tests.tau * tests.dt,
         untried=untried,
-        model_effects=sorted(present),
+        model_effects=model_effects,
         heading_wander_s=wander_s,
     )
-    return diagnosis, run
 
 
 def _screening_residual(fit: Linearised, pool) -> np.ndarray:
@@ -524,6 +590,114 @@ def _kept_sparse(whitened, chunks, q: int):
     return read
 
 
+@dataclass(frozen=True)
+class _Split:
+    """A candidate's whitened regressors ``G`` against a model's whitened Jacobian ``A``, from a first pass over
+    the rows ``rows(a, b) -> (A, G)`` that sums their normal equations per held-out block (``held``): the model's
+    least-squares coefficients ``fitted`` (p,) (its residual ``r = y - A fitted``), the regressors' products
+    ``moment`` (q,) with ``r``, their column norms ``norms`` (q,), the Gram matrix ``outside`` (q, q) of the
+    normalised regressors' part outside the model's span, and ``proj`` (p, q), the coefficients of their part
+    inside it."""
+
+    rows: object
+    held: HeldOut
+    p: int
+    fitted: np.ndarray
+    moment: np.ndarray
+    norms: np.ndarray
+    outside: np.ndarray
+    proj: np.ndarray
+
+    @classmethod
+    def of(cls, rows, p: int, span, edges, model: Linearised) -> _Split:
+        """The first pass over ``model``'s chunks; ``span`` (p, k) the orthonormal basis coefficients of the
+        model's span (None: found here, once more over the rows)."""
+        chunks, y = model.chunks, model.y
+        held = HeldOut(y, edges)
+        for a, b in chunks:
+            held.add(rows(a, b), a, b)
+        normal, c = held.normal, sum(held.c)
+        if span is None:
+            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[0] for a, b in chunks), len(y))
+        fitted = span @ (span.T @ c[:p])  # the model's least-squares coefficients: r = y - A fitted
+        moment = c[p:] - normal[p:, :p] @ fitted  # the regressors' products with r
+        gram, cross = normal[p:, p:], normal[:p, p:]
+        norms = np.sqrt(np.diag(gram))
+        norms[norms == 0] = 1.0
+        along = span.T @ (cross / norms)  # the basis's components of the normalised regressors
+        outside = np.asarray(gram / np.outer(norms, norms) - along.T @ along)  # Gram of their part outside it
+        return cls(rows, held, p, fitted, moment, norms, outside, span @ along)
+
+    def part(self, a, b, X=None):
+        """Normalised regressors of epochs ``a`` to ``b`` less their part in the model's span (3 (b - a), q)."""
+        A, G = self.rows(a, b) if X is None else X
+        return G / self.norms - A @ self.proj
+
+    def residuals(self, effect, to_u, theta, model: Linearised):
+        """The second pass over the rows, with the regressors' orthonormal directions ``part @ to_u`` (q, rank) at
+        coefficients ``theta`` (rank,): the whitened residual (3n,) in sample and on held-out blocks, and the
+        per-epoch scores (n, rank) of the test (None for a wandering effect, which is tested on scores of its
+        own)."""
+        y, rank = model.y, to_u.shape[1]
+        D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
+        beta = self.held.coefficients(None if D is None else np.hstack([np.zeros((len(D), self.p)), D]))
+        in_sample, held_out = np.empty_like(y), np.empty_like(y)
+        scores = None if effect.wanders else np.empty((len(y) // 3, rank))
+        for a, b in model.chunks:
+            X = self.rows(a, b)
+            U = self.part(a, b, X) @ to_u
+            e = y[3 * a : 3 * b] - X[0] @ self.fitted - U @ theta
+            in_sample[3 * a : 3 * b] = e
+            if scores is not None:
+                scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
+            held_out[3 * a : 3 * b] = self.held.residual(X, a, b, beta)
+        return in_sample, held_out, scores
+
+
+def _constancy_scores(effect, null: Linearised) -> np.ndarray:
+    """The scores (n, q) of a wandering effect's constancy test (``inference.constancy_test``): its whitened
+    Jacobian at its prior mean against the whitened residual of the model ``null`` without it, epoch by epoch."""
+    prior = effect.prior()[0]
+    return np.concatenate(
+        [
+            np.einsum(
+                "nik,ni->nk",
+                null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b).reshape(b - a, 3, -1),
+                null.r[3 * a : 3 * b].reshape(b - a, 3),
+            )
+            for a, b in null.chunks
+        ]
+    )
+
+
+def _estimate(effect, test, split: _Split, to_u, names, model: Linearised) -> tuple[dict, str]:
+    """A candidate's parameters ``{name: {"value", "std"}}`` from its ``test`` over the directions the data
+    determine beside the model (``_determined_part``), and the note on it: why it was not testable, or how many
+    directions of its parameters were held. A wandering effect's test has no estimate."""
+    if test is None:
+        return {}, "not testable: the residual's correlation leaves too few independent stretches"
+    if effect.wanders:
+        return {}, ""
+    # coefficients of G (Frisch-Waugh): theta_G = V S^-1 theta_U / norms, with the robust covariance
+    norms = split.norms
+    back = to_u / norms[:, None]
+    value, cov = back @ test.theta, back @ test.cov @ back.T
+    value, cov, undetermined = _determined_part(
+        effect,
+        split.outside * np.outer(norms, norms),
+        lambda: (split.part(a, b) * norms for a, b in model.chunks),
+        len(model.y),
+        value,
+        cov,
+    )
+    std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in zip(names, value, std)}
+    if not undetermined:
+        return estimate, ""
+    plural = "s" if undetermined > 1 else ""
+    return estimate, f"{undetermined} direction{plural} of its parameters not determined (held at the prior mean)"
+
+
 class _AsTested(LinearEffect):
     """An effect whose diagnostic regressors are not its Jacobian (a slow drift, whose Jacobian is the
     offset itself) as the linear block of those regressors, so that it can be refitted and kept in the model
@@ -597,88 +771,22 @@ class _Selection:
         model ``null`` without it.
 
         The rows are made a chunk at a time, twice: once for their normal equations per held-out block, from
-        which the model's span, what it leaves of ``y``, the regressors' part outside it and its SVD follow,
-        and once for the per-epoch scores of the test, the residual it leaves and the held-out residual
-        (``HeldOut``); where the normal equations are ill-conditioned, once more (``gram_svd``)."""
-        n, chunks, y = len(self.problem), model.chunks, model.y
-        held = HeldOut(y, self.edges)
-        for a, b in chunks:
-            held.add(rows(a, b), a, b)
-        normal, c = held.normal, sum(held.c)
-        if span is None:
-            span = span_coefficients(normal[:p, :p], lambda: (rows(a, b)[0] for a, b in chunks), len(y))
-        fitted = span @ (span.T @ c[:p])  # the model's least-squares coefficients: r = y - A fitted
-        moment = c[p:] - normal[p:, :p] @ fitted  # the regressors' products with r
-        gram, cross = normal[p:, p:], normal[:p, p:]
-        norms = np.sqrt(np.diag(gram))
-        norms[norms == 0] = 1.0
-        along = span.T @ (cross / norms)  # the basis's components of the normalised regressors
-        outside = np.asarray(gram / np.outer(norms, norms) - along.T @ along)  # Gram of their part outside it
-        proj = span @ along
-
-        def part(a, b, X=None):
-            """Normalised regressors of epochs ``a`` to ``b`` less their part in the model's span (3 (b - a), q)."""
-            A, G = rows(a, b) if X is None else X
-            return G / norms - A @ proj
-
-        s, vt = gram_svd(outside, lambda: (part(a, b) for a, b in chunks), len(y))
+        which the model's span, what it leaves of ``y``, the regressors' part outside it and its SVD follow
+        (``_Split``), and once for the per-epoch scores of the test, the residual it leaves and the held-out
+        residual (``_Split.residuals``); where the normal equations are ill-conditioned, once more
+        (``gram_svd``)."""
+        chunks, y = model.chunks, model.y
+        split = _Split.of(rows, p, span, self.edges, model)
+        s, vt = gram_svd(split.outside, lambda: (split.part(a, b) for a, b in chunks), len(y))
         rank = int(np.sum(s > RANK_TOLERANCE))
         if rank == 0:
             return _Trial(effect, None, float("nan"), float("nan"), {}, 0, "contained in the model")
         to_u = vt[:rank].T / s[:rank]  # U = part @ to_u: orthonormal
-        theta = to_u.T @ (moment / norms)  # U^T r (the span's basis is orthogonal to r)
-        D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
-        beta = held.coefficients(None if D is None else np.hstack([np.zeros((len(D), p)), D]))
-        in_sample, held_out = np.empty_like(y), np.empty_like(y)
-        scores = None if effect.wanders else np.empty((n, rank))  # a wander is tested on scores of its own
-        for a, b in chunks:
-            X = rows(a, b)
-            U = part(a, b, X) @ to_u
-            e = y[3 * a : 3 * b] - X[0] @ fitted - U @ theta
-            in_sample[3 * a : 3 * b] = e
-            if scores is not None:
-                scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
-            held_out[3 * a : 3 * b] = held.residual(X, a, b, beta)
-        if effect.wanders:
-            prior = effect.prior()[0]
-            test = constancy_test(
-                np.concatenate(
-                    [
-                        np.einsum(
-                            "nik,ni->nk",
-                            null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b).reshape(
-                                b - a, 3, -1
-                            ),
-                            null.r[3 * a : 3 * b].reshape(b - a, 3),
-                        )
-                        for a, b in null.chunks
-                    ]
-                )
-            )
-        else:
-            test = score_test(scores, theta)
+        theta = to_u.T @ (split.moment / split.norms)  # U^T r (the span's basis is orthogonal to r)
+        in_sample, held_out, scores = split.residuals(effect, to_u, theta, model)
+        test = constancy_test(_constancy_scores(effect, null)) if effect.wanders else score_test(scores, theta)
         del scores
-        estimate, note = {}, "not testable: the residual's correlation leaves too few independent stretches"
-        if test is not None and effect.wanders:
-            note = ""
-        elif test is not None:
-            # coefficients of G (Frisch-Waugh): theta_G = V S^-1 theta_U / norms, with the robust covariance
-            back = to_u / norms[:, None]
-            value, cov = back @ test.theta, back @ test.cov @ back.T
-            value, cov, undetermined = _determined_part(
-                effect,
-                outside * np.outer(norms, norms),
-                lambda: (part(a, b) * norms for a, b in chunks),
-                len(y),
-                value,
-                cov,
-            )
-            std = np.sqrt(np.clip(np.diag(cov), 0, None))
-            estimate = {nm: {"value": float(v), "std": float(sd)} for nm, v, sd in zip(names, value, std)}
-            note = ""
-            if undetermined:
-                plural = "s" if undetermined > 1 else ""
-                note = f"{undetermined} direction{plural} of its parameters not determined (held at the prior mean)"
+        estimate, note = _estimate(effect, test, split, to_u, names, model)
         nT = _InNanotesla(model)
         return _Trial(effect, test, nT.rms(held_out), nT.rms(in_sample), estimate, rank, note)
 
@@ -696,24 +804,10 @@ class _Selection:
         self.level = self.alpha / self.m
         taken, refused = [], set()
         while remaining:
-            hits = [trials[e.label] for e in remaining if e.label not in refused and self.significant(trials[e.label])]
+            hits = self._hits(trials, remaining, refused)
             if not hits:
                 break
-            hits.sort(key=lambda t: t.held_out_nt)
-            # taken only if significant at its own best fit and better than the model on held-out data; of
-            # those, the lowest held-out residual (only its refitted model is kept)
-            leading = None
-            for t in hits[:LEADING]:
-                self.say(f"refitting the model with {t.effect.label}")
-                trial, with_it = self.refit(t.effect, fit)
-                trials[t.effect.label] = trial
-                if self.significant(trial) and trial.held_out_nt < current:
-                    if leading is None or trial.held_out_nt < leading[0].held_out_nt:
-                        leading = (trial, with_it)
-                elif self.significant(trial):
-                    trial.note = f"significant, but no better than the model on held-out blocks ({current:.1f} nT)"
-                    refused.add(t.effect.label)
-                del with_it
+            leading = self._leading(hits, fit, current, trials, refused)
             if leading is None:
                 continue
             best, best_fit = self._simpler(*leading, hits, fit)
@@ -722,14 +816,46 @@ class _Selection:
             remaining = [e for e in remaining if e.label != best.effect.label]
             fit, refused = best_fit, set()
             current = _held_out_nt(fit, self.edges)
-            trials = {e.label: self.trial(e, fit) for e in remaining}
-            for e in remaining:
-                if trials[e.label].rank == 0:
-                    trials[e.label].note = f"contained in {best.effect.label}"
+            trials = self._retried(best, remaining, fit)
         rest = sorted(
             (trials[e.label] for e in remaining), key=lambda t: (t.test is None, t.test.p_value if t.test else 1.0)
         )
         return taken + [t.candidate(False, self.dt) for t in rest]
+
+    def _hits(self, trials: dict, remaining: list, refused: set) -> list[_Trial]:
+        """The significant trials of the ``remaining`` candidates not ``refused``, lowest held-out residual first."""
+        hits = [trials[e.label] for e in remaining if e.label not in refused and self.significant(trials[e.label])]
+        hits.sort(key=lambda t: t.held_out_nt)
+        return hits
+
+    def _leading(self, hits: list, fit: Linearised, current: float, trials: dict, refused: set):
+        """The first ``LEADING`` of ``hits`` refitted at their own best fit (their trials in ``trials`` replaced):
+        ``(trial, model)`` of the one significant there and lowest on held-out data below ``current`` (nT), or
+        None. A candidate significant there but no better than the model on held-out blocks joins ``refused``."""
+        # taken only if significant at its own best fit and better than the model on held-out data; of
+        # those, the lowest held-out residual (only its refitted model is kept)
+        leading = None
+        for t in hits[:LEADING]:
+            self.say(f"refitting the model with {t.effect.label}")
+            trial, with_it = self.refit(t.effect, fit)
+            trials[t.effect.label] = trial
+            if self.significant(trial) and trial.held_out_nt < current:
+                if leading is None or trial.held_out_nt < leading[0].held_out_nt:
+                    leading = (trial, with_it)
+            elif self.significant(trial):
+                trial.note = f"significant, but no better than the model on held-out blocks ({current:.1f} nT)"
+                refused.add(t.effect.label)
+            del with_it
+        return leading
+
+    def _retried(self, best: _Trial, remaining: list, fit: Linearised) -> dict:
+        """The trials of the ``remaining`` candidates in the model ``fit`` that has just taken ``best``; those it
+        contains are noted so."""
+        trials = {e.label: self.trial(e, fit) for e in remaining}
+        for e in remaining:
+            if trials[e.label].rank == 0:
+                trials[e.label].note = f"contained in {best.effect.label}"
+        return trials
 
     def _simpler(self, best: _Trial, best_fit: Linearised, hits, fit: Linearised):
         """Among significant candidates contained in ``best`` (fewer parameters, nothing left once ``best`` is

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+from dataclasses import dataclass
 from datetime import UTC, datetime
 
 import numpy as np
@@ -349,29 +350,86 @@ def inspect_log(log: DriveLog, dop_max: float = 5.0) -> dict:
     prov = dict(log.provenance or {})
     t = log.time
     n = len(t)
-    mag = log.mag
-    has_mag = np.all(np.isfinite(mag), axis=1)
-    attitude_ok = np.all(np.isfinite(log.attitude), axis=1)
-    limits: list[dict] = []
+    ref_name, ref, limits = _reference(log, n)
+    masks = _Masks.of(log, ref, dop_max)
+    units, field_limit = _units(log, ref, masks.has_ref, ref_name, prov)
+    coverage = _coverage(log, masks.usable_vector, masks.usable_field)
+    dop_source = _dop_source(log)
+    models = _models(masks)
+    limits += _limits(log, n, masks.attitude_ok, masks.has_pos, masks.status, masks.counts, coverage, dop_max, models)
+    if field_limit is not None:
+        limits.append({"code": field_limit[0], "text": field_limit[1]})
+    return {
+        "file": prov.get("file", log.source),
+        "format": prov.get("format", "table"),
+        "software": prov.get("firmware") or (f"PX4 {prov['px4_version']}" if prov.get("px4_version") else None),
+        "epochs": _epochs(t),
+        "streams": _streams(log, t),
+        "time_base": prov.get("time_base") or "UNIX seconds, UTC (the time column)",
+        "columns": {k: _group(t, v) for k, v in _groups(log, masks, dop_source).items()},
+        "auxiliary": {c: _share(np.isfinite(log.column(c))) for c in log.auxiliary},
+        "position": _position(log, masks.has_pos),
+        "units": units,
+        "coverage": coverage,
+        "dop": _dop_report(masks.dop, dop_source, dop_max),
+        "status": {"counts": masks.counts, "shares": {k: _num(v / n) for k, v in masks.counts.items()}},
+        "models": models,
+        "limits": limits,
+        "notes": [str(s) for s in prov.get("notes") or []],
+    }
 
+
+def _reference(log: DriveLog, n: int) -> tuple[str, np.ndarray, list[dict]]:
+    """The reference field of the ``n`` epochs: ``(name, NED field (n, 3) nT, limits)``, the log's own ``ref_*``
+    columns or IGRF-14; NaN, with the limit that says why, when IGRF cannot be had."""
     ref_name = "ref_n, ref_e, ref_d (the log's reference)" if log.has_reference else "IGRF-14"
     try:
-        ref = log.reference_ned()
+        return ref_name, log.reference_ned(), []
     except InputError as exc:
-        ref = np.full((n, 3), np.nan)
-        limits.append({"code": "reference", "text": f"no IGRF field: {exc}"})
-    has_ref = np.all(np.isfinite(ref), axis=1)
-    if log.has_reference:
-        has_pos = has_ref
-    else:
-        has_pos = np.isfinite(log.column(LAT)) & np.isfinite(log.column(LON))
-    dop = log.dop
-    status = epoch_status(mag, ref, attitude_ok, dop, dop_max)
-    counts = status_counts(status)
-    usable_vector = status == Status.USED
-    usable_field = usable_vector | (status == Status.MISSING_ATTITUDE)
+        return ref_name, np.full((n, 3), np.nan), [{"code": "reference", "text": f"no IGRF field: {exc}"}]
 
-    field = _field_check(np.linalg.norm(mag, axis=1), np.linalg.norm(ref, axis=1), ref_name, prov)
+
+@dataclass(frozen=True)
+class _Masks:
+    """Per-epoch masks (N,) of a log: a field ``has_mag``, attitude ``attitude_ok``, a reference field ``has_ref``,
+    a position ``has_pos`` (for a log with its own reference: that reference); the DOP ``dop`` (N,), each epoch's
+    ``status`` (N,) under the DOP gate and their ``counts`` per status name; the epochs the vector model can use
+    (``usable_vector``) and those the magnitude model can use (``usable_field``)."""
+
+    has_mag: np.ndarray
+    attitude_ok: np.ndarray
+    has_ref: np.ndarray
+    has_pos: np.ndarray
+    dop: np.ndarray
+    status: np.ndarray
+    counts: dict
+    usable_vector: np.ndarray
+    usable_field: np.ndarray
+
+    @classmethod
+    def of(cls, log: DriveLog, ref: np.ndarray, dop_max: float) -> _Masks:
+        """The masks of ``log`` with the reference field ``ref`` (N, 3) nT and the DOP gate ``dop_max``."""
+        mag = log.mag
+        attitude_ok = np.all(np.isfinite(log.attitude), axis=1)
+        has_ref = np.all(np.isfinite(ref), axis=1)
+        if log.has_reference:
+            has_pos = has_ref
+        else:
+            has_pos = np.isfinite(log.column(LAT)) & np.isfinite(log.column(LON))
+        dop = log.dop
+        status = epoch_status(mag, ref, attitude_ok, dop, dop_max)
+        usable_vector = status == Status.USED
+        usable_field = usable_vector | (status == Status.MISSING_ATTITUDE)
+        has_mag = np.all(np.isfinite(mag), axis=1)
+        return cls(
+            has_mag, attitude_ok, has_ref, has_pos, dop, status, status_counts(status), usable_vector, usable_field
+        )
+
+
+def _units(log: DriveLog, ref: np.ndarray, has_ref: np.ndarray, ref_name: str, prov: dict) -> tuple[dict, tuple | None]:
+    """The ``units`` of the report (the field against the reference ``ref`` (N, 3) nT named ``ref_name``, the
+    attitude, the reader's conversions) and the field's limit ``(code, text)``, or None."""
+    field = _field_check(np.linalg.norm(log.mag, axis=1), np.linalg.norm(ref, axis=1), ref_name, prov)
     field_limit = field.pop("limit")
     if has_ref.any():
         ref_median = np.median(ref[has_ref], axis=0)
@@ -387,118 +445,136 @@ def inspect_log(log: DriveLog, dop_max: float = 5.0) -> dict:
         },
         "conversions": columns,
     }
+    return units, field_limit
 
-    coverage = _coverage(log, usable_vector, usable_field)
-    dop_source = _dop_source(log)
-    dop_finite = np.isfinite(dop)
-    dop_report = {
-        "source": dop_source,
-        "median": _num(np.median(dop[dop_finite]), 3) if dop_finite.any() else None,
+
+def _dop_report(dop: np.ndarray, source: str | None, dop_max: float) -> dict:
+    """The DOP column read (``source``), the median DOP (N,) and the share of epochs above the gate ``dop_max``."""
+    finite = np.isfinite(dop)
+    return {
+        "source": source,
+        "median": _num(np.median(dop[finite]), 3) if finite.any() else None,
         "share_above": _share(dop > dop_max),
         "dop_max": dop_max,
     }
 
-    groups = {"mag": has_mag, "attitude": attitude_ok, "position": has_pos}
-    if log.has_reference:
-        groups["reference"] = has_ref
-    if dop_source is not None:
-        groups["dop"] = dop_finite
-    pos = log.position[has_pos] if log.has_position else np.empty((0, 3))
 
+def _groups(log: DriveLog, masks: _Masks, dop_source: str | None) -> dict:
+    """The groups of canonical columns the log has (name -> mask (N,) of the epochs holding them)."""
+    groups = {"mag": masks.has_mag, "attitude": masks.attitude_ok, "position": masks.has_pos}
+    if log.has_reference:
+        groups["reference"] = masks.has_ref
+    if dop_source is not None:
+        groups["dop"] = np.isfinite(masks.dop)
+    return groups
+
+
+def _position(log: DriveLog, has_pos: np.ndarray) -> dict:
+    """The median latitude and longitude (deg) and altitude (m) over the epochs with a position."""
+    pos = log.position[has_pos] if log.has_position else np.empty((0, 3))
+    return {
+        "lat_deg": _num(np.median(pos[:, 0]), 5) if len(pos) else None,
+        "lon_deg": _num(np.median(pos[:, 1]), 5) if len(pos) else None,
+        "alt_m": _num(np.median(pos[:, 2]), 1) if len(pos) and ALT in log.table else None,
+    }
+
+
+def _models(masks: _Masks) -> list[str]:
+    """The measurement models the log allows: any with a usable field, those needing attitude only with it."""
     from ..online.measurements import MEASUREMENTS
 
-    models = [
+    return [
         name
         for name, cls in MEASUREMENTS.items()
-        if usable_field.any() and (usable_vector.any() or not cls.needs_attitude)
+        if masks.usable_field.any() and (masks.usable_vector.any() or not cls.needs_attitude)
     ]
-
-    limits += _limits(log, n, attitude_ok, has_pos, status, counts, coverage, dop_max, models)
-    if field_limit is not None:
-        limits.append({"code": field_limit[0], "text": field_limit[1]})
-
-    return {
-        "file": prov.get("file", log.source),
-        "format": prov.get("format", "table"),
-        "software": prov.get("firmware") or (f"PX4 {prov['px4_version']}" if prov.get("px4_version") else None),
-        "epochs": _epochs(t),
-        "streams": _streams(log, t),
-        "time_base": prov.get("time_base") or "UNIX seconds, UTC (the time column)",
-        "columns": {k: _group(t, v) for k, v in groups.items()},
-        "auxiliary": {c: _share(np.isfinite(log.column(c))) for c in log.auxiliary},
-        "position": {
-            "lat_deg": _num(np.median(pos[:, 0]), 5) if len(pos) else None,
-            "lon_deg": _num(np.median(pos[:, 1]), 5) if len(pos) else None,
-            "alt_m": _num(np.median(pos[:, 2]), 1) if len(pos) and ALT in log.table else None,
-        },
-        "units": units,
-        "coverage": coverage,
-        "dop": dop_report,
-        "status": {"counts": counts, "shares": {k: _num(v / n) for k, v in counts.items()}},
-        "models": models,
-        "limits": limits,
-        "notes": [str(s) for s in prov.get("notes") or []],
-    }
 
 
 def _limits(log, n, attitude_ok, has_pos, status, counts, coverage, dop_max, models) -> list[dict]:
     """What will limit the calibration, in words: ``[{"code", "text"}]``."""
     out = []
-
-    def add(code: str, text: str) -> None:
-        out.append({"code": code, "text": text})
-
     if not models:
-        add("no_model", "no epoch has a field, a reference field and an acceptable DOP: nothing to calibrate")
-    if not attitude_ok.any():
-        add("no_attitude", "no attitude: only the magnitude model; the orientation of R stays undetermined")
-    elif (~attitude_ok).mean() > MISSING_SHARE:
-        add(
-            "missing_attitude",
-            f"{int((~attitude_ok).sum())} epochs ({100 * (~attitude_ok).mean():.0f} %) "
-            "without attitude: they get only the magnitude update",
-        )
-    missing_pos = int((~has_pos).sum())
-    if missing_pos:
-        what = (
-            "without a 3-D fix (no position)"
-            if "fix_type" in log.table
-            else "without a reference field"
-            if log.has_reference
-            else "without a position"
-        )
-        add("no_fix", f"{missing_pos} epochs ({100 * missing_pos / n:.0f} %) {what}: not used")
+        nothing = "no epoch has a field, a reference field and an acceptable DOP: nothing to calibrate"
+        out.append(_limit("no_model", nothing))
+    out += _attitude_limits(attitude_ok)
+    out += _position_limits(log, n, has_pos)
     if counts["gated_dop"]:
-        add("dop", f"{counts['gated_dop']} epochs with DOP above {dop_max:g}: gated")
-    if attitude_ok.any():
-        vector = coverage["vector_epochs"]
-        span = coverage["heading_span_deg"] or 0.0
-        if vector < BOOTSTRAP_MIN_EPOCHS or span < BOOTSTRAP_HEADING_DEG:
-            add(
-                "too_short",
-                f"too short: {vector} usable epochs with attitude over {span:.0f} deg of heading; "
-                f"the bootstrap needs about {BOOTSTRAP_MIN_EPOCHS} and {BOOTSTRAP_HEADING_DEG:.0f} deg "
-                "(or give --init CAL.json)",
-            )
-        share = coverage["heading_share"]
-        if share is not None and share < HEADING_COVERAGE_MIN:
-            add("heading", f"heading coverage {100 * share:.0f} %: turn through more headings")
-        tilt = coverage["tilt_p95_deg"]
-        if tilt is not None and tilt < LEVEL_TILT_DEG:
-            level = f"level flight (tilt under {LEVEL_TILT_DEG:g} deg, 95 % within {tilt:.1f} deg)"
-            add("level", level + ": the third column of R and b_z trade off; the third column will stay at its prior")
-        elif tilt is not None and tilt < LOW_TILT_DEG:
-            low = f"tilt under {LOW_TILT_DEG:g} deg (95 % within {tilt:.1f} deg)"
-            add("low_tilt", low + ": the third column of R is weakly determined against b_z; roll and pitch further")
-    else:
-        field_epochs = coverage["field_epochs"]
-        if 0 < field_epochs < ELLIPSOID_MIN_EPOCHS:
-            fit = f"the magnitude bootstrap's ellipsoid fit needs at least {ELLIPSOID_MIN_EPOCHS}"
-            add("too_short", f"too short: {field_epochs} usable epochs; {fit}")
-        sphere = coverage["sphere_share"]
-        if sphere is not None and sphere < SPHERE_COVERAGE_MIN:
-            cover = f"field directions cover {100 * sphere:.0f} % of the sphere"
-            add("sphere", cover + ": the magnitude model needs the sensor turned in 3-D")
+        out.append(_limit("dop", f"{counts['gated_dop']} epochs with DOP above {dop_max:g}: gated"))
+    out += _vector_limits(coverage) if attitude_ok.any() else _magnitude_limits(coverage)
+    return out
+
+
+def _limit(code: str, text: str) -> dict:
+    """One limit of the calibration: its ``code`` and its ``text``."""
+    return {"code": code, "text": text}
+
+
+def _attitude_limits(attitude_ok: np.ndarray) -> list[dict]:
+    """No attitude at all, or more than ``MISSING_SHARE`` of the epochs without it (mask ``attitude_ok`` (N,))."""
+    if not attitude_ok.any():
+        return [_limit("no_attitude", "no attitude: only the magnitude model; the orientation of R stays undetermined")]
+    if (~attitude_ok).mean() > MISSING_SHARE:
+        text = (
+            f"{int((~attitude_ok).sum())} epochs ({100 * (~attitude_ok).mean():.0f} %) "
+            "without attitude: they get only the magnitude update"
+        )
+        return [_limit("missing_attitude", text)]
+    return []
+
+
+def _position_limits(log: DriveLog, n: int, has_pos: np.ndarray) -> list[dict]:
+    """The epochs of the ``n`` without a position (mask ``has_pos`` (N,)): without a 3-D fix, or a reference."""
+    missing_pos = int((~has_pos).sum())
+    if not missing_pos:
+        return []
+    what = (
+        "without a 3-D fix (no position)"
+        if "fix_type" in log.table
+        else "without a reference field"
+        if log.has_reference
+        else "without a position"
+    )
+    return [_limit("no_fix", f"{missing_pos} epochs ({100 * missing_pos / n:.0f} %) {what}: not used")]
+
+
+def _vector_limits(coverage: dict) -> list[dict]:
+    """With attitude: too few epochs or headings for the vector bootstrap, too few headings, too little tilt."""
+    out = []
+    vector = coverage["vector_epochs"]
+    span = coverage["heading_span_deg"] or 0.0
+    if vector < BOOTSTRAP_MIN_EPOCHS or span < BOOTSTRAP_HEADING_DEG:
+        text = (
+            f"too short: {vector} usable epochs with attitude over {span:.0f} deg of heading; "
+            f"the bootstrap needs about {BOOTSTRAP_MIN_EPOCHS} and {BOOTSTRAP_HEADING_DEG:.0f} deg "
+            "(or give --init CAL.json)"
+        )
+        out.append(_limit("too_short", text))
+    share = coverage["heading_share"]
+    if share is not None and share < HEADING_COVERAGE_MIN:
+        out.append(_limit("heading", f"heading coverage {100 * share:.0f} %: turn through more headings"))
+    tilt = coverage["tilt_p95_deg"]
+    if tilt is not None and tilt < LEVEL_TILT_DEG:
+        level = f"level flight (tilt under {LEVEL_TILT_DEG:g} deg, 95 % within {tilt:.1f} deg)"
+        trade = ": the third column of R and b_z trade off; the third column will stay at its prior"
+        out.append(_limit("level", level + trade))
+    elif tilt is not None and tilt < LOW_TILT_DEG:
+        low = f"tilt under {LOW_TILT_DEG:g} deg (95 % within {tilt:.1f} deg)"
+        weak = ": the third column of R is weakly determined against b_z; roll and pitch further"
+        out.append(_limit("low_tilt", low + weak))
+    return out
+
+
+def _magnitude_limits(coverage: dict) -> list[dict]:
+    """Without attitude: too few epochs for the magnitude bootstrap's ellipsoid fit, too little of the sphere."""
+    out = []
+    field_epochs = coverage["field_epochs"]
+    if 0 < field_epochs < ELLIPSOID_MIN_EPOCHS:
+        fit = f"the magnitude bootstrap's ellipsoid fit needs at least {ELLIPSOID_MIN_EPOCHS}"
+        out.append(_limit("too_short", f"too short: {field_epochs} usable epochs; {fit}"))
+    sphere = coverage["sphere_share"]
+    if sphere is not None and sphere < SPHERE_COVERAGE_MIN:
+        cover = f"field directions cover {100 * sphere:.0f} % of the sphere"
+        out.append(_limit("sphere", cover + ": the magnitude model needs the sensor turned in 3-D"))
     return out
 
 
@@ -530,50 +606,75 @@ def _wrap(label: str, text: str, max_lines: int | None = None) -> list[str]:
 def format_inspection(report: dict) -> str:
     """``inspect_log``'s report as one terminal screen: at most ``MAX_LINES`` lines of at most ``MAX_WIDTH``
     characters (long texts are wrapped, the reader's notes cut first, with a pointer to ``--json``)."""
-    e, units, cov, dop = report["epochs"], report["units"], report["coverage"], report["dop"]
-    mag = units["magnetometer"]
     head = [f"magkf check  {report['file']}"]
     head += _wrap("format", report["format"] + (f" ({report['software']})" if report.get("software") else ""))
-    head += _wrap(
+    head += _epoch_lines(report["epochs"], report["time_base"])
+    head += _stream_lines(report["streams"])
+    head += _column_lines(report)
+    head += _unit_lines(report["units"])
+    head += _coverage_lines(report["coverage"])
+    head += _gate_lines(report)
+    return _screen(head, _limit_lines(report["limits"]), report["notes"])
+
+
+def _epoch_lines(e: dict, time_base: str) -> list[str]:
+    """The epochs: count, duration, rate and intervals, UTC span, time base and gaps."""
+    lines = _wrap(
         "epochs",
         f"{e['count']} over {_fmt(e['duration_s'], '.1f')} s at {_fmt(e['rate_hz'])} Hz "
         f"(interval median {_fmt(e['median_interval_s'])} s, worst {_fmt(e['worst_interval_s'])} s)",
     )
-    head += _wrap("UTC", f"{e['start_utc']} to {e['end_utc']}")
-    head += _wrap("time base", report["time_base"], 2)
+    lines += _wrap("UTC", f"{e['start_utc']} to {e['end_utc']}")
+    lines += _wrap("time base", time_base, 2)
     gap = f"{e['gap_threshold_s']:.3g} s"
-    head += _wrap(
+    lines += _wrap(
         "gaps",
         f"{e['gaps']} longer than {gap} (longest {e['longest_gap_s']:.3g} s)"
         if e["gaps"]
         else f"none longer than {gap}",
     )
-    streams = report["streams"]
+    return lines
+
+
+def _stream_lines(streams: list) -> list[str]:
+    """The first four magnetometer streams, one line each, and how many more there are."""
+    lines = []
     for i, s in enumerate(streams[:4]):
         extra = "".join(f", {k} {s[k]}" for k in ("device_id", "is_external") if k in s)
-        head += _wrap(
+        lines += _wrap(
             "streams" if i == 0 else "",
             f"{s['name']}: {s['samples']} samples, {_fmt(s['rate_hz'])} Hz, "
             f"{_fmt(s['span_s'], '.1f')} s{extra}{' (read)' if s['used'] else ''}",
             1,
         )
     if len(streams) > 4:
-        head.append(" " * 14 + f"... {len(streams) - 4} more")
-    head += _wrap("columns", ", ".join(f"{k} {_pct(v['share'])}" for k, v in report["columns"].items()))
+        lines.append(" " * 14 + f"... {len(streams) - 4} more")
+    return lines
+
+
+def _column_lines(report: dict) -> list[str]:
+    """The share of epochs holding each group of columns and each auxiliary channel, and the median position."""
+    lines = _wrap("columns", ", ".join(f"{k} {_pct(v['share'])}" for k, v in report["columns"].items()))
     if report["auxiliary"]:
-        head += _wrap("auxiliary", ", ".join(f"{k} {_pct(v)}" for k, v in report["auxiliary"].items()), 2)
+        lines += _wrap("auxiliary", ", ".join(f"{k} {_pct(v)}" for k, v in report["auxiliary"].items()), 2)
     p = report["position"]
     if p["lat_deg"] is not None:
-        head.append(
+        lines.append(
             "position".ljust(14)
             + f"lat {p['lat_deg']:.4f}, lon {p['lon_deg']:.4f} deg"
             + (f", {p['alt_m']:.0f} m" if p["alt_m"] is not None else "")
         )
-    head += _wrap("magnetometer", f"nT from {mag['source']}", 1)
+    return lines
+
+
+def _unit_lines(units: dict) -> list[str]:
+    """The magnetometer's unit and source, the field against the reference, and the attitude's source."""
+    mag = units["magnetometer"]
+    lines = _wrap("magnetometer", f"nT from {mag['source']}", 1)
     ref = f"{mag['reference'].split(' ')[0]} {_fmt(mag['reference_magnitude_nt'], '.0f')} nT" + (
         f", inclination {mag['inclination_deg']:.1f} deg" if mag.get("inclination_deg") is not None else ""
     )
-    head += _wrap(
+    lines += _wrap(
         "field",
         f"median |m| {_fmt(mag['median_magnitude_nt'], '.0f')} nT; {ref}; "
         f"ratio {_fmt(mag['ratio'], '.3f')}: {mag['verdict']}; autopilot calibration "
@@ -581,14 +682,19 @@ def format_inspection(report: dict) -> str:
         2,
     )
     if units["attitude"]["source"]:
-        head += _wrap("attitude", f"{units['attitude']['unit']} from {units['attitude']['source']}", 1)
+        lines += _wrap("attitude", f"{units['attitude']['unit']} from {units['attitude']['source']}", 1)
+    return lines
+
+
+def _coverage_lines(cov: dict) -> list[str]:
+    """The heading and sphere coverage over the usable epochs, and the tilt."""
     heading = (
         f"heading {_pct(cov['heading_share'])} of {HEADING_BIN_DEG:g}-deg bins (all epochs with attitude "
         f"{_pct(cov['heading_share_all'])}), span {_fmt(cov['heading_span_deg'], '.0f')} deg; "
         if cov["heading_share"] is not None
         else ""
     )
-    head += _wrap(
+    lines = _wrap(
         "coverage",
         f"over {cov['field_epochs']} usable epochs ({cov['vector_epochs']} with attitude): "
         f"{heading}field direction {_pct(cov['sphere_share'])} of {SPHERE_CELLS} sphere cells",
@@ -596,29 +702,44 @@ def format_inspection(report: dict) -> str:
     )
     if cov["tilt_p95_deg"] is not None:
         (r0, r1), (p0, p1) = cov["roll_p5_p95_deg"], cov["pitch_p5_p95_deg"]
-        head += _wrap(
+        lines += _wrap(
             "tilt",
             f"roll {r0:.1f} to {r1:.1f}, pitch {p0:.1f} to {p1:.1f} deg (5th-95th pct); "
             f"95 % within {cov['tilt_p95_deg']:.1f} deg of level",
             2,
         )
-    head += _wrap(
+    return lines
+
+
+def _gate_lines(report: dict) -> list[str]:
+    """The DOP against its gate, the share of epochs of each status, and the measurement models allowed."""
+    dop = report["dop"]
+    lines = _wrap(
         "dop",
         f"{dop['source']} median {_fmt(dop['median'])}, {_pct(dop['share_above'])} above {dop['dop_max']:g}"
         if dop["source"]
         else "not logged (the gate passes every epoch)",
     )
     shares = report["status"]["shares"]
-    head += _wrap("status", ", ".join(f"{k} {_pct(v)}" for k, v in shares.items() if v))
-    head.append("models".ljust(14) + (", ".join(report["models"]) or "none"))
-    tail = []
-    for i, lim in enumerate(report["limits"]):
-        tail += _wrap("limits" if i == 0 else "", "- " + lim["text"], 2)
-    if not report["limits"]:
-        tail.append("limits".ljust(14) + "none found")
-    notes = [
-        line for i, note in enumerate(report["notes"]) for line in _wrap("notes" if i == 0 else "", "- " + note, 2)
-    ]
+    lines += _wrap("status", ", ".join(f"{k} {_pct(v)}" for k, v in shares.items() if v))
+    lines.append("models".ljust(14) + (", ".join(report["models"]) or "none"))
+    return lines
+
+
+def _limit_lines(limits: list) -> list[str]:
+    """The limits, each as a dash and at most two lines, or that none was found."""
+    lines = []
+    for i, lim in enumerate(limits):
+        lines += _wrap("limits" if i == 0 else "", "- " + lim["text"], 2)
+    if not limits:
+        lines.append("limits".ljust(14) + "none found")
+    return lines
+
+
+def _screen(head: list, tail: list, notes: list) -> str:
+    """``head``, ``tail`` and the reader's ``notes`` on one screen: the notes cut first to the room left (with a
+    pointer to ``--json``), then every line to ``MAX_WIDTH`` and the whole to ``MAX_LINES``."""
+    notes = [line for i, note in enumerate(notes) for line in _wrap("notes" if i == 0 else "", "- " + note, 2)]
     room = MAX_LINES - len(head) - len(tail)
     if len(notes) > room:
         kept = notes[: max(room - 1, 0)]

@@ -19,8 +19,8 @@ from ..config import FilterConfig
 from ..effects.channels import channel_unit
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
-from ..online.verdict import band_text
 from ..online.run import calibrate_log
+from ..online.verdict import band_text
 from .diagnose import compare_runs, diagnose
 from .fitting import WANDER_BLOCK_S
 
@@ -226,8 +226,25 @@ def _noise_section(run, t0: float) -> list[str]:
     """The "Noise and verdict" section: configured against learned noise, NIS, used share and residuals
     (``RunSummary``), the verdict, and the learned noise over time."""
     s = run.summary
-    noise, conf = s.noise, s.noise["configured"]
-    learned = noise.get("learned")
+    how = (
+        "learned from the log's innovations" if s.noise.get("adapted") else "not learned: the configured noise was used"
+    )
+    return [
+        "<h2>Noise and verdict</h2>",
+        f"<p><b>Verdict:</b> {html.escape(s.verdict)}.</p>",
+        f"<p>Measurement noise {how}. Residuals with the final estimate: vector norm in NED over the epochs used "
+        "and over the whole log (every epoch with attitude and a reference, gated ones included); the magnitude "
+        "residual likewise.</p>",
+        _noise_table(s.noise),
+        _fit_table(s),
+        _noise_plot(run, t0),
+    ]
+
+
+def _noise_table(noise: dict) -> str:
+    """The configured noise against the learned one (at the end of the log and its median over the log), with
+    the residuals' correlation time (s) and the inflation it implies (``RunSummary.noise``)."""
+    conf, learned = noise["configured"], noise.get("learned")
     header = [
         "",
         "sensor noise, nT",
@@ -265,8 +282,14 @@ def _noise_section(run, t0: float) -> list[str]:
                 "",
             ),
         ]
+    return _table(rows, header)
+
+
+def _fit_table(s) -> str:
+    """The fit of a run (its ``RunSummary`` ``s``): mean NIS per degree of freedom and its 95 % band, the share of
+    epochs used, and the vector and magnitude residual RMS (nT) over the epochs used and over the whole log."""
     lo, hi = s.nis_band
-    fit = _table(
+    return _table(
         [
             (
                 _fixed(s.nis_mean),
@@ -288,17 +311,6 @@ def _noise_section(run, t0: float) -> list[str]:
             "magnitude residual RMS, whole log, nT",
         ],
     )
-    how = "learned from the log's innovations" if noise.get("adapted") else "not learned: the configured noise was used"
-    return [
-        "<h2>Noise and verdict</h2>",
-        f"<p><b>Verdict:</b> {html.escape(s.verdict)}.</p>",
-        f"<p>Measurement noise {how}. Residuals with the final estimate: vector norm in NED over the epochs used "
-        "and over the whole log (every epoch with attitude and a reference, gated ones included); the magnitude "
-        "residual likewise.</p>",
-        _table(rows, header),
-        fit,
-        _noise_plot(run, t0),
-    ]
 
 
 def _noise_plot(run, t0: float) -> str:
@@ -371,23 +383,46 @@ def _estimate_table(run) -> str:
 def _field_views(log: DriveLog, run, registry) -> list[str]:
     """The raw and the calibrated field in three projections with the reference sphere, the magnitude error
     before and after, and the heading deviation against heading (compass swing) before and after."""
-    import matplotlib.pyplot as plt
-
     from ..apply import apply_calibration
-    from ..conventions import magnetic_heading_deg, wrap_deg
 
     after = apply_calibration(log, run.calibration, registry)
+    before = _raw_as_field(log, after)
+    ref = np.linalg.norm(log.reference_ned(), axis=1)
+    views = {"raw reading": log.mag, "calibrated": after[["field_x", "field_y", "field_z"]].to_numpy(float)}
+    projections = _projections(views, float(np.nanmedian(ref)))
+    histogram = _magnitude_errors(before, after, ref)
+    yaw = log.attitude[:, 2] % 360.0
+    ok = (after["status"] == "ok").to_numpy()
+    if not ok.any():
+        return ["<h2>Field before and after calibration</h2>", projections, histogram]
+    return [
+        "<h2>Field before and after calibration</h2>",
+        projections,
+        histogram,
+        _compass_swing(before, after, yaw, ok),
+    ]
+
+
+def _raw_as_field(log: DriveLog, after: pd.DataFrame) -> pd.DataFrame:
+    """The raw reading taken as the field: its magnitude (nT) and true heading (deg, with the declination that
+    the calibrated frame ``after`` found), indexed as ``after``."""
+    from ..conventions import magnetic_heading_deg
+
     att = log.attitude
-    before = pd.DataFrame(  # the raw reading taken as the field, with the declination ``after`` found
+    return pd.DataFrame(
         {
             "magnitude_nt": np.linalg.norm(log.mag, axis=1),
             "heading_true_deg": (magnetic_heading_deg(log.mag, att[:, 0], att[:, 1]) + after["declination_deg"]) % 360,
         },
         index=after.index,
     )
-    ref = np.linalg.norm(log.reference_ned(), axis=1)
-    radius = float(np.nanmedian(ref))
-    views = {"raw reading": log.mag, "calibrated": after[["field_x", "field_y", "field_z"]].to_numpy(float)}
+
+
+def _projections(views: dict, radius: float) -> str:
+    """Each field of ``views`` (name -> (N, 3) nT) projected on the x-y, x-z and y-z planes, with the reference
+    field's sphere of ``radius`` (nT) dashed."""
+    import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(2, 3, figsize=(10, 6.8), constrained_layout=True)
     circle = np.linspace(0, 2 * np.pi, 361)
     for row, (name, v) in zip(axes, views.items()):
@@ -401,11 +436,16 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
             ax.yaxis.set_major_locator(plt.MaxNLocator(5))
             ax.grid(alpha=0.3)
     fig.suptitle(f"sensor-axis field; dashed: the reference sphere, radius {radius:.0f} nT")
-    projections = _png(
+    return _png(
         fig,
         "raw and calibrated magnetometer field in nT projected on the x-y, x-z and y-z planes, with the "
         f"reference field's sphere of radius {radius:.0f} nT dashed",
     )
+
+
+def _magnitude_errors(before: pd.DataFrame, after: pd.DataFrame, ref: np.ndarray) -> str:
+    """Histograms of the field magnitude less the reference magnitude ``ref`` (N,) nT, raw and calibrated."""
+    import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), constrained_layout=True)
     for ax, (name, frame) in zip(axes, (("raw reading", before), ("calibrated", after))):
@@ -422,12 +462,16 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
             title=f"{name}: RMS {rms:.0f} nT over every epoch",
         )
     fig.suptitle("magnitude error before and after calibration")
-    histogram = _png(fig, "histograms of the field magnitude less the reference magnitude in nT, raw and calibrated")
+    return _png(fig, "histograms of the field magnitude less the reference magnitude in nT, raw and calibrated")
 
-    yaw = att[:, 2] % 360.0
-    ok = (after["status"] == "ok").to_numpy()
-    if not ok.any():
-        return ["<h2>Field before and after calibration</h2>", projections, histogram]
+
+def _compass_swing(before: pd.DataFrame, after: pd.DataFrame, yaw: np.ndarray, ok: np.ndarray) -> str:
+    """The true heading less the logged ``yaw`` (N,) deg against heading over the epochs ``ok`` (mask (N,)), raw
+    and calibrated, with means per 10 deg."""
+    import matplotlib.pyplot as plt
+
+    from ..conventions import wrap_deg
+
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
     edges = np.arange(0.0, 361.0, 10.0)
     for ax, (name, frame) in zip(axes, (("raw reading", before), ("calibrated", after))):
@@ -450,12 +494,11 @@ def _field_views(log: DriveLog, run, registry) -> list[str]:
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right")
     fig.suptitle("compass swing: heading deviation against heading")
-    swing = _png(
+    return _png(
         fig,
         "heading deviation in deg (tilt-compensated compass heading less the logged yaw) against heading in deg, "
         "raw and calibrated, with means per 10 deg",
     )
-    return ["<h2>Field before and after calibration</h2>", projections, histogram, swing]
 
 
 #: The signal to plot the residual against for an effect without a channel of its own.
@@ -547,6 +590,8 @@ def build_report(
 
 
 def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
+    """The report's HTML page: the run with ``effects`` added and its diagnosis, section by section, and before and
+    after adding the effects when there are any."""
     say("calibrating")
     run = calibrate_log(log, config, init=cal, effects=effects)
     diag, _ = diagnose(
@@ -554,8 +599,34 @@ def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
     )
     say("drawing the plots")
     t0 = log.time[0]
-    s = run.summary
     parts = [
+        *_overview(log, run, diag, cal),
+        *_noise_section(run, t0),
+        *_gates_and_estimate(run, t0),
+        *_field_views(log, run, registry),
+        *_residuals_section(diag, t0),
+        *_candidates_section(diag),
+    ]
+    if effects:
+        parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)
+    style = (
+        "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
+        "td,th{border:1px solid #bbb;padding:2px 8px;font-size:14px}th{background:#f2f2f2}img{max-width:100%}"
+        "td{font-variant-numeric:tabular-nums}.wide{overflow-x:auto}body{padding:0 8px}"
+    )
+    return (
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+        f"<title>magkf report</title><style>{style}</style>"
+        f"</head><body>{''.join(parts)}</body></html>"
+    )
+
+
+def _overview(log, run, diag, cal) -> list[str]:
+    """The title and the run in a few lines: epochs, filter and start, residuals and NIS, the diagnosis's advice,
+    what the data did not determine, and whether ``magkf calibrate`` would write the calibration."""
+    s = run.summary
+    return [
         f"<h1>magkf report: {html.escape(log.source)}</h1>",
         f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; residual RMS over the "
         f"epochs used {_fixed(s.residual_rms_nt)} nT (vector norm), magnitude {_fixed(s.residual_rms_magnitude_nt)} "
@@ -563,14 +634,26 @@ def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
         f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
         f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
         _plausibility(run, log, cal),
-        *_noise_section(run, t0),
+    ]
+
+
+def _gates_and_estimate(run, t0: float) -> list[str]:
+    """The "Gates" section (the epochs of each status, and over time) and the "Estimate" section (every parameter,
+    and the estimates over time since ``t0``, UNIX s)."""
+    return [
         "<h2>Gates</h2>",
         _status_plot(run, t0),
-        _table([(k, v) for k, v in s.status_counts.items()], ["status", "epochs"]),
+        _table([(k, v) for k, v in run.summary.status_counts.items()], ["status", "epochs"]),
         "<h2>Estimate</h2>",
         _estimate_table(run),
         _states_plot(run, t0),
-        *_field_views(log, run, registry),
+    ]
+
+
+def _residuals_section(diag, t0: float) -> list[str]:
+    """The "Residuals" section: the diagnosed epochs' residuals over time since ``t0`` (UNIX s), against the
+    signals they follow most, and their largest stretches."""
+    return [
         "<h2>Residuals</h2>",
         _residual_plot(
             t0, diag, "residuals of the diagnosed epochs (used and innovation-gated, gross outliers left out)"
@@ -587,42 +670,26 @@ def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
             ],
             ["largest residuals: from, s after the start", "to, s", "RMS, nT", "max, nT"],
         ),
+    ]
+
+
+def _candidates_section(diag) -> list[str]:
+    """The "Which effect is missing" section: how the candidates were tested, their ranking, what to do, and every
+    signal the residual follows."""
+    wander = (
+        f", after the heading's slow error was taken out over {diag.heading_wander_s:g} s stretches"
+        if diag.heading_wander_s
+        else ""
+    )
+    return [
         "<h2>Which effect is missing</h2>",
         f"<p>{diag.n_tested} candidates tested, each by a correlation-robust F test (a drifting offset: L, "
         f"Nyblom's constancy test) at p &lt; {diag.level:.2g} (alpha {diag.alpha:g} over the candidates)"
-        + (
-            f", after the heading's slow error was taken out over {diag.heading_wander_s:g} s stretches"
-            if diag.heading_wander_s
-            else ""
-        )
+        + wander
         + f"; the residual is correlated over about "
         f"{diag.correlation_s:.2g} s. Held-out RMS: the NED residual on blocks of the log left out of the fit "
         f"(the model's own: {_fixed(diag.residual_rms_held_out_nt)} nT).</p>",
-        _table(
-            [
-                (
-                    c.effect,
-                    f"{c.test} {_fixed(c.statistic, 1)}",
-                    f"{c.dof}, {c.dof_denominator}" if c.dof_denominator else str(c.dof),
-                    _p(c.p_value),
-                    _fixed(c.residual_rms_after_nt),
-                    _fixed(c.residual_rms_fit_nt),
-                    "yes" if c.significant else "",
-                    c.note,
-                )
-                for c in diag.candidates
-            ],
-            [
-                "candidate",
-                "statistic (dimensionless)",
-                "degrees of freedom",
-                "p-value",
-                "held-out RMS after, nT",
-                "in-sample RMS after, nT",
-                "taken",
-                "note",
-            ],
-        ),
+        _candidate_table(diag.candidates),
         *_advice(diag),
         _table(
             [
@@ -632,40 +699,61 @@ def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
             ["signal the residual follows", "component", "p-value (correlation-robust)", "range of binned means, nT"],
         ),
     ]
-    if effects:
-        core = cal.without_effects() if cal is not None else None  # the model without any effect
-        before = calibrate_log(log, config, init=core)
-        diag0, _ = diagnose(log, config, core, (), alpha=alpha, run=before, wander_s=wander_s)
-        ba = compare_runs(before, run)
-        signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
-        parts += [
-            "<h2>Before and after adding " + html.escape(", ".join(e.label for e in effects)) + "</h2>",
-            _table(
-                [
-                    (label, _number(ba["before"][k]), _number(ba["after"][k]))
-                    for k, label in (
-                        ("residual_rms_nt", "residual RMS, nT"),
-                        ("nis_mean", "mean NIS per degree of freedom"),
-                        ("aic", "AIC"),
-                        ("bic", "BIC"),
-                        ("n_parameters", "parameters"),
-                    )
-                ],
-                ["on the epochs both used", "before", "after"],
-            ),
-            _binned_plot(
-                diag0, signal_of[:3], "residual before (solid) and after (dashed) adding the effects", other=diag
-            ),
-            _residual_plot(t0, diag0, "residuals before adding the effects"),
-        ]
-    style = (
-        "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
-        "td,th{border:1px solid #bbb;padding:2px 8px;font-size:14px}th{background:#f2f2f2}img{max-width:100%}"
-        "td{font-variant-numeric:tabular-nums}.wide{overflow-x:auto}body{padding:0 8px}"
+
+
+def _candidate_table(candidates) -> str:
+    """The ranked candidates (``Candidate``): statistic, degrees of freedom, p-value, held-out and in-sample
+    residual RMS after (nT), whether taken, and the note."""
+    return _table(
+        [
+            (
+                c.effect,
+                f"{c.test} {_fixed(c.statistic, 1)}",
+                f"{c.dof}, {c.dof_denominator}" if c.dof_denominator else str(c.dof),
+                _p(c.p_value),
+                _fixed(c.residual_rms_after_nt),
+                _fixed(c.residual_rms_fit_nt),
+                "yes" if c.significant else "",
+                c.note,
+            )
+            for c in candidates
+        ],
+        [
+            "candidate",
+            "statistic (dimensionless)",
+            "degrees of freedom",
+            "p-value",
+            "held-out RMS after, nT",
+            "in-sample RMS after, nT",
+            "taken",
+            "note",
+        ],
     )
-    return (
-        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
-        "<meta name='viewport' content='width=device-width, initial-scale=1'>"
-        f"<title>magkf report</title><style>{style}</style>"
-        f"</head><body>{''.join(parts)}</body></html>"
-    )
+
+
+def _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0: float) -> list[str]:
+    """The "Before and after" section: the model without any effect (``cal``'s core, or the filter's start)
+    calibrated and diagnosed again, compared with ``run`` and its diagnosis ``diag`` on the epochs both used."""
+    core = cal.without_effects() if cal is not None else None  # the model without any effect
+    before = calibrate_log(log, config, init=core)
+    diag0, _ = diagnose(log, config, core, (), alpha=alpha, run=before, wander_s=wander_s)
+    ba = compare_runs(before, run)
+    signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
+    return [
+        "<h2>Before and after adding " + html.escape(", ".join(e.label for e in effects)) + "</h2>",
+        _table(
+            [
+                (label, _number(ba["before"][k]), _number(ba["after"][k]))
+                for k, label in (
+                    ("residual_rms_nt", "residual RMS, nT"),
+                    ("nis_mean", "mean NIS per degree of freedom"),
+                    ("aic", "AIC"),
+                    ("bic", "BIC"),
+                    ("n_parameters", "parameters"),
+                )
+            ],
+            ["on the epochs both used", "before", "after"],
+        ),
+        _binned_plot(diag0, signal_of[:3], "residual before (solid) and after (dashed) adding the effects", other=diag),
+        _residual_plot(t0, diag0, "residuals before adding the effects"),
+    ]

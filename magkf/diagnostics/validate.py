@@ -99,38 +99,10 @@ def validate(
     effects = restore_effects(cal, registry)
     layout = StateLayout.with_core(effects)
     x = cal.full_state
-    prep = prepare(log, config)
-    used = (prep.base == Status.USED) & prep.has_attitude
-    for effect in effects:
-        for column in effect.columns:
-            if column not in prep.data.columns:
-                raise InputError(f"the calibration's effect {effect.label!r} needs column {column!r}", log.source)
-            used &= np.isfinite(prep.data.columns[column])
-    epochs = EpochSet.of(prep, used, config, wander_s=wander_s)
-    if len(epochs) < 50:
-        raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
-    raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
-    epochs = epochs.take(inliers(raw.residual(x).reshape(-1, 3)))
-    stored = epochs.at(layout, x)
-
-    def terms(subset) -> np.ndarray:
-        """Raw-field contribution (n, 3) nT of the stored effects in ``subset`` at their stored values."""
-        out = np.zeros_like(epochs.m)
-        for effect, sl in layout.blocks():
-            if effect in subset:
-                out += effect.contribution(x[sl], stored.data)
-        return out
-
-    def refit(subset):
-        """Whitened (n, 3) and NED (n, 3) nT residuals with B's core refitted, ``subset`` held fixed."""
-        fixed = epochs.less(terms(subset))
-        core = StateLayout.with_core()
-        fit = fixed.fit(core, x[:12])
-        res_w = fit.residual(fit.x_fit).reshape(-1, 3)
-        return res_w, _ned(fit, res_w)
-
-    res_stored = stored.residual(x).reshape(-1, 3)  # exact for nonlinear effects too (at x)
-    as_stored = _rms(_ned(stored, res_stored, x))
+    epochs = _epochs(log, config, effects, layout, x, wander_s)
+    refit = _Refit(epochs, layout, x)
+    res_stored = refit.stored.residual(x).reshape(-1, 3)  # exact for nonlinear effects too (at x)
+    as_stored = _rms(_ned(refit.stored, res_stored, x))
     with_w, with_ned = refit(effects)
     core_w, core_ned = refit(())
     tau = integrated_time(with_w)
@@ -152,6 +124,48 @@ def validate(
         checks,
         text,
     )
+
+
+def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x, wander_s):
+    """The epochs of ``log`` the calibration (state ``x`` (n,) of ``layout``, with ``effects``) is checked on: those
+    the calibration can use, with attitude and every column the effects read, gross outliers left out."""
+    prep = prepare(log, config)
+    used = (prep.base == Status.USED) & prep.has_attitude
+    for effect in effects:
+        for column in effect.columns:
+            if column not in prep.data.columns:
+                raise InputError(f"the calibration's effect {effect.label!r} needs column {column!r}", log.source)
+            used &= np.isfinite(prep.data.columns[column])
+    epochs = EpochSet.of(prep, used, config, wander_s=wander_s)
+    if len(epochs) < 50:
+        raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
+    raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
+    return epochs.take(inliers(raw.residual(x).reshape(-1, 3)))
+
+
+class _Refit:
+    """The new log's core refitted with some of the stored effects held at their stored values: ``refit(subset)``
+    gives the whitened (n, 3) and NED (n, 3) nT residuals. ``stored`` is the calibration as it is on the epochs."""
+
+    def __init__(self, epochs, layout: StateLayout, x):
+        self.epochs, self.layout, self.x = epochs, layout, x
+        self.stored = epochs.at(layout, x)
+
+    def terms(self, subset) -> np.ndarray:
+        """Raw-field contribution (n, 3) nT of the stored effects in ``subset`` at their stored values."""
+        out = np.zeros_like(self.epochs.m)
+        for effect, sl in self.layout.blocks():
+            if effect in subset:
+                out += effect.contribution(self.x[sl], self.stored.data)
+        return out
+
+    def __call__(self, subset):
+        """Whitened (n, 3) and NED (n, 3) nT residuals with B's core refitted, ``subset`` held fixed."""
+        fixed = self.epochs.less(self.terms(subset))
+        core = StateLayout.with_core()
+        fit = fixed.fit(core, self.x[:12])
+        res_w = fit.residual(fit.x_fit).reshape(-1, 3)
+        return res_w, _ned(fit, res_w)
 
 
 def _ned(fit, residual_w, x=None) -> np.ndarray:
