@@ -334,6 +334,30 @@ def from_table(
     """
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
+    _check_columns(table, name, mag_unit, whole)
+    require_complete(table, (TIME,), name, row_of)
+    check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
+    _check_ranges(table, name, mag_unit, row_of)
+    _check_reference(table, name, row_of)
+    if whole:
+        fix = _UNIT_FIX.get((provenance or {}).get("format"), "pass --mag-unit {unit} if they are")
+        whole_log_checks(table, name, mag_unit, fix=fix)
+    if mag_unit != "nT":
+        table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
+    return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
+
+
+#: The groups of columns a table gives all or none of, and what it is told when it gives some.
+_COLUMN_GROUPS = (
+    (ATTITUDE, "attitude needs all of roll, pitch and yaw (or none of them)"),
+    (REF, "a reference field needs all of ref_n, ref_e and ref_d (or none of them)"),
+)
+
+
+def _check_columns(table: pd.DataFrame, name: str, mag_unit: str, whole: bool) -> None:
+    """InputError naming ``name`` (row 1 and the column where one is missing) for an unknown ``mag_unit``, a
+    required column missing, too few epochs (a ``whole`` log), an attitude or reference field given in part, or
+    neither a position nor a reference field."""
     if mag_unit not in NT_PER_UNIT:
         raise InputError(f"unknown magnetic unit {mag_unit!r}; use one of {', '.join(NT_PER_UNIT)}", name)
     missing = [c for c in (TIME, *MAG) if c not in table.columns]
@@ -343,19 +367,18 @@ def from_table(
         )
     if whole and len(table) < MIN_EPOCHS:
         raise InputError(f"too few samples: {len(table)} epoch, a drive log needs at least {MIN_EPOCHS}", name)
-    attitude = [c for c in ATTITUDE if c in table]
-    if 0 < len(attitude) < 3:
-        missing = next(c for c in ATTITUDE if c not in table)
-        raise InputError("attitude needs all of roll, pitch and yaw (or none of them)", name, 1, missing)
-    refs = [c for c in REF if c in table]
-    if 0 < len(refs) < 3:
-        missing = next(c for c in REF if c not in table)
-        raise InputError("a reference field needs all of ref_n, ref_e and ref_d (or none of them)", name, 1, missing)
+    for group, message in _COLUMN_GROUPS:
+        missing = [c for c in group if c not in table]
+        if 0 < len(missing) < len(group):
+            raise InputError(message, name, 1, missing[0])
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
         raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
-    require_complete(table, (TIME,), name, row_of)
-    check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
+
+
+def _check_ranges(table: pd.DataFrame, name: str, mag_unit: str, row_of) -> None:
+    """InputError naming ``name``, the row (``row_of(i)``) and the column of the first value outside its
+    ``RANGES`` (the magnetometer's in ``mag_unit``)."""
     scale = NT_PER_UNIT[mag_unit]
     for column, (lo, hi, unit) in RANGES.items():
         if column in MAG:  # in the unit the table is in
@@ -368,23 +391,23 @@ def from_table(
                 raise InputError(
                     f"value {float(v[i])!r} outside [{lo:g}, {hi:g}] {unit}".rstrip(), name, row_of(i), column
                 )
-    if all(c in table for c in REF):
-        ref = np.linalg.norm(table[list(REF)].to_numpy(dtype=float), axis=1)
-        weak = np.flatnonzero(ref < REF_MIN_NT)
-        if weak.size:
-            i = int(weak[0])
-            raise InputError(
-                f"reference field of {ref[i]:.4g} nT, under {REF_MIN_NT:g} nT (the Earth's is 22 000 to 67 000)",
-                name,
-                row_of(i),
-                REF[0],
-            )
-    if whole:
-        fix = _UNIT_FIX.get((provenance or {}).get("format"), "pass --mag-unit {unit} if they are")
-        whole_log_checks(table, name, mag_unit, fix=fix)
-    if mag_unit != "nT":
-        table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
-    return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
+
+
+def _check_reference(table: pd.DataFrame, name: str, row_of) -> None:
+    """InputError naming ``name``, the row (``row_of(i)``) and ``ref_n`` of the first reference field weaker
+    than ``REF_MIN_NT``; nothing for a table without one."""
+    if not all(c in table for c in REF):
+        return
+    ref = np.linalg.norm(table[list(REF)].to_numpy(dtype=float), axis=1)
+    weak = np.flatnonzero(ref < REF_MIN_NT)
+    if weak.size:
+        i = int(weak[0])
+        raise InputError(
+            f"reference field of {ref[i]:.4g} nT, under {REF_MIN_NT:g} nT (the Earth's is 22 000 to 67 000)",
+            name,
+            row_of(i),
+            REF[0],
+        )
 
 
 #: What to do about magnitudes that look like another unit, by the reader's ``format`` (``{unit}`` the unit

@@ -103,6 +103,21 @@ def check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
     or more fields than the header (pandas would fill a short row with empty cells, or take a long row's
     first field as an index). Files with quoted fields are left to the parser (None is returned); otherwise
     the line numbers of the records (the lines after the header that are not blank)."""
+    fields = _check_header(path, name, required)
+    scan = _FieldScan(name, fields)
+    with open(path, "rb") as f:
+        while chunk := f.read(SCAN_BYTES):
+            while chunk.endswith(b"\r") and (more := f.read(1)):  # a CR LF pair stays in one chunk
+                chunk += more
+            if b'"' in chunk:
+                return None
+            scan.add(chunk)
+    return scan.records()
+
+
+def _check_header(path: Path, name: str, required) -> int:
+    """The number of fields in the header (line 1); InputError naming ``name``, row 1 and the column for a
+    column named twice or a ``required`` one missing."""
     import csv
 
     with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:  # pandas skips a byte-order mark
@@ -115,44 +130,62 @@ def check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
     missing = [c for c in required if c not in seen]
     if missing and header:
         raise InputError(f"required column missing (the header has: {', '.join(header)})", name, 1, missing[0])
-    fields = len(header)
-    line, commas_in_line, length_of_line, records = 0, 0, 0, []
-    with open(path, "rb") as f:
-        while chunk := f.read(SCAN_BYTES):
-            while chunk.endswith(b"\r") and (more := f.read(1)):  # a CR LF pair stays in one chunk
-                chunk += more
-            if b'"' in chunk:
-                return None
-            data = np.frombuffer(chunk, dtype=np.uint8)
-            if b"\r" in chunk:  # LF, CR LF or CR
-                newline = data == ord("\n")
-                ends = np.flatnonzero(newline | (data == ord("\r")) & ~np.r_[newline[1:], False])
-            else:  # LF alone: a third of the cost
-                ends = np.flatnonzero(data == ord("\n"))
-            commas_before_end = np.searchsorted(np.flatnonzero(data == ord(",")), ends)  # commas before each end
-            starts = np.r_[0, ends[:-1] + 1] if ends.size else np.zeros(0, int)
-            counts = np.diff(commas_before_end, prepend=0)
-            lengths = ends - starts
-            if ends.size:  # the line running on from the last chunk
-                counts[0] += commas_in_line
-                lengths[0] += length_of_line
-            content = lengths > (data[np.maximum(ends - 1, 0)] == ord("\r"))  # blank lines are skipped
-            records.append(line + np.flatnonzero(content) + 1)
-            bad = np.flatnonzero(content & (counts + 1 != fields))
-            bad = bad[(line + bad) > 0]  # the header itself
-            if bad.size:
-                k = int(bad[0])
-                raise InputError(f"{int(counts[k]) + 1} fields where the header has {fields}", name, line + k + 1, None)
-            line += ends.size
-            tail = data[ends[-1] + 1 :] if ends.size else data
-            commas_in_line = int(np.count_nonzero(tail == ord(","))) + (0 if ends.size else commas_in_line)
-            length_of_line = len(tail) + (0 if ends.size else length_of_line)
-    if length_of_line and commas_in_line + 1 != fields and line > 0:
-        raise InputError(f"{commas_in_line + 1} fields where the header has {fields}", name, line + 1, None)
-    if length_of_line:
-        records.append(np.array([line + 1]))
-    records = np.concatenate(records) if records else np.zeros(0, int)
-    return records[records > 1]
+    return len(header)
+
+
+def _line_ends(data: np.ndarray, chunk: bytes) -> np.ndarray:
+    """Positions of the line ends (LF, CR LF or CR; the LF of a pair) in the bytes ``data`` of ``chunk``."""
+    if b"\r" not in chunk:  # LF alone: a third of the cost
+        return np.flatnonzero(data == ord("\n"))
+    newline = data == ord("\n")
+    return np.flatnonzero(newline | (data == ord("\r")) & ~np.r_[newline[1:], False])
+
+
+class _FieldScan:
+    """The fields of every line of a CSV file without quotes, counted by commas chunk by chunk: InputError
+    (naming ``name`` and the line) at the first non-blank line after the header with other than ``fields``."""
+
+    def __init__(self, name: str, fields: int):
+        self.name, self.fields = name, fields
+        #: Lines ended so far, and the commas and bytes of the line running on past the last chunk.
+        self.line, self.commas_in_line, self.length_of_line = 0, 0, 0
+        #: Line numbers (1-based) of the non-blank lines, one array per chunk.
+        self.lines: list[np.ndarray] = []
+
+    def add(self, chunk: bytes) -> None:
+        """Count the fields of the lines in the next ``chunk`` of the file."""
+        data = np.frombuffer(chunk, dtype=np.uint8)
+        ends = _line_ends(data, chunk)
+        commas_before_end = np.searchsorted(np.flatnonzero(data == ord(",")), ends)  # commas before each end
+        starts = np.r_[0, ends[:-1] + 1] if ends.size else np.zeros(0, int)
+        counts = np.diff(commas_before_end, prepend=0)
+        lengths = ends - starts
+        if ends.size:  # the line running on from the last chunk
+            counts[0] += self.commas_in_line
+            lengths[0] += self.length_of_line
+        content = lengths > (data[np.maximum(ends - 1, 0)] == ord("\r"))  # blank lines are skipped
+        self.lines.append(self.line + np.flatnonzero(content) + 1)
+        bad = np.flatnonzero(content & (counts + 1 != self.fields))
+        bad = bad[(self.line + bad) > 0]  # the header itself
+        if bad.size:
+            k = int(bad[0])
+            raise InputError(
+                f"{int(counts[k]) + 1} fields where the header has {self.fields}", self.name, self.line + k + 1, None
+            )
+        self.line += ends.size
+        tail = data[ends[-1] + 1 :] if ends.size else data
+        self.commas_in_line = int(np.count_nonzero(tail == ord(","))) + (0 if ends.size else self.commas_in_line)
+        self.length_of_line = len(tail) + (0 if ends.size else self.length_of_line)
+
+    def records(self) -> np.ndarray:
+        """The line numbers of the records, once the file's last line (without a line end) is checked."""
+        if self.length_of_line and self.commas_in_line + 1 != self.fields and self.line > 0:
+            raise InputError(
+                f"{self.commas_in_line + 1} fields where the header has {self.fields}", self.name, self.line + 1, None
+            )
+        lines = self.lines + ([np.array([self.line + 1])] if self.length_of_line else [])
+        lines = np.concatenate(lines) if lines else np.zeros(0, int)
+        return lines[lines > 1]
 
 
 def checked_table(table: pd.DataFrame, name: str, required, text_columns, empty: str) -> pd.DataFrame:
