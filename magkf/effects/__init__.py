@@ -235,3 +235,11 @@ __all__ = [
     "restore_effects",
     "channel_kind",
 ]
+
+
+def __getattr__(name: str):
+    """magkf's own effect classes by class name (``from magkf.effects import TimeLag``), from ``EFFECTS``."""
+    for cls in BUILTIN.values():
+        if cls.__name__ == name:
+            return cls
+    raise AttributeError(f"module 'magkf.effects' has no attribute {name!r}")
