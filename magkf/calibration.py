@@ -286,61 +286,13 @@ class Calibration:
             The object is malformed (not an object, another format or a newer version, a key of the wrong
             type or shape, values beyond a calibration's range, an effect stored twice).
         """
-        if not isinstance(data, dict):
-            raise InputError("a calibration file must hold one JSON object", source)
-        fmt = data.get("format", FORMAT)
-        if fmt != FORMAT:
-            raise InputError(f"key 'format' is {_shown(fmt)}, expected {FORMAT!r}", source)
-        version = data.get("version", VERSION)
-        if isinstance(version, bool) or not isinstance(version, int) or version < 1 or version > VERSION:
-            raise InputError(f"key 'version' is {_shown(version)}; this magkf reads versions 1 to {VERSION}", source)
-        R = _matrix(data, "R", (3, 3), source)
-        b = _matrix(data, "b", (3,), source)
-        for key, value, limit in (("R", R, R_MAX), ("b", b, B_MAX_NT)):
-            if np.abs(value).max() > limit:
-                raise InputError(
-                    f"key {key!r} holds {np.abs(value).max():.3g}, beyond {limit:g}: not a calibration", source
-                )
-        cov = _matrix(data, "covariance", (12, 12), source) if "covariance" in data else None
-        if cov is not None:
-            _covariance_checked(cov, "covariance", source)
-        extras = {}
-        for key in ("parameters", "standard_errors", "quality"):
-            value = data.get(key, {})
-            if not isinstance(value, dict):
-                raise InputError(f"key {key!r} must be a JSON object", source)
-            extras[key] = value
-        if not isinstance(data.get("source", ""), str):
-            raise InputError("key 'source' must be a string", source)
-        if not isinstance(data.get("magnetometer", {}), dict):
-            raise InputError("key 'magnetometer' must be a JSON object", source)
-        method = data.get("method", "unspecified")
-        if not isinstance(method, str):
-            raise InputError("key 'method' must be a string", source)
-        stored = data.get("effects", [])
-        if not isinstance(stored, list):
-            raise InputError("key 'effects' must be a list", source)
-        effects = tuple(StoredEffect.from_dict(e, source) for e in stored)
-        labels = [e.label for e in effects]
-        if len(set(labels)) < len(labels):
-            twice = next(label for label in labels if labels.count(label) > 1)
-            raise InputError(f"effect {twice!r} is stored twice", source)
-        n = 12 + sum(len(e.values) for e in effects)
-        state_cov = _matrix(data, "state_covariance", (n, n), source) if "state_covariance" in data else None
-        if state_cov is not None:
-            _covariance_checked(state_cov, "state_covariance", source)
+        _check_format(data, source)
+        R, b, cov = _core(data, source)
+        stored = _stored_fields(data, source)
+        effects = _stored_effects(data, source)
+        state_cov = _state_covariance(data, effects, source)
         try:
-            return cls(
-                R=R,
-                b=b,
-                method=method,
-                covariance=cov,
-                source=data.get("source"),
-                magnetometer=data.get("magnetometer"),
-                effects=effects,
-                state_covariance=state_cov,
-                **extras,
-            )
+            return cls(R=R, b=b, covariance=cov, effects=effects, state_covariance=state_cov, **stored)
         except ValueError as exc:
             raise InputError(str(exc), source) from None
 
@@ -389,6 +341,78 @@ def read_json(path, what: str = "file"):
 
 #: Largest element of R (a sensitivity relative to the field) and of b (nT) a calibration file may hold.
 R_MAX, B_MAX_NT = 1e3, 1e8
+
+
+def _check_format(data, source: str) -> None:
+    """InputError naming ``source`` unless ``data`` is a JSON object of this format and a version this magkf
+    reads (both optional)."""
+    if not isinstance(data, dict):
+        raise InputError("a calibration file must hold one JSON object", source)
+    fmt = data.get("format", FORMAT)
+    if fmt != FORMAT:
+        raise InputError(f"key 'format' is {_shown(fmt)}, expected {FORMAT!r}", source)
+    version = data.get("version", VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1 or version > VERSION:
+        raise InputError(f"key 'version' is {_shown(version)}; this magkf reads versions 1 to {VERSION}", source)
+
+
+def _core(data: dict, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``R`` (3, 3), ``b`` (3,) nT within ``R_MAX`` and ``B_MAX_NT``, and the checked ``covariance`` (12, 12) or
+    None, of a calibration file's object; InputError naming ``source`` otherwise."""
+    R = _matrix(data, "R", (3, 3), source)
+    b = _matrix(data, "b", (3,), source)
+    for key, value, limit in (("R", R, R_MAX), ("b", b, B_MAX_NT)):
+        if np.abs(value).max() > limit:
+            raise InputError(
+                f"key {key!r} holds {np.abs(value).max():.3g}, beyond {limit:g}: not a calibration", source
+            )
+    cov = _matrix(data, "covariance", (12, 12), source) if "covariance" in data else None
+    if cov is not None:
+        _covariance_checked(cov, "covariance", source)
+    return R, b, cov
+
+
+def _stored_fields(data: dict, source: str) -> dict:
+    """``parameters``, ``standard_errors``, ``quality``, ``source``, ``magnetometer`` and ``method`` of a
+    calibration file's object, as ``Calibration`` takes them; InputError naming ``source`` for a wrong type."""
+    stored = {}
+    for key in ("parameters", "standard_errors", "quality"):
+        value = data.get(key, {})
+        if not isinstance(value, dict):
+            raise InputError(f"key {key!r} must be a JSON object", source)
+        stored[key] = value
+    if not isinstance(data.get("source", ""), str):
+        raise InputError("key 'source' must be a string", source)
+    if not isinstance(data.get("magnetometer", {}), dict):
+        raise InputError("key 'magnetometer' must be a JSON object", source)
+    method = data.get("method", "unspecified")
+    if not isinstance(method, str):
+        raise InputError("key 'method' must be a string", source)
+    return stored | {"source": data.get("source"), "magnetometer": data.get("magnetometer"), "method": method}
+
+
+def _stored_effects(data: dict, source: str) -> tuple[StoredEffect, ...]:
+    """The ``effects`` of a calibration file's object (``StoredEffect.from_dict``), in state order; InputError
+    naming ``source`` for a key that is not a list or an effect stored twice."""
+    stored = data.get("effects", [])
+    if not isinstance(stored, list):
+        raise InputError("key 'effects' must be a list", source)
+    effects = tuple(StoredEffect.from_dict(e, source) for e in stored)
+    labels = [e.label for e in effects]
+    if len(set(labels)) < len(labels):
+        twice = next(label for label in labels if labels.count(label) > 1)
+        raise InputError(f"effect {twice!r} is stored twice", source)
+    return effects
+
+
+def _state_covariance(data: dict, effects: tuple, source: str) -> np.ndarray | None:
+    """The checked ``state_covariance`` (n, n) over the core and the ``effects``' parameters, or None."""
+    if "state_covariance" not in data:
+        return None
+    n = 12 + sum(len(e.values) for e in effects)
+    state_cov = _matrix(data, "state_covariance", (n, n), source)
+    _covariance_checked(state_cov, "state_covariance", source)
+    return state_cov
 
 
 def _matrix(data: dict, key: str, shape: tuple, source: str) -> np.ndarray:
