@@ -84,7 +84,7 @@ def nis_line(mean: float, band) -> str:
     """The mean NIS per degree of freedom against its 95 % band ``(lo, hi)``, in words; outside the band but
     within ``NIS_TOLERANCE`` of 1, it says that the verdict allows that (the band of thousands of epochs is
     narrower than the approximations of a learned noise model), so that the line and the verdict agree."""
-    from ..online.results import NIS_TOLERANCE, band_text
+    from ..online.verdict import NIS_TOLERANCE, band_text
 
     lo, hi = band
     line = f"mean NIS {mean:.2f} per degree of freedom ({'inside' if lo <= mean <= hi else 'outside'} its 95 % band"

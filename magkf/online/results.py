@@ -15,9 +15,7 @@ from ..status import STATUS_NAMES, Status, status_names
 from . import observability
 from .prepare import CHUNK
 from .state import StateLayout
-
-# the verdict's thresholds and the band's text are also imported from here (the command line's NIS line)
-from .verdict import ATTITUDE_RESOLUTION_DEG, NIS_TOLERANCE, band_text, verdict  # noqa: F401
+from .verdict import verdict
 
 __all__ = [
     "CalibrationRun",

@@ -282,7 +282,7 @@ def test_a_time_lag_is_estimated_with_an_honest_standard_deviation():
     times too wide (RMS z 0.13 over eight seeds). Over six seeds, sum z^2 follows chi-square with 6 degrees of
     freedom: its 0.05 % and 99.95 % quantiles bound it; and the learned tilt stays at the simulator's none, below
     the least the verdict tells from none (``ATTITUDE_RESOLUTION_DEG``)."""
-    from magkf.online.results import ATTITUDE_RESOLUTION_DEG
+    from magkf.online.verdict import ATTITUDE_RESOLUTION_DEG
 
     config = FilterConfig(sensor_noise_nt=NOISE)  # attitude and reference noise learned from their priors
     z2, tilts = [], []

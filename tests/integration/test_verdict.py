@@ -230,7 +230,7 @@ def test_nis_line_agrees_with_the_verdict():
     """Outside its band but within the verdict's tolerance, the NIS line says the verdict allows it; beyond the
     tolerance or inside the band, it says nothing more."""
     from magkf.cli.online import nis_line
-    from magkf.online.results import NIS_TOLERANCE
+    from magkf.online.verdict import NIS_TOLERANCE
 
     band = (0.98, 1.02)
     assert nis_line(1.0, band) == "mean NIS 1.00 per degree of freedom (inside its 95 % band [0.98, 1.02])"
@@ -246,7 +246,7 @@ def test_a_narrow_nis_band_is_shown_with_the_digits_that_tell_its_ends_apart():
     from scipy import stats
 
     from magkf.cli.online import nis_line
-    from magkf.online.results import band_text
+    from magkf.online.verdict import band_text
 
     dof = 3 * 1_000_000
     band = tuple(stats.chi2.ppf([0.025, 0.975], dof) / dof)
