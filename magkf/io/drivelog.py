@@ -38,7 +38,7 @@ from ..conventions import (
 from ..errors import InputError
 from ..status import select_dop
 from .readers import LogReader
-from .tables import PARQUET_SUFFIXES, file_row, read_csv, require_complete, table_rows
+from .tables import PARQUET_SUFFIXES, file_row, numeric_column, read_csv, require_complete, table_rows
 
 __all__ = [
     "MIN_EPOCHS",
@@ -322,9 +322,9 @@ def from_table(
     """Validate a table with the canonical columns (``time`` a column, UNIX s) and build a ``DriveLog``;
     the epoch contract every reader goes through. Magnetometer values in ``mag_unit`` become nT.
 
-    Raises InputError (one line naming source, row and column) for a missing column, a missing or
-    non-increasing time or one outside 1990 to 2100, an angle or position out of range, too few epochs or
-    an unknown unit. Warns (``UnitWarning``) when the magnitudes look like another unit and
+    Raises InputError (one line naming source, row and column) for a missing column, a cell that is not a
+    number, a missing or non-increasing time or one outside 1990 to 2100, an angle or position out of range,
+    too few epochs or an unknown unit. Warns (``UnitWarning``) when the magnitudes look like another unit and
     (``TimeBaseWarning``) at a long gap. ``row_of(i)`` gives the file row of epoch ``i`` (CSV rows by
     default). The table is not copied when it needs no conversion.
 
@@ -335,6 +335,7 @@ def from_table(
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
     _check_columns(table, name, mag_unit, whole)
+    table = _numbers(table, name, row_of)
     require_complete(table, (TIME,), name, row_of)
     check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
     _check_ranges(table, name, mag_unit, row_of)
@@ -374,6 +375,20 @@ def _check_columns(table: pd.DataFrame, name: str, mag_unit: str, whole: bool) -
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
         raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
+
+
+def _numbers(table: pd.DataFrame, name: str, row_of) -> pd.DataFrame:
+    """``table`` with its columns that do not hold numbers (text, objects, booleans) converted to float by
+    ``numeric_column``, which names the row (``row_of(i)``) and column of the first cell that is not a number;
+    the table itself when every column is numeric already."""
+    other = [
+        c
+        for c in table.columns
+        if not pd.api.types.is_numeric_dtype(table[c].dtype) or pd.api.types.is_bool_dtype(table[c].dtype)
+    ]
+    if not other:
+        return table
+    return table.assign(**{c: numeric_column(table[c], name, c, row_of) for c in other})
 
 
 def _check_ranges(table: pd.DataFrame, name: str, mag_unit: str, row_of) -> None:

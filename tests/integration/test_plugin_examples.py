@@ -62,12 +62,12 @@ def test_a_reader_in_one_file_reads_its_format_everywhere(drive, tmp_path, capsy
         assert main(["calibrate", str(path), "--format", "jsonl", "-o", str(tmp_path / "cal.json"), "--quiet"]) == 0
         # and its errors name the file and line, like every reader's
         lines = path.read_text().splitlines()
-        lines[20] = lines[20].replace('"mag_x": ', '"mag_x": "twelve", "x": ')
+        lines[20] = lines[20].replace('"mag_x": ', '"mag_x": "twelve", "x": ')  # line 21, after the blank one
         path.write_text("\n".join(lines) + "\n")
         capsys.readouterr()
         assert main(["calibrate", str(path), "-o", str(tmp_path / "cal2.json")]) == 2
         error = capsys.readouterr().err.strip().splitlines()[-1]
-        assert str(path) in error and "row 22" in error and "mag_x" in error
+        assert str(path) in error and "row 21" in error and "mag_x" in error
     finally:
         READERS.unregister("jsonl")
 
