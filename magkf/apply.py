@@ -25,10 +25,11 @@ COLUMNS = (
 )
 
 
-def effect_terms(log: DriveLog, cal: Calibration, registry: dict | None = None) -> np.ndarray:
+def effect_terms(log: DriveLog, cal: Calibration) -> np.ndarray:
     """The raw-field contribution (N, 3) nT of the physical effects ``cal`` stores, at their stored values,
     at every epoch of ``log`` (NaN where an effect lacks its input: a channel, or the attitude and reference
-    of the effects of the body field); zeros when it stores none. User effects need ``registry``."""
+    of the effects of the body field); zeros when it stores none. User effects must be registered
+    (``load_effect_file``)."""
     if not cal.effects:
         return np.zeros((len(log.table), 3))
     from .config import FilterConfig
@@ -36,14 +37,14 @@ def effect_terms(log: DriveLog, cal: Calibration, registry: dict | None = None) 
     from .online.prepare import prepare, with_initial_R
     from .online.state import StateLayout
 
-    layout = StateLayout.with_core(restore_effects(cal, registry))
+    layout = StateLayout.with_core(restore_effects(cal))
     x = cal.full_state
     prep = with_initial_R(prepare(log, FilterConfig()), x)
     return layout.extra_terms(x, layout.linear_jacobian(prep.data), prep.data)
 
 
 @names_the_log
-def apply_calibration(log: DriveLog, cal: Calibration, registry: dict | None = None) -> pd.DataFrame:
+def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
     """Every epoch of ``log`` corrected with ``cal`` and the effects it stores.
 
     Parameters
@@ -52,8 +53,6 @@ def apply_calibration(log: DriveLog, cal: Calibration, registry: dict | None = N
         The drive or flight log.
     cal : Calibration
         The calibration, with the effects it stores at their stored values.
-    registry : dict or None, optional
-        Name -> class of the user effects ``cal`` stores (``load_effect_file``).
 
     Returns
     -------
@@ -69,9 +68,10 @@ def apply_calibration(log: DriveLog, cal: Calibration, registry: dict | None = N
     Raises
     ------
     InputError
-        An IGRF date out of range, or an effect ``cal`` stores whose class is not known; it names the log.
+        An IGRF date out of range, or an effect ``cal`` stores whose class is not registered
+        (``magkf.plugins.EFFECTS``); it names the log.
     """
-    terms = effect_terms(log, cal, registry)
+    terms = effect_terms(log, cal)
     field = cal.correct(log.mag - terms)
     att = log.attitude
     heading = magnetic_heading_deg(field, att[:, 0], att[:, 1])

@@ -285,10 +285,9 @@ def _calibrate(task: LogTask, folder: Path) -> dict:
 
     s = task.settings
     log = read_log(task.path, s.format, map=s.map, mag=s.mag, mag_unit=s.mag_unit, raw=s.raw)
-    registry = {}
     for path in s.effect_files:
-        registry.update(load_effect_file(path))
-    effects = [make_effect(spec, registry) for spec in s.effects]
+        load_effect_file(path)
+    effects = [make_effect(spec) for spec in s.effects]
     run = calibrate_log(log, s.config, effects=effects)
     checks = check_run(run, task.path, log_field_nt(log))
     for text in checks:

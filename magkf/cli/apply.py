@@ -24,8 +24,8 @@ def run_apply(args) -> int:
 
     cal = Calibration.load(args.cal)
     log = common.open_log(args)
-    _, registry = common.effects(args, cal)  # user code runs once the inputs are read
-    out = apply_calibration(log, cal, registry)
+    common.effects(args, cal)  # user code runs once the inputs are read
+    out = apply_calibration(log, cal)
     if args.output:
         write_drive_log(out, args.output)
     counts = out["status"].value_counts().to_dict()

@@ -328,28 +328,27 @@ def add_effect_options(p, what: str) -> None:
     )
 
 
-def effects(args, cal=None) -> tuple[list, dict]:
+def effects(args, cal=None) -> list:
     """The model's effects: those the calibration ``cal`` stores (rebuilt with their settings), then those named
-    with --effect that it does not store; and the registry of user effects from --effect-file."""
+    with --effect that it does not store; the effects of each --effect-file are registered first."""
     from ..effects import load_effect_file, make_effect, restore_effects
 
-    registry = {}
     for path in getattr(args, "effect_file", []):
-        registry.update(load_effect_file(path))
+        load_effect_file(path)
     out = []
     if cal is not None:
         try:
-            out = list(restore_effects(cal, registry))
+            out = list(restore_effects(cal))
         except InputError as exc:  # about the calibration file that stores them
             raise exc.located(str(getattr(args, "cal", None) or getattr(args, "init", None) or "calibration")) from None
     for spec in getattr(args, "effect", []):
         try:
-            effect = make_effect(spec, registry)
+            effect = make_effect(spec)
         except InputError as exc:
             raise InputError(f"--effect {spec!r}: {exc.message}", exc.source) from None
         if effect.label not in {e.label for e in out}:
             out.append(effect)
-    return out, registry
+    return out
 
 
 def add_effect_file_option(p) -> None:

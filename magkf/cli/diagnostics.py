@@ -46,16 +46,9 @@ def run_diagnose(args) -> int:
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    added, registry = common.effects(args, cal)  # user code runs once the inputs are read
+    added = common.effects(args, cal)  # user code runs once the inputs are read
     result, run = diagnose(
-        log,
-        config,
-        cal,
-        added,
-        alpha=args.alpha,
-        registry=registry,
-        wander_s=args.heading_wander,
-        progress=common.stages(args),
+        log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
     )
     summary = result.summary()
     summary["verdict"] = _verdict(run)
@@ -120,8 +113,8 @@ def run_validate(args) -> int:
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    _, registry = common.effects(args, cal)  # user code runs once the inputs are read
-    result = validate(log, cal, config, registry, alpha=args.alpha, wander_s=args.heading_wander)
+    common.effects(args, cal)  # user code runs once the inputs are read
+    result = validate(log, cal, config, alpha=args.alpha, wander_s=args.heading_wander)
     summary = result.summary()
     if common.write_json_result(args, summary):
         return 0
@@ -164,9 +157,9 @@ def run_report(args) -> int:
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    added, registry = common.effects(args, cal)  # user code runs once the inputs are read
+    added = common.effects(args, cal)  # user code runs once the inputs are read
     page = build_report(
-        log, config, cal, added, registry, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
+        log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
     )
     output_text(args.output, page)
     if args.output != "-":

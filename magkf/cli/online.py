@@ -137,7 +137,7 @@ def run_calibrate(args) -> int:
             _calibrate_chunked(args, config, init)
             return 0
         log = common.open_log(args)
-        added, _ = common.effects(args, init)  # user code runs once the inputs are read
+        added = common.effects(args, init)  # user code runs once the inputs are read
         _calibrate_one(args, log, config, init, added, args.output, args.states)
         return 0
     from ..errors import InputError
@@ -151,7 +151,7 @@ def run_calibrate(args) -> int:
         for m in magnetometer_instances(args.file, args.format)
         if m.get("topic") != "vehicle_magnetometer"
     ]
-    added, _ = common.effects(args, init)
+    added = common.effects(args, init)
     rows, errors = [], []
     for instance in instances:
         if len(instances) > 1 and not args.json:

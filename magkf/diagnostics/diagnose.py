@@ -242,7 +242,6 @@ def diagnose(
     candidates=None,
     alpha: float = 0.01,
     run: CalibrationRun | None = None,
-    registry: dict | None = None,
     wander_s: float | None = WANDER_BLOCK_S,
     progress=None,
 ):
@@ -264,14 +263,12 @@ def diagnose(
     effects : sequence of Effect, optional
         Effects added to the model.
     candidates : sequence of Effect or None, optional
-        The effects to test (default: every built-in, and every effect of ``registry``, that the log's
+        The effects to test (default: every registered effect, ``magkf.plugins.EFFECTS``, that the log's
         channels allow); those already in the model are skipped.
     alpha : float, optional
         The significance level over all candidates, in (0, 1).
     run : CalibrationRun or None, optional
         An existing run to take as the model.
-    registry : dict or None, optional
-        Name -> class of user effects (``load_effect_file``), tested as candidates too.
     wander_s : float or None, optional
         The logged heading's error is let wander, a straight line over each stretch of that many seconds,
         and taken out of the residuals and regressors before anything is fitted or tested
@@ -296,23 +293,23 @@ def diagnose(
     say = progress or (lambda text: None)
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
-    run, layout, x, problem, channels = _diagnosed(log, config, cal, list(effects), run, registry, wander_s, say)
+    run, layout, x, problem, channels = _diagnosed(log, config, cal, list(effects), run, wander_s, say)
     present = {e.label for e in layout.extra()}
-    pool = _pool(candidates, problem, registry, present)
+    pool = _pool(candidates, problem, present)
     problem = _without_outliers(problem, layout, x, pool, log)
     residuals = _model_residuals(problem, layout, x, run)
     tests = _tested(problem, layout, x, pool, alpha, say)
     from ..effects import untried_columns
 
-    untried = untried_columns(channels, registry) if candidates is None else []
+    untried = untried_columns(channels) if candidates is None else []
     return _diagnosis(problem, residuals, tests, untried, sorted(present), wander_s), run
 
 
-def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, registry, wander_s, say):
+def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wander_s, say):
     """The model and the epochs it is judged on: ``(run, layout, x, problem, channels)``, ``problem`` the
     ``EpochSet`` of ``_model``'s epochs, ``channels`` the names of the log's auxiliary channels. The log's
     prepared arrays are let go once the diagnosed epochs are copied out of them."""
-    stored = list(restore_effects(cal, registry)) if cal is not None else []
+    stored = list(restore_effects(cal)) if cal is not None else []
     prep = prepare(log, config)
     run, layout, x, used = _model(log, config, cal, effects, stored, run, prep, say)
     problem = EpochSet.of(prep, used, config, _learned_noise(run, config), wander_s)
@@ -353,11 +350,11 @@ def _model(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list
     return run, layout, x, used
 
 
-def _pool(candidates, problem: EpochSet, registry, present: set) -> list:
-    """The candidate effects to test: ``candidates`` (default: every built-in, and every effect of ``registry``,
-    that the diagnosed epochs' channels allow) less those already in the model (labels ``present``) and those
+def _pool(candidates, problem: EpochSet, present: set) -> list:
+    """The candidate effects to test: ``candidates`` (default: every registered effect that the diagnosed epochs'
+    channels allow) less those already in the model (labels ``present``) and those
     reading a column the epochs do not have."""
-    offered = candidates if candidates is not None else default_candidates(list(problem.data.columns), registry)
+    offered = candidates if candidates is not None else default_candidates(list(problem.data.columns))
     return [e for e in offered if e.label not in present and all(col in problem.data.columns for col in e.columns)]
 
 

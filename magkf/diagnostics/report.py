@@ -380,12 +380,12 @@ def _estimate_table(run) -> str:
     return _table(rows, ["parameter", "value", "standard deviation", "unit"])
 
 
-def _field_views(log: DriveLog, run, registry) -> list[str]:
+def _field_views(log: DriveLog, run) -> list[str]:
     """The raw and the calibrated field in three projections with the reference sphere, the magnitude error
     before and after, and the heading deviation against heading (compass swing) before and after."""
     from ..apply import apply_calibration
 
-    after = apply_calibration(log, run.calibration, registry)
+    after = apply_calibration(log, run.calibration)
     before = _raw_as_field(log, after)
     ref = np.linalg.norm(log.reference_ned(), axis=1)
     views = {"raw reading": log.mag, "calibrated": after[["field_x", "field_y", "field_z"]].to_numpy(float)}
@@ -538,19 +538,12 @@ def _advice(diag) -> list[str]:
 @one_thread
 @names_the_log
 def build_report(
-    log: DriveLog,
-    config=FilterConfig(),
-    cal=None,
-    effects=(),
-    registry=None,
-    alpha=0.01,
-    wander_s=WANDER_BLOCK_S,
-    progress=None,
+    log: DriveLog, config=FilterConfig(), cal=None, effects=(), alpha=0.01, wander_s=WANDER_BLOCK_S, progress=None
 ) -> str:
     """The report of ``log`` as a self-contained HTML string.
 
     The report shows the run with ``config`` started from ``cal`` with ``effects`` added, and its
-    diagnosis (``diagnose``) at level ``alpha`` over the built-in candidates and those of ``registry``.
+    diagnosis (``diagnose``) at level ``alpha`` over the registered effects (``magkf.plugins.EFFECTS``).
 
     Parameters
     ----------
@@ -562,8 +555,6 @@ def build_report(
         The calibration the run starts from; None: a bootstrap from the log.
     effects : sequence of Effect, optional
         Effects added to the model.
-    registry : dict or None, optional
-        Name -> class of user effects (``load_effect_file``), tested as candidates too.
     alpha : float, optional
         The diagnosis's significance level over all candidates, in (0, 1).
     wander_s : float or None, optional
@@ -586,24 +577,22 @@ def build_report(
 
     matplotlib.use("Agg")
     with matplotlib.rc_context(FIGURE_STYLE):
-        return _page(log, config, cal, effects, registry, alpha, wander_s, progress or (lambda text: None))
+        return _page(log, config, cal, effects, alpha, wander_s, progress or (lambda text: None))
 
 
-def _page(log, config, cal, effects, registry, alpha, wander_s, say) -> str:
+def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     """The report's HTML page: the run with ``effects`` added and its diagnosis, section by section, and before and
     after adding the effects when there are any."""
     say("calibrating")
     run = calibrate_log(log, config, init=cal, effects=effects)
-    diag, _ = diagnose(
-        log, config, cal, effects, alpha=alpha, run=run, registry=registry, wander_s=wander_s, progress=say
-    )
+    diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
     say("drawing the plots")
     t0 = log.time[0]
     parts = [
         *_overview(log, run, diag, cal),
         *_noise_section(run, t0),
         *_gates_and_estimate(run, t0),
-        *_field_views(log, run, registry),
+        *_field_views(log, run),
         *_residuals_section(diag, t0),
         *_candidates_section(diag),
     ]

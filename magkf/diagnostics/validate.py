@@ -87,7 +87,6 @@ def validate(
     log: DriveLog,
     cal: Calibration,
     config: FilterConfig = FilterConfig(),
-    registry=None,
     alpha: float = 0.01,
     wander_s: float | None = WANDER_BLOCK_S,
 ) -> Validation:
@@ -96,7 +95,7 @@ def validate(
     taken out over stretches of ``wander_s`` seconds as in ``diagnose`` (None: not)."""
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
-    effects = restore_effects(cal, registry)
+    effects = restore_effects(cal)
     layout = StateLayout.with_core(effects)
     x = cal.full_state
     epochs = _epochs(log, config, effects, layout, x, wander_s)

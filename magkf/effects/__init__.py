@@ -4,8 +4,7 @@ Built-ins (``--effect NAME[:COLUMN]``): ``temperature_bias``, ``temperature_scal
 ``time_lag``, ``field_anomaly``, ``bias_drift``, ``eddy_current``. Every effect is registered in
 ``magkf.plugins.EFFECTS``: magkf's own, another package's (entry-point group ``magkf.effects``), one
 registered in the program (``EFFECTS.register``), and those of a file of its own loaded with
-``load_effect_file`` (``--effect-file``). Every function here finds effects there; the ``registry``
-argument some take is a further mapping of name to class, looked up first.
+``load_effect_file`` (``--effect-file``). Every function here finds effects there.
 """
 
 from __future__ import annotations
@@ -28,14 +27,14 @@ from .linear import LinearEffect
 BUILTIN = {name: EFFECTS[name] for name in EFFECTS if EFFECTS.is_builtin(name)}
 
 
-def _known(registry: dict | None) -> dict:
-    """Every effect class by name: ``registry`` (a mapping of name to class) over ``EFFECTS``."""
-    return {**{name: EFFECTS[name] for name in EFFECTS}, **(registry or {})}
+def _known() -> dict:
+    """Every registered effect class by name (``EFFECTS``), loaded."""
+    return {name: EFFECTS[name] for name in EFFECTS}
 
 
-def make_effect(spec: str, registry: dict | None = None) -> Effect:
-    """An effect from ``NAME`` or ``NAME:COLUMN`` (a registered effect, or one of ``registry``)."""
-    registry = _known(registry)
+def make_effect(spec: str) -> Effect:
+    """An effect from ``NAME`` or ``NAME:COLUMN`` of a registered effect (``EFFECTS``)."""
+    registry = _known()
     name, _, column = spec.partition(":")
     if name not in registry:
         raise InputError(f"unknown effect {name!r}; known: {', '.join(sorted(registry))}")
@@ -152,12 +151,12 @@ def _tried(name: str, cls, source: str) -> None:
             )
 
 
-def candidates(columns, registry: dict | None = None) -> list[Effect]:
+def candidates(columns) -> list[Effect]:
     """Every effect that can be tried on a log with these auxiliary ``columns``: effects without a column
     once; an effect of a column on every column of a kind it declares (``Effect.channels``, read by
     ``channel_kind``), or on its default column only when it declares none. Every registered effect
-    (``EFFECTS``) is a candidate, and those of ``registry``."""
-    registry = _known(registry)
+    (``EFFECTS``) is a candidate."""
+    registry = _known()
     out = []
     for cls in registry.values():
         default = _default_column(cls)
@@ -171,9 +170,9 @@ def candidates(columns, registry: dict | None = None) -> list[Effect]:
     return out
 
 
-def untried_columns(columns, registry: dict | None = None) -> list[str]:
+def untried_columns(columns) -> list[str]:
     """The ``columns`` no candidate of ``candidates`` uses (their kind is unknown or fits no effect)."""
-    used = {c for e in candidates(columns, registry) for c in e.columns}
+    used = {c for e in candidates(columns) for c in e.columns}
     return [c for c in columns if c not in used]
 
 
@@ -190,11 +189,11 @@ def stored_effect(effect: Effect, values, stds) -> StoredEffect:
     )
 
 
-def restore_effects(cal: Calibration, registry: dict | None = None) -> tuple[Effect, ...]:
+def restore_effects(cal: Calibration) -> tuple[Effect, ...]:
     """The effects a calibration file stores, rebuilt with their settings (user effects need their classes
     registered, e.g. by ``load_effect_file``); raises InputError naming the calibration's source when one
     cannot be rebuilt or its parameters do not match."""
-    registry = _known(registry)
+    registry = _known()
     out = []
     for stored in cal.effects:
         cls = registry.get(stored.name)

@@ -156,7 +156,7 @@ class OnlineCalibrator:
         self._last_field_body = None
 
     @classmethod
-    def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=None, registry=None) -> OnlineCalibrator:
+    def from_file(cls, path, config: FilterConfig = FilterConfig(), effects=None) -> OnlineCalibrator:
         """Start from a calibration file (JSON).
 
         The effects the file stores start at their stored values and covariance, unless ``effects`` is given.
@@ -169,9 +169,8 @@ class OnlineCalibrator:
             The noise, gates and random walks.
         effects : sequence of Effect or None, optional
             The effects to estimate instead of the file's (those the file stores start from it, the others
-            from their priors); None: the file's own.
-        registry : dict or None, optional
-            Classes of user effects, from ``load_effect_file``, which the file's user effects need.
+            from their priors); None: the file's own (a user effect's class must be registered, e.g. by
+            ``load_effect_file``).
 
         Returns
         -------
@@ -184,7 +183,7 @@ class OnlineCalibrator:
             The file cannot be read or is not a valid calibration.
         """
         init = Calibration.load(path)
-        return cls(init, config, restore_effects(init, registry) if effects is None else effects)
+        return cls(init, config, restore_effects(init) if effects is None else effects)
 
     @property
     def calibration(self) -> Calibration:
