@@ -19,7 +19,8 @@ class TimeLag(Effect):
     numbers as through all of them. Outside the data's time span (before a filter block's first epoch, or
     at a single real-time sample) it is extrapolated from the nearest epoch by its Taylor series in the
     field's rate and, where known, its second derivative (``EpochData.field_body_accel``). The Jacobian is
-    the base class's central difference of this model, the slope of the interpolation itself.
+    the slope of the same interpolation, differentiated exactly (a central difference in ``tau`` would be
+    rounded by ``t - tau`` on UNIX times, which are resolved to 2.4e-7 s near 1.7e9 s).
     """
 
     name = "time_lag"
@@ -31,9 +32,10 @@ class TimeLag(Effect):
         return np.zeros(1), np.full(1, 0.5)
 
     @staticmethod
-    def _delayed(values, rate, accel, t, target):
+    def _delayed(values, rate, accel, t, target, slope: bool = False):
         """``values`` (N, 3) with derivative ``rate`` interpolated at times ``target`` (N,), extrapolated outside
-        the span of ``t`` by the Taylor series with ``rate`` and ``accel`` (None: first order)."""
+        the span of ``t`` by the Taylor series with ``rate`` and ``accel`` (None: first order); with ``slope``,
+        the derivative in time (per s) of that interpolation and extrapolation instead."""
         from scipy.interpolate import CubicHermiteSpline
 
         # through the epochs with a finite field and rate, at strictly increasing times (real logs have gaps
@@ -43,16 +45,16 @@ class TimeLag(Effect):
         if not good.any():
             return np.full((len(target), 3), np.nan)
         if not good.all():
-            return TimeLag._delayed(values[good], rate[good], _take(accel, good), t[good], target)
+            return TimeLag._delayed(values[good], rate[good], _take(accel, good), t[good], target, slope)
         if len(t) > 1:
-            out = CubicHermiteSpline(t, values, rate, axis=0, extrapolate=False)(target)
+            out = CubicHermiteSpline(t, values, rate, axis=0, extrapolate=False)(target, nu=int(slope))
         else:
-            out = np.repeat(values, len(target), axis=0)
+            out = np.repeat(rate if slope else values, len(target), axis=0)
         for mask, k in ((target < t[0], 0), (target > t[-1], -1)):
             if mask.any():
                 d = (target[mask] - t[k])[:, None]
                 second = 0.0 if accel is None else np.nan_to_num(accel[k])  # first order where unknown
-                out[mask] = values[k] + d * rate[k] + 0.5 * d**2 * second
+                out[mask] = rate[k] + d * second if slope else values[k] + d * rate[k] + 0.5 * d**2 * second
         return out
 
     def contribution(self, theta, data, rows=None):
@@ -64,6 +66,16 @@ class TimeLag(Effect):
         span = slice(None) if rows is None else _reach(t, B, rate, target)
         lagged = self._delayed(B[span], rate[span], _take(data.field_body_accel, span), t[span], target)
         return (lagged - at_rows(B, rows)) @ data.R0.T
+
+    def jacobian(self, theta, data, rows=None):
+        """``d contribution / d tau`` (N, 3, 1), nT/s: minus the delayed field's rate, ``-R0 dB/dt (t - tau)``,
+        the exact slope of the interpolation ``contribution`` uses."""
+        tau = float(np.asarray(theta, float)[0])
+        t, B, rate = data.time, data.field_body, data.field_body_rate
+        target = at_rows(t, rows) - tau
+        span = slice(None) if rows is None else _reach(t, B, rate, target)
+        slope = self._delayed(B[span], rate[span], _take(data.field_body_accel, span), t[span], target, slope=True)
+        return (-slope @ data.R0.T)[:, :, None]
 
 
 def _take(a, mask):
