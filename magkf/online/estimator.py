@@ -16,6 +16,11 @@ innovations go to the learner at its end. The learned noise changes only every f
 Which epochs a measurement model takes: those with status ``used`` (and, for a model that needs no
 attitude, those with ``missing_attitude`` too); its ``fallback`` takes the ``missing_attitude`` ones.
 The statuses are defined in ``magkf.status``.
+
+The estimator knows a model only through ``MeasurementModel``'s methods: its whitening (``whiten``), its
+rows (through the filter), their count (``rows``: the NIS's degrees of freedom) and its innovations for the
+noise learner (``innovation``, split along the field by ``along_across``); never its name or its number of
+rows otherwise.
 """
 
 from __future__ import annotations
@@ -124,8 +129,8 @@ class Estimator:
 
     def structure(self, field_body, R, heading=None):
         """What the model's noise at epochs with body field ``field_body`` (N, 3) and heading axis ``heading``
-        (N, 3) is made of (see ``MeasurementModel.structure``), at calibration ``R``; None for the magnitude
-        model."""
+        (N, 3) is made of (see ``MeasurementModel.structure``), at calibration ``R``; None for a model that
+        needs no attitude."""
         return self.model.structure(field_body, R, heading)
 
     def _bound(self, probability: float, rows: int) -> float:
