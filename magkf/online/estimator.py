@@ -174,11 +174,13 @@ class Estimator:
             blk.e = np.nan_to_num(layout.extra_terms(x, blk.H, blk.data))
         # The variance of the calibrated magnitude that the estimate's covariance implies, at the block's
         # first candidate (it changes little within a block), every block of the state included; and the
-        # calibrated magnitude ``h`` (k,) of every epoch (for one epoch, the magnitude model's own).
+        # calibrated magnitude ``h`` (k,) of every epoch (for one epoch, the magnitude model's own), which the
+        # block keeps for the models (``Block.magnitude``).
         i0 = int(cand.argmax())
         e0 = blk.e[i0 : i0 + 1] if isinstance(blk.e, np.ndarray) else blk.e
         h0, H0, w0 = magnitude_jacobian(layout.core_of(x), blk.m[i0 : i0 + 1] - e0)
         h = h0 if k == 1 else np.linalg.norm(layout.calibrated(x, blk.m, blk.e), axis=1)
+        blk.magnitude = h
         if layout.has_extra:
             H0 = np.concatenate([H0[0], -w0[0] @ blk.H[i0][:, layout.EXTRA]])[None]
             predicted = float(H0[0] @ kf.P @ H0[0])

@@ -110,8 +110,9 @@ class Block:
     in (``MeasurementModel.whiten``, which the estimator calls; None: the model whitens its rows at the
     estimate); ``N`` (k, r, r) the covariance of the noise whitened by ``W`` as the gates see it (None: the
     identity); ``whitened_with`` the ``NoiseLevels`` that ``W`` and ``N`` were computed at (None: not yet
-    whitened). ``G``, ``Gh``, ``RRt``, ``frame``, ``W`` and ``N`` belong to the model the block was made for
-    (``for_fallback`` clears them for its fallback).
+    whitened); ``magnitude`` (k,) the calibrated field's magnitude at the estimate, nT (set by the estimator
+    with ``e``, for its magnitude gate; None: not known). ``G``, ``Gh``, ``RRt``, ``frame``, ``W`` and ``N``
+    belong to the model the block was made for (``for_fallback`` clears them for its fallback).
     """
 
     m: np.ndarray
@@ -129,6 +130,7 @@ class Block:
     W: np.ndarray | None = None
     N: np.ndarray | None = None
     whitened_with: NoiseLevels | None = None
+    magnitude: np.ndarray | None = None
 
     def take(self, index) -> Block:
         """The same block at the epochs ``index`` (integer array or boolean mask)."""
@@ -152,6 +154,7 @@ class Block:
             cut(self.W),
             cut(self.N),
             self.whitened_with,
+            cut(self.magnitude),
         )
 
     def for_fallback(self) -> Block:
@@ -990,9 +993,8 @@ class Magnitude(MeasurementModel):
     def innovation(self, x, blk):
         if not self._fast:
             return super().innovation(x, blk)
-        if len(blk.m) == 1:  # one epoch (real time): in plain floats
-            h = magnitude_jacobian(self.layout.core_of(x), blk.m - blk.e)[0]
-        else:
+        h = blk.magnitude  # the estimator's, at x
+        if h is None:
             h = np.linalg.norm(self.layout.calibrated(x, blk.m, blk.e), axis=1)
         return (blk.ref_mag - h)[:, None]
 
