@@ -195,6 +195,9 @@ class MeasurementModel(abc.ABC):
         Rows per epoch, ``r``: the degrees of freedom of an epoch's NIS.
     needs_attitude : bool
         The model takes epochs with attitude only; ``fallback`` takes the others.
+    needs_data : bool
+        The model reads its blocks' ``EpochData`` (``Block.data``: attitude, the reference in NED, auxiliary
+        channels), which the filters' blocks then carry (they carry it anyway for a nonlinear effect).
     linear : bool
         The rows are linear in the state, for every state; the UKF then takes them at the estimate through
         ``linearise``, as the EKF does (the unscented transform of a linear function is exact, so its sigma
@@ -216,6 +219,7 @@ class MeasurementModel(abc.ABC):
     name: str = "measurement"
     rows: int = 1
     needs_attitude: bool = False
+    needs_data: bool = False
     linear: bool = False
     noise_depends_on_state: bool = False
 

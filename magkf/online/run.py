@@ -146,7 +146,7 @@ class ForwardPass:
     def __init__(self, est: Estimator, model, R0, config: FilterConfig, origin: float):
         self.est, self.model, self.R0, self.config = est, model, R0, config
         self.origin = self.last_end = float(origin)
-        self.with_data = bool(est.layout.nonlinear)
+        self.with_data = bool(est.layout.nonlinear) or model.needs_data
 
     def run(self, prep, base, progress=None) -> tuple:
         """Filter the epochs of ``prep`` (a ``PreparedLog``) with statuses before filtering ``base`` (k,).
