@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 
+from magkf.calibration import Calibration
 from magkf.cli import main as cli_main
 from magkf.config import FilterConfig
-from magkf.calibration import Calibration
 from magkf.online.realtime import OnlineCalibrator
 from magkf.sim import DriveConfig, simulate_drive
 

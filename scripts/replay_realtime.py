@@ -13,8 +13,8 @@ from collections import Counter
 
 import numpy as np
 
-from magkf.config import FilterConfig
 from magkf.calibration import Calibration
+from magkf.config import FilterConfig
 from magkf.io.drivelog import DriveLog, read_drive_log
 from magkf.online.realtime import OnlineCalibrator
 from magkf.online.run import calibrate_log
