@@ -137,9 +137,7 @@ def test_a_measurement_model_in_one_file_runs_through_every_estimator():
 
     _import("magnitude_down")
     try:
-        sim = simulate_drive(
-            DriveConfig(duration_s=600, rate_hz=10, seed=21, disturbances=0, dop_bad_stretches=0),
-        )
+        sim = simulate_drive(DriveConfig(duration_s=600, rate_hz=10, seed=21, disturbances=0, dop_bad_stretches=0))
         table = sim.table.copy()
         table["yaw"] = (table["yaw"] + 3.0 * np.sin(np.arange(len(table)) / 600.0)) % 360.0  # heading off by 3 deg
         log = DriveLog(table, "heading_wander")
