@@ -46,6 +46,7 @@ __all__ = [
     "LogTask",
     "FleetResult",
     "LOG_SUFFIXES",
+    "log_suffixes",
     "VEHICLE_RULES",
     "find_logs",
     "vehicle_of",
@@ -57,10 +58,20 @@ __all__ = [
     "plot_vehicles",
 ]
 
-#: File endings taken from a folder given as a log (a file named explicitly is read whatever its ending).
-#: The endings a folder's files must have to be taken as logs. A whitespace table ending in ``.txt`` is read
-#: when named or matched by a pattern, never picked up from a folder (licences and notes end so too).
+#: File endings taken from a folder given as a log besides the registered readers' (``log_suffixes``; a file
+#: named explicitly is read whatever its ending). A whitespace table ending in ``.txt`` is read when named or
+#: matched by a pattern, never picked up from a folder (licences and notes end so too).
 LOG_SUFFIXES = (".csv", ".parquet", ".pq", ".ulg", ".bin", ".tsv")
+
+
+def log_suffixes() -> tuple[str, ...]:
+    """The endings a folder's files must have to be taken as logs: ``LOG_SUFFIXES`` and every registered
+    reader's ``extensions`` (``magkf.plugins.READERS``)."""
+    from .plugins import READERS
+
+    return tuple(dict.fromkeys([*LOG_SUFFIXES, *(e for name in READERS for e in READERS[name].extensions)]))
+
+
 #: How a log's vehicle is named (see the module docstring).
 VEHICLE_RULES = ("parent", "name", "none")
 #: The columns that say how a task ran, not what it found: they differ between runs of the same fleet.
@@ -132,18 +143,19 @@ class FleetResult:
 
 
 def find_logs(patterns, exclude=None) -> list[Path]:
-    """The log files named by ``patterns``: files, folders (every file with a ``LOG_SUFFIXES`` ending below
+    """The log files named by ``patterns``: files, folders (every file with a ``log_suffixes`` ending below
     them) or glob patterns (``**`` crosses folders), each once, sorted; files under ``exclude`` (the output
     folder) are left out. Raises InputError for a pattern that names no log."""
     skip = Path(exclude).resolve() if exclude is not None else None
     found: dict = {}
+    suffixes = log_suffixes()
     for pattern in patterns:
         text = str(pattern)
         matches = [Path(text)] if Path(text).exists() else [Path(p) for p in sorted(glob.glob(text, recursive=True))]
         files = []
         for match in matches:
             if match.is_dir():
-                files.extend(p for p in sorted(match.rglob("*")) if p.is_file() and p.suffix.lower() in LOG_SUFFIXES)
+                files.extend(p for p in sorted(match.rglob("*")) if p.is_file() and p.suffix.lower() in suffixes)
             elif match.is_file():
                 files.append(match)
         files = [f for f in files if skip is None or not f.resolve().is_relative_to(skip)]

@@ -58,6 +58,10 @@ def test_a_reader_in_one_file_reads_its_format_everywhere(drive, tmp_path, capsy
         readers = {r["name"]: r for r in json.loads(capsys.readouterr().out)["readers"]}
         assert readers["jsonl"]["origin"] == "registered" and readers["jsonl"]["summary"].startswith("JSON Lines")
         assert readers["ulog"]["origin"] == "magkf"
+        # a fleet's folder search takes its files
+        from magkf.fleet import find_logs
+
+        assert find_logs([tmp_path]) == [path]
         # the command line offers it (--format) and calibrates through it
         assert main(["calibrate", str(path), "--format", "jsonl", "-o", str(tmp_path / "cal.json"), "--quiet"]) == 0
         # and its errors name the file and line, like every reader's
