@@ -69,7 +69,7 @@ def log_suffixes() -> tuple[str, ...]:
     reader's ``extensions`` (``magkf.plugins.READERS``)."""
     from .plugins import READERS
 
-    return tuple(dict.fromkeys([*LOG_SUFFIXES, *(e for name in READERS for e in READERS[name].extensions)]))
+    return tuple(dict.fromkeys([*LOG_SUFFIXES, *(e for _, cls in READERS.loadable() for e in cls.extensions)]))
 
 
 #: How a log's vehicle is named (see the module docstring).
@@ -286,7 +286,16 @@ def process_log(task: LogTask) -> dict:
 
 
 def _calibrate(task: LogTask, folder: Path) -> dict:
-    """Read, calibrate, check, optionally diagnose, and write one log's outputs; its row's figures."""
+    """Read, calibrate, check, optionally diagnose, and write one log's outputs; its row's figures. The task's
+    effect files are registered for this task only (``EFFECTS.restoring``)."""
+    from .plugins import EFFECTS
+
+    with EFFECTS.restoring():
+        return _calibrate_registered(task, folder)
+
+
+def _calibrate_registered(task: LogTask, folder: Path) -> dict:
+    """``_calibrate`` inside its registry scope."""
     from .calibration import jsonable
     from .effects import load_effect_file, make_effect
     from .files import output_text

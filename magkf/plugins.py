@@ -29,18 +29,25 @@ magkf's but its errors, so that every layer may use it.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import inspect
+import threading
 from collections.abc import Iterator, Mapping
 from importlib import metadata
 from typing import Generic, TypeVar
 
-__all__ = ["Registry", "PluginError", "READERS", "FILTERS", "MEASUREMENTS", "EFFECTS", "REGISTRIES"]
+__all__ = ["Registry", "PluginError", "PluginWarning", "READERS", "FILTERS", "MEASUREMENTS", "EFFECTS", "REGISTRIES"]
 
 T = TypeVar("T")
 
 
 class PluginError(ValueError):
     """A plug-in that cannot be loaded or registered: its name, and why."""
+
+
+class PluginWarning(UserWarning):
+    """A plug-in left out because it cannot be loaded."""
 
 
 class Registry(Mapping[str, type[T]], Generic[T]):
@@ -65,19 +72,33 @@ class Registry(Mapping[str, type[T]], Generic[T]):
         self._builtin = frozenset(builtins)
         self._loaded: dict[str, type[T]] = {}
         self._entry_points_read = False
+        self._lock = threading.RLock()  # entry points read, plug-ins registered and first loads: one at a time
 
     # ------------------------------------------------------------------ the mapping
     def __getitem__(self, name: str) -> type[T]:
         if name in self._loaded:
             return self._loaded[name]
-        if name not in self._specs:
-            self._read_entry_points()
-        if name not in self._specs:
-            raise KeyError(name)
-        cls = _load(self._specs[name], f"{self.kind} {name!r}")
-        self._check(cls, name)
-        self._loaded[name] = cls
-        return cls
+        with self._lock:
+            if name not in self._specs:
+                self._read_entry_points()
+            if name not in self._specs:
+                raise KeyError(name)
+            if name not in self._loaded:
+                cls = _load(self._specs[name], f"{self.kind} {name!r}")
+                self._check(cls, name)
+                self._loaded[name] = cls
+            return self._loaded[name]
+
+    def loadable(self) -> Iterator[tuple[str, type[T]]]:
+        """Every plug-in that loads, ``(name, class)``, in listing order; one that cannot be loaded is skipped
+        with a ``PluginWarning`` saying why, so that another package's broken plug-in stops nothing else."""
+        import warnings
+
+        for name in self:
+            try:
+                yield name, self[name]
+            except PluginError as exc:
+                warnings.warn(f"{exc}; it is left out", PluginWarning, stacklevel=2)
 
     def __iter__(self) -> Iterator[str]:
         self._read_entry_points()
@@ -124,28 +145,54 @@ class Registry(Mapping[str, type[T]], Generic[T]):
         if not isinstance(name, str) or not name:
             raise PluginError(f"a {self.kind} needs a name (a class attribute 'name')")
         self._check(cls, name)
-        present = self._loaded.get(name)
-        if present is not cls and name in self:
+        with self._lock:
+            if name in self and self._specs[name] == _spec(cls) and self._loaded.get(name, cls) is cls:
+                self._loaded[name] = cls
+                return cls  # the class that name stands for already: nothing changes
             if name in self._builtin:
                 raise PluginError(f"{self.kind} {name!r} is one of magkf's own: give yours another name")
-            if not replace and not _same_definition(present, cls):
+            present = self._loaded.get(name)
+            if name in self and not replace and not _same_definition(present, cls):
                 raise PluginError(f"a {self.kind} named {name!r} is registered already ({self._specs[name]})")
-        self._specs[name] = f"{cls.__module__}:{cls.__qualname__}"
-        self._origins[name] = "registered"
-        self._loaded[name] = cls
+            self._specs[name] = _spec(cls)
+            self._origins[name] = "registered"
+            self._loaded[name] = cls
         return cls
+
+    @contextlib.contextmanager
+    def restoring(self):
+        """A scope after which the registry is as it was before: what was registered or unregistered inside it
+        is undone (a command's ``--effect-file``, one task of a fleet), so that nothing of one run changes
+        the next in the same process."""
+        with self._lock:
+            saved = dict(self._specs), dict(self._origins), dict(self._loaded)
+        try:
+            yield self
+        finally:
+            with self._lock:
+                self._read_entry_points()  # read inside or not, the entry points stay known
+                entry_points = {n: (self._specs[n], self._origins[n]) for n in self._specs if n not in saved[0]}
+                self._specs, self._origins, self._loaded = (dict(d) for d in saved)
+                for n, (spec, origin) in entry_points.items():
+                    if origin.startswith("entry point"):
+                        self._specs[n], self._origins[n] = spec, origin
 
     def unregister(self, name: str) -> None:
         """Forget the plug-in ``name`` (a registered or another package's one; magkf's own stay)."""
         if name in self._builtin:
             raise PluginError(f"{self.kind} {name!r} is one of magkf's own and stays")
-        if name not in self:
-            raise KeyError(name)
-        del self._specs[name]
-        self._origins.pop(name, None)
-        self._loaded.pop(name, None)
+        with self._lock:
+            if name not in self:
+                raise KeyError(name)
+            del self._specs[name]
+            self._origins.pop(name, None)
+            self._loaded.pop(name, None)
 
     __delitem__ = unregister
+
+    def builtin_names(self) -> list[str]:
+        """The names of magkf's own plug-ins of this kind, in listing order (no entry point is read)."""
+        return [name for name in self._specs if name in self._builtin]
 
     def is_builtin(self, name: str) -> bool:
         """Whether ``name`` is one of magkf's own plug-ins of this kind."""
@@ -168,12 +215,15 @@ class Registry(Mapping[str, type[T]], Generic[T]):
     def _read_entry_points(self) -> None:
         if self._entry_points_read:
             return
-        self._entry_points_read = True
-        for ep in metadata.entry_points(group=self.group):
-            if ep.name not in self._specs:
-                self._specs[ep.name] = ep.value
-                dist = getattr(ep, "dist", None)
-                self._origins[ep.name] = f"entry point of {dist.name}" if dist is not None else "entry point"
+        with self._lock:
+            if self._entry_points_read:
+                return
+            for ep in metadata.entry_points(group=self.group):
+                if ep.name not in self._specs:
+                    self._specs[ep.name] = ep.value
+                    dist = getattr(ep, "dist", None)
+                    self._origins[ep.name] = f"entry point of {dist.name}" if dist is not None else "entry point"
+            self._entry_points_read = True
 
     def _check(self, cls, name: str) -> None:
         base = _load(self.interface, f"the {self.kind} interface")
@@ -184,20 +234,40 @@ class Registry(Mapping[str, type[T]], Generic[T]):
 
 
 def _load(spec: str, what: str):
-    """The object ``"module:attribute"`` names."""
+    """The object ``"module:attribute"`` names; PluginError whatever importing it raises (a plug-in's code is
+    another package's: its failure is reported in one line, not as magkf's)."""
     module, _, attribute = spec.partition(":")
     try:
         obj = importlib.import_module(module)
         for part in attribute.split("."):
             obj = getattr(obj, part)
-    except (ImportError, AttributeError) as exc:
-        raise PluginError(f"{what} cannot be loaded from {spec!r}: {exc}") from None
+    except Exception as exc:
+        what_failed = " ".join(str(exc).split())
+        raise PluginError(f"{what} cannot be loaded from {spec!r}: {type(exc).__name__}: {what_failed}") from None
     return obj
 
 
+def _spec(cls) -> str:
+    """``"module:Class"`` of a class."""
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def _source_file(cls) -> str | None:
+    """The file that defines ``cls``: that of its first method's code (a module run from a file, as an effect
+    file is, is not in ``sys.modules``), else its module's; None for neither."""
+    for value in vars(cls).values():
+        code = getattr(getattr(value, "__func__", value), "__code__", None)
+        if code is not None:
+            return code.co_filename
+    try:
+        return inspect.getfile(cls)
+    except (TypeError, OSError):
+        return None
+
+
 def _same_definition(a, b) -> bool:
-    """The same class defined again (a file loaded twice): same module name and qualified name."""
-    return a is not None and (a.__module__, a.__qualname__) == (b.__module__, b.__qualname__)
+    """The same class defined again (a file loaded twice): the same module, qualified name and file."""
+    return a is not None and (_spec(a), _source_file(a)) == (_spec(b), _source_file(b))
 
 
 READERS: Registry = Registry(

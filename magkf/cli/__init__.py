@@ -10,12 +10,14 @@ output for ``-o`` and ``--states``, standard input for a log.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 import warnings
 
 from .. import __version__
 from ..errors import InputError
+from ..plugins import REGISTRIES
 from . import apply, diagnostics, fleet, logs, offline, online, plugins, simulate
 from .common import Note
 
@@ -101,10 +103,12 @@ def _run(args, pending: list) -> int:
 
         outputs, inputs = _files(args)
         check_outputs(outputs, inputs)
-        if STDIO in outputs.values():  # the result goes to standard output, the messages to standard error
-            with messages_to_stderr():
-                return args.func(args)
-        return args.func(args)
+        with contextlib.ExitStack() as scope:
+            for registry in REGISTRIES.values():  # what the command registers (--effect-file) ends with it
+                scope.enter_context(registry.restoring())
+            if STDIO in outputs.values():  # the result goes to standard output, the messages to standard error
+                scope.enter_context(messages_to_stderr())
+            return args.func(args)
     except (InputError, ValueError) as exc:  # bad input, or a setting that cannot be used: one line
         import numpy as np
 

@@ -17,28 +17,30 @@ import numpy as np
 
 from ..calibration import Calibration, StoredEffect
 from ..errors import InputError
-from ..plugins import EFFECTS
+from ..plugins import EFFECTS, PluginError
 from .base import Effect, EpochData
 from .channels import channel_kind
 from .core import SoftHardIron
 from .linear import LinearEffect
 
 #: magkf's own effects, by name (each also in ``EFFECTS``).
-BUILTIN = {name: EFFECTS[name] for name in EFFECTS if EFFECTS.is_builtin(name)}
+BUILTIN = {name: EFFECTS[name] for name in EFFECTS.builtin_names()}
 
 
-def _known() -> dict:
-    """Every registered effect class by name (``EFFECTS``), loaded."""
-    return {name: EFFECTS[name] for name in EFFECTS}
+def _effect_class(name: str, source=None):
+    """The registered effect class ``name``; InputError (naming ``source``) when it is unknown or fails to load."""
+    if name not in EFFECTS:
+        raise InputError(f"unknown effect {name!r}; known: {', '.join(sorted(EFFECTS))}", source)
+    try:
+        return EFFECTS[name]
+    except PluginError as exc:
+        raise InputError(str(exc), source) from None
 
 
 def make_effect(spec: str) -> Effect:
     """An effect from ``NAME`` or ``NAME:COLUMN`` of a registered effect (``EFFECTS``)."""
-    registry = _known()
     name, _, column = spec.partition(":")
-    if name not in registry:
-        raise InputError(f"unknown effect {name!r}; known: {', '.join(sorted(registry))}")
-    cls = registry[name]
+    cls = _effect_class(name)
     takes_column = "column" in inspect.signature(cls.__init__).parameters
     if column and not takes_column:
         raise InputError(f"effect {name!r} takes no column (got {spec!r})")
@@ -50,7 +52,9 @@ def load_effect_file(path) -> dict:
 
     The file is run as Python with the user's rights, as ``import`` would: load only files you trust. Each
     class found is tried on a few plausible epochs (``_tried``) before it is registered. Loading the same
-    file again registers its classes again.
+    file again registers its classes again. They stay registered (and so are candidates of every later
+    diagnosis) until unregistered, or until the end of an ``EFFECTS.restoring()`` scope, which every command
+    and every fleet task runs in.
 
     Parameters
     ----------
@@ -66,7 +70,8 @@ def load_effect_file(path) -> dict:
     ------
     InputError
         Naming the file: it is missing or not Python, it fails to load (``sys.exit`` included), it defines no
-        effect, an effect's name is a built-in's, or an effect fails on the test epochs.
+        effect, an effect's name is a built-in's or an installed package's, an effect lacks a method of
+        ``Effect``, or an effect fails on the test epochs.
     """
     path = Path(path)
     if not path.is_file():
@@ -74,20 +79,28 @@ def load_effect_file(path) -> dict:
     if path.suffix != ".py":
         raise InputError("an effect file is Python source ending in .py", str(path))
     module = _run_file(path)
-    found = {
-        obj.name: obj
+    defined = [
+        obj
         for obj in vars(module).values()
         if inspect.isclass(obj)
         and issubclass(obj, Effect)
         and obj.__module__ == module.__name__
-        and not inspect.isabstract(obj)
         and obj.name not in ("effect", "core")
-    }
+    ]
+    for cls in defined:
+        if inspect.isabstract(cls):
+            missing = ", ".join(f"{m}()" for m in sorted(cls.__abstractmethods__))
+            raise InputError(f"effect {cls.name!r} does not implement {missing}", str(path))
+    found = {cls.name: cls for cls in defined}
     if not found:
         raise InputError("the file defines no Effect subclass with a name", str(path))
     clash = sorted(name for name in found if EFFECTS.is_builtin(name))
     if clash:
         raise InputError(f"effect {clash[0]!r} is a built-in effect's name: give yours another", str(path))
+    installed = [name for name in sorted(found) if name in EFFECTS and EFFECTS.origin(name).startswith("entry")]
+    if installed:
+        what = f"effect {installed[0]!r} is the name of an installed package's effect"
+        raise InputError(f"{what} ({EFFECTS.origin(installed[0])}): give yours another", str(path))
     for name, cls in found.items():
         _tried(name, cls, str(path))
     for cls in found.values():
@@ -155,10 +168,9 @@ def candidates(columns) -> list[Effect]:
     """Every effect that can be tried on a log with these auxiliary ``columns``: effects without a column
     once; an effect of a column on every column of a kind it declares (``Effect.channels``, read by
     ``channel_kind``), or on its default column only when it declares none. Every registered effect
-    (``EFFECTS``) is a candidate."""
-    registry = _known()
+    (``EFFECTS``) that loads is a candidate."""
     out = []
-    for cls in registry.values():
+    for _, cls in EFFECTS.loadable():
         default = _default_column(cls)
         if default is None:
             out.append(cls())
@@ -193,13 +205,12 @@ def restore_effects(cal: Calibration) -> tuple[Effect, ...]:
     """The effects a calibration file stores, rebuilt with their settings (user effects need their classes
     registered, e.g. by ``load_effect_file``); raises InputError naming the calibration's source when one
     cannot be rebuilt or its parameters do not match."""
-    registry = _known()
     out = []
     for stored in cal.effects:
-        cls = registry.get(stored.name)
         where = f"calibration effect {stored.label!r}"
-        if cls is None:
+        if stored.name not in EFFECTS:
             raise InputError(f"{where} is not a built-in; give the --effect-file that defines it", cal.source)
+        cls = _effect_class(stored.name, cal.source)
         try:
             effect = cls(**stored.settings)
         except TypeError as exc:

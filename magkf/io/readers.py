@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from ..errors import InputError
-from ..plugins import READERS
+from ..plugins import READERS, PluginError
 
 if TYPE_CHECKING:
     from .drivelog import DriveLog
@@ -116,7 +116,7 @@ def detect_format(path) -> str:
             head = f.read(HEAD_BYTES)
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc.strerror})", str(path)) from None
-    readers = [READERS[name]() for name in READERS]
+    readers = [cls() for _, cls in READERS.loadable()]  # magkf's own first; one that fails to load is skipped
     for reader in readers:
         if reader.recognises(path, head):
             return reader.name
@@ -128,7 +128,10 @@ def reader_for(name: str, source: str = "") -> LogReader:
     """The registered reader of the format ``name``; InputError naming ``source`` if there is none."""
     if name not in READERS:
         raise InputError(f"unknown format {name!r}; use one of {', '.join(READERS)}", source or None)
-    return READERS[name]()
+    try:
+        return READERS[name]()
+    except PluginError as exc:
+        raise InputError(str(exc), source or None) from None
 
 
 def read_log(
@@ -183,7 +186,7 @@ def read_log(
 def _refuse_options(reader: LogReader, given: dict, source: str) -> None:
     """InputError naming ``source`` for the first option in ``given`` that ``reader`` does not take."""
     if "mag" in given and "mag" not in reader.options:
-        takers = " and ".join(READERS[n].title for n in READERS if "mag" in READERS[n].options)
+        takers = " and ".join(cls.title for _, cls in READERS.loadable() if "mag" in cls.options)
         raise InputError(f"a {reader.name} table holds one magnetometer: --mag applies to {takers} logs", source)
     if "mag_unit" in given and "mag_unit" not in reader.options:
         where = "its column map's [units] mag" if "map" in reader.options else "the log itself"

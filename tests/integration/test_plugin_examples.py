@@ -165,3 +165,29 @@ def test_a_measurement_model_in_one_file_runs_through_every_estimator():
         assert statuses.count("used") > 150
     finally:
         MEASUREMENTS.unregister("magnitude_down")
+
+
+def test_an_effect_file_registers_for_its_command_only(capsys):
+    """A command's --effect-file is registered while the command runs, and gone after it, so that a later
+    diagnosis in the same process tests the candidates it would have tested anyway."""
+    assert "warm_up" not in EFFECTS
+    assert main(["plugins", "--json", "--effect-file", str(EXAMPLES / "warm_up.py")]) == 0
+    listed = {r["name"]: r for r in json.loads(capsys.readouterr().out)["effects"]}
+    assert listed["warm_up"]["origin"] == "registered"
+    assert "warm_up" not in EFFECTS
+
+
+def test_an_effect_without_contribution_is_named(tmp_path):
+    from magkf.errors import InputError
+
+    path = tmp_path / "typo.py"
+    path.write_text(
+        "from magkf.effects import Effect\n\n"
+        "class Typo(Effect):\n"
+        "    name = 'typo'\n"
+        "    parameter_names = ('k',)\n\n"
+        "    def contributon(self, theta, data):\n"
+        "        return 0.0\n"
+    )
+    with pytest.raises(InputError, match=r"typo.py: effect 'typo' does not implement contribution\(\)"):
+        load_effect_file(path)

@@ -2,12 +2,13 @@
 they keep straight."""
 
 import ast
+import importlib.util
 import sys
 from pathlib import Path
 
 import pytest
 
-from magkf.plugins import EFFECTS, FILTERS, MEASUREMENTS, READERS, REGISTRIES, PluginError, Registry
+from magkf.plugins import EFFECTS, FILTERS, MEASUREMENTS, READERS, REGISTRIES, PluginError, PluginWarning, Registry
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -66,6 +67,78 @@ def test_register_refuses_what_is_not_a_plugin_and_names_taken():
     assert "mine" not in registry and list(registry) == ["ekf"]
     with pytest.raises(PluginError, match="stays"):
         registry.unregister("ekf")
+
+
+def test_registering_the_class_a_name_stands_for_changes_nothing():
+    from magkf.online.filters import EKF
+
+    registry = _fresh()
+    assert registry.register(EKF) is EKF and registry.origin("ekf") == "magkf"
+    registry["ekf"]
+    assert registry.register(EKF) is EKF and registry.origin("ekf") == "magkf"
+
+
+def test_a_scope_undoes_what_was_registered_inside_it():
+    from magkf.online.filters import EKF
+
+    registry = _fresh()
+
+    class Kept(EKF):
+        name = "kept"
+
+    class Passing(EKF):
+        name = "passing"
+
+    registry.register(Kept)
+    with registry.restoring():
+        registry.register(Passing)
+        registry.unregister("kept")
+        assert list(registry) == ["ekf", "passing"]
+    assert list(registry) == ["ekf", "kept"] and registry["kept"] is Kept
+    with pytest.raises(KeyError):
+        registry["passing"]
+
+
+def test_two_files_of_one_name_are_two_definitions(tmp_path):
+    """An effect file is run as a module named after its stem: another file of that stem and class name is
+    another definition, refused unless it replaces the first."""
+    code = (
+        "from magkf.effects import LinearEffect\n"
+        "class Hull(LinearEffect):\n"
+        "    name = 'hull'\n"
+        "    parameter_names = ('h',)\n"
+        "    def design(self, data):\n"
+        "        import numpy as np\n"
+        "        return np.zeros((len(data.time), 3, 1)) + {}\n"
+    )
+    classes = []
+    for folder, value in (("a", 1.0), ("b", 2.0)):
+        (tmp_path / folder).mkdir()
+        path = tmp_path / folder / "hull.py"
+        path.write_text(code.format(value))
+        spec = importlib.util.spec_from_file_location("magkf_user_effect_hull", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        classes.append(module.Hull)
+    registry = Registry("effect", "magkf.test_effects", EFFECTS.interface, {})
+    registry.register(classes[0])
+    with pytest.raises(PluginError, match="registered already"):
+        registry.register(classes[1])
+    assert registry.register(classes[1], replace=True) is classes[1]
+
+
+def test_a_plugin_that_fails_to_import_is_one_line_and_left_out_of_listings(tmp_path, monkeypatch):
+    """Another package's plug-in whose module raises on import: a PluginError naming it when asked for, a
+    PluginWarning and nothing else where every plug-in is gone through (format detection, candidates)."""
+    (tmp_path / "boom_reader.py").write_text("raise RuntimeError('broken at import')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = Registry("log reader", "magkf.test_readers", READERS.interface, {"csv": READERS.source("csv")})
+    registry.register(READERS["csv"])
+    registry._specs["boom"], registry._origins["boom"] = "boom_reader:Reader", "entry point"
+    with pytest.raises(PluginError, match="'boom' cannot be loaded from 'boom_reader:Reader': RuntimeError: broken"):
+        registry["boom"]
+    with pytest.warns(PluginWarning, match="'boom' cannot be loaded"):
+        assert [name for name, _ in registry.loadable()] == ["csv"]
 
 
 def test_a_name_that_loads_nothing_says_where_it_looked():
