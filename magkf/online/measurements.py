@@ -1037,7 +1037,8 @@ def register_measurement(cls: type[MeasurementModel]) -> type[MeasurementModel]:
     """Make a measurement model available by its ``name``; a decorator.
 
     The name is then known to ``FilterConfig(measure=...)`` and ``--measure``. The same as
-    ``magkf.plugins.MEASUREMENTS.register(cls)``.
+    ``magkf.plugins.MEASUREMENTS.register(cls, replace=True)``: it takes the place of an earlier
+    registration of that name (a model being redefined), never of magkf's own.
 
     Parameters
     ----------
@@ -1054,7 +1055,7 @@ def register_measurement(cls: type[MeasurementModel]) -> type[MeasurementModel]:
     TypeError
         ``cls`` is not a ``MeasurementModel`` subclass.
     magkf.plugins.PluginError
-        Its name is one of magkf's own models' or another's already registered.
+        Its name is one of magkf's own models'.
     """
     if not (isinstance(cls, type) and issubclass(cls, MeasurementModel)):
         raise TypeError("a measurement model is a subclass of MeasurementModel")

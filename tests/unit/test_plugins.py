@@ -183,9 +183,13 @@ def _imports(path: Path) -> set[str]:
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")[: len(package.split(".")) - node.level + 1]
-                out.add(".".join(base + ([node.module] if node.module else [])))
+                module = ".".join(base + ([node.module] if node.module else []))
             elif node.module and node.module.startswith("magkf"):
-                out.add(node.module)
+                module = node.module
+            else:
+                continue
+            out.add(module)
+            out.update(f"{module}.{alias.name}" for alias in node.names)  # ``from .. import plausibility``
         elif isinstance(node, ast.Import):
             out.update(a.name for a in node.names if a.name.startswith("magkf"))
     return out
@@ -195,20 +199,22 @@ def _imports(path: Path) -> set[str]:
 #: conventions, errors, status, plugins, config, calibration, files, timing, blas) import only each other.
 LAYERS = {
     "foundation": set(),
+    "reference": {"foundation"},
+    "plausibility": {"foundation", "reference"},
     "io": {"foundation", "reference"},
     "effects": {"foundation"},
-    "reference": {"foundation"},
-    "offline": {"foundation", "io", "reference"},
-    "online": {"foundation", "io", "effects", "reference", "offline"},
+    "offline": {"foundation", "io", "reference", "plausibility"},
+    "online": {"foundation", "io", "effects", "reference", "plausibility", "offline"},
     "sim": {"foundation", "io", "effects", "reference", "offline"},
-    "diagnostics": {"foundation", "io", "effects", "reference", "offline", "online"},
+    "apply": {"foundation", "io", "effects", "reference", "online"},
+    "diagnostics": {"foundation", "io", "effects", "reference", "plausibility", "offline", "online", "apply"},
 }
 FOUNDATION = {"conventions", "errors", "status", "plugins", "config", "calibration", "files", "timing", "blas"}
 
 
 def _layer(module: str) -> str | None:
     parts = module.split(".")
-    if len(parts) < 2:
+    if len(parts) < 2 or parts[0] != "magkf":
         return None
     if parts[1] in FOUNDATION:
         return "foundation"

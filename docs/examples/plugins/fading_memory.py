@@ -2,7 +2,8 @@
 every prediction (Sorenson and Sacks' fading-memory filter; FilterPy's ``KalmanFilter.alpha``). Useful
 when the calibration changes faster than the random walk allows (a payload swapped in flight).
 
-    magkf calibrate LOG.csv --filter ekf_fading     (once this module is imported or installed as a plug-in)
+    FilterConfig(filter="ekf_fading")           in Python, once this module is imported
+    magkf calibrate LOG.csv --filter ekf_fading  once a package installs it (entry point group magkf.filters)
 """
 
 import numpy as np

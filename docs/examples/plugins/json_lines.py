@@ -3,7 +3,8 @@ record. The keys are magkf's canonical column names (``time`` in UNIX s, ``mag_x
 pitch, yaw`` in degrees, ``lat, lon, alt``, ``dop``, any auxiliary channel); a missing key is an empty cell.
 
 Registered on import, so ``magkf.io.readers.read_log("flight.jsonl")`` reads such a file once this module has
-been imported (or, in a package, through an entry point in the ``magkf.readers`` group).
+been imported; the command line (``magkf calibrate flight.jsonl``) and a fleet's Dask workers know it once a
+package installs it through an entry point in the ``magkf.readers`` group.
 """
 
 import json

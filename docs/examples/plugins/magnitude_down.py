@@ -2,7 +2,8 @@
 changes. For logs whose logged heading came from this magnetometer (ArduPilot's and PX4's estimators fuse the
 compass into yaw), where the vector model would partly calibrate the magnetometer against itself.
 
-    magkf calibrate LOG.bin --measure magnitude_down     (once this module is imported or installed as a plug-in)
+    FilterConfig(measure="magnitude_down")            in Python, once this module is imported
+    magkf calibrate LOG.bin --measure magnitude_down  once a package installs it (group magkf.measurements)
 
 It implements the four methods of ``MeasurementModel``; the EKF's, the UKF's, the batch solver's, the real-time
 step's and the noise learner's rows all come from them.
