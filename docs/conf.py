@@ -28,6 +28,8 @@ exclude_patterns = ["_build", "examples", "Thumbs.db", ".DS_Store"]
 
 html_theme = "alabaster"
 html_title = f"magkf {release}"
+# wide enough for the code (lines of up to 120 characters) and the tables of interfaces and options
+html_theme_options = {"page_width": "1320px", "body_max_width": "none", "sidebar_width": "240px"}
 
 # ---------------------------------------------------------------- Markdown pages (MyST)
 # The pages link to each other's sections (``data-contract.md#turntable-run-sine-fit``): anchors for
