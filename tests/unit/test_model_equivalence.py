@@ -24,9 +24,9 @@ import numpy as np
 import pytest
 
 from magkf.config import FilterConfig
-from magkf.conventions import body_to_ned, euler_to_dcm, inverse3, ned_to_body
+from magkf.conventions import body_to_ned, inverse3
 from magkf.effects import make_effect
-from magkf.effects.base import EpochData, rate_of_change
+from magkf.effects.base import EpochData
 from magkf.online.measurements import (
     Block,
     Both,
@@ -40,6 +40,8 @@ from magkf.online.measurements import (
 )
 from magkf.online.noise import NoiseLevels
 from magkf.online.state import StateLayout
+
+from ..epochs import turning_epochs
 
 RTOL = 1e-9
 EPOCHS = 40
@@ -65,21 +67,8 @@ def close(a, b, column_scale: bool = False) -> bool:
 
 
 def _data(rng, layout: StateLayout, R0) -> EpochData:
-    """``EPOCHS`` epochs at 50 Hz of a turning, rolling and pitching vehicle in a seeded field, with the
-    readings of a random calibration and every column the layout's effects need."""
-    t = 1.7e9 + 0.02 * np.arange(EPOCHS)
-    s = t - t[0]
-    phase = rng.uniform(0, 2 * np.pi, 3)
-    c_nb = euler_to_dcm(
-        np.degrees(phase[0]) + 40.0 * s, 8.0 * np.sin(1.1 * s + phase[1]), 6.0 * np.cos(0.9 * s + phase[2])
-    )
-    ref = np.tile([19_000.0, 1_500.0, 45_000.0] + rng.normal(0, 500, 3), (EPOCHS, 1))
-    field_body = ned_to_body(c_nb, ref)
-    rate = rate_of_change(t, field_body)
-    columns = {c: 20.0 + 5.0 * rng.standard_normal(EPOCHS) for e in layout.extra() for c in e.columns}
-    m = field_body @ (np.eye(3) + rng.normal(0, 0.05, (3, 3))).T + rng.normal(0, 300, 3)
-    m = m + rng.normal(0, 30.0, m.shape)
-    return EpochData(t, field_body, ref, columns, m, c_nb, rate, R0, rate_of_change(t, rate))
+    """``EPOCHS`` epochs of a manoeuvring vehicle with every column the layout's effects need."""
+    return turning_epochs(rng, [c for e in layout.extra() for c in e.columns], R0, EPOCHS)
 
 
 def _state(rng, layout: StateLayout) -> np.ndarray:

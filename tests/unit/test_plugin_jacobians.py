@@ -36,11 +36,12 @@ import numpy as np
 import pytest
 
 from magkf.config import FilterConfig
-from magkf.conventions import euler_to_dcm, ned_to_body
 from magkf.effects import BUILTIN, make_effect
-from magkf.effects.base import EpochData, rate_of_change
+from magkf.effects.base import EpochData
 from magkf.online.measurements import MEASUREMENTS, Block, heading_axis
 from magkf.online.state import StateLayout
+
+from ..epochs import turning_epochs
 
 EFFECTS = (
     getattr(importlib.import_module("magkf.plugins"), "EFFECTS", None)
@@ -64,21 +65,8 @@ KNOWN: dict = {}
 
 
 def _data(rng, columns, R0, t0: float = 1.7e9) -> EpochData:
-    """``EPOCHS`` epochs at 50 Hz from ``t0`` (s) of a turning, rolling and pitching vehicle in a seeded field,
-    with the readings of a random calibration and the auxiliary ``columns`` (temperatures, loads: around 20)."""
-    t = t0 + 0.02 * np.arange(EPOCHS)
-    s = t - t[0]
-    phase = rng.uniform(0, 2 * np.pi, 3)
-    c_nb = euler_to_dcm(
-        np.degrees(phase[0]) + 40.0 * s, 8.0 * np.sin(1.1 * s + phase[1]), 6.0 * np.cos(0.9 * s + phase[2])
-    )
-    ref = np.tile([19_000.0, 1_500.0, 45_000.0] + rng.normal(0, 500, 3), (EPOCHS, 1))
-    field_body = ned_to_body(c_nb, ref)
-    rate = rate_of_change(t, field_body)
-    m = field_body @ (np.eye(3) + rng.normal(0, 0.05, (3, 3))).T + rng.normal(0, 300, 3)
-    m = m + rng.normal(0, 30.0, m.shape)
-    aux = {c: 20.0 + 5.0 * rng.standard_normal(EPOCHS) for c in columns}
-    return EpochData(t, field_body, ref, aux, m, c_nb, rate, R0, rate_of_change(t, rate))
+    """``EPOCHS`` epochs of a manoeuvring vehicle from ``t0`` (s) with the auxiliary ``columns``."""
+    return turning_epochs(rng, columns, R0, EPOCHS, t0)
 
 
 def _states(rng, mean, std, count: int = STATES) -> list:
