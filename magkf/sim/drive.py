@@ -153,12 +153,7 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     ``effects`` are ``(Effect, theta)`` pairs added to the raw field."""
     rng = np.random.default_rng(config.seed)
     n = int(round(config.duration_s * config.rate_hz))
-    if truth is None:
-        truth = (
-            np.array([[1.05, 0.03, -0.02], [0.01, 0.97, 0.04], [-0.03, 0.02, 1.02]]),
-            np.array([350.0, -220.0, 480.0]),
-        )
-    K, b = true_matrix(truth)
+    K, b = true_matrix(_default_truth() if truth is None else truth)
     R = K @ mounting_matrix(config.mounting)
     t = config.start_time + np.arange(n) / config.rate_hz
     motion = simulate_motion(
@@ -177,10 +172,46 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
     ref = igrf_ned(t, motion["lat"], motion["lon"], motion["alt"])
     c_nb = euler_to_dcm(motion["yaw"], motion["pitch"], motion["roll"])
     field_body = ned_to_body(c_nb, ref)
-    table = pd.DataFrame({TIME: t})
     extra = realism_rng(config.seed)
     attitude_error = gauss_markov(n, config.rate_hz, config.attitude_wander_deg, config.attitude_wander_s, extra)
     interference = gauss_markov(n, config.rate_hz, config.interference_nt, config.interference_s, extra)
+    table = _log_table(config, t, motion, attitude_error, dop, ref, rng)
+    sensor_noise = config.noise_nt * coloured(rng.normal(size=(n, 3)), config.rate_hz, config.noise_correlation_s)
+    mag = (field_body + disturbance + interference) @ R.T + b + sensor_noise
+    contributions = _contributions(effects, table, field_body, ref, mag, c_nb, R, rng)
+    for c in contributions:
+        mag = mag + c
+    for i, name in enumerate(MAG):
+        table.insert(1 + i, name, mag[:, i])
+    return SimulatedDrive(
+        table=table.set_index(TIME),
+        R=R,
+        b=b,
+        config=config,
+        reference_ned=ref,
+        field_body=field_body,
+        disturbance=disturbance,
+        dop_bad=_marked(n, stretches),
+        events=events,
+        dop_stretches=stretches,
+        effects=list(effects),
+        contributions=contributions,
+        sensor_noise=sensor_noise,
+        attitude_error=attitude_error,
+        interference=interference,
+    )
+
+
+def _default_truth() -> tuple[np.ndarray, np.ndarray]:
+    """The default true calibration ``(R, b)``: a realistic soft iron (3, 3) and hard iron (3,) nT."""
+    return (np.array([[1.05, 0.03, -0.02], [0.01, 0.97, 0.04], [-0.03, 0.02, 1.02]]), np.array([350.0, -220.0, 480.0]))
+
+
+def _log_table(config: DriveConfig, t, motion: dict, attitude_error, dop, ref, rng) -> pd.DataFrame:
+    """The log without its magnetometer columns: time (s), position, the logged attitude (the truth plus
+    ``attitude_error`` (N, 3) deg), DOP, speed, temperature, current and, with ``write_reference``, the
+    reference field ``ref`` (N, 3) nT. Draws the temperature's and current's noise from ``rng``."""
+    table = pd.DataFrame({TIME: t})
     for name in ("lat", "lon", "alt"):
         table[name] = motion[name]
     for k, name in enumerate(ATTITUDE):  # the logged attitude: the truth and its error
@@ -189,20 +220,36 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
         table["yaw"] %= 360.0
     table["dop"] = dop
     table["speed_mps"] = motion["speed_mps"]
-    # Warm-up, a slow wander (sun and shade, heater cycles), sensor noise: degC.
-    table["temp_c"] = (
-        20.0
-        + 10.0 * (1 - np.exp(-(t - t[0]) / 900.0))
-        + 3.0 * smooth_noise(n, config.rate_hz, 120.0, rng)
-        + 0.1 * rng.normal(size=n)
-    )
-    load = (np.cumsum(rng.random(n) < 1.0 / (20.0 * config.rate_hz)) % 2).astype(float)
-    table["current_a"] = 2.0 + 25.0 * load + 0.3 * rng.normal(size=n)
+    table["temp_c"] = _temperature(t, config.rate_hz, rng)
+    table["current_a"] = _current(len(t), config.rate_hz, rng)
     if config.write_reference:
         for i, name in enumerate(REF):
             table[name] = ref[:, i]
-    sensor_noise = config.noise_nt * coloured(rng.normal(size=(n, 3)), config.rate_hz, config.noise_correlation_s)
-    mag = (field_body + disturbance + interference) @ R.T + b + sensor_noise
+    return table
+
+
+def _temperature(t, rate_hz: float, rng) -> np.ndarray:
+    """The sensor temperature (N,) degC at times ``t`` (N,) s: a warm-up, a slow wander (sun and shade,
+    heater cycles) and sensor noise."""
+    n = len(t)
+    return (
+        20.0
+        + 10.0 * (1 - np.exp(-(t - t[0]) / 900.0))
+        + 3.0 * smooth_noise(n, rate_hz, 120.0, rng)
+        + 0.1 * rng.normal(size=n)
+    )
+
+
+def _current(n: int, rate_hz: float, rng) -> np.ndarray:
+    """A load current (n,) A switching between about 2 and 27 A, on average every 20 s, with noise."""
+    load = (np.cumsum(rng.random(n) < 1.0 / (20.0 * rate_hz)) % 2).astype(float)
+    return 2.0 + 25.0 * load + 0.3 * rng.normal(size=n)
+
+
+def _contributions(effects, table: pd.DataFrame, field_body, ref, mag, c_nb, R, rng) -> list:
+    """Each effect's raw-field contribution (N, 3) nT for its true ``theta``, evaluated on the reading
+    without effects ``mag`` (N, 3) nT and the log's columns other than the attitude (``table``, time first)."""
+    t = table[TIME].to_numpy()
     data = EpochData(
         t,
         field_body,
@@ -213,28 +260,12 @@ def simulate_drive(config: DriveConfig = DriveConfig(), truth=None, effects=()) 
         field_body_rate=rate_of_change(t, field_body),
         R0=R,
     )
-    contributions = [effect.simulate(np.asarray(theta, float), data, rng) for effect, theta in effects]
-    for c in contributions:
-        mag = mag + c
-    for i, name in enumerate(MAG):
-        table.insert(1 + i, name, mag[:, i])
-    dop_bad = np.zeros(n, bool)
+    return [effect.simulate(np.asarray(theta, float), data, rng) for effect, theta in effects]
+
+
+def _marked(n: int, stretches) -> np.ndarray:
+    """A mask (n,) true inside the ``(start, stop)`` epoch stretches."""
+    mask = np.zeros(n, bool)
     for a, z in stretches:
-        dop_bad[a:z] = True
-    return SimulatedDrive(
-        table=table.set_index(TIME),
-        R=R,
-        b=b,
-        config=config,
-        reference_ned=ref,
-        field_body=field_body,
-        disturbance=disturbance,
-        dop_bad=dop_bad,
-        events=events,
-        dop_stretches=stretches,
-        effects=list(effects),
-        contributions=contributions,
-        sensor_noise=sensor_noise,
-        attitude_error=attitude_error,
-        interference=interference,
-    )
+        mask[a:z] = True
+    return mask
