@@ -81,80 +81,100 @@ def _mounting(text: str) -> str:
 
 def run_simulate(args) -> int:
     """Simulate a turntable run (sine fit) or a drive log, with a truth JSON."""
-    import numpy as np
-
-    from ..calibration import Calibration, jsonable
-    from ..files import output_text
-    from ..sim import PAPER_EXAMPLE, DriveConfig, simulate_drive, simulate_turntable
+    from ..calibration import Calibration
 
     truth = Calibration.load(args.truth_cal) if args.truth_cal else None
-    if args.kind == "turntable":
-        from ..offline.sinefit import SineFitParameters
-
-        try:
-            params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
-        except ValueError:
-            raise InputError(
-                "--truth-cal: a turntable simulation needs a lower-triangular R (a sine-fit calibration)",
-                args.truth_cal,
-            ) from None
-        table = simulate_turntable(
-            params, args.field, args.inclination, args.step, args.noise, np.random.default_rng(args.seed)
-        )
-        output_text(args.output, table.to_csv(index=False, float_format="%.10g"))
-        info = {"output": args.output, "rows": len(table), "truth": params.as_dict()}
-        if args.truth:
-            truth_file = {
-                "format": "magkf-truth",
-                "version": 1,
-                "R": params.matrix(),
-                "b": params.b,
-                "sinefit_parameters": params.as_dict(),
-                "field_nt": args.field,
-                "inclination_deg": args.inclination,
-                "noise_nt": args.noise,
-            }
-            output_text(args.truth, json.dumps(jsonable(truth_file), indent=2) + "\n")
-    else:
-        config = DriveConfig(
-            duration_s=args.duration,
-            rate_hz=args.rate,
-            motion=args.motion,
-            noise_nt=args.noise,
-            seed=args.seed,
-            mounting=args.mounting,
-            disturbances=args.disturbances,
-            dop_bad_stretches=args.dop_bad,
-            lat0=args.lat,
-            lon0=args.lon,
-            start_time=common.igrf_timestamp(args.date, args.duration),
-        )
-        from ..effects import make_effect
-
-        hidden = []
-        for spec in args.effect:
-            name, _, values = spec.partition("=")
-            try:
-                theta = [float(v) for v in values.split(",")]
-            except ValueError:
-                raise InputError(f"--effect {spec!r}: give NAME[:COLUMN]=v1,v2,... with numbers") from None
-            if not np.all(np.isfinite(theta)):
-                raise InputError(f"--effect {spec!r}: the values must be finite numbers")
-            try:
-                effect = make_effect(name)
-            except InputError as exc:
-                raise InputError(f"--effect {spec!r}: {exc.message}") from None
-            if not effect.accepts_simulation(theta):
-                raise InputError(
-                    f"--effect {spec!r}: {effect.name} has {effect.size} parameters "
-                    f"({', '.join(effect.parameter_names)})"
-                )
-            hidden.append((effect, theta))
-        sim = simulate_drive(config, truth, hidden)
-        sim.write(args.output, args.truth)
-        info = {"output": args.output, "rows": len(sim.table), "truth_file": args.truth, "R": sim.R, "b": sim.b}
+    info = _turntable(args, truth) if args.kind == "turntable" else _drive(args, truth)
     if args.json:
         common.print_json(info)
     else:
         print(f"wrote {info['rows']} rows to {args.output}" + (f" and the truth to {args.truth}" if args.truth else ""))
     return 0
+
+
+def _turntable(args, truth) -> dict:
+    """Simulate a turntable run, write its CSV and truth JSON; the summary to print."""
+    import numpy as np
+
+    from ..files import output_text
+    from ..offline.sinefit import SineFitParameters
+    from ..sim import PAPER_EXAMPLE, simulate_turntable
+
+    try:
+        params = SineFitParameters.from_matrix(truth.R, truth.b) if truth else PAPER_EXAMPLE
+    except ValueError:
+        raise InputError(
+            "--truth-cal: a turntable simulation needs a lower-triangular R (a sine-fit calibration)", args.truth_cal
+        ) from None
+    table = simulate_turntable(
+        params, args.field, args.inclination, args.step, args.noise, np.random.default_rng(args.seed)
+    )
+    output_text(args.output, table.to_csv(index=False, float_format="%.10g"))
+    if args.truth:
+        _write_turntable_truth(args, params)
+    return {"output": args.output, "rows": len(table), "truth": params.as_dict()}
+
+
+def _write_turntable_truth(args, params) -> None:
+    """Write a turntable run's truth JSON: its ``R`` (3, 3), ``b`` (3,) nT, sine-fit parameters and settings."""
+    from ..calibration import jsonable
+    from ..files import output_text
+
+    truth_file = {
+        "format": "magkf-truth",
+        "version": 1,
+        "R": params.matrix(),
+        "b": params.b,
+        "sinefit_parameters": params.as_dict(),
+        "field_nt": args.field,
+        "inclination_deg": args.inclination,
+        "noise_nt": args.noise,
+    }
+    output_text(args.truth, json.dumps(jsonable(truth_file), indent=2) + "\n")
+
+
+def _drive(args, truth) -> dict:
+    """Simulate a drive log with the ``--effect`` effects, write its CSV and truth JSON; the summary to print."""
+    from ..sim import DriveConfig, simulate_drive
+
+    config = DriveConfig(
+        duration_s=args.duration,
+        rate_hz=args.rate,
+        motion=args.motion,
+        noise_nt=args.noise,
+        seed=args.seed,
+        mounting=args.mounting,
+        disturbances=args.disturbances,
+        dop_bad_stretches=args.dop_bad,
+        lat0=args.lat,
+        lon0=args.lon,
+        start_time=common.igrf_timestamp(args.date, args.duration),
+    )
+    hidden = [_effect(spec) for spec in args.effect]
+    sim = simulate_drive(config, truth, hidden)
+    sim.write(args.output, args.truth)
+    return {"output": args.output, "rows": len(sim.table), "truth_file": args.truth, "R": sim.R, "b": sim.b}
+
+
+def _effect(spec: str) -> tuple:
+    """``(Effect, theta)`` from an ``--effect NAME[:COLUMN]=v1,v2,...`` option; InputError naming it if wrong."""
+    import numpy as np
+
+    from ..effects import make_effect
+
+    name, _, values = spec.partition("=")
+    try:
+        theta = [float(v) for v in values.split(",")]
+    except ValueError:
+        raise InputError(f"--effect {spec!r}: give NAME[:COLUMN]=v1,v2,... with numbers") from None
+    if not np.all(np.isfinite(theta)):
+        raise InputError(f"--effect {spec!r}: the values must be finite numbers")
+    try:
+        effect = make_effect(name)
+    except InputError as exc:
+        raise InputError(f"--effect {spec!r}: {exc.message}") from None
+    if not effect.accepts_simulation(theta):
+        raise InputError(
+            f"--effect {spec!r}: {effect.name} has {effect.size} parameters ({', '.join(effect.parameter_names)})"
+        )
+    return effect, theta
