@@ -443,32 +443,14 @@ def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: Fi
     std = np.sqrt(np.diag(P_final))
     R, b = layout.R_b(x_final)
     obs = observability.analyse(P0, trace.information, names, R)
-    effects = {}
-    for effect, sl in layout.blocks():
-        effects[effect.name] = {
-            p: {
-                "value": float(x_final[sl][j]),
-                "std": float(std[sl][j]),
-                "unit": (effect.units[j] if j < len(effect.units) else ""),
-            }
-            for j, p in enumerate(effect.parameter_names)
-        }
+    effects = _effect_values(layout, x_final, std)
     noise = noise_summary(config, trace, counts)
     nis_stats = sums.nis_summary(noise["inflation"])
-    vec_n, vec_ss, vec_axis = sums.vec
     summary = RunSummary(
         R=R.tolist(),
         b=b.tolist(),
         std=dict(zip(names, std.tolist())),
-        residual_rms_nt=float(np.sqrt(vec_ss / vec_n)) if vec_n else float("nan"),
-        residual_rms_axis_nt={
-            a: (float(np.sqrt(vec_axis[k] / vec_n)) if vec_n else float("nan"))
-            for k, a in enumerate(("north", "east", "down"))
-        },
-        residual_rms_magnitude_nt=_root_mean(sums.mag_used),
-        residual_rms_all_nt=_root_mean(sums.vec_all),
-        residual_rms_magnitude_all_nt=_root_mean(sums.mag_all),
-        innovation_rms_nt=_root_mean(sums.innovation),
+        **_residual_figures(sums),
         nis_mean=nis_stats["mean"],
         nis_band=nis_stats["band"],
         used_share=sums.used_share,
@@ -489,31 +471,71 @@ def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: Fi
         effects=effects,
         config=config.as_dict(),
     )
-    core = layout.CORE
-    quality = {
-        k: getattr(summary, k)
-        for k in (
-            "residual_rms_all_nt",
-            "used_share",
-            "verdict",
-            "residual_rms_nt",
-            "residual_rms_axis_nt",
-            "residual_rms_magnitude_nt",
-            "nis_mean",
-            "n_epochs",
-            "status_counts",
-        )
+    cal = _run_calibration(source, f"{method}-{config.measure}", layout, trace, R, b, std, summary)
+    return summary, cal, effects
+
+
+def _effect_values(layout: StateLayout, x_final, std) -> dict:
+    """Each effect's parameters ``{effect: {parameter: {value, std, unit}}}`` from the final state (n,)."""
+    effects = {}
+    for effect, sl in layout.blocks():
+        effects[effect.name] = {
+            p: {
+                "value": float(x_final[sl][j]),
+                "std": float(std[sl][j]),
+                "unit": (effect.units[j] if j < len(effect.units) else ""),
+            }
+            for j, p in enumerate(effect.parameter_names)
+        }
+    return effects
+
+
+def _residual_figures(sums: FitSums) -> dict:
+    """The run's residual and innovation RMS figures (nT) from its residual sums, by RunSummary field."""
+    vec_n, vec_ss, vec_axis = sums.vec
+    return {
+        "residual_rms_nt": float(np.sqrt(vec_ss / vec_n)) if vec_n else float("nan"),
+        "residual_rms_axis_nt": {
+            a: (float(np.sqrt(vec_axis[k] / vec_n)) if vec_n else float("nan"))
+            for k, a in enumerate(("north", "east", "down"))
+        },
+        "residual_rms_magnitude_nt": _root_mean(sums.mag_used),
+        "residual_rms_all_nt": _root_mean(sums.vec_all),
+        "residual_rms_magnitude_all_nt": _root_mean(sums.mag_all),
+        "innovation_rms_nt": _root_mean(sums.innovation),
     }
+
+
+#: The RunSummary figures a run's Calibration keeps as its ``quality``, in this order.
+_QUALITY = (
+    "residual_rms_all_nt",
+    "used_share",
+    "verdict",
+    "residual_rms_nt",
+    "residual_rms_axis_nt",
+    "residual_rms_magnitude_nt",
+    "nis_mean",
+    "n_epochs",
+    "status_counts",
+)
+
+
+def _run_calibration(source, method: str, layout: StateLayout, trace: RunTrace, R, b, std, summary: RunSummary):
+    """The run's Calibration of ``R`` (3, 3) and ``b`` (3,) nT with the final covariance (``std`` (n,) the
+    standard deviations of the states) and the summary's quality figures; InputError if it is degenerate."""
+    x_final, P_final = trace.x, trace.P
+    core = layout.CORE
+    quality = {k: getattr(summary, k) for k in _QUALITY}
     try:
-        cal = Calibration(
+        return Calibration(
             R=R,
             b=b,
-            method=f"{method}-{config.measure}",
+            method=method,
             covariance=P_final[core, core],
             effects=tuple(stored_effect(e, x_final[sl], std[sl]) for e, sl in layout.blocks()),
             state_covariance=P_final if layout.has_extra else None,
-            standard_errors=dict(zip(names[core], std[core].tolist())),
-            quality=quality | {"undetermined": obs["text"]},
+            standard_errors=dict(zip(layout.names[core], std[core].tolist())),
+            quality=quality | {"undetermined": summary.observability["text"]},
             source=source,
         )
     except ValueError as exc:  # a degenerate estimate (R singular): the data, not the code
@@ -522,4 +544,3 @@ def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: Fi
             "(--mag-unit)",
             source,
         ) from None
-    return summary, cal, effects
