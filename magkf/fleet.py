@@ -460,8 +460,6 @@ def disagreements(summary: pd.DataFrame, alpha: float = 0.01) -> pd.DataFrame:
     standard deviations account for the differences between flights; well above 1, the vehicle's
     calibration changes between flights more than one flight's uncertainty says, and more of its logs are
     flagged. ``disagreement_z`` is the log's largest ``|z|``."""
-    from scipy.stats import norm
-
     out = summary.copy()
     out["disagreement_z"] = np.nan
     out["disagrees"] = False
@@ -470,42 +468,65 @@ def disagreements(summary: pd.DataFrame, alpha: float = 0.01) -> pd.DataFrame:
     ok = out["error"] == ""
     names = [n for n in COMPARED if n in out and f"std_{n}" in out]
     for vehicle, group in out[ok].groupby("vehicle", sort=True):
-        n = len(group)
-        if n < FEWEST or not names:
-            out.loc[group.index, "disagreement"] = f"not compared: {n} calibrated log(s) of {vehicle}"
+        if len(group) < FEWEST or not names:
+            out.loc[group.index, "disagreement"] = f"not compared: {len(group)} calibrated log(s) of {vehicle}"
             continue
-        x = group[names].to_numpy(float)
-        s2 = group[[f"std_{name}" for name in names]].to_numpy(float) ** 2
-        limit = float(norm.isf(alpha / (2 * n * len(names))))
-        z, centre = np.full_like(x, np.nan), np.full_like(x, np.nan)
-        left = np.ones(n, bool)
-        while left.sum() >= FEWEST:
-            active = np.flatnonzero(left)
-            for k in active:
-                rest = left.copy()
-                rest[k] = False
-                w = 1.0 / s2[rest]
-                centre[k] = np.sum(w * x[rest], axis=0) / np.sum(w, axis=0)
-                z[k] = (x[k] - centre[k]) / np.sqrt(s2[k] + 1.0 / np.sum(w, axis=0))
-            worst = active[np.argmax(np.max(np.abs(z[active]), axis=1))]
-            if np.max(np.abs(z[worst])) <= limit:
-                break
-            left[worst] = False
-        w = 1.0 / s2[left]
-        q = np.sum(w * (x[left] - np.sum(w * x[left], axis=0) / np.sum(w, axis=0)) ** 2, axis=0)
-        out.loc[group.index, "vehicle_scatter"] = float(np.sqrt(np.max(q) / (left.sum() - 1)))
-        for k, index in enumerate(group.index):
-            out.loc[index, "disagreement_z"] = float(np.max(np.abs(z[k])))
-            if left[k]:
-                continue
-            out.loc[index, "disagrees"] = True
-            beyond = [j for j in np.argsort(-np.abs(z[k])) if abs(z[k, j]) > limit][:3]
-            out.loc[index, "disagreement"] = "; ".join(
-                f"{names[j]} {x[k, j] - centre[k, j]:+.4g}{' nT' if names[j].startswith('b') else ''} from the "
-                f"rest of {vehicle} (z {z[k, j]:+.1f}, limit {limit:.1f})"
-                for j in beyond
-            )
+        _compare_vehicle(out, group, vehicle, names, alpha)
     return out
+
+
+def _compare_vehicle(out: pd.DataFrame, group: pd.DataFrame, vehicle, names: list, alpha: float) -> None:
+    """Compare the calibrated logs ``group`` of one vehicle on the parameters ``names`` and write their
+    ``disagreement_z``, ``disagrees``, ``disagreement`` and ``vehicle_scatter`` into ``out``."""
+    from scipy.stats import norm
+
+    n = len(group)
+    x = group[names].to_numpy(float)
+    s2 = group[[f"std_{name}" for name in names]].to_numpy(float) ** 2
+    limit = float(norm.isf(alpha / (2 * n * len(names))))
+    z, centre, left = _set_aside(x, s2, limit)
+    out.loc[group.index, "vehicle_scatter"] = _scatter(x[left], s2[left])
+    for k, index in enumerate(group.index):
+        out.loc[index, "disagreement_z"] = float(np.max(np.abs(z[k])))
+        if left[k]:
+            continue
+        out.loc[index, "disagrees"] = True
+        beyond = [j for j in np.argsort(-np.abs(z[k])) if abs(z[k, j]) > limit][:3]
+        out.loc[index, "disagreement"] = "; ".join(
+            f"{names[j]} {x[k, j] - centre[k, j]:+.4g}{' nT' if names[j].startswith('b') else ''} from the "
+            f"rest of {vehicle} (z {z[k, j]:+.1f}, limit {limit:.1f})"
+            for j in beyond
+        )
+
+
+def _set_aside(x, s2, limit: float) -> tuple:
+    """``(z, centre, left)``: each log's ``z`` (n, p) against the weighted mean ``centre`` (n, p) of the others
+    left, setting aside the worst log while its largest ``|z|`` exceeds ``limit`` and ``FEWEST`` logs remain;
+    ``left`` (n,) marks the logs not set aside. ``x`` (n, p) estimates, ``s2`` (n, p) their variances."""
+    n = len(x)
+    z, centre = np.full_like(x, np.nan), np.full_like(x, np.nan)
+    left = np.ones(n, bool)
+    while left.sum() >= FEWEST:
+        active = np.flatnonzero(left)
+        for k in active:
+            rest = left.copy()
+            rest[k] = False
+            w = 1.0 / s2[rest]
+            centre[k] = np.sum(w * x[rest], axis=0) / np.sum(w, axis=0)
+            z[k] = (x[k] - centre[k]) / np.sqrt(s2[k] + 1.0 / np.sum(w, axis=0))
+        worst = active[np.argmax(np.max(np.abs(z[active]), axis=1))]
+        if np.max(np.abs(z[worst])) <= limit:
+            break
+        left[worst] = False
+    return z, centre, left
+
+
+def _scatter(x, s2) -> float:
+    """How many times their standard deviations the ``m`` logs ``x`` (m, p) with variances ``s2`` (m, p)
+    scatter: the largest over the parameters of ``sqrt(Q / (m - 1))``, Cochran's ``Q``."""
+    w = 1.0 / s2
+    q = np.sum(w * (x - np.sum(w * x, axis=0) / np.sum(w, axis=0)) ** 2, axis=0)
+    return float(np.sqrt(np.max(q) / (len(x) - 1)))
 
 
 def plot_vehicles(summary: pd.DataFrame, path, columns=("b_x", "b_y", "b_z", "R11", "R22", "R33")) -> None:
