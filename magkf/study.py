@@ -201,6 +201,7 @@ DRAWS = ("uniform", "log_uniform", "choice")
 
 
 def _sample(sample: dict, seed: int, source: str) -> list:
+    """The ``count`` settings of ``[sample]``, each key drawn as its table says, seeded by the study's seed."""
     if not sample:
         return []
     count = _integer(sample.get("count", 0), "sample.count", source, 1)
@@ -209,26 +210,39 @@ def _sample(sample: dict, seed: int, source: str) -> list:
     for key, how in sample.items():
         if key == "count":
             continue
-        _setting({key: None} if key != "effects" else {}, "sample", source)
-        if not (isinstance(how, dict) and len(how) == 1 and next(iter(how)) in DRAWS):
-            raise InputError(f"sample.{key} must be one of {{ {' | '.join(f'{d} = ...' for d in DRAWS)} }}", source)
-        ((kind, args),) = how.items()
-        if kind == "choice":
-            if not isinstance(args, list) or not args:
-                raise InputError(f"sample.{key}.choice must be a non-empty list", source)
-            draws[key] = [args[i] for i in rng.integers(0, len(args), count)]
-            continue
-        if not (isinstance(args, list) and len(args) == 2 and all(isinstance(a, int | float) for a in args)):
-            raise InputError(f"sample.{key}.{kind} must be [low, high]", source)
-        lo, hi = float(args[0]), float(args[1])
-        if not lo <= hi or (kind == "log_uniform" and lo <= 0):
-            raise InputError(
-                f"sample.{key}.{kind}: need low <= high{' and low > 0' if kind != 'uniform' else ''}", source
-            )
-        u = rng.uniform(0.0, 1.0, count)
-        values = lo + u * (hi - lo) if kind == "uniform" else np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo)))
-        draws[key] = [float(v) for v in values]
+        draws[key] = _draw(key, how, count, rng, source)
     return [{k: v[i] for k, v in draws.items()} for i in range(count)]
+
+
+def _draw(key: str, how, count: int, rng, source: str) -> list:
+    """``count`` values of the sampled setting ``key`` drawn as ``how`` (one of ``DRAWS``) says."""
+    _setting({key: None} if key != "effects" else {}, "sample", source)
+    if not (isinstance(how, dict) and len(how) == 1 and next(iter(how)) in DRAWS):
+        raise InputError(f"sample.{key} must be one of {{ {' | '.join(f'{d} = ...' for d in DRAWS)} }}", source)
+    ((kind, args),) = how.items()
+    if kind == "choice":
+        return _choice(key, args, count, rng, source)
+    lo, hi = _bounds(key, kind, args, source)
+    u = rng.uniform(0.0, 1.0, count)
+    values = lo + u * (hi - lo) if kind == "uniform" else np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo)))
+    return [float(v) for v in values]
+
+
+def _choice(key: str, args, count: int, rng, source: str) -> list:
+    """``count`` values of ``key`` drawn with replacement from the list ``args``, checked."""
+    if not isinstance(args, list) or not args:
+        raise InputError(f"sample.{key}.choice must be a non-empty list", source)
+    return [args[i] for i in rng.integers(0, len(args), count)]
+
+
+def _bounds(key: str, kind: str, args, source: str) -> tuple[float, float]:
+    """``(low, high)`` of a ``uniform`` or ``log_uniform`` draw of ``key``, checked."""
+    if not (isinstance(args, list) and len(args) == 2 and all(isinstance(a, int | float) for a in args)):
+        raise InputError(f"sample.{key}.{kind} must be [low, high]", source)
+    lo, hi = float(args[0]), float(args[1])
+    if not lo <= hi or (kind == "log_uniform" and lo <= 0):
+        raise InputError(f"sample.{key}.{kind}: need low <= high{' and low > 0' if kind != 'uniform' else ''}", source)
+    return lo, hi
 
 
 def _recipe(recipe: dict, index: int, source: str) -> dict:
@@ -471,8 +485,6 @@ def plot(result: StudyResult, path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
-    from scipy.stats import chi2, t
 
     keys = result.spec.varied() or ["setting"]
     ok = result.runs[result.runs["error"] == ""] if "error" in result.runs else result.runs
@@ -481,43 +493,9 @@ def plot(result: StudyResult, path) -> None:
     for r, key in enumerate(keys):
         for c, (name, label) in enumerate(panels):
             ax = axes[r, c]
-            numeric = True
             for i, (curve, runs_of) in enumerate(_curves(ok, key, keys)):
-                column = runs_of[key] if key in runs_of else pd.Series(np.nan, index=runs_of.index)
-                values = column.astype(str) if column.dtype == object else column
-                levels = sorted(values.dropna().unique(), key=_order)
-                numeric = all(isinstance(v, int | float | np.number) for v in levels)
-                x = np.array(levels, float) if numeric else np.arange(len(levels), dtype=float)
-                stats = [runs_of.loc[values == level, name].to_numpy(float) for level in levels]
-                stats = [v[np.isfinite(v)] for v in stats]
-                mean = np.array([v.mean() if v.size else np.nan for v in stats])
-                half = np.array(
-                    [
-                        t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan
-                        for v in stats
-                    ]
-                )
-                colour = f"C{i % 10}"
-                ax.plot(x, mean, "o-", ms=4, color=colour, label=f"mean, {curve}")
-                ax.fill_between(x, mean - half, mean + half, color=colour, alpha=0.2)
-                if name == "nees" and i == 0:
-                    n = np.array([v.size for v in stats])
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        lo, hi = chi2.ppf(0.025, CORE * n) / n, chi2.ppf(0.975, CORE * n) / n
-                    ax.fill_between(x, lo, hi, color="0.5", alpha=0.3, label="95 % band if consistent")
-                if not numeric:
-                    ax.set_xticks(x, [str(v) for v in levels], rotation=20, fontsize=7)
-                if numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() > 50:
-                    ax.set_xscale("log")
-            if name == "nees" and ok["nees"].gt(0).any():  # no truth (recorded logs): no NEES to draw
-                ax.set_yscale("log")
-                ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
-                ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
-                ax.yaxis.set_minor_formatter(NullFormatter())
-            if name == "nis_mean":
-                ax.axhline(1.0, color="k", ls=":", lw=1, label="expected 1")
-            ax.set(xlabel=key, ylabel=label)
-            ax.tick_params(labelsize=7)
+                _plot_curve(ax, runs_of, key, name, curve, i)
+            _finish_panel(ax, ok, key, name, label)
             if c == 0:
                 ax.legend(fontsize=7, title="shaded: 95 % interval of the mean", title_fontsize=7)
             elif r == 0:
@@ -528,6 +506,76 @@ def plot(result: StudyResult, path) -> None:
     with written(path) as tmp:
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
+
+
+def _plot_curve(ax, runs_of: pd.DataFrame, key: str, name: str, curve: str, i: int) -> None:
+    """Draw the ``i``-th curve of a panel: the mean of ``name`` over the runs ``runs_of`` at each level of
+    ``key`` with its 95 % interval shaded (and, on the first NEES curve, the band of a consistent filter)."""
+    levels, stats = _levels(runs_of, key, name)
+    numeric = all(isinstance(v, int | float | np.number) for v in levels)
+    x = np.array(levels, float) if numeric else np.arange(len(levels), dtype=float)
+    mean, half = _mean_interval(stats)
+    colour = f"C{i % 10}"
+    ax.plot(x, mean, "o-", ms=4, color=colour, label=f"mean, {curve}")
+    ax.fill_between(x, mean - half, mean + half, color=colour, alpha=0.2)
+    if name == "nees" and i == 0:
+        _nees_band(ax, x, stats)
+    _level_axis(ax, x, levels, numeric)
+
+
+def _level_axis(ax, x, levels: list, numeric: bool) -> None:
+    """Label the levels ``x`` of a setting that is not a number; a logarithmic axis for numbers spanning over 50."""
+    if not numeric:
+        ax.set_xticks(x, [str(v) for v in levels], rotation=20, fontsize=7)
+    if numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() > 50:
+        ax.set_xscale("log")
+
+
+def _levels(runs_of: pd.DataFrame, key: str, name: str) -> tuple[list, list]:
+    """``(levels, stats)``: the values of ``key`` among the runs, in order, and the finite values of the
+    figure ``name`` of the runs at each."""
+    column = runs_of[key] if key in runs_of else pd.Series(np.nan, index=runs_of.index)
+    values = column.astype(str) if column.dtype == object else column
+    levels = sorted(values.dropna().unique(), key=_order)
+    stats = [runs_of.loc[values == level, name].to_numpy(float) for level in levels]
+    return levels, [v[np.isfinite(v)] for v in stats]
+
+
+def _mean_interval(stats: list) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of each array of ``stats`` and the half-width of its 95 % interval (Student t); NaN where
+    there are too few values."""
+    from scipy.stats import t
+
+    mean = np.array([v.mean() if v.size else np.nan for v in stats])
+    half = np.array(
+        [t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size) if v.size > 1 else np.nan for v in stats]
+    )
+    return mean, half
+
+
+def _nees_band(ax, x, stats: list) -> None:
+    """Shade the 95 % band of the mean NEES over ``n`` runs of a consistent filter at each ``x``."""
+    from scipy.stats import chi2
+
+    n = np.array([v.size for v in stats])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lo, hi = chi2.ppf(0.025, CORE * n) / n, chi2.ppf(0.975, CORE * n) / n
+    ax.fill_between(x, lo, hi, color="0.5", alpha=0.3, label="95 % band if consistent")
+
+
+def _finish_panel(ax, ok: pd.DataFrame, key: str, name: str, label: str) -> None:
+    """The panel's axes: a logarithmic NEES axis (when the runs have a NEES), the NIS's expectation 1, labels."""
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
+    if name == "nees" and ok["nees"].gt(0).any():  # no truth (recorded logs): no NEES to draw
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+    if name == "nis_mean":
+        ax.axhline(1.0, color="k", ls=":", lw=1, label="expected 1")
+    ax.set(xlabel=key, ylabel=label)
+    ax.tick_params(labelsize=7)
 
 
 def _curves(runs: pd.DataFrame, key: str, keys: list) -> list:
