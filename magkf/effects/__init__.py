@@ -78,7 +78,17 @@ def load_effect_file(path) -> dict:
         raise InputError("no such effect file", str(path))
     if path.suffix != ".py":
         raise InputError("an effect file is Python source ending in .py", str(path))
-    module = _run_file(path)
+    found = _effect_classes(_run_file(path), str(path))
+    for name, cls in found.items():
+        _tried(name, cls, str(path))
+    for cls in found.values():
+        EFFECTS.register(cls, replace=True)
+    return found
+
+
+def _effect_classes(module, source: str) -> dict:
+    """The effect classes ``module`` defines, by name; InputError naming ``source`` for none, one that lacks a
+    method of ``Effect``, or one named like a built-in or an installed package's effect."""
     defined = [
         obj
         for obj in vars(module).values()
@@ -87,24 +97,18 @@ def load_effect_file(path) -> dict:
         and obj.__module__ == module.__name__
         and obj.name not in ("effect", "core")
     ]
-    for cls in defined:
-        if inspect.isabstract(cls):
-            missing = ", ".join(f"{m}()" for m in sorted(cls.__abstractmethods__))
-            raise InputError(f"effect {cls.name!r} does not implement {missing}", str(path))
+    for cls in filter(inspect.isabstract, defined):
+        missing = ", ".join(f"{m}()" for m in sorted(cls.__abstractmethods__))
+        raise InputError(f"effect {cls.name!r} does not implement {missing}", source)
     found = {cls.name: cls for cls in defined}
     if not found:
-        raise InputError("the file defines no Effect subclass with a name", str(path))
-    clash = sorted(name for name in found if EFFECTS.is_builtin(name))
-    if clash:
-        raise InputError(f"effect {clash[0]!r} is a built-in effect's name: give yours another", str(path))
-    installed = [name for name in sorted(found) if name in EFFECTS and EFFECTS.origin(name).startswith("entry")]
-    if installed:
-        what = f"effect {installed[0]!r} is the name of an installed package's effect"
-        raise InputError(f"{what} ({EFFECTS.origin(installed[0])}): give yours another", str(path))
-    for name, cls in found.items():
-        _tried(name, cls, str(path))
-    for cls in found.values():
-        EFFECTS.register(cls, replace=True)
+        raise InputError("the file defines no Effect subclass with a name", source)
+    for name in sorted(found):
+        if EFFECTS.is_builtin(name):
+            raise InputError(f"effect {name!r} is a built-in effect's name: give yours another", source)
+        if name in EFFECTS and EFFECTS.origin(name).startswith("entry"):
+            what = f"effect {name!r} is the name of an installed package's effect ({EFFECTS.origin(name)})"
+            raise InputError(f"{what}: give yours another", source)
     return found
 
 
