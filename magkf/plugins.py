@@ -170,12 +170,15 @@ class Registry(Mapping[str, type[T]], Generic[T]):
             yield self
         finally:
             with self._lock:
-                self._read_entry_points()  # read inside or not, the entry points stay known
-                entry_points = {n: (self._specs[n], self._origins[n]) for n in self._specs if n not in saved[0]}
+                # entry points first read inside the scope stay known (they are read once)
+                read = {
+                    n: (self._specs[n], origin)
+                    for n, origin in self._origins.items()
+                    if n not in saved[0] and origin.startswith("entry point")
+                }
                 self._specs, self._origins, self._loaded = (dict(d) for d in saved)
-                for n, (spec, origin) in entry_points.items():
-                    if origin.startswith("entry point"):
-                        self._specs[n], self._origins[n] = spec, origin
+                for n, (spec, origin) in read.items():
+                    self._specs[n], self._origins[n] = spec, origin
 
     def unregister(self, name: str) -> None:
         """Forget the plug-in ``name`` (a registered or another package's one; magkf's own stay)."""

@@ -169,6 +169,8 @@ def test_another_package_registers_through_an_entry_point(tmp_path, monkeypatch)
     (info / "entry_points.txt").write_text("[magkf.effects]\nhull_current = hull_effects:HullCurrent\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     registry = Registry("effect", "magkf.effects", EFFECTS.interface, {})
+    with registry.restoring():  # read for the first time inside a scope, the entry point stays known after it
+        assert "hull_current" in registry
     assert "hull_current" in registry and list(registry) == ["hull_current"]
     assert "hull_effects" not in sys.modules  # named, not yet imported
     assert registry["hull_current"].__name__ == "HullCurrent"
