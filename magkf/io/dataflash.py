@@ -67,8 +67,7 @@ import numpy as np
 
 from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, VDOP, YAW, euler_to_quaternion, quaternion_to_euler
 from ..errors import InputError
-from .drivelog import DriveLog, from_table, record_number, table_to_write
-from .readers import LogReader
+from .drivelog import AutopilotLog, table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
 from .timebase import GPS_EPOCH_UNIX, SECONDS_PER_WEEK, gps_to_unix, leap_seconds
 
@@ -1026,7 +1025,7 @@ def _write_auxiliary(w: DataFlashWriter, frame: pd.DataFrame, time_us, firmware:
         w.write("CTUN", TimeUS=time_us[rows], ThO=throttle[rows] * (100.0 if firmware.startswith("ArduPlane") else 1.0))
 
 
-class DataFlashReader(LogReader):
+class DataFlashReader(AutopilotLog):
     """ArduPilot's DataFlash ``.bin`` (``read_dataflash``): the chosen ``MAG`` instance's epochs, with
     attitude, position and DOP interpolated to them and ArduPilot's calibration undone (``raw``)."""
 
@@ -1034,12 +1033,5 @@ class DataFlashReader(LogReader):
     title = "DataFlash"
     magic = (b"\xa3\x95",)
     extensions = (".bin",)
-    options = frozenset({"mag", "raw", "max_gap_s"})
-    instances_of_magnetometer = True
-
-    def read(self, path, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> DriveLog:
-        table, provenance = read_dataflash(path, mag=mag, raw=raw, max_gap_s=max_gap_s)
-        return from_table(table, str(path), "nT", provenance, row_of=record_number)
-
-    def instances(self, path) -> list[dict]:
-        return magnetometer_instances(path)
+    read_table = staticmethod(read_dataflash)
+    instances = staticmethod(magnetometer_instances)

@@ -618,9 +618,22 @@ def _arrow_piece(frame: pd.DataFrame, time_as_text: bool, types: dict):
     return pa.table(columns)
 
 
-def record_number(i: int) -> int:
-    """Binary logs have no rows: an epoch is named by its 1-based record number among the magnetometer's."""
-    return int(i) + 1
+class AutopilotLog(LogReader):
+    """A binary autopilot log holding several magnetometers: ``read_table`` gives the chosen one's epochs with
+    attitude, position and DOP interpolated to them (``--mag``, ``raw``, ``max_gap_s``) and its provenance;
+    ``instances`` lists the magnetometers. Binary logs have no rows: an epoch is named by its 1-based record
+    number among the magnetometer's."""
+
+    options = frozenset({"mag", "raw", "max_gap_s"})
+
+    @staticmethod
+    def read_table(path, *, mag: int | None, raw: bool, max_gap_s: float) -> tuple[pd.DataFrame, dict]:
+        """The canonical table and its provenance (implemented by each format)."""
+        raise NotImplementedError
+
+    def read(self, path, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> DriveLog:
+        table, provenance = self.read_table(path, mag=mag, raw=raw, max_gap_s=max_gap_s)
+        return from_table(table, str(path), "nT", provenance, row_of=lambda i: int(i) + 1)
 
 
 class CanonicalCsv(LogReader):

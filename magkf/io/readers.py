@@ -35,10 +35,8 @@ if TYPE_CHECKING:
 
 __all__ = ["LogReader", "read_log", "detect_format", "reader_for", "magnetometer_instances", "OPTIONS"]
 
-#: The options ``read_log`` passes on, with the command-line flag that sets each (None: the API only).
-OPTIONS = {"map": "--map", "mag": "--mag", "mag_unit": "--mag-unit", "raw": "--logged-calibration", "max_gap_s": None}
-#: Each option's value when the user did not give it.
-_DEFAULTS = {"map": None, "mag": None, "mag_unit": "nT", "raw": True, "max_gap_s": 0.5}
+#: The options ``read_log`` passes on to a reader that takes them, with their values when not given.
+OPTIONS = {"map": None, "mag": None, "mag_unit": "nT", "raw": True, "max_gap_s": 0.5}
 #: How many first bytes of a file the readers' ``magic`` are compared with.
 HEAD_BYTES = 16
 
@@ -62,8 +60,6 @@ class LogReader(ABC):
         Lower-case file extensions (``".ulg"``) that identify the format when no magic does.
     options : frozenset of str
         The ``read_log`` options the reader takes, of ``OPTIONS`` (``"mag"``, ``"raw"``, ...).
-    instances_of_magnetometer : bool
-        Whether one file may hold several magnetometers (``--mag`` picks one).
     """
 
     name: ClassVar[str] = "reader"
@@ -71,7 +67,6 @@ class LogReader(ABC):
     magic: ClassVar[tuple[bytes, ...]] = ()
     extensions: ClassVar[tuple[str, ...]] = ()
     options: ClassVar[frozenset[str]] = frozenset()
-    instances_of_magnetometer: ClassVar[bool] = False
 
     def recognises(self, path: Path, head: bytes) -> bool:
         """Whether the file at ``path``, which starts with ``head`` (its first ``HEAD_BYTES`` bytes), is of
@@ -179,12 +174,14 @@ def read_log(
         raise InputError("no such file", name)
     reader = reader_for(format or ("mapped" if map is not None else detect_format(path)), name)
     given = {"map": map, "mag": mag, "mag_unit": mag_unit, "raw": raw, "max_gap_s": max_gap_s}
-    _refuse_options(reader, {k: v for k, v in given.items() if v != _DEFAULTS[k]}, name)
+    _refuse_options(reader, {k: v for k, v in given.items() if v != OPTIONS[k]}, name)
     return reader.read(path, **{k: v for k, v in given.items() if k in reader.options})
 
 
 def _refuse_options(reader: LogReader, given: dict, source: str) -> None:
-    """InputError naming ``source`` for the first option in ``given`` that ``reader`` does not take."""
+    """InputError naming ``source`` for ``--mag`` given to a reader that does not take it (a table of one
+    magnetometer), or ``--mag-unit`` to one whose unit the log or its map states; the other options of
+    ``given`` (those the user set) are left aside where they do not apply."""
     if "mag" in given and "mag" not in reader.options:
         takers = " and ".join(cls.title for _, cls in READERS.loadable() if "mag" in cls.options)
         raise InputError(f"a {reader.name} table holds one magnetometer: --mag applies to {takers} logs", source)

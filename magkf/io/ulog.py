@@ -66,8 +66,7 @@ from ..conventions import (
     quaternion_to_euler,
 )
 from ..errors import InputError
-from .drivelog import DriveLog, from_table, record_number, table_to_write
-from .readers import LogReader
+from .drivelog import AutopilotLog, table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
 
 __all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
@@ -769,7 +768,7 @@ def write_ulog(table: pd.DataFrame, path, *, start_boot_us: int = 10_000_000) ->
         out.write(record.tobytes())
 
 
-class ULogReader(LogReader):
+class ULogReader(AutopilotLog):
     """PX4's ULog (``read_ulog``): the chosen ``sensor_mag`` instance's epochs, with attitude, position and
     DOP interpolated to them and PX4's calibration undone (``raw``)."""
 
@@ -777,12 +776,5 @@ class ULogReader(LogReader):
     title = "ULog"
     magic = (b"ULog\x01\x12\x35",)
     extensions = (".ulg",)
-    options = frozenset({"mag", "raw", "max_gap_s"})
-    instances_of_magnetometer = True
-
-    def read(self, path, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> DriveLog:
-        table, provenance = read_ulog(path, mag=mag, raw=raw, max_gap_s=max_gap_s)
-        return from_table(table, str(path), "nT", provenance, row_of=record_number)
-
-    def instances(self, path) -> list[dict]:
-        return magnetometer_instances(path)
+    read_table = staticmethod(read_ulog)
+    instances = staticmethod(magnetometer_instances)
