@@ -358,10 +358,7 @@ class MeasurementModel(abc.ABC):
         the whitened Jacobian ``W jacobian`` (k, r, n), projected by ``projector``."""
         W = self._whitening_at(x, blk)
         y = np.einsum("kij,kj->ki", W, self.measure(blk) - self.predict(x, blk))
-        H = W @ self.jacobian(x, blk)
-        if self.projector is not None:
-            H = H @ self.projector
-        return y, H
+        return y, self._seen_jacobian(x, blk, W)
 
     def sigma_predict(self, sigmas, x, blk: Block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The UKF's rows: whitened predictions ``h`` (S, k, r) at ``sigmas`` (S, n), the whitened measurement
@@ -374,10 +371,12 @@ class MeasurementModel(abc.ABC):
             sigmas = x + (sigmas - x) @ self.projector  # the projector is symmetric
         h = np.einsum("kij,skj->ski", W, self.predict(sigmas, blk))
         z = np.einsum("kij,kj->ki", W, self.measure(blk))
+        return h, z, self._seen_jacobian(x, blk, W)
+
+    def _seen_jacobian(self, x, blk: Block, W) -> np.ndarray:
+        """The whitened Jacobian ``W jacobian`` (k, r, n) at ``x``, projected by ``projector``."""
         H = W @ self.jacobian(x, blk)
-        if self.projector is not None:
-            H = H @ self.projector
-        return h, z, H
+        return H if self.projector is None else H @ self.projector
 
     def batch_residuals(self, x, blk: Block, jacobian: bool = False, noise_at=None):
         """The batch solver's residuals: ``W (predict - measure)`` (k, q) at state ``x`` (n,), in units of their
@@ -417,15 +416,17 @@ class MeasurementModel(abc.ABC):
         Raises
         ------
         NotImplementedError
-            A model of several rows without a frame (override this to say how its rows split).
+            A model of several rows without a frame in them (``structure``'s default frame is of the three rows
+            of the sensor-frame vector): override this, or ``structure``, to say how its rows split.
         """
-        if frame is not None:
+        rows = innovation.shape[1]
+        if frame is not None and frame.shape[2] == rows:
             parts = (frame @ innovation[:, :, None])[:, :, 0]
             return parts[:, 0], parts[:, 1:]
-        if innovation.shape[1] != 1:
+        if rows != 1:
             raise NotImplementedError(
-                f"measurement model {self.name!r}: {innovation.shape[1]} rows without the field's frame "
-                "(give structure a frame, or override along_across)"
+                f"measurement model {self.name!r}: {rows} rows without the field's frame in them "
+                "(give structure a frame of its rows, or override along_across)"
             )
         return innovation[:, 0], None
 
