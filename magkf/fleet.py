@@ -59,9 +59,10 @@ __all__ = [
 ]
 
 #: File endings taken from a folder given as a log besides the registered readers' (``log_suffixes``; a file
-#: named explicitly is read whatever its ending). A whitespace table ending in ``.txt`` is read when named or
-#: matched by a pattern, never picked up from a folder (licences and notes end so too).
-LOG_SUFFIXES = (".csv", ".parquet", ".pq", ".ulg", ".bin", ".tsv")
+#: named explicitly is read whatever its ending): tables for a column map. A whitespace table ending in
+#: ``.txt`` is read when named or matched by a pattern, never picked up from a folder (licences and notes end
+#: so too).
+LOG_SUFFIXES = (".tsv",)
 
 
 def log_suffixes() -> tuple[str, ...]:
@@ -69,7 +70,7 @@ def log_suffixes() -> tuple[str, ...]:
     reader's ``extensions`` (``magkf.plugins.READERS``)."""
     from .plugins import READERS
 
-    return tuple(dict.fromkeys([*LOG_SUFFIXES, *(e for _, cls in READERS.loadable() for e in cls.extensions)]))
+    return tuple(dict.fromkeys([*(e for _, cls in READERS.loadable() for e in cls.extensions), *LOG_SUFFIXES]))
 
 
 #: How a log's vehicle is named (see the module docstring).
