@@ -116,6 +116,9 @@ class Calibration:
         ``format``, the ``instance`` read and what the reader knows of it, such as PX4's
         ``calibration_index`` or ArduPilot's ``parameter_set``), or None; ``magkf export`` writes that
         magnetometer's parameters by default.
+    site : dict or None, optional
+        The place and date the user gave for a log without GNSS (``DriveLog.site``: ``given`` True, ``lat``,
+        ``lon``, ``alt``, ``start_utc``), or None when the log's own GNSS placed it.
     effects : tuple of StoredEffect, optional
         ``StoredEffect`` of each physical effect estimated with the core, in state order.
     state_covariance : array_like or None, optional
@@ -144,6 +147,7 @@ class Calibration:
     quality: dict = field(default_factory=dict)
     source: str | None = None
     magnetometer: dict | None = None
+    site: dict | None = None
     effects: tuple = ()
     state_covariance: np.ndarray | None = None
 
@@ -246,6 +250,8 @@ class Calibration:
             out["source"] = self.source
         if self.magnetometer is not None:
             out["magnetometer"] = jsonable(self.magnetometer)
+        if self.site is not None:
+            out["site"] = jsonable(self.site)
         if self.effects:
             out["effects"] = [e.to_dict() for e in self.effects]
         if self.state_covariance is not None:
@@ -373,7 +379,7 @@ def _core(data: dict, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray |
 
 
 def _stored_fields(data: dict, source: str) -> dict:
-    """``parameters``, ``standard_errors``, ``quality``, ``source``, ``magnetometer`` and ``method`` of a
+    """``parameters``, ``standard_errors``, ``quality``, ``source``, ``magnetometer``, ``site`` and ``method`` of a
     calibration file's object, as ``Calibration`` takes them; InputError naming ``source`` for a wrong type."""
     stored = {}
     for key in ("parameters", "standard_errors", "quality"):
@@ -383,12 +389,18 @@ def _stored_fields(data: dict, source: str) -> dict:
         stored[key] = value
     if not isinstance(data.get("source", ""), str):
         raise InputError("key 'source' must be a string", source)
-    if not isinstance(data.get("magnetometer", {}), dict):
-        raise InputError("key 'magnetometer' must be a JSON object", source)
+    for key in ("magnetometer", "site"):
+        if not isinstance(data.get(key, {}), dict):
+            raise InputError(f"key {key!r} must be a JSON object", source)
     method = data.get("method", "unspecified")
     if not isinstance(method, str):
         raise InputError("key 'method' must be a string", source)
-    return stored | {"source": data.get("source"), "magnetometer": data.get("magnetometer"), "method": method}
+    return stored | {
+        "source": data.get("source"),
+        "magnetometer": data.get("magnetometer"),
+        "site": data.get("site"),
+        "method": method,
+    }
 
 
 def _stored_effects(data: dict, source: str) -> tuple[StoredEffect, ...]:

@@ -40,6 +40,7 @@ import pandas as pd
 
 from .config import FilterConfig
 from .errors import InputError
+from .io.site import Site
 
 __all__ = [
     "FleetSettings",
@@ -92,7 +93,8 @@ class FleetSettings:
     ``effects``: effects estimated with R and b, as ``NAME[:COLUMN]`` (``magkf.effects.make_effect``), with
     user effects from ``effect_files``. Reading (``magkf.io.readers.read_log``): ``format`` (None: detected),
     ``map`` (a column-map TOML), ``mag`` (the magnetometer instance of a ULog or DataFlash log), ``mag_unit``,
-    ``raw`` (undo the autopilot's calibration)."""
+    ``raw`` (undo the autopilot's calibration), ``site`` (``magkf.io.site.Site``: place and clock of logs without
+    GNSS) and ``topic`` (``(kind, name)`` pairs: a ROS bag's topics)."""
 
     config: FilterConfig = FilterConfig()
     diagnose: bool = False
@@ -105,6 +107,15 @@ class FleetSettings:
     mag: int | None = None
     mag_unit: str = "nT"
     raw: bool = True
+    site: Site | None = None
+    topic: tuple = ()
+
+    def read(self, path):
+        """The log at ``path`` read with these settings (``magkf.io.readers.read_log``)."""
+        from .io.readers import read_log
+
+        options = {"map": self.map, "mag": self.mag, "mag_unit": self.mag_unit, "raw": self.raw, "site": self.site}
+        return read_log(path, self.format, topic=dict(self.topic) or None, **options)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -301,12 +312,11 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
     from .effects import load_effect_file, make_effect
     from .files import output_text
     from .io.drivelog import write_drive_log
-    from .io.readers import read_log
     from .online.run import calibrate_log
     from .plausibility import check_run, log_field_nt
 
     s = task.settings
-    log = read_log(task.path, s.format, map=s.map, mag=s.mag, mag_unit=s.mag_unit, raw=s.raw)
+    log = s.read(task.path)
     for path in s.effect_files:
         load_effect_file(path)
     effects = [make_effect(spec) for spec in s.effects]

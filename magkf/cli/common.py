@@ -34,6 +34,7 @@ __all__ = [
     "add_model_options",
     "mag_instance",
     "open_log",
+    "reading_options",
     "load_calibration",
 ]
 
@@ -407,6 +408,43 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
         help="keep the autopilot's own calibration in the field (default: undo it and use the raw field)",
     )
     add_mag_unit(g)
+    g.add_argument(
+        "--site",
+        metavar="LAT,LON[,ALT]",
+        help=f"where the {logs} without GNSS were recorded: degrees, degrees, metres above the ellipsoid",
+    )
+    g.add_argument(
+        "--date",
+        metavar="YYYY-MM-DD[THH:MM]",
+        help=f"UTC at the boot of {logs} timed since boot (without GNSS time); the day is enough for the field",
+    )
+    g.add_argument(
+        "--topic",
+        action="append",
+        default=[],
+        metavar="KIND=NAME",
+        help="the stream of each kind to read where a log has several (ROS bags: mag, imu, fix, odom); repeatable",
+    )
+
+
+def reading_options(args) -> dict:
+    """The ``read_log`` options of the reading options on the command line but ``--format`` and ``--mag``:
+    ``map``, ``mag_unit``, ``raw``, ``site`` (``--site``, ``--date``) and ``topic`` (``--topic``)."""
+    from ..io.site import parse_site
+
+    topic = {}
+    for item in args.topic:
+        kind, sep, name = item.partition("=")
+        if not sep or not kind.strip() or not name.strip():
+            raise InputError(f"--topic {item!r}: give KIND=NAME, such as mag=/imu/mag")
+        topic[kind.strip()] = name.strip()
+    return {
+        "map": args.map,
+        "mag_unit": args.mag_unit,
+        "raw": not args.logged_calibration,
+        "site": parse_site(args.site, args.date),
+        "topic": topic or None,
+    }
 
 
 def add_model_options(p) -> None:
@@ -430,15 +468,10 @@ def open_log(args, mag="option"):
     instance number, or None for the log's only magnetometer, instead of the ``--mag`` option)."""
     from ..io.readers import read_log
 
+    options = reading_options(args)
+
     def read(path):
-        return read_log(
-            path,
-            args.format,
-            map=args.map,
-            mag=mag_instance(args) if mag == "option" else mag,
-            mag_unit=args.mag_unit,
-            raw=not args.logged_calibration,
-        )
+        return read_log(path, args.format, mag=mag_instance(args) if mag == "option" else mag, **options)
 
     if args.file != "-":
         return read(args.file)

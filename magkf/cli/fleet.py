@@ -121,6 +121,7 @@ def run_fleet(args) -> int:
     if not args.effect_file:  # a misspelt effect is refused before any log is read
         for spec in args.effect:
             make_effect(spec)
+    reading = common.reading_options(args)
     settings = FleetSettings(
         config=common.filter_config(args),
         diagnose=args.diagnose,
@@ -128,10 +129,8 @@ def run_fleet(args) -> int:
         effects=tuple(args.effect),
         effect_files=tuple(str(Path(f).resolve()) for f in args.effect_file),
         format=args.format,
-        map=args.map,
         mag=args.mag,
-        mag_unit=args.mag_unit,
-        raw=not args.logged_calibration,
+        **{**reading, "topic": tuple(sorted((reading["topic"] or {}).items()))},
     )
     with _client(args) as client:
         result = run(

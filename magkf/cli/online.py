@@ -200,6 +200,8 @@ def _chunked(args) -> bool:
 
     if args.file == "-" or args.batch or args.map is not None or args.states == "-" or args.mag is not None:
         return False
+    if args.site is not None or args.date is not None:  # a log placed by the user is read whole
+        return False
     if not Path(args.file).is_file():
         return False
     if (args.format or detect_format(args.file)) not in ("csv", "parquet"):

@@ -38,6 +38,7 @@ from ..conventions import (
 from ..errors import InputError
 from ..status import select_dop
 from .readers import LogReader
+from .site import BOOT, place_at_site
 from .tables import PARQUET_SUFFIXES, file_row, numeric_column, read_csv, require_complete, table_rows
 
 __all__ = [
@@ -202,6 +203,13 @@ class DriveLog:
         return None if not isinstance(mag, dict) else {"format": self.provenance.get("format"), **mag}
 
     @property
+    def site(self) -> dict | None:
+        """The place and date the user gave for a log without GNSS (``provenance["site"]``: ``given`` True,
+        ``lat, lon, alt`` and ``start_utc`` as given), or None for a log placed by its own GNSS."""
+        site = self.provenance.get("site")
+        return dict(site) if isinstance(site, dict) else None
+
+    @property
     def auxiliary(self) -> list[str]:
         """Names of the auxiliary channels (every column without a fixed meaning)."""
         return [c for c in self.table.columns if c not in CORE_COLUMNS]
@@ -318,6 +326,7 @@ def from_table(
     provenance: dict | None = None,
     row_of=None,
     whole: bool = True,
+    site=None,
 ) -> DriveLog:
     """Validate a table with the canonical columns (``time`` a column, UNIX s) and build a ``DriveLog``;
     the epoch contract every reader goes through. Magnetometer values in ``mag_unit`` become nT.
@@ -331,9 +340,15 @@ def from_table(
     ``whole`` False: ``table`` is one chunk of a longer log (``magkf.online.chunked``), whose rows are checked
     alike; the checks of the whole log (its number of epochs, a magnetometer that never changes, the unit
     warnings) are left to the caller (``whole_log_checks``).
+
+    ``site`` (``magkf.io.site.Site``, ``--site`` and ``--date``) places a log without GNSS, and a log timed since
+    boot (``provenance["time_base"]`` "boot") is refused without one (``place_at_site``).
     """
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
+    provenance = dict(provenance or {})
+    if site is not None or provenance.get("time_base") == BOOT:
+        table = place_at_site(table, provenance, site, name)
     _check_columns(table, name, mag_unit, whole)
     table = _numbers(table, name, row_of)
     require_complete(table, (TIME,), name, row_of)
@@ -374,7 +389,13 @@ def _check_columns(table: pd.DataFrame, name: str, mag_unit: str, whole: bool) -
             raise InputError(message, name, 1, missing[0])
     if not ((LAT in table and LON in table) or all(c in table for c in REF)):
         missing = next(c for c in (LAT, LON) if c not in table)
-        raise InputError("the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field", name, 1, missing)
+        raise InputError(
+            "the log needs lat and lon (or ref_n, ref_e, ref_d) for the reference field, or --site LAT,LON[,ALT] "
+            "where it was recorded",
+            name,
+            1,
+            missing,
+        )
 
 
 def _numbers(table: pd.DataFrame, name: str, row_of) -> pd.DataFrame:
@@ -477,7 +498,7 @@ def whole_log_checks(
             )
 
 
-def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
+def read_drive_log(path, mag_unit: str = "nT", site=None) -> DriveLog:
     """Read and validate a canonical drive log, CSV or its Parquet twin (``.parquet``).
 
     Parameters
@@ -486,6 +507,8 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
         The log file.
     mag_unit : str, optional
         The unit of its magnetometer values (``nT``, ``uT``, ``mG`` or ``G``), which become nT.
+    site : magkf.io.site.Site, optional
+        Place and clock of a log without ``lat, lon`` or UTC time (``--site``, ``--date``).
 
     Returns
     -------
@@ -502,7 +525,7 @@ def read_drive_log(path, mag_unit: str = "nT") -> DriveLog:
     parquet = Path(path).suffix.lower() in PARQUET_SUFFIXES
     table = read_csv(path, required=(TIME, *MAG))
     provenance = {"format": "canonical-parquet" if parquet else "canonical-csv", "file": name}
-    return from_table(table, name, mag_unit, provenance)
+    return from_table(table, name, mag_unit, provenance, site=site)
 
 
 def table_to_write(table: pd.DataFrame, name: str) -> tuple[pd.DataFrame, np.ndarray]:
@@ -624,16 +647,19 @@ class AutopilotLog(LogReader):
     ``instances`` lists the magnetometers. Binary logs have no rows: an epoch is named by its 1-based record
     number among the magnetometer's."""
 
-    options = frozenset({"mag", "raw", "max_gap_s"})
+    options = frozenset({"mag", "raw", "max_gap_s", "site"})
 
     @staticmethod
     def read_table(path, *, mag: int | None, raw: bool, max_gap_s: float) -> tuple[pd.DataFrame, dict]:
-        """The canonical table and its provenance (implemented by each format)."""
+        """The canonical table and its provenance (implemented by each format); a log without GNSS gives its time
+        since boot (``provenance["time_base"]`` "boot") and no position, which ``read`` places at ``site``."""
         raise NotImplementedError
 
-    def read(self, path, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5) -> DriveLog:
-        table, provenance = self.read_table(path, mag=mag, raw=raw, max_gap_s=max_gap_s)
-        return from_table(table, str(path), "nT", provenance, row_of=lambda i: int(i) + 1)
+    def read(self, path, site=None, **options) -> DriveLog:
+        """The log at ``path`` through ``read_table`` (``options``: those of ``self.options`` but ``site``) and
+        ``from_table``, placed at ``site`` (``magkf.io.site.Site``) where it has no GNSS."""
+        table, provenance = self.read_table(path, **options)
+        return from_table(table, str(path), "nT", provenance, row_of=lambda i: int(i) + 1, site=site)
 
 
 class CanonicalCsv(LogReader):
@@ -642,10 +668,10 @@ class CanonicalCsv(LogReader):
     name = "csv"
     title = "canonical CSV"
     extensions = (".csv",)
-    options = frozenset({"mag_unit"})
+    options = frozenset({"mag_unit", "site"})
 
-    def read(self, path, mag_unit: str = "nT") -> DriveLog:
-        return read_drive_log(path, mag_unit)
+    def read(self, path, mag_unit: str = "nT", site=None) -> DriveLog:
+        return read_drive_log(path, mag_unit, site)
 
 
 class CanonicalParquet(CanonicalCsv):

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 __all__ = ["LogReader", "read_log", "detect_format", "reader_for", "magnetometer_instances", "OPTIONS"]
 
 #: The options ``read_log`` passes on to a reader that takes them, with their values when not given.
-OPTIONS = {"map": None, "mag": None, "mag_unit": "nT", "raw": True, "max_gap_s": 0.5}
+OPTIONS = {"map": None, "mag": None, "mag_unit": "nT", "raw": True, "max_gap_s": 0.5, "site": None, "topic": None}
 #: How many first bytes of a file the readers' ``magic`` are compared with.
 HEAD_BYTES = 16
 
@@ -60,6 +60,8 @@ class LogReader(ABC):
         Lower-case file extensions (``".ulg"``) that identify the format when no magic does.
     options : frozenset of str
         The ``read_log`` options the reader takes, of ``OPTIONS`` (``"mag"``, ``"raw"``, ...).
+    folders : bool
+        Whether a log of this format may be a folder (a ROS 2 bag); ``recognises`` then gets an empty ``head``.
     """
 
     name: ClassVar[str] = "reader"
@@ -67,6 +69,7 @@ class LogReader(ABC):
     magic: ClassVar[tuple[bytes, ...]] = ()
     extensions: ClassVar[tuple[str, ...]] = ()
     options: ClassVar[frozenset[str]] = frozenset()
+    folders: ClassVar[bool] = False
 
     def recognises(self, path: Path, head: bytes) -> bool:
         """Whether the file at ``path``, which starts with ``head`` (its first ``HEAD_BYTES`` bytes), is of
@@ -107,16 +110,23 @@ def detect_format(path) -> str:
     names, else ``csv``."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:
-            head = f.read(HEAD_BYTES)
+        head = b"" if path.is_dir() else _head(path)
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc.strerror})", str(path)) from None
     readers = [cls() for _, cls in READERS.loadable()]  # magkf's own first; one that fails to load is skipped
+    if path.is_dir():
+        readers = [reader for reader in readers if reader.folders]
     for reader in readers:
         if reader.recognises(path, head):
             return reader.name
     suffix = path.suffix.lower()
     return next((reader.name for reader in readers if suffix in reader.extensions), "csv")
+
+
+def _head(path: Path) -> bytes:
+    """The first ``HEAD_BYTES`` bytes of the file at ``path``."""
+    with open(path, "rb") as f:
+        return f.read(HEAD_BYTES)
 
 
 def reader_for(name: str, source: str = "") -> LogReader:
@@ -138,6 +148,8 @@ def read_log(
     mag_unit: str = "nT",
     raw: bool = True,
     max_gap_s: float = 0.5,
+    site=None,
+    topic: dict | None = None,
 ) -> DriveLog:
     """Read any supported log into a validated ``DriveLog`` (see the module's table of formats).
 
@@ -158,6 +170,11 @@ def read_log(
         Undo the autopilot's calibration where it was applied.
     max_gap_s : float
         Longest gap (s) across which a slower stream is interpolated.
+    site : magkf.io.site.Site, optional
+        Place and clock of a log without GNSS (``--site``, ``--date``; ``magkf.io.site.parse_site``): a log timed
+        since boot, or without a position, is refused without it.
+    topic : dict, optional
+        Which stream of each kind to read where a log has several (``--topic KIND=NAME``; a ROS bag's topics).
 
     Returns
     -------
@@ -170,10 +187,13 @@ def read_log(
         One line naming the file, for anything it cannot read, and for an option the format does not take.
     """
     name = str(path)
-    if not Path(path).is_file():
+    if not Path(path).exists():
         raise InputError("no such file", name)
     reader = reader_for(format or ("mapped" if map is not None else detect_format(path)), name)
+    if Path(path).is_dir() and not reader.folders:
+        raise InputError(f"a folder, not a log file (only {_folder_formats()} logs are folders)", name)
     given = {"map": map, "mag": mag, "mag_unit": mag_unit, "raw": raw, "max_gap_s": max_gap_s}
+    given |= {"site": site, "topic": topic}
     _refuse_options(reader, {k: v for k, v in given.items() if v != OPTIONS[k]}, name)
     return reader.read(path, **{k: v for k, v in given.items() if k in reader.options})
 
@@ -185,11 +205,19 @@ def _refuse_options(reader: LogReader, given: dict, source: str) -> None:
     if "mag" in given and "mag" not in reader.options:
         takers = " and ".join(cls.title for _, cls in READERS.loadable() if "mag" in cls.options)
         raise InputError(f"a {reader.name} table holds one magnetometer: --mag applies to {takers} logs", source)
+    for option, flag in (("site", "--site and --date"), ("topic", "--topic")):
+        if option in given and option not in reader.options:
+            raise InputError(f"{flag} do not apply to a {reader.title} (its reader does not take them)", source)
     if "mag_unit" in given and "mag_unit" not in reader.options:
         where = "its column map's [units] mag" if "map" in reader.options else "the log itself"
         raise InputError(
             f"--mag-unit applies to a canonical table: a {reader.name} log's unit comes from {where}", source
         )
+
+
+def _folder_formats() -> str:
+    """The titles of the registered formats whose logs are folders, in words."""
+    return " and ".join(cls.title for _, cls in READERS.loadable() if cls.folders) or "no"
 
 
 def magnetometer_instances(path, format: str | None = None) -> list[dict]:

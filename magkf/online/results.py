@@ -426,7 +426,7 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     states = states_frame(index, names, status, updated, nis, x_cols, std_cols, before, noise)
     counts = np.diff(trace.stops, prepend=0) if trace.stops is not None else np.ones(n_ep, np.int64)
     summary, cal, effects = summarise(log.source, config, layout, P0, trace, sums, counts)
-    cal = replace(cal, magnetometer=log.magnetometer)
+    cal = replace(cal, magnetometer=log.magnetometer, site=log.site)
     fit = pd.DataFrame(final, columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False)
     return CalibrationRun(
         calibration=cal, x=trace.x, P=trace.P, names=names, states=states, summary=summary, effects=effects, fit=fit
