@@ -339,6 +339,7 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
     summary = run.summary
     t = log.time
     out = {
+        "format": log.provenance.get("format"),
         "start_time": float(t[0]),
         "duration_s": float(t[-1] - t[0]),
         "n_epochs": int(summary.n_epochs),

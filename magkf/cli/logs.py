@@ -10,8 +10,13 @@ __all__ = ["add_parsers", "run_check", "run_convert", "run_export"]
 
 def add_parsers(sub) -> None:
     """Register ``check``, ``convert`` and ``export``."""
-    p = common.command(sub, "check", run_check, "what a log holds and what it allows")
-    common.add_log_options(p)
+    p = common.command(sub, "check", run_check, "what a log holds and what it allows; one line per log of a folder")
+    p.add_argument(
+        "file",
+        nargs="+",
+        help=common.LOG_HELP + "; several logs, folders or glob patterns: one line per log (as magkf fleet finds them)",
+    )
+    common.add_reading_options(p)
     p.add_argument(
         "--dop-max",
         type=common.number_in(0, 1000, open_low=True),
@@ -45,13 +50,43 @@ def add_parsers(sub) -> None:
 def run_check(args) -> int:
     """One screen on a log of any supported format: streams and rates, units decided and why, time base, heading and
     tilt coverage, DOP, the measurement models it allows and what will limit the calibration."""
+    from pathlib import Path
+
     from ..diagnostics.inspect import format_inspection, inspect_log
 
+    if len(args.file) > 1 or Path(args.file[0]).is_dir() and not _is_log_folder(args.file[0]):
+        return _check_many(args)
+    args.file = args.file[0]
     report = inspect_log(common.open_log(args), dop_max=args.dop_max)
     if args.json:
         common.print_json(report)
     else:
         print(format_inspection(report))
+    return 0
+
+
+def _is_log_folder(path) -> bool:
+    """Whether the folder at ``path`` is itself a log (a ROS 2 bag), not a folder of logs."""
+    from ..io.readers import detect_format, reader_for
+
+    return reader_for(detect_format(path)).folders
+
+
+def _check_many(args) -> int:
+    """``check`` of several logs: one line each (``magkf.diagnostics.survey``), or a JSON list with ``--json``."""
+    from ..diagnostics.survey import format_survey, survey_logs
+    from ..fleet import find_logs
+    from ..io.readers import read_log
+
+    logs = find_logs(args.file)
+    options = common.reading_options(args)
+    mag = common.mag_instance(args)
+    entries = survey_logs(logs, lambda path: read_log(path, args.format, mag=mag, **options), args.dop_max)
+    if args.json:
+        common.print_json(entries)
+    else:
+        root = args.file[0] if len(args.file) == 1 else None
+        print(format_survey(entries, root))
     return 0
 
 
