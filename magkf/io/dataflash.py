@@ -61,6 +61,7 @@ import io
 import os
 import re
 import warnings
+from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -140,8 +141,10 @@ def _model(n: int, diagonals, offdiagonals, scale) -> tuple[np.ndarray, np.ndarr
     return m, np.broadcast_to(_effective_scale(scale), (n,))[:, None]
 
 
-def compass_correct(raw, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0) -> np.ndarray:
-    """ArduPilot 4.x ``correct_field``: ``M ((raw + offsets) * scale) + motor``.
+def compass_correct(raw, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0, *, motor_first=False) -> np.ndarray:
+    """ArduPilot's ``correct_field``: ``M ((raw + offsets) * scale) + motor`` (4.x and 3.6 on), or with
+    ``motor_first`` ``M (raw + offsets + motor)`` (3.3 to 3.5, which added the motor compensation before the
+    soft-iron matrix; 3.2 and earlier had no matrix, where both agree).
 
     ``raw`` (N, 3) in the vehicle-aligned frame after the firmware's rotation; ``offsets``, ``diagonals``,
     ``offdiagonals`` (3,) or (N, 3) (``COMPASS_OFS``, ``COMPASS_DIA``, ``COMPASS_ODI``); ``scale``
@@ -150,18 +153,21 @@ def compass_correct(raw, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0)
     """
     raw = np.atleast_2d(np.asarray(raw, float))
     m, s = _model(len(raw), diagonals, offdiagonals, scale)
-    return np.einsum("nij,nj->ni", m, (raw + offsets) * s) + motor
+    inner, outer = (motor, 0.0) if motor_first else (0.0, motor)
+    return np.einsum("nij,nj->ni", m, (raw + offsets + inner) * s) + outer
 
 
-def compass_uncorrect(field, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0) -> np.ndarray:
+def compass_uncorrect(field, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0, *, motor_first=False):
     """The inverse of ``compass_correct``: the raw reading (N, 3) whose corrected value is ``field`` (N, 3).
 
-    ``raw = M^-1 (field - motor) / scale - offsets``; arguments as for ``compass_correct``.
+    ``raw = M^-1 (field - motor) / scale - offsets`` (with ``motor_first``: ``M^-1 field / scale - offsets -
+    motor``); arguments as for ``compass_correct``.
     """
     field = np.atleast_2d(np.asarray(field, float))
     m, s = _model(len(field), diagonals, offdiagonals, scale)
-    unmixed = np.linalg.solve(m, (field - motor)[..., None])[..., 0]
-    return unmixed / s - offsets
+    inner, outer = (motor, 0.0) if motor_first else (0.0, motor)
+    unmixed = np.linalg.solve(m, (field - outer)[..., None])[..., 0]
+    return unmixed / s - offsets - inner
 
 
 def _untruncate(values) -> np.ndarray:
@@ -226,6 +232,10 @@ class _Log:
         self.skipped_bytes = chatter.getvalue().count("bad header")
         self.buffer = np.frombuffer(self.reader.data_map, np.uint8)
         self.truncated = False
+        #: How each decoded message type's ``TimeUS`` was found (``_timed``).
+        self.time_sources: dict[str, str] = {}
+        self._tables: dict[str, dict] = {}
+        self._clock: tuple[np.ndarray, np.ndarray] | None = None
 
     def close(self) -> None:
         """Release the memory map and the file (decoded tables are copies and stay valid)."""
@@ -245,11 +255,19 @@ class _Log:
     def columns(self, name: str) -> list[str]:
         return list(self.reader.formats[self.reader.name_to_id[name]].columns) if self.has(name) else []
 
+    def format_char(self, name: str, column: str) -> str:
+        """The format character of ``column`` of message ``name`` ("" where the log has no such column)."""
+        columns = self.columns(name)
+        fmt = self.reader.formats[self.reader.name_to_id[name]].format if columns else ""
+        return fmt[columns.index(column)] if column in columns else ""
+
     def table(self, name: str) -> dict[str, np.ndarray]:
         """All messages ``name`` as ``{column: (N,) array}``, scaled as pymavlink scales them (strings as
         ``str`` arrays). Messages cut off by the end of the file are dropped (``truncated`` is set)."""
         if not self.has(name):
             return {}
+        if name in self._tables:
+            return self._tables[name]
         fmt = self.reader.formats[self.reader.name_to_id[name]]
         try:
             dtype = np.dtype({"names": fmt.columns, "formats": [self._code(c, name) for c in fmt.format]})
@@ -268,6 +286,14 @@ class _Log:
             )
         body = self.buffer[offsets[:, None] + 3 + np.arange(dtype.itemsize)]
         records = np.ascontiguousarray(body).view(dtype).ravel()
+        out = self._decode(records, fmt)
+        self._timed(name, out, offsets)
+        self._tables[name] = out
+        return out
+
+    @staticmethod
+    def _decode(records: np.ndarray, fmt) -> dict[str, np.ndarray]:
+        """``{column: (N,) array}`` of the structured ``records`` of format ``fmt``, scaled as pymavlink scales."""
         out = {}
         for col, char, mult in zip(fmt.columns, fmt.format, fmt.msg_mults):
             v = records[col]
@@ -279,6 +305,69 @@ class _Log:
                 v = v / (1.0 / mult) if 0.0 < mult < 1.0 else v * mult
             out[col] = v
         return out
+
+    def _timed(self, name: str, table: dict, offsets: np.ndarray) -> None:
+        """Give ``table`` (messages ``name`` at file ``offsets``) a ``TimeUS`` column (int64 us since boot) in
+        every generation, and the 3.x ``GPS`` the newer ``GMS``/``GWk`` names; ``time_sources[name]`` says how.
+
+        ``TimeUS`` as logged (ArduPilot 3.3 on); ``TimeMS`` (ms since boot, before 3.3) x 1000, except in a 3.x
+        ``GPS`` (``Status,TimeMS,Week,...,T``), whose ``TimeMS`` is the GPS time of week and ``T`` the boot ms;
+        a message without a boot time of its own (``PARM`` ``Name,Value`` and ``MSG`` ``Message`` before 3.3, the
+        ``GPS`` of 3.0-3.1 without ``T``) takes the time of the last timed message before it in the file, as
+        pymavlink's ``DFReader`` clocks do (``DFReaderClock_msec.set_message_timestamp``,
+        https://github.com/ArduPilot/pymavlink/blob/master/DFReader.py).
+        """
+        gps_style = "Week" in table and "TimeMS" in table
+        if gps_style:
+            table.setdefault("GMS", table["TimeMS"])
+            table.setdefault("GWk", table["Week"])
+        if "TimeUS" in table:
+            table["TimeUS"] = table["TimeUS"].astype(np.int64)
+            self.time_sources[name] = "TimeUS (us since boot)"
+        elif gps_style and "T" in table:
+            table["TimeUS"] = np.rint(table["T"] * 1000.0).astype(np.int64)
+            self.time_sources[name] = "T (ms since boot; TimeMS/Week are the GPS time)"
+        elif "TimeMS" in table and not gps_style:
+            table["TimeUS"] = np.rint(table["TimeMS"] * 1000.0).astype(np.int64)
+            self.time_sources[name] = "TimeMS (ms since boot)"
+        else:
+            table["TimeUS"] = self._file_clock(offsets)
+            self.time_sources[name] = "no time of its own: that of the timed message before it in the file"
+
+    def _clock_types(self) -> list:
+        """The formats whose first column is the boot time (``TimeUS``/``TimeMS``; not a 3.x ``GPS``, whose
+        ``TimeMS`` is GPS time, nor ``ACC``/``GYR``, whose ``TimeMS`` pymavlink does not trust)."""
+        return [
+            f
+            for t, f in self.reader.formats.items()
+            if f.columns
+            and f.columns[0] in ("TimeUS", "TimeMS")
+            and f.format[:1] in ("Q", "I")
+            and "Week" not in f.columns
+            and not f.name.startswith(("ACC", "GYR", "GPS"))
+            and 0 <= t < len(self.reader.offsets)
+            and len(self.reader.offsets[t])
+        ]
+
+    def _file_clock(self, offsets: np.ndarray) -> np.ndarray:
+        """Boot time (int64 us) of the last timed message before each file offset (the first timed message's
+        for one before them all; 0 in a log without timed messages)."""
+        if self._clock is None:
+            places, times = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+            for f in self._clock_types():
+                offs = np.asarray(self.reader.offsets[f.type], np.int64)
+                offs = offs[offs + 3 + (8 if f.format[0] == "Q" else 4) <= len(self.buffer)]
+                width, scale = (8, 1) if f.format[0] == "Q" else (4, 1000)
+                raw = np.ascontiguousarray(self.buffer[offs[:, None] + 3 + np.arange(width)])
+                places.append(offs)
+                times.append(raw.view("<u8" if width == 8 else "<u4").ravel().astype(np.int64) * scale)
+            place, time = np.concatenate(places), np.concatenate(times)
+            order = np.argsort(place, kind="stable")
+            self._clock = (place[order], time[order])
+        place, time = self._clock
+        if not len(time):
+            return np.zeros(len(offsets), np.int64)
+        return time[np.clip(np.searchsorted(place, offsets) - 1, 0, len(time) - 1)]
 
     def _code(self, char: str, name: str) -> str:
         from pymavlink.DFReader import FORMAT_TO_STRUCT
@@ -369,13 +458,22 @@ def _param_at(params: dict, name: str, time_us: np.ndarray, default: float) -> n
 
 
 def _firmware(log: _Log) -> str:
+    """The firmware string: ``VER.FWS`` (4.x), else the first ``MSG`` naming a vehicle and a version, as every
+    generation writes at the start of a log (``ArduCopter V3.2.1 (36b405fb)``, ``APM:Copter V3.1.5 (...)``,
+    ``ArduRover v2.49``); "unknown" if none."""
     ver = log.table("VER")
     if "FWS" in ver and len(ver["FWS"]):
         return str(ver["FWS"][0])
     for text in log.table("MSG").get("Message", []):
-        if re.match(r"(Ardu\w+|APM:\w+|Blimp|AntennaTracker)\b.*V\d", str(text)):
+        if re.match(r"(Ardu\w+|APM:\w+|Blimp|AntennaTracker)\b.*[Vv]\d", str(text)):
             return str(text)
     return "unknown"
+
+
+def _version(firmware: str) -> tuple[int, int] | None:
+    """(major, minor) of a firmware string, or None if it names none."""
+    found = re.search(r"[Vv](\d+)\.(\d+)", firmware)
+    return (int(found.group(1)), int(found.group(2))) if found else None
 
 
 def _state_index(params: dict, instance: int) -> int:
@@ -399,67 +497,121 @@ def _param_name(quantity: str, suffix: str) -> str:
     return f"COMPASS_{base}{suffix}" + (f"_{axis}" if axis else "")
 
 
-def _reconstruct_raw(table: dict, params: dict, instance: int, firmware: str, notes: list) -> tuple[np.ndarray, str]:
-    """Raw field (N, 3) in mG of one ``MAG`` stream, and the text describing what was undone."""
+#: Column names of the three axes of each quantity of a ``MAG`` message, the 4.x names first (``MOX``; 3.x ``MOfsX``).
+_MAG_AXES = {
+    "field": (("MagX", "MagY", "MagZ"),),
+    "offsets": (("OfsX", "OfsY", "OfsZ"),),
+    "motor": (("MOX", "MOY", "MOZ"), ("MOfsX", "MOfsY", "MOfsZ")),
+}
+
+
+def _axes(table: dict, quantity: str) -> np.ndarray | None:
+    """(N, 3) values of ``quantity`` (``_MAG_AXES``) in a ``MAG`` table, or None where it logs no such fields."""
+    for names in _MAG_AXES[quantity]:
+        if all(n in table for n in names):
+            return np.column_stack([table[n] for n in names])
+    return None
+
+
+def _motor_first(firmware: str) -> bool:
+    """Whether the firmware added the motor compensation before the soft-iron matrix: 3.3 to 3.5, whose
+    ``AP_Compass_Backend::correct_field`` did ``mag += offsets; mag += motor_offset; mag = mat * mag`` (3.6
+    moved it after the matrix with per-motor compensation; 3.2 and earlier had no matrix, where both agree)."""
+    version = _version(firmware)
+    return version is not None and (3, 3) <= version < (3, 6)
+
+
+def _has_calibration(params: dict, suffix: str | None) -> bool:
+    """Whether ``PARM`` holds the compass offsets of parameter set ``suffix`` (None: no set)."""
+    return suffix is not None and all(_param_name(f"OFS_{a}", suffix) in params for a in "XYZ")
+
+
+def _as_logged(table: dict, params: dict, instance: int, notes: list) -> tuple[np.ndarray, str, bool]:
+    """The logged field (N, 3) mG, centred, of a stream whose calibration parameters the log lacks."""
+    lacks = "no PARM messages" if not params else "no COMPASS_OFS parameters for this compass in its PARM messages"
+    notes.append(
+        f"the log has {lacks}: the calibration of magnetometer instance {instance} cannot be undone, so the field "
+        "is read as logged (already calibrated by the autopilot); a log that records its parameters gives raw"
+    )
+    return _untruncate(_axes(table, "field")), f"not done: {lacks} (field as logged, calibrated)", True
+
+
+def _reconstruct_raw(
+    table: dict, params: dict, instance: int, firmware: str, notes: list
+) -> tuple[np.ndarray, str, bool]:
+    """Raw field (N, 3) in mG of one ``MAG`` stream, the text describing what was undone, and whether the field
+    is still the calibrated one (True where the log lacks the parameters to undo it)."""
     time_us = table["TimeUS"]
     k = _state_index(params, instance)
     suffix = ("", "2", "3")[k] if k < 3 else None
-    if suffix is None:
-        notes.append(f"magnetometer instance {instance} has no calibration parameters; raw = logged field")
-        return _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")])), "nothing (no parameters)"
+    if not _has_calibration(params, suffix):
+        return _as_logged(table, params, instance, notes)
     p = {q: _param_at(params, _param_name(q, suffix), time_us, _CAL_DEFAULTS[q]) for q in _CAL_PARAMS}
     offsets = np.column_stack([p["OFS_X"], p["OFS_Y"], p["OFS_Z"]])
-    logged_ofs = np.column_stack([table.get(c, np.full(len(time_us), np.nan)) for c in ("OfsX", "OfsY", "OfsZ")])
-    differs = np.abs(np.trunc(offsets) - logged_ofs) > 1.0  # False where no offsets are logged
-    if differs.any():
-        offsets = np.where(differs, _untruncate(logged_ofs), offsets)
-        notes.append(
-            f"{int(differs.any(axis=1).sum())} epochs log offsets (MAG.Ofs) other than COMPASS_OFS{suffix} "
-            "(e.g. learnt in flight); the logged offsets were used there"
-        )
+    logged_ofs = _axes(table, "offsets")
+    if logged_ofs is not None:
+        differs = np.abs(np.trunc(offsets) - logged_ofs) > 1.0
+        if differs.any():
+            offsets = np.where(differs, _untruncate(logged_ofs), offsets)
+            notes.append(
+                f"{int(differs.any(axis=1).sum())} epochs log offsets (MAG.Ofs) other than COMPASS_OFS{suffix} "
+                "(e.g. learnt in flight); the logged offsets were used there"
+            )
     diagonals = np.column_stack([p["DIA_X"], p["DIA_Y"], p["DIA_Z"]])
     offdiagonals = np.column_stack([p["ODI_X"], p["ODI_Y"], p["ODI_Z"]])
-    motor = _untruncate(np.column_stack([table.get(c, np.zeros(len(time_us))) for c in ("MOX", "MOY", "MOZ")]))
-    field = _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")]))
-    raw = compass_uncorrect(field, offsets, diagonals, offdiagonals, p["SCALE"], motor)
-    version = re.search(r"V(\d+)\.(\d+)", firmware)
-    if version is None or int(version.group(1)) < 4:
-        notes.append(
-            f"firmware {firmware!r}: the ArduPilot 4.x correction model was assumed; before 4.0 there was "
-            "no COMPASS_SCALE and motor compensation was added before the soft-iron matrix"
-        )
-    scale_used = bool(np.any(_effective_scale(p["SCALE"]) != 1.0))
-    text = (
-        f"ArduPilot 4.x AP_Compass_Backend::correct_field assumed (firmware {firmware}): logged MAG = "
-        f"trunc(M ((raw + COMPASS_OFS{suffix}) * COMPASS_SCALE{suffix}) + MO), M from COMPASS_DIA{suffix}/"
-        f"COMPASS_ODI{suffix} (PARM values in effect at each epoch"
-        f"{'' if scale_used else '; SCALE outside [1/1.5, 1.5] or 1, not applied'}). Undone: motor "
-        "compensation MO, soft-iron matrix, scale and offsets; the int16 truncation of MagX/MO is "
-        "taken as +-0.5 mG away from zero. Raw is in the vehicle-aligned frame after the firmware's "
-        f"rotation (driver rotation, then COMPASS_ORIENT{suffix} if external, AHRS_ORIENTATION if "
+    motor = _axes(table, "motor")
+    motor = np.zeros((len(time_us), 3)) if motor is None else _untruncate(motor)
+    first = _motor_first(firmware)
+    field = _untruncate(_axes(table, "field"))
+    raw = compass_uncorrect(field, offsets, diagonals, offdiagonals, p["SCALE"], motor, motor_first=first)
+    if _version(firmware) is None:
+        notes.append(f"firmware {firmware!r} names no version: ArduPilot 4.x's correction model was assumed")
+    return raw, _raw_text(firmware, suffix, first, bool(np.any(_effective_scale(p["SCALE"]) != 1.0))), False
+
+
+def _raw_text(firmware: str, suffix: str, motor_first: bool, scale_used: bool) -> str:
+    """What ``_reconstruct_raw`` undid, in words."""
+    model = (
+        f"M (raw + COMPASS_OFS{suffix} + MO) (3.3-3.5: motor compensation before the matrix)"
+        if motor_first
+        else f"M ((raw + COMPASS_OFS{suffix}) * COMPASS_SCALE{suffix}) + MO"
+    )
+    return (
+        f"AP_Compass_Backend::correct_field of firmware {firmware}: logged MAG = trunc({model}), M from "
+        f"COMPASS_DIA{suffix}/COMPASS_ODI{suffix} (PARM values in effect at each epoch; defaults where not logged"
+        f"{'' if scale_used else '; SCALE absent, 1, or outside [1/1.5, 1.5]: not applied'}). Undone: motor "
+        "compensation MO (MAG.MOX or MOfsX, 0 where not logged), soft-iron matrix, scale and offsets; the int16 "
+        "truncation of MagX/MO is taken as +-0.5 mG away from zero. Raw is in the vehicle-aligned frame after the "
+        f"firmware's rotation (driver rotation, then COMPASS_ORIENT{suffix} if external, AHRS_ORIENTATION if "
         "internal), not in the chip's own axes."
     )
-    return raw, text
 
 
-def _time_offset(gps: dict, path: str) -> tuple[float, str]:
-    """UTC - boot time (s) from the GPS week and milliseconds, and a description."""
-    if not gps or "GWk" not in gps:
-        raise InputError("time since boot and no GNSS week/ms to map it to UTC", source=path)
+def _time_offset(gps: dict) -> tuple[float | None, str]:
+    """UTC - boot time (s) from the GPS week and milliseconds of the samples with a 3-D fix, and a description;
+    ``(None, why)`` for a log whose GNSS never had a 3-D fix with a GPS week (no usable GNSS)."""
+    if not gps or not {"GWk", "GMS"} <= gps.keys():
+        return None, "no GPS week and time of week logged"
     week = gps["GWk"] > 0
-    good = week & (gps["Status"] >= 3)
-    use = good if good.any() else week
-    if not use.any():
-        raise InputError("time since boot and no GNSS week/ms to map it to UTC", source=path)
-    offsets = gps_to_unix(gps["GWk"][use], gps["GMS"][use]) - gps["TimeUS"][use] * 1e-6
+    good = week & (gps.get("Status", np.zeros(len(week))) >= 3)
+    if not good.any():
+        if not week.any():
+            return None, "the GNSS never had a 3-D fix nor a GPS week"
+        boot = datetime.fromtimestamp(float(np.median(_utc_minus_boot(gps, week))), UTC).isoformat(timespec="seconds")
+        return None, f"the GNSS never had a 3-D fix (its GPS time without a fix puts the boot at {boot})"
+    offsets = _utc_minus_boot(gps, good)
     offset = float(np.median(offsets))
     spread = float(np.median(np.abs(offsets - offset)))
     return offset, (
-        f"UTC = TimeUS * 1e-6 + {offset:.6f} s: median over {int(use.sum())} GPS samples "
-        f"({'3-D fix' if good.any() else 'with a GPS week, no 3-D fix'}) of "
-        f"gps_to_unix(GWk, GMS) - TimeUS (leap seconds of the date; median absolute deviation "
+        f"gnss: UTC = boot time + {offset:.6f} s, the median over {int(good.sum())} GPS samples with a 3-D fix "
+        f"of gps_to_unix(week, ms of week) - boot time (leap seconds of the date; median absolute deviation "
         f"{spread * 1e3:.1f} ms, mostly log-write latency)"
     )
+
+
+def _utc_minus_boot(gps: dict, rows: np.ndarray) -> np.ndarray:
+    """UTC - boot time (s) of the GPS samples ``rows``."""
+    return gps_to_unix(gps["GWk"][rows], gps["GMS"][rows]) - gps["TimeUS"][rows] * 1e-6
 
 
 def _known_dop(hdop):
@@ -494,30 +646,37 @@ def read_dataflash(path, *, mag: int | None = None, raw: bool = True, max_gap_s:
 
 def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict, dict]:
     """The columns ``{name: (N,) array}`` and the provenance of ``read_dataflash``."""
-    source = log.path
     notes: list[str] = []
     if log.end_damaged():
         log.truncated = True
     streams, stream, table = _chosen_stream(log, mag, notes)
     gps = _by_time(_select(log.table("GPS"), 0))
-    offset, time_base = _time_offset(gps, source)
+    offset, time_base = _time_offset(gps)
+    clock = f"{stream['message']}.{log.time_sources[stream['message']]}"
+    if offset is None:
+        notes.append(f"{time_base}: time is in seconds since boot and there is no position (give --date and --site)")
+        offset, time_base = 0.0, "boot"
+        columns: dict[str, str] = {"time": f"{clock} -> s since boot (no usable GNSS)"}
+    else:
+        columns = {"time": f"{clock} -> UTC s via the GPS week and ms of week"}
     t = table["TimeUS"] * 1e-6 + offset
     params = _parameters(log)
     firmware = _firmware(log)
-    columns: dict[str, str] = {"time": f"{stream['message']}.TimeUS (boot us -> UTC s via GPS GWk/GMS)"}
     frame = {"time": t}
-    raw_text = _magnetometer_columns(table, stream, params, raw, firmware, frame, columns, notes)
+    raw_text, calibrated = _magnetometer_columns(table, stream, params, raw, firmware, frame, columns, notes)
     _attitude(log, t, offset, max_gap_s, frame, columns, notes)
-    _position(log, gps, t, offset, max_gap_s, frame, columns, notes)
+    if time_base != "boot":
+        _position(log, gps, t, offset, max_gap_s, frame, columns, notes)
     _auxiliary(log, t, offset, max_gap_s, firmware, frame, columns)
     _damage(log, notes)
     summaries = [_summary(s) for s in streams]
     wanted = ("COMPASS_", "AHRS_ORIENTATION")
+    magnetometer = _magnetometer_summary(summaries, stream["instance"], params) | {"calibrated": calibrated}
     provenance = {
         "format": "ardupilot-dataflash",
-        "file": source,
+        "file": log.path,
         "columns": columns,
-        "magnetometer": _magnetometer_summary(summaries, stream["instance"], params),
+        "magnetometer": magnetometer,
         "magnetometers": summaries,
         "parameters": {k: float(v[-1]) for k, (_, v) in sorted(params.items()) if k.startswith(wanted)},
         "firmware": firmware,
@@ -533,10 +692,16 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
 
 def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict], dict, dict]:
     """``(streams, stream, table)``: every magnetometer stream (``_mag_streams``), the one of instance ``mag``
-    (default the first), and its messages in time order; repeated or out-of-order times go to ``notes``."""
+    (default the first), and its messages in time order without all-zero samples; repeated or out-of-order
+    times and dropped samples go to ``notes``. InputError for a log without a magnetometer, an instance it
+    lacks, a stream without ``MagX/MagY/MagZ`` or one that reads a constant."""
     streams = _mag_streams(log)
     if not streams:
-        raise InputError("no MAG message (no magnetometer logged)", source=log.path)
+        raise InputError(
+            "no MAG, MAG2 or MAG3 message: the compass was not logged; record a log with the compass bit of "
+            "LOG_BITMASK set",
+            source=log.path,
+        )
     instances = [s["instance"] for s in streams]
     chosen = instances[0] if mag is None else int(mag)
     if chosen not in instances:
@@ -545,34 +710,59 @@ def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict],
     table = _by_time(stream["table"])
     if len(table["TimeUS"]) < len(stream["table"]["TimeUS"]):
         notes.append(
-            f"{len(stream['table']['TimeUS']) - len(table['TimeUS'])} MAG samples with a repeated TimeUS dropped"
+            f"{len(stream['table']['TimeUS']) - len(table['TimeUS'])} MAG samples with a repeated time dropped"
         )
     backwards = int(np.count_nonzero(np.diff(stream["table"]["TimeUS"].astype(np.int64)) < 0))
     if backwards:
-        notes.append(f"MAG samples out of time order at {backwards} place(s) in the file: read sorted by TimeUS")
-    return streams, stream, table
+        notes.append(f"MAG samples out of time order at {backwards} place(s) in the file: read sorted by time")
+    return streams, stream, _live_samples(table, stream, instances, log.path, notes)
+
+
+def _live_samples(table: dict, stream: dict, instances: list, path: str, notes: list) -> dict:
+    """``table`` without its samples of exactly (0, 0, 0) (a compass not yet, or no longer, read), noted;
+    InputError if it has no ``MagX/MagY/MagZ`` or reads one value throughout (an absent or dead compass)."""
+    what = f"{stream['message']} (magnetometer instance {stream['instance']})"
+    field = _axes(table, "field")
+    if field is None:
+        raise InputError(
+            f"{what} has no MagX, MagY, MagZ fields (its columns: {', '.join(k for k in table if k != 'TimeUS')}); "
+            "choose another magnetometer with --mag or convert the log to the canonical CSV",
+            source=path,
+        )
+    others = [i for i in instances if i != stream["instance"]]
+    choose = f"choose another with --mag (the log has instances {instances})" if others else "the log has no other"
+    zero = np.all(field == 0.0, axis=1)
+    if zero.all() or np.ptp(field, axis=0).max() == 0.0:
+        value = ", ".join(f"{v:g}" for v in field[0])
+        raise InputError(
+            f"{what} reads ({value}) mG in all {len(field)} samples: no working compass there; {choose}", source=path
+        )
+    if zero.any():
+        notes.append(f"{int(zero.sum())} {stream['message']} samples of exactly (0, 0, 0) mG (not read) dropped")
+        table = {k: v[~zero] for k, v in table.items()}
+    return table
 
 
 def _magnetometer_columns(
     table: dict, stream: dict, params: dict, raw: bool, firmware: str, frame: dict, columns: dict, notes: list
-) -> str:
-    """Add ``mag_x, mag_y, mag_z`` (nT; raw, or as logged for ``raw=False``) and ``mag_health`` (where logged) of
-    the ``MAG`` messages ``table`` to ``frame`` and their sources to ``columns``; returns what was undone."""
+) -> tuple[str, bool]:
+    """Add ``mag_x, mag_y, mag_z`` (nT; raw, or as logged for ``raw=False`` or without parameters) and
+    ``mag_health`` (where logged) of the ``MAG`` messages ``table`` to ``frame`` and their sources to
+    ``columns``; returns what was undone and whether the field is the calibrated one."""
     if raw:
-        field, raw_text = _reconstruct_raw(table, params, stream["instance"], firmware, notes)
-        for axis, name in zip("XYZ", MAG):
-            columns[name] = f"{stream['message']}.Mag{axis} (mG, calibration undone -> raw, x100 -> nT)"
+        field, raw_text, calibrated = _reconstruct_raw(table, params, stream["instance"], firmware, notes)
     else:
-        field = _untruncate(np.column_stack([table[c] for c in ("MagX", "MagY", "MagZ")]))
-        raw_text = "not done (raw=False): the field as the autopilot corrected it"
-        for axis, name in zip("XYZ", MAG):
-            columns[name] = f"{stream['message']}.Mag{axis} (mG, as logged, calibrated, x100 -> nT)"
+        field = _untruncate(_axes(table, "field"))
+        raw_text, calibrated = "not done (raw=False): the field as the autopilot corrected it", True
+    how = "as logged, calibrated" if calibrated else "calibration undone -> raw"
+    for axis, name in zip("XYZ", MAG):
+        columns[name] = f"{stream['message']}.Mag{axis} (mG, {how}, x100 -> nT)"
     for i, name in enumerate(MAG):
         frame[name] = field[:, i] * NT_PER_MILLIGAUSS
     if "Health" in table:
         frame["mag_health"] = table["Health"]
         columns["mag_health"] = f"{stream['message']}.Health (1 healthy)"
-    return raw_text
+    return raw_text, calibrated
 
 
 def _stream_time(table: dict, offset: float) -> np.ndarray:
@@ -584,8 +774,8 @@ def _attitude(log: _Log, t, offset: float, max_gap_s: float, frame: dict, column
     """Add ``roll, pitch, yaw`` (deg) at the epochs ``t`` (UNIX s) from ``ATT`` (slerp) to ``frame`` and their
     sources to ``columns``; a log without ``ATT`` is noted."""
     att = _by_time(log.table("ATT"))
-    if not att:
-        notes.append("no ATT message: no attitude")
+    if not att or not {"Roll", "Pitch", "Yaw"} <= att.keys():
+        notes.append("no ATT message with Roll, Pitch and Yaw: no attitude")
         return
     q = euler_to_quaternion(att["Yaw"], att["Pitch"], att["Roll"])
     q_t, _ = interpolate_quaternions(t, _stream_time(att, offset), q, max_gap_s)
@@ -682,19 +872,26 @@ def _magnetometer_summary(summaries: list[dict], chosen: int, params: dict) -> d
     return magnetometer
 
 
+def _throttle_scale(firmware: str) -> tuple[float, float, str]:
+    """Factors of ``CTUN.ThO`` (4.x, 3.3 on) and of the integer ``CTUN.ThrOut`` (3.x) to 0..1, and the unit:
+    ``ThO`` is 0..1 in Copter and Sub, percent in Plane (``SRV_Channels::get_output_scaled``); ``ThrOut`` is the
+    throttle ``servo_out``, 0..1000 in 3.x Copter, percent in Plane and Rover."""
+    copter = firmware.startswith(("ArduCopter", "APM:Copter"))
+    plane = firmware.startswith(("ArduPlane", "APM:Plane"))
+    return (0.01 if plane else 1.0), (0.001 if copter else 0.01), ("percent / 100" if plane else "0..1")
+
+
 def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, frame: dict, columns: dict) -> None:
-    """Add ``temp_c``, ``current_a``, ``throttle`` to ``frame`` (and their sources to ``columns``) where logged."""
+    """Add ``temp_c``, ``current_a``, ``throttle`` to ``frame`` (and their sources to ``columns``) where logged.
+
+    ``CURR.Curr`` of 3.x logs is an int16 of ``current_amps() * 100`` (``Log_Write_Current``), a float in A
+    since; ``CTUN`` as ``_throttle_scale`` says."""
+    tho, thr_out, tho_unit = _throttle_scale(firmware)
+    centi = 0.01 if log.format_char("CURR", "Curr") in "hHiI" else 1.0
     candidates = {
         "temp_c": [("BARO", "Temp", 1.0, "degC"), ("IMU", "T", 1.0, "degC"), ("IMU", "Temp", 1.0, "degC")],
-        "current_a": [("BAT", "Curr", 1.0, "A"), ("CURR", "Curr", 1.0, "A")],
-        "throttle": [
-            (
-                "CTUN",
-                "ThO",
-                0.01 if firmware.startswith("ArduPlane") else 1.0,
-                "percent / 100" if firmware.startswith("ArduPlane") else "0..1",
-            )
-        ],
+        "current_a": [("BAT", "Curr", 1.0, "A"), ("CURR", "Curr", centi, "A" if centi == 1.0 else "cA -> A")],
+        "throttle": [("CTUN", "ThO", tho, tho_unit), ("CTUN", "ThrOut", thr_out, f"x{thr_out:g} -> 0..1")],
     }
     for name, options in candidates.items():
         for message, field, factor, unit in options:

@@ -206,15 +206,18 @@ def test_yaw_interpolated_across_north(tmp_path):
 
 
 def test_synthetic_errors(tmp_path):
+    """A log whose GPS never has a week is read in boot time (the shared step asks for --date and --site); one
+    without a magnetometer, or without the instance asked for, is refused in one line."""
     rng = np.random.default_rng(5)
     path, _ = synthetic_log(tmp_path / "noweek.bin", rng, gps_week=False)
-    with pytest.raises(InputError, match="no GNSS week/ms to map it to UTC") as err:
-        read_dataflash(path)
-    assert "noweek.bin" in str(err.value) and "\n" not in str(err.value)
+    df, prov = read_dataflash(path)
+    assert prov["time_base"] == "boot" and "lat" not in df
+    np.testing.assert_allclose(df["time"], (1_000_000 + np.arange(200) * 100_000) * 1e-6, rtol=0, atol=1e-9)
+    assert any(n.startswith("the GNSS never had a 3-D fix nor a GPS week") for n in prov["notes"])
     path, _ = synthetic_log(tmp_path / "nomag.bin", rng, mag=False)
-    with pytest.raises(InputError, match="no MAG message") as err:
+    with pytest.raises(InputError, match="no MAG, MAG2 or MAG3 message") as err:
         read_dataflash(path)
-    assert "nomag.bin" in str(err.value)
+    assert "nomag.bin" in str(err.value) and "\n" not in str(err.value)
     path, _ = synthetic_log(tmp_path / "ok.bin", rng)
     with pytest.raises(InputError, match="no magnetometer instance 2"):
         read_dataflash(path, mag=2)
@@ -315,8 +318,8 @@ def test_old_style_mag2_instances(tmp_path):
     w.define("MAG2", "Qhhh", "TimeUS,MagX,MagY,MagZ")
     w.define("GPS", "QBIH", "TimeUS,Status,GMS,GWk")
     for j in range(50):
-        w.write("MAG", TimeUS=1_000_000 + j * 50_000, MagX=100, MagY=200, MagZ=300)
-        w.write("MAG2", TimeUS=1_000_000 + j * 100_000, MagX=-100, MagY=0, MagZ=300)
+        w.write("MAG", TimeUS=1_000_000 + j * 50_000, MagX=100 + j, MagY=200, MagZ=300)
+        w.write("MAG2", TimeUS=1_000_000 + j * 100_000, MagX=-100, MagY=j, MagZ=300)
         w.write("GPS", TimeUS=1_000_000 + j * 200_000, Status=3, GMS=400_000_000 + j * 200, GWk=WEEK)
     path = w.save(tmp_path / "old.bin")
     assert [(m["instance"], m["message"], m["samples"]) for m in magnetometer_instances(path)] == [
@@ -327,9 +330,11 @@ def test_old_style_mag2_instances(tmp_path):
     df, prov = read_dataflash(path, mag=1, raw=False)
     np.testing.assert_array_equal(df[["mag_x", "mag_y", "mag_z"]].iloc[0], [-10_050.0, 0.0, 30_050.0])
     assert prov["magnetometer"]["message"] == "MAG2"
-    df, prov = read_dataflash(path, mag=1)  # no PARM: the default calibration (identity) is undone
+    df, prov = read_dataflash(path, mag=1)  # no PARM: the calibration cannot be undone; read as logged
     np.testing.assert_array_equal(df[["mag_x", "mag_y", "mag_z"]].iloc[0], [-10_050.0, 0.0, 30_050.0])
-    assert "COMPASS_OFS2" in prov["raw_reconstruction"]
+    assert prov["raw_reconstruction"].startswith("not done: no PARM messages")
+    assert prov["magnetometer"]["calibrated"] is True
+    assert any("cannot be undone" in n for n in prov["notes"])
 
 
 def test_pilot_no_fix_epochs_have_no_position(real):
@@ -435,7 +440,8 @@ def test_write_dataflash_round_trip(tmp_path):
 
 
 def test_write_dataflash_identity_parameters_and_no_position(tmp_path):
-    """With no (or identity) parameters raw = logged; without lat/lon the GPS messages carry time only."""
+    """With identity parameters raw = logged; without lat/lon the GPS messages carry time only, which without
+    a 3-D fix is not trusted: the log is read in boot time without position, its GPS date in a note."""
     table = drive_table(n=50).drop(columns=["lat", "lon", "hdop"])
     path = tmp_path / "plain.bin"
     write_dataflash(
@@ -448,7 +454,12 @@ def test_write_dataflash_identity_parameters_and_no_position(tmp_path):
     logged, _ = read_dataflash(path, raw=False)
     np.testing.assert_array_equal(raw[["mag_x", "mag_y", "mag_z"]], logged[["mag_x", "mag_y", "mag_z"]])
     assert np.abs(raw["mag_x"] - table["mag_x"].to_numpy()).max() <= 50.0
-    assert np.isnan(raw["lat"]).all() and (raw["fix_type"] == 1).all()
+    _, prov = read_dataflash(path)
+    assert "lat" not in raw and "fix_type" not in raw and prov["time_base"] == "boot"
+    np.testing.assert_allclose(raw["time"], 10.0 + table.index - table.index[0], rtol=0, atol=1e-6)
+    boot = datetime.fromtimestamp(table.index[0] - 10.0, UTC).isoformat(timespec="seconds")
+    no_fix = f"the GNSS never had a 3-D fix (its GPS time without a fix puts the boot at {boot})"
+    assert any(no_fix in n for n in prov["notes"])
     np.testing.assert_allclose(raw["throttle"], table["throttle"], rtol=1e-6)  # written x100 for ArduPlane
 
 
@@ -509,7 +520,7 @@ def test_mag_samples_out_of_time_order_are_sorted_and_noted(tmp_path):
     swapped.write_bytes(bytes(data))
     table, prov = read_dataflash(swapped, mag=0)
     np.testing.assert_array_equal(table["time"].to_numpy(), straight["time"].to_numpy())
-    assert "MAG samples out of time order at 1 place(s) in the file: read sorted by TimeUS" in prov["notes"]
+    assert "MAG samples out of time order at 1 place(s) in the file: read sorted by time" in prov["notes"]
 
 
 def test_a_reordered_priority_is_exported_as_its_parameter_set(tmp_path):
