@@ -68,6 +68,7 @@ from ..conventions import (
 from ..errors import InputError
 from .drivelog import AutopilotLog, table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
+from .ulog_combined import combined_instances, combined_samples, undo
 
 __all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
 
@@ -88,6 +89,9 @@ TOPICS = (
 )
 _MAG_TOPICS = ("sensor_mag", "vehicle_magnetometer")
 _GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+#: Read only from a log without ``sensor_mag`` and ``vehicle_magnetometer`` whose ``sensor_combined`` format has a
+#: magnetometer (PX4 up to v1.7): the topic is logged at the gyro's rate, so it is not parsed otherwise.
+_COMBINED_TOPICS = ("sensor_combined", "sensor_selection")
 
 
 # ---------------------------------------------------------------- loading
@@ -116,7 +120,21 @@ class _ReadTracker:
 
 
 def _load(path, topics=TOPICS):
-    """Parse ``path`` with pyulog (only ``topics``); InputError if it is not a ULog, a warning if damaged."""
+    """Parse ``path`` with pyulog (only ``topics``, and ``sensor_combined`` and ``sensor_selection`` of an older log
+    whose magnetometer is only there); InputError if it is not a ULog, a warning if damaged."""
+    ulog, damage = _parse(path, topics)
+    combined = ulog.message_formats.get("sensor_combined")
+    older = combined is not None and any(field[2] == "magnetometer_ga" for field in combined.fields)
+    if older and not any(_datasets(ulog, topic) for topic in _MAG_TOPICS):
+        ulog, damage = _parse(path, tuple(topics) + _COMBINED_TOPICS)
+    if damage is not None:
+        warnings.warn(damage, stacklevel=3)
+    return ulog
+
+
+def _parse(path, topics):
+    """``(ulog, damage)``: ``path`` parsed by pyulog (only ``topics``) and, for a truncated or damaged file, what
+    to warn; InputError if it is not a ULog."""
     from pyulog import ULog
     from pyulog.exceptions import ULogException
 
@@ -132,13 +150,12 @@ def _load(path, topics=TOPICS):
         raise InputError(f"not a PX4 ULog file ({exc})", name) from None
     except (UnicodeDecodeError, ValueError, KeyError, IndexError, OverflowError, struct.error) as exc:
         raise InputError(f"unreadable ULog file ({type(exc).__name__}: {exc})", name) from None
-    if tracker.short_read or ulog.file_corruption:
-        said = " ".join(chatter.getvalue().split())
-        warnings.warn(
-            f"{name}: the ULog file is truncated or damaged; read up to the damage" + (f" ({said})" if said else ""),
-            stacklevel=3,
-        )
-    return ulog
+    if not (tracker.short_read or ulog.file_corruption):
+        return ulog, None
+    said = " ".join(chatter.getvalue().split())
+    return ulog, f"{name}: the ULog file is truncated or damaged; read up to the damage" + (
+        f" ({said})" if said else ""
+    )
 
 
 def _datasets(ulog, topic: str) -> dict[int, dict[str, np.ndarray]]:
@@ -161,6 +178,12 @@ def _rate_hz(t_us: np.ndarray) -> float | None:
     return float((len(t_us) - 1) / span) if span > 0 else None
 
 
+def _combined(ulog) -> dict[int, dict]:
+    """``{instance: data}`` of the magnetometers in ``sensor_combined`` (PX4 up to v1.7; ``ulog_combined``)."""
+    data = _datasets(ulog, "sensor_combined").get(0)
+    return {} if data is None else dict.fromkeys(combined_instances(data), data)
+
+
 def _instances(ulog) -> list[dict]:
     out = []
     for topic in _MAG_TOPICS:
@@ -177,40 +200,53 @@ def _instances(ulog) -> list[dict]:
             if "is_external" in data:
                 item["is_external"] = bool(data["is_external"][0])
             out.append(item)
+    if not out:
+        for instance, data in _combined(ulog).items():
+            t = combined_samples(data, instance).us
+            out.append(
+                {
+                    "topic": "sensor_combined",
+                    "instance": instance,
+                    "device_id": None,
+                    "rate_hz": _rate_hz(t),
+                    "samples": len(t),
+                }
+            )
     return out
 
 
 def magnetometer_instances(path) -> list[dict]:
-    """The magnetometers a ULog file holds: one dict per topic instance with ``topic`` (``sensor_mag`` or
-    ``vehicle_magnetometer``), ``instance`` (uORB multi-instance index, what ``read_ulog(mag=...)`` takes),
-    ``device_id`` (None where not logged), ``rate_hz`` (mean logged rate), ``samples`` and, where logged,
-    ``is_external``."""
+    """The magnetometers a ULog file holds: one dict per topic instance with ``topic`` (``sensor_mag``,
+    ``vehicle_magnetometer``, or ``sensor_combined`` in a log of PX4 up to v1.7 that has neither), ``instance``
+    (uORB multi-instance index, or the magnetometer's index in ``sensor_combined``; what ``read_ulog(mag=...)``
+    takes), ``device_id`` (None where not logged), ``rate_hz`` (mean logged rate), ``samples`` and, where
+    logged, ``is_external``."""
     return _instances(_load(path, _MAG_TOPICS))
 
 
 # ---------------------------------------------------------------- streams
-def _utc_offset_us(gnss: dict, fix: np.ndarray, topic: str, name: str) -> tuple[float, str]:
-    """Median of UTC minus boot time (us) over samples with a fix and a UTC time, and how it was found."""
-    utc = gnss["time_utc_usec"].astype(np.int64) if "time_utc_usec" in gnss else None
-    if utc is None:
-        raise InputError(
-            f"ULog timestamps are time since boot and no GNSS UTC time: {topic} has no time_utc_usec field", name
-        )
-    at = gnss["timestamp"].astype(np.int64)
-    if "timestamp_time_relative" in gnss:
-        at = at + gnss["timestamp_time_relative"].astype(np.int64)
-    ok = (utc > 0) & (fix >= 2)
+def _utc_offset_us(gnss: dict, fix: np.ndarray, topic: str) -> tuple[float, str] | str:
+    """Median of UTC minus boot time (us) over samples with a fix and a UTC time, and how it was found; or why
+    there is none (a sentence). The boot time of a UTC time is ``timestamp_time`` in the first ULogs (2016, uint64),
+    else ``timestamp + timestamp_time_relative``, else ``timestamp``."""
+    if "time_utc_usec" not in gnss:
+        return f"{topic} has no time_utc_usec field"
+    utc = gnss["time_utc_usec"].astype(np.int64)
+    if "timestamp_time" in gnss:
+        at, stamp = gnss["timestamp_time"].astype(np.int64), "timestamp_time"
+    elif "timestamp_time_relative" in gnss:
+        at = gnss["timestamp"].astype(np.int64) + gnss["timestamp_time_relative"].astype(np.int64)
+        stamp = "timestamp - timestamp_time_relative"
+    else:
+        at, stamp = gnss["timestamp"].astype(np.int64), "timestamp"
+    ok = (utc > 0) & (fix >= 2) & (at > 0)
     if not ok.any():
-        raise InputError(
-            f"ULog timestamps are time since boot and no GNSS UTC time: no {topic} sample has "
-            f"a fix and a non-zero time_utc_usec",
-            name,
-        )
+        return f"no {topic} sample has a fix and a non-zero time_utc_usec"
     diff = utc[ok] - at[ok]
     offset = float(np.median(diff))
     spread_ms = float(np.max(np.abs(diff - offset))) * 1e-3
     text = (
-        f"UTC = boot time + median({topic}.time_utc_usec - timestamp - timestamp_time_relative) over "
+        f"UTC = boot time + median({topic}.time_utc_usec - {stamp}) over "
         f"{int(ok.sum())} samples with fix_type >= 2 (largest deviation {spread_ms:.3f} ms)"
     )
     return offset, text
@@ -250,6 +286,13 @@ def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarr
     for field, column in (("hdop", HDOP), ("vdop", VDOP), ("eph", "eph")):
         if field in g:
             values[column], source[column] = g[field].astype(float), f"{topic}.{field}"
+    lacking = [field for field in ("hdop", "vdop") if field not in g]
+    if lacking:
+        kept = " and ".join(f for f in ("eph", "epv") if f in g) or "no accuracy"
+        notes.append(
+            f"{topic} has no {' or '.join(lacking)} field: no such DOP column ({kept} logged; "
+            "eph, in m, is kept as the auxiliary column eph)"
+        )
     return values, source, fix
 
 
@@ -299,18 +342,31 @@ def _calibration_index(params: dict, device_id: int | None) -> int | None:
     return None
 
 
+#: The refusal of a log without any magnetometer.
+NO_MAGNETOMETER = (
+    "no magnetometer in the log (no sensor_mag, vehicle_magnetometer or sensor_combined.magnetometer_ga): "
+    "record the flight with PX4's logger logging sensor_mag or vehicle_magnetometer"
+)
+#: The refusal of ``raw=False`` for a log with only the raw ``sensor_mag``.
+NO_CALIBRATED = (
+    "no calibrated magnetometer in the log (no vehicle_magnetometer or sensor_combined.magnetometer_ga), "
+    "only the raw sensor_mag: read it with raw=True"
+)
+
+
 def _pick_magnetometer(ulog, mag: int | None, raw: bool, name: str) -> tuple[str, int, dict, str | None]:
     """``(topic, instance, data, why)`` of the magnetometer to read: instance ``mag``, or by default the one
-    ``_default_instance`` gives; ``why`` says in words why a default other than the lowest instance was read."""
-    sensor, vehicle = _datasets(ulog, "sensor_mag"), _datasets(ulog, "vehicle_magnetometer")
+    ``_default_instance`` gives; ``why`` says in words why a default other than the lowest instance was read.
+    ``sensor_mag`` (raw) before ``vehicle_magnetometer`` before ``sensor_combined`` (older PX4)."""
+    sensor, vehicle, combined = _datasets(ulog, "sensor_mag"), _datasets(ulog, "vehicle_magnetometer"), _combined(ulog)
     if raw and sensor:
         topic, sets = "sensor_mag", sensor
     elif vehicle:
         topic, sets = "vehicle_magnetometer", vehicle
-    elif not raw:
-        raise InputError("no vehicle_magnetometer (calibrated magnetometer) topic; read with raw=True", name)
+    elif combined:
+        topic, sets = "sensor_combined", combined
     else:
-        raise InputError("no magnetometer topic (sensor_mag or vehicle_magnetometer) in the log", name)
+        raise InputError(NO_CALIBRATED if sensor else NO_MAGNETOMETER, name)
     instance, why = min(sets), None
     if mag is not None:
         instance = mag
@@ -369,8 +425,14 @@ class _Magnetometer(NamedTuple):
     gauss: np.ndarray
     #: (n,) indices of the kept samples into ``data``.
     rows: np.ndarray
-    #: True for PX4's calibrated ``vehicle_magnetometer``.
+    #: True where PX4's calibration is in the values read (``vehicle_magnetometer``, ``sensor_combined`` not undone).
     calibrated: bool
+    #: Where the sample times come from, in words.
+    time_text: str
+    #: The temperature field (degC), None if not logged.
+    temp_field: str | None
+    #: The ``CAL_MAGn`` slot of a ``sensor_combined`` magnetometer whose calibration was undone, else None.
+    slot: int | None = None
 
 
 class _Gnss(NamedTuple):
@@ -393,6 +455,8 @@ def _magnetometer(ulog, mag: int | None, raw: bool, name: str, notes: list) -> _
     topic, instance, m, why = _pick_magnetometer(ulog, mag, raw, name)
     if why is not None:
         notes.append(why)
+    if topic == "sensor_combined":
+        return _combined_magnetometer(ulog, instance, m, raw, name, notes)
     calibrated = topic == "vehicle_magnetometer"
     if calibrated:
         notes.append(
@@ -407,47 +471,146 @@ def _magnetometer(ulog, mag: int | None, raw: bool, name: str, notes: list) -> _
     if not keep.all():
         notes.append(f"{int((~keep).sum())} {topic} samples with a repeated timestamp were dropped")
     rows = order[keep]
-    return _Magnetometer(topic, instance, m, fields, mag_us[rows], mag_g[rows], rows, calibrated)
+    stamp = "timestamp_sample" if "timestamp_sample" in m and np.all(m["timestamp_sample"] > 0) else "timestamp"
+    temp = "temperature" if "temperature" in m else None
+    return _Magnetometer(
+        topic,
+        instance,
+        m,
+        fields,
+        mag_us[rows],
+        mag_g[rows],
+        rows,
+        calibrated,
+        f"{topic}.{stamp} (us since boot)",
+        temp,
+    )
 
 
-def _gnss(ulog, name: str, notes: list) -> _Gnss:
-    """The lowest instance of the first GNSS topic logged (``_GNSS_TOPICS``), with its position, DOP and fix;
-    InputError naming ``name`` if there is none (no UTC time)."""
-    topic = next((tp for tp in _GNSS_TOPICS if _datasets(ulog, tp)), None)
-    if topic is None:
+def _combined_magnetometer(ulog, instance: int, data: dict, raw: bool, name: str, notes: list) -> _Magnetometer:
+    """Magnetometer ``instance`` of ``sensor_combined`` (PX4 up to v1.7): calibrated as logged, or with ``raw``
+    the driver's readings where the calibration can be undone from the logged parameters (notes say which)."""
+    samples = combined_samples(data, instance)
+    notes.extend(samples.notes)
+    if not len(samples.us):
         raise InputError(
-            "ULog timestamps are time since boot and no GNSS UTC time: no vehicle_gps_position or sensor_gps topic",
+            "sensor_combined has no valid magnetometer sample (every magnetometer time is 0 or marked invalid): "
+            "the magnetometer never published; use a log in which it did",
             name,
         )
+    where = f"sensor_combined.magnetometer_ga (PX4 up to v1.7; {', '.join(samples.fields)})"
+    gauss, calibrated, slot = samples.gauss, True, None
+    if raw:
+        three = "magnetometer_ga[3]" in data
+        selection = _datasets(ulog, "sensor_selection").get(0)
+        undone = undo(samples, ulog.initial_parameters, selection, instance, three)
+        if isinstance(undone, str):
+            notes.append(
+                f"the magnetometer is {where}, in the body FRD frame with PX4's offsets, scales and rotation applied; "
+                f"read as calibrated: the calibration cannot be undone because {undone}"
+            )
+        else:
+            gauss, how, slot = undone
+            calibrated = False
+            notes.append(
+                f"the magnetometer is {where}; PX4's calibration was undone from the logged parameters "
+                f"(m = S^-1 R^T magnetometer_ga + offset: {how}), giving the driver's reading in the board's axes"
+            )
+    else:
+        notes.append(
+            f"the magnetometer is {where}, in the body FRD frame with PX4's offsets, scales and rotation applied "
+            "(raw=False)"
+        )
+    return _Magnetometer(
+        "sensor_combined",
+        instance,
+        data,
+        samples.fields,
+        samples.us,
+        gauss,
+        samples.rows,
+        calibrated,
+        samples.time_text,
+        samples.temp_field,
+        slot,
+    )
+
+
+def _gnss(ulog, notes: list) -> _Gnss | None:
+    """The lowest instance of the first GNSS topic logged (``_GNSS_TOPICS``), with its position, DOP and fix;
+    None if there is none."""
+    topic = next((tp for tp in _GNSS_TOPICS if _datasets(ulog, tp)), None)
+    if topic is None:
+        return None
     sets = _datasets(ulog, topic)
     instance = min(sets)
     values, source, fix = _gnss_fields(sets[instance], topic, notes)
     return _Gnss(topic, instance, sets[instance], values, source, fix)
 
 
-def _magnetometer_columns(mag: _Magnetometer, offset_us: float) -> tuple[dict, dict]:
-    """``time`` (UNIX s) and ``mag_x, mag_y, mag_z`` (nT) of every epoch, and their provenance."""
-    table = {TIME: (mag.us.astype(float) + offset_us) / 1e6}
-    columns = {TIME: f"{mag.topic}.timestamp_sample (us since boot) + GNSS UTC offset"}
+def _magnetometer_columns(mag: _Magnetometer, offset_us: float | None) -> tuple[dict, dict]:
+    """``time`` (UNIX s, or s since boot where ``offset_us`` is None) and ``mag_x, mag_y, mag_z`` (nT) of every
+    epoch, and their provenance."""
+    if offset_us is None:
+        table = {TIME: mag.us.astype(float) / 1e6}
+        columns = {TIME: f"{mag.time_text} -> s since boot (no GNSS UTC time)"}
+    else:
+        table = {TIME: (mag.us.astype(float) + offset_us) / 1e6}
+        columns = {TIME: f"{mag.time_text} + GNSS UTC offset"}
     for k, column in enumerate(MAG):
         table[column] = mag.gauss[:, k] * NT_PER_GAUSS
-        columns[column] = f"{mag.topic}.{mag.fields[k]} (G x 1e5 -> nT)"
+        undone = "" if mag.calibrated or mag.topic != "sensor_combined" else ", PX4's calibration undone"
+        columns[column] = f"{mag.topic}.{mag.fields[k]} (G x 1e5 -> nT{undone})"
     return table, columns
 
 
 def _attitude_columns(ulog, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
-    """``roll, pitch, yaw`` (deg) at the epochs ``t`` (s after ``ref_us``) from ``vehicle_attitude.q`` by slerp,
-    and their provenance; empty (noted) without the topic."""
+    """``roll, pitch, yaw`` (deg) at the epochs ``t`` (s after ``ref_us``) from ``vehicle_attitude`` by slerp, and
+    their provenance; empty (noted) without the topic or without an attitude in it."""
     att = _datasets(ulog, "vehicle_attitude")
     if 0 not in att:
         notes.append("no vehicle_attitude topic: roll, pitch and yaw are absent")
         return {}, {}
-    a = att[0]
-    q_src = np.column_stack([a[f"q[{k}]"].astype(float) for k in range(4)])
-    q, _ = interpolate_quaternions(t, (_sample_us(a) - ref_us) * 1e-6, q_src, max_gap_s)
+    found = _attitude_quaternions(att[0], notes)
+    if found is None:
+        notes.append("vehicle_attitude has neither q nor roll, pitch and yaw: roll, pitch and yaw are absent")
+        return {}, {}
+    q_src, text = found
+    q, _ = interpolate_quaternions(t, (_sample_us(att[0]) - ref_us) * 1e-6, q_src, max_gap_s)
     yaw, pitch, roll = quaternion_to_euler(q)
-    text = "vehicle_attitude.q (scalar first, FRD -> NED; slerp; ZYX Euler, deg)"
     return {ROLL: roll, PITCH: pitch, YAW: yaw}, dict.fromkeys((ROLL, PITCH, YAW), text)
+
+
+#: A logged quaternion is taken as valid when its norm is within this of 1 (float32 components: ~1e-7).
+Q_NORM_TOLERANCE = 1e-3
+
+
+def _attitude_quaternions(a: dict, notes: list) -> tuple[np.ndarray, str] | None:
+    """(m, 4) body-FRD-to-NED quaternions of the ``vehicle_attitude`` samples and their source in words, or None.
+
+    ``q[4]`` (scalar first) where it is valid: ``q_valid`` (PX4 up to v1.5) set, or not logged, and a unit norm.
+    PX4 up to v1.5 also logged ``roll, pitch, yaw`` (rad, Tait-Bryan ZYX, always valid, the quaternion optional):
+    a sample without a valid quaternion takes those, turned into a quaternion (``euler_to_quaternion``)."""
+    has_q = "q[0]" in a
+    has_euler = all(field in a for field in ("roll", "pitch", "yaw"))
+    if not (has_q or has_euler):
+        return None
+    n = len(a["timestamp"])
+    q = np.column_stack([a[f"q[{k}]"].astype(float) for k in range(4)]) if has_q else np.zeros((n, 4))
+    valid = np.abs(np.linalg.norm(q, axis=1) - 1.0) <= Q_NORM_TOLERANCE
+    if "q_valid" in a:
+        valid &= a["q_valid"].astype(bool)
+    then = "; slerp; ZYX Euler, deg)"
+    text = "vehicle_attitude.q (scalar first, FRD -> NED" + then
+    if valid.all() or not has_euler:
+        return q, text
+    euler = euler_to_quaternion(*(np.degrees(a[f].astype(float)) for f in ("yaw", "pitch", "roll")))
+    q[~valid] = euler[~valid]
+    euler_text = "vehicle_attitude.roll, pitch, yaw (rad, ZYX, FRD -> NED; as quaternions" + then
+    if not valid.any():
+        return q, euler_text
+    notes.append(f"{int((~valid).sum())} vehicle_attitude samples without a valid q: their roll, pitch and yaw used")
+    return q, f"{text}, else {euler_text}"
 
 
 def _gnss_columns(gnss: _Gnss, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
@@ -483,12 +646,12 @@ def _auxiliary_columns(
     ):
         if found is not None:
             table[column], columns[column] = found
-    if "temperature" in mag.data:
-        temp = mag.data["temperature"].astype(float)[mag.rows]
+    if mag.temp_field is not None:
+        temp = mag.data[mag.temp_field].astype(float)[mag.rows]
         if np.isfinite(temp).any():
-            table["temp_c"], columns["temp_c"] = temp, f"{mag.topic}.temperature (degC)"
+            table["temp_c"], columns["temp_c"] = temp, f"{mag.topic}.{mag.temp_field} (degC)"
         else:
-            notes.append(f"{mag.topic}.temperature is not logged (NaN): no temp_c")
+            notes.append(f"{mag.topic}.{mag.temp_field} is not logged (NaN): no temp_c")
     return table, columns
 
 
@@ -497,7 +660,7 @@ def _px4_calibration(ulog, mag: _Magnetometer, notes: list) -> tuple[dict, int |
     ``CAL_MAG*``, its ``CAL_MAGn`` slot and the rotation parameters; a disabled or non-primary choice is noted."""
     params = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("CAL_MAG")}
     device_id = int(mag.data["device_id"][0]) if "device_id" in mag.data else None
-    cal_index = _calibration_index(params, device_id)
+    cal_index = mag.slot if mag.topic == "sensor_combined" else _calibration_index(params, device_id)
     rotation = {k: v for k, v in sorted(ulog.initial_parameters.items()) if k.startswith("SENS_BOARD_")}
     if cal_index is not None:
         rotation[f"CAL_MAG{cal_index}_ROT"] = params.get(f"CAL_MAG{cal_index}_ROT")
@@ -512,7 +675,8 @@ def _px4_calibration(ulog, mag: _Magnetometer, notes: list) -> tuple[dict, int |
     rotation["applied"] = mag.calibrated
     rotation["meaning"] = (
         "CAL_MAGn_ROT (external) or SENS_BOARD_ROT (internal, -1 in CAL_MAGn_ROT) rotate "
-        "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer only"
+        "the sensor frame into the body frame; PX4 applies them to vehicle_magnetometer "
+        "(and, up to v1.7, to sensor_combined.magnetometer_ga) only"
     )
     return params, device_id, cal_index, rotation
 
@@ -532,7 +696,9 @@ def _px4_version(ulog, topic: str, notes: list) -> str | None:
     return version
 
 
-def _provenance(ulog, name: str, mag: _Magnetometer, gnss: _Gnss, columns: dict, time_base: str, notes: list) -> dict:
+def _provenance(
+    ulog, name: str, mag: _Magnetometer, gnss: _Gnss | None, columns: dict, time_base: str, notes: list
+) -> dict:
     """The JSON-able provenance of ``read_ulog`` (see there); PX4's calibration and version notes go to
     ``notes`` first."""
     params, device_id, cal_index, rotation = _px4_calibration(ulog, mag, notes)
@@ -552,7 +718,7 @@ def _provenance(ulog, name: str, mag: _Magnetometer, gnss: _Gnss, columns: dict,
             "calibration_index": cal_index,
         },
         "magnetometers": _instances(ulog),
-        "gnss": {"topic": gnss.topic, "instance": int(gnss.instance)},
+        "gnss": None if gnss is None else {"topic": gnss.topic, "instance": int(gnss.instance)},
         "parameters": params,
         "rotation": rotation,
         "time_base": time_base,
@@ -595,16 +761,21 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     ulog = _load(path)
     notes: list[str] = []
     magnetometer = _magnetometer(ulog, mag, raw, name, notes)
-    gnss = _gnss(ulog, name, notes)
-    offset_us, time_base = _utc_offset_us(gnss.data, gnss.fix, gnss.topic, name)
+    gnss = _gnss(ulog, notes)
+    clock = _utc_offset_us(gnss.data, gnss.fix, gnss.topic) if gnss is not None else None
+    offset_us = None if clock is None or isinstance(clock, str) else clock[0]
     ref_us = int(magnetometer.us[0])
     t = (magnetometer.us - ref_us) * 1e-6
     table, columns = _magnetometer_columns(magnetometer, offset_us)
-    for values, sources in (
-        _attitude_columns(ulog, t, ref_us, max_gap_s, notes),
-        _gnss_columns(gnss, t, ref_us, max_gap_s, notes),
-        _auxiliary_columns(ulog, magnetometer, t, ref_us, max_gap_s, notes),
-    ):
+    streams = [_attitude_columns(ulog, t, ref_us, max_gap_s, notes)]
+    if offset_us is not None:
+        streams.append(_gnss_columns(gnss, t, ref_us, max_gap_s, notes))
+        time_base = clock[1]
+    else:
+        notes.append(_boot_time_note(gnss, clock))
+        time_base = BOOT
+    streams.append(_auxiliary_columns(ulog, magnetometer, t, ref_us, max_gap_s, notes))
+    for values, sources in streams:
         table |= values
         columns |= sources
     for column in (HDOP, VDOP, "eph"):
@@ -612,6 +783,27 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
             del table[column], columns[column]
     provenance = _provenance(ulog, name, magnetometer, gnss, columns, time_base, notes)
     return pd.DataFrame(table).reset_index(drop=True), provenance
+
+
+#: ``provenance["time_base"]`` of a log without GNSS UTC time: ``time`` is seconds since boot.
+BOOT = "boot"
+
+
+def _boot_time_note(gnss: _Gnss | None, why: str | None) -> str:
+    """Why ``time`` is seconds since boot, what the log's GNSS holds (its median position, if any) and what to give."""
+    if gnss is None:
+        lacks = "no GNSS topic (vehicle_gps_position or sensor_gps)"
+    else:
+        lacks = f"no GNSS UTC time ({why})"
+        lat, lon = gnss.values[LAT], gnss.values[LON]
+        if np.isfinite(lat).any():
+            lacks += (
+                f"; {gnss.topic} places the log near {np.nanmedian(lat):.6f}, {np.nanmedian(lon):.6f} (median lat, lon)"
+            )
+    return (
+        f"time is seconds since boot and the log has no lat, lon or alt: {lacks}; "
+        "give the site and date (--site LAT,LON[,ALT] --date YYYY-MM-DD)"
+    )
 
 
 # ---------------------------------------------------------------- writing

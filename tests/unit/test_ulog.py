@@ -193,23 +193,30 @@ def test_truncated_log_reads_up_to_the_damage(tmp_path, sample):
 def test_log_without_magnetometer_is_input_error(tmp_path):
     from pyulog import ULog
 
+    from magkf.io.ulog import NO_MAGNETOMETER
+
     ulog = ULog(str(SAMPLE), ["vehicle_attitude", "vehicle_gps_position"])
     path = tmp_path / "no_mag.ulg"
     ulog.write_ulog(str(path))
-    with pytest.raises(InputError, match="no magnetometer topic"):
+    with pytest.raises(InputError) as info:
         read_ulog(path)
+    assert str(info.value) == f"{path}: {NO_MAGNETOMETER}"
 
 
-def test_log_without_gnss_utc_is_input_error(tmp_path):
+def test_log_without_gnss_utc_reads_on_the_boot_time_base(tmp_path):
+    """No GNSS topic, or GNSS without a fix: ``time`` is seconds since boot, no position, time_base "boot"."""
     table = _synthetic(50, seed=3)
     path = tmp_path / "no_gnss.ulg"
-    write_ulog(table.drop(columns=["lat", "lon", "alt", "hdop", "vdop"]), path)
-    with pytest.raises(InputError, match="time since boot and no GNSS UTC time"):
-        read_ulog(path)
-    no_fix = table.assign(lat=np.nan, lon=np.nan)
-    write_ulog(no_fix, path)
-    with pytest.raises(InputError, match="time since boot and no GNSS UTC time"):
-        read_ulog(path)
+    write_ulog(table.drop(columns=["lat", "lon", "alt", "hdop", "vdop"]), path, start_boot_us=5_000_000)
+    no_fix = tmp_path / "no_fix.ulg"
+    write_ulog(table.assign(lat=np.nan, lon=np.nan), no_fix, start_boot_us=5_000_000)
+    for file, lacks in ((path, "no GNSS topic"), (no_fix, "no vehicle_gps_position sample has a fix")):
+        out, prov = read_ulog(file)
+        assert prov["time_base"] == "boot"
+        assert not {"lat", "lon", "alt", "hdop", "vdop", "fix_type"} & set(out.columns)
+        boot = 5.0 + (table["time"] - table["time"][0])
+        assert np.max(np.abs(out["time"] - boot)) <= TIME_ATOL_S
+        assert any(lacks in note and "--site LAT,LON" in note for note in prov["notes"])
 
 
 def test_gnss_gaps_and_span_give_missing_positions(tmp_path):
