@@ -282,6 +282,7 @@ READERS: Registry = Registry(
         "parquet": "magkf.io.drivelog:CanonicalParquet",
         "ulog": "magkf.io.ulog:ULogReader",
         "dataflash": "magkf.io.dataflash:DataFlashReader",
+        "tlog": "magkf.io.tlog:TelemetryLogReader",
         "rosbag": "magkf.io.rosbag:RosBagReader",
         "mapped": "magkf.io.columnmap:MappedTable",
     },

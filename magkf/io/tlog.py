@@ -1,0 +1,1090 @@
+"""MAVLink telemetry logs (``.tlog``) read into the canonical drive log, and written from one.
+
+Format
+    A telemetry log is what a ground station (Mission Planner, QGroundControl, MAVProxy) received over its
+    MAVLink link, packet by packet: each packet is preceded by an 8-byte big-endian unsigned integer, the
+    ground station's UNIX time of receipt in microseconds (MAVProxy keeps its link number in the two lowest
+    bits). A packet starts with ``0xFE`` (MAVLink 1: 6 header bytes, payload, 2 checksum bytes) or ``0xFD``
+    (MAVLink 2: 10 header bytes, payload, 2 checksum bytes and 13 signature bytes when the first
+    incompatibility flag is set); https://mavlink.io/en/guide/serialization.html. The file has no header of
+    its own. magkf walks these records itself (so that it can decode only the messages it needs and find
+    its way past damage) and has pymavlink (``pymavlink.dialects.v20.ardupilotmega``) check each packet's
+    checksum and decode it. Message and field meanings: the MAVLink common message set
+    (https://mavlink.io/en/messages/common.html).
+
+Which vehicle
+    A log can hold several systems (``sysid``) and components (``compid``): the ground station's own
+    ``HEARTBEAT`` (type ``MAV_TYPE_GCS``), cameras, gimbals, other vehicles. The reader takes the autopilot
+    (``compid`` 1) of the first vehicle that sends a ``HEARTBEAT``; ``HEARTBEAT.autopilot`` says whether it
+    runs ArduPilot (``MAV_AUTOPILOT_ARDUPILOTMEGA`` = 3) or PX4 (``MAV_AUTOPILOT_PX4`` = 12).
+
+Magnetometer messages (``xmag, ymag, zmag``)
+    ========  ================  ===========================================  ==========================
+    instance  message           ArduPilot                                    PX4
+    ========  ================  ===========================================  ==========================
+    0         ``RAW_IMU``       ``Compass::get_field(0)``: calibrated, mG    not sent
+    0         ``SCALED_IMU``    the same field, ms time stamps               ``sensor_mag`` 0, mG: raw
+    1         ``SCALED_IMU2``   ``get_field(1)``: calibrated, mG             ``sensor_mag`` 1, mG: raw
+    2         ``SCALED_IMU3``   ``get_field(2)``: calibrated, mG             ``sensor_mag`` 2, mG: raw
+    3         ``HIGHRES_IMU``   ``get_field()`` x 1000 (see below)           ``vehicle_magnetometer``
+                                                                             less the EKF's bias, G:
+                                                                             calibrated
+    ========  ================  ===========================================  ==========================
+
+    ArduPilot (``libraries/GCS_MAVLink/GCS_Common.cpp``, ``GCS_MAVLINK::send_raw_imu`` and
+    ``send_scaled_imu``) sends ``Compass::get_field(i)``, the field after ``correct_field`` (offsets, scale,
+    soft-iron matrix and motor compensation, in milligauss), despite the message's name; since 4.0 ``i`` is
+    a priority (``_get_state(Priority(i))``), so the parameter set is found through ``COMPASS_PRIOn_ID`` as
+    for DataFlash logs. The float is passed to the message's ``int16_t`` field, i.e. truncated towards zero.
+    ``send_highres_imu`` multiplies ``get_field()`` (mG) by 1000 although its comment says gauss; the unit
+    of ``HIGHRES_IMU`` is therefore taken from the magnitudes (about 0.5 G, or 5e5 of those units).
+    PX4 (``src/modules/mavlink/streams/SCALED_IMU.hpp``, ``SCALED_IMU2.hpp``, ``SCALED_IMU3.hpp``) sends
+    ``sensor_mag`` instance 0, 1, 2 times 1000 (G to mG, truncated to int16): the driver's reading before
+    the ``CAL_MAGn`` calibration (PX4 v1.12 on; up to v1.11 the driver applied the offsets and scales
+    itself, see ``magkf.io.ulog``); ``HIGHRES_IMU.hpp`` sends ``vehicle_magnetometer`` (calibrated and
+    rotated into the body frame) less the estimator's magnetometer bias, in gauss.
+
+    With ``raw=True`` an ArduPilot field is uncorrected with the ``COMPASS_*`` values the log's own
+    ``PARAM_VALUE`` messages give (``magkf.io.dataflash.compass_uncorrect``; the value in effect at each
+    epoch); motor compensation is undone where ``COMPASS_MOTCT`` is 1 (throttle) or 2 (current) and that
+    stream is in the log. A field whose calibration cannot be undone (no parameters; PX4's
+    ``HIGHRES_IMU``) is read as it is, and the provenance says so (``magnetometer.calibrated``).
+
+Time
+    ``time_usec`` fields are microseconds since boot, or UNIX time when larger than ``UNIX_MIN_US`` (the
+    MAVLink convention: "the receiving end can infer the format by checking the magnitude"; ArduPilot's
+    ``GPS_RAW_INT`` is UNIX time); ``time_boot_ms`` fields are milliseconds since boot (the autopilot's
+    clock truncated to ms). UTC = boot time + the median over ``SYSTEM_TIME`` messages of
+    ``time_unix_usec - time_boot_ms`` (messages with a UNIX time). Without ``SYSTEM_TIME`` the ground
+    station's receipt stamps are used instead: UTC = boot time + the median of ``receipt - boot time`` over
+    the vehicle's time-stamped messages, which is the ground station's clock and includes the link's
+    latency. Messages without a time field (``BATTERY_STATUS``, ``SYS_STATUS``, ``VFR_HUD``,
+    ``PARAM_VALUE``) are placed at their receipt time less that median. A boot time that falls back by more
+    than ``REBOOT_S`` marks a reboot; the boot with the most magnetometer samples is read.
+
+Streams (interpolated onto the magnetometer's epochs with ``magkf.io.streams``)
+    ``ATTITUDE`` ``roll, pitch, yaw`` (rad), else ``ATTITUDE_QUATERNION`` ``q1..q4`` (scalar first),
+    body FRD in NED. ``GPS_RAW_INT``: ``fix_type`` (``GPS_FIX_TYPE``: 3 = 3-D), ``lat, lon`` (1e-7 deg),
+    ``alt`` (mm above MSL), ``alt_ellipsoid`` (mm above WGS-84; MAVLink 2 extension, 0 when not given),
+    ``eph, epv`` (HDOP and VDOP x 100, 65535 unknown). ``BATTERY_STATUS.current_battery`` (battery 0) else
+    ``SYS_STATUS.current_battery`` (cA, -1 unknown); ``VFR_HUD.throttle`` (percent); the magnetometer
+    message's own ``temperature`` (cdegC, the IMU's; 0 = not given) else ``SCALED_PRESSURE.temperature``.
+
+Writing
+    ``write_tlog`` turns a canonical table (a simulation) into a telemetry log as an ArduPilot or PX4
+    vehicle would stream it, for tests: see its docstring.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import deque
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..conventions import (
+    ALT,
+    HDOP,
+    LAT,
+    LON,
+    MAG,
+    NT_PER_UNIT,
+    PITCH,
+    ROLL,
+    VDOP,
+    YAW,
+    euler_to_quaternion,
+    quaternion_to_euler,
+)
+from ..errors import InputError
+from .dataflash import (
+    _CAL_DEFAULTS,
+    _CAL_PARAMS,
+    NT_PER_MILLIGAUSS,
+    _effective_scale,
+    _firmware_compass,
+    _param_at,
+    _param_name,
+    _state_index,
+    _untruncate,
+    compass_correct,
+    compass_uncorrect,
+)
+from .drivelog import AutopilotLog, table_to_write
+from .streams import bracket, interpolate_linear, interpolate_quaternions
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = ["STORAGE_SIGMA_NT", "TelemetryLogReader", "magnetometer_instances", "read_tlog", "write_tlog"]
+
+MAGIC_V1, MAGIC_V2 = 0xFE, 0xFD
+STAMP_BYTES = 8
+#: ``MAV_AUTOPILOT`` codes and the names magkf gives them (``magkf export --to``).
+AUTOPILOTS = {3: "ardupilot", 12: "px4"}
+MAV_AUTOPILOT_INVALID = 8
+MAV_TYPE_GCS = 6
+AUTOPILOT_COMPONENT = 1
+#: A ``time_usec`` above this (2001-09-09) is UNIX time, below it time since boot.
+UNIX_MIN_US = 10**15
+UNKNOWN_U16 = 65_535
+#: A packet identical to one received this recently (us) is the same packet logged twice.
+DUPLICATE_WINDOW_US = 2_000_000
+#: A boot time that falls back by more than this (s) is a reboot of the vehicle.
+REBOOT_S = 5.0
+#: Slow streams (battery, throttle) count a gap only beyond this many of their median intervals.
+AUX_GAP_INTERVALS = 3.0
+#: Receipt stamps further than this (us) from the last good one are not a record's stamp (resynchronising).
+STAMP_JUMP_US = 86_400 * 10**6
+#: Magnetometer messages: (instance, message, unit), in the order a default is chosen.
+MAG_MESSAGES = (
+    (0, "RAW_IMU", "mG"),
+    (0, "SCALED_IMU", "mG"),
+    (1, "SCALED_IMU2", "mG"),
+    (2, "SCALED_IMU3", "mG"),
+    (3, "HIGHRES_IMU", "G"),
+)
+MAG_NAMES = tuple(m for _, m, _ in MAG_MESSAGES)
+WANTED = (
+    "HEARTBEAT",
+    "SYSTEM_TIME",
+    "PARAM_VALUE",
+    "ATTITUDE",
+    "ATTITUDE_QUATERNION",
+    "GPS_RAW_INT",
+    "BATTERY_STATUS",
+    "SYS_STATUS",
+    "VFR_HUD",
+    "SCALED_PRESSURE",
+    *MAG_NAMES,
+)
+#: Storage error (nT, per axis, standard deviation) of the magnetometer as a tlog holds it: the int16 mG
+#: field truncated and centred by the reader is uniform over 1 mG = 100 nT (100 / sqrt(12)), combined with
+#: the attitude's float32 radians (a rounding of 2**-22 rad at most near pi, uniform, times the largest
+#: Earth field, 66 000 nT), which is negligible beside it.
+STORAGE_SIGMA_NT = float(np.hypot(100.0 / np.sqrt(12.0), 2.0**-22 / np.sqrt(12.0) * 66_000.0))
+
+
+# ------------------------------------------------------------------ records and packets
+def _dialect():
+    from pymavlink.dialects.v20 import ardupilotmega
+
+    return ardupilotmega
+
+
+def _packet_length(data: bytes, at: int) -> int:
+    """Length (bytes) of the MAVLink packet starting at ``data[at]``, 0 if no packet starts there."""
+    if at + 3 > len(data):
+        return 0
+    if data[at] == MAGIC_V1:
+        return 8 + data[at + 1]
+    if data[at] == MAGIC_V2:
+        return 12 + data[at + 1] + (13 if data[at + 2] & 1 else 0)
+    return 0
+
+
+def _header(packet: bytes) -> tuple[int, int, int]:
+    """``(msgid, sysid, compid)`` of a whole packet."""
+    if packet[0] == MAGIC_V1:
+        return packet[5], packet[3], packet[4]
+    return packet[7] | packet[8] << 8 | packet[9] << 16, packet[5], packet[6]
+
+
+class _Records:
+    """The wanted packets of a telemetry log, decoded: ``messages`` is a list of ``(receipt_us, msg)`` in file
+    order; ``skipped`` bytes that were no record, ``bad`` packets that failed their checksum, ``duplicates``
+    packets logged twice, ``cut`` True when the last record runs past the end of the file."""
+
+    def __init__(self, path):
+        self.path = str(path)
+        try:
+            with open(path, "rb") as f:
+                self.data = f.read()
+        except OSError as exc:
+            raise InputError(f"cannot read the file ({exc.strerror})", self.path) from None
+        dialect = _dialect()
+        self.parser = dialect.MAVLink(None)
+        self.wanted = {cls.msgname: i for i, cls in dialect.mavlink_map.items() if cls.msgname in WANTED}
+        self.wanted_ids = frozenset(self.wanted.values())
+        self.messages: list = []
+        self.skipped = self.bad = self.duplicates = self.packets = self.decoded = 0
+        self.cut = False
+        self._walk()
+
+    def _walk(self) -> None:
+        data, pos, last = self.data, 0, None
+        recent: deque = deque()
+        seen: dict = {}
+        while pos + STAMP_BYTES < len(data):
+            length = _packet_length(data, pos + STAMP_BYTES)
+            stamp = int.from_bytes(data[pos : pos + STAMP_BYTES], "big")
+            end = pos + STAMP_BYTES + length
+            plausible = last is None or abs(stamp - last) <= STAMP_JUMP_US
+            if not length or not plausible:
+                pos = self._resync(pos, last)
+                continue
+            if end > len(data):
+                self.cut = True
+                break
+            packet = data[pos + STAMP_BYTES : end]
+            if self._take(packet, stamp, recent, seen):
+                last = stamp
+                pos = end
+            else:
+                pos = self._resync(pos, last)
+
+    def _resync(self, pos: int, last) -> int:
+        """The next position after ``pos`` where a record could start (a start byte after 8 bytes); the bytes
+        passed over are counted in ``skipped``."""
+        data, start = self.data, pos + 1 + STAMP_BYTES
+        while start < len(data):
+            found = [i for i in (data.find(b"\xfe", start), data.find(b"\xfd", start)) if i >= 0]
+            if not found:
+                break
+            at = min(found) - STAMP_BYTES
+            stamp = int.from_bytes(data[at : at + STAMP_BYTES], "big")
+            if last is None or abs(stamp - last) <= STAMP_JUMP_US:
+                self.skipped += at - pos
+                return at
+            start = at + STAMP_BYTES + 1
+        self.skipped += len(data) - pos
+        return len(data)
+
+    def _take(self, packet: bytes, stamp: int, recent: deque, seen: dict) -> bool:
+        """Decode ``packet`` if it is of a wanted type and not a duplicate; False if it fails its checksum."""
+        msgid = _header(packet)[0]
+        if msgid not in self.wanted_ids:
+            self.packets += 1
+            return True  # not checked: a packet magkf does not read
+        try:
+            msg = self.parser.decode(bytearray(packet))
+        except Exception:  # noqa: BLE001 - pymavlink raises MAVError, struct.error or others on a bad packet
+            self.bad += 1
+            return False
+        self.packets += 1
+        self.decoded += 1
+        while recent and recent[0][0] < stamp - DUPLICATE_WINDOW_US:
+            seen.pop(recent.popleft()[1], None)
+        if packet in seen:
+            self.duplicates += 1
+            return True
+        seen[packet] = stamp
+        recent.append((stamp, packet))
+        self.messages.append((stamp, msg))
+        return True
+
+
+# ------------------------------------------------------------------ the vehicle's streams
+def _choose_vehicle(messages: list, notes: list) -> tuple[int, int, int | None]:
+    """``(sysid, compid, MAV_AUTOPILOT code or None)`` of the first vehicle's autopilot: the first
+    ``HEARTBEAT`` of component 1 that is not a ground station, else the source of the first magnetometer
+    message; other sources are noted."""
+    sources = {(m.get_srcSystem(), m.get_srcComponent()) for _, m in messages}
+    chosen = None
+    for _, m in messages:
+        if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == AUTOPILOT_COMPONENT:
+            if m.type != MAV_TYPE_GCS and m.autopilot != MAV_AUTOPILOT_INVALID:
+                chosen = (m.get_srcSystem(), AUTOPILOT_COMPONENT, int(m.autopilot))
+                break
+    if chosen is None:
+        first = next((m for _, m in messages if m.get_type() in MAG_NAMES), None)
+        if first is None:
+            return 0, 0, None
+        chosen = (first.get_srcSystem(), first.get_srcComponent(), None)
+        notes.append(
+            f"no HEARTBEAT of a vehicle's autopilot (component 1): read the source of the first magnetometer "
+            f"message, system {chosen[0]} component {chosen[1]}, autopilot unknown"
+        )
+    others = sorted(s for s in sources if s != chosen[:2])
+    if others:
+        listed = ", ".join(f"{s}:{c}" for s, c in others)
+        notes.append(
+            f"the log holds messages of several systems/components: read system {chosen[0]} component "
+            f"{chosen[1]} (the first vehicle's autopilot); left aside those of {listed} (sysid:compid)"
+        )
+    return chosen
+
+
+def _boot_time_us(msg) -> int | None:
+    """Boot time (us) a message carries (``time_boot_ms`` or a boot-time ``time_usec``), else None."""
+    if hasattr(msg, "time_boot_ms"):
+        return int(msg.time_boot_ms) * 1000
+    t = getattr(msg, "time_usec", None)
+    if t is not None and 0 < t < UNIX_MIN_US:
+        return int(t)
+    return None
+
+
+def _boot_segments(records: list) -> np.ndarray:
+    """Per record (receipt order): the number of the vehicle's boot it belongs to (0, 1, ...); a new boot
+    starts where a boot time falls back by more than ``REBOOT_S``."""
+    segment, last, out = 0, None, np.zeros(len(records), int)
+    for k, (_, msg) in enumerate(records):
+        boot = _boot_time_us(msg)
+        if boot is not None:
+            if last is not None and boot < last - REBOOT_S * 1e6:
+                segment += 1
+            last = boot
+        out[k] = segment
+    return out
+
+
+class _Vehicle:
+    """The chosen vehicle's messages of one boot: ``tables[name]`` is ``{field: (M,) array, "receipt_us": ...}``
+    in receipt order; ``autopilot`` its name (``ardupilot``, ``px4`` or None); ``params`` the
+    ``PARAM_VALUE`` values as ``{name: (receipt_us (K,), value (K,))}``."""
+
+    def __init__(self, records: _Records, notes: list):
+        self.path = records.path
+        sysid, compid, code = _choose_vehicle(records.messages, notes)
+        self.sysid, self.compid, self.autopilot_code = sysid, compid, code
+        self.autopilot = AUTOPILOTS.get(code) if code is not None else None
+        own = [(t, m) for t, m in records.messages if (m.get_srcSystem(), m.get_srcComponent()) == (sysid, compid)]
+        own = self._one_boot(own, notes)
+        grouped: dict[str, list] = {}
+        for t, m in own:
+            grouped.setdefault(m.get_type(), []).append((t, m))
+        self.tables = {name: _table(rows) for name, rows in grouped.items() if name != "PARAM_VALUE"}
+        self.params = self._parameters(grouped.get("PARAM_VALUE", []))
+
+    @staticmethod
+    def _one_boot(own: list, notes: list) -> list:
+        segments = _boot_segments(own)
+        if not len(segments) or segments[-1] == 0:
+            return own
+        counts = np.bincount(segments, weights=[m.get_type() in MAG_NAMES for _, m in own])
+        keep = int(np.argmax(counts))
+        notes.append(
+            f"the vehicle rebooted {int(segments[-1])} time(s) during the log (boot time fell back): read boot "
+            f"{keep + 1} of {int(segments[-1]) + 1}, the one with the most magnetometer messages; "
+            f"{int(np.count_nonzero(segments != keep))} messages of the other boots left aside"
+        )
+        return [r for r, s in zip(own, segments) if s == keep]
+
+    def _parameters(self, rows: list) -> dict:
+        out: dict[str, tuple[list, list]] = {}
+        for t, m in rows:
+            name = m.param_id.rstrip("\x00") if isinstance(m.param_id, str) else str(m.param_id)
+            ts, vs = out.setdefault(name, ([], []))
+            ts.append(t)
+            vs.append(self._param_value(m))
+        return {k: (np.array(ts, np.int64), np.array(vs, float)) for k, (ts, vs) in out.items()}
+
+    def _param_value(self, m) -> float:
+        """A ``PARAM_VALUE``'s value: PX4 sends integer parameters as their bytes in the float field
+        (``MAV_PARAM_TYPE`` 1..8), ArduPilot as the float of the integer."""
+        kind = int(m.param_type)
+        if self.autopilot != "px4" or not 1 <= kind <= 8:
+            return float(m.param_value)
+        code = "BbHhIiQq"[kind - 1] if kind <= 6 else "i"
+        raw = struct.pack("<f", m.param_value)
+        return float(struct.unpack("<" + code, raw[: struct.calcsize(code)].ljust(struct.calcsize(code), b"\0"))[0])
+
+
+def _table(rows: list) -> dict[str, np.ndarray]:
+    """``{field: (M,) array}`` of messages of one type (``(receipt_us, msg)`` rows) and ``receipt_us``."""
+    msg = rows[0][1]
+    out = {"receipt_us": np.array([t for t, _ in rows], np.int64)}
+    for name in msg.get_fieldnames():
+        values = [getattr(m, name) for _, m in rows]
+        if isinstance(values[0], (str, bytes, list)):
+            continue
+        out[name] = np.array(values)
+    return out
+
+
+# ------------------------------------------------------------------ clock
+class _Clock:
+    """Boot time to UTC, and receipt time to boot time, of one vehicle's log.
+
+    ``receipt_offset_us``: median of ``receipt - boot`` over the time-stamped messages (the ground station's
+    clock less the vehicle's, plus the link's latency); ``utc_offset_us``: UTC - boot time, from
+    ``SYSTEM_TIME`` where it has a UNIX time, else ``receipt_offset_us``."""
+
+    def __init__(self, vehicle: _Vehicle, notes: list):
+        pairs = [(t["receipt_us"], self.boot_of(t)) for name, t in vehicle.tables.items() if _has_boot(t)]
+        receipt = np.concatenate([p[0] for p in pairs]) if pairs else np.zeros(0, np.int64)
+        boot = np.concatenate([p[1] for p in pairs]) if pairs else np.zeros(0)
+        ok = np.isfinite(boot)
+        diff = receipt[ok] - boot[ok]
+        self.receipt_offset_us = float(np.median(diff)) if diff.size else 0.0
+        spread = float(np.median(np.abs(diff - self.receipt_offset_us))) if diff.size else 0.0
+        st = vehicle.tables.get("SYSTEM_TIME")
+        valid = st["time_unix_usec"] > UNIX_MIN_US if st else np.zeros(0, bool)
+        if valid.any():
+            offsets = st["time_unix_usec"][valid].astype(float) - st["time_boot_ms"][valid] * 1000.0
+            self.utc_offset_us = float(np.median(offsets))
+            mad = float(np.median(np.abs(offsets - self.utc_offset_us)))
+            self.time_base = (
+                f"utc: boot time + {self.utc_offset_us * 1e-6:.6f} s, the median over {int(valid.sum())} "
+                f"SYSTEM_TIME messages of time_unix_usec - time_boot_ms (median absolute deviation "
+                f"{mad * 1e-3:.1f} ms)"
+            )
+            return
+        self.utc_offset_us = self.receipt_offset_us
+        self.time_base = (
+            f"utc-ground-station: boot time + {self.utc_offset_us * 1e-6:.6f} s, the median over "
+            f"{int(diff.size)} time-stamped messages of the ground station's receipt stamp - boot time "
+            f"(median absolute deviation {spread * 1e-3:.1f} ms)"
+        )
+        notes.append(
+            "no SYSTEM_TIME with a UNIX time: UTC is the ground station's clock on receipt (the tlog's own "
+            "stamps), which is late by the link's latency and off by the ground station clock's error"
+        )
+
+    @staticmethod
+    def boot_of(table: dict) -> np.ndarray:
+        """Boot time (us, float; NaN where the message has none) of every message of ``table``."""
+        if "time_boot_ms" in table:
+            return table["time_boot_ms"].astype(float) * 1000.0
+        t = table.get("time_usec")
+        if t is None:
+            return np.full(len(table["receipt_us"]), np.nan)
+        t = t.astype(float)
+        return np.where((t > 0) & (t < UNIX_MIN_US), t, np.nan)
+
+    def boot_us(self, table: dict) -> np.ndarray:
+        """Boot time (us) of every message of ``table``: its own, else from a UNIX ``time_usec`` (less
+        ``utc_offset_us``), else its receipt (less ``receipt_offset_us``)."""
+        boot = self.boot_of(table)
+        if "time_usec" in table and "time_boot_ms" not in table:
+            t = table["time_usec"].astype(float)
+            boot = np.where(t >= UNIX_MIN_US, t - self.utc_offset_us, boot)
+        return np.where(np.isfinite(boot), boot, table["receipt_us"] - self.receipt_offset_us)
+
+    def utc_s(self, boot_us) -> np.ndarray:
+        """UNIX time (s) of boot times ``boot_us`` (us)."""
+        return (np.asarray(boot_us, float) + self.utc_offset_us) * 1e-6
+
+
+def _has_boot(table: dict) -> bool:
+    return "time_boot_ms" in table or "time_usec" in table
+
+
+def _in_time_order(table: dict, boot_us: np.ndarray) -> tuple[dict, np.ndarray, int, int]:
+    """``table`` sorted by boot time with the later of messages of equal boot time dropped: ``(table, boot_us,
+    dropped, backwards)``, ``backwards`` the places where the receipt order went back in time."""
+    backwards = int(np.count_nonzero(np.diff(boot_us) < 0))
+    order = np.argsort(boot_us, kind="stable")
+    keep = order[np.concatenate(([True], np.diff(boot_us[order]) > 0))]
+    dropped = len(boot_us) - len(keep)
+    return {k: v[keep] for k, v in table.items()}, boot_us[keep], dropped, backwards
+
+
+# ------------------------------------------------------------------ magnetometers
+def _mag_streams(vehicle: _Vehicle) -> list[dict]:
+    """Each magnetometer message type in the log with a field other than zero: ``{instance, message, unit}``
+    (``SCALED_IMU`` only where there is no ``RAW_IMU``)."""
+    streams, taken = [], set()
+    for instance, message, unit in MAG_MESSAGES:
+        table = vehicle.tables.get(message)
+        if table is None or instance in taken:
+            continue
+        if not np.any([table[c] != 0 for c in ("xmag", "ymag", "zmag")]):
+            continue  # ArduPilot sends zeros for a compass it does not have
+        taken.add(instance)
+        streams.append({"instance": instance, "message": message, "unit": unit})
+    return streams
+
+
+def _summary(vehicle: _Vehicle, clock: _Clock, stream: dict) -> dict:
+    boot = np.unique(clock.boot_us(vehicle.tables[stream["message"]]))
+    span = (boot[-1] - boot[0]) * 1e-6 if len(boot) > 1 else 0.0
+    return {
+        "instance": stream["instance"],
+        "message": stream["message"],
+        "samples": int(len(boot)),
+        "rate_hz": round(float((len(boot) - 1) / span), 3) if span > 0 else None,
+    }
+
+
+def _no_magnetometer(vehicle: _Vehicle) -> str:
+    present = [m for m in MAG_NAMES if m in vehicle.tables]
+    looked = ", ".join(MAG_NAMES)
+    if present:
+        return (
+            f"{', '.join(present)} carry a zero magnetic field throughout (looked for {looked}): the vehicle "
+            "reports no compass on them"
+        )
+    return (
+        f"no magnetometer message from the vehicle (looked for {looked}): the ground station must request the "
+        "RAW_IMU stream (ArduPilot: SRn_RAW_SENS > 0 for its link, e.g. SR0_RAW_SENS; PX4: the SCALED_IMU or "
+        "HIGHRES_IMU stream)"
+    )
+
+
+def _highres_unit(field: np.ndarray, autopilot: str | None, notes: list) -> tuple[float, str]:
+    """nT per count of a ``HIGHRES_IMU`` field (M, 3) and its description: gauss where the magnitudes are
+    those of the Earth's field in gauss, else ArduPilot's ``get_field() * 1000`` (1e-3 mG = 0.1 nT)."""
+    median = float(np.median(np.linalg.norm(field, axis=1))) if len(field) else 0.0
+    if median > 1e3:
+        notes.append(
+            f"HIGHRES_IMU field magnitudes of {median:.4g}: taken as ArduPilot's milligauss x 1000 "
+            "(send_highres_imu), not the gauss of the message definition"
+        )
+        return NT_PER_MILLIGAUSS / 1000.0, "mG x 1000 -> x0.1 nT"
+    if autopilot == "ardupilot":
+        notes.append(f"HIGHRES_IMU field magnitudes of {median:.4g}: taken as gauss")
+    return NT_PER_UNIT["G"], "G -> x1e5 nT"
+
+
+def _is_calibrated(message: str, autopilot: str | None) -> bool | None:
+    """Whether ``message`` carries the autopilot's calibrated field (None: autopilot unknown)."""
+    if message == "HIGHRES_IMU":
+        return True
+    return {"ardupilot": True, "px4": False}.get(autopilot)
+
+
+def _uncorrect_ardupilot(
+    field_mg, boot_us, params: dict, instance: int, aux: dict, notes: list
+) -> tuple[np.ndarray, str, int]:
+    """Undo ArduPilot's ``correct_field`` on ``field_mg`` (N, 3) with the ``COMPASS_*`` parameter set of
+    priority ``instance`` in effect at ``boot_us``; returns the raw field, the description and the compass
+    parameter set's number (1..3)."""
+    k = _state_index(params, instance)
+    suffix = ("", "2", "3")[k] if k < 3 else ""
+    p = {q: _param_at(params, _param_name(q, suffix), boot_us, _CAL_DEFAULTS[q]) for q in _CAL_PARAMS}
+    stack = lambda q: np.column_stack([p[f"{q}_{a}"] for a in "XYZ"])  # noqa: E731
+    motor, motor_text = _motor(params, suffix, boot_us, aux, notes)
+    raw = compass_uncorrect(field_mg, stack("OFS"), stack("DIA"), stack("ODI"), p["SCALE"], motor)
+    scale_used = bool(np.any(_effective_scale(p["SCALE"]) != 1.0))
+    text = (
+        f"ArduPilot 4.x AP_Compass_Backend::correct_field assumed: field = M ((raw + COMPASS_OFS{suffix}) * "
+        f"COMPASS_SCALE{suffix}) + motor, M from COMPASS_DIA{suffix}/COMPASS_ODI{suffix} (PARAM_VALUE values in "
+        f"effect at each epoch{'' if scale_used else '; SCALE outside [1/1.5, 1.5] or 1, not applied'}). Undone: "
+        f"{motor_text}, soft-iron matrix, scale and offsets; the int16 truncation taken as +-0.5 mG away from "
+        "zero. Raw is in the vehicle-aligned frame after the firmware's rotation (COMPASS_ORIENT, "
+        "AHRS_ORIENTATION)."
+    )
+    return raw, text, k + 1
+
+
+def _motor(params: dict, suffix: str, boot_us, aux: dict, notes: list) -> tuple[np.ndarray | float, str]:
+    """ArduPilot's motor compensation (N, 3) mG at ``boot_us`` (``COMPASS_MOTCT`` 1: ``COMPASS_MOT`` x
+    throttle 0..1, 2: x current in A) and what was done about it."""
+    motct = int(_param_at(params, "COMPASS_MOTCT", boot_us[:1], 0.0)[0]) if len(boot_us) else 0
+    mot = np.column_stack([_param_at(params, f"COMPASS_MOT{suffix}_{a}", boot_us, 0.0) for a in "XYZ"])
+    if motct == 0 or not np.any(mot):
+        return 0.0, "no motor compensation (COMPASS_MOTCT 0 or COMPASS_MOT zero)"
+    channel = {1: "throttle", 2: "current_a"}.get(motct)
+    values = aux.get(channel)
+    if values is None:
+        notes.append(
+            f"COMPASS_MOTCT = {motct}: the motor compensation is not undone ("
+            + ("per-motor compensation is not modelled)" if channel is None else f"no {channel} in the log)")
+        )
+        return 0.0, "motor compensation not undone"
+    return mot * np.nan_to_num(values)[:, None], f"motor compensation COMPASS_MOT{suffix} x {channel}"
+
+
+# ------------------------------------------------------------------ reading
+def read_tlog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: float = 0.5):
+    """Read a MAVLink telemetry log into the canonical drive log.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The ``.tlog`` file.
+    mag : int, optional
+        Magnetometer instance (0 ``RAW_IMU``/``SCALED_IMU``, 1 ``SCALED_IMU2``, 2 ``SCALED_IMU3``, 3
+        ``HIGHRES_IMU``); default the first present.
+    raw : bool
+        Undo the autopilot's calibration where the message carries it and the log gives its parameters.
+    max_gap_s : float
+        Longest gap (s) of a stream across which it is interpolated.
+
+    Returns
+    -------
+    (pandas.DataFrame, dict)
+        One row per magnetometer epoch (N rows): ``time`` (UNIX s), ``mag_x, mag_y, mag_z`` (nT),
+        ``roll, pitch, yaw`` (deg), ``lat, lon, alt`` (deg, m; only with a 3-D fix in the log), ``hdop``,
+        ``vdop``, ``fix_type``, ``current_a``, ``throttle`` (0..1), ``temp_c`` where the log has them; and
+        the JSON-able provenance.
+
+    Raises
+    ------
+    InputError
+        One line naming the file: not a telemetry log, no magnetometer message, no such instance.
+    """
+    import pandas as pd
+
+    notes: list[str] = []
+    vehicle, clock = _open(path, notes)
+    frame, provenance = _read(vehicle, clock, mag, raw, max_gap_s, notes)
+    order = ["time", *MAG, *(c for c in frame if c not in ("time", *MAG))]
+    return pd.DataFrame({c: frame[c] for c in order}), provenance
+
+
+def _open(path, notes: list) -> tuple[_Vehicle, _Clock]:
+    """The vehicle's messages and clock of the telemetry log at ``path``; InputError if it holds no MAVLink
+    packet that magkf reads."""
+    records = _Records(path)
+    if not records.decoded:
+        raise InputError(
+            "not a MAVLink telemetry log: no valid MAVLink packet (an 8-byte time stamp, then 0xFE or 0xFD) of "
+            f"the messages magkf reads ({', '.join(WANTED)})",
+            records.path,
+        )
+    _record_notes(records, notes)
+    vehicle = _Vehicle(records, notes)
+    clock = _Clock(vehicle, notes)
+    vehicle.params = {k: (t - clock.receipt_offset_us, v) for k, (t, v) in vehicle.params.items()}
+    return vehicle, clock
+
+
+def _record_notes(records: _Records, notes: list) -> None:
+    if records.cut:
+        notes.append("truncated: the last packet is cut off by the end of the file and was dropped")
+    if records.skipped:
+        notes.append(f"{records.skipped} bytes between records were not a record and were skipped")
+    if records.bad:
+        notes.append(f"{records.bad} packets failed their checksum and were dropped")
+    if records.duplicates:
+        notes.append(
+            f"{records.duplicates} packets were logged twice (the same bytes within "
+            f"{DUPLICATE_WINDOW_US * 1e-6:g} s, e.g. received over two links): the repeats were dropped"
+        )
+
+
+def _read(vehicle: _Vehicle, clock: _Clock, mag, raw: bool, max_gap_s: float, notes: list) -> tuple[dict, dict]:
+    streams = _mag_streams(vehicle)
+    if not streams:
+        raise InputError(_no_magnetometer(vehicle), vehicle.path)
+    stream = _choose_stream(streams, mag, vehicle.path)
+    table, boot = _mag_table(vehicle, clock, stream, notes)
+    t = clock.utc_s(boot)
+    frame = {"time": t}
+    columns = {"time": f"{stream['message']}.{_time_field(table)} (boot time -> UTC s; {clock.time_base})"}
+    _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes)
+    _position(vehicle, clock, boot, max_gap_s, frame, columns, notes)
+    aux = _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns)
+    magnetometer, raw_text = _magnetometer_columns(vehicle, table, boot, stream, raw, aux, frame, columns, notes)
+    magnetometer |= _summary(vehicle, clock, stream)
+    wanted = ("COMPASS_", "CAL_MAG", "AHRS_ORIENTATION", "SENS_BOARD_ROT")
+    provenance = {
+        "format": "mavlink-tlog",
+        "file": vehicle.path,
+        "columns": columns,
+        "magnetometer": magnetometer,
+        "magnetometers": [_summary(vehicle, clock, s) for s in streams],
+        "vehicle": {"sysid": vehicle.sysid, "compid": vehicle.compid, "autopilot": vehicle.autopilot},
+        "parameters": {k: float(v[-1]) for k, (_, v) in sorted(vehicle.params.items()) if k.startswith(wanted)},
+        "raw_reconstruction": raw_text,
+        "time_base": clock.time_base,
+        "notes": notes,
+    }
+    return frame, provenance
+
+
+def _choose_stream(streams: list[dict], mag, path: str) -> dict:
+    instances = [s["instance"] for s in streams]
+    chosen = instances[0] if mag is None else int(mag)
+    if chosen not in instances:
+        raise InputError(f"no magnetometer instance {chosen}; the log has {instances}", path)
+    return next(s for s in streams if s["instance"] == chosen)
+
+
+def _time_field(table: dict) -> str:
+    return "time_boot_ms" if "time_boot_ms" in table else "time_usec"
+
+
+def _mag_table(vehicle: _Vehicle, clock: _Clock, stream: dict, notes: list) -> tuple[dict, np.ndarray]:
+    """The chosen magnetometer's messages in boot-time order, repeats dropped (noted), and their boot times."""
+    message = stream["message"]
+    table, boot, dropped, backwards = _in_time_order(vehicle.tables[message], clock.boot_us(vehicle.tables[message]))
+    if backwards:
+        notes.append(f"{message} messages out of time order at {backwards} place(s) in the log: read sorted by time")
+    if dropped:
+        notes.append(f"{dropped} {message} messages with a repeated time stamp dropped (the first kept)")
+    return table, boot
+
+
+def _magnetometer_columns(
+    vehicle: _Vehicle, table: dict, boot, stream: dict, raw: bool, aux: dict, frame: dict, columns: dict, notes: list
+) -> tuple[dict, str]:
+    """Add ``mag_x, mag_y, mag_z`` (nT) to ``frame``; returns the provenance's ``magnetometer`` and what was
+    undone."""
+    message = stream["message"]
+    field = np.column_stack([table[c].astype(float) for c in ("xmag", "ymag", "zmag")])
+    calibrated = _is_calibrated(message, vehicle.autopilot)
+    info = {"autopilot": vehicle.autopilot, "message_calibrated": calibrated}
+    if message == "HIGHRES_IMU":
+        per_count, unit_text = _highres_unit(field, vehicle.autopilot, notes)
+        nt = field * per_count
+    else:
+        nt, unit_text = _untruncate(field) * NT_PER_MILLIGAUSS, "mG, int16 truncation centred, x100 -> nT"
+    text, undone = _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes)
+    for axis, name in zip("xyz", MAG):
+        columns[name] = f"{message}.{axis}mag ({unit_text}; {'as sent' if undone is None else 'calibration undone'})"
+    frame.update({name: undone[:, i] if undone is not None else nt[:, i] for i, name in enumerate(MAG)})
+    info["calibrated"] = bool(calibrated) and undone is None if calibrated is not None else None
+    return info, text
+
+
+def _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes) -> tuple[str, np.ndarray | None]:
+    """The raw field (nT) where the autopilot's calibration can be undone (else None) and what was done;
+    ``info`` gets the compass parameter set (``compass``) of an ArduPilot magnetometer."""
+    message, instance = stream["message"], stream["instance"]
+    has_compass = any(k.startswith("COMPASS_") for k in vehicle.params)
+    if vehicle.autopilot == "ardupilot" and message != "HIGHRES_IMU":
+        k = _state_index(vehicle.params, instance) if has_compass else instance
+        info["compass"] = k + 1
+        info["parameter_set"] = "COMPASS_OFS{0}, COMPASS_DIA{0}, COMPASS_ODI{0}, COMPASS_SCALE{0}".format(
+            ("", "2", "3")[k]
+        )
+    if calibrated is None:
+        notes.append(
+            f"the autopilot is unknown (no HEARTBEAT of a known one): whether {message} is calibrated is not known"
+        )
+        return "not known whether the field is calibrated: read as sent", None
+    if not calibrated:
+        notes.append(
+            f"{message} of PX4 is sensor_mag, the reading before the CAL_MAG calibration (PX4 v1.12 on; up to "
+            "v1.11 the driver applied the CAL_MAG offsets and scales before publishing it)"
+        )
+        return "nothing to undo: PX4 sends sensor_mag uncalibrated", None
+    if not raw:
+        return "not done (raw=False): the field as the autopilot corrected it", None
+    if message == "HIGHRES_IMU" or not has_compass:
+        why = "no COMPASS_* PARAM_VALUE in the log" if message != "HIGHRES_IMU" else "HIGHRES_IMU is calibrated"
+        notes.append(
+            f"{message} carries the autopilot's calibrated field and its calibration cannot be undone ({why}): "
+            "read as sent; a calibration fitted to it is relative to the autopilot's"
+        )
+        return f"not done ({why}): the field as the autopilot corrected it", None
+    raw_mg, text, _ = _uncorrect_ardupilot(nt / NT_PER_MILLIGAUSS, boot, vehicle.params, instance, aux, notes)
+    return text, raw_mg * NT_PER_MILLIGAUSS
+
+
+def _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
+    """``roll, pitch, yaw`` (deg) at the epochs from ``ATTITUDE`` (radians) or ``ATTITUDE_QUATERNION`` (slerp)."""
+    if "ATTITUDE" in vehicle.tables:
+        table, t_src, _, _ = _in_time_order(vehicle.tables["ATTITUDE"], clock.boot_us(vehicle.tables["ATTITUDE"]))
+        q = euler_to_quaternion(*(np.degrees(table[k].astype(float)) for k in ("yaw", "pitch", "roll")))
+        source = "ATTITUDE.{} (rad -> deg; slerp of quaternions)"
+    elif "ATTITUDE_QUATERNION" in vehicle.tables:
+        raw_table = vehicle.tables["ATTITUDE_QUATERNION"]
+        table, t_src, _, _ = _in_time_order(raw_table, clock.boot_us(raw_table))
+        q = np.column_stack([table[k].astype(float) for k in ("q1", "q2", "q3", "q4")])
+        source = "ATTITUDE_QUATERNION.q1..q4 ({}; slerp)"
+    else:
+        notes.append("no ATTITUDE or ATTITUDE_QUATERNION message: no attitude")
+        return
+    q_t, _ = interpolate_quaternions(boot * 1e-6, t_src * 1e-6, q, max_gap_s)
+    yaw, pitch, roll = quaternion_to_euler(q_t)
+    frame.update(roll=roll, pitch=pitch, yaw=yaw)
+    for name in (ROLL, PITCH, YAW):
+        columns[name] = source.format(name)
+
+
+def _position(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
+    """``lat, lon, alt`` (3-D fix only), ``hdop``, ``vdop`` and ``fix_type`` at the epochs from ``GPS_RAW_INT``."""
+    gps = vehicle.tables.get("GPS_RAW_INT")
+    if gps is None:
+        notes.append("no GPS_RAW_INT message: no position (the site must be given)")
+        return
+    gps, t_gps, _, _ = _in_time_order(gps, clock.boot_us(gps))
+    t, t_gps = boot * 1e-6, t_gps * 1e-6
+    fix = gps["fix_type"] >= 3
+    i, _, valid = bracket(t, t_gps, max_gap_s)
+    frame["fix_type"] = np.where(valid, gps["fix_type"][i], np.nan)
+    columns["fix_type"] = "GPS_RAW_INT.fix_type of the sample at or before the epoch (GPS_FIX_TYPE: 3 = 3-D)"
+    for name, counts in ((HDOP, gps["eph"]), (VDOP, gps["epv"])):
+        dop = np.where(fix & (counts != UNKNOWN_U16), counts / 100.0, np.nan)
+        if np.isfinite(dop).any():
+            frame[name] = interpolate_linear(t, t_gps, dop, max_gap_s)[0]
+            columns[name] = f"GPS_RAW_INT.{'eph' if name == HDOP else 'epv'} (/100; 65535 unknown), 3-D fix only"
+    if not fix.any():
+        notes.append("GPS_RAW_INT never reports a 3-D fix: no position (the site must be given)")
+        return
+    ell = gps.get("alt_ellipsoid", np.zeros(len(fix)))
+    use_ell = bool(np.any(fix & (ell != 0)))
+    alt = (ell if use_ell else gps["alt"]) / 1000.0
+    for name, values, text in (
+        (LAT, gps["lat"] / 1e7, "GPS_RAW_INT.lat (1e-7 deg)"),
+        (LON, gps["lon"] / 1e7, "GPS_RAW_INT.lon (1e-7 deg)"),
+        (ALT, alt, "GPS_RAW_INT.alt_ellipsoid (mm above WGS-84)" if use_ell else "GPS_RAW_INT.alt (mm above MSL)"),
+    ):
+        frame[name] = interpolate_linear(t, t_gps, np.where(fix, values, np.nan), max_gap_s)[0]
+        columns[name] = f"{text}, 3-D fix only, linear"
+    if not use_ell:
+        notes.append("GPS_RAW_INT has no alt_ellipsoid: alt is above mean sea level, not the WGS-84 ellipsoid")
+
+
+def _aux_gap(t_src: np.ndarray, max_gap_s: float) -> float:
+    step = float(np.median(np.diff(t_src))) if len(t_src) > 1 else 0.0
+    return max(max_gap_s, AUX_GAP_INTERVALS * step)
+
+
+def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -> dict:
+    """``current_a``, ``throttle`` (0..1) and ``temp_c`` at the epochs where the log has them; returns them."""
+    candidates = {
+        "current_a": [
+            ("BATTERY_STATUS", "current_battery", 0.01, "cA -> A; -1 unknown"),
+            ("SYS_STATUS", "current_battery", 0.01, "cA -> A; -1 unknown"),
+        ],
+        "throttle": [("VFR_HUD", "throttle", 0.01, "percent -> 0..1")],
+        "temp_c": [("SCALED_PRESSURE", "temperature", 0.01, "cdegC -> degC")],
+    }
+    out = {}
+    t = boot * 1e-6
+    own_temp = table.get("temperature")
+    if own_temp is not None and np.any(own_temp != 0):
+        values = np.where(own_temp != 0, own_temp * 0.01, np.nan)
+        out["temp_c"] = values
+        columns["temp_c"] = f"{stream['message']}.temperature (cdegC -> degC, the IMU's; 0 not given)"
+        candidates.pop("temp_c")
+    for name, options in candidates.items():
+        for message, field, factor, text in options:
+            source = vehicle.tables.get(message)
+            if source is None or field not in source:
+                continue
+            if message == "BATTERY_STATUS":
+                source = {k: v[source["id"] == 0] for k, v in source.items()}
+            source, t_src, _, _ = _in_time_order(source, clock.boot_us(source))
+            values = source[field].astype(float)
+            values = np.where(values == -1, np.nan, values * factor) if name == "current_a" else values * factor
+            if not len(values) or not np.isfinite(values).any():
+                continue
+            t_src = t_src * 1e-6
+            out[name] = interpolate_linear(t, t_src, values, _aux_gap(t_src, max_gap_s))[0]
+            timed = "" if _has_boot(source) else ", placed at receipt time"
+            columns[name] = f"{message}.{field} ({text}{timed}, linear)"
+            break
+    frame.update(out)
+    return out
+
+
+# ------------------------------------------------------------------ instances
+def magnetometer_instances(path) -> list[dict]:
+    """The magnetometers of a telemetry log: one dict per instance with ``instance`` (0 ``RAW_IMU`` or
+    ``SCALED_IMU``, 1 ``SCALED_IMU2``, 2 ``SCALED_IMU3``, 3 ``HIGHRES_IMU``), ``message``, ``samples`` and
+    ``rate_hz``."""
+    vehicle, clock = _open(path, [])
+    return [_summary(vehicle, clock, s) for s in _mag_streams(vehicle)]
+
+
+class TelemetryLogReader(AutopilotLog):
+    """A ground station's MAVLink telemetry log (``read_tlog``): the chosen magnetometer message's epochs, with
+    attitude, position and DOP interpolated to them and ArduPilot's calibration undone where the log holds
+    its parameters (``raw``)."""
+
+    name = "tlog"
+    title = "MAVLink telemetry log"
+    extensions = (".tlog",)
+    read_table = staticmethod(read_tlog)
+    instances = staticmethod(magnetometer_instances)
+
+    def recognises(self, path, head: bytes) -> bool:
+        """A ``.tlog`` has no magic bytes: its first record is an 8-byte time stamp of this century (UNIX
+        microseconds between 2000 and 2100), then a MAVLink start byte whose header holds a whole packet."""
+        if len(head) < STAMP_BYTES + 3 or head[STAMP_BYTES] not in (MAGIC_V1, MAGIC_V2):
+            return False
+        stamp = int.from_bytes(head[:STAMP_BYTES], "big")
+        return 946_684_800 * 10**6 <= stamp <= 4_102_444_800 * 10**6
+
+
+# ------------------------------------------------------------------ writing
+def write_tlog(
+    table: pd.DataFrame,
+    path,
+    autopilot: str = "ardupilot",
+    params: dict | None = None,
+    *,
+    attitude_per_row: int = 2,
+    gps_period_s: float = 0.2,
+    aux_period_s: float = 0.5,
+    system_time: bool = True,
+    latency_s: float = 0.02,
+    mavlink1: bool = False,
+) -> None:
+    """Write a canonical table as a MAVLink telemetry log of an ArduPilot or PX4 vehicle (for tests).
+
+    ``table`` (N rows; ``time`` a column or the index, UNIX s; its rows at 10 to 50 Hz as a magnetometer
+    stream comes) is sent by vehicle 1, component 1, boot time 10 s at the first row, following ``time`` to
+    1 us; the ground station (system 255, component 190) stamps each packet at its time plus ``latency_s``:
+
+    * ``HEARTBEAT`` at 1 Hz from the vehicle (``autopilot`` ``ardupilot`` or ``px4``) and the ground station;
+      ``PARAM_VALUE`` for each of ``params`` before the first row (float32; PX4's integers by their bytes).
+    * magnetometer at every row with a finite field: ArduPilot ``RAW_IMU`` (``time_usec`` boot us) with the
+      ``COMPASS_*`` calibration of ``params`` applied as the firmware does (``compass_correct``), PX4
+      ``SCALED_IMU`` (``time_boot_ms``), uncalibrated; both in mG truncated to int16, ``temperature`` from
+      ``temp_c``. InputError where a value does not fit in int16.
+    * ``ATTITUDE`` ``attitude_per_row`` times a row (slerp between rows), radians as float32.
+    * ``GPS_RAW_INT`` every ``gps_period_s``: ``fix_type`` (the column, else 3 with a position, 1 without),
+      ``lat, lon`` (1e-7 deg), ``alt`` and ``alt_ellipsoid`` (mm, both from ``alt``), ``eph/epv`` from
+      ``hdop/vdop`` (65535 where NaN); ``time_usec`` UNIX us for ArduPilot, boot us for PX4.
+    * ``SYSTEM_TIME`` at 1 Hz (``system_time``); ``BATTERY_STATUS`` (``current_a``) and ``VFR_HUD``
+      (``throttle``) every ``aux_period_s`` where the table has them.
+
+    ``mavlink1`` packs MAVLink 1 packets (no extension fields, so no ``alt_ellipsoid``).
+    """
+    if autopilot not in ("ardupilot", "px4"):
+        raise InputError(f"unknown autopilot {autopilot!r}; use ardupilot or px4", str(path))
+    name = str(path)
+    frame, t = table_to_write(table, name)
+    writer = _TlogWriter(t, latency_s, mavlink1, autopilot)
+    params = dict(params or {})
+    writer.heartbeats()
+    writer.parameters(params)
+    writer.magnetometer(frame, params, name)
+    writer.attitude(frame, attitude_per_row)
+    writer.gnss(frame, gps_period_s)
+    if system_time:
+        writer.system_time()
+    writer.auxiliary(frame, aux_period_s)
+    writer.save(path)
+
+
+#: Boot time (us) of a written table's first row.
+_START_US = 10_000_000
+
+
+class _TlogWriter:
+    """Packets of one vehicle and its ground station, each with its receipt stamp, written in stamp order."""
+
+    def __init__(self, t, latency_s: float, mavlink1: bool, autopilot: str):
+        dialect = _dialect()
+        self.dialect = dialect
+        self.vehicle = dialect.MAVLink(None, srcSystem=1, srcComponent=AUTOPILOT_COMPONENT)
+        self.gcs = dialect.MAVLink(None, srcSystem=255, srcComponent=190)
+        self.mavlink1 = mavlink1
+        self.autopilot = autopilot
+        self.t0 = float(t[0])
+        self.unix0_us = int(round(self.t0 * 1e6))
+        self.boot_us = _START_US + np.rint((t - t[0]) * 1e6).astype(np.int64)
+        self.latency_us = int(round(latency_s * 1e6))
+        self.records: list[tuple[int, int, bytes]] = []
+
+    def _send(self, boot_us: int, message, mav=None) -> None:
+        mav = mav or self.vehicle
+        packet = message.pack(mav, force_mavlink1=self.mavlink1)
+        mav.seq = (mav.seq + 1) % 256  # as MAVLink.send does after packing
+        stamp = self.unix0_us + int(boot_us) - _START_US + self.latency_us
+        self.records.append((stamp, len(self.records), packet))
+
+    def _every(self, period_s: float) -> np.ndarray:
+        """Indices of the rows at which a stream of period ``period_s`` sends (the first row of each period)."""
+        slot = (self.boot_us - self.boot_us[0]) // int(round(period_s * 1e6))
+        return np.flatnonzero(np.concatenate(([True], np.diff(slot) > 0)))
+
+    def heartbeats(self) -> None:
+        code = {"ardupilot": 3, "px4": 12}[self.autopilot]
+        for i in self._every(1.0):
+            b = int(self.boot_us[i])
+            self._send(b, self.dialect.MAVLink_heartbeat_message(2, code, 81, 0, 4, 3))
+            self._send(
+                b, self.dialect.MAVLink_heartbeat_message(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0, 3), self.gcs
+            )
+
+    def parameters(self, params: dict) -> None:
+        at = int(self.boot_us[0]) - 500_000
+        for index, (key, value) in enumerate(params.items()):
+            integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+            kind = 6 if integer else 9
+            number = float(value)
+            if integer and self.autopilot == "px4":
+                number = struct.unpack("<f", struct.pack("<i", int(value)))[0]
+            message = self.dialect.MAVLink_param_value_message(key.encode(), number, kind, len(params), index)
+            self._send(at, message)
+
+    def magnetometer(self, frame, params: dict, name: str) -> None:
+        mag_mg = np.column_stack([_column(frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
+        rows = np.all(np.isfinite(mag_mg), axis=1)
+        if self.autopilot == "ardupilot":
+            offsets, diagonals, offdiagonals, scale = _firmware_compass(params)
+            mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
+        sent = np.trunc(mag_mg)
+        too_large = np.argwhere(rows[:, None] & (np.abs(sent) > np.iinfo(np.int16).max))
+        if too_large.size:
+            i, axis = too_large[0]
+            raise InputError(
+                f"field {sent[i, axis]:g} mG does not fit the int16 xmag field", name, int(i) + 1, MAG[axis]
+            )
+        temp = _column(frame, "temp_c")
+        temp = np.where(np.isfinite(temp), np.rint(temp * 100.0), 0).astype(int)
+        for i in np.flatnonzero(rows):
+            b, (x, y, z) = int(self.boot_us[i]), (int(v) for v in sent[i])
+            if self.autopilot == "ardupilot":
+                message = self.dialect.MAVLink_raw_imu_message(b, 0, 0, -1000, 0, 0, 0, x, y, z, 0, int(temp[i]))
+            else:
+                message = self.dialect.MAVLink_scaled_imu_message(
+                    b // 1000, 0, 0, -1000, 0, 0, 0, x, y, z, int(temp[i])
+                )
+            self._send(b, message)
+
+    def attitude(self, frame, per_row: int) -> None:
+        angles = [_column(frame, c) for c in (YAW, PITCH, ROLL)]
+        rows = np.flatnonzero(np.all(np.isfinite(angles), axis=0))
+        if not len(rows):
+            return
+        q = euler_to_quaternion(*(a[rows] for a in angles))
+        t_rows = self.boot_us[rows].astype(float)
+        steps = np.arange(per_row) / per_row
+        t_send = (t_rows[:-1, None] + np.diff(t_rows)[:, None] * steps).ravel()
+        t_send = np.rint(np.append(t_send, t_rows[-1]))
+        q_send, valid = interpolate_quaternions(t_send, t_rows, q)
+        yaw, pitch, roll = quaternion_to_euler(q_send[valid])
+        yaw = (yaw + 180.0) % 360.0 - 180.0
+        for b, r, p, y in zip(t_send[valid].astype(np.int64), np.radians(roll), np.radians(pitch), np.radians(yaw)):
+            self._send(int(b), self.dialect.MAVLink_attitude_message(int(b) // 1000, r, p, y, 0.0, 0.0, 0.0))
+
+    def gnss(self, frame, period_s: float) -> None:
+        lat, lon, alt = _column(frame, LAT), _column(frame, LON), _column(frame, ALT)
+        if not np.isfinite(lat).any() and "fix_type" not in frame:
+            return
+        hdop, vdop, fix_col = _column(frame, HDOP), _column(frame, VDOP), _column(frame, "fix_type")
+        for i in self._every(period_s):
+            b = int(self.boot_us[i])
+            has = bool(np.isfinite(lat[i]) and np.isfinite(lon[i]))
+            fix = int(fix_col[i]) if np.isfinite(fix_col[i]) else (3 if has else 1)
+            time_usec = self.unix0_us + b - _START_US if self.autopilot == "ardupilot" else b
+            alt_mm = int(round(alt[i] * 1000.0)) if has and np.isfinite(alt[i]) else 0
+            message = self.dialect.MAVLink_gps_raw_int_message(
+                time_usec,
+                fix,
+                int(round(lat[i] * 1e7)) if has else 0,
+                int(round(lon[i] * 1e7)) if has else 0,
+                alt_mm,
+                _dop_counts(hdop[i]),
+                _dop_counts(vdop[i]),
+                0,
+                0,
+                12,
+                alt_mm,
+            )
+            self._send(b, message)
+
+    def system_time(self) -> None:
+        for i in self._every(1.0):
+            b = int(self.boot_us[i])
+            self._send(b, self.dialect.MAVLink_system_time_message(self.unix0_us + b - _START_US, b // 1000))
+
+    def auxiliary(self, frame, period_s: float) -> None:
+        current, throttle = _column(frame, "current_a"), _column(frame, "throttle")
+        for i in self._every(period_s):
+            b = int(self.boot_us[i])
+            if np.isfinite(current).any():
+                centi = int(round(current[i] * 100.0)) if np.isfinite(current[i]) else -1
+                cells = [UNKNOWN_U16] * 10
+                self._send(b, self.dialect.MAVLink_battery_status_message(0, 0, 0, 32767, cells, centi, -1, -1, -1))
+            if np.isfinite(throttle).any() and np.isfinite(throttle[i]):
+                self._send(
+                    b, self.dialect.MAVLink_vfr_hud_message(0.0, 0.0, 0, int(round(throttle[i] * 100.0)), 0.0, 0.0)
+                )
+
+    def save(self, path) -> None:
+        self.records.sort(key=lambda r: (r[0], r[1]))
+        with open(path, "wb") as f:
+            for stamp, _, packet in self.records:
+                f.write(stamp.to_bytes(STAMP_BYTES, "big"))
+                f.write(packet)
+
+
+def _column(frame, column: str) -> np.ndarray:
+    return frame[column].to_numpy(float) if column in frame else np.full(len(frame), np.nan)
+
+
+def _dop_counts(dop: float) -> int:
+    return int(min(round(dop * 100.0), UNKNOWN_U16 - 1)) if np.isfinite(dop) else UNKNOWN_U16
