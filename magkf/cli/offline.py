@@ -11,10 +11,17 @@ from . import common
 __all__ = ["add_parsers", "run_sinefit", "run_ellipsoid"]
 
 
+#: The help of the offline commands' ``--map``.
+MAP_HELP = (
+    "column map of a table in another layout (a preamble, no header, whitespace or other delimiters, a MATLAB "
+    ".mat matrix): which of its columns hold {columns} (docs/column-maps.md)"
+)
+
+
 def add_parsers(sub) -> None:
     """Register ``sinefit``, ``ellipsoid``."""
     p = common.command(sub, "sinefit", run_sinefit, "offline sine-fit calibration of a two-plane turntable run")
-    p.add_argument("file", nargs="?", help="turntable CSV")
+    p.add_argument("file", nargs="?", help="turntable CSV (or any table with --map)")
     p.add_argument(
         "--curves",
         help="JSON of fitted curves instead of samples: "
@@ -30,11 +37,13 @@ def add_parsers(sub) -> None:
         help="exact: all samples, vertical-field leak removed (default for samples); paper: the published "
         "equations (the only method for --curves)",
     )
+    p.add_argument("--map", metavar="MAP.toml", help=MAP_HELP.format(columns="plane, angle_deg, mag_x, mag_y, mag_z"))
     common.add_igrf_options(p)
     common.add_mag_unit(p)
     common.add_output_options(p)
     p = common.command(sub, "ellipsoid", run_ellipsoid, "offline ellipsoid (3-axis) or ellipse (2-axis) calibration")
-    p.add_argument("file", help="CSV with the sensor columns")
+    p.add_argument("file", help="CSV with the sensor columns (or any table with --map)")
+    p.add_argument("--map", metavar="MAP.toml", help=MAP_HELP.format(columns="the --columns"))
     p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
     p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
     p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
@@ -64,6 +73,8 @@ def run_sinefit(args) -> int:
         field, inclination = args.field, args.inclination
     if (args.file is None) == (args.curves is None):
         raise InputError("give either a turntable CSV or --curves FILE.json")
+    if args.curves and args.map:
+        raise InputError("--map reads a turntable table; --curves holds fitted curves: give one of them")
     if args.curves:
         if args.method not in (None, "paper"):
             raise InputError("--curves holds fitted curves, not samples: only --method paper applies to them")
@@ -72,7 +83,7 @@ def run_sinefit(args) -> int:
         except InputError as exc:  # about the curves
             raise exc.located(args.curves) from None
     else:
-        table = read_turntable(args.file, args.mag_unit)
+        table = read_turntable(args.file, args.mag_unit, column_map=args.map)
         try:
             result = SineFitCalibrator(field, inclination, args.method or "exact").fit(table, args.file).result_
         except InputError as exc:  # about the run's data
@@ -111,16 +122,15 @@ def run_ellipsoid(args) -> int:
     'igrf' (with --lat/--lon/--date; the horizontal part for --axes 2), or a unit sphere by default."""
     import numpy as np
 
-    from ..io.tables import read_csv, require_complete
     from ..offline.ellipsoid import EllipsoidCalibrator
+    from ..offline.reading import read_offline_table
     from ..plausibility import check_calibration, check_residual
 
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
     columns = columns[: args.axes]
     if len(columns) != args.axes:
         raise InputError(f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}")
-    table = read_csv(args.file, required=columns)
-    require_complete(table, columns, args.file)
+    table, _ = read_offline_table(args.file, columns, args.map, mag_unit=args.mag_unit)
     if args.field == "igrf":
         field = common.igrf_field(args)["magnitude_nt"]
         if args.axes == 2:

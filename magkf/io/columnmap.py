@@ -88,11 +88,16 @@ from ..conventions import (
 from ..errors import InputError
 from .drivelog import DriveLog, UnitWarning, from_table
 from .readers import LogReader
+from .site import BOOT
 
 __all__ = ["ColumnMap", "load_column_map", "read_mapped"]
 
 QUATERNION = ("q0", "q1", "q2", "q3")
-FORMATS = ("csv", "tsv", "whitespace", "parquet")
+FORMATS = ("csv", "tsv", "whitespace", "parquet", "mat")
+#: Formats that are not text: the text layout keys do not apply to them.
+BINARY_FORMATS = ("parquet", "mat")
+#: Delimiters a map may name in words, and what they are (``whitespace``: any run of blanks and tabs).
+NAMED_DELIMITERS = {"whitespace": "whitespace", "tab": "\t", "comma": ",", "semicolon": ";"}
 #: Data-file extensions and the format they imply when the map does not say.
 EXTENSION_FORMATS = {
     ".csv": "csv",
@@ -103,6 +108,7 @@ EXTENSION_FORMATS = {
     ".xyz": "whitespace",
     ".parquet": "parquet",
     ".pq": "parquet",
+    ".mat": "mat",
 }
 MAG_UNITS = (*NT_PER_UNIT, "counts")
 #: Time units and how many of them make one second.
@@ -119,8 +125,10 @@ TEXT_DEFAULTS = {
     "encoding": "utf-8",
     "missing": ("",),
 }
+#: The highest sample rate (Hz) a map may give: a magnetometer logs at most a few kHz.
+MAX_RATE_HZ = 1.0e6
 SECTIONS = {
-    "file": ("format", *TEXT_DEFAULTS),
+    "file": ("format", *TEXT_DEFAULTS, "variable"),
     "units": (
         "mag",
         "mag_scale_nt_per_count",
@@ -129,6 +137,7 @@ SECTIONS = {
         "latlon",
         "time",
         "time_epoch",
+        "rate_hz",
         "start_utc",
         "date_utc",
         "quaternion_order",
@@ -164,6 +173,23 @@ def _column_spec(spec) -> bool:
 def _single_character(value) -> bool:
     """True for an unset value or one character other than a line end."""
     return value is None or (isinstance(value, str) and len(value) == 1 and value not in "\r\n")
+
+
+def _delimiter(value) -> bool:
+    """True for an unset value, one character other than a line end, or a name of ``NAMED_DELIMITERS``."""
+    return value in NAMED_DELIMITERS or _single_character(value)
+
+
+def _delimited_format(separator: str) -> str:
+    """The text format a delimiter implies: ``whitespace``, ``tsv`` (a tab) or ``csv`` (any other character)."""
+    return "whitespace" if separator == "whitespace" else "tsv" if separator == "\t" else "csv"
+
+
+def _rate(value) -> bool:
+    """True for an unset value or a sample rate in (0, MAX_RATE_HZ] Hz (an int or float, not a bool)."""
+    return value is None or (
+        not isinstance(value, bool) and isinstance(value, (int, float)) and 0 < value <= MAX_RATE_HZ
+    )
 
 
 def _line_count(value) -> bool:
@@ -202,11 +228,15 @@ def _nt_per_count(value) -> bool:
 _FILE_RULES = (
     ("keep_unmapped", lambda m: isinstance(m.keep_unmapped, bool), "{value!r} is not true or false"),
     _one_of("format", FORMATS, optional=True),
-    ("delimiter", lambda m: _single_character(m.delimiter), "{value!r} is not a single character"),
+    (
+        "delimiter",
+        lambda m: _delimiter(m.delimiter),
+        "{value!r} is neither a single character nor one of " + ", ".join(NAMED_DELIMITERS),
+    ),
     ("comment", lambda m: _single_character(m.comment), "{value!r} is not a single character"),
     (
         "comment",
-        lambda m: m.comment is None or m.comment not in (m.delimiter, m.decimal, " ", "\t"),
+        lambda m: m.comment is None or m.comment not in (m.separator, m.decimal, " ", "\t"),
         "{value!r} cannot also be the delimiter, the decimal mark or blank",
     ),
     ("header", lambda m: _line_count(m.header), "{value!r} is not a line count (an integer >= 0)"),
@@ -217,9 +247,14 @@ _FILE_RULES = (
         "line {value} is among the {map.skip_rows} skipped lines ([file] skip_rows)",
     ),
     _one_of("decimal", (".", ",")),
-    ("decimal", lambda m: m.decimal != m.delimiter, "the decimal mark is also the delimiter"),
+    ("decimal", lambda m: m.decimal != m.separator, "the decimal mark is also the delimiter"),
     ("encoding", lambda m: _text_encoding(m.encoding), "unknown text encoding {value!r}"),
     ("missing", lambda m: _strings(m.missing), "{value!r} is not a list of strings"),
+    (
+        "variable",
+        lambda m: m.variable is None or (isinstance(m.variable, str) and m.variable.strip() != ""),
+        "{value!r} is not a MATLAB variable name",
+    ),
 )
 #: The checks of a map's ``[units]`` keys, made in this order, as ``_FILE_RULES``.
 _UNIT_RULES = (
@@ -244,12 +279,24 @@ _UNIT_RULES = (
     _one_of("latlon", ("deg", "rad")),
     _one_of("time", tuple(PER_SECOND)),
     _one_of("time_epoch", TIME_EPOCHS),
+    ("rate_hz", lambda m: _rate(m.rate_hz), f"{{value!r}} is not a sample rate in (0, {MAX_RATE_HZ:g}] Hz"),
+    (
+        "rate_hz",
+        lambda m: m.rate_hz is None or TIME not in m.columns,
+        "the records are timed twice: map [columns] time or give [units] rate_hz, not both",
+    ),
+    (
+        "time_epoch",
+        lambda m: m.rate_hz is None or m.time_epoch != "seconds_of_day",
+        "{value!r} does not apply with [units] rate_hz (its start, if known, is [units] start_utc)",
+    ),
+    ("time", lambda m: m.rate_hz is None or m.time == "s", "{value!r} does not apply with [units] rate_hz"),
     _one_of("quaternion_order", ("wxyz", "xyzw")),
     _one_of("quaternion_frame", ("body_to_ned", "ned_to_body")),
     (
         "start_utc",
-        lambda m: m.start_utc is None or m.time_epoch == "start",
-        'only applies with [units] time_epoch = "start"',
+        lambda m: m.start_utc is None or m.time_epoch == "start" or m.rate_hz is not None,
+        'only applies with [units] time_epoch = "start" or rate_hz',
     ),
     (
         "date_utc",
@@ -273,8 +320,8 @@ def _check_rules(cmap, rules: tuple) -> None:
 
 def _check_columns(columns: dict, source: str) -> None:
     """InputError naming the map ``source`` and the ``[columns]`` key of the first problem: a value that names
-    no file column, a required column not mapped, a group (attitude, quaternion, reference, position) mapped in
-    part, or the attitude mapped twice."""
+    no file column, a group (attitude, quaternion, reference, position) mapped in part, or the attitude mapped
+    twice. Which columns are required is the reader's to say (``require_columns``)."""
 
     def refuse(name: str, message: str):
         raise InputError(f"[columns] {name}: {message}", source)
@@ -282,9 +329,6 @@ def _check_columns(columns: dict, source: str) -> None:
     for name, spec in columns.items():
         if not _column_spec(spec):
             refuse(name, f"{spec!r} is neither a column name nor a 1-based column position")
-    for name in (TIME, *MAG):
-        if name not in columns:
-            refuse(name, "required: say which file column holds it")
     for group in (ATTITUDE, QUATERNION, REF, (LAT, LON)):
         absent = [c for c in group if c not in columns]
         if 0 < len(absent) < len(group):
@@ -324,6 +368,8 @@ class ColumnMap:
     date_utc: date | None = None
     quaternion_order: str = "wxyz"
     quaternion_frame: str = "body_to_ned"
+    rate_hz: float | None = None
+    variable: str | None = None
     description: str = field(default="", compare=False)
 
     def __post_init__(self):
@@ -339,7 +385,7 @@ class ColumnMap:
         if self.format is not None:
             _check_layout(self, self.format, "this map")
         _check_rules(self, _UNIT_RULES)
-        if self.time_epoch == "start" and self.start_utc is not None:
+        if (self.time_epoch == "start" or self.rate_hz is not None) and self.start_utc is not None:
             object.__setattr__(
                 self, "start_utc", _utc_datetime(self.start_utc, lambda m: _refuse(self, "start_utc", m))
             )
@@ -355,6 +401,20 @@ class ColumnMap:
     def ref_unit(self) -> str:
         """Unit of the file's ``ref_*`` columns."""
         return self.ref or self.mag
+
+    @property
+    def separator(self) -> str | None:
+        """The delimiter as a character (``"whitespace"`` for runs of blanks), or None when the map names none."""
+        return NAMED_DELIMITERS.get(self.delimiter, self.delimiter) if isinstance(self.delimiter, str) else None
+
+
+def require_columns(cmap: ColumnMap, names) -> None:
+    """InputError naming the map and the ``[columns]`` key of the first of ``names`` that ``cmap`` does not map
+    (``time`` is given by ``[units] rate_hz`` too): what a reader of the mapped table needs."""
+    for name in names:
+        if name not in cmap.columns and not (name == TIME and cmap.rate_hz is not None):
+            also = " (or give [units] rate_hz, the records' sample rate)" if name == TIME else ""
+            raise InputError(f"[columns] {name}: required: say which file column holds it{also}", cmap.source)
 
 
 def _iso(value, bad, kind: type, example: str, needed_by: str):
@@ -383,14 +443,27 @@ def _utc_date(value, bad) -> date:
 
 
 def _check_layout(cmap: ColumnMap, fmt: str, what: str) -> None:
-    """Raise InputError when the map sets a ``[file]`` key that does not apply to ``fmt`` files."""
-    if fmt == "parquet":
+    """Raise InputError when the map sets a ``[file]`` key that does not apply to ``fmt`` files, or a delimiter
+    that contradicts the format."""
+    if fmt in BINARY_FORMATS:
+        kind = "Parquet" if fmt == "parquet" else "MATLAB"
         for name, default in TEXT_DEFAULTS.items():
             if getattr(cmap, name) != default:
-                raise InputError(f"{_key(name)} does not apply to {what}, a Parquet file", cmap.source)
-    elif fmt != "csv" and cmap.delimiter is not None:
-        raise InputError(f"{_key('delimiter')} does not apply to {what}, a {fmt} file (only to csv)", cmap.source)
-    elif fmt == "csv" and cmap.decimal == (cmap.delimiter or ","):
+                raise InputError(f"{_key(name)} does not apply to {what}, a {kind} file", cmap.source)
+    if fmt != "mat" and cmap.variable is not None:
+        raise InputError(f"{_key('variable')} applies only to MATLAB .mat files, not to {what}", cmap.source)
+    separator = cmap.separator
+    if separator is not None and fmt != "csv" and _delimited_format(separator) != fmt:
+        raise InputError(
+            f"{_key('delimiter')} {cmap.delimiter!r} contradicts [file] format = {fmt!r} for {what}: give one of them",
+            cmap.source,
+        )
+    if separator is not None and fmt == "csv" and separator == "whitespace":
+        raise InputError(
+            f'{_key("delimiter")} "whitespace" contradicts [file] format = "csv" for {what}: give one of them',
+            cmap.source,
+        )
+    if fmt == "csv" and cmap.decimal == (separator or ","):
         raise InputError(f"{_key('decimal')}: the decimal mark is also the delimiter (csv: ',')", cmap.source)
 
 
@@ -540,7 +613,7 @@ def _check_lines(cmap: ColumnMap, header_line: int | None, rows: list[int], name
 def _parser_options(cmap: ColumnMap, fmt: str) -> dict:
     """The options of ``pandas.read_csv`` (C engine) for a ``fmt`` file read through ``cmap``."""
     return {
-        "sep": {"csv": cmap.delimiter or ",", "tsv": "\t", "whitespace": r"\s+"}[fmt],
+        "sep": {"csv": cmap.separator or ",", "tsv": "\t", "whitespace": r"\s+"}[fmt],
         "engine": "c",
         "comment": cmap.comment,
         "decimal": cmap.decimal,
@@ -625,6 +698,18 @@ def _read_parquet(path: Path) -> _RawTable:
     return _RawTable(frame=frame, names=names, rows=np.arange(table.num_rows) + 2, header_row=1)
 
 
+def _read_mat(path: Path, cmap: ColumnMap) -> tuple[_RawTable, list[str]]:
+    """The records of a MATLAB matrix (``matfile.read_mat_array``): columns ``column_1, column_2, ...``, record
+    ``i`` (from 0) reported as row ``i + 1``, MATLAB's row number of the records-as-rows matrix."""
+    from .matfile import read_mat_array
+
+    array = read_mat_array(path, cmap.variable)
+    n, k = array.values.shape
+    frame = pd.DataFrame({j: array.values[:, j] for j in range(k)})
+    names = [f"column_{j + 1}" for j in range(k)]
+    return _RawTable(frame=frame, names=names, rows=np.arange(n) + 1, header_row=1), [array.description()]
+
+
 def _numeric(values: pd.Series, raw: _RawTable, source: str, column: str, decimal: str, note: str = "") -> np.ndarray:
     """(N,) floats of one column; InputError (ending with ``note``) at the first cell that is not a finite
     number. A missing cell (one of the map's ``missing`` texts; NaN or null in Parquet) becomes NaN.
@@ -665,22 +750,27 @@ def _is_numeric_column(values: pd.Series) -> bool:
 
 
 # ---------------------------------------------------------------- conversions
+#: How a time since the start of the record with no start given is described (its time base is ``BOOT``).
+SINCE_START = "since the start of the record (no [units] start_utc: placed in UTC by --date)"
+
+
 def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, column: str) -> tuple[np.ndarray, str]:
-    """(N,) UNIX seconds from the file's time values, and a sentence saying how they were read."""
+    """(N,) UNIX seconds from the file's time values (seconds since the start when the map gives no
+    ``start_utc``), and a sentence saying how they were read."""
     empty = np.flatnonzero(np.isnan(t))
     if empty.size:
         raise InputError("empty time cell: every record needs a time", source, int(raw.rows[empty[0]]), column)
-    needed = {"start": "start_utc", "seconds_of_day": "date_utc"}.get(cmap.time_epoch)
-    if needed and getattr(cmap, needed) is None:
+    if cmap.time_epoch == "seconds_of_day" and cmap.date_utc is None:
         raise InputError(
-            f"{_key(needed)}: [units] time_epoch = {cmap.time_epoch!r} needs it (the UTC "
-            f"{'date-time of time 0' if needed == 'start_utc' else 'date of the first record'})",
+            f"{_key('date_utc')}: [units] time_epoch = 'seconds_of_day' needs it (the UTC date of the first record)",
             cmap.source,
         )
     seconds = t / PER_SECOND[cmap.time]
     unit = {"s": "seconds", "ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[cmap.time]
     if cmap.time_epoch == "unix":
         return seconds, f"UNIX {unit} (UTC)"
+    if cmap.time_epoch == "start" and cmap.start_utc is None:
+        return seconds, f"{unit} {SINCE_START}"
     if cmap.time_epoch == "start":
         start = cmap.start_utc.timestamp()
         return start + seconds, f"{unit} since {cmap.start_utc.isoformat().replace('+00:00', 'Z')}"
@@ -764,6 +854,8 @@ class _Mapped:
     source: str
     #: ``[columns]`` key -> position of its file column.
     positions: dict[str, int]
+    #: ``[columns]`` keys read as text, not numbers.
+    text: frozenset = frozenset()
 
     def column(self, key: str) -> str:
         """The name of the file column that ``key`` maps."""
@@ -773,6 +865,11 @@ class _Mapped:
         """(N,) floats of the file column that ``key`` maps (``_numeric``)."""
         k = self.positions[key]
         return _numeric(self.raw.frame[k], self.raw, self.source, self.raw.names[k], self.cmap.decimal)
+
+    def texts(self, key: str) -> np.ndarray:
+        """(N,) stripped strings of the file column that ``key`` maps (``""`` for a missing cell)."""
+        values = self.raw.frame[self.positions[key]]
+        return np.array([str(v).strip() if present else "" for v, present in zip(values, values.notna())], object)
 
     def check_range(self, key: str, file_values: np.ndarray, values: np.ndarray, conversion: str) -> None:
         """InputError at the first finite file value of ``key`` that ``conversion`` made infinite."""
@@ -794,6 +891,8 @@ def _data_format(path: Path, cmap: ColumnMap) -> str:
     if not path.is_file():
         raise InputError("no such file", source)
     fmt = cmap.format or EXTENSION_FORMATS.get(path.suffix.lower())
+    if cmap.format is None and cmap.separator is not None and fmt not in BINARY_FORMATS:
+        fmt = _delimited_format(cmap.separator)  # the delimiter says how the text is split, whatever its name
     if fmt is None:
         raise InputError(
             f"cannot tell the format from the extension {path.suffix!r}: set {_key('format')} "
@@ -804,8 +903,27 @@ def _data_format(path: Path, cmap: ColumnMap) -> str:
     return fmt
 
 
+def _relative(cmap: ColumnMap) -> bool:
+    """Whether the map's times count from an unknown start (``provenance["time_base"]`` ``BOOT``)."""
+    return cmap.start_utc is None and (cmap.rate_hz is not None or cmap.time_epoch == "start")
+
+
+def _sampled_time(mapped: _Mapped) -> tuple[np.ndarray, str]:
+    """(N,) times of records sampled at ``[units] rate_hz``: ``start + k / rate_hz`` for record ``k`` (from 0;
+    UNIX s when the map gives ``start_utc``, else seconds since the first record), and how they were made."""
+    cmap = mapped.cmap
+    seconds = np.arange(len(mapped.raw.rows)) / float(cmap.rate_hz)
+    if cmap.start_utc is None:
+        return seconds, f"record number / {cmap.rate_hz:g} Hz, seconds {SINCE_START}"
+    start = cmap.start_utc.isoformat().replace("+00:00", "Z")
+    return cmap.start_utc.timestamp() + seconds, f"record number / {cmap.rate_hz:g} Hz from {start}"
+
+
 def _time_column(mapped: _Mapped) -> tuple[np.ndarray, str]:
-    """(N,) UNIX seconds of every record, and how they were read; InputError at a time that does not increase."""
+    """(N,) UNIX seconds of every record (or seconds since the start, ``_relative``), and how they were read;
+    InputError at a time that does not increase."""
+    if mapped.cmap.rate_hz is not None:
+        return _sampled_time(mapped)
     file_time = mapped.cells(TIME)
     time_values, time_base = _unix_time(file_time, mapped.cmap, mapped.raw, mapped.source, mapped.column(TIME))
     mapped.check_range(TIME, file_time, time_values, time_base)
@@ -826,13 +944,17 @@ def _time_column(mapped: _Mapped) -> tuple[np.ndarray, str]:
     return time_values, time_base
 
 
-def _mapped_columns(mapped: _Mapped) -> tuple[dict, dict, str]:
+def _mapped_columns(mapped: _Mapped) -> tuple[dict, dict, str | None]:
     """``(out, described, time_base)``: every mapped column in magkf's units (``time`` first, then the attitude
-    from a quaternion, then the other keys in the map's order), its source and conversion in words, and how
-    the time was read."""
+    from a quaternion, then the other keys in the map's order; ``mapped.text`` as stripped text), its source
+    and conversion in words, and how the time was read (``BOOT`` for a time since an unknown start; None for a
+    table without time)."""
     cmap = mapped.cmap
-    time_values, time_base = _time_column(mapped)
-    out, described = {TIME: time_values}, {TIME: f"{mapped.column(TIME)} ({time_base})"}
+    out, described, time_base = {}, {}, None
+    if TIME in mapped.positions or cmap.rate_hz is not None:
+        out[TIME], how = _time_column(mapped)
+        described[TIME] = how if cmap.rate_hz is not None else f"{mapped.column(TIME)} ({how})"
+        time_base = BOOT if _relative(cmap) else how
     if QUATERNION[0] in mapped.positions:
         q = np.column_stack([mapped.cells(k) for k in QUATERNION])
         quaternion_columns = [mapped.column(k) for k in QUATERNION]
@@ -845,6 +967,9 @@ def _mapped_columns(mapped: _Mapped) -> tuple[dict, dict, str]:
             )
     for key in cmap.columns:
         if key in (TIME, *QUATERNION):
+            continue
+        if key in mapped.text:
+            out[key], described[key] = mapped.texts(key), f"{mapped.column(key)} (text)"
             continue
         file_values = mapped.cells(key)
         with np.errstate(over="ignore"):
@@ -918,41 +1043,85 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
     Parameters
     ----------
     path : str or Path
-        The data file (csv, tsv, whitespace-separated text or Parquet). It is only read.
+        The data file (csv, tsv, whitespace-separated or other delimited text, Parquet, or a MATLAB ``.mat``
+        matrix). It is only read.
     column_map : ColumnMap, or the path of a TOML column map.
 
     Returns
     -------
-    table : DataFrame, one row per record of the file (N rows, none dropped), with ``time`` (UNIX s,
-        UTC, strictly increasing) first, then the canonical columns present (``mag_*`` and ``ref_*``
-        in nT, ``roll, pitch, yaw, lat, lon`` in degrees), then the auxiliary channels. Missing values
-        are NaN.
+    table : DataFrame, one row per record of the file (N rows, none dropped), with ``time`` first (UNIX s,
+        UTC, strictly increasing; seconds since the start when ``provenance["time_base"]`` is ``"boot"``),
+        then the canonical columns present (``mag_*`` and ``ref_*`` in nT, ``roll, pitch, yaw, lat, lon`` in
+        degrees), then the auxiliary channels. Missing values are NaN.
     provenance : dict
-        ``{"format": "mapped-table", "file", "map", "columns": {output column: "file column
-        (conversion)"}, "units": {...}, "time_base": "...", "ignored": {file column: reason}}``.
+        ``{"format": "mapped-table", "file", "map", "file_format", "columns": {output column: "file column
+        (conversion)"}, "units": {...}, "time_base": "...", "ignored": {file column: reason}, "notes": [...]}``;
+        ``time_base`` is ``"boot"`` for times since an unknown start (a time column counted from the start
+        without ``start_utc``, or ``rate_hz`` without it), which ``--date`` places in UTC.
 
     Raises
     ------
     InputError
         naming the file, row (line number) and column: a missing file, a mapped column missing from the
         file, a non-numeric or non-finite cell, an empty or non-increasing time, a zero quaternion; or
-        naming the map file and key for anything wrong in the map.
+        naming the map file and key for anything wrong in the map, ``time`` (or ``rate_hz``) and
+        ``mag_x, mag_y, mag_z`` among them.
 
     Warns
     -----
     UnitWarning
         when the field magnitudes, once converted to nT, look like another unit than the map says.
     """
+    table, provenance, _ = read_mapped_table(path, column_map, required=(TIME, *MAG))
+    return table, provenance
+
+
+def read_mapped_table(
+    path, column_map: ColumnMap | str | Path, required=(), text_columns=()
+) -> tuple[pd.DataFrame, dict, np.ndarray]:
+    """Read the columns a map names from any table it describes, in magkf's units: ``read_mapped`` without the
+    drive log's required columns (the offline calibrations' tables: a turntable run, samples of a sensor).
+
+    Parameters
+    ----------
+    path : str or Path
+        The data file, as for ``read_mapped``.
+    column_map : ColumnMap, or the path of a TOML column map.
+    required : iterable of str
+        ``[columns]`` keys the map must give (``time`` is given by ``[units] rate_hz`` too).
+    text_columns : iterable of str
+        ``[columns]`` keys whose cells are text (such as a turntable run's ``plane``), kept as stripped strings.
+
+    Returns
+    -------
+    table : DataFrame, one row per record: ``time`` first when the map times the records, then the mapped
+        columns (canonical ones in magkf's units), then the auxiliary channels.
+    provenance : dict
+        As ``read_mapped``'s (``time_base`` None for a table without time).
+    rows : numpy.ndarray
+        (N,) int: the row (file line, ``docs/column-maps.md``) of each record, as errors name it.
+
+    Raises
+    ------
+    InputError
+        As ``read_mapped``: naming the map and key of a required column it does not give.
+    """
     cmap = column_map if isinstance(column_map, ColumnMap) else load_column_map(column_map)
+    require_columns(cmap, required)
     path = Path(path)
     source = str(path)
     fmt = _data_format(path, cmap)
-    raw = _read_parquet(path) if fmt == "parquet" else _read_text(path, cmap, fmt)
+    raw, notes = _read_raw(path, cmap, fmt)
     positions = {key: _resolve(spec, key, raw, cmap, source) for key, spec in cmap.columns.items()}
-    mapped = _Mapped(raw, cmap, source, positions)
+    mapped = _Mapped(raw, cmap, source, positions, frozenset(text_columns) & set(cmap.columns))
     out, described, time_base = _mapped_columns(mapped)
     ignored = _unmapped_columns(mapped, out, described)
-    _check_unit(out, cmap, source)
+    if all(c in out for c in MAG):
+        _check_unit(out, cmap, source)
+    if time_base == BOOT:
+        notes.append(
+            "time counts from the start of the record (the map gives no [units] start_utc): --date places it in UTC"
+        )
     order = [c for c in CORE_COLUMNS if c in out] + [c for c in out if c not in CORE_COLUMNS]
     provenance = {
         "format": "mapped-table",
@@ -963,20 +1132,33 @@ def read_mapped(path, column_map: ColumnMap | str | Path) -> tuple[pd.DataFrame,
         "units": _units(cmap),
         "time_base": time_base,
         "ignored": ignored,
+        "notes": notes,
     }
-    return pd.DataFrame({c: out[c] for c in order}), provenance
+    return pd.DataFrame({c: out[c] for c in order}), provenance, np.asarray(raw.rows)
+
+
+def _read_raw(path: Path, cmap: ColumnMap, fmt: str) -> tuple[_RawTable, list[str]]:
+    """The file's cells by position (``_RawTable``) and notes on how they were found."""
+    if fmt == "parquet":
+        return _read_parquet(path), []
+    if fmt == "mat":
+        return _read_mat(path, cmap)
+    return _read_text(path, cmap, fmt), []
 
 
 class MappedTable(LogReader):
-    """Any text or Parquet table whose columns a TOML column map names (``read_mapped``,
+    """Any text, Parquet or MATLAB table whose columns a TOML column map names (``read_mapped``,
     ``docs/column-maps.md``); chosen by ``--map``, never by the file's content."""
 
     name = "mapped"
     title = "mapped table"
-    options = frozenset({"map"})
+    options = frozenset({"map", "site"})
 
-    def read(self, path, map=None) -> DriveLog:
+    def read(self, path, map=None, site=None) -> DriveLog:
+        """The table at ``path`` through the column map ``map`` and ``from_table``, placed at ``site``
+        (``magkf.io.site.Site``: ``--site``, ``--date``) where it has no position or its time counts from an
+        unknown start; errors name the file's rows."""
         if map is None:
             raise InputError("a mapped table needs a column map (--map MAP.toml)", str(path))
-        table, provenance = read_mapped(path, map)
-        return from_table(table, str(path), "nT", provenance)
+        table, provenance, rows = read_mapped_table(path, map, required=(TIME, *MAG))
+        return from_table(table, str(path), "nT", provenance, row_of=lambda i: int(rows[i]), site=site)

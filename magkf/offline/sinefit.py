@@ -38,7 +38,7 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..conventions import ANGLE, MAG, PLANE, wrap_deg
 from ..errors import InputError
-from ..io.tables import read_csv, require_complete, require_rows
+from ..io.tables import require_rows
 from .base import Calibrator
 
 __all__ = [
@@ -626,31 +626,51 @@ def exact_jacobian(x, data, field_nt, inclination_deg, sign) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- files
-def read_turntable(path, mag_unit: str = "nT") -> pd.DataFrame:
-    """Read a turntable CSV (``plane, angle_deg, mag_x, mag_y, mag_z``), converting the field to nT."""
+def read_turntable(path, mag_unit: str = "nT", column_map=None) -> pd.DataFrame:
+    """Read a turntable table (``plane, angle_deg, mag_x, mag_y, mag_z``), the field converted to nT.
+
+    Parameters
+    ----------
+    path : str or Path
+        magkf's CSV (or Parquet) turntable table or, with ``column_map``, any table the map describes.
+    mag_unit : str
+        Unit of the magnetometer columns of magkf's CSV; with a map, its ``[units] mag`` says it.
+    column_map : str, Path or ColumnMap, optional
+        A column map (``docs/column-maps.md``) whose ``[columns]`` give ``plane`` (text), ``angle_deg`` and
+        ``mag_x, mag_y, mag_z``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``plane`` (``xy`` or ``xz``), ``angle_deg`` (deg) and ``mag_x, mag_y, mag_z`` (nT), one row per sample.
+
+    Raises
+    ------
+    InputError
+        One line naming the file, row and column (rows as the file counts them).
+    """
     from ..conventions import to_nanotesla
+    from ..io.drivelog import MAG_MAX_NT
+    from .reading import read_offline_table
 
     name = str(path)
-    table = read_csv(path, required=(PLANE, ANGLE, *MAG), text_columns=(PLANE,))
-    require_complete(table, (ANGLE, *MAG), name)
+    given_unit = mag_unit if column_map is None else None
+    table, row_of = read_offline_table(path, (PLANE, ANGLE, *MAG), column_map, (PLANE,), mag_unit=mag_unit)
     planes = table[PLANE].astype(str).str.strip().str.lower()
     bad = ~planes.isin(PLANES)
     if bad.any():
         i = int(np.flatnonzero(bad.to_numpy())[0])
-        raise InputError(f"plane must be 'xy' or 'xz', got {table[PLANE].iloc[i]!r}", name, i + 2, PLANE)
+        raise InputError(f"plane must be 'xy' or 'xz', got {table[PLANE].iloc[i]!r}", name, row_of(i), PLANE)
     table[PLANE] = planes
-    from ..io.drivelog import MAG_MAX_NT
-
     for c in MAG:
-        table[c] = to_nanotesla(table[c].to_numpy(), mag_unit)
+        table[c] = to_nanotesla(table[c].to_numpy(), given_unit or "nT")
         far = np.flatnonzero(np.abs(table[c].to_numpy()) > MAG_MAX_NT)
         if far.size:
-            i = int(far[0])
-            raise InputError(f"value beyond +-{MAG_MAX_NT:g} nT once in nT", name, i + 2, c)
+            raise InputError(f"value beyond +-{MAG_MAX_NT:g} nT once in nT", name, row_of(int(far[0])), c)
     angle = table[ANGLE].to_numpy()
     far = np.flatnonzero(np.abs(angle) > 3600)
     if far.size:
-        raise InputError("angle beyond +-3600 deg", name, int(far[0]) + 2, ANGLE)
+        raise InputError("angle beyond +-3600 deg", name, row_of(int(far[0])), ANGLE)
     return table
 
 
