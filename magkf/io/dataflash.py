@@ -730,12 +730,12 @@ def _live_samples(table: dict, stream: dict, instances: list, path: str, notes: 
             source=path,
         )
     others = [i for i in instances if i != stream["instance"]]
-    choose = f"choose another with --mag (the log has instances {instances})" if others else "the log has no other"
+    choose = f"choose another with --mag (the log has {instances})" if others else "the log has no other compass"
     zero = np.all(field == 0.0, axis=1)
     if zero.all() or np.ptp(field, axis=0).max() == 0.0:
         value = ", ".join(f"{v:g}" for v in field[0])
         raise InputError(
-            f"{what} reads ({value}) mG in all {len(field)} samples: no working compass there; {choose}", source=path
+            f"{what} reads ({value}) mG in all {len(field)} samples, so no compass works there; {choose}", source=path
         )
     if zero.any():
         notes.append(f"{int(zero.sum())} {stream['message']} samples of exactly (0, 0, 0) mG (not read) dropped")
@@ -922,6 +922,60 @@ LAYOUTS = {
     "BAT": ("QBfffffcf", "TimeUS,Instance,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res"),
     "CTUN": ("Qffffffefffhh", "TimeUS,ThI,ABst,ThO,ThH,DAlt,Alt,BAlt,DSAlt,SAlt,TAlt,DCRt,CRt"),
 }
+#: Message layouts of earlier generations, for ``write_dataflash(generation=...)`` (the reader needs none of
+#: them: every log declares its layouts in its ``FMT`` messages). Only the messages ``write_dataflash`` writes.
+#:
+#: * ``"3.1"``: ArduPilot 3.0-3.1 (2013-2014), as ArduPlane 3.1 wrote them: ``TimeMS`` (ms since boot), ``PARM``
+#:   and ``MSG`` without a time, a ``GPS`` of GPS time only (``TimeMS`` of week, ``Week``; no boot time ``T``),
+#:   ``MAG``/``MAG2`` with offsets but no motor offsets, an ``ATT`` without ``DesRoll``, ``CURR.Curr`` in
+#:   centiamperes (``libraries/DataFlash/DataFlash.h`` and ``ArduPlane/Log.pde`` of that time,
+#:   https://github.com/ArduPilot/ardupilot/blob/ArduPlane-release/ArduPlane/Log.pde).
+#: * ``"3.2"``: ArduCopter 3.2 (2014-2015): ``TimeMS``; ``GPS`` ``Status,TimeMS,Week,...,T`` with ``T`` the boot
+#:   ms; ``MAG``/``MAG2``/``MAG3`` with ``MOfsX..``; ``ATT`` with ``DesRoll``; ``CTUN.ThrOut`` 0..1000.
+#: * ``"3.5"``: ArduPilot 3.3-3.6 (2015-2018): ``TimeUS``; ``GPS`` ``GMS, GWk``; ``GPA`` without ``AEl``;
+#:   ``MAG``/``MAG2``/``MAG3`` with ``MOfsX..``, ``Health``, ``S``; ``PARM`` ``TimeUS,Name,Value``
+#:   (``libraries/DataFlash/LogStructure.h`` at commit 00b66ddc07c9c2a28684db22298887f041b8c6a8,
+#:   https://github.com/ArduPilot/ardupilot/blob/00b66ddc07c9c2a28684db22298887f041b8c6a8/libraries/DataFlash/LogStructure.h).
+#: * ``"4.5"``: ``LAYOUTS`` (one ``MAG`` with instance ``I`` since 4.0).
+GENERATIONS: dict[str, dict[str, tuple[str, str]]] = {
+    "3.1": {
+        "PARM": ("Nf", "Name,Value"),
+        "MSG": ("Z", "Message"),
+        "GPS": ("BIHBcLLeeEe", "Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,GCrs"),
+        "MAG": ("Ihhhhhh", "TimeMS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ"),
+        "ATT": ("IccCCC", "TimeMS,Roll,Pitch,Yaw,ErrorRP,ErrorYaw"),
+        "BARO": ("Iffc", "TimeMS,Alt,Press,Temp"),
+        "CURR": ("IhhhHf", "TimeMS,Thr,Volt,Curr,Vcc,CurrTot"),
+    },
+    "3.2": {
+        "PARM": ("Nf", "Name,Value"),
+        "MSG": ("Z", "Message"),
+        "GPS": ("BIHBcLLeeEefI", "Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,GCrs,VZ,T"),
+        "MAG": ("Ihhhhhhhhh", "TimeMS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOfsX,MOfsY,MOfsZ"),
+        "ATT": ("IccccCC", "TimeMS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"),
+        "BARO": ("Iffcf", "TimeMS,Alt,Press,Temp,CRt"),
+        "CURR": ("IhIhhhf", "TimeMS,ThrOut,ThrInt,Volt,Curr,Vcc,CurrTot"),
+        "CTUN": ("Ihhhffecchh", "TimeMS,ThrIn,AngBst,ThrOut,DAlt,Alt,BarAlt,DSAlt,SAlt,DCRt,CRt"),
+    },
+    "3.5": {
+        "PARM": ("QNf", "TimeUS,Name,Value"),
+        "MSG": ("QZ", "TimeUS,Message"),
+        "GPS": ("QBIHBcLLefffB", "TimeUS,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,U"),
+        "GPA": ("QCCCCBI", "TimeUS,VDop,HAcc,VAcc,SAcc,VV,SMS"),
+        "MAG": ("QhhhhhhhhhBI", "TimeUS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOfsX,MOfsY,MOfsZ,Health,S"),
+        "ATT": ("QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
+        "BARO": ("QffcfIf", "TimeUS,Alt,Press,Temp,CRt,SMS,Offset"),
+        "CURR": ("Qfff", "TimeUS,Volt,Curr,CurrTot"),
+    },
+    "4.5": {k: v for k, v in LAYOUTS.items() if k != "FMT"},
+}
+#: The firmware string ``write_dataflash`` writes by default for each generation.
+GENERATION_FIRMWARE = {
+    "3.1": "ArduPlane V3.1.0",
+    "3.2": "ArduCopter V3.2.1",
+    "3.5": "ArduCopter V3.5.7",
+    "4.5": "ArduCopter V4.5.0",
+}
 #: Type id of ``FMT``; the other types get ids from 129 on, in the order they are defined.
 FMT_TYPE = 128
 #: ``GPS_UNKNOWN_DOP`` of ``libraries/AP_GPS/AP_GPS.h`` (UINT16_MAX hundredths): a DOP the receiver did not give.
@@ -940,14 +994,21 @@ class DataFlashWriter:
     and column names given; ``write(name, **fields)`` adds messages, each field a scalar or an (n,) array in
     the logged unit (degrees, metres, ...; the writer applies the format character's scale, e.g. ``c`` =
     int16 x 0.01, ``L`` = int32 x 1e-7, with pymavlink's ``FORMAT_TO_STRUCT``, rounding to the nearest count);
-    fields not given are 0. ``tobytes`` gives the ``FMT`` messages, then every message sorted by ``TimeUS``
-    (stable: messages with the same time keep the order in which they were written).
+    fields not given are 0. ``tobytes`` gives the ``FMT`` messages, then every message sorted by boot time
+    (stable: messages with the same time keep the order in which they were written): ``order_us`` if given,
+    else ``TimeUS``, else ``TimeMS`` x 1000 (not in a 3.x ``GPS``, whose ``TimeMS`` is GPS time), else first.
+    ``layouts`` (default ``LAYOUTS``) gives the layout ``define(name)`` declares, e.g. ``GENERATIONS["3.2"]``.
     """
 
-    def __init__(self):
+    def __init__(self, layouts: dict[str, tuple[str, str]] | None = None):
+        self.layouts = LAYOUTS if layouts is None else layouts
         self._types: dict[str, tuple[int, str, list[str], np.dtype]] = {}
-        self._blocks: list[tuple[np.ndarray, np.ndarray]] = []  # (TimeUS (n,), message bytes (n, size))
+        self._blocks: list[tuple[np.ndarray, np.ndarray]] = []  # (order key (n,), message bytes (n, size))
         self._fmt = self._declare("FMT", *LAYOUTS["FMT"], FMT_TYPE)
+
+    def columns(self, name: str) -> list[str]:
+        """The column names of defined message ``name``."""
+        return self._types[name][2]
 
     def _declare(self, name: str, fmt: str, columns: str, type_id: int) -> bytes:
         from pymavlink.DFReader import FORMAT_TO_STRUCT
@@ -965,10 +1026,10 @@ class DataFlashWriter:
 
     def define(self, name: str, fmt: str | None = None, columns: str | None = None) -> None:
         """Declare message ``name`` with format characters ``fmt`` and comma-separated ``columns`` (default
-        ``LAYOUTS[name]``)."""
+        ``layouts[name]``)."""
         if name in self._types:
             raise ValueError(f"message {name} is already defined")
-        fmt, columns = (fmt, columns) if fmt is not None else LAYOUTS[name]
+        fmt, columns = (fmt, columns) if fmt is not None else self.layouts[name]
         type_id = FMT_TYPE + len(self._types)
         if type_id > 255:
             raise ValueError("a DataFlash log has at most 127 message types besides FMT")
@@ -1005,8 +1066,9 @@ class DataFlashWriter:
             records[column] = value
         return records.view(np.uint8).reshape(n, dtype.itemsize)
 
-    def write(self, name: str, **fields) -> None:
-        """Add messages of type ``name``: every field a scalar or an (n,) array (all arrays of one length)."""
+    def write(self, name: str, order_us=None, **fields) -> None:
+        """Add messages of type ``name``: every field a scalar or an (n,) array (all arrays of one length);
+        ``order_us`` (scalar or (n,)) the boot time (us) that places them in the log (see the class)."""
         if name not in self._types:
             raise ValueError(f"message {name} is not defined")
         sizes = {np.size(v) for v in fields.values() if np.ndim(v) > 0}
@@ -1014,8 +1076,11 @@ class DataFlashWriter:
             raise ValueError(f"message {name}: fields of different lengths {sorted(sizes)}")
         n = sizes.pop() if sizes else 1
         if n:
-            time_us = np.broadcast_to(np.asarray(fields.get("TimeUS", -1), np.int64), (n,))
-            self._blocks.append((time_us, self._records(name, n, fields)))
+            if order_us is None:
+                ms = fields.get("TimeMS") if "Week" not in fields else None
+                order_us = fields.get("TimeUS", -1 if ms is None else np.asarray(ms, np.int64) * 1000)
+            key = np.broadcast_to(np.asarray(order_us, np.int64), (n,))
+            self._blocks.append((key, self._records(name, n, fields)))
 
     def tobytes(self) -> bytes:
         """The log: the ``FMT`` messages, then all messages in ``TimeUS`` order."""
@@ -1052,61 +1117,112 @@ def _unix_to_gps_ms(t) -> np.ndarray:
     return np.rint((g0 + leap) * 1000.0).astype(np.int64)
 
 
-def _firmware_compass(parameters: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Offsets, diagonals, off-diagonals (3,) and scale of magnetometer instance 0 from ``parameters``, as
+def _firmware_compass(parameters: dict, instance: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Offsets, diagonals, off-diagonals (3,) and scale of magnetometer ``instance`` from ``parameters``, as
     float32 (how ``PARM`` stores them), with the firmware's defaults where a parameter is absent."""
     params = {k: (np.zeros(1), np.array([v])) for k, v in parameters.items()}
-    suffix = ("", "2", "3")[_state_index(params, 0)]
+    suffix = ("", "2", "3")[_state_index(params, instance)]
     p = {q: float(np.float32(parameters.get(_param_name(q, suffix), _CAL_DEFAULTS[q]))) for q in _CAL_PARAMS}
     ofs, dia, odi = (np.array([p[f"{q}_{a}"] for a in "XYZ"]) for q in ("OFS", "DIA", "ODI"))
     return ofs, dia, odi, p["SCALE"]
 
 
+#: Newer field names and their names in earlier generations, which ``_put`` writes where a layout has them.
+_OLDER_NAMES = {"GMS": "TimeMS", "GWk": "Week", "MOX": "MOfsX", "MOY": "MOfsY", "MOZ": "MOfsZ"}
+
+
+def _put(w: DataFlashWriter, name: str, at_us, **fields) -> None:
+    """Write messages ``name`` at boot times ``at_us`` (us, scalar or (n,)) in the defined layout: its time
+    field (``TimeUS``, else ``TimeMS``; a 3.x ``GPS`` gets ``T`` in ms, its ``TimeMS``/``Week`` being the GPS
+    time), each of ``fields`` under its own or its older name (``_OLDER_NAMES``), the others dropped."""
+    columns = w.columns(name)
+    kept = {}
+    for key, value in fields.items():
+        target = key if key in columns else _OLDER_NAMES.get(key)
+        if target in columns:
+            kept[target] = value
+    gps_style = "Week" in columns
+    at_us = np.asarray(at_us, np.int64)
+    if "TimeUS" in columns:
+        kept["TimeUS"] = at_us
+    elif "TimeMS" in columns and not gps_style:
+        kept["TimeMS"] = at_us // 1000
+    if gps_style and "T" in columns:
+        kept["T"] = at_us // 1000
+    w.write(name, order_us=at_us, **kept)
+
+
+def _reduced(layout: tuple[str, str], drop: tuple[str, ...]) -> tuple[str, str]:
+    """``layout`` without the columns whose names start with one of ``drop``."""
+    pairs = [(c, n) for c, n in zip(layout[0], layout[1].split(",")) if not n.startswith(drop)]
+    return "".join(c for c, _ in pairs), ",".join(n for _, n in pairs)
+
+
 def write_dataflash(
-    table: pd.DataFrame, path, *, parameters: dict | None = None, firmware: str = "ArduCopter V4.5.0"
+    table: pd.DataFrame,
+    path,
+    *,
+    parameters: dict | None = None,
+    firmware: str | None = None,
+    generation: str = "4.5",
+    compasses: int = 1,
+    mag_offsets: bool = True,
+    gnss_time: bool = True,
 ) -> None:
     """Write a canonical drive-log table as an ArduPilot DataFlash log (for tests and simulations).
 
-    ``table`` (N rows; ``time`` a column or the index, UNIX s) is written as ``FMT`` messages for the
-    types used (``LAYOUTS``, ArduPilot 4.5), ``MSG`` with ``firmware`` and one ``PARM`` per entry of
+    ``table`` (N rows; ``time`` a column or the index, UNIX s) is written in the message layouts of
+    ``generation`` (``GENERATIONS``: "3.1", "3.2", "3.5", "4.5"): ``FMT`` messages for the types used, ``MSG``
+    with ``firmware`` (default ``GENERATION_FIRMWARE[generation]``) and one ``PARM`` per entry of
     ``parameters`` (name -> value, stored as float32), then, at each row where its columns are finite, one
-    message of each type its columns fill, all at the row's ``TimeUS`` (boot time 10 s at the first row,
-    following ``time`` to 1 us):
+    message of each type its columns fill, all at the row's boot time (10 s at the first row, following
+    ``time`` to 1 us, or to 1 ms in the ``TimeMS`` generations 3.1 and 3.2):
 
-    * ``MAG`` instance 0 from ``mag_x, mag_y, mag_z`` (nT, the raw reading): converted to mG and corrected
-      as the firmware does (``compass_correct`` with the ``COMPASS_OFS/DIA/ODI/SCALE`` set of instance 0 in
-      ``parameters``, defaults where absent, no motor compensation), then truncated to int16 like
-      ``(int16_t)`` (``OfsX..`` too), so ``read_dataflash(raw=True)`` gives the raw reading back to within the
-      truncation (the reader centres it: +-0.5 mG = 50 nT per corrected component, +-1 mG where it truncated
-      to 0, through the inverse matrix). Raises InputError where a corrected component does not fit in
-      int16 (+-32 767 mG).
+    * ``compasses`` (1 to 3) magnetometers, each from ``mag_x, mag_y, mag_z`` (nT, the raw reading; ``MAG``
+      with instance ``I`` in 4.5, else ``MAG``, ``MAG2``, ``MAG3``): converted to mG and corrected as the firmware
+      does (``compass_correct`` with that instance's ``COMPASS_OFS/DIA/ODI/SCALE`` set in ``parameters``,
+      defaults where absent, no motor compensation), then truncated to int16 like ``(int16_t)`` (``OfsX..``
+      too, unless ``mag_offsets`` is False, which leaves the offset and motor fields out of the layout), so
+      ``read_dataflash(raw=True)`` gives the raw reading back to within the truncation (the reader centres it:
+      +-0.5 mG = 50 nT per corrected component, +-1 mG where it truncated to 0, through the inverse matrix).
+      Raises InputError where a corrected component does not fit in int16 (+-32 767 mG).
     * ``ATT`` from ``roll, pitch, yaw`` (deg; roll wrapped to [-180, 180), yaw to [0, 360), 0.01 deg counts).
-    * ``GPS`` and ``GPA`` at the rows with a finite ``fix_type`` if the table has that column (its value is
-      ``Status``), else at every row: ``Status`` 3 where ``lat, lon`` are finite, else 1 (no fix, no
-      position). ``GWk, GMS`` from ``time`` with the leap seconds of the date (``magkf.io.timebase``);
-      ``Lat, Lng`` (1e-7 deg), ``Alt`` and ``GPA.AEl`` (cm) both from ``alt`` (no geoid model: ``Alt`` is
-      not above mean sea level here); ``HDop``/``VDop`` from ``hdop``/``vdop``, else ArduPilot's unknown
-      DOP (UINT16_MAX counts, which the int16 ``HDop`` field shows as -0.01); ``Spd`` from ``speed_mps``.
-    * ``BARO.Temp`` from ``temp_c`` (degC, ``Alt`` relative to the first row's ``alt``), ``BAT.Curr`` from
-      ``current_a`` (A), ``CTUN.ThO`` from ``throttle`` (0..1; x100 if ``firmware`` is ArduPlane's).
+    * ``GPS`` (and ``GPA`` where the generation has it) at the rows with a finite ``fix_type`` if the table has
+      that column (its value is ``Status``), else at every row: ``Status`` 3 where ``lat, lon`` are finite,
+      else 1 (no fix, no position). GPS week and ms of week from ``time`` with the leap seconds of the date
+      (``magkf.io.timebase``; 0 and 0, a receiver without time, if ``gnss_time`` is False); ``Lat, Lng`` (1e-7
+      deg), ``Alt`` and ``GPA.AEl`` (cm) both from ``alt`` (no geoid model: ``Alt`` is not above mean sea level
+      here); ``HDop``/``VDop`` from ``hdop``/``vdop``, else ArduPilot's unknown DOP (UINT16_MAX counts, which
+      the int16 ``HDop`` field shows as -0.01); ``Spd`` from ``speed_mps``.
+    * ``BARO.Temp`` from ``temp_c`` (degC, ``Alt`` relative to the first row's ``alt``), ``BAT.Curr`` (``CURR``
+      before 4.x; centiamperes in 3.1 and 3.2) from ``current_a`` (A), ``CTUN`` from ``throttle`` (0..1): ``ThO``
+      (x100 for ArduPlane) or 3.2's ``ThrOut`` (x1000 for Copter, x100 otherwise).
 
     Fields that a table does not give are 0. Raises InputError for a missing ``time`` or magnetometer
-    column or a time that does not strictly increase.
+    column or a time that does not strictly increase, ValueError for an unknown ``generation``.
     """
+    if generation not in GENERATIONS:
+        raise ValueError(f"generation {generation!r}: one of {', '.join(GENERATIONS)}")
+    if not 1 <= compasses <= 3:
+        raise ValueError(f"compasses: 1 to 3, not {compasses}")
     name = str(path)
     frame, t = table_to_write(table, name)
-    time_us = _START_US + np.rint((t - t[0]) * 1e6).astype(np.int64)
-    w = DataFlashWriter()
-    for message in ("PARM", "MSG", "MAG", "ATT", "GPS", "GPA"):
-        w.define(message)
-    w.write("MSG", TimeUS=_HEADER_US, Message=firmware)
+    w = DataFlashWriter(GENERATIONS[generation])
+    millisecond_clock = "TimeUS" not in w.layouts["MAG"][1]
+    step = 1000 if millisecond_clock else 1
+    time_us = _START_US + np.rint((t - t[0]) * 1e6 / step).astype(np.int64) * step
+    firmware = GENERATION_FIRMWARE[generation] if firmware is None else firmware
+    for message in ("PARM", "MSG", "ATT", "GPS", "GPA"):
+        if message in w.layouts:
+            w.define(message)
+    _put(w, "MSG", _HEADER_US, Message=firmware)
     parameters = dict(parameters or {})
     if parameters:
         values = np.array([float(v) for v in parameters.values()], np.float32)
-        w.write("PARM", TimeUS=_HEADER_US, Name=np.array(list(parameters)), Value=values, Default=values)
-    _write_magnetometer(w, frame, time_us, parameters, name)
+        _put(w, "PARM", _HEADER_US, Name=np.array(list(parameters)), Value=values, Default=values)
+    _write_magnetometers(w, frame, time_us, parameters, name, compasses, mag_offsets)
     _write_attitude(w, frame, time_us)
-    _write_gnss(w, frame, t, time_us)
+    _write_gnss(w, frame, t, time_us, gnss_time)
     _write_auxiliary(w, frame, time_us, firmware)
     w.save(path)
 
@@ -1121,30 +1237,48 @@ def _sample_ms(time_us: np.ndarray) -> np.ndarray:
     return (time_us // 1000) % 2**32
 
 
-def _write_magnetometer(w: DataFlashWriter, frame: pd.DataFrame, time_us, parameters: dict, name: str) -> None:
-    """``MAG`` instance 0 at the rows with a finite field: ``mag_x, mag_y, mag_z`` (nT) in mG, corrected with
-    the compass parameters of ``parameters`` and truncated to int16; InputError naming ``name``, the row and
-    the column where a corrected component does not fit."""
+def _define_magnetometers(w: DataFlashWriter, compasses: int, mag_offsets: bool) -> list[tuple[str, dict]]:
+    """Define the magnetometer messages; ``(message, instance fields)`` of each instance."""
+    layout = w.layouts["MAG"]
+    if not mag_offsets:
+        layout = _reduced(layout, ("Ofs", "MO"))
+    if "I" in layout[1].split(","):
+        w.define("MAG", *layout)
+        return [("MAG", {"I": k}) for k in range(compasses)]
+    names = ("MAG", "MAG2", "MAG3")[:compasses]
+    for message in names:
+        w.define(message, *layout)
+    return [(message, {}) for message in names]
+
+
+def _write_magnetometers(
+    w: DataFlashWriter, frame: pd.DataFrame, time_us, parameters: dict, name: str, compasses: int, mag_offsets: bool
+) -> None:
+    """``compasses`` magnetometers at the rows with a finite field: ``mag_x, mag_y, mag_z`` (nT) in mG,
+    corrected with each one's compass parameters of ``parameters`` and truncated to int16; InputError naming
+    ``name``, the row and the column where a corrected component does not fit."""
     mag_mg = np.column_stack([_column(frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
     rows = np.all(np.isfinite(mag_mg), axis=1)
-    offsets, diagonals, offdiagonals, scale = _firmware_compass(parameters)
-    mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
-    logged = np.trunc(mag_mg)
-    too_large = np.argwhere(rows[:, None] & (np.abs(logged) > np.iinfo(np.int16).max))
-    if too_large.size:
-        i, axis = too_large[0]
-        raise InputError(
-            f"corrected field {logged[i, axis]:g} mG does not fit the int16 MAG field", name, int(i) + 1, MAG[axis]
+    for k, (message, instance) in enumerate(_define_magnetometers(w, compasses, mag_offsets)):
+        offsets, diagonals, offdiagonals, scale = _firmware_compass(parameters, k)
+        logged = np.trunc(compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale))
+        too_large = np.argwhere(np.abs(logged) > np.iinfo(np.int16).max)
+        if too_large.size:
+            i, axis = too_large[0]
+            row = int(np.flatnonzero(rows)[i]) + 1
+            raise InputError(
+                f"corrected field {logged[i, axis]:g} mG does not fit the int16 MAG field", name, row, MAG[axis]
+            )
+        _put(
+            w,
+            message,
+            time_us[rows],
+            **instance,
+            **{f"Mag{a}": logged[:, j] for j, a in enumerate("XYZ")},
+            **{f"Ofs{a}": np.trunc(offsets[j]) for j, a in enumerate("XYZ")},
+            Health=1,
+            S=time_us[rows] % 2**32,
         )
-    w.write(
-        "MAG",
-        TimeUS=time_us[rows],
-        I=0,
-        **{f"Mag{a}": logged[rows, k] for k, a in enumerate("XYZ")},
-        **{f"Ofs{a}": np.trunc(offsets[k]) for k, a in enumerate("XYZ")},
-        Health=1,
-        S=time_us[rows] % 2**32,
-    )
 
 
 def _write_attitude(w: DataFlashWriter, frame: pd.DataFrame, time_us) -> None:
@@ -1152,29 +1286,34 @@ def _write_attitude(w: DataFlashWriter, frame: pd.DataFrame, time_us) -> None:
     [0, 360) (deg)."""
     roll, pitch, yaw = _column(frame, ROLL), _column(frame, PITCH), _column(frame, YAW)
     rows = np.isfinite(roll) & np.isfinite(pitch) & np.isfinite(yaw)
-    w.write(
+    _put(
+        w,
         "ATT",
-        TimeUS=time_us[rows],
+        time_us[rows],
         Roll=(roll[rows] + 180.0) % 360.0 - 180.0,
         Pitch=pitch[rows],
         Yaw=np.rint(yaw[rows] % 360.0 * 100.0) % 36_000 / 100.0,
     )
 
 
-def _write_gnss(w: DataFlashWriter, frame: pd.DataFrame, t, time_us) -> None:
+def _write_gnss(w: DataFlashWriter, frame: pd.DataFrame, t, time_us, gnss_time: bool = True) -> None:
     """``GPS`` and ``GPA`` at the rows with a finite ``fix_type`` (every row without that column): status,
-    GPS week and ms of ``t`` (UNIX s), position, DOP (unknown where NaN) and speed (see ``write_dataflash``)."""
+    GPS week and ms of ``t`` (UNIX s; 0 without ``gnss_time``), position, DOP (unknown where NaN) and speed
+    (see ``write_dataflash``)."""
     lat, lon, alt = _column(frame, LAT), _column(frame, LON), _column(frame, ALT)
     rows = np.isfinite(_column(frame, "fix_type")) if "fix_type" in frame else np.ones(len(t), bool)
     fix = np.isfinite(lat) & np.isfinite(lon)
     status = _column(frame, "fix_type")[rows] if "fix_type" in frame else np.where(fix, 3, 1)[rows]
     has_alt = fix & np.isfinite(alt)
     week, ms = np.divmod(_unix_to_gps_ms(t[rows]), int(SECONDS_PER_WEEK * 1000))
+    if not gnss_time:
+        week, ms = np.zeros_like(week), np.zeros_like(ms)
     hdop, vdop = _column(frame, HDOP)[rows], _column(frame, VDOP)[rows]
     sample_ms = _sample_ms(time_us)
-    w.write(
+    _put(
+        w,
         "GPS",
-        TimeUS=time_us[rows],
+        time_us[rows],
         Status=status,
         GMS=ms,
         GWk=week,
@@ -1185,41 +1324,41 @@ def _write_gnss(w: DataFlashWriter, frame: pd.DataFrame, t, time_us) -> None:
         Spd=np.nan_to_num(_column(frame, "speed_mps"))[rows],
         U=1,
     )
-    w.write(
-        "GPA",
-        TimeUS=time_us[rows],
-        VDop=np.where(np.isfinite(vdop), vdop, UNKNOWN_DOP_COUNTS * 0.01),
-        SMS=sample_ms[rows],
-        Delta=np.clip(np.diff(sample_ms[rows], prepend=sample_ms[rows][:1]), 0, 65_535),
-        AEl=np.where(has_alt, np.nan_to_num(alt), UNKNOWN_ALT_ELLIPSOID_CM * 0.01)[rows],
-    )
+    if "GPA" in w.layouts:
+        _put(
+            w,
+            "GPA",
+            time_us[rows],
+            VDop=np.where(np.isfinite(vdop), vdop, UNKNOWN_DOP_COUNTS * 0.01),
+            SMS=sample_ms[rows],
+            Delta=np.clip(np.diff(sample_ms[rows], prepend=sample_ms[rows][:1]), 0, 65_535),
+            AEl=np.where(has_alt, np.nan_to_num(alt), UNKNOWN_ALT_ELLIPSOID_CM * 0.01)[rows],
+        )
 
 
 def _write_auxiliary(w: DataFlashWriter, frame: pd.DataFrame, time_us, firmware: str) -> None:
-    """``BARO`` (``temp_c``; ``Alt`` relative to the first finite ``alt``), ``BAT`` (``current_a``) and ``CTUN``
-    (``throttle``, x100 for ArduPlane), each defined and written at its finite rows if the table has any."""
+    """``BARO`` (``temp_c``; ``Alt`` relative to the first finite ``alt``), ``BAT`` or ``CURR`` (``current_a``) and
+    ``CTUN`` (``throttle``), each defined and written at its finite rows if the table has any and the
+    generation that message."""
     alt = _column(frame, ALT)
     ground = alt[np.isfinite(alt)][0] if np.isfinite(alt).any() else 0.0
     temp, current, throttle = _column(frame, "temp_c"), _column(frame, "current_a"), _column(frame, "throttle")
-    if np.isfinite(temp).any():
+    if np.isfinite(temp).any() and "BARO" in w.layouts:
         rows = np.isfinite(temp)
         w.define("BARO")
-        w.write(
-            "BARO",
-            TimeUS=time_us[rows],
-            Alt=np.nan_to_num(alt[rows] - ground),
-            Temp=temp[rows],
-            SMS=_sample_ms(time_us)[rows],
-            Health=1,
-        )
-    if np.isfinite(current).any():
+        _put(w, "BARO", time_us[rows], Alt=np.nan_to_num(alt[rows] - ground), Temp=temp[rows],
+             SMS=_sample_ms(time_us)[rows], Health=1)  # fmt: skip
+    battery = "BAT" if "BAT" in w.layouts else "CURR"
+    if np.isfinite(current).any() and battery in w.layouts:
         rows = np.isfinite(current)
-        w.define("BAT")
-        w.write("BAT", TimeUS=time_us[rows], Curr=current[rows])
-    if np.isfinite(throttle).any():
+        w.define(battery)
+        centi = 100.0 if w.layouts[battery][0][w.columns(battery).index("Curr")] in "hHiI" else 1.0
+        _put(w, battery, time_us[rows], Curr=current[rows] * centi)
+    if np.isfinite(throttle).any() and "CTUN" in w.layouts:
         rows = np.isfinite(throttle)
         w.define("CTUN")
-        w.write("CTUN", TimeUS=time_us[rows], ThO=throttle[rows] * (100.0 if firmware.startswith("ArduPlane") else 1.0))
+        tho, thr_out, _ = _throttle_scale(firmware)
+        _put(w, "CTUN", time_us[rows], ThO=throttle[rows] / tho, ThrOut=throttle[rows] / thr_out)
 
 
 class DataFlashReader(AutopilotLog):
