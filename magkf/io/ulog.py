@@ -66,9 +66,10 @@ from ..conventions import (
     quaternion_to_euler,
 )
 from ..errors import InputError
-from .drivelog import AutopilotLog, table_to_write
+from .drivelog import AutopilotLog
 from .streams import bracket, interpolate_linear, interpolate_quaternions
 from .ulog_combined import combined_instances, combined_samples, undo
+from .ulog_write import write_ulog
 
 __all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
 
@@ -804,160 +805,6 @@ def _boot_time_note(gnss: _Gnss | None, why: str | None) -> str:
         f"time is seconds since boot and the log has no lat, lon or alt: {lacks}; "
         "give the site and date (--site LAT,LON[,ALT] --date YYYY-MM-DD)"
     )
-
-
-# ---------------------------------------------------------------- writing
-_HEADER = b"ULog\x01\x12\x35"
-_NUMPY = {"uint64_t": "<u8", "int32_t": "<i4", "uint32_t": "<u4", "float": "<f4", "uint8_t": "u1", "bool": "u1"}
-
-
-def _topic_fields(table: pd.DataFrame) -> dict[str, list[tuple[str, int, str]]]:
-    """The topics (name -> [(type, array length or 0, field)]) that a table's columns fill."""
-    topics = {
-        "sensor_mag": [
-            ("uint64_t", 0, "timestamp"),
-            ("uint64_t", 0, "timestamp_sample"),
-            ("uint32_t", 0, "device_id"),
-            ("float", 0, "x"),
-            ("float", 0, "y"),
-            ("float", 0, "z"),
-            ("float", 0, "temperature"),
-            ("uint32_t", 0, "error_count"),
-            ("bool", 0, "is_external"),
-        ]
-    }
-    if all(c in table for c in (ROLL, PITCH, YAW)):
-        topics["vehicle_attitude"] = [
-            ("uint64_t", 0, "timestamp"),
-            ("uint64_t", 0, "timestamp_sample"),
-            ("float", 4, "q"),
-        ]
-    if LAT in table and LON in table:
-        topics["vehicle_gps_position"] = [
-            ("uint64_t", 0, "timestamp"),
-            ("uint64_t", 0, "time_utc_usec"),
-            ("int32_t", 0, "lat"),
-            ("int32_t", 0, "lon"),
-            ("int32_t", 0, "alt"),
-            ("int32_t", 0, "alt_ellipsoid"),
-            ("float", 0, "eph"),
-            ("float", 0, "epv"),
-            ("float", 0, "hdop"),
-            ("float", 0, "vdop"),
-            ("int32_t", 0, "timestamp_time_relative"),
-            ("uint8_t", 0, "fix_type"),
-            ("uint8_t", 0, "satellites_used"),
-        ]
-    if "current_a" in table:
-        topics["battery_status"] = [
-            ("uint64_t", 0, "timestamp"),
-            ("float", 0, "voltage_v"),
-            ("float", 0, "current_a"),
-            ("bool", 0, "connected"),
-        ]
-    if "throttle" in table:
-        topics["actuator_controls_0"] = [
-            ("uint64_t", 0, "timestamp"),
-            ("uint64_t", 0, "timestamp_sample"),
-            ("float", 8, "control"),
-        ]
-    return topics
-
-
-def _column(table: pd.DataFrame, column: str, default: float = np.nan) -> np.ndarray:
-    return table[column].to_numpy(float) if column in table else np.full(len(table), default)
-
-
-def _fill(record: np.ndarray, topic: str, table: pd.DataFrame, boot_us: np.ndarray, utc0_us: int) -> None:
-    """Write the payload fields of ``topic`` for every row into the structured ``record``."""
-
-    def f(field: str) -> str:
-        return f"{topic}.{field}"
-
-    record[f("timestamp")] = boot_us
-    if topic == "sensor_mag":
-        record[f("timestamp_sample")] = boot_us
-        for axis, column in zip("xyz", MAG):
-            record[f(axis)] = table[column].to_numpy(float) / NT_PER_GAUSS
-        record[f("temperature")] = _column(table, "temp_c")
-    elif topic == "vehicle_attitude":
-        record[f("timestamp_sample")] = boot_us
-        q = euler_to_quaternion(table[YAW], table[PITCH], table[ROLL])
-        for k in range(4):
-            record[f(f"q[{k}]")] = q[:, k]
-    elif topic == "vehicle_gps_position":
-        lat, lon, alt = _column(table, LAT), _column(table, LON), _column(table, ALT)
-        has_fix, has_alt = np.isfinite(lat) & np.isfinite(lon), np.isfinite(alt)
-        record[f("time_utc_usec")] = utc0_us + (boot_us - boot_us[0])
-        record[f("lat")] = np.where(has_fix, np.round(np.nan_to_num(lat) * 1e7), 0)
-        record[f("lon")] = np.where(has_fix, np.round(np.nan_to_num(lon) * 1e7), 0)
-        alt_mm = np.where(has_fix & has_alt, np.round(np.nan_to_num(alt) * 1e3), 0)
-        record[f("alt")], record[f("alt_ellipsoid")] = alt_mm, alt_mm
-        for field in ("eph", "hdop", "vdop"):
-            record[f(field)] = _column(table, field)
-        record[f("epv")] = np.nan
-        record[f("fix_type")] = np.where(has_fix, np.where(has_alt, 3, 2), 0)
-        record[f("satellites_used")] = np.where(has_fix, 12, 0)
-    elif topic == "battery_status":
-        current = _column(table, "current_a")
-        record[f("current_a")] = np.where(np.isfinite(current), current, -1.0)
-        record[f("connected")] = 1
-    elif topic == "actuator_controls_0":
-        record[f("timestamp_sample")] = boot_us
-        record[f("control[3]")] = _column(table, "throttle")
-
-
-def _message(kind: bytes, payload: bytes) -> bytes:
-    return struct.pack("<HB", len(payload), kind[0]) + payload
-
-
-def write_ulog(table: pd.DataFrame, path, *, start_boot_us: int = 10_000_000) -> None:
-    """Write a canonical drive-log table as a ULog file (for tests and simulations).
-
-    Every row becomes one sample, at the same boot time, of each topic its columns fill:
-    ``sensor_mag`` instance 0 (``mag_*`` nT -> Gauss float32, ``temp_c`` -> ``temperature``, NaN if absent;
-    ``device_id`` 0); ``vehicle_attitude`` (``roll, pitch, yaw`` -> float32 ``q``, scalar first, body FRD to
-    NED); ``vehicle_gps_position`` if ``lat, lon`` are present (int32 1e-7 deg, ``alt`` -> int32 mm in both
-    ``alt`` and ``alt_ellipsoid`` since the table has no geoid height; ``eph, hdop, vdop``; ``fix_type`` 3,
-    2 without ``alt``, 0 where lat/lon are NaN; ``time_utc_usec`` from ``time``); ``battery_status``
-    (``current_a``, -1 where NaN) and ``actuator_controls_0.control[3]`` (``throttle``) where present.
-
-    Boot time starts at ``start_boot_us`` (us) at the first row and follows ``time`` (UNIX s) rounded to
-    1 us. Without ``lat, lon`` the file has no UTC time, as a log without GNSS. Messages follow the ULog
-    file format (docs.px4.io, "ULog File Format"): header, flag bits, formats, info, subscriptions, data.
-    (pyulog 1.3's ``ULog.write_ulog`` only re-serialises a parsed log, one ``struct.pack`` per field and
-    sample; here all records are laid out at once in a numpy structured array.)
-    """
-    name = str(path)
-    table, time_s = table_to_write(table, name)
-    boot_us = start_boot_us + np.round((time_s - time_s[0]) * 1e6).astype(np.int64)
-    utc0_us = round(time_s[0] * 1e6)
-    topics = _topic_fields(table)
-
-    definitions = [
-        _HEADER + struct.pack("<BQ", 1, start_boot_us),
-        _message(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0)),
-    ]
-    for topic, fields in topics.items():
-        text = "".join(f"{kind}[{size}] {field};" if size else f"{kind} {field};" for kind, size, field in fields)
-        definitions.append(_message(b"F", f"{topic}:{text}".encode()))
-    key = b"char[5] sys_name"
-    definitions.append(_message(b"I", bytes([len(key)]) + key + b"magkf"))
-    dtype = []
-    for msg_id, (topic, fields) in enumerate(topics.items()):
-        definitions.append(_message(b"A", struct.pack("<BH", 0, msg_id) + topic.encode()))
-        dtype += [(f"{topic}._size", "<u2"), (f"{topic}._type", "u1"), (f"{topic}._id", "<u2")]
-        for kind, size, field in fields:
-            names = [f"{field}[{k}]" for k in range(size)] if size else [field]
-            dtype += [(f"{topic}.{n}", _NUMPY[kind]) for n in names]
-    record = np.zeros(len(table), dtype=np.dtype(dtype))
-    for msg_id, (topic, fields) in enumerate(topics.items()):
-        payload = sum(np.dtype(_NUMPY[kind]).itemsize * max(size, 1) for kind, size, _ in fields)
-        record[f"{topic}._size"], record[f"{topic}._type"], record[f"{topic}._id"] = 2 + payload, ord("D"), msg_id
-        _fill(record, topic, table, boot_us, utc0_us)
-    with open(path, "wb") as out:
-        out.write(b"".join(definitions))
-        out.write(record.tobytes())
 
 
 class ULogReader(AutopilotLog):
