@@ -479,6 +479,18 @@ def _attitude_columns(stream: _Stream, epochs: _Epochs, max_gap_s: float, notes:
     return {ROLL: roll, PITCH: pitch, YAW: yaw}, dict.fromkeys((ROLL, PITCH, YAW), text)
 
 
+def _own_values(t: np.ndarray, t_src: np.ndarray, between: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``between`` (values at the epochs ``t`` from the samples at ``t_src``) with each epoch at a sample's own
+    time given that sample's value: a missing value in the next sample does not take it away."""
+    if not len(t_src):
+        return between
+    k = np.minimum(np.searchsorted(t_src, t), len(t_src) - 1)
+    on = t_src[k] == t
+    out = np.array(between, dtype=float)
+    out[on] = values[k[on]]
+    return out
+
+
 def _fix_columns(stream: _Stream, epochs: _Epochs, max_gap_s: float, notes: list) -> tuple[dict, dict]:
     """Position (none where ``status.status`` < 0), ``eph`` and ``hdop`` (linear) and ``fix_status`` (the lower
     of the bracketing fixes) at the epochs; ``eph`` and ``hdop`` left out when no covariance is known."""
@@ -487,23 +499,20 @@ def _fix_columns(stream: _Stream, epochs: _Epochs, max_gap_s: float, notes: list
     gap = _slow_gap(t_src, max_gap_s)
     v[status < 0, 1:4] = np.nan
     table, columns, topic = {}, {}, stream.topic
-    for k, column, field in (
-        (1, LAT, "latitude (deg)"),
-        (2, LON, "longitude (deg)"),
-        (3, ALT, "altitude (m, ellipsoid)"),
-    ):
-        table[column], _ = interpolate_linear(epochs.t, t_src, v[:, k], gap)
-        columns[column] = f"{topic} {field}; none where status.status < 0 (linear)"
+    fields = {LAT: (1, "latitude (deg)"), LON: (2, "longitude (deg)"), ALT: (3, "altitude (m, ellipsoid)")}
     if np.isfinite(v[:, 4]).any():
-        table["eph"], _ = interpolate_linear(epochs.t, t_src, v[:, 4], gap)
-        table[HDOP] = table["eph"] / UERE_M
-        columns["eph"] = f"{topic} sqrt(position_covariance[0] + [4]) (m, horizontal RMS error; linear)"
-        columns[HDOP] = f"eph / {UERE_M:.4f} m (UERE; nmea_navsat_driver's covariance gives the receiver's HDOP)"
+        fields["eph"] = (4, "sqrt(position_covariance[0] + [4]) (m, horizontal RMS error)")
     else:
         notes.append(f"{topic} position_covariance_type is 0 (unknown) throughout: no hdop")
+    for column, (k, text) in fields.items():
+        table[column] = _own_values(epochs.t, t_src, interpolate_linear(epochs.t, t_src, v[:, k], gap)[0], v[:, k])
+        columns[column] = f"{topic} {text}; none where status.status < 0 (linear)"
+    if "eph" in table:
+        table[HDOP] = table["eph"] / UERE_M
+        columns[HDOP] = f"eph / {UERE_M:.4f} m (UERE; nmea_navsat_driver's covariance gives the receiver's HDOP)"
     i, _, valid = bracket(epochs.t, t_src, gap)
-    upper = np.minimum(i + 1, len(status) - 1)
-    table["fix_status"] = np.where(valid, np.minimum(status[i], status[upper]), np.nan) if len(status) else np.nan
+    lower = np.where(valid, np.minimum(status[i], status[np.minimum(i + 1, len(status) - 1)]), np.nan)
+    table["fix_status"] = _own_values(epochs.t, t_src, lower, status)
     columns["fix_status"] = f"{topic} status.status (-1 none, 0 fix, 1 SBAS, 2 GBAS; lower of the bracketing fixes)"
     return table, columns
 
