@@ -513,12 +513,26 @@ def _axes(table: dict, quantity: str) -> np.ndarray | None:
     return None
 
 
+#: Versions of each vehicle (from, before) built on the libraries whose ``AP_Compass_Backend::correct_field`` added
+#: the motor compensation before the soft-iron matrix (``mag += offsets; mag += motor_offset; mag = mat * mag``):
+#: from the matrix's introduction with Copter 3.3 (2015) until per-motor compensation moved it after the matrix
+#: with Copter 3.6 (2018); the other vehicles' releases of those years. 3.2 and earlier had no matrix.
+_MOTOR_FIRST = {
+    "Copter": ((3, 3), (3, 6)),
+    "Plane": ((3, 4), (3, 9)),
+    "Rover": ((2, 50), (3, 4)),
+    "Sub": ((3, 4), (3, 6)),
+}
+
+
 def _motor_first(firmware: str) -> bool:
-    """Whether the firmware added the motor compensation before the soft-iron matrix: 3.3 to 3.5, whose
-    ``AP_Compass_Backend::correct_field`` did ``mag += offsets; mag += motor_offset; mag = mat * mag`` (3.6
-    moved it after the matrix with per-motor compensation; 3.2 and earlier had no matrix, where both agree)."""
+    """Whether the firmware added the motor compensation before the soft-iron matrix (``_MOTOR_FIRST``)."""
     version = _version(firmware)
-    return version is not None and (3, 3) <= version < (3, 6)
+    vehicle = re.match(r"(?:Ardu|APM:)(Copter|Plane|Rover|Sub)", firmware)
+    if version is None or vehicle is None:
+        return False
+    first, until = _MOTOR_FIRST[vehicle.group(1)]
+    return first <= version < until
 
 
 def _has_calibration(params: dict, suffix: str | None) -> bool:
@@ -566,6 +580,11 @@ def _reconstruct_raw(
     raw = compass_uncorrect(field, offsets, diagonals, offdiagonals, p["SCALE"], motor, motor_first=first)
     if _version(firmware) is None:
         notes.append(f"firmware {firmware!r} names no version: ArduPilot 4.x's correction model was assumed")
+    if np.any(motor != 0) and (np.any(offdiagonals != 0) or np.any(diagonals != 1)):
+        notes.append(
+            "motor compensation and soft-iron matrix both apply: their order (motor "
+            f"{'before' if first else 'after'} the matrix) was taken from the firmware version"
+        )
     return raw, _raw_text(firmware, suffix, first, bool(np.any(_effective_scale(p["SCALE"]) != 1.0))), False
 
 

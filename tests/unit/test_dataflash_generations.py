@@ -345,3 +345,34 @@ def test_decoding_matches_pymavlink(tmp_path, drive, generation):
     raw_logged = np.array([[m.MagX, m.MagY, m.MagZ] for m in mags], float)
     logged, _ = read_dataflash(path, mag=0, raw=False)
     np.testing.assert_array_equal(np.trunc(logged[MAG].to_numpy() / 100.0), raw_logged)
+
+
+@pytest.mark.parametrize(("firmware", "motor_first"), [("ArduCopter V3.5.7", True), ("ArduCopter V3.6.0", False)])
+def test_motor_compensation_order_follows_the_firmware(tmp_path, firmware, motor_first):
+    """3.3-3.5 added the logged motor offsets (MOfsX) before the soft-iron matrix, 3.6 on after it: a log written
+    with that firmware's order reads back within the field's truncation bound (50 nT per component through
+    |M^-1|; the motor offsets are made the values the reader centres their truncated logging to, so they add
+    nothing); read in the other order it would be off by more than that."""
+    rng = np.random.default_rng(4)
+    raw_mg = rng.normal([200.0, -100.0, 400.0], 150.0, (100, 3))
+    motor = np.column_stack([np.linspace(0, 80, 100), np.linspace(0, -40, 100), np.linspace(0, 120, 100)])
+    motor = np.trunc(motor) + 0.5 * np.sign(np.trunc(motor))  # centred, as the reader takes them
+    params = parameters("3.5", 1)
+    ofs, dia, odi, _ = calibration(params, 0)
+    field = np.trunc(compass_correct(raw_mg, ofs, dia, odi, 1.0, motor, motor_first=motor_first))
+    w = DataFlashWriter(GENERATIONS["3.5"])
+    for message in ("MSG", "PARM", "MAG"):
+        w.define(message)
+    w.write("MSG", TimeUS=1000, Message=firmware)
+    w.write("PARM", TimeUS=2000, Name=np.array(list(params)), Value=np.array(list(params.values()), np.float32))
+    axes = {f"Mag{a}": field[:, j] for j, a in enumerate("XYZ")}
+    motors = {f"MOfs{a}": np.trunc(motor[:, j]) for j, a in enumerate("XYZ")}
+    offsets = {f"Ofs{a}": np.trunc(ofs[j]) for j, a in enumerate("XYZ")}
+    w.write("MAG", TimeUS=10_000 + 100_000 * np.arange(100), **axes, **motors, **offsets)
+    df, prov = read_dataflash(w.save(tmp_path / "motor.bin"))
+    mat = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+    bound = 50.0 * np.abs(np.linalg.inv(mat)).sum(axis=1) + 1e-6
+    assert np.all(np.abs(df[MAG].to_numpy() - raw_mg * 100.0) <= bound)
+    other = compass_correct(raw_mg, ofs, dia, odi, 1.0, motor, motor_first=not motor_first)
+    assert np.abs(other - field).max() > 1.0  # the orders differ by more than the truncation here
+    assert any(f"motor {'before' if motor_first else 'after'} the matrix" in n for n in prov["notes"])
