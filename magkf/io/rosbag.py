@@ -151,10 +151,15 @@ def _folder_kind(folder: Path, name: str) -> str:
 
 def _lists(folder: Path, file: Path) -> bool:
     """Whether ``folder/metadata.yaml`` exists and names ``file`` among the bag's storage files."""
+    from ruamel.yaml import YAML
+    from ruamel.yaml.error import YAMLError
+
     meta = folder / "metadata.yaml"
     try:
-        return meta.is_file() and file.name in meta.read_text(encoding="utf-8", errors="replace")
-    except OSError:
+        info = YAML(typ="safe").load(meta.read_text(encoding="utf-8")) if meta.is_file() else None
+        paths = info["rosbag2_bagfile_information"]["relative_file_paths"]
+        return file.name in {Path(str(p)).name for p in paths}
+    except (OSError, UnicodeDecodeError, YAMLError, KeyError, TypeError):
         return False
 
 
@@ -285,6 +290,10 @@ _VALUES = {
 }
 
 
+#: How many values ``_VALUES`` takes of each message type.
+_WIDTH = {MAGNETIC_FIELD: 3, IMU: 4, ODOMETRY: 4, NAV_SAT_FIX: 5, TEMPERATURE: 1, BATTERY_STATE: 1}
+
+
 class _Stream(NamedTuple):
     """One topic's messages in the bag's order."""
 
@@ -314,7 +323,7 @@ def _read_streams(reader, topics: dict[str, str], bag: _Bag, name: str) -> dict[
     for topic, items in rows.items():
         stamps = np.array([r[0] for r in items], dtype=np.int64)
         received = np.array([r[1] for r in items], dtype=np.int64)
-        values = np.array([r[2:] for r in items], dtype=float).reshape(len(items), -1)
+        values = np.array([r[2:] for r in items], dtype=float).reshape(len(items), _WIDTH[topics[topic]])
         out[topic] = _Stream(topic, topics[topic], frames.get(topic, ""), stamps, received, values)
     return out
 
@@ -328,7 +337,10 @@ def _pick(kind: str, chosen: dict, by_type: dict, streams: dict, notes: list, us
     """The topic of ``kind`` read: the one named in ``chosen``, else the first by name of those ``usable``
     (noting the others), else None."""
     if kind in chosen:
-        return chosen[kind]
+        if len(streams[chosen[kind]].stamp_ns):
+            return chosen[kind]
+        notes.append(f"{chosen[kind]} holds no message: nothing of it is read")
+        return None
     topics = by_type.get(TOPIC_KINDS[kind], [])
     good = [t for t in topics if usable(streams[t])]
     if not good:
@@ -344,8 +356,9 @@ def _pick(kind: str, chosen: dict, by_type: dict, streams: dict, notes: list, us
 
 def _attitude_topic(chosen: dict, by_type: dict, streams: dict, notes: list) -> str | None:
     """The topic the attitude comes from: an Imu with orientation, else an Odometry (``--topic`` first)."""
-    if "odom" in chosen:
-        return chosen["odom"]
+    if "odom" in chosen or "imu" in chosen:
+        picked = _pick("odom" if "odom" in chosen else "imu", chosen, by_type, streams, notes)
+        return _attitude_noted(picked, streams, notes)
     picked = _pick("imu", chosen, by_type, streams, notes)
     if picked is None and by_type.get(IMU):
         notes.append(
@@ -353,12 +366,17 @@ def _attitude_topic(chosen: dict, by_type: dict, streams: dict, notes: list) -> 
         )
     if picked is None:
         picked = _pick("odom", chosen, by_type, streams, notes)
+    return _attitude_noted(picked, streams, notes)
+
+
+def _attitude_noted(picked: str | None, streams: dict, notes: list) -> str | None:
+    """``picked``, with a note when there is no attitude or it comes from an Odometry's frame."""
     if picked is None:
         notes.append(f"no {IMU} orientation nor {ODOMETRY} topic: roll, pitch and yaw are absent")
     elif streams[picked].msgtype == ODOMETRY:
         notes.append(
-            f"attitude from {picked} (Odometry, frame {streams[picked].frame_id!r}): its yaw is a heading from "
-            "east only if that frame is aligned with ENU (REP 105 lets an odom frame start at the first heading)"
+            f"attitude from {picked} (Odometry, frame {streams[picked].frame_id!r}): its yaw is a true heading only "
+            "if that frame's axes are east, north, up (REP 105 lets an odom frame start at the first heading)"
         )
     return picked
 
@@ -452,7 +470,7 @@ def _mag_columns(stream: _Stream, clock: str, notes: list) -> tuple[dict, dict, 
     """``time`` and ``mag_x..z`` (nT, FRD) of every MagneticField message, their provenance, the epochs and
     the ``time_base``."""
     t_ns, values = _ordered(stream, clock, notes)
-    epochs = _Epochs(int(t_ns[0]), _relative(t_ns, _Epochs(int(t_ns[0]), np.zeros(0), clock)), clock)
+    epochs = _Epochs(int(t_ns[0]), (t_ns - t_ns[0]) * 1e-9, clock)
     time = _seconds(t_ns)
     source = "header.stamp" if clock == "header" else "bag receive time"
     base = f"utc ({source})"
@@ -687,6 +705,7 @@ class RosBagReader(AutopilotLog):
     magic = (ROS1_MAGIC, MCAP_MAGIC)
     extensions = (".bag", ".db3", ".mcap")
     options = AutopilotLog.options | {"topic"}
+    folders = True
     read_table = staticmethod(read_rosbag)
     instances = staticmethod(magnetometer_instances)
 

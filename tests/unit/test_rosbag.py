@@ -136,6 +136,22 @@ def test_read_log_detects_each_kind(drive, bags):
     assert RosBagReader().recognises(bags["ros2"], b"") and not RosBagReader().recognises(bags["ros2"].parent, b"")
 
 
+def test_read_log_folder_topic_and_site(drive, bags, two_of_each):
+    """``read_log`` takes a ROS 2 bag folder and ``topic``; a bag without NavSatFix is placed at ``site``."""
+    from magkf.io.site import parse_site
+
+    for kind in ("ros2", "mcap"):
+        assert detect_format(bags[kind]) == "rosbag"
+        log = read_log(bags[kind])
+        np.testing.assert_allclose(log.mag, drive[["mag_x", "mag_y", "mag_z"]], rtol=MAG_RTOL, atol=0)
+    with pytest.raises(InputError, match="or --site LAT,LON"):
+        read_log(two_of_each, topic={"mag": "/mag_b"})
+    log = read_log(two_of_each, topic={"mag": "/mag_b"}, site=parse_site("48.1,11.6,500"))
+    assert log.provenance["magnetometer"]["topic"] == "/mag_b"
+    np.testing.assert_allclose(log.mag[0], [4e4, -2e4, 8e4])
+    np.testing.assert_array_equal(log.position[0], [48.1, 11.6, 500.0])
+
+
 @pytest.mark.parametrize("kind", ["ros2", "mcap"])
 def test_lone_storage_file(drive, bags, kind, tmp_path):
     """A ROS 2 storage file without its metadata.yaml is read by itself (rosbags reads both storages alone)."""
@@ -281,6 +297,17 @@ def test_no_magnetic_field_topic(tmp_path):
     assert str(caught.value) == (
         f"{tmp_path / 'b.bag'}: no sensor_msgs/msg/MagneticField topic in the bag (its message types: {IMU})"
     )
+
+
+def test_magnetometer_alone(drive, tmp_path):
+    """A bag of MagneticField only: the field and its time, no attitude, no position, each noted."""
+    write_rosbag(drive[["time", "mag_x", "mag_y", "mag_z"]], tmp_path / "b.bag", "ros1")
+    table, prov = read_rosbag(tmp_path / "b.bag")
+    assert list(table.columns) == ["time", "mag_x", "mag_y", "mag_z"]
+    assert prov["notes"] == [
+        "no sensor_msgs/msg/Imu orientation nor nav_msgs/msg/Odometry topic: roll, pitch and yaw are absent",
+        "no sensor_msgs/msg/NavSatFix topic: no lat, lon, alt (the log is placed with --site)",
+    ]
 
 
 def test_not_a_bag(tmp_path):
