@@ -1,12 +1,16 @@
 """Any numeric table read as a drive log through a column map (a small TOML file).
 
-A column map says how one user table (CSV, tab-separated, whitespace-separated or Parquet) becomes the
-canonical drive log of the data contract: which file column holds each canonical column, and in which
-units. Its three tables (see ``docs/column-maps.md`` for a complete example):
+A column map says how one user table (CSV, tab-separated, whitespace-separated or other delimited text,
+Parquet, or a MATLAB ``.mat`` matrix) becomes the canonical drive log of the data contract: which file
+column holds each canonical column, and in which units. Its three tables (see ``docs/column-maps.md`` for a
+complete example and one per layout):
 
 ``[file]``
-    ``format`` (``csv``, ``tsv``, ``whitespace`` or ``parquet``; by default from the data file's
-    extension), ``delimiter`` (one character, csv only), ``comment`` (one character: a line whose
+    ``format`` (``csv``, ``tsv``, ``whitespace``, ``parquet`` or ``mat``; by default from the
+    ``delimiter``, else from the data file's extension), ``delimiter`` (one character, or ``whitespace``,
+    ``tab``, ``comma``, ``semicolon``; it sets how text is split whatever the file's extension),
+    ``variable`` (the MATLAB variable holding the records; by default the file's only numeric
+    matrix), ``comment`` (one character: a line whose
     first non-blank character it is is skipped, and the rest of any line after it is ignored),
     ``header`` (the line number of the header in the file; by default the first line that is neither
     blank nor a comment; ``0`` for a file without a header, whose columns are then called
@@ -24,8 +28,16 @@ units. Its three tables (see ``docs/column-maps.md`` for a complete example):
     (unit of ``ref_*``; default the ``mag`` unit), ``angles`` (``deg`` or ``rad``, for roll, pitch,
     yaw), ``latlon`` (``deg`` or ``rad``), ``time`` (``s``, ``ms``, ``us``, ``ns``), ``time_epoch``
     (``unix``; ``start`` with ``start_utc``; ``seconds_of_day`` with ``date_utc``),
-    ``quaternion_order`` and ``quaternion_frame``. ``start_utc`` and ``date_utc`` may be left out of a
-    map shared by many files and set per file with ``dataclasses.replace``; reading needs them.
+    ``quaternion_order`` and ``quaternion_frame``, and ``rate_hz`` (records sampled at a fixed rate, Hz,
+    instead of a ``time`` column: record ``k`` from 0 is at ``start_utc + k / rate_hz``). ``start_utc`` and
+    ``date_utc`` may be left out of a map shared by many files and set per file with
+    ``dataclasses.replace``. Without ``start_utc``, a time since the start (``time_epoch = "start"`` or
+    ``rate_hz``) is read as seconds since the start with ``provenance["time_base"] == "boot"``, which
+    ``--date`` places in UTC (``magkf.io.site``); ``date_utc`` is needed by ``seconds_of_day``.
+
+Required columns are the reader's to say: ``read_mapped`` (a drive log) needs ``time`` (or ``rate_hz``) and
+``mag_x, mag_y, mag_z``; ``read_mapped_table`` reads whatever a caller needs (the offline calibrations' tables,
+with text columns such as a turntable's ``plane``).
 
 Conventions
     ``q0, q1, q2, q3`` name the four quaternion columns in the order the file stores them;
@@ -39,7 +51,9 @@ Conventions
 
 Rows in error messages are line numbers in the file, counting every line (comments, skipped and blank
 lines too), so the header of an ordinary file is row 1. A Parquet file has no lines: its record ``i``
-(from 0) is reported as row ``i + 2``, the row it would have in the same table written as CSV.
+(from 0) is reported as row ``i + 2``, the row it would have in the same table written as CSV. A MATLAB
+matrix's record ``i`` is row ``i + 1``, its row in MATLAB with the records as rows; its columns are
+``column_1, column_2, ...``.
 
 Cells: an empty cell (or one of the ``missing`` texts) is a missing value, kept as NaN; any other cell
 must be a finite number, so ``NaN`` and ``inf`` are errors unless listed in ``missing``. A value that
@@ -49,7 +63,8 @@ lines is rejected.
 Text is parsed with pandas' C engine (``sep="\\t"`` for tsv, ``sep=r"\\s+"`` for whitespace), each
 record's line number kept. Its default float converter has been the high-precision one since pandas 1.2
 (pandas-dev/pandas#17154; the ``float_precision`` argument is deprecated in pandas 3), and it reads
-printed decimals exactly as Python's ``float`` does. Parquet is read with ``pyarrow.parquet.read_table``.
+printed decimals exactly as Python's ``float`` does. Parquet is read with ``pyarrow.parquet.read_table``,
+MATLAB files with ``magkf.io.matfile`` (h5py for v7.3, ``scipy.io.loadmat`` for older versions).
 The map is parsed with the standard library's ``tomllib`` (Python 3.11+).
 """
 
@@ -90,7 +105,7 @@ from .drivelog import DriveLog, UnitWarning, from_table
 from .readers import LogReader
 from .site import BOOT
 
-__all__ = ["ColumnMap", "load_column_map", "read_mapped"]
+__all__ = ["ColumnMap", "load_column_map", "read_mapped", "read_mapped_table", "require_columns"]
 
 QUATERNION = ("q0", "q1", "q2", "q3")
 FORMATS = ("csv", "tsv", "whitespace", "parquet", "mat")
@@ -835,8 +850,11 @@ def _resolve(spec: str | int, key: str, raw: _RawTable, cmap: ColumnMap, source:
             )
         return spec - 1
     if spec not in raw.names:
+        headerless = raw.names == [f"column_{k + 1}" for k in range(len(raw.names))]
+        hint = "; it has no header: give the 1-based column number, e.g. 2" if headerless else ""
         raise InputError(
-            f"no such column, asked for by [columns] {key} in {cmap.source} (the file has: {', '.join(raw.names)})",
+            f"no such column, asked for by [columns] {key} in {cmap.source} (the file has: "
+            f"{', '.join(raw.names)}){hint}",
             source,
             raw.header_row,
             spec,

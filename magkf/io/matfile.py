@@ -94,15 +94,19 @@ def read_mat_array(path, variable: str | None = None) -> MatArray:
 
 
 def _version(path: Path, name: str) -> str:
-    """``"v7.3 (HDF5)"``, ``"v5"`` or ``"v4"``; InputError naming ``name`` for any other file."""
-    from scipy.io.matlab import matfile_version
+    """``"v7.3 (HDF5)"`` (any HDF5 file: MATLAB's, or one written without MATLAB's header, by h5py say),
+    ``"v5"`` or ``"v4"``; InputError naming ``name`` for any other file."""
+    import h5py
+    from scipy.io.matlab import MatReadError, matfile_version
 
+    if h5py.is_hdf5(path):
+        return "v7.3 (HDF5)"
     try:
         major, _ = matfile_version(str(path))
-    except (ValueError, OSError, TypeError) as exc:  # too short, not a MATLAB header
+    except (MatReadError, ValueError, OSError, TypeError) as exc:  # too short, not a MATLAB header
         raise InputError(f"not a MATLAB .mat file ({' '.join(str(exc).split())}): {_HINT}", name) from None
-    if major == 2:
-        return "v7.3 (HDF5)"
+    if major == 2:  # MATLAB's header says v7.3, but h5py finds no HDF5 after it
+        raise InputError(f"a MATLAB v7.3 file whose HDF5 part is damaged: {_HINT}", name)
     return "v5" if major == 1 else "v4"
 
 
@@ -149,10 +153,11 @@ def _hdf5_dataset(item):
 def _loadmat_variables(path: Path, name: str) -> dict:
     """Every variable of a v4/v5/v7 file by name (a struct's fields as ``a.b``)."""
     from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
 
     try:
         data = loadmat(str(path), simplify_cells=True)
-    except (ValueError, TypeError, OSError, NotImplementedError) as exc:  # damaged or of an unknown kind
+    except (MatReadError, ValueError, TypeError, OSError, NotImplementedError) as exc:  # damaged or of an unknown kind
         raise InputError(f"not a readable MATLAB file ({' '.join(str(exc).split())[:200]}): {_HINT}", name) from None
     found: dict = {}
 
