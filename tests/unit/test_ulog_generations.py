@@ -1,0 +1,304 @@
+"""ULogs of every PX4 generation (``magkf.io.ulog_write.GENERATIONS``) read back to the simulated truth.
+
+Bounds, from the storage types the generations log:
+  * a float32 value is rounded to nearest: ``|error| <= 2^-24 |value|`` (``sensor_mag``, ``vehicle_magnetometer``,
+    ``sensor_combined.magnetometer_ga`` in G, hdop, current, temperature);
+  * an undone ``sensor_combined`` calibration ``m = S^-1 R^T ga + o`` carries the float32 error ``e`` of ``ga``
+    (``|e| <= 2^-24 |ga|`` as a vector) through ``R^T`` (norm kept) and ``S^-1``: ``|error_k| <= 2^-24 |ga| / s_k``;
+  * times are whole microseconds of boot time and of UTC (``<= 1 us``, plus half a double ulp at 1.7e9 s);
+  * lat/lon in int32 1e-7 deg (``<= 0.5e-7 deg``), alt in int32 mm (``<= 0.5 mm``); doubles (1.15) to 1e-9;
+  * a float32 quaternion turns the frame by at most ``2^-23`` rad, which moves a ZYX Euler angle by at most
+    ``(1 + tan|pitch| + 1/cos(pitch)) 2^-23`` rad (``<= 4.74 * 2^-23`` for |pitch| <= 60 deg); float32 Euler angles in
+    radians (1.4) are each off by at most ``2^-24 pi`` rad.
+A few 1e-12 are added for the double arithmetic of the conversions.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from pyulog import ULog
+
+from magkf.conventions import wrap_deg
+from magkf.errors import InputError
+from magkf.io.px4_sensors import calibration_of_slot, px4_rotation
+from magkf.io.ulog import NO_CALIBRATED, NO_MAGNETOMETER, magnetometer_instances, read_ulog
+from magkf.io.ulog_combined import RELATIVE_TIMESTAMP_INVALID, combined_samples, undo
+from magkf.io.ulog_write import GENERATIONS, write_ulog
+from magkf.sim import DriveConfig, simulate_drive
+
+F32 = 2.0**-24
+TIME_ATOL_S = 1e-6 + 2.0**-23
+LATLON_ATOL_DEG = {"int": 0.5e-7 + 1e-12, "double": 1e-9}
+ALT_ATOL_M = {"int": 0.5e-3 + 1e-9, "double": 1e-9}
+QUATERNION_EULER_ATOL_DEG = np.degrees(4.74 * 2.0**-23) + 1e-12
+RADIAN_EULER_ATOL_DEG = np.degrees(np.pi * F32) + 1e-12
+#: An internal magnetometer (slot 0) with offsets, scales and a board rotation fine-tuned by SENS_BOARD_*_OFF.
+INTERNAL = {
+    "CAL_MAG0_ID": 262144,
+    "CAL_MAG0_ROT": -1,
+    "CAL_MAG0_XOFF": 0.031,
+    "CAL_MAG0_YOFF": -0.2,
+    "CAL_MAG0_ZOFF": -0.137,
+    "CAL_MAG0_XSCALE": 1.03,
+    "CAL_MAG0_YSCALE": 0.97,
+    "CAL_MAG0_ZSCALE": 1.011,
+    "SENS_BOARD_ROT": 4,
+    "SENS_BOARD_X_OFF": -1.5,
+    "SENS_BOARD_Y_OFF": 1.19,
+    "SENS_BOARD_Z_OFF": 0.4,
+}
+#: A second, external magnetometer (slot 1, turned by PX4 rotation 18, ROLL_90_YAW_90).
+EXTERNAL = {
+    "CAL_MAG1_ID": 66073,
+    "CAL_MAG1_ROT": 18,
+    "CAL_MAG1_XOFF": -0.05,
+    "CAL_MAG1_YOFF": 0.12,
+    "CAL_MAG1_ZOFF": 0.08,
+    "CAL_MAG1_XSCALE": 0.99,
+    "CAL_MAG1_YSCALE": 1.02,
+    "CAL_MAG1_ZSCALE": 1.0,
+}
+#: What each generation's magnetometer is read from (raw=True) and whether it is calibrated.
+MAGNETOMETER = {
+    "1.4": ("sensor_combined", False),
+    "1.6": ("sensor_combined", False),
+    "1.7": ("sensor_combined", False),
+    "1.8": ("vehicle_magnetometer", True),
+    "1.13": ("sensor_mag", False),
+    "1.15": ("sensor_mag", False),
+}
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """A seeded 60 s drive at 20 Hz (3-D motion), with the DOP as hdop, as a table with a time column."""
+    sim = simulate_drive(DriveConfig(duration_s=60.0, rate_hz=20.0, motion="3d", seed=23, dop_bad_stretches=0))
+    return sim.table.assign(hdop=sim.table["dop"]).reset_index()
+
+
+def _parsed(path) -> ULog:
+    """The file as pyulog parses it, checked undamaged."""
+    ulog = ULog(str(path))
+    assert not ulog.file_corruption
+    return ulog
+
+
+def _mag_bound_nt(table, generation: str) -> np.ndarray:
+    """(n, 3) largest storage error of each magnetometer value (nT) in ``generation``'s log of ``table``."""
+    m_g = table[["mag_x", "mag_y", "mag_z"]].to_numpy() / 1e5
+    if MAGNETOMETER[generation][0] != "sensor_combined":
+        return F32 * np.abs(m_g) * 1e5 + 1e-9
+    model = calibration_of_slot(INTERNAL, 0)
+    ga = model.apply(m_g)
+    return 1e5 * F32 * np.linalg.norm(ga, axis=1)[:, None] / model.scale + 1e-9
+
+
+@pytest.mark.parametrize("generation", list(GENERATIONS))
+def test_each_generation_reads_back_to_the_truth(tmp_path, truth, generation):
+    path = tmp_path / f"px4_{generation}.ulg"
+    write_ulog(truth, path, generation=generation, parameters=INTERNAL)
+    topics = {d.name for d in _parsed(path).data_list}
+    assert MAGNETOMETER[generation][0] in topics
+    out, prov = read_ulog(path)
+    json.dumps(prov)
+    assert len(out) == len(truth)
+    assert (prov["magnetometer"]["topic"], prov["magnetometer"]["calibrated"]) == MAGNETOMETER[generation]
+    assert prov["px4_version"] == ".".join(map(str, GENERATIONS[generation].version))
+    assert prov["time_base"].startswith("UTC = boot time")
+    assert np.max(np.abs(out["time"] - truth["time"])) <= TIME_ATOL_S
+    mag_error = np.abs(out[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth[["mag_x", "mag_y", "mag_z"]].to_numpy())
+    assert np.all(mag_error <= _mag_bound_nt(truth, generation))
+    euler_atol = RADIAN_EULER_ATOL_DEG if generation == "1.4" else QUATERNION_EULER_ATOL_DEG
+    for column in ("roll", "pitch", "yaw"):
+        assert np.max(np.abs(wrap_deg(out[column] - truth[column]))) <= euler_atol, column
+    storage = "double" if generation == "1.15" else "int"
+    assert np.max(np.abs(out[["lat", "lon"]].to_numpy() - truth[["lat", "lon"]].to_numpy())) <= LATLON_ATOL_DEG[storage]
+    assert np.max(np.abs(out["alt"] - truth["alt"])) <= ALT_ATOL_M[storage]
+    for column in ("hdop", "current_a") + (("temp_c",) if generation in ("1.4", "1.13", "1.15") else ()):
+        assert np.all(np.abs(out[column] - truth[column]) <= F32 * np.abs(truth[column])), column
+
+
+@pytest.mark.parametrize("generation", ["1.4", "1.6"])
+def test_older_generations_say_where_the_magnetometer_came_from(tmp_path, truth, generation):
+    """The calibration is undone (raw) and named in the notes; raw=False reads sensor_combined as logged."""
+    path = tmp_path / "old.ulg"
+    write_ulog(truth, path, generation=generation, parameters=INTERNAL)
+    _, prov = read_ulog(path)
+    assert prov["magnetometer"]["calibration_index"] == 0
+    assert prov["rotation"]["applied"] is False
+    undone = [n for n in prov["notes"] if "calibration was undone" in n]
+    assert len(undone) == 1 and "CAL_MAG0_ROT = -1 (internal)" in undone[0] and "SENS_BOARD_ROT = 4" in undone[0]
+    assert any("repeats were left out" in n for n in prov["notes"])  # sensor_combined written twice per sample
+    calibrated, prov = read_ulog(path, raw=False)
+    assert prov["magnetometer"]["calibrated"] is True and prov["rotation"]["applied"] is True
+    logged = _parsed(path).get_dataset("sensor_combined").data
+    np.testing.assert_array_equal(calibrated["mag_x"], logged["magnetometer_ga[0]"][::2].astype(float) * 1e5)
+    assert magnetometer_instances(path) == prov["magnetometers"]
+    assert prov["magnetometers"][0]["topic"] == "sensor_combined" and prov["magnetometers"][0]["samples"] == len(truth)
+
+
+def test_euler_attitude_of_the_first_ulogs(tmp_path, truth):
+    """PX4 up to v1.5: q unset (q_valid false), roll, pitch and yaw in radians give the attitude."""
+    path = tmp_path / "euler.ulg"
+    write_ulog(truth, path, generation="1.4", parameters=INTERNAL)
+    attitude = _parsed(path).get_dataset("vehicle_attitude").data
+    assert not attitude["q_valid"].any() and not attitude["q[0]"].any()
+    _, prov = read_ulog(path)
+    assert prov["columns"]["yaw"].startswith("vehicle_attitude.roll, pitch, yaw (rad")
+
+
+def test_voted_magnetometer_of_two_is_undone_with_sensor_selection(tmp_path, truth):
+    """Two calibrated magnetometers: PX4 v1.7 logs the voted one's device id, whose slot (external) is undone."""
+    path = tmp_path / "selected.ulg"
+    write_ulog(truth, path, generation="1.7", parameters=INTERNAL | EXTERNAL, device_id=EXTERNAL["CAL_MAG1_ID"])
+    assert _parsed(path).get_dataset("sensor_selection").data["mag_device_id"][0] == EXTERNAL["CAL_MAG1_ID"]
+    out, prov = read_ulog(path)
+    assert prov["magnetometer"]["calibrated"] is False and prov["magnetometer"]["calibration_index"] == 1
+    assert any("sensor_selection.mag_device_id (66073 -> CAL_MAG1)" in n for n in prov["notes"])
+    ga = calibration_of_slot(INTERNAL | EXTERNAL, 1).apply(truth[["mag_x", "mag_y", "mag_z"]].to_numpy() / 1e5)
+    bound = 1e5 * F32 * np.linalg.norm(ga, axis=1)[:, None] / np.array([0.99, 1.02, 1.0]) + 1e-9
+    error = np.abs(out[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth[["mag_x", "mag_y", "mag_z"]].to_numpy())
+    assert np.all(error <= bound)
+
+
+def test_voted_magnetometer_of_two_without_selection_is_read_calibrated(tmp_path, truth):
+    """PX4 v1.6 did not log which magnetometer was voted: the calibration cannot be undone, and the note says why."""
+    path = tmp_path / "unknown.ulg"
+    write_ulog(truth, path, generation="1.6", parameters=INTERNAL | EXTERNAL, device_id=EXTERNAL["CAL_MAG1_ID"])
+    out, prov = read_ulog(path)
+    assert prov["magnetometer"]["calibrated"] is True and prov["magnetometer"]["calibration_index"] is None
+    assert any(
+        n.endswith(
+            "read as calibrated: the calibration cannot be undone because sensor_combined holds the voted magnetometer "
+            "without its device id, the log has 2 calibrated magnetometers (CAL_MAG0_ID = 262144, CAL_MAG1_ID = 66073) "
+            "and no sensor_selection topic to say which one was voted"
+        )
+        for n in prov["notes"]
+    )
+    logged = _parsed(path).get_dataset("sensor_combined").data
+    np.testing.assert_array_equal(out["mag_z"], logged["magnetometer_ga[2]"][::2].astype(float) * 1e5)
+
+
+def test_without_a_calibration_only_the_board_rotation_is_undone(tmp_path, truth):
+    board = {k: v for k, v in INTERNAL.items() if k.startswith("SENS_BOARD")}
+    path = tmp_path / "uncalibrated.ulg"
+    write_ulog(truth, path, generation="1.6", parameters=board)
+    out, prov = read_ulog(path)
+    assert prov["magnetometer"]["calibrated"] is False
+    assert any("no calibrated magnetometer (no CAL_MAGn_ID): board rotation only" in n for n in prov["notes"])
+    error = np.abs(out[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth[["mag_x", "mag_y", "mag_z"]].to_numpy())
+    bound = F32 * np.linalg.norm(truth[["mag_x", "mag_y", "mag_z"]].to_numpy(), axis=1)[:, None] + 1e-9
+    assert np.all(error <= bound)
+
+
+def test_a_calibration_that_cannot_be_known_is_said():
+    """Undoing needs every parameter of the slot, the board rotation of an internal magnetometer and a rotation
+    PX4 defines."""
+    samples = combined_samples(
+        {
+            "timestamp": np.array([100, 200]),
+            "magnetometer_timestamp_relative": np.array([0, 0]),
+            "magnetometer_ga[0]": np.ones(2),
+            "magnetometer_ga[1]": np.ones(2),
+            "magnetometer_ga[2]": np.ones(2),
+        },
+        0,
+    )
+    no_board = {k: v for k, v in INTERNAL.items() if not k.startswith("SENS_BOARD")}
+    assert undo(samples, no_board, None, 0, False) == "the parameter SENS_BOARD_ROT is not logged"
+    no_scale = {k: v for k, v in INTERNAL.items() if k != "CAL_MAG0_YSCALE"}
+    assert undo(samples, no_scale, None, 0, False) == "the parameter CAL_MAG0_YSCALE is not logged"
+    odd = INTERNAL | {"CAL_MAG0_ROT": 99}
+    assert undo(samples, odd, None, 0, False) == "CAL_MAG0_ROT = 99 is not a rotation magkf knows (0 to 34)"
+
+
+def test_px4_rotations_match_rotate_3f():
+    """Matrices of PX4's rotation table against the explicit cases of PX4's ``rotate_3f``
+    (src/lib/conversion/rotation.cpp): YAW_90 (x, y, z) -> (-y, x, z), ROLL_180 -> (x, -y, -z), PITCH_90 ->
+    (z, y, -x), ROLL_90_YAW_90 -> (z, x, y), ROLL_270_YAW_135 -> (-(x + z) / sqrt 2, (x - z) / sqrt 2, -y)."""
+    x, y, z = 0.3, -0.7, 0.9
+    h = np.sqrt(0.5)
+    cases = {2: (-y, x, z), 8: (x, -y, -z), 24: (z, y, -x), 18: (z, x, y), 23: (-h * (x + z), h * (x - z), -y)}
+    for enum, expected in cases.items():
+        np.testing.assert_allclose(px4_rotation(enum) @ [x, y, z], expected, atol=1e-15, err_msg=str(enum))
+
+
+def test_repeated_and_invalid_magnetometer_times():
+    """sensor_combined at the gyro's rate: a repeated magnetometer time is one sample, an invalid one none (noted)."""
+    data = {
+        "timestamp": np.array([1000, 2000, 3000, 4000, 5000]),
+        "magnetometer_timestamp_relative": np.array([RELATIVE_TIMESTAMP_INVALID, 0, -1000, 0, -1000]),
+        **{f"magnetometer_ga[{k}]": np.array([0.0, 0.1, 0.1, 0.2, 0.2]) + k for k in range(3)},
+    }
+    samples = combined_samples(data, 0)
+    np.testing.assert_array_equal(samples.us, [2000, 4000])
+    np.testing.assert_array_equal(samples.rows, [1, 3])
+    assert samples.notes[0].startswith("1 sensor_combined samples without a valid magnetometer time were left out")
+    assert "2 repeats were left out" in samples.notes[1]
+
+
+@pytest.mark.parametrize("generation", ["1.6", "1.13"])
+def test_no_gnss_reads_on_the_boot_time_base(tmp_path, truth, generation):
+    path = tmp_path / "no_gnss.ulg"
+    write_ulog(truth.drop(columns=["lat", "lon", "alt"]), path, generation=generation, parameters=INTERNAL)
+    out, prov = read_ulog(path)
+    assert prov["time_base"] == "boot" and prov["gnss"] is None
+    assert not {"lat", "lon", "alt", "hdop", "fix_type"} & set(out.columns)
+    assert np.max(np.abs(out["time"] - (10.0 + truth["time"] - truth["time"][0]))) <= TIME_ATOL_S
+    assert prov["notes"][-1] == (
+        "time is seconds since boot and the log has no lat, lon or alt: no GNSS topic (vehicle_gps_position or "
+        "sensor_gps); give the site and date (--site LAT,LON[,ALT] --date YYYY-MM-DD)"
+    )
+
+
+def test_gnss_that_never_has_utc_reads_on_the_boot_time_base(tmp_path, truth):
+    """Positions but no UTC (time_utc_usec 0, or no such field): boot time, no position; the note gives the
+    median position to help the user place the log."""
+    for options in ({"gnss_utc": False}, {"drop_fields": ("vehicle_gps_position.time_utc_usec",)}):
+        path = tmp_path / "no_utc.ulg"
+        write_ulog(truth, path, generation="1.6", parameters=INTERNAL, **options)
+        _parsed(path)
+        out, prov = read_ulog(path)
+        assert prov["time_base"] == "boot" and "lat" not in out
+        note = next(n for n in prov["notes"] if n.startswith("time is seconds since boot"))
+        assert f"places the log near {np.median(truth['lat']):.4f}" in note
+
+
+def test_gnss_without_dop_fields_uses_what_exists(tmp_path, truth):
+    path = tmp_path / "no_dop.ulg"
+    write_ulog(truth, path, drop_fields=("vehicle_gps_position.hdop", "vehicle_gps_position.vdop"))
+    out, prov = read_ulog(path)
+    assert "hdop" not in out and "vdop" not in out and "lat" in out
+    assert "vehicle_gps_position has no hdop or vdop field: no such DOP column" in " ".join(prov["notes"])
+
+
+def test_refusals_are_one_line(tmp_path, truth):
+    """Each unreadable case: one line naming the file, what the log lacks and what to do."""
+    no_mag = tmp_path / "no_mag.ulg"
+    write_ulog(truth, no_mag, generation="1.6", parameters=INTERNAL, drop_fields=("sensor_combined.magnetometer_ga",))
+    raw_only = tmp_path / "raw_only.ulg"
+    write_ulog(truth, raw_only, generation="1.13")
+    old = tmp_path / "old.ulg"
+    write_ulog(truth, old, generation="1.6", parameters=INTERNAL)
+    invalid = tmp_path / "invalid.ulg"
+    ulog = ULog(str(old))
+    ulog.get_dataset("sensor_combined").data["magnetometer_timestamp_relative"][:] = RELATIVE_TIMESTAMP_INVALID
+    ulog.write_ulog(str(invalid))
+    cases = [
+        (no_mag, {}, NO_MAGNETOMETER),
+        (raw_only, {"raw": False}, NO_CALIBRATED),
+        (old, {"mag": 1}, "sensor_combined has no instance 1; instances: [0]"),
+        (
+            invalid,
+            {},
+            "sensor_combined has no valid magnetometer sample (every magnetometer time is 0 or marked invalid): "
+            "the magnetometer never published; use a log in which it did",
+        ),
+    ]
+    for path, options, message in cases:
+        with pytest.raises(InputError) as info:
+            read_ulog(path, **options)
+        assert str(info.value) == f"{path}: {message}"
+    with pytest.raises(InputError, match="unknown PX4 generation '0.9'; use one of 1.4, 1.6"):
+        write_ulog(truth, tmp_path / "x.ulg", generation="0.9")
