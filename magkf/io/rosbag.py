@@ -42,6 +42,7 @@ Time
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sqlite3
 from pathlib import Path
@@ -116,7 +117,7 @@ def is_rosbag2_database(path) -> bool:
     """Whether the SQLite file at ``path`` has rosbag2's ``topics`` table (opened read-only)."""
     try:
         uri = Path(path).resolve().as_uri() + "?mode=ro"
-        with sqlite3.connect(uri, uri=True) as db:
+        with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
             found = db.execute("SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'topics'").fetchone()
         return found is not None
     except (sqlite3.Error, OSError, ValueError):
@@ -183,9 +184,14 @@ def _bag(path, notes: list) -> _Bag:
 
 
 def _cannot_read(bag: _Bag, name: str, exc: Exception) -> InputError:
-    """The one-line error of a bag rosbags cannot read (for a lone storage file: pass its folder)."""
-    hint = "; pass the bag's folder (with metadata.yaml)" if bag.lone else ""
+    """The one-line error of a bag rosbags cannot read, with what may help: a lone storage file's folder, or
+    ``rosbag reindex`` for a ROS 1 bag whose index is damaged (a recording cut short)."""
     text = " ".join(str(exc).split()) or type(exc).__name__
+    hint = ""
+    if bag.lone:
+        hint = "; a storage file read alone: pass its bag's folder (with metadata.yaml) if there is one"
+    elif bag.kind == "ros1" and "index" in text.lower():
+        hint = "; a recording cut short is made readable by 'rosbag reindex'"
     return InputError(f"cannot read the ROS bag ({type(exc).__name__}: {text}){hint}", name)
 
 

@@ -329,6 +329,23 @@ def test_not_a_bag(tmp_path):
     assert not RosBagReader().recognises(db, b"SQLite format 3\x00")
 
 
+def test_damaged_bags(bags, tmp_path):
+    """A bag cut short is refused in one line that says what may help."""
+    ros1 = bags["ros1"].read_bytes()
+    (tmp_path / "cut.bag").write_bytes(ros1[: len(ros1) // 2])
+    mcap = next(bags["mcap"].glob("*.mcap")).read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(mcap[: len(mcap) // 2])
+    for path, hint in (
+        ("cut.bag", "a recording cut short is made readable by 'rosbag reindex'"),
+        ("cut.mcap", "a storage file read alone: pass its bag's folder (with metadata.yaml) if there is one"),
+    ):
+        with pytest.raises(InputError) as caught:
+            read_rosbag(tmp_path / path)
+        text = str(caught.value)
+        assert text.startswith(f"{tmp_path / path}: cannot read the ROS bag (") and text.endswith(hint)
+        assert "\n" not in text
+
+
 # ---------------------------------------------------------------- time and position
 def test_no_fix_bag_has_no_position(drive, tmp_path):
     write_rosbag(drive.drop(columns=["lat", "lon", "alt"]), tmp_path / "b.bag", "ros1")
