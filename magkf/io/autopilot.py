@@ -110,7 +110,8 @@ def export_instance(cal, autopilot: str) -> tuple[int, str]:
     magnetometer it was calibrated from when it came from that autopilot's log (``Calibration.magnetometer``:
     PX4's ``CAL_MAGn`` slot holding its ``device_id``; ArduPilot's parameter set, ``compass``, which the reader
     finds through ``COMPASS_PRIOn_ID`` since ``MAG.I`` is a priority, else ``MAG`` instance ``i`` as compass
-    ``i + 1``), else the first compass (ArduPilot 1, PX4 0). ``autopilot`` is ``ardupilot`` or ``px4``."""
+    ``i + 1``; for a telemetry log, the ``compass`` of its ``RAW_IMU``/``SCALED_IMUn`` message when the vehicle ran
+    that autopilot), else the first compass (ArduPilot 1, PX4 0). ``autopilot`` is ``ardupilot`` or ``px4``."""
     mag = cal.magnetometer or {}
     fmt = mag.get("format")
     if autopilot == "px4" and fmt == "px4-ulog" and mag.get("calibration_index") is not None:
@@ -119,14 +120,26 @@ def export_instance(cal, autopilot: str) -> tuple[int, str]:
     if autopilot == "ardupilot" and fmt == "ardupilot-dataflash" and mag.get("instance") is not None:
         n = int(mag.get("compass", int(mag["instance"]) + 1))
         return n, f"compass {n}, the one it was calibrated from (MAG instance {mag['instance']})"
+    telemetry = fmt == "mavlink-tlog" and mag.get("autopilot") == autopilot
+    if telemetry and mag.get("compass" if autopilot == "ardupilot" else "calibration_index") is not None:
+        n = int(mag["compass" if autopilot == "ardupilot" else "calibration_index"])
+        return n, f"compass {n}, the one it was calibrated from ({mag.get('message')} of the telemetry log)"
     first = 1 if autopilot == "ardupilot" else 0
+    return first, f"compass {first} ({_why_first(mag, fmt, autopilot)}; --instance picks another)"
+
+
+def _why_first(mag: dict, fmt, autopilot: str) -> str:
+    """Why ``export_instance`` falls back to the first compass, in words."""
     if autopilot == "px4" and fmt == "px4-ulog":
-        why = f"no CAL_MAGn_ID of the log matches its magnetometer (device_id {mag.get('device_id')})"
-    elif fmt in ("px4-ulog", "ardupilot-dataflash"):
-        why = f"the calibration is of a magnetometer in a {fmt} log, not one of this autopilot's"
-    else:
-        why = "the calibration does not say which magnetometer it is of"
-    return first, f"compass {first} ({why}; --instance picks another)"
+        return f"no CAL_MAGn_ID of the log matches its magnetometer (device_id {mag.get('device_id')})"
+    if fmt in ("px4-ulog", "ardupilot-dataflash"):
+        return f"the calibration is of a magnetometer in a {fmt} log, not one of this autopilot's"
+    if fmt == "mavlink-tlog" and mag.get("autopilot") == autopilot:
+        return f"the telemetry log does not say which {autopilot} compass {mag.get('message')} is"
+    if fmt == "mavlink-tlog":
+        running = mag.get("autopilot") or "an unknown autopilot"
+        return f"the calibration is of a magnetometer of a vehicle running {running}"
+    return "the calibration does not say which magnetometer it is of"
 
 
 @dataclass(frozen=True)

@@ -59,8 +59,9 @@ Time
     station's receipt stamps are used instead: UTC = boot time + the median of ``receipt - boot time`` over
     the vehicle's time-stamped messages, which is the ground station's clock and includes the link's
     latency. Messages without a time field (``BATTERY_STATUS``, ``SYS_STATUS``, ``VFR_HUD``,
-    ``PARAM_VALUE``) are placed at their receipt time less that median. A boot time that falls back by more
-    than ``REBOOT_S`` marks a reboot; the boot with the most magnetometer samples is read.
+    ``PARAM_VALUE``) are placed at their receipt time less that median. A boot time that falls back while
+    receipt time less boot time jumps by more than ``REBOOT_S`` marks a reboot; the boot with the most
+    magnetometer samples is read.
 
 Streams (interpolated onto the magnetometer's epochs with ``magkf.io.streams``)
     ``ATTITUDE`` ``roll, pitch, yaw`` (rad), else ``ATTITUDE_QUATERNION`` ``q1..q4`` (scalar first),
@@ -131,7 +132,7 @@ UNIX_MIN_US = 10**15
 UNKNOWN_U16 = 65_535
 #: A packet identical to one received this recently (us) is the same packet logged twice.
 DUPLICATE_WINDOW_US = 2_000_000
-#: A boot time that falls back by more than this (s) is a reboot of the vehicle.
+#: A boot time that falls back while the receipt time less the boot time jumps by more than this (s) is a reboot.
 REBOOT_S = 5.0
 #: Slow streams (battery, throttle) count a gap only beyond this many of their median intervals.
 AUX_GAP_INTERVALS = 3.0
@@ -231,6 +232,8 @@ class _Records:
             if self._take(packet, stamp, recent, seen):
                 last = stamp
                 pos = end
+            elif _packet_length(data, end + STAMP_BYTES):
+                pos = end  # a damaged packet in its place: the next record follows it
             else:
                 pos = self._resync(pos, last)
 
@@ -318,14 +321,15 @@ def _boot_time_us(msg) -> int | None:
 
 def _boot_segments(records: list) -> np.ndarray:
     """Per record (receipt order): the number of the vehicle's boot it belongs to (0, 1, ...); a new boot
-    starts where a boot time falls back by more than ``REBOOT_S``."""
+    starts where a boot time falls back while receipt time less boot time jumps by more than ``REBOOT_S``
+    (a packet that is merely late falls back by no more than it was delayed)."""
     segment, last, out = 0, None, np.zeros(len(records), int)
-    for k, (_, msg) in enumerate(records):
+    for k, (receipt, msg) in enumerate(records):
         boot = _boot_time_us(msg)
         if boot is not None:
-            if last is not None and boot < last - REBOOT_S * 1e6:
+            if last is not None and boot < last[1] and (receipt - boot) - (last[0] - last[1]) > REBOOT_S * 1e6:
                 segment += 1
-            last = boot
+            last = (receipt, boot)
         out[k] = segment
     return out
 
@@ -898,12 +902,14 @@ def write_tlog(
     system_time: bool = True,
     latency_s: float = 0.02,
     mavlink1: bool = False,
+    sysid: int = 1,
 ) -> None:
     """Write a canonical table as a MAVLink telemetry log of an ArduPilot or PX4 vehicle (for tests).
 
     ``table`` (N rows; ``time`` a column or the index, UNIX s; its rows at 10 to 50 Hz as a magnetometer
     stream comes) is sent by vehicle 1, component 1, boot time 10 s at the first row, following ``time`` to
-    1 us; the ground station (system 255, component 190) stamps each packet at its time plus ``latency_s``:
+    1 us (``sysid``: another vehicle); the ground station (system 255, component 190) stamps each packet at its
+    time plus ``latency_s``:
 
     * ``HEARTBEAT`` at 1 Hz from the vehicle (``autopilot`` ``ardupilot`` or ``px4``) and the ground station;
       ``PARAM_VALUE`` for each of ``params`` before the first row (float32; PX4's integers by their bytes).
@@ -918,13 +924,13 @@ def write_tlog(
     * ``SYSTEM_TIME`` at 1 Hz (``system_time``); ``BATTERY_STATUS`` (``current_a``) and ``VFR_HUD``
       (``throttle``) every ``aux_period_s`` where the table has them.
 
-    ``mavlink1`` packs MAVLink 1 packets (no extension fields, so no ``alt_ellipsoid``).
+    ``mavlink1`` packs MAVLink 1 packets (``alt_ellipsoid``, an extension field, then 0).
     """
     if autopilot not in ("ardupilot", "px4"):
         raise InputError(f"unknown autopilot {autopilot!r}; use ardupilot or px4", str(path))
     name = str(path)
     frame, t = table_to_write(table, name)
-    writer = _TlogWriter(t, latency_s, mavlink1, autopilot)
+    writer = _TlogWriter(t, latency_s, mavlink1, autopilot, sysid)
     params = dict(params or {})
     writer.heartbeats()
     writer.parameters(params)
@@ -944,10 +950,10 @@ _START_US = 10_000_000
 class _TlogWriter:
     """Packets of one vehicle and its ground station, each with its receipt stamp, written in stamp order."""
 
-    def __init__(self, t, latency_s: float, mavlink1: bool, autopilot: str):
+    def __init__(self, t, latency_s: float, mavlink1: bool, autopilot: str, sysid: int = 1):
         dialect = _dialect()
         self.dialect = dialect
-        self.vehicle = dialect.MAVLink(None, srcSystem=1, srcComponent=AUTOPILOT_COMPONENT)
+        self.vehicle = dialect.MAVLink(None, srcSystem=sysid, srcComponent=AUTOPILOT_COMPONENT)
         self.gcs = dialect.MAVLink(None, srcSystem=255, srcComponent=190)
         self.mavlink1 = mavlink1
         self.autopilot = autopilot
@@ -1041,6 +1047,7 @@ class _TlogWriter:
             fix = int(fix_col[i]) if np.isfinite(fix_col[i]) else (3 if has else 1)
             time_usec = self.unix0_us + b - _START_US if self.autopilot == "ardupilot" else b
             alt_mm = int(round(alt[i] * 1000.0)) if has and np.isfinite(alt[i]) else 0
+            ellipsoid_mm = 0 if self.mavlink1 else alt_mm  # a MAVLink 1 sender drops the extension fields
             message = self.dialect.MAVLink_gps_raw_int_message(
                 time_usec,
                 fix,
@@ -1052,7 +1059,7 @@ class _TlogWriter:
                 0,
                 0,
                 12,
-                alt_mm,
+                ellipsoid_mm,
             )
             self._send(b, message)
 
