@@ -9,9 +9,23 @@ Format
 
 Time
     Timestamps are microseconds since boot. UTC comes from the GNSS topic: ``time_utc_usec`` is the
-    receiver's UTC time of the instant ``timestamp + timestamp_time_relative`` (PX4 msg/SensorGps.msg);
-    the offset is the median of ``time_utc_usec - (timestamp + timestamp_time_relative)`` over samples
-    with a fix (``fix_type >= 2``) and a non-zero UTC time.
+    receiver's UTC time of the instant ``timestamp + timestamp_time_relative`` (PX4 msg/SensorGps.msg; in the
+    first ULogs of 2016 the absolute ``uint64 timestamp_time``); the offset is the median of ``time_utc_usec``
+    minus that instant over samples with a fix (``fix_type >= 2``) and a non-zero UTC time. A log without a GNSS
+    topic, or whose GNSS never has a UTC time, is read on the boot time base of the drive-log contract: ``time``
+    in seconds since boot, no ``lat, lon, alt`` (nor DOP or fix), ``provenance["time_base"]`` ``"boot"`` and a
+    note saying what is missing (and the median position the GNSS gives, if any); ``magkf.io.site`` places it.
+
+Generations (PX4's msg/*.msg history; ``magkf.io.ulog_write`` writes each)
+    * Up to v1.7 (2016 to April 2018) the magnetometer reached the log in ``sensor_combined.magnetometer_ga``
+      (body frame, PX4's calibration applied), in three layouts (``magkf.io.ulog_combined``), unless
+      ``sensor_mag`` was logged too. With ``raw`` the calibration is undone from the logged ``CAL_MAGn_*`` and
+      ``SENS_BOARD_*`` parameters where the calibration slot of the magnetometer is known
+      (``magkf.io.px4_sensors``); otherwise the values are read as calibrated and a note says why.
+    * From v1.8 ``vehicle_magnetometer`` holds the calibrated field (``timestamp_sample`` from v1.12).
+    * Up to v1.5 ``vehicle_attitude`` held ``roll, pitch, yaw`` (rad) besides an optional ``q`` (``q_valid``);
+      samples without a valid quaternion take the Euler angles.
+    * ``vehicle_gps_position`` always logged ``hdop, vdop``; a firmware without them gives no DOP column (noted).
 
 Topics and units (PX4 msg/*.msg)
     * ``sensor_mag`` (one instance per magnetometer): ``x, y, z`` in Gauss (``[Gauss]`` in
@@ -67,6 +81,7 @@ from ..conventions import (
 )
 from ..errors import InputError
 from .drivelog import AutopilotLog
+from .site import BOOT
 from .streams import bracket, interpolate_linear, interpolate_quaternions
 from .ulog_combined import combined_instances, combined_samples, undo
 from .ulog_write import write_ulog
@@ -743,7 +758,10 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     ``SENS_BOARD_ROT`` / ``CAL_MAGn_ROT`` (see the module docstring; up to PX4 v1.11 the ``CAL_MAGn`` offsets
     and scales may already be subtracted). Without ``sensor_mag``, or with ``raw=False``, the calibrated
     ``vehicle_magnetometer`` is returned instead: body FRD frame, PX4's calibration applied
-    (``provenance["magnetometer"]["calibrated"]`` True, and a note).
+    (``provenance["magnetometer"]["calibrated"]`` True, and a note). A log of PX4 up to v1.7 with neither gives
+    ``sensor_combined.magnetometer_ga`` (``mag`` its index there): with ``raw`` the driver's reading, PX4's
+    calibration undone from the logged parameters where they say which calibration was applied, else (and with
+    ``raw=False``) as logged, calibrated; the notes say which and why.
 
     Attitude is interpolated by slerp, GNSS and DOP linearly; an epoch outside a stream's span or across a
     gap longer than ``max_gap_s`` (s) gets NaN (auxiliary streams use the longer of ``max_gap_s`` and
@@ -755,8 +773,13 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     ``magnetometer_instances``), ``parameters`` (the logged ``CAL_MAG*``), ``rotation`` (``SENS_BOARD_*``,
     ``CAL_MAGn_ROT`` of the chosen magnetometer, whether it is applied), ``time_base`` and ``notes``.
 
-    Raises InputError for a file that is not a ULog, has no magnetometer topic or no GNSS UTC time; warns
-    (and reads up to the damage) for a truncated or damaged file.
+    Without GNSS UTC time, ``time`` is seconds since boot, without ``lat, lon, alt``, and ``time_base`` is
+    ``"boot"`` (see the module docstring).
+
+    Raises InputError (one line: what the log lacks and what to do) for a file that is not a ULog, has no
+    magnetometer (``NO_MAGNETOMETER``), only a raw one with ``raw=False`` (``NO_CALIBRATED``), no instance
+    ``mag`` or no valid ``sensor_combined`` magnetometer sample; warns (and reads up to the damage) for a
+    truncated or damaged file.
     """
     name = str(path)
     ulog = _load(path)
@@ -786,10 +809,6 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     return pd.DataFrame(table).reset_index(drop=True), provenance
 
 
-#: ``provenance["time_base"]`` of a log without GNSS UTC time: ``time`` is seconds since boot.
-BOOT = "boot"
-
-
 def _boot_time_note(gnss: _Gnss | None, why: str | None) -> str:
     """Why ``time`` is seconds since boot, what the log's GNSS holds (its median position, if any) and what to give."""
     if gnss is None:
@@ -808,8 +827,9 @@ def _boot_time_note(gnss: _Gnss | None, why: str | None) -> str:
 
 
 class ULogReader(AutopilotLog):
-    """PX4's ULog (``read_ulog``): the chosen ``sensor_mag`` instance's epochs, with attitude, position and
-    DOP interpolated to them and PX4's calibration undone (``raw``)."""
+    """PX4's ULog (``read_ulog``) of every generation: the chosen magnetometer's epochs (``sensor_mag``,
+    ``vehicle_magnetometer`` or, up to PX4 v1.7, ``sensor_combined``), with attitude, position and DOP
+    interpolated to them; PX4's calibration undone (``raw``) where the log allows."""
 
     name = "ulog"
     title = "ULog"

@@ -16,6 +16,18 @@ from magkf.reference import field_at
 
 SAMPLE = Path(__file__).resolve().parents[2] / "data" / "real" / "px4_cubeorange_vtol_sample_log_small.ulg"
 
+
+def real_log(name: str) -> Path:
+    """A real ULog of PX4/pyulog's test data (see SOURCES.md): magkf's data/real copy, else the shared one."""
+    shipped = SAMPLE.parent / name
+    return shipped if shipped.exists() else Path("/work/shared/data/real") / name
+
+
+#: PX4/pyulog test/sample.ulg: an AUAV-X2.1 of PX4 ~v1.6, magnetometer only in sensor_combined, no GNSS.
+OLDER = real_log("px4_auav_x21_sample.ulg")
+#: PX4/pyulog test/sample_logging_tagged_and_default_params.ulg: PX4 v1.13 SITL.
+TAGGED = real_log("px4_sample_logging_tagged_and_default_params.ulg")
+
 # Round-trip bounds, from the storage types of write_ulog:
 #   float32 (mag in G, hdop, vdop, current_a): round to nearest, |error| <= 2^-24 |value|, plus a few double
 #   roundings (1e5 scaling) far below 1e-15 relative;
@@ -248,3 +260,49 @@ def test_the_default_magnetometer_follows_px4s_parameters():
     assert instance == 1 and why == "PX4's highest-priority magnetometer (CAL_MAG1_PRIO = 75)"
     assert _default_instance(sets, prio | {"CAL_MAG1_PRIO": 0})[0] == 2
     assert _default_instance(sets, ids | {"CAL_MAG0_PRIO": 0})[0] == 1
+
+
+def test_older_real_log_reads_sensor_combined_on_the_boot_time_base():
+    """PX4 ~v1.6: sensor_combined's voted magnetometer (about 98 Hz, each repeated at the gyro's 250 Hz), one
+    calibrated slot (CAL_MAG0, internal: board rotation fine-tuned by SENS_BOARD_X/Y_OFF), no GNSS."""
+    from pyulog import ULog
+
+    from magkf.io.px4_sensors import calibration_of_slot
+
+    table, prov = read_ulog(OLDER)
+    assert prov["time_base"] == "boot" and prov["gnss"] is None and prov["px4_version"] is None
+    assert len(table) == 6759 and not {"lat", "lon", "alt"} & set(table.columns)
+    assert np.all(np.diff(table["time"]) > 0) and 112.0 < table["time"].iloc[0] < table["time"].iloc[-1] < 182.0
+    assert prov["magnetometer"] | {"rate_hz": None} == {
+        "topic": "sensor_combined",
+        "instance": 0,
+        "device_id": None,
+        "rate_hz": None,
+        "calibrated": False,
+        "fields": "sensor_combined.magnetometer_ga[0], sensor_combined.magnetometer_ga[1], "
+        "sensor_combined.magnetometer_ga[2]",
+        "calibration_index": 0,
+    }
+    assert any("the only calibrated magnetometer (CAL_MAG0_ID = 262144)" in note for note in prov["notes"])
+    assert prov["notes"][0].startswith("sensor_combined repeats each magnetometer sample until the next one")
+    logged, calibrated_prov = read_ulog(OLDER, raw=False)
+    assert calibrated_prov["magnetometer"]["calibrated"] is True
+    data = ULog(str(OLDER), ["sensor_combined"]).get_dataset("sensor_combined").data
+    first = np.r_[True, np.diff(data["timestamp"] + data["magnetometer_timestamp_relative"]) > 0]
+    np.testing.assert_array_equal(logged["mag_x"], data["magnetometer_ga[0]"][first].astype(float) * 1e5)
+    # PX4's calibration, applied again to the undone readings, gives back what was logged (float64 arithmetic)
+    model = calibration_of_slot(prov["parameters"] | prov["rotation"], 0)
+    again = model.apply(table[["mag_x", "mag_y", "mag_z"]].to_numpy() / 1e5) * 1e5
+    np.testing.assert_allclose(again, logged[["mag_x", "mag_y", "mag_z"]].to_numpy(), rtol=0, atol=1e-9)
+
+
+def test_tagged_real_log_reads_as_before():
+    """PX4 v1.13 SITL: sensor_mag instance 0 (1 Hz), vehicle_gps_position with UTC on 2022-04-29 near Zurich."""
+    table, prov = read_ulog(TAGGED)
+    assert len(table) == 11 and prov["magnetometer"]["topic"] == "sensor_mag"
+    assert prov["magnetometer"]["device_id"] == 197388 and prov["notes"] == []
+    days = pd.to_datetime(table["time"], unit="s", utc=True).dt.date
+    assert (days == date(2022, 4, 29)).all()
+    assert np.nanmax(np.abs(table["lat"] - 47.397742)) < 1e-6 and np.nanmax(np.abs(table["lon"] - 8.545594)) < 1e-6
+    calibrated, prov = read_ulog(TAGGED, raw=False)
+    assert len(calibrated) == 159 and prov["magnetometer"]["topic"] == "vehicle_magnetometer"

@@ -302,3 +302,19 @@ def test_refusals_are_one_line(tmp_path, truth):
         assert str(info.value) == f"{path}: {message}"
     with pytest.raises(InputError, match="unknown PX4 generation '0.9'; use one of 1.4, 1.6"):
         write_ulog(truth, tmp_path / "x.ulg", generation="0.9")
+
+
+def test_a_log_without_gnss_is_placed_by_read_log_at_the_site_given(tmp_path, truth):
+    """The boot time base through ``read_log``: refused in one line without ``site``, placed with it."""
+    from magkf.io.readers import read_log
+    from magkf.io.site import parse_site
+
+    path = tmp_path / "bench.ulg"
+    write_ulog(truth.drop(columns=["lat", "lon", "alt"]), path, generation="1.6", parameters=INTERNAL)
+    with pytest.raises(InputError, match="--site LAT,LON") as info:
+        read_log(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+    log = read_log(path, site=parse_site("48.1,11.6,500", "2026-05-01"))
+    start = parse_site(None, "2026-05-01").start
+    np.testing.assert_allclose(log.time, start + 10.0 + truth["time"] - truth["time"][0], rtol=0, atol=TIME_ATOL_S)
+    assert np.all(log.table["lat"] == 48.1) and log.site["given"] is True
