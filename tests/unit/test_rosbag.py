@@ -28,6 +28,7 @@ import pytest
 
 from magkf.conventions import wrap_deg
 from magkf.errors import InputError
+from magkf.io import readers
 from magkf.io.readers import detect_format, read_log
 from magkf.io.rosbag import (
     IMU,
@@ -58,8 +59,8 @@ ROSBAG_STORAGE_SIGMA_NT = math.hypot(1e-12 * 66_000 / math.sqrt(12), math.radian
 
 @pytest.fixture(scope="module")
 def drive():
-    """A seeded 3-D drive of 60 s at 20 Hz with an HDOP (what NavSatFix's covariance carries)."""
-    sim = simulate_drive(DriveConfig(duration_s=60.0, rate_hz=20.0, motion="3d", seed=5, dop_bad_stretches=0))
+    """A seeded 3-D drive of 30 s at 20 Hz with an HDOP (what NavSatFix's covariance carries)."""
+    sim = simulate_drive(DriveConfig(duration_s=30.0, rate_hz=20.0, motion="3d", seed=5, dop_bad_stretches=0))
     return sim.table.assign(hdop=sim.table["dop"]).reset_index()
 
 
@@ -123,6 +124,7 @@ def test_provenance(drive, bags):
         {"instance": 0, "topic": "/imu/mag", "type": MAGNETIC_FIELD, "samples": len(drive)}
     ]
     assert magnetometer_instances(bags["ros2"]) == prov["magnetometers"]
+    assert readers.magnetometer_instances(bags["mcap"]) == prov["magnetometers"]
 
 
 def test_read_log_detects_each_kind(drive, bags):
@@ -168,7 +170,7 @@ S10, C10 = math.sin(math.radians(10.0)), math.cos(math.radians(10.0))
 B_NORTH, B_EAST, B_DOWN = 20_000.0, 3_000.0, 40_000.0
 
 
-def _known_rotation_bag(path, attitude: str) -> None:
+def _known_rotation_bag(path, attitude: str, version: str) -> None:
     """A vehicle heading east with its nose 10 deg up, as ROS sees it.
 
     ENU world, FLU body: heading east puts body x along ENU x; nose up is a turn of -10 deg about the body's left
@@ -195,16 +197,18 @@ def _known_rotation_bag(path, attitude: str) -> None:
         else:
             odom = {"header": header, "pose": {"pose": {"orientation": q}}}
             messages.append(BagMessage("/odom", "nav_msgs/msg/Odometry", t, odom))
-    write_bag(path, "ros2", messages)
+    write_bag(path, version, messages)
 
 
+@pytest.mark.parametrize("version", ["ros1", "mcap"])
 @pytest.mark.parametrize("attitude", ["imu", "odom"])
-def test_known_rotation(tmp_path, attitude):
+def test_known_rotation(tmp_path, attitude, version):
     """Heading east, nose 10 deg up: NED roll 0, pitch 10, yaw 90 deg. In NED the body axes are forward
     f = (0, c, -s), right r = (-1, 0, 0) (south, heading east) and down d = f cross r = (0, s, c); the FRD field
     is (f.B, r.B, d.B) with B = (N, E, D), which the reader must give from the FLU reading."""
-    _known_rotation_bag(tmp_path / "bag", attitude)
-    table, prov = read_rosbag(tmp_path / "bag")
+    path = tmp_path / ("bag.bag" if version == "ros1" else "bag")
+    _known_rotation_bag(path, attitude, version)
+    table, prov = read_rosbag(path)
     np.testing.assert_allclose(table["roll"], 0.0, atol=1e-12)
     np.testing.assert_allclose(table["pitch"], 10.0, atol=1e-12)
     np.testing.assert_allclose(table["yaw"], 90.0, atol=1e-12)
@@ -310,17 +314,19 @@ def test_magnetometer_alone(drive, tmp_path):
     ]
 
 
-def test_not_a_bag(tmp_path):
+def test_not_a_bag(bags, tmp_path):
     text, db, folder = tmp_path / "x.bag", tmp_path / "x.db3", tmp_path / "empty"
     text.write_text("time,mag_x\n")
     with sqlite3.connect(db) as con:
         con.execute("CREATE TABLE other (a)")
     folder.mkdir()
+    renamed = shutil.copy(next(bags["mcap"].glob("*.mcap")), tmp_path / "drive.log")
     expected = {
         text: "not a ROS bag: no #ROSBAG V2.0, MCAP or SQLite header",
         db: "an SQLite database without rosbag2's 'topics' table: not a ROS 2 bag",
         folder: "a folder without metadata.yaml is not a ROS 2 bag: pass the bag's folder or one file",
         tmp_path / "none.mcap": "no such file or folder",
+        renamed: "a mcap bag file is read only under the ending .mcap: rename it",
     }
     for path, message in expected.items():
         with pytest.raises(InputError) as caught:
