@@ -5,6 +5,7 @@ reading them with --map, and the refusals word for word."""
 
 from __future__ import annotations
 
+import re
 import warnings
 from datetime import UTC, datetime
 from pathlib import Path
@@ -399,4 +400,55 @@ def test_offline_refusals(tmp_path, capsys):
     )
     assert refusal(lambda: read_mapped_table(path, cmap, ["angle_deg"])) == (
         f"{cmap.source}: [columns] angle_deg: required: say which file column holds it"
+    )
+
+
+# ---------------------------------------------------------------- the documented examples, as printed
+DOCS = ROOT / "docs" / "column-maps.md"
+
+
+def documented_layouts() -> dict[str, tuple[str | None, str]]:
+    """Heading -> (data, map) of each example under "Layouts of published calibration sets"."""
+    doc = DOCS.read_text(encoding="utf-8")
+    section = doc[doc.index("## Layouts of published calibration sets") : doc.index("## The offline commands")]
+    out = {}
+    for part in section.split("\n### ")[1:]:
+        heading = part.splitlines()[0]
+        data = re.findall(r"```\n(.*?)```", part, flags=re.DOTALL)
+        toml = re.findall(r"```toml\n(.*?)```", part, flags=re.DOTALL)
+        out[heading] = (data[0] if data else None, toml[0])
+    return out
+
+
+def test_every_documented_layout_reads_the_same_field(tmp_path):
+    """The text examples hold the same two or three samples; read through their maps they give the same field
+    in nT (the uT one to the storage precision of its decimals, 1e-12 relative) and their times."""
+    layouts = documented_layouts()
+    assert len(layouts) == 6
+    field = np.array([[21034.5, -1220.3, 43012.8], [21031.9, -1218.7, 43015.1], [21030.2, -1219.9, 43013.6]])
+    start = datetime(2023, 3, 14, 10, tzinfo=UTC).timestamp()
+    for k, (heading, (data, toml)) in enumerate(layouts.items()):
+        cmap = write(tmp_path / f"{k}.toml", toml)
+        expected = field
+        if data is None:  # the MATLAB example: its matrix (more records than channels) written as MATLAB would
+            expected = np.tile(field, (2, 1))
+            records = np.column_stack([start + 0.1 * np.arange(6), expected])
+            path = write_mat73(tmp_path / "set.mat", {"data": records.T})
+        else:
+            path = write(tmp_path / f"{k}.csv", data)  # the maps that need another delimiter say so
+        table, _ = read_mapped(path, cmap)
+        n = len(table)
+        mag = table[["mag_x", "mag_y", "mag_z"]]
+        np.testing.assert_allclose(mag, expected[:n], rtol=1e-12, atol=0, err_msg=heading)
+        step = 0.01 if "sample rate" in heading else 0.1
+        np.testing.assert_allclose(table["time"], start + step * np.arange(n), rtol=0, atol=1e-6, err_msg=heading)
+
+
+def test_the_documented_refusal_is_the_one_given(tmp_path):
+    doc = DOCS.read_text(encoding="utf-8")
+    printed = re.findall(r"```\n(set\.txt: .*?)\n```", doc)[0]
+    lines = ["Published set 3", "x y z (nT)", "21034.5 -1220.3 43012.8", "21031.9 -1218.7 43015.1"]
+    path = write(tmp_path / "set.txt", "\n".join(lines) + "\n")
+    assert refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"])) == printed.replace(
+        "set.txt", str(path), 1
     )
