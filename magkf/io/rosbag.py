@@ -25,7 +25,8 @@ DOP
     horizontal RMS error over the user equivalent range error) with ``UERE_M = 4 sqrt(2) m``: ROS's usual GNSS
     driver, nmea_navsat_driver (https://github.com/ros-drivers/nmea_navsat_driver, ``driver.py``), fills
     ``cov_xx = cov_yy = (4 m x HDOP)^2`` for a standalone fix, so this gives back the receiver's HDOP for its
-    bags, and 5.7 m is a standalone receiver's usual UERE. ``position_covariance_type`` 0 (unknown): no DOP.
+    bags, and 5.7 m lies in the usual range of a standalone receiver's UERE. ``position_covariance_type`` 0
+    (unknown): no DOP.
 
 Frames (REP 103, https://www.ros.org/reps/rep-0103.html; REP 105)
     ROS's world frame is ENU (east, north, up) and its body frame FLU (forward, left, up); magkf's are NED and
@@ -315,7 +316,7 @@ class _Stream(NamedTuple):
 
 def _read_streams(reader, topics: dict[str, str], bag: _Bag, name: str) -> dict[str, _Stream]:
     """Topic -> its ``_Stream`` for every topic of ``topics`` (topic -> message type), in one pass."""
-    connections = [c for c in reader.connections if c.topic in topics]
+    connections = [c for c in reader.connections if topics.get(c.topic) == c.msgtype]
     rows: dict[str, list] = {t: [] for t in topics}
     frames: dict[str, str] = {}
     try:
@@ -339,8 +340,8 @@ def _has_values(stream: _Stream) -> bool:
     return bool(np.isfinite(stream.values).any())
 
 
-def _pick(kind: str, chosen: dict, by_type: dict, streams: dict, notes: list, usable=_has_values) -> str | None:
-    """The topic of ``kind`` read: the one named in ``chosen``, else the first by name of those ``usable``
+def _pick(kind: str, chosen: dict, by_type: dict, streams: dict, notes: list) -> str | None:
+    """The topic of ``kind`` read: the one named in ``chosen``, else the first by name of those with values
     (noting the others), else None."""
     if kind in chosen:
         if len(streams[chosen[kind]].stamp_ns):
@@ -348,7 +349,7 @@ def _pick(kind: str, chosen: dict, by_type: dict, streams: dict, notes: list, us
         notes.append(f"{chosen[kind]} holds no message: nothing of it is read")
         return None
     topics = by_type.get(TOPIC_KINDS[kind], [])
-    good = [t for t in topics if usable(streams[t])]
+    good = [t for t in topics if _has_values(streams[t])]
     if not good:
         return None
     if len(topics) > 1:
