@@ -71,10 +71,7 @@ def run_sinefit(args) -> int:
         inclination = args.inclination if args.inclination is not None else igrf["inclination_deg"]
     else:
         field, inclination = args.field, args.inclination
-    if (args.file is None) == (args.curves is None):
-        raise InputError("give either a turntable CSV or --curves FILE.json")
-    if args.curves and args.map:
-        raise InputError("--map reads a turntable table; --curves holds fitted curves: give one of them")
+    _check_sinefit_inputs(args)
     if args.curves:
         if args.method not in (None, "paper"):
             raise InputError("--curves holds fitted curves, not samples: only --method paper applies to them")
@@ -114,6 +111,14 @@ def run_sinefit(args) -> int:
         if np.isfinite(result.residual_rms_nt):
             print(f"  residual RMS {result.residual_rms_nt:.3f} nT")
     return 0
+
+
+def _check_sinefit_inputs(args) -> None:
+    """InputError unless exactly one of a turntable table and ``--curves`` is given (``--map`` only with a table)."""
+    if (args.file is None) == (args.curves is None):
+        raise InputError("give either a turntable CSV or --curves FILE.json")
+    if args.curves and args.map:
+        raise InputError("--map reads a turntable table; --curves holds fitted curves: give one of them")
 
 
 # ---------------------------------------------------------------- ellipsoid
