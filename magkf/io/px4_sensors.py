@@ -22,6 +22,9 @@ From v1.6 it holds only the magnetometer the voter chose, without its device id:
 several calibrated magnetometers and no ``sensor_selection`` the choice is unknown and the calibration cannot be
 undone.
 
+Whether a magnetometer is internal is read from the logged ``CAL_MAGn_ROT`` (-1); PX4 set a -1 of a magnetometer it
+found external to 0 at start without announcing the change, which a log cannot show.
+
 PX4's rotations (src/lib/conversion/rotation.h, ``rot_lookup``) are given as roll, pitch, yaw in degrees and
 turned into matrices by ``from_euler`` (``Rz(yaw) Ry(pitch) Rx(roll)``, the same as ``euler_to_dcm``).
 """

@@ -141,7 +141,7 @@ def _load(path, topics=TOPICS):
     ulog, damage = _parse(path, topics)
     combined = ulog.message_formats.get("sensor_combined")
     older = combined is not None and any(field[2] == "magnetometer_ga" for field in combined.fields)
-    if older and not any(_datasets(ulog, topic) for topic in _MAG_TOPICS):
+    if older and not _datasets(ulog, "vehicle_magnetometer"):  # raw=False reads it, and without sensor_mag also raw
         ulog, damage = _parse(path, tuple(topics) + _COMBINED_TOPICS)
     if damage is not None:
         warnings.warn(damage, stacklevel=3)
@@ -697,7 +697,7 @@ def _px4_calibration(ulog, mag: _Magnetometer, notes: list) -> tuple[dict, int |
     return params, device_id, cal_index, rotation
 
 
-def _px4_version(ulog, topic: str, notes: list) -> str | None:
+def _px4_version(ulog, topic: str, calibrated: bool, notes: list) -> str | None:
     """PX4's version (``major.minor.patch``, None if not logged); notes that ``sensor_mag`` may be
     offset-corrected before v1.12, and the calibration parameters changed during the log."""
     version = _version(ulog)
@@ -708,7 +708,8 @@ def _px4_version(ulog, topic: str, notes: list) -> str | None:
         )
     changed = sorted({k for _, k, _ in ulog.changed_parameters if k.startswith(("CAL_MAG", "SENS_BOARD"))})
     if changed:
-        notes.append(f"parameters changed during the log (initial values reported): {', '.join(changed)}")
+        used = " and used to undo PX4's calibration" if topic == "sensor_combined" and not calibrated else ""
+        notes.append(f"parameters changed during the log (initial values reported{used}): {', '.join(changed)}")
     return version
 
 
@@ -718,7 +719,7 @@ def _provenance(
     """The JSON-able provenance of ``read_ulog`` (see there); PX4's calibration and version notes go to
     ``notes`` first."""
     params, device_id, cal_index, rotation = _px4_calibration(ulog, mag, notes)
-    version = _px4_version(ulog, mag.topic, notes)
+    version = _px4_version(ulog, mag.topic, mag.calibrated, notes)
     return {
         "format": "px4-ulog",
         "file": name,

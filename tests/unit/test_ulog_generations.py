@@ -318,3 +318,30 @@ def test_a_log_without_gnss_is_placed_by_read_log_at_the_site_given(tmp_path, tr
     start = parse_site(None, "2026-05-01").start
     np.testing.assert_allclose(log.time, start + 10.0 + truth["time"] - truth["time"][0], rtol=0, atol=TIME_ATOL_S)
     assert np.all(log.table["lat"] == 48.1) and log.site["given"] is True
+
+
+def test_the_three_layouts_of_sensor_combined():
+    """Three magnetometers side by side with absolute times (May to July 2016), one with an absolute time
+    (July 2016), one with a relative time (v1.5 to v1.7); an empty slot of the first has time 0."""
+    from magkf.io.ulog_combined import combined_instances
+
+    t = np.array([1000, 2000, 3000])
+    three = {"timestamp": t, **{f"magnetometer_ga[{k}]": np.arange(3.0) + k for k in range(9)}}
+    three |= {
+        "magnetometer_timestamp[0]": t - 10,
+        "magnetometer_timestamp[1]": t - 20,
+        "magnetometer_timestamp[2]": 0 * t,
+    }
+    assert combined_instances(three) == [0, 1]
+    second = combined_samples(three, 1)
+    assert second.fields == ("magnetometer_ga[3]", "magnetometer_ga[4]", "magnetometer_ga[5]")
+    np.testing.assert_array_equal(second.us, t - 20)
+    assert second.time_text == "sensor_combined.magnetometer_timestamp[1] (us since boot)"
+    absolute = {
+        "timestamp": t,
+        "magnetometer_timestamp": t - 5,
+        **{f"magnetometer_ga[{k}]": np.ones(3) for k in range(3)},
+    }
+    assert combined_instances(absolute) == [0]
+    np.testing.assert_array_equal(combined_samples(absolute, 0).us, t - 5)
+    assert combined_instances({"timestamp": t}) == []
