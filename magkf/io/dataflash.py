@@ -135,10 +135,19 @@ def _effective_scale(scale) -> np.ndarray:
     return np.where((s >= 1.0 / MAX_SCALE_FACTOR) & (s <= MAX_SCALE_FACTOR), s, 1.0)
 
 
+def _one_if_constant(values, shape: tuple) -> np.ndarray:
+    """``values`` broadcast to ``shape`` ((n,) or (n, 3)), or just its first row (1, ...) where every row is the
+    same (a log's parameters that never change: one matrix instead of n)."""
+    v = np.broadcast_to(np.asarray(values, float), shape)
+    return v[:1] if len(v) > 1 and np.all(v == v[:1]) else v
+
+
 def _model(n: int, diagonals, offdiagonals, scale) -> tuple[np.ndarray, np.ndarray]:
-    """Soft-iron matrices (n, 3, 3) and applied scale factors (n, 1) for ``n`` epochs."""
-    m = _matrix(np.broadcast_to(diagonals, (n, 3)), np.broadcast_to(offdiagonals, (n, 3)))
-    return m, np.broadcast_to(_effective_scale(scale), (n,))[:, None]
+    """Soft-iron matrices (n or 1, 3, 3) and applied scale factors (n or 1, 1) for ``n`` epochs: one of each
+    where the parameters do not change."""
+    d, o = _one_if_constant(diagonals, (n, 3)), _one_if_constant(offdiagonals, (n, 3))
+    m = _matrix(d, o) if len(d) == len(o) else _matrix(np.broadcast_to(d, (n, 3)), np.broadcast_to(o, (n, 3)))
+    return m, _effective_scale(_one_if_constant(scale, (n,)))[:, None]
 
 
 def compass_correct(raw, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0, *, motor_first=False) -> np.ndarray:
@@ -154,7 +163,7 @@ def compass_correct(raw, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0,
     raw = np.atleast_2d(np.asarray(raw, float))
     m, s = _model(len(raw), diagonals, offdiagonals, scale)
     inner, outer = (motor, 0.0) if motor_first else (0.0, motor)
-    return np.einsum("nij,nj->ni", m, (raw + offsets + inner) * s) + outer
+    return np.einsum("...ij,...j->...i", m, (raw + offsets + inner) * s) + outer
 
 
 def compass_uncorrect(field, offsets, diagonals, offdiagonals, scale=1.0, motor=0.0, *, motor_first=False):
@@ -166,7 +175,10 @@ def compass_uncorrect(field, offsets, diagonals, offdiagonals, scale=1.0, motor=
     field = np.atleast_2d(np.asarray(field, float))
     m, s = _model(len(field), diagonals, offdiagonals, scale)
     inner, outer = (motor, 0.0) if motor_first else (0.0, motor)
-    unmixed = np.linalg.solve(m, (field - outer)[..., None])[..., 0]
+    if len(m) == 1:  # one matrix for the whole log: invert it once
+        unmixed = (field - outer) @ np.linalg.inv(m[0]).T
+    else:
+        unmixed = np.linalg.solve(m, (field - outer)[..., None])[..., 0]
     return unmixed / s - offsets - inner
 
 
@@ -284,12 +296,19 @@ class _Log:
             raise InputError(
                 f"message {name} declares {fmt.len - 3} bytes but its format has {dtype.itemsize}", source=self.path
             )
-        body = self.buffer[offsets[:, None] + 3 + np.arange(dtype.itemsize)]
-        records = np.ascontiguousarray(body).view(dtype).ravel()
+        records = self._gather(offsets + 3, dtype.itemsize).view(dtype).ravel()
         out = self._decode(records, fmt)
         self._timed(name, out, offsets)
         self._tables[name] = out
         return out
+
+    def _gather(self, starts: np.ndarray, size: int) -> np.ndarray:
+        """The ``size`` bytes at each of ``starts`` (N,), as a contiguous (N, size) uint8 array: one row of a
+        strided view of the file per message (a copy of ``size`` bytes each, not ``N * size`` indices)."""
+        if not len(starts) or len(self.buffer) < size:
+            return np.zeros((0, size), np.uint8)
+        windows = np.lib.stride_tricks.as_strided(self.buffer, (len(self.buffer) - size + 1, size), (1, 1))
+        return windows[starts]
 
     @staticmethod
     def _decode(records: np.ndarray, fmt) -> dict[str, np.ndarray]:
@@ -358,7 +377,7 @@ class _Log:
                 offs = np.asarray(self.reader.offsets[f.type], np.int64)
                 offs = offs[offs + 3 + (8 if f.format[0] == "Q" else 4) <= len(self.buffer)]
                 width, scale = (8, 1) if f.format[0] == "Q" else (4, 1000)
-                raw = np.ascontiguousarray(self.buffer[offs[:, None] + 3 + np.arange(width)])
+                raw = self._gather(offs + 3, width)
                 places.append(offs)
                 times.append(raw.view("<u8" if width == 8 else "<u4").ravel().astype(np.int64) * scale)
             place, time = np.concatenate(places), np.concatenate(times)
@@ -392,7 +411,7 @@ def _select(table: dict, instance: int | None, field: str = "I") -> dict:
     if not table or instance is None or field not in table:
         return table
     keep = table[field] == instance
-    return {k: v[keep] for k, v in table.items()}
+    return table if keep.all() else {k: v[keep] for k, v in table.items()}
 
 
 def _by_time(table: dict) -> dict:
