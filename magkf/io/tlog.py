@@ -579,7 +579,13 @@ def _motor(params: dict, suffix: str, boot_us, aux: dict, notes: list) -> tuple[
             + ("per-motor compensation is not modelled)" if channel is None else f"no {channel} in the log)")
         )
         return 0.0, "motor compensation not undone"
-    return mot * np.nan_to_num(values)[:, None], f"motor compensation COMPASS_MOT{suffix} x {channel}"
+    unknown = int(np.count_nonzero(~np.isfinite(values)))
+    if unknown:
+        notes.append(
+            f"{unknown} epochs have no {channel} (outside its stream or across a gap): their motor compensation "
+            "cannot be undone, so their field is left empty"
+        )
+    return mot * values[:, None], f"motor compensation COMPASS_MOT{suffix} x {channel}"
 
 
 # ------------------------------------------------------------------ reading
@@ -914,7 +920,8 @@ def write_tlog(
     * ``HEARTBEAT`` at 1 Hz from the vehicle (``autopilot`` ``ardupilot`` or ``px4``) and the ground station;
       ``PARAM_VALUE`` for each of ``params`` before the first row (float32; PX4's integers by their bytes).
     * magnetometer at every row with a finite field: ArduPilot ``RAW_IMU`` (``time_usec`` boot us) with the
-      ``COMPASS_*`` calibration of ``params`` applied as the firmware does (``compass_correct``), PX4
+      ``COMPASS_*`` calibration of ``params`` applied as the firmware does (``compass_correct``; motor
+      compensation ``COMPASS_MOT`` x ``throttle`` or ``current_a`` for ``COMPASS_MOTCT`` 1 or 2), PX4
       ``SCALED_IMU`` (``time_boot_ms``), uncalibrated; both in mG truncated to int16, ``temperature`` from
       ``temp_c``. InputError where a value does not fit in int16.
     * ``ATTITUDE`` ``attitude_per_row`` times a row (slerp between rows), radians as float32.
@@ -1000,7 +1007,8 @@ class _TlogWriter:
         rows = np.all(np.isfinite(mag_mg), axis=1)
         if self.autopilot == "ardupilot":
             offsets, diagonals, offdiagonals, scale = _firmware_compass(params)
-            mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale)
+            motor = _motor_sent(params, frame)[rows]
+            mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale, motor)
         sent = np.trunc(mag_mg)
         too_large = np.argwhere(rows[:, None] & (np.abs(sent) > np.iinfo(np.int16).max))
         if too_large.size:
@@ -1087,6 +1095,18 @@ class _TlogWriter:
             for stamp, _, packet in self.records:
                 f.write(stamp.to_bytes(STAMP_BYTES, "big"))
                 f.write(packet)
+
+
+def _motor_sent(params: dict, frame) -> np.ndarray:
+    """ArduPilot's motor compensation (N, 3) mG at the rows of ``frame``: ``COMPASS_MOT`` (of the parameter set
+    of priority 0, as float32) times ``throttle`` (``COMPASS_MOTCT`` 1) or ``current_a`` (2), else zero."""
+    channel = {1: "throttle", 2: "current_a"}.get(int(params.get("COMPASS_MOTCT", 0)))
+    if channel is None:
+        return np.zeros((len(frame), 3))
+    k = _state_index({key: (np.zeros(1), np.array([float(v)])) for key, v in params.items()}, 0)
+    suffix = ("", "2", "3")[k] if k < 3 else ""
+    mot = np.array([float(np.float32(params.get(f"COMPASS_MOT{suffix}_{a}", 0.0))) for a in "XYZ"])
+    return np.nan_to_num(_column(frame, channel))[:, None] * mot
 
 
 def _column(frame, column: str) -> np.ndarray:

@@ -172,6 +172,32 @@ def test_known_calibration_is_undone(flight, tmp_path):
     assert as_sent["magnetometer"]["calibrated"] is True
 
 
+def test_motor_compensation_is_undone_with_the_logged_current(flight, tmp_path):
+    """``COMPASS_MOTCT`` 2: the firmware adds ``COMPASS_MOT`` x current to the corrected field; the reader takes the
+    current from BATTERY_STATUS (2 Hz, cA), interpolated. With a current of 5 A amplitude and 20 s period, linear
+    interpolation over 0.5 s errs by at most (0.5 s)**2 / 8 x 5 A x (2 pi / 20 s)**2 = 0.0154 A, plus 0.005 A of cA
+    rounding; times |MOT| (at most 12 mG/A) that adds under 0.25 mG to the truncation bound of 1 mG."""
+    t = flight.index.to_numpy()
+    smooth = flight.iloc[:400].assign(current_a=10.0 + 5.0 * np.sin(2 * np.pi * (t[:400] - t[0]) / 20.0))
+    motor = {"COMPASS_MOTCT": 2, "COMPASS_MOT_X": 12.0, "COMPASS_MOT_Y": -7.0, "COMPASS_MOT_Z": 4.0}
+    path = tmp_path / "motor.tlog"
+    write_tlog(smooth, path, params=motor)
+    raw, provenance = read_tlog(path)
+    truth = smooth[["mag_x", "mag_y", "mag_z"]].to_numpy()
+    error = np.abs(raw[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth)
+    known = np.isfinite(error).all(axis=1)
+    assert np.all(error[known] <= (1.0 + 12.0 * (0.0154 + 0.005)) * 100.0)
+    # after the last BATTERY_STATUS (row 390) the current is unknown: those epochs are left empty, and said so
+    assert np.flatnonzero(~known).tolist() == list(range(391, 400))
+    assert (
+        "9 epochs have no current_a (outside its stream or across a gap): their motor compensation cannot be "
+        "undone, so their field is left empty" in provenance["notes"]
+    )
+    assert "motor compensation COMPASS_MOT x current_a" in provenance["raw_reconstruction"]
+    sent, _ = read_tlog(path, raw=False)  # the compensation is there: up to 12 mG/A x 15 A = 18 mG
+    assert np.max(np.abs(sent["mag_x"].to_numpy() - truth[:, 0])) > 10_000.0
+
+
 def test_priority_picks_the_parameter_set_and_the_export_compass(flight, tmp_path):
     """Compass priority 1 is the device of the second parameter set: RAW_IMU carries its calibration, which is
     undone with COMPASS_OFS2..., and ``magkf export`` writes compass 2."""
@@ -407,3 +433,24 @@ def test_highres_imu_is_the_calibrated_field_in_gauss(tmp_path):
         table["mag_x"], (0.2 + 0.01 * np.arange(5)).astype(np.float32).astype(float) * 1e5, rtol=1e-12
     )
     assert provenance["magnetometer"]["instance"] == 3 and provenance["magnetometer"]["calibrated"] is True
+
+
+def test_scaled_imu2_is_instance_1_and_compass_2(tmp_path):
+    """ArduPilot's SCALED_IMU2 carries compass priority 1 (``get_field(1)``): instance 1, exported as compass 2
+    when the log holds no COMPASS_PRIOn_ID to say otherwise; its time is ``time_boot_ms``."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    messages = []
+    for k in range(6):
+        messages.append(
+            mavlink.MAVLink_raw_imu_message(1_000_000 + 100_000 * k, 0, 0, -1000, 0, 0, 0, 200 + k, 10, 400)
+        )
+        messages.append(mavlink.MAVLink_scaled_imu2_message(1_000 + 100 * k, 0, 0, -1000, 0, 0, 0, -150, 300 + k, 420))
+    path = hand_made(tmp_path / "two.tlog", *messages)
+    assert [m["message"] for m in magnetometer_instances(path)] == ["RAW_IMU", "SCALED_IMU2"]
+    table, provenance = read_tlog(path, mag=1)
+    np.testing.assert_array_equal(table["mag_y"], (300 + np.arange(6) + 0.5) * 100.0)  # centred truncation
+    np.testing.assert_allclose(np.diff(table["time"]), 0.1, rtol=0, atol=1e-6)
+    mag = {"format": "mavlink-tlog", **provenance["magnetometer"]}
+    assert mag["instance"] == 1 and mag["message"] == "SCALED_IMU2" and mag["compass"] == 2
+    assert export_instance(Calibration(np.eye(3), np.zeros(3), magnetometer=mag), "ardupilot")[0] == 2
