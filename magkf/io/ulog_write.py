@@ -167,7 +167,11 @@ def _topics(table: pd.DataFrame, generation: Generation, drop: set[str]) -> dict
     if "throttle" in table:
         texts["actuator_controls_0"] = _CONTROLS
     return {
-        topic: [f for f in _fields(text) if f"{topic}.{f[2]}" not in drop or f[2] == "timestamp"]
+        topic: [
+            f
+            for f in _fields(text)
+            if f"{topic}.{f[2]}" not in drop or f[2] == "timestamp" or topic == "sensor_selection"
+        ]
         for topic, text in texts.items()
     }
 
@@ -351,11 +355,11 @@ def write_ulog(
     ``sensor_combined`` generations the table's magnetometer is the driver's reading and the calibration those
     parameters describe is applied before it is written, as PX4 did (``px4_sensors``): the slot of CAL_MAGn_ID =
     ``device_id`` (default: the only calibrated slot, else the board rotation only); ``1.7`` logs that
-    ``device_id`` in ``sensor_selection``. ``drop_fields`` (``"topic.field"``) leaves fields out of the formats,
-    as a firmware without them. Boot time starts at ``start_boot_us`` (us) at the first row and follows ``time``
-    (UNIX s) rounded to 1 us. Messages follow the ULog file format (docs.px4.io, "ULog File Format"): header,
-    flag bits, formats, information, parameters, subscriptions, data, all laid out at once in a numpy structured
-    array.
+    ``device_id`` in ``sensor_selection``. ``drop_fields`` (``"topic.field"``, not ``timestamp`` nor those of
+    ``sensor_selection``) leaves fields out of the formats, as a firmware without them. Boot time starts at
+    ``start_boot_us`` (us) at the first row and follows ``time`` (UNIX s) rounded to 1 us. Messages follow the
+    ULog file format (docs.px4.io, "ULog File Format"): header, flag bits, formats, information, parameters,
+    subscriptions, data, all laid out at once in a numpy structured array.
     """
     name = str(path)
     if generation not in GENERATIONS:
