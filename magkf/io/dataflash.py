@@ -837,7 +837,7 @@ def _position(
     gpa = _by_time(_select(log.table("GPA"), 0))
     gpa_fix = _gpa_fix(gps, gpa, fix) if gpa else None
     alt, alt_text = _ellipsoid_height(gps, gpa, gpa_fix, fix, t_gps, offset)
-    if gpa:
+    if gpa and "VDop" in gpa:
         vdop = np.where(gpa_fix & (gpa["VDop"] < UNKNOWN_DOP_COUNTS * 0.01), gpa["VDop"], np.nan)
         frame["vdop"] = interpolate_linear(t, _stream_time(gpa, offset), vdop, max_gap_s)[0]
         columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
@@ -1390,7 +1390,8 @@ def _write_auxiliary(w: DataFlashWriter, frame: pd.DataFrame, time_us, firmware:
     if np.isfinite(current).any() and battery in w.layouts:
         rows = np.isfinite(current)
         w.define(battery)
-        centi = 100.0 if w.layouts[battery][0][w.columns(battery).index("Curr")] in "hHiI" else 1.0
+        chars = dict(zip(w.columns(battery), w.layouts[battery][0]))
+        centi = 100.0 if chars.get("Curr", "f") in "hHiI" else 1.0
         _put(w, battery, time_us[rows], Curr=current[rows] * centi)
     if np.isfinite(throttle).any() and "CTUN" in w.layouts:
         rows = np.isfinite(throttle)
