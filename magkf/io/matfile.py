@@ -51,10 +51,10 @@ class MatArray:
     def description(self) -> str:
         """Where the records came from, in words."""
         n, k = self.values.shape
-        along = "rows" if self.stored_shape == (n, k) or self.values.ndim == 1 else "columns"
+        along = "rows" if self.stored_shape[0] == n else "columns"
         return (
             f"MATLAB {self.version} variable {self.variable!r}, stored {' x '.join(map(str, self.stored_shape))}: "
-            f"{n} records (its {along}) of {k} channels"
+            f"{n} records (its {along}) of {k} channel{'s' if k > 1 else ''}"
         )
 
 
