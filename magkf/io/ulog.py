@@ -304,11 +304,8 @@ def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarr
             values[column], source[column] = g[field].astype(float), f"{topic}.{field}"
     lacking = [field for field in ("hdop", "vdop") if field not in g]
     if lacking:
-        kept = " and ".join(f for f in ("eph", "epv") if f in g) or "no accuracy"
-        notes.append(
-            f"{topic} has no {' or '.join(lacking)} field: no such DOP column ({kept} logged; "
-            "eph, in m, is kept as the auxiliary column eph)"
-        )
+        kept = "the horizontal accuracy eph (m) is kept as the auxiliary column eph" if "eph" in g else "nor eph"
+        notes.append(f"{topic} has no {' or '.join(lacking)} field: no such DOP column for the DOP gate; {kept}")
     return values, source, fix
 
 

@@ -270,7 +270,10 @@ def test_gnss_without_dop_fields_uses_what_exists(tmp_path, truth):
     write_ulog(truth, path, drop_fields=("vehicle_gps_position.hdop", "vehicle_gps_position.vdop"))
     out, prov = read_ulog(path)
     assert "hdop" not in out and "vdop" not in out and "lat" in out
-    assert "vehicle_gps_position has no hdop or vdop field: no such DOP column" in " ".join(prov["notes"])
+    assert (
+        "vehicle_gps_position has no hdop or vdop field: no such DOP column for the DOP gate; the horizontal "
+        "accuracy eph (m) is kept as the auxiliary column eph"
+    ) in prov["notes"]
 
 
 def test_refusals_are_one_line(tmp_path, truth):
