@@ -105,8 +105,8 @@ TOPICS = (
 )
 _MAG_TOPICS = ("sensor_mag", "vehicle_magnetometer")
 _GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
-#: Read only from a log without ``sensor_mag`` and ``vehicle_magnetometer`` whose ``sensor_combined`` format has a
-#: magnetometer (PX4 up to v1.7): the topic is logged at the gyro's rate, so it is not parsed otherwise.
+#: Read only from a log without ``vehicle_magnetometer`` whose ``sensor_combined`` format has a magnetometer (PX4 up
+#: to v1.7): the topic is logged at the gyro's rate, so it is not parsed otherwise.
 _COMBINED_TOPICS = ("sensor_combined", "sensor_selection")
 
 
@@ -137,7 +137,7 @@ class _ReadTracker:
 
 def _load(path, topics=TOPICS):
     """Parse ``path`` with pyulog (only ``topics``, and ``sensor_combined`` and ``sensor_selection`` of an older log
-    whose magnetometer is only there); InputError if it is not a ULog, a warning if damaged."""
+    whose calibrated magnetometer is there); InputError if it is not a ULog, a warning if damaged."""
     ulog, damage = _parse(path, topics)
     combined = ulog.message_formats.get("sensor_combined")
     older = combined is not None and any(field[2] == "magnetometer_ga" for field in combined.fields)
