@@ -454,3 +454,25 @@ def test_scaled_imu2_is_instance_1_and_compass_2(tmp_path):
     mag = {"format": "mavlink-tlog", **provenance["magnetometer"]}
     assert mag["instance"] == 1 and mag["message"] == "SCALED_IMU2" and mag["compass"] == 2
     assert export_instance(Calibration(np.eye(3), np.zeros(3), magnetometer=mag), "ardupilot")[0] == 2
+
+
+def test_ardupilot_highres_imu_in_its_own_unit_and_a_quaternion_attitude(tmp_path):
+    """ArduPilot's ``send_highres_imu`` sends ``get_field()`` (mG) x 1000: magnitudes of 1e5 and more are read as
+    1e-3 mG (0.1 nT) counts, with a note. ``ATTITUDE_QUATERNION`` (scalar first) gives the attitude where there is
+    no ``ATTITUDE``: a quarter turn about down is yaw 90 deg."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    half = np.sqrt(0.5)
+    messages = []
+    for k in range(5):
+        messages.append(mavlink.MAVLink_attitude_quaternion_message(1_000 + 100 * k, half, 0.0, 0.0, half, 0, 0, 0))
+        field = (200_000.0 + 1000.0 * k, -50_000.0, 430_000.0)
+        messages.append(
+            mavlink.MAVLink_highres_imu_message(1_000_000 + 100_000 * k, 0, 0, -9.8, 0, 0, 0, *field, 0, 0, 0, 0, 0x1FF)
+        )
+    table, provenance = read_tlog(hand_made(tmp_path / "ap_highres.tlog", *messages))
+    np.testing.assert_allclose(table["mag_x"], 0.1 * (200_000.0 + 1000.0 * np.arange(5)), rtol=1e-12)
+    np.testing.assert_allclose(table["yaw"], 90.0, rtol=0, atol=1e-5)  # float32 components: 1e-7 rad
+    np.testing.assert_allclose(table[["roll", "pitch"]], 0.0, rtol=0, atol=1e-5)
+    assert any(n.startswith("HIGHRES_IMU field magnitudes of") for n in provenance["notes"])
+    assert provenance["columns"]["yaw"].startswith("ATTITUDE_QUATERNION")
