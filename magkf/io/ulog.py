@@ -216,24 +216,23 @@ def _instances(ulog) -> list[dict]:
             if "is_external" in data:
                 item["is_external"] = bool(data["is_external"][0])
             out.append(item)
-    if not out:
-        for instance, data in _combined(ulog).items():
-            t = combined_samples(data, instance).us
-            out.append(
-                {
-                    "topic": "sensor_combined",
-                    "instance": instance,
-                    "device_id": None,
-                    "rate_hz": _rate_hz(t),
-                    "samples": len(t),
-                }
-            )
+    for instance, data in _combined(ulog).items():  # parsed only without vehicle_magnetometer (``_load``)
+        t = combined_samples(data, instance).us
+        out.append(
+            {
+                "topic": "sensor_combined",
+                "instance": instance,
+                "device_id": None,
+                "rate_hz": _rate_hz(t),
+                "samples": len(t),
+            }
+        )
     return out
 
 
 def magnetometer_instances(path) -> list[dict]:
     """The magnetometers a ULog file holds: one dict per topic instance with ``topic`` (``sensor_mag``,
-    ``vehicle_magnetometer``, or ``sensor_combined`` in a log of PX4 up to v1.7 that has neither), ``instance``
+    ``vehicle_magnetometer``, or ``sensor_combined`` in a log of PX4 up to v1.7 without the latter), ``instance``
     (uORB multi-instance index, or the magnetometer's index in ``sensor_combined``; what ``read_ulog(mag=...)``
     takes), ``device_id`` (None where not logged), ``rate_hz`` (mean logged rate), ``samples`` and, where
     logged, ``is_external``."""

@@ -348,3 +348,24 @@ def test_the_three_layouts_of_sensor_combined():
     assert combined_instances(absolute) == [0]
     np.testing.assert_array_equal(combined_samples(absolute, 0).us, t - 5)
     assert combined_instances({"timestamp": t}) == []
+
+
+def test_sensor_mag_logged_beside_sensor_combined(tmp_path, truth):
+    """PX4 v1.7's debug profile logged sensor_mag too: raw reads it, raw=False the calibrated sensor_combined."""
+    old, new = tmp_path / "old.ulg", tmp_path / "new.ulg"
+    write_ulog(truth, old, generation="1.7", parameters=INTERNAL)
+    write_ulog(truth, new, generation="1.13")
+    merged = ULog(str(old))
+    sensor_mag = ULog(str(new)).get_dataset("sensor_mag")
+    sensor_mag.msg_id = 1 + max(d.msg_id for d in merged.data_list)
+    merged.message_formats["sensor_mag"] = ULog(str(new)).message_formats["sensor_mag"]
+    merged.data_list.append(sensor_mag)
+    path = tmp_path / "debug_profile.ulg"
+    merged.write_ulog(str(path))
+    _parsed(path)
+    raw, prov = read_ulog(path)
+    assert prov["magnetometer"]["topic"] == "sensor_mag"
+    assert [m["topic"] for m in prov["magnetometers"]] == ["sensor_mag", "sensor_combined"]
+    calibrated, prov = read_ulog(path, raw=False)
+    assert (prov["magnetometer"]["topic"], prov["magnetometer"]["calibrated"]) == ("sensor_combined", True)
+    assert len(raw) == len(calibrated) == len(truth)
