@@ -452,3 +452,41 @@ def test_the_documented_refusal_is_the_one_given(tmp_path):
     assert refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"])) == printed.replace(
         "set.txt", str(path), 1
     )
+
+
+@pytest.mark.parametrize(
+    "suffix, file_keys, sep",
+    [
+        (".txt", 'delimiter = ";"', ";"),  # the extension says whitespace; the delimiter decides
+        (".csv", 'delimiter = "tab"', "\t"),
+        (".dat", 'delimiter = "comma"', ","),
+        (".csv", 'format = "csv"\ndelimiter = "\\t"', "\t"),
+        (".txt", 'format = "tsv"\ndelimiter = "tab"', "\t"),
+        (".csv", 'format = "whitespace"\ndelimiter = "whitespace"', " \t "),
+        (".weird", 'delimiter = "semicolon"', ";"),
+    ],
+)
+def test_delimiter_and_format_agree_whatever_the_extension(tmp_path, suffix, file_keys, sep):
+    records = truth_records(12)
+    expected, _ = canonical(tmp_path, records)
+    path = write(tmp_path / f"d{suffix}", "\n".join(["t x y z".replace(" ", sep), *text_lines(records, sep)]) + "\n")
+    toml = f'[file]\n{file_keys}\n[columns]\ntime = "t"\nmag_x = "x"\nmag_y = "y"\nmag_z = "z"\n'
+    cmap = write(tmp_path / "m.toml", toml)
+    table, _ = read_mapped(path, cmap)
+    pd.testing.assert_frame_equal(table, expected, check_exact=True)
+
+
+def test_a_struct_field_of_a_v73_file_is_named_with_a_dot(tmp_path):
+    """MATLAB saves a struct as an HDF5 group: ``variable = "cal.data"`` reads its field ``data``."""
+    records = truth_records()
+    path = tmp_path / "struct.mat"
+    with h5py.File(path, "w") as f:
+        f.create_group("cal").create_dataset("data", data=records.T)
+        f.create_dataset("cal/gain", data=np.array([[1.0, 2.0]]))
+    table, provenance = read_mapped(
+        path, dataclass_variable(ColumnMap({"time": 1, "mag_x": 2, "mag_y": 3, "mag_z": 4}), "cal.data")
+    )
+    np.testing.assert_array_equal(table[["time", "mag_x", "mag_y", "mag_z"]].to_numpy(), records)
+    assert provenance["notes"][0] == (
+        f"MATLAB v7.3 (HDF5) variable 'cal.data', stored 4 x {N}: {N} records (its columns) of 4 channels"
+    )
