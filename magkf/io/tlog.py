@@ -282,14 +282,18 @@ class _Records:
 def _choose_vehicle(messages: list, notes: list) -> tuple[int, int, int | None]:
     """``(sysid, compid, MAV_AUTOPILOT code or None)`` of the first vehicle's autopilot: the first
     ``HEARTBEAT`` of component 1 that is not a ground station, else the source of the first magnetometer
-    message; other sources are noted."""
-    sources = {(m.get_srcSystem(), m.get_srcComponent()) for _, m in messages}
-    chosen = None
-    for _, m in messages:
-        if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == AUTOPILOT_COMPONENT:
-            if m.type != MAV_TYPE_GCS and m.autopilot != MAV_AUTOPILOT_INVALID:
-                chosen = (m.get_srcSystem(), AUTOPILOT_COMPONENT, int(m.autopilot))
-                break
+    message; other sources but ground stations are noted."""
+    chosen = next(
+        (
+            (m.get_srcSystem(), AUTOPILOT_COMPONENT, int(m.autopilot))
+            for _, m in messages
+            if m.get_type() == "HEARTBEAT"
+            and m.get_srcComponent() == AUTOPILOT_COMPONENT
+            and m.type != MAV_TYPE_GCS
+            and m.autopilot != MAV_AUTOPILOT_INVALID
+        ),
+        None,
+    )
     if chosen is None:
         first = next((m for _, m in messages if m.get_type() in MAG_NAMES), None)
         if first is None:
@@ -299,14 +303,26 @@ def _choose_vehicle(messages: list, notes: list) -> tuple[int, int, int | None]:
             f"no HEARTBEAT of a vehicle's autopilot (component 1): read the source of the first magnetometer "
             f"message, system {chosen[0]} component {chosen[1]}, autopilot unknown"
         )
-    others = sorted(s for s in sources if s != chosen[:2])
+    _note_other_sources(messages, chosen, notes)
+    return chosen
+
+
+def _note_other_sources(messages: list, chosen: tuple, notes: list) -> None:
+    """Note the systems/components besides ``chosen`` whose messages are left aside (a ground station's own
+    ``HEARTBEAT``, in every telemetry log, is not worth a note)."""
+    sources = {(m.get_srcSystem(), m.get_srcComponent()) for _, m in messages}
+    stations = {
+        (m.get_srcSystem(), m.get_srcComponent())
+        for _, m in messages
+        if m.get_type() == "HEARTBEAT" and m.type == MAV_TYPE_GCS
+    }
+    others = sorted(s for s in sources - stations if s != chosen[:2])
     if others:
         listed = ", ".join(f"{s}:{c}" for s, c in others)
         notes.append(
             f"the log holds messages of several systems/components: read system {chosen[0]} component "
             f"{chosen[1]} (the first vehicle's autopilot); left aside those of {listed} (sysid:compid)"
         )
-    return chosen
 
 
 def _boot_time_us(msg) -> int | None:
