@@ -490,3 +490,45 @@ def test_a_struct_field_of_a_v73_file_is_named_with_a_dot(tmp_path):
     assert provenance["notes"][0] == (
         f"MATLAB v7.3 (HDF5) variable 'cal.data', stored 4 x {N}: {N} records (its columns) of 4 channels"
     )
+
+
+@pytest.mark.parametrize(
+    "lines, found, keys",
+    [
+        (
+            ["Set 9", "recorded 2023", "mag_x,mag_y,mag_z", "1,2,3", "4,5,6"],
+            "3 columns separated by commas; the header on line 3; 2 lines before the header",
+            '[file] skip_rows = 2 and [columns] mag_x = "mag_x", mag_y = "mag_y", mag_z = "mag_z"',
+        ),
+        (
+            ["mag_x;mag_y;mag_z", "1;2;3", "4;5;6"],
+            "3 columns separated by semicolons; the header on line 1",
+            '[file] delimiter = ";" and [columns] mag_x = "mag_x", mag_y = "mag_y", mag_z = "mag_z"',
+        ),
+        (
+            ["t\tbx\tby\tbz", "0\t1\t2\t3", "1\t4\t5\t6"],
+            "4 columns separated by tabs; the header on line 1",
+            '[file] delimiter = "tab" and [columns] one key per column of mag_x, mag_y, mag_z naming its column '
+            "(by name or 1-based position)",
+        ),
+        (
+            ["1.5,2.5,3.5", "4.5,5.5,6.5"],
+            "3 columns separated by commas; no header line",
+            "if its columns are mag_x, mag_y, mag_z in that order, read it with --map MAP.toml, MAP.toml holding "
+            "[file] header = 0 and [columns] mag_x = 1, mag_y = 2, mag_z = 3",
+        ),
+    ],
+)
+def test_a_table_in_another_layout_is_refused_naming_its_map(tmp_path, lines, found, keys):
+    path = write(tmp_path / "set.csv", "\n".join(lines) + "\n")
+    message = refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"]))
+    assert message.startswith(f"{path}: not magkf's CSV layout ({found}): ")
+    assert message.endswith(f"{keys} (docs/column-maps.md)")
+
+
+def test_magkf_csv_with_a_bad_cell_keeps_its_own_error(tmp_path):
+    """A file in magkf's layout is not sent to a map: its own error (row and column) stands."""
+    path = write(tmp_path / "set.csv", "mag_x,mag_y,mag_z\n1,2,3\n4,x5,6\n")
+    assert refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"])) == (
+        f"{path}, row 3, column 'mag_y': not a number: 'x5' (leave the cell empty for a missing value)"
+    )
