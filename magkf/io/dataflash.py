@@ -10,24 +10,47 @@ Format
     message documentation (https://ardupilot.org/copter/docs/logmessages.html) and the
     ``LogStructure.h`` files of ArduPilot's libraries.
 
-Streams (every one has ``TimeUS``, microseconds since boot)
+Generations
+    ArduPilot 3.0-3.2 (2013-2015) stamp messages ``TimeMS`` (ms since boot); ``PARM`` (``Name,Value``) and
+    ``MSG`` (``Message``) have no time; the ``GPS`` is ``Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,
+    GCrs,VZ,T`` with ``TimeMS``/``Week`` the GPS time of week and week and ``T`` the boot ms (3.0-3.1: no
+    ``T``); ``MAG``/``MAG2``/``MAG3`` are ``TimeMS,MagX..,OfsX..,MOfsX..`` (no motor offsets in 3.0-3.1 Plane);
+    ``ATT`` is ``TimeMS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw`` (Plane 3.1: ``TimeMS,Roll,Pitch,Yaw,ErrorRP,
+    ErrorYaw``). 3.3-3.6 stamp ``TimeUS`` (us since boot) and name the GPS time ``GMS, GWk``; the compasses are
+    still ``MAG``/``MAG2``/``MAG3`` with ``MOfsX..``. 4.x has one ``MAG`` with instance ``I`` and ``MOX..``, ``VER``
+    (``libraries/DataFlash/DataFlash.h`` and ``LogStructure.h`` of each release,
+    https://github.com/ArduPilot/ardupilot/blob/master/libraries/AP_Logger/LogStructure.h and its history;
+    pymavlink's clocks for them in https://github.com/ArduPilot/pymavlink/blob/master/DFReader.py). Every
+    table decoded here gets a ``TimeUS`` whatever the generation (``_Log._timed``): ``TimeUS``, else ``TimeMS``
+    x 1000, a 3.x ``GPS``'s ``T`` x 1000, or, for a message without a boot time of its own, that of the last
+    timed message before it in the file; a 3.x ``GPS`` also gets ``GMS``/``GWk``. Fields are looked up by
+    name: one a layout lacks is a fallback (no attitude, boot time, logged offsets unused, ...) written in the
+    notes, or, for the magnetometer's own ``MagX..``, a one-line refusal.
+
+Streams
     ``MAG`` (``MAG2``, ``MAG3`` in logs before 4.0; one ``MAG`` with instance field ``I`` since):
     ``MagX/Y/Z`` the corrected field and ``OfsX/Y/Z`` the offsets, in milligauss (units ``G`` with
     multiplier ``C`` = 1e-3 in ``libraries/AP_Compass/LogStructure.h``), written as ``(int16_t)`` of
-    the float, i.e. truncated towards zero; ``MOX/Y/Z`` the motor compensation. 1 mG = 100 nT.
+    the float, i.e. truncated towards zero; ``MOX/Y/Z`` (3.x ``MOfsX/Y/Z``) the motor compensation.
+    1 mG = 100 nT. A compass that reads one value throughout (absent: often all zero) is refused; single
+    samples of exactly (0, 0, 0) (not yet read) are dropped with a note.
     ``ATT`` ``Roll, Pitch, Yaw`` in degrees (ZYX Euler angles of the body FRD frame in NED, yaw from
     true north in [0, 360)). ``GPS`` ``Status`` (``AP_GPS::GPS_Status``: 3 = 3-D fix, 4 DGPS, 5/6 RTK),
     ``GWk, GMS`` (GPS week and milliseconds of week), ``Lat, Lng`` (deg), ``Alt`` (m above mean sea
     level), ``HDop``. ``GPA`` ``VDop``, ``SMS`` and either ``AEl`` (height above the WGS-84 ellipsoid,
     newer logs) or ``Und`` (``MSL - ellipsoid height``, as the u-blox and DroneCAN drivers of
     ``libraries/AP_GPS`` compute it). ``BARO.Temp`` / ``IMU.T`` degC; ``BAT.Curr`` (``CURR.Curr`` before
-    4.1) A; ``CTUN.ThO`` throttle output, 0..1 in Copter and Sub, percent in Plane
-    (``SRV_Channels::get_output_scaled``). ``PARM`` parameters, ``VER``/``MSG`` the firmware string.
+    4.1; centiamperes in an int16 before 3.3) A; ``CTUN.ThO`` throttle output, 0..1 in Copter and Sub, percent
+    in Plane (``SRV_Channels::get_output_scaled``), or 3.x's ``ThrOut``. ``PARM`` parameters, ``VER``/``MSG``
+    the firmware string.
 
 Time
-    ``TimeUS`` is mapped to UTC with the GPS week and milliseconds (``timebase.gps_to_unix``, leap
-    seconds of the date): the offset UTC - boot time is the median over ``GPS`` samples with a week
-    (those with a 3-D fix if there are any), so the log-write latency of single samples does not bias it.
+    The boot time is mapped to UTC with the GPS week and milliseconds (``timebase.gps_to_unix``, leap
+    seconds of the date): the offset UTC - boot time is the median over the ``GPS`` samples with a week and a
+    3-D fix, so the log-write latency of single samples does not bias it. A log whose GNSS never had a 3-D
+    fix with a week has no usable GNSS: its ``time`` is seconds since boot, without position columns, and
+    ``provenance["time_base"]`` is "boot" (``magkf.io.site`` then places it at the ``--site`` and ``--date``
+    given); a GPS time without a fix is only quoted in a note.
 
 Raw reconstruction
     ArduPilot 4.x (``AP_Compass_Backend::accumulate_sample``) rotates each sensor sample into the
@@ -40,18 +63,22 @@ Raw reconstruction
 
     ``SCALE`` only where ``Compass::have_scale_factor`` accepts it (1/1.5 <= SCALE <= 1.5; added in
     4.0, ArduPilot pull request 12899); all-zero diagonals count as ones. The logged ``MagX`` is the
-    mean of such samples, truncated. With ``raw=True`` this module inverts that model with the
-    ``PARM`` values in effect at each epoch, giving the raw reading in the vehicle-aligned frame after
-    the firmware's rotation (before offsets, scale and soft-iron matrix), which is what the autopilot's
-    own compass calibration fits.
+    mean of such samples, truncated. Before 4.0 there was no ``SCALE``; from 3.3 (Copter; the other
+    vehicles' releases on those libraries) to 3.5 the motor compensation was added before the matrix
+    (``field = M (raw + OFS + motor)``, ``_MOTOR_FIRST``); before 3.3 there was no matrix. With ``raw=True``
+    this module inverts the model of the log's firmware with the ``PARM`` values in effect at each epoch,
+    giving the raw reading in the vehicle-aligned frame after the firmware's rotation (before offsets, scale
+    and soft-iron matrix), which is what the autopilot's own compass calibration fits. A log without the
+    compass's ``COMPASS_OFS`` parameters (no ``PARM``) cannot be undone: its field is read as logged, which
+    the notes and ``provenance["magnetometer"]["calibrated"]`` (True) say.
 
 Writing
-    ``write_dataflash`` turns a canonical table (a simulation) into a log with ArduPilot 4.5's message
-    layouts (``LAYOUTS``), applying the compass model forwards and truncating like the firmware, so that
-    ``read_dataflash(raw=True)`` returns the table's raw field to within the int16 truncation.
-    ``DataFlashWriter`` is the message-level writer beneath it, for logs of any layout (tests build
-    pre-4.0 ``MAG2`` logs or several compasses with it). Messages are laid out with numpy structured
-    arrays, all messages of a type at once, and merged in ``TimeUS`` order.
+    ``write_dataflash`` turns a canonical table (a simulation) into a log with the message layouts of one
+    generation (``GENERATIONS``: 3.1, 3.2, 3.5 or 4.5's ``LAYOUTS``), applying the compass model forwards and
+    truncating like the firmware, so that ``read_dataflash(raw=True)`` returns the table's raw field to within
+    the int16 truncation. ``DataFlashWriter`` is the message-level writer beneath it, for logs of any layout.
+    Messages are laid out with numpy structured arrays, all messages of a type at once, and merged in boot
+    time order.
 """
 
 from __future__ import annotations
@@ -670,10 +697,15 @@ def read_dataflash(path, *, mag: int | None = None, raw: bool = True, max_gap_s:
     of a stream further apart than this gets NaN for that stream.
 
     Returns ``(frame, provenance)``: a DataFrame with one row per epoch of the magnetometer (N rows):
-    ``time`` (UNIX s, UTC), ``mag_x, mag_y, mag_z`` (nT), ``roll, pitch, yaw`` (deg), ``lat, lon``
-    (deg), ``alt`` (m above the ellipsoid), ``hdop``, ``vdop``, ``fix_type`` (GPS status) where
-    logged, and the auxiliary channels ``temp_c``, ``current_a``, ``throttle`` (0..1), ``mag_health``
-    (0/1) where logged; and a JSON-able dict saying where each column came from.
+    ``time`` (UNIX s, UTC; s since boot for a log without usable GNSS, ``provenance["time_base"]`` "boot"),
+    ``mag_x, mag_y, mag_z`` (nT), ``roll, pitch, yaw`` (deg), ``lat, lon`` (deg), ``alt`` (m above the
+    ellipsoid), ``hdop``, ``vdop``, ``fix_type`` (GPS status) where logged (not in boot time), and the
+    auxiliary channels ``temp_c``, ``current_a``, ``throttle`` (0..1), ``mag_health`` (0/1) where logged;
+    and a JSON-able dict saying where each column came from. Logs of every generation (3.0 to 4.x) read.
+
+    Raises InputError (one line naming the file) for a file that is not a DataFlash log or has a malformed
+    ``FMT``, a log without ``MAG``/``MAG2``/``MAG3``, a ``mag`` instance it lacks, a magnetometer message
+    without ``MagX, MagY, MagZ``, and a magnetometer that reads one value (such as 0) throughout.
     """
     import pandas as pd
 
