@@ -253,7 +253,7 @@ def _utc_offset_us(gnss: dict, fix: np.ndarray, topic: str) -> tuple[float, str]
         at = gnss["timestamp"].astype(np.int64) + gnss["timestamp_time_relative"].astype(np.int64)
         stamp = "timestamp - timestamp_time_relative"
     else:
-        at, stamp = gnss["timestamp"].astype(np.int64), "timestamp"
+        at, stamp = _position_us(gnss), "timestamp"
     ok = (utc > 0) & (fix >= 2) & (at > 0)
     if not ok.any():
         return f"no {topic} sample has a fix and a non-zero time_utc_usec"
@@ -625,10 +625,18 @@ def _attitude_quaternions(a: dict, notes: list) -> tuple[np.ndarray, str] | None
     return q, f"{text}, else {euler_text}"
 
 
+def _position_us(g: dict) -> np.ndarray:
+    """(m,) times of the GNSS positions, us since boot: ``timestamp_position`` where the first ULogs (2016) logged
+    it (the time the GNSS driver gave the position; ``timestamp`` only later took its place), else ``timestamp``."""
+    if "timestamp_position" in g and np.all(g["timestamp_position"] > 0):
+        return g["timestamp_position"].astype(np.int64)
+    return g["timestamp"].astype(np.int64)
+
+
 def _gnss_columns(gnss: _Gnss, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
     """Position, DOP (linear) and ``fix_type`` (the lower of the bracketing samples) at the epochs ``t`` (s after
     ``ref_us``), and their provenance; a GNSS stream slower than ``max_gap_s`` is noted."""
-    t_gnss = (gnss.data["timestamp"].astype(np.int64) - ref_us) * 1e-6
+    t_gnss = (_position_us(gnss.data) - ref_us) * 1e-6
     gap = float(np.median(np.diff(t_gnss))) if len(t_gnss) > 1 else 0.0
     if gap > max_gap_s:
         notes.append(

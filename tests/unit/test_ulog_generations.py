@@ -369,3 +369,18 @@ def test_sensor_mag_logged_beside_sensor_combined(tmp_path, truth):
     calibrated, prov = read_ulog(path, raw=False)
     assert (prov["magnetometer"]["topic"], prov["magnetometer"]["calibrated"]) == ("sensor_combined", True)
     assert len(raw) == len(calibrated) == len(truth)
+
+
+def test_first_ulogs_time_gnss_by_timestamp_position(tmp_path, truth):
+    """In the first ULogs the GNSS driver timed the position in ``timestamp_position`` (and the UTC time in
+    ``timestamp_time``): those time the positions and UTC even where ``timestamp`` is 0."""
+    path = tmp_path / "first.ulg"
+    write_ulog(truth, path, generation="1.4", parameters=INTERNAL)
+    ulog = ULog(str(path))
+    ulog.get_dataset("vehicle_gps_position").data["timestamp"][:] = 0
+    zeroed = tmp_path / "zeroed.ulg"
+    ulog.write_ulog(str(zeroed))
+    out, prov = read_ulog(zeroed)
+    assert "timestamp_time" in prov["time_base"]
+    assert np.max(np.abs(out["time"] - truth["time"])) <= TIME_ATOL_S
+    assert np.max(np.abs(out[["lat", "lon"]].to_numpy() - truth[["lat", "lon"]].to_numpy())) <= LATLON_ATOL_DEG["int"]
