@@ -104,8 +104,8 @@ def combined_samples(data: dict, instance: int) -> CombinedSamples:
 
 
 def _selected_devices(selection: dict | None, us: np.ndarray) -> np.ndarray | None:
-    """(n,) ``sensor_selection.mag_device_id`` in force at each time ``us`` (the first one before it), or None
-    without the topic or a non-zero id."""
+    """(n,) ``sensor_selection.mag_device_id`` in force at each time ``us`` (the latest published at or before it;
+    the first one before any was), or None without the topic or a non-zero id."""
     if selection is None or "mag_device_id" not in selection:
         return None
     ids = selection["mag_device_id"].astype(np.int64)
