@@ -384,3 +384,19 @@ def test_first_ulogs_time_gnss_by_timestamp_position(tmp_path, truth):
     assert "timestamp_time" in prov["time_base"]
     assert np.max(np.abs(out["time"] - truth["time"])) <= TIME_ATOL_S
     assert np.max(np.abs(out[["lat", "lon"]].to_numpy() - truth[["lat", "lon"]].to_numpy())) <= LATLON_ATOL_DEG["int"]
+
+
+def test_a_change_of_the_voted_magnetometer_changes_the_calibration_undone():
+    """sensor_selection switches from the internal (slot 0) to the external magnetometer (slot 1) at 3500 us: the
+    samples before take slot 0's calibration, those after slot 1's."""
+    ga = np.array([[0.2, 0.1, 0.4], [0.21, 0.1, 0.39], [0.3, -0.1, 0.35], [0.31, -0.1, 0.34]])
+    data = {"timestamp": np.array([1000, 2000, 4000, 5000]), "magnetometer_timestamp_relative": np.zeros(4, int)}
+    data |= {f"magnetometer_ga[{k}]": ga[:, k] for k in range(3)}
+    selection = {"timestamp": np.array([500, 3500]), "mag_device_id": np.array([262144, 66073])}
+    params = INTERNAL | EXTERNAL
+    raw, how, slot = undo(combined_samples(data, 0), params, selection, 0, False)
+    assert slot is None and how.startswith(
+        "slot of sensor_selection.mag_device_id (66073 -> CAL_MAG1, 262144 -> CAL_MAG0)"
+    )
+    np.testing.assert_allclose(raw[:2], calibration_of_slot(params, 0).undo(ga[:2]), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(raw[2:], calibration_of_slot(params, 1).undo(ga[2:]), rtol=0, atol=1e-15)
