@@ -185,6 +185,10 @@ def _packet_length(data: bytes, at: int) -> int:
     return 0
 
 
+#: What became of a record's packet (``_Records._take``).
+DECODED, UNCHECKED, BAD, UNKNOWN = 1, 0, -1, -2
+
+
 def _header(packet: bytes) -> tuple[int, int, int]:
     """``(msgid, sysid, compid)`` of a whole packet."""
     if packet[0] == MAGIC_V1:
@@ -208,6 +212,7 @@ class _Records:
         self.parser = dialect.MAVLink(None)
         self.wanted = {cls.msgname: i for i, cls in dialect.mavlink_map.items() if cls.msgname in WANTED}
         self.wanted_ids = frozenset(self.wanted.values())
+        self.known_ids = frozenset(dialect.mavlink_map)
         self.messages: list = []
         self.skipped = self.bad = self.duplicates = self.packets = self.decoded = 0
         self.cut = False
@@ -229,11 +234,13 @@ class _Records:
                 self.cut = True
                 break
             packet = data[pos + STAMP_BYTES : end]
-            if self._take(packet, stamp, recent, seen):
-                last = stamp
+            outcome = self._take(packet, stamp, recent, seen)
+            if outcome >= UNCHECKED:
+                last = stamp if outcome == DECODED else last  # only a checked packet's stamp guides resynchronising
                 pos = end
             elif _packet_length(data, end + STAMP_BYTES):
-                pos = end  # a damaged packet in its place: the next record follows it
+                self.skipped += (end - pos) if outcome == UNKNOWN else 0
+                pos = end  # a damaged or unknown packet in its place: the next record follows it
             else:
                 pos = self._resync(pos, last)
 
@@ -254,28 +261,32 @@ class _Records:
         self.skipped += len(data) - pos
         return len(data)
 
-    def _take(self, packet: bytes, stamp: int, recent: deque, seen: dict) -> bool:
-        """Decode ``packet`` if it is of a wanted type and not a duplicate; False if it fails its checksum."""
+    def _take(self, packet: bytes, stamp: int, recent: deque, seen: dict) -> int:
+        """Decode ``packet`` if it is of a wanted type and not a duplicate: ``DECODED`` (its checksum checked),
+        ``UNCHECKED`` (a known message magkf does not read), ``BAD`` (failed its checksum) or ``UNKNOWN`` (no
+        message of the dialect: damage, or another dialect's message)."""
         msgid = _header(packet)[0]
+        if msgid not in self.known_ids:
+            return UNKNOWN
         if msgid not in self.wanted_ids:
             self.packets += 1
-            return True  # not checked: a packet magkf does not read
+            return UNCHECKED
         try:
             msg = self.parser.decode(bytearray(packet))
         except Exception:  # noqa: BLE001 - pymavlink raises MAVError, struct.error or others on a bad packet
             self.bad += 1
-            return False
+            return BAD
         self.packets += 1
         self.decoded += 1
         while recent and recent[0][0] < stamp - DUPLICATE_WINDOW_US:
             seen.pop(recent.popleft()[1], None)
         if packet in seen:
             self.duplicates += 1
-            return True
+            return DECODED
         seen[packet] = stamp
         recent.append((stamp, packet))
         self.messages.append((stamp, msg))
-        return True
+        return DECODED
 
 
 # ------------------------------------------------------------------ the vehicle's streams
@@ -663,7 +674,10 @@ def _record_notes(records: _Records, notes: list) -> None:
     if records.cut:
         notes.append("truncated: the last packet is cut off by the end of the file and was dropped")
     if records.skipped:
-        notes.append(f"{records.skipped} bytes between records were not a record and were skipped")
+        notes.append(
+            f"{records.skipped} bytes were not a record of a known MAVLink message (damage, or messages of another "
+            "dialect than ArduPilot's and the common set) and were skipped"
+        )
     if records.bad:
         notes.append(f"{records.bad} packets failed their checksum and were dropped")
     if records.duplicates:
