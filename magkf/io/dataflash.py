@@ -762,9 +762,10 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
 
 def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict], dict, dict]:
     """``(streams, stream, table)``: every magnetometer stream (``_mag_streams``), the one of instance ``mag``
-    (default the first), and its messages in time order without all-zero samples; repeated or out-of-order
-    times and dropped samples go to ``notes``. InputError for a log without a magnetometer, an instance it
-    lacks, a stream without ``MagX/MagY/MagZ`` or one that reads a constant."""
+    (default the first that works, i.e. does not read one value throughout), and its messages in time order
+    without all-zero samples (``_stream_epochs``), with what was dropped or passed over in ``notes``.
+    InputError for a log without a magnetometer, an instance it lacks, or (``_live_samples``) a chosen
+    stream without ``MagX/MagY/MagZ`` or that reads a constant (when no instance was asked for: the first)."""
     streams = _mag_streams(log)
     if not streams:
         raise InputError(
@@ -773,10 +774,24 @@ def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict],
             source=log.path,
         )
     instances = [s["instance"] for s in streams]
-    chosen = instances[0] if mag is None else int(mag)
-    if chosen not in instances:
-        raise InputError(f"no magnetometer instance {chosen}; the log has {instances}", source=log.path)
-    stream = next(s for s in streams if s["instance"] == chosen)
+    if mag is not None and int(mag) not in instances:
+        raise InputError(f"no magnetometer instance {int(mag)}; the log has {instances}", source=log.path)
+    refusals: list[InputError] = []
+    for stream in (s for s in streams if mag is None or s["instance"] == int(mag)):
+        try:
+            table, stream_notes = _stream_epochs(stream, instances, log.path)
+        except InputError as err:
+            refusals.append(err)
+            continue
+        notes += [f"not read: {err.message.split(';')[0]}" for err in refusals] + stream_notes
+        return streams, stream, table
+    raise refusals[0]
+
+
+def _stream_epochs(stream: dict, instances: list, path: str) -> tuple[dict, list]:
+    """A magnetometer stream's messages sorted by time, without repeated times and all-zero samples, and notes
+    on what was dropped (InputError from ``_live_samples``)."""
+    notes: list[str] = []
     table = _by_time(stream["table"])
     if len(table["TimeUS"]) < len(stream["table"]["TimeUS"]):
         notes.append(
@@ -785,7 +800,7 @@ def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict],
     backwards = int(np.count_nonzero(np.diff(stream["table"]["TimeUS"].astype(np.int64)) < 0))
     if backwards:
         notes.append(f"MAG samples out of time order at {backwards} place(s) in the file: read sorted by time")
-    return streams, stream, _live_samples(table, stream, instances, log.path, notes)
+    return _live_samples(table, stream, instances, path, notes), notes
 
 
 def _live_samples(table: dict, stream: dict, instances: list, path: str, notes: list) -> dict:

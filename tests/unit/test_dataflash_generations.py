@@ -222,7 +222,7 @@ def test_refusals_are_one_line(tmp_path):
             {},
             "no MAG, MAG2 or MAG3 message: the compass was not logged; record a log with the compass bit of "
             "LOG_BITMASK set",
-        )  # fmt: skip
+        )
     )
     constant = mag_log(tmp_path / "constant.bin", fields={"MagX": 300, "MagY": -100, "MagZ": 400})
     cases.append(
@@ -231,16 +231,16 @@ def test_refusals_are_one_line(tmp_path):
             {},
             "MAG (magnetometer instance 0) reads (300, -100, 400) mG in all 50 samples, so no compass "
             "works there; the log has no other compass",
-        )  # fmt: skip
+        )
     )
     zero = mag_log(tmp_path / "zero.bin", second=varying())
     cases.append(
         (
             zero,
-            {},
+            {"mag": 0},
             "MAG (magnetometer instance 0) reads (0, 0, 0) mG in all 50 samples, so no compass works there; "
             "choose another with --mag (the log has [0, 1])",
-        )  # fmt: skip
+        )
     )
     cases.append((zero, {"mag": 2}, "no magnetometer instance 2; the log has [0, 1]"))
     nameless = mag_log(tmp_path / "nameless.bin", columns="TimeMS,X,Y,Z", fields={"X": np.arange(50)})
@@ -250,14 +250,18 @@ def test_refusals_are_one_line(tmp_path):
             {},
             "MAG (magnetometer instance 0) has no MagX, MagY, MagZ fields (its columns: TimeMS, X, Y, Z); "
             "choose another magnetometer with --mag or convert the log to the canonical CSV",
-        )  # fmt: skip
+        )
     )
     for path, options, message in cases:
         with pytest.raises(InputError) as err:
             read_dataflash(path, **options)
         assert str(err.value) == f"{path}: {message}"
-    df, prov = read_dataflash(zero, mag=1)  # the working compass of that log reads
+    df, prov = read_dataflash(zero)  # unasked, the first working compass of that log is read
     assert len(df) == 50 and prov["magnetometer"]["message"] == "MAG2"
+    assert (
+        prov["notes"][0]
+        == "not read: MAG (magnetometer instance 0) reads (0, 0, 0) mG in all 50 samples, so no compass works there"
+    )
 
 
 def test_zero_samples_are_dropped_and_noted(tmp_path):
