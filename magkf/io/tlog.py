@@ -754,6 +754,10 @@ def _magnetometer_columns(
         nt = field * per_count
     else:
         nt, unit_text = _untruncate(field) * NT_PER_MILLIGAUSS, "mG, int16 truncation centred, x100 -> nT"
+    zero = np.all(field == 0, axis=1)
+    if zero.any():  # the autopilot sends zeros while it has no reading of that compass
+        nt[zero] = np.nan
+        notes.append(f"{int(zero.sum())} {message} messages carry a zero field (no reading): left empty")
     text, undone = _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes)
     for axis, name in zip("xyz", MAG):
         columns[name] = f"{message}.{axis}mag ({unit_text}; {'as sent' if undone is None else 'calibration undone'})"
@@ -787,7 +791,12 @@ def _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes) -> tuple
     if not raw:
         return "not done (raw=False): the field as the autopilot corrected it", None
     if message == "HIGHRES_IMU" or not has_compass:
-        why = "no COMPASS_* PARAM_VALUE in the log" if message != "HIGHRES_IMU" else "HIGHRES_IMU is calibrated"
+        why = (
+            "no COMPASS_* PARAM_VALUE in the log"
+            if message != "HIGHRES_IMU"
+            else "HIGHRES_IMU is the selected compass's corrected field, less PX4's estimated bias, of which the "
+            "telemetry gives neither the compass nor the bias"
+        )
         notes.append(
             f"{message} carries the autopilot's calibrated field and its calibration cannot be undone ({why}): "
             "read as sent; a calibration fitted to it is relative to the autopilot's"

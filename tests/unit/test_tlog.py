@@ -459,10 +459,14 @@ def test_scaled_imu2_is_instance_1_and_compass_2(tmp_path):
             mavlink.MAVLink_raw_imu_message(1_000_000 + 100_000 * k, 0, 0, -1000, 0, 0, 0, 200 + k, 10, 400)
         )
         messages.append(mavlink.MAVLink_scaled_imu2_message(1_000 + 100 * k, 0, 0, -1000, 0, 0, 0, -150, 300 + k, 420))
+    # the compass gives no reading for a moment: the autopilot sends zeros
+    messages.append(mavlink.MAVLink_scaled_imu2_message(1_600, 0, 0, -1000, 0, 0, 0, 0, 0, 0))
     path = hand_made(tmp_path / "two.tlog", *messages)
     assert [m["message"] for m in magnetometer_instances(path)] == ["RAW_IMU", "SCALED_IMU2"]
     table, provenance = read_tlog(path, mag=1)
-    np.testing.assert_array_equal(table["mag_y"], (300 + np.arange(6) + 0.5) * 100.0)  # centred truncation
+    np.testing.assert_array_equal(table["mag_y"][:6], (300 + np.arange(6) + 0.5) * 100.0)  # centred truncation
+    assert table[["mag_x", "mag_y", "mag_z"]].iloc[6].isna().all()
+    assert "1 SCALED_IMU2 messages carry a zero field (no reading): left empty" in provenance["notes"]
     np.testing.assert_allclose(np.diff(table["time"]), 0.1, rtol=0, atol=1e-6)
     mag = {"format": "mavlink-tlog", **provenance["magnetometer"]}
     assert mag["instance"] == 1 and mag["message"] == "SCALED_IMU2" and mag["compass"] == 2
