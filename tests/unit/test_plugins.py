@@ -25,7 +25,7 @@ def test_every_builtin_loads_and_subclasses_its_interface():
         for name in registry:
             cls = registry[name]
             assert cls.name == name
-    assert list(READERS)[:5] == ["csv", "parquet", "ulog", "dataflash", "mapped"]
+    assert list(READERS)[:7] == ["csv", "parquet", "ulog", "dataflash", "tlog", "rosbag", "mapped"]
     assert list(FILTERS)[:2] == ["ekf", "ukf"] and list(MEASUREMENTS)[:3] == ["magnitude", "vector", "both"]
     assert {"temperature_bias", "time_lag", "bias_drift"} <= set(EFFECTS)
 

@@ -18,9 +18,8 @@ SAMPLE = Path(__file__).resolve().parents[2] / "data" / "real" / "px4_cubeorange
 
 
 def real_log(name: str) -> Path:
-    """A real ULog of PX4/pyulog's test data (see SOURCES.md): magkf's data/real copy, else the shared one."""
-    shipped = SAMPLE.parent / name
-    return shipped if shipped.exists() else Path("/work/shared/data/real") / name
+    """A real ULog of PX4/pyulog's test data, as magkf ships it in data/real (see data/SOURCES.md)."""
+    return SAMPLE.parent / name
 
 
 #: PX4/pyulog test/sample.ulg: an AUAV-X2.1 of PX4 ~v1.6, magnetometer only in sensor_combined, no GNSS.
