@@ -66,7 +66,8 @@ def read_mat_array(path, variable: str | None = None) -> MatArray:
     path : str or Path
         A ``.mat`` file (v7.3/HDF5 through h5py; v4, v5, v7 through ``scipy.io.loadmat``).
     variable : str, optional
-        The variable (``a.b`` for a struct's field). By default the file's only real numeric matrix.
+        The variable (``a.b`` for a struct's field). By default the file's only real numeric matrix of at least
+        two rows and two columns (scalars and vectors saved beside it are passed over).
 
     Returns
     -------
@@ -173,8 +174,9 @@ def _loadmat_variables(path: Path, name: str) -> dict:
 
 
 def _is_matrix(value) -> bool:
-    """Whether a variable is a real numeric array of one or two dimensions."""
-    return isinstance(value, np.ndarray) and value.dtype.kind in "biuf" and 1 <= value.ndim <= 2 and value.size > 0
+    """Whether a variable is a real numeric matrix of at least two rows and two columns (what a table of records
+    is; not a scalar or a vector of settings saved beside it)."""
+    return isinstance(value, np.ndarray) and value.dtype.kind in "biuf" and value.ndim == 2 and min(value.shape) >= 2
 
 
 def _choose(variables: dict, variable: str | None, name: str) -> str:

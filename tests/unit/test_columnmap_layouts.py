@@ -121,6 +121,12 @@ def layout_mat73_matlab(tmp_path, records):
     return path, '[file]\nvariable = "data"\n' + BY_POSITION, []
 
 
+def layout_mat73_beside_settings(tmp_path, records):
+    """v7.3 with a scalar and a vector saved beside the matrix: the only matrix is taken without naming it."""
+    variables = {"data": records.T, "gain": np.array([[1.0]]), "offsets": np.array([[0.1, 0.2, 0.3]]).T}
+    return write_mat73(tmp_path / "set_s.mat", variables), BY_POSITION, []
+
+
 def layout_mat73_rows(tmp_path, records):
     """Plain HDF5 written by h5py with records as rows, (N, 4): the only matrix, so no variable named."""
     path = write_mat73(tmp_path / "set_n.mat", {"data": records}, matlab_class=False, matlab_header=False)
@@ -141,6 +147,7 @@ LAYOUTS = [
     layout_tab_named,
     layout_semicolon,
     layout_mat73_matlab,
+    layout_mat73_beside_settings,
     layout_mat73_rows,
     layout_mat5,
 ]
