@@ -50,6 +50,7 @@ __all__ = [
     "log_suffixes",
     "VEHICLE_RULES",
     "find_logs",
+    "is_log_folder",
     "vehicle_of",
     "check_out_dir",
     "content_key",
@@ -167,7 +168,7 @@ def find_logs(patterns, exclude=None) -> list[Path]:
         files = []
         for match in matches:
             if match.is_dir():
-                files.extend(p for p in sorted(match.rglob("*")) if p.is_file() and p.suffix.lower() in suffixes)
+                files.extend(_logs_below(match, suffixes))
             elif match.is_file():
                 files.append(match)
         files = [f for f in files if skip is None or not f.resolve().is_relative_to(skip)]
@@ -176,6 +177,27 @@ def find_logs(patterns, exclude=None) -> list[Path]:
         for f in files:
             found.setdefault(f.resolve(), f)
     return sorted(found.values(), key=lambda p: str(p))
+
+
+def is_log_folder(path: Path) -> bool:
+    """Whether the folder ``path`` is itself a log (a ROS 2 bag) by a registered reader that reads folders."""
+    from .io.readers import detect_format, reader_for
+
+    return reader_for(detect_format(path)).folders
+
+
+def _logs_below(folder: Path, suffixes) -> list[Path]:
+    """The logs in and below ``folder``: files with a ``suffixes`` ending, and folders that are logs (whose
+    files are then part of that log, not logs of their own); ``folder`` itself when it is a log."""
+    if is_log_folder(folder):
+        return [folder]
+    logs = []
+    for p in sorted(folder.iterdir()):
+        if p.is_dir():
+            logs.extend(_logs_below(p, suffixes))
+        elif p.is_file() and p.suffix.lower() in suffixes:
+            logs.append(p)
+    return logs
 
 
 def vehicle_of(path, rule: str = "parent") -> str:

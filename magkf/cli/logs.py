@@ -53,8 +53,9 @@ def run_check(args) -> int:
     from pathlib import Path
 
     from ..diagnostics.inspect import format_inspection, inspect_log
+    from ..fleet import is_log_folder
 
-    if len(args.file) > 1 or Path(args.file[0]).is_dir() and not _is_log_folder(args.file[0]):
+    if len(args.file) > 1 or Path(args.file[0]).is_dir() and not is_log_folder(Path(args.file[0])):
         return _check_many(args)
     args.file = args.file[0]
     report = inspect_log(common.open_log(args), dop_max=args.dop_max)
@@ -63,13 +64,6 @@ def run_check(args) -> int:
     else:
         print(format_inspection(report))
     return 0
-
-
-def _is_log_folder(path) -> bool:
-    """Whether the folder at ``path`` is itself a log (a ROS 2 bag), not a folder of logs."""
-    from ..io.readers import detect_format, reader_for
-
-    return reader_for(detect_format(path)).folders
 
 
 def _check_many(args) -> int:
