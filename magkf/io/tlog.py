@@ -65,7 +65,9 @@ Time
 
 Streams (interpolated onto the magnetometer's epochs with ``magkf.io.streams``)
     ``ATTITUDE`` ``roll, pitch, yaw`` (rad), else ``ATTITUDE_QUATERNION`` ``q1..q4`` (scalar first),
-    body FRD in NED. ``GPS_RAW_INT``: ``fix_type`` (``GPS_FIX_TYPE``: 3 = 3-D), ``lat, lon`` (1e-7 deg),
+    body FRD in NED, across gaps up to ``max_gap_s``. The slower streams (GNSS, battery, throttle; 1 to 5 Hz
+    in telemetry) across gaps up to ``AUX_GAP_INTERVALS`` of their median intervals where that is longer.
+    ``GPS_RAW_INT``: ``fix_type`` (``GPS_FIX_TYPE``: 3 = 3-D), ``lat, lon`` (1e-7 deg),
     ``alt`` (mm above MSL), ``alt_ellipsoid`` (mm above WGS-84; MAVLink 2 extension, 0 when not given),
     ``eph, epv`` (HDOP and VDOP x 100, 65535 unknown). ``BATTERY_STATUS.current_battery`` (battery 0) else
     ``SYS_STATUS.current_battery`` (cA, -1 unknown); ``VFR_HUD.throttle`` (percent); the magnetometer
@@ -820,7 +822,13 @@ def _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
     else:
         notes.append("no ATTITUDE or ATTITUDE_QUATERNION message: no attitude")
         return
-    q_t, _ = interpolate_quaternions(boot * 1e-6, t_src * 1e-6, q, max_gap_s)
+    q_t, valid = interpolate_quaternions(boot * 1e-6, t_src * 1e-6, q, max_gap_s)
+    if not valid.all():
+        step = float(np.median(np.diff(t_src))) * 1e-6 if len(t_src) > 1 else float("nan")
+        notes.append(
+            f"{int(np.count_nonzero(~valid))} epochs have no attitude: outside the attitude stream or between "
+            f"samples more than max_gap_s = {max_gap_s:g} s apart (median interval {step:.3g} s)"
+        )
     yaw, pitch, roll = quaternion_to_euler(q_t)
     frame.update(roll=roll, pitch=pitch, yaw=yaw)
     for name in (ROLL, PITCH, YAW):
@@ -835,6 +843,7 @@ def _position(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
         return
     gps, t_gps, _, _ = _in_time_order(gps, clock.boot_us(gps))
     t, t_gps = boot * 1e-6, t_gps * 1e-6
+    max_gap_s = _aux_gap(t_gps, max_gap_s)  # telemetry sends it at 1 to 5 Hz; the position changes slowly
     fix = gps["fix_type"] >= 3
     i, _, valid = bracket(t, t_gps, max_gap_s)
     frame["fix_type"] = np.where(valid, gps["fix_type"][i], np.nan)
@@ -856,12 +865,14 @@ def _position(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
         (ALT, alt, "GPS_RAW_INT.alt_ellipsoid (mm above WGS-84)" if use_ell else "GPS_RAW_INT.alt (mm above MSL)"),
     ):
         frame[name] = interpolate_linear(t, t_gps, np.where(fix, values, np.nan), max_gap_s)[0]
-        columns[name] = f"{text}, 3-D fix only, linear"
+        columns[name] = f"{text}, 3-D fix only, linear across gaps up to {max_gap_s:.3g} s"
     if not use_ell:
         notes.append("GPS_RAW_INT has no alt_ellipsoid: alt is above mean sea level, not the WGS-84 ellipsoid")
 
 
 def _aux_gap(t_src: np.ndarray, max_gap_s: float) -> float:
+    """The longest gap (s) across which a slow stream sampled at ``t_src`` (s) is interpolated: ``max_gap_s`` or
+    ``AUX_GAP_INTERVALS`` median intervals, whichever is longer."""
     step = float(np.median(np.diff(t_src))) if len(t_src) > 1 else 0.0
     return max(max_gap_s, AUX_GAP_INTERVALS * step)
 
