@@ -274,7 +274,6 @@ class _Log:
         #: How each decoded message type's ``TimeUS`` was found (``_timed``).
         self.time_sources: dict[str, str] = {}
         self._tables: dict[str, dict] = {}
-        self._clock: tuple[np.ndarray, np.ndarray] | None = None
 
     def close(self) -> None:
         """Release the memory map and the file (decoded tables are copies and stay valid)."""
@@ -396,24 +395,25 @@ class _Log:
         ]
 
     def _file_clock(self, offsets: np.ndarray) -> np.ndarray:
-        """Boot time (int64 us) of the last timed message before each file offset (the first timed message's
-        for one before them all; 0 in a log without timed messages)."""
-        if self._clock is None:
-            places, times = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-            for f in self._clock_types():
-                offs = np.asarray(self.reader.offsets[f.type], np.int64)
-                offs = offs[offs + 3 + (8 if f.format[0] == "Q" else 4) <= len(self.buffer)]
-                width, scale = (8, 1) if f.format[0] == "Q" else (4, 1000)
-                raw = self._gather(offs + 3, width)
-                places.append(offs)
-                times.append(raw.view("<u8" if width == 8 else "<u4").ravel().astype(np.int64) * scale)
-            place, time = np.concatenate(places), np.concatenate(times)
-            order = np.argsort(place, kind="stable")
-            self._clock = (place[order], time[order])
-        place, time = self._clock
-        if not len(time):
-            return np.zeros(len(offsets), np.int64)
-        return time[np.clip(np.searchsorted(place, offsets) - 1, 0, len(time) - 1)]
+        """Boot time (int64 us) of the last timed message before each file offset (N,): per clock type the
+        last of its messages before it (a type's messages are in file order), the latest of those, and only
+        its time decoded. One before every timed message gets the first timed message's time; 0 in a log
+        without timed messages."""
+        best = np.full(len(offsets), -1, np.int64)  # file offset of the timed message chosen so far
+        times = np.zeros(len(offsets), np.int64)
+        first = (np.inf, 0)  # (offset, time) of the first timed message
+        for f in self._clock_types():
+            offs = np.asarray(self.reader.offsets[f.type], np.int64)
+            width, scale, code = (8, 1, "<u8") if f.format[0] == "Q" else (4, 1000, "<u4")
+            if offs[0] + 3 + width > len(self.buffer):
+                continue
+            k = np.searchsorted(offs, offsets) - 1
+            later = (k >= 0) & (offs[np.maximum(k, 0)] > best)
+            best[later] = offs[k[later]]
+            times[later] = self._gather(offs[k[later]] + 3, width).view(code).ravel().astype(np.int64) * scale
+            if offs[0] < first[0]:
+                first = (offs[0], int(self._gather(offs[:1] + 3, width).view(code)[0, 0]) * scale)
+        return np.where(best >= 0, times, first[1])
 
     def _code(self, char: str, name: str) -> str:
         from pymavlink.DFReader import FORMAT_TO_STRUCT
