@@ -12,6 +12,7 @@ generations every boot time is a whole ms and the GPS time of week too, each rou
 the boot-to-UTC offset (a median of their differences) and with it every epoch is off by at most 1 ms.
 """
 
+import json
 from datetime import UTC, datetime
 
 import numpy as np
@@ -115,6 +116,7 @@ def test_a_drive_reads_back_in_every_generation(tmp_path, drive, generation):
     assert np.abs(yaw_error).max() <= 0.005 + 1e-9
     np.testing.assert_allclose(df["hdop"], drive["hdop"], rtol=0, atol=0.005 + 1e-9)
     assert (df["fix_type"] == 3).all()
+    assert json.loads(json.dumps(prov)) == prov  # JSON-able
     messages = [m["message"] for m in prov["magnetometers"]]
     assert messages == (["MAG"] * n if generation == "4.5" else ["MAG", "MAG2", "MAG3"][:n])
 
@@ -177,6 +179,7 @@ def test_no_gnss_fix_reads_in_boot_time(tmp_path, drive, generation, gnss_time):
     assert prov["time_base"] == "boot" and not {"lat", "lon", "alt", "fix_type"} & set(df)
     boot = 10.0 + drive.index.to_numpy() - drive.index[0]
     np.testing.assert_allclose(df["time"], boot, rtol=0, atol=5e-4 if generation in MILLISECOND else 1e-6)
+    assert json.loads(json.dumps(prov)) == prov
     expected = "its GPS time without a fix puts the boot at" if gnss_time else "never had a 3-D fix nor a GPS week"
     assert any(expected in note for note in prov["notes"])
     start = datetime(2025, 1, 3, tzinfo=UTC).timestamp()
