@@ -160,6 +160,7 @@ WANTED = (
     "SYS_STATUS",
     "VFR_HUD",
     "SCALED_PRESSURE",
+    "AUTOPILOT_VERSION",
     *MAG_NAMES,
 )
 #: Storage error (nT, per axis, standard deviation) of the magnetometer as a tlog holds it: the int16 mG
@@ -562,11 +563,24 @@ def _highres_unit(field: np.ndarray, autopilot: str | None, notes: list) -> tupl
     return NT_PER_UNIT["G"], "G -> x1e5 nT"
 
 
-def _is_calibrated(message: str, autopilot: str | None) -> bool | None:
-    """Whether ``message`` carries the autopilot's calibrated field (None: autopilot unknown)."""
+def _firmware(vehicle: _Vehicle) -> tuple[int, int, int] | None:
+    """``(major, minor, patch)`` of the vehicle's ``AUTOPILOT_VERSION.flight_sw_version`` (bytes 4, 3, 2 of the
+    uint32, the lowest the release type), None where the log has none."""
+    table = vehicle.tables.get("AUTOPILOT_VERSION")
+    if table is None or not len(table["flight_sw_version"]) or table["flight_sw_version"][-1] == 0:
+        return None
+    v = int(table["flight_sw_version"][-1])
+    return v >> 24 & 0xFF, v >> 16 & 0xFF, v >> 8 & 0xFF
+
+
+def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None:
+    """Whether ``message`` carries the autopilot's calibrated field (None: autopilot unknown); PX4 up to v1.11
+    calibrated ``sensor_mag`` in the driver."""
     if message == "HIGHRES_IMU":
         return True
-    return {"ardupilot": True, "px4": False}.get(autopilot)
+    if autopilot == "px4":
+        return firmware is not None and firmware[:2] < (1, 12)
+    return {"ardupilot": True}.get(autopilot)
 
 
 def _uncorrect_ardupilot(
@@ -710,7 +724,12 @@ def _read(vehicle: _Vehicle, clock: _Clock, mag, raw: bool, max_gap_s: float, no
         "columns": columns,
         "magnetometer": magnetometer,
         "magnetometers": [_summary(vehicle, clock, s) for s in streams],
-        "vehicle": {"sysid": vehicle.sysid, "compid": vehicle.compid, "autopilot": vehicle.autopilot},
+        "vehicle": {
+            "sysid": vehicle.sysid,
+            "compid": vehicle.compid,
+            "autopilot": vehicle.autopilot,
+            "firmware": ".".join(map(str, _firmware(vehicle))) if _firmware(vehicle) else None,
+        },
         "parameters": {k: float(v[-1]) for k, (_, v) in sorted(vehicle.params.items()) if k.startswith(wanted)},
         "raw_reconstruction": raw_text,
         "time_base": clock.time_base,
@@ -749,7 +768,8 @@ def _magnetometer_columns(
     undone."""
     message = stream["message"]
     field = np.column_stack([table[c].astype(float) for c in ("xmag", "ymag", "zmag")])
-    calibrated = _is_calibrated(message, vehicle.autopilot)
+    firmware = _firmware(vehicle)
+    calibrated = _is_calibrated(message, vehicle.autopilot, firmware)
     info = {"autopilot": vehicle.autopilot, "message_calibrated": calibrated}
     if message == "HIGHRES_IMU":
         per_count, unit_text = _highres_unit(field, vehicle.autopilot, notes)
@@ -779,33 +799,61 @@ def _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes) -> tuple
         info["parameter_set"] = "COMPASS_OFS{0}, COMPASS_DIA{0}, COMPASS_ODI{0}, COMPASS_SCALE{0}".format(
             ("", "2", "3")[k]
         )
-    if calibrated is None:
-        notes.append(
-            f"the autopilot is unknown (no HEARTBEAT of a known one): whether {message} is calibrated is not known"
-        )
-        return "not known whether the field is calibrated: read as sent", None
     if not calibrated:
-        notes.append(
-            f"{message} of PX4 is sensor_mag, the reading before the CAL_MAG calibration (PX4 v1.12 on; up to "
-            "v1.11 the driver applied the CAL_MAG offsets and scales before publishing it)"
-        )
-        return "nothing to undo: PX4 sends sensor_mag uncalibrated", None
+        return _not_calibrated(message, calibrated, _firmware(vehicle), notes), None
     if not raw:
         return "not done (raw=False): the field as the autopilot corrected it", None
-    if message == "HIGHRES_IMU" or not has_compass:
-        why = (
-            "no COMPASS_* PARAM_VALUE in the log"
-            if message != "HIGHRES_IMU"
-            else "HIGHRES_IMU is the selected compass's corrected field, less PX4's estimated bias, of which the "
-            "telemetry gives neither the compass nor the bias"
-        )
+    why = _why_not_undone(message, vehicle.autopilot, has_compass)
+    if why is not None:
         notes.append(
             f"{message} carries the autopilot's calibrated field and its calibration cannot be undone ({why}): "
             "read as sent; a calibration fitted to it is relative to the autopilot's"
         )
         return f"not done ({why}): the field as the autopilot corrected it", None
     raw_mg, text, _ = _uncorrect_ardupilot(nt / NT_PER_MILLIGAUSS, boot, vehicle.params, instance, aux, notes)
+    firmware = _firmware(vehicle)
+    if firmware is None or firmware[0] < 4:
+        said = "unknown (no AUTOPILOT_VERSION)" if firmware is None else ".".join(map(str, firmware))
+        notes.append(
+            f"ArduPilot firmware {said}: the 4.x correction model was assumed; before 4.0 there was no "
+            "COMPASS_SCALE and motor compensation was added before the soft-iron matrix"
+        )
     return text, raw_mg * NT_PER_MILLIGAUSS
+
+
+def _not_calibrated(message: str, calibrated: bool | None, firmware, notes: list) -> str:
+    """What is done to a field that is not known to be calibrated (``calibrated`` None: autopilot unknown;
+    False: PX4's ``sensor_mag``), noted."""
+    if calibrated is None:
+        notes.append(
+            f"the autopilot is unknown (no HEARTBEAT of a known one): whether {message} is calibrated is not known"
+        )
+        return "not known whether the field is calibrated: read as sent"
+    if firmware is None:
+        notes.append(
+            f"{message} of PX4 is sensor_mag, the reading before the CAL_MAG calibration (PX4 v1.12 on; up to "
+            "v1.11 the driver applied the CAL_MAG offsets and scales before publishing it; the log has no "
+            "AUTOPILOT_VERSION to tell)"
+        )
+        return "nothing to undo: PX4 sends sensor_mag uncalibrated"
+    return f"nothing to undo: PX4 {'.'.join(map(str, firmware))} sends sensor_mag uncalibrated"
+
+
+def _why_not_undone(message: str, autopilot: str | None, has_compass: bool) -> str | None:
+    """Why a calibrated field cannot be undone, in words; None where it can (ArduPilot with its parameters)."""
+    if message == "HIGHRES_IMU":
+        return (
+            "HIGHRES_IMU is the selected compass's corrected field, less PX4's estimated bias, of which the "
+            "telemetry gives neither the compass nor the bias"
+        )
+    if autopilot == "px4":
+        return (
+            "PX4 up to v1.11 applied the CAL_MAG offsets and scales in the driver, for a device the telemetry "
+            "does not name"
+        )
+    if not has_compass:
+        return "no COMPASS_* PARAM_VALUE in the log"
+    return None
 
 
 def _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
@@ -959,6 +1007,7 @@ def write_tlog(
     latency_s: float = 0.02,
     mavlink1: bool = False,
     sysid: int = 1,
+    firmware: str | None = None,
 ) -> None:
     """Write a canonical table as a MAVLink telemetry log of an ArduPilot or PX4 vehicle (for tests).
 
@@ -981,7 +1030,8 @@ def write_tlog(
     * ``SYSTEM_TIME`` at 1 Hz (``system_time``); ``BATTERY_STATUS`` (``current_a``) and ``VFR_HUD``
       (``throttle``) every ``aux_period_s`` where the table has them.
 
-    ``mavlink1`` packs MAVLink 1 packets (``alt_ellipsoid``, an extension field, then 0).
+    ``firmware`` (``"4.5.0"``) adds an ``AUTOPILOT_VERSION`` with that flight software version (release type
+    255, official). ``mavlink1`` packs MAVLink 1 packets (``alt_ellipsoid``, an extension field, then 0).
     """
     if autopilot not in ("ardupilot", "px4"):
         raise InputError(f"unknown autopilot {autopilot!r}; use ardupilot or px4", str(path))
@@ -990,6 +1040,8 @@ def write_tlog(
     writer = _TlogWriter(t, latency_s, mavlink1, autopilot, sysid)
     params = dict(params or {})
     writer.heartbeats()
+    if firmware is not None:
+        writer.version(firmware)
     writer.parameters(params)
     writer.magnetometer(frame, params, name)
     writer.attitude(frame, attitude_per_row)
@@ -1040,6 +1092,13 @@ class _TlogWriter:
             self._send(
                 b, self.dialect.MAVLink_heartbeat_message(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0, 3), self.gcs
             )
+
+    def version(self, firmware: str) -> None:
+        major, minor, patch = (int(v) for v in firmware.split("."))
+        flight_sw = major << 24 | minor << 16 | patch << 8 | 255
+        zeros = [0] * 8
+        message = self.dialect.MAVLink_autopilot_version_message(0, flight_sw, 0, 0, 0, zeros, zeros, zeros, 0, 0, 0)
+        self._send(int(self.boot_us[0]) - 600_000, message)
 
     def parameters(self, params: dict) -> None:
         at = int(self.boot_us[0]) - 500_000

@@ -142,7 +142,7 @@ def test_known_calibration_is_undone(flight, tmp_path):
     the PARAM_VALUEs, so the error is the truncation (at most 1 mG per sent component) through the inverse model:
     per axis at most ``sum_j |M^-1|_ij x 1 mG / SCALE`` (the parameters as float32, as the log holds them)."""
     path = tmp_path / "calibrated.tlog"
-    write_tlog(flight, path, params=CALIBRATION)
+    write_tlog(flight, path, params=CALIBRATION, firmware="4.5.7")
     raw, provenance = read_tlog(path)
     truth = flight[["mag_x", "mag_y", "mag_z"]].to_numpy()
     p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
@@ -161,6 +161,8 @@ def test_known_calibration_is_undone(flight, tmp_path):
     assert provenance["magnetometer"]["message_calibrated"] is True
     assert provenance["parameters"]["COMPASS_OFS_X"] == 120.0
     assert provenance["raw_reconstruction"].startswith("ArduPilot 4.x AP_Compass_Backend::correct_field")
+    assert provenance["vehicle"]["firmware"] == "4.5.7"
+    assert not any("correction model was assumed" in n for n in provenance["notes"])
 
     sent, as_sent = read_tlog(path, raw=False)
     corrected = compass_correct(
@@ -213,6 +215,7 @@ def test_priority_picks_the_parameter_set_and_the_export_compass(flight, tmp_pat
     truth = flight[["mag_x", "mag_y", "mag_z"]].to_numpy()[:200]
     bound = 100.0 / np.array([1.05, 0.97, 1.01])  # 1 mG through the inverse diagonal
     assert np.all(np.abs(raw[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth) <= bound + 1e-6)
+    assert any(n.startswith("ArduPilot firmware unknown (no AUTOPILOT_VERSION): the 4.x") for n in provenance["notes"])
     mag = {"format": provenance["format"], **provenance["magnetometer"]}
     assert mag["compass"] == 2 and mag["parameter_set"].startswith("COMPASS_OFS2")
     cal = Calibration(np.eye(3), np.zeros(3), magnetometer=mag)
@@ -242,6 +245,21 @@ def test_px4_sends_the_uncalibrated_sensor_and_integer_parameters_by_their_bytes
         and why
         == "compass 0 (the telemetry log does not say which px4 compass SCALED_IMU is; --instance picks another)"
     )
+
+
+def test_px4_up_to_1_11_calibrated_sensor_mag_in_the_driver(flight, tmp_path):
+    """AUTOPILOT_VERSION 1.11.3: PX4's driver applied the CAL_MAG offsets and scales before publishing sensor_mag,
+    so SCALED_IMU is calibrated, which the telemetry cannot undo; 1.14.0: uncalibrated, nothing to undo."""
+    old, new = tmp_path / "px4_111.tlog", tmp_path / "px4_114.tlog"
+    write_tlog(flight.iloc[:100], old, autopilot="px4", firmware="1.11.3")
+    write_tlog(flight.iloc[:100], new, autopilot="px4", firmware="1.14.0")
+    _, provenance = read_tlog(old)
+    assert provenance["vehicle"]["firmware"] == "1.11.3"
+    assert provenance["magnetometer"]["calibrated"] is True and provenance["magnetometer"]["message_calibrated"]
+    assert provenance["raw_reconstruction"].startswith("not done (PX4 up to v1.11 applied the CAL_MAG offsets")
+    _, provenance = read_tlog(new)
+    assert provenance["magnetometer"]["calibrated"] is False
+    assert provenance["raw_reconstruction"] == "nothing to undo: PX4 1.14.0 sends sensor_mag uncalibrated"
 
 
 # ------------------------------------------------------------------ without GNSS
@@ -350,7 +368,12 @@ def test_the_first_vehicle_is_read_and_the_others_noted(flight, tmp_path):
     both = tmp_path / "both.tlog"
     both.write_bytes(b"".join(merged))
     table, provenance = read_tlog(both)
-    assert len(table) == 300 and provenance["vehicle"] == {"sysid": 1, "compid": 1, "autopilot": "ardupilot"}
+    assert len(table) == 300 and provenance["vehicle"] == {
+        "sysid": 1,
+        "compid": 1,
+        "autopilot": "ardupilot",
+        "firmware": None,
+    }
     assert np.max(np.abs(table["mag_x"].to_numpy() - flight["mag_x"].to_numpy()[:300])) <= 100.0
     assert any("left aside those of 2:1 (sysid:compid)" in n for n in provenance["notes"])
 
