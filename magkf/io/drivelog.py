@@ -448,10 +448,15 @@ def _check_reference(table: pd.DataFrame, name: str, row_of) -> None:
 
 #: What to do about magnitudes that look like another unit, by the reader's ``format`` (``{unit}`` the unit
 #: they look like): an autopilot log's reader knows the unit; a column map's reader warns itself (None).
+_AUTOPILOT_FIX = "the log may hold another sensor's values, or a field scaled by the autopilot"
 _UNIT_FIX = {
     "mapped-table": None,
-    "px4-ulog": "the log may hold another sensor's values, or a field scaled by the autopilot",
-    "ardupilot-dataflash": "the log may hold another sensor's values, or a field scaled by the autopilot",
+    "px4-ulog": _AUTOPILOT_FIX,
+    "ardupilot-dataflash": _AUTOPILOT_FIX,
+    "mavlink-tlog": _AUTOPILOT_FIX,
+    "ros1-bag": "the bag's MagneticField may not be in tesla, as sensor_msgs requires",
+    "ros2-sqlite3": "the bag's MagneticField may not be in tesla, as sensor_msgs requires",
+    "ros2-mcap": "the bag's MagneticField may not be in tesla, as sensor_msgs requires",
 }
 
 
