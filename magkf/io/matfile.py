@@ -88,6 +88,8 @@ def read_mat_array(path, variable: str | None = None) -> MatArray:
     if version == "v7.3 (HDF5)":
         variables = _hdf5_variables(path, name, variable)
     else:
+        if version == "v5":
+            _check_v5_elements(path.read_bytes(), name)
         variables = _loadmat_variables(path, name)
     chosen = _choose(variables, variable, name)
     stored = variables[chosen]
@@ -104,7 +106,7 @@ def _version(path: Path, name: str) -> str:
         return "v7.3 (HDF5)"
     try:
         major, _ = matfile_version(str(path))
-    except (MatReadError, ValueError, OSError, TypeError) as exc:  # too short, not a MATLAB header
+    except (MatReadError, ValueError, OSError, TypeError, IndexError) as exc:  # too short, not a MATLAB header
         raise InputError(f"not a MATLAB .mat file ({' '.join(str(exc).split())}): {_HINT}", name) from None
     if major == 2:  # MATLAB's header says v7.3, but h5py finds no HDF5 after it
         raise InputError(f"a MATLAB v7.3 file whose HDF5 part is damaged: {_HINT}", name)
@@ -133,8 +135,8 @@ def _hdf5_variables(path: Path, name: str, variable: str | None) -> dict:
                     found[key.replace("/", ".")] = "a sparse matrix"
 
             f.visititems(visit)
-    except OSError as exc:
-        raise InputError(f"not a readable MATLAB v7.3 (HDF5) file ({' '.join(str(exc).split())})", name) from None
+    except Exception as exc:  # a damaged HDF5 file: h5py raises OSError, RuntimeError, KeyError, ValueError...
+        raise InputError(f"not a readable MATLAB v7.3 (HDF5) file ({_reason(exc)}): {_HINT}", name) from None
     return found
 
 
@@ -151,15 +153,112 @@ def _hdf5_dataset(item):
     return item[()]
 
 
+#: MAT v5 data types (``miINT8`` 1 ... ``miUTF32`` 18; 8, 10 and 11 are reserved), of the MAT-file format
+#: (https://www.mathworks.com/help/pdf_doc/matlab/matfile_format.pdf, "Data Element Types").
+_V5_TYPES = frozenset({1, 2, 3, 4, 5, 6, 7, 9, 12, 13, 14, 16, 17, 18})
+_MI_MATRIX, _MI_COMPRESSED = 14, 15
+_V5_HEADER_BYTES = 128
+
+
+#: MATLAB classes (the low byte of a matrix's flags) whose matrix holds exactly these parts besides the
+#: optional imaginary one: flags, dimensions, name and data (char and numeric classes, 4 and 6 to 15), and
+#: sparse (5) with its row and column indices.
+_V5_PARTS = {4: 4, 5: 6, **{klass: 4 for klass in range(6, 16)}}
+_MI_INT32, _MI_UINT32 = 5, 6
+_COMPLEX_FLAG = 0x800
+
+
+@dataclass(frozen=True)
+class _Tag:
+    """One MAT v5 data element: its type, where its data start, its size in bytes and where its tag is."""
+
+    kind: int
+    body: int
+    size: int
+    at: int
+
+
+class _V5Elements:
+    """The data elements of a MAT v5 file (``https://www.mathworks.com/help/pdf_doc/matlab/matfile_format.pdf``),
+    walked to refuse what ``scipy.io.loadmat`` cannot read safely: it takes a tag's type as an index into a table
+    without checking it, and reads a complex matrix's imaginary part whether it is there or not, so that a damaged
+    file can crash the process (scipy/scipy#25349)."""
+
+    def __init__(self, name: str, order: str):
+        self.name, self.order = name, order
+
+    def refuse(self, what: str, at: int):
+        raise InputError(f"not a readable MATLAB v5 file ({what} at byte {at}): {_HINT}", self.name)
+
+    def tags(self, data: bytes, start: int, end: int, nested: bool) -> list[_Tag]:
+        """The elements in ``data[start:end]`` (``nested``: a matrix's parts, each padded to 8 bytes; else the
+        file's top level, where compressed elements may be), each of a known type and within its container."""
+        import struct
+
+        found, at = [], start
+        while at < end:
+            if end - at < 8:
+                self.refuse("a data element cut short", at)
+            first, second = struct.unpack_from(self.order + "II", data, at)
+            small = first >> 16 != 0  # a small data element: type and size in one word, data in the next
+            kind, size = (first & 0xFFFF, first >> 16) if small else (first, second)
+            step = 8 if small else 8 + (-(-size // 8) * 8 if nested else size)
+            known = kind in _V5_TYPES or (kind == _MI_COMPRESSED and not nested)
+            if not known or (small and size > 4) or at + step > end:
+                self.refuse("a damaged data element", at)
+            found.append(_Tag(kind, at + (4 if small else 8), size, at))
+            at += step
+        return found
+
+    def check(self, data: bytes, start: int, end: int) -> None:
+        """Check the top-level elements of ``data[start:end]`` and every matrix in them."""
+        import zlib
+
+        for tag in self.tags(data, start, end, nested=False):
+            if tag.kind == _MI_MATRIX:
+                self.matrix(data, tag)
+            elif tag.kind == _MI_COMPRESSED:
+                try:
+                    inner = zlib.decompress(data[tag.body : tag.body + tag.size])
+                except zlib.error:
+                    self.refuse("a damaged compressed element", tag.at)
+                self.check(inner, 0, len(inner))
+
+    def matrix(self, data: bytes, tag: _Tag) -> None:
+        """Check one matrix: flags and dimensions first, the parts its class has, and the matrices in it."""
+        import struct
+
+        parts = self.tags(data, tag.body, tag.body + tag.size, nested=True)
+        if tag.size == 0:
+            return  # an empty element, which MATLAB writes for an empty cell
+        if len(parts) < 3 or (parts[0].kind, parts[0].size, parts[1].kind) != (_MI_UINT32, 8, _MI_INT32):
+            self.refuse("a matrix without its flags and dimensions", tag.at)
+        (flags,) = struct.unpack_from(self.order + "I", data, parts[0].body)
+        expected = _V5_PARTS.get(flags & 0xFF)
+        if expected is not None:
+            expected += bool(flags & _COMPLEX_FLAG)
+            if len(parts) != expected or any(p.kind == _MI_MATRIX for p in parts):
+                self.refuse("a matrix whose parts do not match its class", tag.at)
+        for part in parts[3:]:
+            if part.kind == _MI_MATRIX:
+                self.matrix(data, part)
+
+
+def _check_v5_elements(data: bytes, name: str) -> None:
+    """InputError naming the file ``name`` for a MAT v5 file whose data elements are not well formed
+    (``_V5Elements``)."""
+    order = ">" if data[126:128] == b"MI" else "<"
+    _V5Elements(name, order).check(data, _V5_HEADER_BYTES, len(data))
+
+
 def _loadmat_variables(path: Path, name: str) -> dict:
     """Every variable of a v4/v5/v7 file by name (a struct's fields as ``a.b``)."""
     from scipy.io import loadmat
-    from scipy.io.matlab import MatReadError
 
     try:
         data = loadmat(str(path), simplify_cells=True)
-    except (MatReadError, ValueError, TypeError, OSError, NotImplementedError) as exc:  # damaged or of an unknown kind
-        raise InputError(f"not a readable MATLAB file ({' '.join(str(exc).split())[:200]}): {_HINT}", name) from None
+    except Exception as exc:  # a damaged file: scipy raises MatReadError, ValueError, IndexError, zlib.error...
+        raise InputError(f"not a readable MATLAB file ({_reason(exc)}): {_HINT}", name) from None
     found: dict = {}
 
     def add(prefix: str, value) -> None:
@@ -171,6 +270,11 @@ def _loadmat_variables(path: Path, name: str) -> dict:
 
     add("", {k: v for k, v in data.items() if not k.startswith("__")})
     return found
+
+
+def _reason(exc: Exception) -> str:
+    """An exception of a damaged file's reader in a few words on one line: its type and message."""
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:200]
 
 
 def _is_matrix(value) -> bool:

@@ -539,3 +539,48 @@ def test_magkf_csv_with_a_bad_cell_keeps_its_own_error(tmp_path):
     assert refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"])) == (
         f"{path}, row 3, column 'mag_y': not a number: 'x5' (leave the cell empty for a missing value)"
     )
+
+
+def test_a_v5_file_with_every_kind_of_variable_is_read_and_a_damaged_one_refused(tmp_path):
+    """A v5 file holding complex, sparse, logical, text, empty, cell and struct variables beside the records is
+    read; one whose data element has a type code outside MATLAB's, or whose matrix says it is complex without an
+    imaginary part (both crash ``scipy.io.loadmat``, scipy/scipy#25349), is refused in one line."""
+    import scipy.sparse
+
+    records = truth_records()
+    cell = np.empty((1, 2), dtype=object)
+    cell[0, 0], cell[0, 1] = records[:2], "text"
+    others = {
+        "c": records[:3] + 1j,
+        "sp": scipy.sparse.random(5, 5, density=0.3, format="csc", random_state=1),
+        "flags": records[:3] > 0,
+        "label": "bench 2",
+        "empty": np.zeros((0, 3)),
+        "cell": cell,
+        "settings": {"gain": 2.0, "name": "x"},
+    }
+    for compressed in (False, True):
+        scipy.io.savemat(tmp_path / "all.mat", {"data": records, **others}, do_compression=compressed)
+        table, _ = read_mapped(
+            tmp_path / "all.mat", ColumnMap({"time": 1, "mag_x": 2, "mag_y": 3, "mag_z": 4}, variable="data")
+        )
+        np.testing.assert_array_equal(table[["time", "mag_x", "mag_y", "mag_z"]].to_numpy(), records)
+
+    scipy.io.savemat(tmp_path / "one.mat", {"data": records})
+    good = (tmp_path / "one.mat").read_bytes()
+    name = good.index(b"data")  # a small element (type, size, "data"); the real part's tag follows it
+    flags = name - 28  # the flags' 8 bytes, then the dimensions' tag and 8 bytes, then the name's 4-byte tag
+    assert good[flags] == 6  # mxDOUBLE_CLASS
+    cases = {
+        name + 4: (157, "a damaged data element"),  # the real part's type: not a MATLAB type
+        flags + 1: (good[flags + 1] | 0x08, "a matrix whose parts do not match its class"),  # complex flag
+    }
+    by_position = ColumnMap({"time": 1, "mag_x": 2, "mag_y": 3, "mag_z": 4})
+    for at, (value, what) in cases.items():
+        damaged = bytearray(good)
+        damaged[at] = value
+        path = tmp_path / f"damaged_{at}.mat"
+        path.write_bytes(bytes(damaged))
+        assert refusal(lambda path=path: read_mapped(path, by_position)).startswith(
+            f"{path}: not a readable MATLAB v5 file ({what} at byte "
+        )
