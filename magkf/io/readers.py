@@ -7,15 +7,20 @@ Every reader hands its table to ``magkf.io.drivelog.from_table`` (the epoch cont
 columns, units and checks), and the ``DriveLog`` carries the reader's provenance: which topic, message or
 column each canonical column came from, and what was converted or undone.
 
-=============  ====================================  ==========================================
-format         reader                                options
-=============  ====================================  ==========================================
-``csv``        canonical CSV (``read_drive_log``)    ``mag_unit``
-``parquet``    its Parquet twin                      ``mag_unit``
-``ulog``       PX4 ULog (``magkf.io.ulog``)          ``mag`` (instance), ``raw``, ``max_gap_s``
-``dataflash``  ArduPilot (``magkf.io.dataflash``)    ``mag`` (instance), ``raw``, ``max_gap_s``
-``mapped``     any table (``magkf.io.columnmap``)    ``map`` (TOML file or ``ColumnMap``)
-=============  ====================================  ==========================================
+==============  ==========================================  ================================================
+format          reader                                      options
+==============  ==========================================  ================================================
+``csv``         canonical CSV (``read_drive_log``)          ``mag_unit``, ``site``
+``parquet``     its Parquet twin                            ``mag_unit``, ``site``
+``ulog``        PX4 ULog of every generation (``ulog``)     ``mag`` (instance), ``raw``, ``max_gap_s``, ``site``
+``dataflash``   ArduPilot DataFlash, 3.x to 4.x             ``mag``, ``raw``, ``max_gap_s``, ``site``
+``tlog``        MAVLink telemetry log (``tlog``)            ``mag``, ``raw``, ``max_gap_s``, ``site``
+``rosbag``      ROS 1 bag, ROS 2 bag (SQLite, MCAP)         ``mag``, ``raw``, ``max_gap_s``, ``site``, ``topic``
+``mapped``      any table (``columnmap``)                   ``map`` (TOML file or ``ColumnMap``), ``site``
+==============  ==========================================  ================================================
+
+A log without GNSS comes from its reader timed since boot, or without a position; ``site``
+(``magkf.io.site.Site``: ``--site`` and ``--date``) places it, and without one it is refused in one line.
 
 A new format is one subclass of ``LogReader`` in a file of its own, registered with
 ``READERS.register`` or an entry point in the ``magkf.readers`` group (see ``docs/plugins.md``).
