@@ -47,7 +47,9 @@ Streams
 Time
     The boot time is mapped to UTC with the GPS week and milliseconds (``timebase.gps_to_unix``, leap
     seconds of the date): the offset UTC - boot time is the median over the ``GPS`` samples with a week and a
-    3-D fix, so the log-write latency of single samples does not bias it. A log whose GNSS never had a 3-D
+    3-D fix, so the log-write latency of single samples does not bias it; where those offsets drift (a boot
+    clock running at another rate than GPS time, as on some Linux boards of 2014), a straight line through
+    them (``_gnss_clock``). A log whose GNSS never had a 3-D
     fix with a week has no usable GNSS: its ``time`` is seconds since boot, without position columns, and
     ``provenance["time_base"]`` is "boot" (``magkf.io.site`` then places it at the ``--site`` and ``--date``
     given); a GPS time without a fix is only quoted in a note.
@@ -88,6 +90,7 @@ import io
 import os
 import re
 import warnings
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
@@ -652,9 +655,27 @@ def _raw_text(firmware: str, suffix: str, motor_first: bool, scale_used: bool) -
     )
 
 
-def _time_offset(gps: dict) -> tuple[float | None, str]:
-    """UTC - boot time (s) from the GPS week and milliseconds of the samples with a 3-D fix, and a description;
-    ``(None, why)`` for a log whose GNSS never had a 3-D fix with a GPS week (no usable GNSS)."""
+#: Median absolute deviation (s) of UTC - boot time over the GPS samples above which the boot clock is taken to
+#: run at another rate than GPS time (log-write latency gives some 10 ms; the boot clock of some Linux boards of
+#: 2014, such as the PXF, ran 8 % slow: seconds over a flight).
+CLOCK_DRIFT_MAD_S = 0.1
+
+
+@dataclass(frozen=True)
+class _Clock:
+    """UTC (or boot) seconds of boot times: ``offset + rate * boot s``."""
+
+    offset: float = 0.0
+    rate: float = 1.0
+
+    def __call__(self, time_us) -> np.ndarray:
+        return self.offset + self.rate * (np.asarray(time_us, float) * 1e-6)
+
+
+def _time_offset(gps: dict) -> tuple[_Clock | None, str]:
+    """The clock from boot time to UTC given by the GPS week and milliseconds of the samples with a 3-D fix
+    (``_gnss_clock``), and a description; ``(None, why)`` for a log whose GNSS never had a 3-D fix with a GPS
+    week (no usable GNSS)."""
     if not gps or not {"GWk", "GMS"} <= gps.keys():
         return None, "no GPS week and time of week logged"
     week = gps["GWk"] > 0
@@ -664,13 +685,33 @@ def _time_offset(gps: dict) -> tuple[float | None, str]:
             return None, "the GNSS never had a 3-D fix nor a GPS week"
         boot = datetime.fromtimestamp(float(np.median(_utc_minus_boot(gps, week))), UTC).isoformat(timespec="seconds")
         return None, f"the GNSS never had a 3-D fix (its GPS time without a fix puts the boot at {boot})"
-    offsets = _utc_minus_boot(gps, good)
+    return _gnss_clock(gps["TimeUS"][good] * 1e-6, _utc_minus_boot(gps, good))
+
+
+def _gnss_clock(boot_s: np.ndarray, offsets: np.ndarray) -> tuple[_Clock, str]:
+    """UTC = boot time + the median of ``offsets`` (UTC - boot time, s, at boot times ``boot_s``), or, where
+    those spread by more than ``CLOCK_DRIFT_MAD_S`` and a straight line in boot time fits them ten times
+    better (a boot clock running at another rate), that line; and a description."""
     offset = float(np.median(offsets))
     spread = float(np.median(np.abs(offsets - offset)))
-    return offset, (
-        f"gnss: UTC = boot time + {offset:.6f} s, the median over {int(good.sum())} GPS samples with a 3-D fix "
-        f"of gps_to_unix(week, ms of week) - boot time (leap seconds of the date; median absolute deviation "
+    text = (
+        f"gnss: UTC = boot time + {offset:.6f} s, the median over {len(offsets)} GPS samples with a 3-D fix of "
+        f"gps_to_unix(week, ms of week) - boot time (leap seconds of the date; median absolute deviation "
         f"{spread * 1e3:.1f} ms, mostly log-write latency)"
+    )
+    if spread <= CLOCK_DRIFT_MAD_S or len(offsets) < 10:
+        return _Clock(offset), text
+    centre = float(np.mean(boot_s))
+    slope, at_centre = np.polyfit(boot_s - centre, offsets, 1)
+    residual = float(np.median(np.abs(offsets - (at_centre + slope * (boot_s - centre)))))
+    if residual > spread / 10:
+        return _Clock(offset), text
+    clock = _Clock(float(at_centre - slope * centre), float(1.0 + slope))
+    return clock, (
+        f"gnss: UTC = {clock.offset:.6f} s + {clock.rate:.6f} x boot time, a straight line through "
+        f"gps_to_unix(week, ms of week) of {len(offsets)} GPS samples with a 3-D fix (leap seconds of the date): "
+        f"the boot clock runs at {1.0 / clock.rate:.4f} of GPS time (UTC - boot time spread by {spread:.1f} s; "
+        f"median absolute deviation from the line {residual * 1e3:.1f} ms)"
     )
 
 
@@ -721,23 +762,28 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
         log.truncated = True
     streams, stream, table = _chosen_stream(log, mag, notes)
     gps = _by_time(_select(log.table("GPS"), 0))
-    offset, time_base = _time_offset(gps)
-    clock = f"{stream['message']}.{log.time_sources[stream['message']]}"
-    if offset is None:
+    clock, time_base = _time_offset(gps)
+    source = f"{stream['message']}.{log.time_sources[stream['message']]}"
+    if clock is None:
         notes.append(f"{time_base}: time is in seconds since boot and there is no position (give --date and --site)")
-        offset, time_base = 0.0, "boot"
-        columns: dict[str, str] = {"time": f"{clock} -> s since boot (no usable GNSS)"}
+        clock, time_base = _Clock(), "boot"
+        columns: dict[str, str] = {"time": f"{source} -> s since boot (no usable GNSS)"}
     else:
-        columns = {"time": f"{clock} -> UTC s via the GPS week and ms of week"}
-    t = table["TimeUS"] * 1e-6 + offset
+        columns = {"time": f"{source} -> UTC s via the GPS week and ms of week"}
+        if clock.rate != 1.0:
+            notes.append(
+                f"the boot clock runs at {1.0 / clock.rate:.4f} of GPS time: times follow GPS time (a straight line "
+                "through the GPS samples), not the boot clock"
+            )
+    t = clock(table["TimeUS"])
     params = _parameters(log)
     firmware = _firmware(log)
     frame = {"time": t}
     raw_text, calibrated = _magnetometer_columns(table, stream, params, raw, firmware, frame, columns, notes)
-    _attitude(log, t, offset, max_gap_s, frame, columns, notes)
+    _attitude(log, t, clock, max_gap_s, frame, columns, notes)
     if time_base != "boot":
-        _position(log, gps, t, offset, max_gap_s, frame, columns, notes)
-    _auxiliary(log, t, offset, max_gap_s, firmware, frame, columns)
+        _position(log, gps, t, clock, max_gap_s, frame, columns, notes)
+    _auxiliary(log, t, clock, max_gap_s, firmware, frame, columns)
     _damage(log, notes)
     summaries = [_summary(s) for s in streams]
     wanted = ("COMPASS_", "AHRS_ORIENTATION")
@@ -850,12 +896,12 @@ def _magnetometer_columns(
     return raw_text, calibrated
 
 
-def _stream_time(table: dict, offset: float) -> np.ndarray:
-    """UNIX time (s, UTC) of a message table's ``TimeUS`` (boot us), given UTC - boot time ``offset`` (s)."""
-    return table["TimeUS"] * 1e-6 + offset
+def _stream_time(table: dict, clock: _Clock) -> np.ndarray:
+    """UNIX time (s, UTC; or boot s) of a message table's ``TimeUS`` (boot us) by ``clock``."""
+    return clock(table["TimeUS"])
 
 
-def _attitude(log: _Log, t, offset: float, max_gap_s: float, frame: dict, columns: dict, notes: list) -> None:
+def _attitude(log: _Log, t, clock: _Clock, max_gap_s: float, frame: dict, columns: dict, notes: list) -> None:
     """Add ``roll, pitch, yaw`` (deg) at the epochs ``t`` (UNIX s) from ``ATT`` (slerp) to ``frame`` and their
     sources to ``columns``; a log without ``ATT`` is noted."""
     att = _by_time(log.table("ATT"))
@@ -863,7 +909,7 @@ def _attitude(log: _Log, t, offset: float, max_gap_s: float, frame: dict, column
         notes.append("no ATT message with Roll, Pitch and Yaw: no attitude")
         return
     q = euler_to_quaternion(att["Yaw"], att["Pitch"], att["Roll"])
-    q_t, _ = interpolate_quaternions(t, _stream_time(att, offset), q, max_gap_s)
+    q_t, _ = interpolate_quaternions(t, _stream_time(att, clock), q, max_gap_s)
     yaw, pitch, roll = quaternion_to_euler(q_t)
     frame.update(roll=roll, pitch=pitch, yaw=yaw)
     for name, field_name in (("roll", "Roll"), ("pitch", "Pitch"), ("yaw", "Yaw")):
@@ -871,7 +917,7 @@ def _attitude(log: _Log, t, offset: float, max_gap_s: float, frame: dict, column
 
 
 def _position(
-    log: _Log, gps: dict, t, offset: float, max_gap_s: float, frame: dict, columns: dict, notes: list
+    log: _Log, gps: dict, t, clock: _Clock, max_gap_s: float, frame: dict, columns: dict, notes: list
 ) -> None:
     """Add ``vdop`` (from ``GPA``), ``lat, lon`` (deg), ``alt`` (m), ``hdop`` (3-D fix only, linear) and
     ``fix_type`` at the epochs ``t`` (UNIX s) to ``frame`` and their sources to ``columns``; a log without a
@@ -880,13 +926,13 @@ def _position(
         notes.append("no GPS position logged")
         return
     fix = gps["Status"] >= 3
-    t_gps = _stream_time(gps, offset)
+    t_gps = _stream_time(gps, clock)
     gpa = _by_time(_select(log.table("GPA"), 0))
     gpa_fix = _gpa_fix(gps, gpa, fix) if gpa else None
-    alt, alt_text = _ellipsoid_height(gps, gpa, gpa_fix, fix, t_gps, offset)
+    alt, alt_text = _ellipsoid_height(gps, gpa, gpa_fix, fix, t_gps, clock)
     if gpa and "VDop" in gpa:
         vdop = np.where(gpa_fix & (gpa["VDop"] < UNKNOWN_DOP_COUNTS * 0.01), gpa["VDop"], np.nan)
-        frame["vdop"] = interpolate_linear(t, _stream_time(gpa, offset), vdop, max_gap_s)[0]
+        frame["vdop"] = interpolate_linear(t, _stream_time(gpa, clock), vdop, max_gap_s)[0]
         columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
     for name, values, text in (
         ("lat", np.where(fix, gps["Lat"], np.nan), "GPS.Lat (deg)"),
@@ -910,7 +956,7 @@ def _gpa_fix(gps: dict, gpa: dict, fix: np.ndarray) -> np.ndarray:
 
 
 def _ellipsoid_height(
-    gps: dict, gpa: dict, gpa_fix: np.ndarray | None, fix: np.ndarray, t_gps, offset: float
+    gps: dict, gpa: dict, gpa_fix: np.ndarray | None, fix: np.ndarray, t_gps, clock: _Clock
 ) -> tuple[np.ndarray, str]:
     """Height (m) at the GPS samples (times ``t_gps``, UNIX s; NaN without a 3-D fix) and its source: above
     WGS-84 from ``GPA.AEl`` or from ``GPS.Alt`` and ``GPA.Und`` (of the ``GPA`` messages where ``gpa_fix``),
@@ -920,9 +966,9 @@ def _ellipsoid_height(
         return alt_msl, "GPS.Alt (m above MSL: no undulation logged, not above the ellipsoid)"
     if "AEl" in gpa:
         ell = np.where(gpa_fix & (gpa["AEl"] > -2.1e7), gpa["AEl"], np.nan)
-        return interpolate_linear(t_gps, _stream_time(gpa, offset), ell)[0], "GPA.AEl (m above WGS-84)"
+        return interpolate_linear(t_gps, _stream_time(gpa, clock), ell)[0], "GPA.AEl (m above WGS-84)"
     if "Und" in gpa:
-        und = interpolate_linear(t_gps, _stream_time(gpa, offset), np.where(gpa_fix, gpa["Und"], np.nan))[0]
+        und = interpolate_linear(t_gps, _stream_time(gpa, clock), np.where(gpa_fix, gpa["Und"], np.nan))[0]
         return alt_msl - und, "GPS.Alt - GPA.Und (MSL + geoid height -> m above WGS-84)"
     return alt_msl, "GPS.Alt (m above MSL: no undulation logged, not above the ellipsoid)"
 
@@ -966,7 +1012,7 @@ def _throttle_scale(firmware: str) -> tuple[float, float, str]:
     return (0.01 if plane else 1.0), (0.001 if copter else 0.01), ("percent / 100" if plane else "0..1")
 
 
-def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, frame: dict, columns: dict) -> None:
+def _auxiliary(log: _Log, t, clock: _Clock, max_gap_s: float, firmware: str, frame: dict, columns: dict) -> None:
     """Add ``temp_c``, ``current_a``, ``throttle`` to ``frame`` (and their sources to ``columns``) where logged.
 
     ``CURR.Curr`` of 3.x logs is an int16 of ``current_amps() * 100`` (``Log_Write_Current``), a float in A
@@ -985,7 +1031,7 @@ def _auxiliary(log: _Log, t, offset: float, max_gap_s: float, firmware: str, fra
             tab = _by_time(_select(log.table(message), 0))
             if not tab or not len(tab["TimeUS"]):
                 continue
-            frame[name] = interpolate_linear(t, tab["TimeUS"] * 1e-6 + offset, tab[field] * factor, max_gap_s)[0]
+            frame[name] = interpolate_linear(t, _stream_time(tab, clock), tab[field] * factor, max_gap_s)[0]
             columns[name] = f"{message}.{field} ({unit}, instance 0, linear)"
             break
 

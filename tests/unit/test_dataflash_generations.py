@@ -406,3 +406,23 @@ def test_any_missing_field_reads_or_is_refused_in_one_line(tmp_path, monkeypatch
                 assert "\n" not in str(err) and str(path) in str(err)
                 refused.append(f"{message}.{column}")
     assert set(refused) <= {"MAG.MagX", "MAG.MagY", "MAG.MagZ"}, refused
+
+
+def test_a_boot_clock_running_slow_is_mapped_by_a_line(tmp_path):
+    """A boot clock that runs at 1/1.08 of GPS time (as on the PXF boards of 2014): UTC - boot time drifts by
+    seconds over the log, so a straight line through the GPS samples maps it, within the 1 ms steps of TimeMS
+    and GPS ms (each up to 0.5 ms off, times 1.08: under 2 ms)."""
+    true_s = 100.0 + np.arange(3000) * 0.1  # s since some instant, 10 Hz for 300 s
+    boot_ms = np.rint(10_000 + 1000 * (true_s - true_s[0]) / 1.08).astype(np.int64)
+    utc = datetime(2014, 12, 5, 10, 54, tzinfo=UTC).timestamp() + true_s
+    gps_ms = np.rint((utc - datetime(1980, 1, 6, tzinfo=UTC).timestamp() + 16.0) * 1000).astype(np.int64)
+    week, ms = np.divmod(gps_ms, 604_800_000)  # GPS - UTC = 16 s in 2014
+    w = DataFlashWriter(GENERATIONS["3.2"])
+    for message in ("MAG", "GPS"):
+        w.define(message)
+    w.write("MAG", TimeMS=boot_ms, **varying(3000))
+    w.write("GPS", order_us=boot_ms[::2] * 1000, Status=3, TimeMS=ms[::2], Week=week[::2], T=boot_ms[::2], Lat=43.0)
+    df, prov = read_dataflash(w.save(tmp_path / "slow.bin"))
+    np.testing.assert_allclose(df["time"], utc, rtol=0, atol=2e-3)
+    assert "the boot clock runs at 0.9259 of GPS time" in prov["time_base"]
+    assert any(note.startswith("the boot clock runs at 0.9259 of GPS time") for note in prov["notes"])
