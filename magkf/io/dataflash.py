@@ -49,10 +49,10 @@ Time
     seconds of the date): the offset UTC - boot time is the median over the ``GPS`` samples with a week and a
     3-D fix, so the log-write latency of single samples does not bias it; where those offsets drift (a boot
     clock running at another rate than GPS time, as on some Linux boards of 2014), a straight line through
-    them (``_gnss_clock``). A log whose GNSS never had a 3-D
-    fix with a week has no usable GNSS: its ``time`` is seconds since boot, without position columns, and
-    ``provenance["time_base"]`` is "boot" (``magkf.io.site`` then places it at the ``--site`` and ``--date``
-    given); a GPS time without a fix is only quoted in a note.
+    them (``_gnss_clock``). A log whose GNSS never had a 3-D fix with a week has no usable GNSS: its ``time``
+    is seconds since boot, without position columns, and ``provenance["time_base"]`` is "boot"
+    (``magkf.io.site`` then places it at the ``--site`` and ``--date`` given); a GPS time without a fix is
+    only quoted in a note.
 
 Raw reconstruction
     ArduPilot 4.x (``AP_Compass_Backend::accumulate_sample``) rotates each sensor sample into the
