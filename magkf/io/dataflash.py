@@ -1056,11 +1056,12 @@ LAYOUTS = {
 #: Message layouts of earlier generations, for ``write_dataflash(generation=...)`` (the reader needs none of
 #: them: every log declares its layouts in its ``FMT`` messages). Only the messages ``write_dataflash`` writes.
 #:
-#: * ``"3.1"``: ArduPilot 3.0-3.1 (2013-2014), as ArduPlane 3.1 wrote them: ``TimeMS`` (ms since boot), ``PARM``
-#:   and ``MSG`` without a time, a ``GPS`` of GPS time only (``TimeMS`` of week, ``Week``; no boot time ``T``),
-#:   ``MAG``/``MAG2`` with offsets but no motor offsets, an ``ATT`` without ``DesRoll``, ``CURR.Curr`` in
-#:   centiamperes (``libraries/DataFlash/DataFlash.h`` and ``ArduPlane/Log.pde`` of that time,
-#:   https://github.com/ArduPilot/ardupilot/blob/ArduPlane-release/ArduPlane/Log.pde).
+#: * ``"3.1"``: the oldest 3.x layouts (2013-2014): ``TimeMS`` (ms since boot), ``PARM`` and ``MSG`` without a
+#:   time, ``MAG``/``MAG2`` with offsets but no motor offsets and an ``ATT`` without ``DesRoll`` (as ArduPlane
+#:   3.1 wrote them, ``ArduPlane/Log.pde`` of 2014), ``CURR.Curr`` in centiamperes, and a ``GPS`` of GPS time
+#:   only (``TimeMS`` of week, ``Week``; no boot time ``T``, the 37-byte ``GPS`` that Mission Planner's log
+#:   reader documents, ``FMT, 130, 37, GPS, BIHBcLLeeEe``), the hardest clock case (pymavlink interpolates it
+#:   by message rates). Real ArduPlane 3.1.2 logs already carry ``T``.
 #: * ``"3.2"``: ArduCopter 3.2 (2014-2015): ``TimeMS``; ``GPS`` ``Status,TimeMS,Week,...,T`` with ``T`` the boot
 #:   ms; ``MAG``/``MAG2``/``MAG3`` with ``MOfsX..``; ``ATT`` with ``DesRoll``; ``CTUN.ThrOut`` 0..1000.
 #: * ``"3.5"``: ArduPilot 3.3-3.6 (2015-2018): ``TimeUS``; ``GPS`` ``GMS, GWk``; ``GPA`` without ``AEl``;
