@@ -679,7 +679,7 @@ def _time_offset(gps: dict) -> tuple[_Clock | None, str]:
     if not gps or not {"GWk", "GMS"} <= gps.keys():
         return None, "no GPS week and time of week logged"
     week = gps["GWk"] > 0
-    good = week & (gps.get("Status", np.zeros(len(week))) >= 3)
+    good = week & (gps.get("Status", np.zeros(len(week))) >= 3) & (gps["TimeUS"] > 0)  # 3.x T of 0: not set
     if not good.any():
         if not week.any():
             return None, "the GNSS never had a 3-D fix nor a GPS week"

@@ -421,7 +421,8 @@ def test_a_boot_clock_running_slow_is_mapped_by_a_line(tmp_path):
     for message in ("MAG", "GPS"):
         w.define(message)
     w.write("MAG", TimeMS=boot_ms, **varying(3000))
-    w.write("GPS", order_us=boot_ms[::2] * 1000, Status=3, TimeMS=ms[::2], Week=week[::2], T=boot_ms[::2], Lat=43.0)
+    t_field = np.where(np.arange(0, 3000, 2) < 6, 0, boot_ms[::2])  # the first three with T unset (0): not used
+    w.write("GPS", order_us=boot_ms[::2] * 1000, Status=3, TimeMS=ms[::2], Week=week[::2], T=t_field, Lat=43.0)
     df, prov = read_dataflash(w.save(tmp_path / "slow.bin"))
     np.testing.assert_allclose(df["time"], utc, rtol=0, atol=2e-3)
     assert "the boot clock runs at 0.9259 of GPS time" in prov["time_base"]
