@@ -74,6 +74,14 @@ def read_offline_table(
 
 def _read_canonical(path, required: list[str], text_columns) -> pd.DataFrame:
     """magkf's CSV or Parquet table; InputError naming the map to write for a text table in another layout."""
+    if str(path).lower().endswith(".mat"):
+        columns = ", ".join(f"{column} = {k}" for k, column in enumerate(required, start=1))
+        raise InputError(
+            'a MATLAB file: read it with --map MAP.toml, MAP.toml holding [file] variable = "NAME" (the matrix of '
+            f"records) and [columns] naming which of its columns hold {', '.join(required)} by 1-based number, "
+            f"e.g. {columns} (docs/column-maps.md)",
+            str(path),
+        )
     try:
         return read_csv(path, required=required, text_columns=text_columns)
     except InputError as exc:

@@ -584,3 +584,12 @@ def test_a_v5_file_with_every_kind_of_variable_is_read_and_a_damaged_one_refused
         assert refusal(lambda path=path: read_mapped(path, by_position)).startswith(
             f"{path}: not a readable MATLAB v5 file ({what} at byte "
         )
+
+
+def test_a_matlab_file_without_a_map_is_refused_naming_the_map(tmp_path):
+    path = write_mat73(tmp_path / "set.mat", {"data": truth_records().T})
+    assert refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"])) == (
+        f'{path}: a MATLAB file: read it with --map MAP.toml, MAP.toml holding [file] variable = "NAME" (the matrix '
+        "of records) and [columns] naming which of its columns hold mag_x, mag_y, mag_z by 1-based number, e.g. "
+        "mag_x = 1, mag_y = 2, mag_z = 3 (docs/column-maps.md)"
+    )
