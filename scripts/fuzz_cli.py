@@ -105,8 +105,8 @@ BOUNDED = {
 @dataclass
 class Case:
     """One corrupted input: the files of its folder, the runs (command, argv) made on it, what a bad-input error
-    must name (any of ``names``; for a bad cell also ``cell`` = (row, column)), standard input, and whether a
-    run is repeated in a subprocess (``spot``)."""
+    must name (any of ``names``; for a bad cell also ``cell`` = (row, column)), text it must hold (every one of
+    ``says``), standard input, and whether a run is repeated in a subprocess (``spot``)."""
 
     name: str
     group: str
@@ -119,6 +119,7 @@ class Case:
     dirs: list = field(default_factory=list)  # folders to create
     spot: bool = False
     invalid: bool = False  # unambiguously bad input: exit 0 on it is a failure
+    says: tuple = ()  # text every bad-input error line must hold (all of it), beyond naming a file
 
 
 def log_runs(log: str = LOG, extra=()) -> list:
@@ -844,10 +845,11 @@ def map_cases(base: Base, rng) -> list[Case]:
     toml = base.map.decode()
     cases = []
 
-    def add(name, map_text=None, data=None, names=(MAP,), cell=None):
+    def add(name, map_text=None, data=None, names=(MAP,), cell=None, says=()):
         files = base.files(**{MAPPED: data if data is not None else base.mapped})
         files[MAP] = map_text if isinstance(map_text, bytes) else (map_text if map_text is not None else toml).encode()
-        cases.append(Case(f"map/{name}", "map", files, MAP_RUNS, list(names), cell, invalid=cell is not None))
+        invalid = cell is not None
+        cases.append(Case(f"map/{name}", "map", files, MAP_RUNS, list(names), cell, invalid=invalid, says=says))
 
     def sub(old, new):
         assert old in toml, old
@@ -868,7 +870,10 @@ def map_cases(base: Base, rng) -> list[Case]:
     add("column-bool", sub('mag_x = "mx"', "mag_x = true"))
     add("column-array", sub('mag_x = "mx"', 'mag_x = ["mx", "my"]'))
     add("same-column-twice", sub('mag_y = "my"', 'mag_y = "mx"'), names=[MAP, MAPPED])
-    add("no-start-utc", sub(toml[toml.index("start_utc") :], ""))
+    # Without a start time the map's clock counts from boot: the log is read, and the step that places it refuses
+    # naming the data file (not the map) and asking for the UTC date of its boot.
+    no_start = sub(toml[toml.index("start_utc") :], "")
+    add("no-start-utc", no_start, names=[MAPPED], says=(f"{MAPPED}:", "--date"))
     add("start-utc-bogus", sub(toml[toml.index("start_utc") :], 'start_utc = "yesterday"\n'))
     add("start-utc-year-1", sub(toml[toml.index("start_utc") :], "start_utc = 0001-01-01T00:00:00Z\n"))
     add("start-utc-year-9999", sub(toml[toml.index("start_utc") :], "start_utc = 9999-12-31T23:59:59Z\n"))
@@ -1710,6 +1715,9 @@ def _shape(case: Case, line: str, lines: list, argparse_: bool = False, argv=Non
     others = [" ".join(a.split()) for a in argv if a in case.files or a in case.dirs] if argv else []
     if named and not any(n in line for n in named + others):
         why.append(f"names none of {', '.join(repr(n) for n in dict.fromkeys(named + others))}")
+    missing = [text for text in case.says if text not in line]
+    if missing:
+        why.append(f"does not say {', '.join(repr(text) for text in missing)}")
     if case.cell is not None and not argparse_:
         row, column = case.cell
         if f"row {row}" not in line or f"column {column!r}" not in line:
