@@ -136,6 +136,24 @@ UNKNOWN_U16 = 65_535
 DUPLICATE_WINDOW_US = 2_000_000
 #: A boot time that falls back while the receipt time less the boot time jumps by more than this (s) is a reboot.
 REBOOT_S = 5.0
+#: The messages whose boot time is the vehicle's clock when it sent them, which alone can show a reboot: others
+#: carry the time of an earlier event (``GPS_RAW_INT.time_usec`` the last fix, stale by seconds when the fix is
+#: lost; ``HOME_POSITION`` and ``GPS_GLOBAL_ORIGIN`` when they were set).
+CLOCK_MESSAGES = frozenset(
+    {
+        "SYSTEM_TIME",
+        "ATTITUDE",
+        "ATTITUDE_QUATERNION",
+        "RAW_IMU",
+        "SCALED_IMU",
+        "SCALED_IMU2",
+        "SCALED_IMU3",
+        "HIGHRES_IMU",
+    }
+)
+#: An attitude stream slower than ``max_gap_s`` (telemetry at 1 to 4 Hz) is interpolated across gaps up to this many
+#: of its median intervals: one sample lost between two is bridged, a longer loss is not.
+SLOW_ATTITUDE_INTERVALS = 2.5
 #: Slow streams (battery, throttle) count a gap only beyond this many of their median intervals.
 AUX_GAP_INTERVALS = 3.0
 #: Receipt stamps further than this (us) from the last good one are not a record's stamp (resynchronising).
@@ -351,11 +369,11 @@ def _boot_time_us(msg) -> int | None:
 
 def _boot_segments(records: list) -> np.ndarray:
     """Per record (receipt order): the number of the vehicle's boot it belongs to (0, 1, ...); a new boot
-    starts where a boot time falls back while receipt time less boot time jumps by more than ``REBOOT_S``
-    (a packet that is merely late falls back by no more than it was delayed)."""
+    starts where the boot time of a ``CLOCK_MESSAGES`` message falls back while receipt time less boot time jumps by
+    more than ``REBOOT_S`` (a packet that is merely late falls back by no more than it was delayed)."""
     segment, last, out = 0, None, np.zeros(len(records), int)
     for k, (receipt, msg) in enumerate(records):
-        boot = _boot_time_us(msg)
+        boot = _boot_time_us(msg) if msg.get_type() in CLOCK_MESSAGES else None
         if boot is not None:
             if last is not None and boot < last[1] and (receipt - boot) - (last[0] - last[1]) > REBOOT_S * 1e6:
                 segment += 1
@@ -870,12 +888,19 @@ def _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
     else:
         notes.append("no ATTITUDE or ATTITUDE_QUATERNION message: no attitude")
         return
-    q_t, valid = interpolate_quaternions(boot * 1e-6, t_src * 1e-6, q, max_gap_s)
+    step = float(np.median(np.diff(t_src))) * 1e-6 if len(t_src) > 1 else float("nan")
+    gap = max(max_gap_s, SLOW_ATTITUDE_INTERVALS * step) if np.isfinite(step) else max_gap_s
+    if gap > max_gap_s:
+        notes.append(
+            f"ATTITUDE comes every {step:.3g} s (median), slower than max_gap_s = {max_gap_s:g} s: it is interpolated "
+            f"across gaps up to {gap:.3g} s, which blurs fast turns; ask the vehicle for a faster attitude stream "
+            "(ArduPilot SRn_EXTRA1, e.g. 10 Hz) for a better calibration"
+        )
+    q_t, valid = interpolate_quaternions(boot * 1e-6, t_src * 1e-6, q, gap)
     if not valid.all():
-        step = float(np.median(np.diff(t_src))) * 1e-6 if len(t_src) > 1 else float("nan")
         notes.append(
             f"{int(np.count_nonzero(~valid))} epochs have no attitude: outside the attitude stream or between "
-            f"samples more than max_gap_s = {max_gap_s:g} s apart (median interval {step:.3g} s)"
+            f"samples more than {gap:.3g} s apart (median interval {step:.3g} s)"
         )
     yaw, pitch, roll = quaternion_to_euler(q_t)
     frame.update(roll=roll, pitch=pitch, yaw=yaw)
