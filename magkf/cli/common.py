@@ -370,7 +370,10 @@ def add_mag_unit(p) -> None:
     )
 
 
-LOG_HELP = "drive or flight log: canonical CSV or Parquet, PX4 .ulg, ArduPilot .bin, or any table with --map"
+LOG_HELP = (
+    "drive or flight log: canonical CSV or Parquet, PX4 .ulg, ArduPilot .bin, MAVLink .tlog, ROS bag (.bag, a ROS 2 "
+    "bag's folder, .db3, .mcap), or any table with --map"
+)
 
 
 def add_log_options(p, mag_all: bool = False) -> None:
@@ -394,12 +397,12 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
     tables = "tables" if many else "a table"
     g.add_argument("--map", metavar="MAP.toml", help=f"column map of {tables} in another layout (docs/column-maps.md)")
     if many:
-        g.add_argument("--mag", type=count_in(0, 255), help="magnetometer instance of ULog or DataFlash logs")
+        g.add_argument("--mag", type=count_in(0, 255), help="magnetometer instance of logs that hold several")
     else:
         g.add_argument(
             "--mag",
             metavar="N|all" if mag_all else "N",
-            help="magnetometer instance of a ULog or DataFlash log (default: the first)"
+            help="magnetometer instance of a log that holds several (default: the autopilot's first)"
             + ("; 'all' calibrates each and compares them" if mag_all else ""),
         )
     g.add_argument(

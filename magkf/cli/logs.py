@@ -121,7 +121,7 @@ def run_convert(args) -> int:
 def run_export(args) -> int:
     """Write a calibration file as the parameters an autopilot applies, in the parameter-file format its ground station
     loads. The rotation part of R cannot be held by either autopilot's symmetric matrix: the angle it leaves is
-    reported. See docs/autopilot-logs.md."""
+    reported. See docs/logs.md."""
     from ..calibration import Calibration
     from ..errors import InputError
     from ..io.autopilot import export_instance, to_ardupilot, to_px4, write_param_file

@@ -121,7 +121,8 @@ def _no_position(table: pd.DataFrame) -> bool:
 
 
 def place_at_site(table: pd.DataFrame, provenance: dict, site: Site | None, source: str) -> pd.DataFrame:
-    """``table`` with its clock and place set from ``site`` where the log has none of its own.
+    """``table`` with its clock and place set from ``site`` where the log has none of its own (a log's own GNSS
+    time and position are kept, and a note says the option was not used).
 
     Parameters
     ----------
@@ -174,10 +175,12 @@ def place_at_site(table: pd.DataFrame, provenance: dict, site: Site | None, sour
             notes.append("UTC is the --date given (the log's clock at zero) plus the log's time, not measured")
         else:
             notes.append("--date not used: the log's own time is UTC")
-    if given.has_place:
+    if given.has_place and unplaced:
         n = len(table)
         columns |= {LAT: np.full(n, given.lat), LON: np.full(n, given.lon), ALT: np.full(n, given.alt)}
-        kept = "" if unplaced else "; the log's own GNSS position is not used"
-        notes.append(f"position: the --site given ({given.lat:g}, {given.lon:g}, {given.alt:g} m), not measured{kept}")
-    provenance["site"] = given.as_dict()
+        notes.append(f"position: the --site given ({given.lat:g}, {given.lon:g}, {given.alt:g} m), not measured")
+    elif given.has_place:
+        notes.append("--site not used: the log has its own GNSS position")
+    if columns:
+        provenance["site"] = given.as_dict()
     return table.assign(**columns) if columns else table
