@@ -80,6 +80,7 @@ Writing
 
 from __future__ import annotations
 
+import re
 import struct
 from collections import deque
 from typing import TYPE_CHECKING
@@ -179,6 +180,7 @@ WANTED = (
     "VFR_HUD",
     "SCALED_PRESSURE",
     "AUTOPILOT_VERSION",
+    "STATUSTEXT",
     *MAG_NAMES,
 )
 #: Storage error (nT, per axis, standard deviation) of the magnetometer as a tlog holds it: the int16 mG
@@ -440,7 +442,7 @@ def _table(rows: list) -> dict[str, np.ndarray]:
     out = {"receipt_us": np.array([t for t, _ in rows], np.int64)}
     for name in msg.get_fieldnames():
         values = [getattr(m, name) for _, m in rows]
-        if isinstance(values[0], (str, bytes, list)):
+        if isinstance(values[0], (bytes, list)):  # arrays and raw bytes are not read; text (STATUSTEXT) is
             continue
         out[name] = np.array(values)
     return out
@@ -591,6 +593,24 @@ def _firmware(vehicle: _Vehicle) -> tuple[int, int, int] | None:
     return v >> 24 & 0xFF, v >> 16 & 0xFF, v >> 8 & 0xFF
 
 
+#: The banner an ArduPilot or PX4 vehicle sends as STATUSTEXT at boot and on connection ("ArduSub V4.1.1 (66c674c1)").
+FIRMWARE_BANNER = re.compile(r"^(Ardu\w+|APM:\w+|PX4\w*)\s+V?\d+\.\d+")
+
+
+def _firmware_text(vehicle: _Vehicle) -> str | None:
+    """The firmware in words: the vehicle's STATUSTEXT banner, else ``AUTOPILOT_VERSION``'s version with the
+    autopilot's name, else None."""
+    texts = vehicle.tables.get("STATUSTEXT", {}).get("text", [])
+    banner = next((str(t).strip() for t in texts if FIRMWARE_BANNER.match(str(t).strip())), None)
+    if banner is not None:
+        return banner
+    version = _firmware(vehicle)
+    if version is None:
+        return None
+    name = {"ardupilot": "ArduPilot", "px4": "PX4"}.get(vehicle.autopilot or "", "autopilot")
+    return f"{name} {'.'.join(map(str, version))}"
+
+
 def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None:
     """Whether ``message`` carries the autopilot's calibrated field (None: autopilot unknown); PX4 up to v1.11
     calibrated ``sensor_mag`` in the driver."""
@@ -739,6 +759,7 @@ def _read(vehicle: _Vehicle, clock: _Clock, mag, raw: bool, max_gap_s: float, no
     provenance = {
         "format": "mavlink-tlog",
         "file": vehicle.path,
+        "firmware": _firmware_text(vehicle),
         "columns": columns,
         "magnetometer": magnetometer,
         "magnetometers": [_summary(vehicle, clock, s) for s in streams],

@@ -52,6 +52,7 @@ def test_the_telemetry_log_reads_as_pymavlink_parses_it():
     np.testing.assert_array_equal(np.trunc(read_mg), raw[:, 1:])  # centring moves a value by half a count
     assert np.all(np.abs(read_mg - raw[:, 1:]) <= 0.5)
     assert not any("rebooted" in note for note in log.provenance["notes"])
+    assert log.provenance["firmware"] == "ArduSub V4.1.1 BETA5 (66c674c1)"  # its STATUSTEXT banner
     assert log.time[0] > parse_date("2023-05-04") and log.time[-1] < parse_date("2023-05-05")
     np.testing.assert_allclose(np.diff(log.time), np.diff(raw[:, 0]) * 1e-6, atol=1e-6)
 
