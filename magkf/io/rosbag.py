@@ -552,10 +552,17 @@ def _slow_column(stream: _Stream, epochs: _Epochs, max_gap_s: float, notes: list
 
 # ---------------------------------------------------------------- reading
 def _instances(reader, by_type: dict) -> list[dict]:
+    """The MagneticField topics, each with its message count and mean rate (Hz) over the bag's span."""
     topics = reader.topics
+    span_s = max((reader.end_time - reader.start_time) * 1e-9, 0.0)
+
+    def rate(count: int) -> float | None:
+        return (count - 1) / span_s if count > 1 and span_s > 0 else None
+
     return [
-        {"instance": i, "topic": t, "type": MAGNETIC_FIELD, "samples": int(topics[t].msgcount)}
+        {"instance": i, "topic": t, "type": MAGNETIC_FIELD, "samples": int(n), "rate_hz": rate(int(n))}
         for i, t in enumerate(by_type.get(MAGNETIC_FIELD, []))
+        for n in (topics[t].msgcount,)
     ]
 
 

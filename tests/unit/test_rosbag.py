@@ -120,9 +120,15 @@ def test_provenance(drive, bags):
         "calibrated": None,
         "fields": "/imu/mag magnetic_field.x, .y, .z",
     }
-    assert prov["magnetometers"] == [
-        {"instance": 0, "topic": "/imu/mag", "type": MAGNETIC_FIELD, "samples": len(drive)}
-    ]
+    rate = (len(drive) - 1) / (drive["time"].iloc[-1] - drive["time"].iloc[0])  # the bag spans the drive
+    (mags,) = prov["magnetometers"]
+    assert mags["rate_hz"] == pytest.approx(rate, rel=1e-6)
+    assert {k: v for k, v in mags.items() if k != "rate_hz"} == {
+        "instance": 0,
+        "topic": "/imu/mag",
+        "type": MAGNETIC_FIELD,
+        "samples": len(drive),
+    }
     assert magnetometer_instances(bags["ros2"]) == prov["magnetometers"]
     assert readers.magnetometer_instances(bags["mcap"]) == prov["magnetometers"]
 
