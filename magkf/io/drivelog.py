@@ -38,7 +38,7 @@ from ..conventions import (
 from ..errors import InputError
 from ..status import select_dop
 from .readers import LogReader
-from .site import BOOT, place_at_site
+from .site import place_at_site, timed_since_boot
 from .tables import PARQUET_SUFFIXES, file_row, numeric_column, read_csv, require_complete, table_rows
 
 __all__ = [
@@ -347,8 +347,8 @@ def from_table(
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
     provenance = dict(provenance or {})
-    if site is not None or provenance.get("time_base") == BOOT:
-        table = place_at_site(table, provenance, site, name)
+    if site is not None or timed_since_boot(table, provenance):
+        table = place_at_site(table, provenance, site, name)  # refuses a log it cannot place, saying what to give
     _check_columns(table, name, mag_unit, whole)
     table = _numbers(table, name, row_of)
     require_complete(table, (TIME,), name, row_of)

@@ -23,7 +23,7 @@ import pandas as pd
 from ..conventions import ALT, LAT, LON, REF, TIME
 from ..errors import InputError
 
-__all__ = ["Site", "parse_site", "parse_date", "place_at_site", "BOOT", "UNIX_1990"]
+__all__ = ["Site", "parse_site", "parse_date", "place_at_site", "timed_since_boot", "BOOT", "UNIX_1990"]
 
 #: ``provenance["time_base"]`` of a log whose time is seconds since the vehicle booted, not UTC.
 BOOT = "boot"
@@ -102,8 +102,9 @@ def parse_date(text: str) -> float:
     return when.timestamp()
 
 
-def _boot_time(table: pd.DataFrame, provenance: dict) -> bool:
-    """Whether the table's time is not UTC: the reader says so, or every time lies before 1990."""
+def timed_since_boot(table: pd.DataFrame, provenance: dict) -> bool:
+    """Whether the table's time is not UTC: the reader says so (``time_base`` "boot"), or every time lies before
+    1990 (a logger's seconds since boot)."""
     if provenance.get("time_base") == BOOT:
         return True
     t = pd.to_numeric(table[TIME], errors="coerce").to_numpy(dtype=float) if TIME in table else np.array([])
@@ -149,7 +150,7 @@ def place_at_site(table: pd.DataFrame, provenance: dict, site: Site | None, sour
         A log timed since boot without ``--date``, or without a position or reference field and without
         ``--site``: one line naming the log and what to give.
     """
-    boot, unplaced = _boot_time(table, provenance), _no_position(table)
+    boot, unplaced = timed_since_boot(table, provenance), _no_position(table)
     given = site or Site()
     notes = provenance.setdefault("notes", [])
     if boot and given.start is None:
