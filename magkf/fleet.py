@@ -253,6 +253,14 @@ def _folders(paths, vehicles, out_dir: Path) -> list[str]:
 
 
 def _file_digest(path, digest) -> None:
+    """Feed ``digest`` with the bytes of the file at ``path``, or of a log that is a folder (a ROS 2 bag): each
+    file below it in sorted order, its relative path and then its bytes."""
+    path = Path(path)
+    if path.is_dir():
+        for file in sorted(p for p in path.rglob("*") if p.is_file()):
+            digest.update(str(file.relative_to(path)).encode() + b"\0")
+            _file_digest(file, digest)
+        return
     with open(path, "rb") as f:
         while chunk := f.read(1 << 20):
             digest.update(chunk)

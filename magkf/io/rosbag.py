@@ -117,7 +117,7 @@ class _Bag(NamedTuple):
 def is_rosbag2_database(path) -> bool:
     """Whether the SQLite file at ``path`` has rosbag2's ``topics`` table (opened read-only)."""
     try:
-        uri = Path(path).resolve().as_uri() + "?mode=ro"
+        uri = Path(path).resolve().as_uri() + "?mode=ro&immutable=1"  # immutable: no -shm or -wal file beside the input
         with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
             found = db.execute("SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'topics'").fetchone()
         return found is not None

@@ -420,3 +420,17 @@ def test_raw_false_is_noted(bags):
         warnings.simplefilter("error")
         _, prov = read_rosbag(bags["ros1"], raw=False)
     assert prov["notes"] == ["raw=False changes nothing: sensor_msgs/MagneticField says nothing of a calibration"]
+
+
+def test_reading_a_write_ahead_bag_leaves_its_folder_unchanged(bags, tmp_path):
+    """rosbag2 databases are often in SQLite's write-ahead mode, whose readers make ``-shm`` and ``-wal`` files
+    beside the database: detecting and reading one must not (an input is never changed, and a fleet's content
+    key of the folder stays the same)."""
+    folder = tmp_path / "wal_bag"
+    shutil.copytree(bags["ros2"], folder)
+    (database,) = folder.glob("*.db3")
+    with sqlite3.connect(database) as db:
+        assert db.execute("PRAGMA journal_mode=WAL").fetchone() == ("wal",)
+    before = sorted(p.name for p in folder.iterdir())
+    assert detect_format(database) == "rosbag" and len(read_log(folder)) > 0 and len(read_log(database)) > 0
+    assert sorted(p.name for p in folder.iterdir()) == before
