@@ -38,7 +38,7 @@ from ..conventions import (
 from ..errors import InputError
 from ..status import select_dop
 from .readers import LogReader
-from .site import place_at_site, timed_since_boot
+from .site import BOOT, place_at_site, timed_since_boot
 from .tables import PARQUET_SUFFIXES, file_row, numeric_column, read_csv, require_complete, table_rows
 
 __all__ = [
@@ -283,8 +283,8 @@ def check_time_base(t, name: str, row_of=None, max_gap_s: float = MAX_GAP_S) -> 
         scaled = next((unit for unit, (per, _) in _FINER_UNITS.items() if lo <= t[i] / per <= hi), None)
         if t[i] < 1e7:
             hint = (
-                "it looks like time since boot or since the start; give UTC, e.g. with a column map's "
-                'time_epoch = "start" and start_utc'
+                "it looks like time since boot or since the start: give --date YYYY-MM-DD[THH:MM], the UTC at its "
+                "zero, or UTC times"
             )
         elif scaled is not None:
             short = _FINER_UNITS[scaled][1]
@@ -347,7 +347,8 @@ def from_table(
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
     provenance = dict(provenance or {})
-    if site is not None or timed_since_boot(table, provenance):
+    declared = provenance.get("time_base") == BOOT
+    if site is not None or declared or (timed_since_boot(table, provenance) and not _has_position(table)):
         table = place_at_site(table, provenance, site, name)  # refuses a log it cannot place, saying what to give
     _check_columns(table, name, mag_unit, whole)
     table = _numbers(table, name, row_of)
@@ -361,6 +362,11 @@ def from_table(
     if mag_unit != "nT":
         table = table.assign(**{c: to_nanotesla(table[c].to_numpy(), mag_unit) for c in MAG})
     return DriveLog(table=table.set_index(TIME), source=name, provenance=dict(provenance or {}))
+
+
+def _has_position(table: pd.DataFrame) -> bool:
+    """Whether the table has latitude and longitude columns or a reference field (whatever their values)."""
+    return (LAT in table and LON in table) or all(c in table for c in REF)
 
 
 #: The groups of columns a table gives all or none of, and what it is told when it gives some.
