@@ -135,11 +135,11 @@ def _run(args, pending: list) -> int:
 
 
 #: Options whose value may start with '-' (a mounting such as -y,x,z), which argparse would take for an option.
-DASH_VALUES = ("--mounting",)
+DASH_VALUES = ("--mounting", "--site")
 
 
 def _values_joined(argv: list) -> list:
-    """``--mounting -y,x,z`` as ``--mounting=-y,x,z``."""
+    """``--mounting -y,x,z`` as ``--mounting=-y,x,z`` (and ``--site -33.9,151.2``, a southern latitude)."""
     out, i = [], 0
     while i < len(argv):
         if argv[i] in DASH_VALUES and i + 1 < len(argv):

@@ -414,7 +414,8 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
     g.add_argument(
         "--site",
         metavar="LAT,LON[,ALT]",
-        help=f"where the {logs} without GNSS were recorded: degrees, degrees, metres above the ellipsoid",
+        help=f"where the {logs} without GNSS {'were' if many else 'was'} recorded: degrees, degrees, metres above the "
+        "ellipsoid (a southern latitude: --site=-33.9,151.2 or --site -33.9,151.2)",
     )
     g.add_argument(
         "--date",
@@ -426,7 +427,8 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
         action="append",
         default=[],
         metavar="KIND=NAME",
-        help="the stream of each kind to read where a log has several (ROS bags: mag, imu, fix, odom); repeatable",
+        help="the stream of each kind to read where a log has several (ROS bags: mag, imu, odom, fix, temp, battery); "
+        "repeatable",
     )
 
 

@@ -55,7 +55,9 @@ def run_check(args) -> int:
     from ..diagnostics.inspect import format_inspection, inspect_log
     from ..fleet import is_log_folder
 
-    if len(args.file) > 1 or Path(args.file[0]).is_dir() and not is_log_folder(Path(args.file[0])):
+    first = Path(args.file[0])
+    pattern = not first.exists() and any(c in args.file[0] for c in "*?[")
+    if len(args.file) > 1 or pattern or first.is_dir() and not is_log_folder(first):
         return _check_many(args)
     args.file = args.file[0]
     report = inspect_log(common.open_log(args), dop_max=args.dop_max)

@@ -210,9 +210,9 @@ def _refuse_options(reader: LogReader, given: dict, source: str) -> None:
     if "mag" in given and "mag" not in reader.options:
         takers = " and ".join(cls.title for _, cls in READERS.loadable() if "mag" in cls.options)
         raise InputError(f"a {reader.name} table holds one magnetometer: --mag applies to {takers} logs", source)
-    for option, flag in (("site", "--site and --date"), ("topic", "--topic")):
+    for option, flag in (("site", "--site and --date do"), ("topic", "--topic does")):
         if option in given and option not in reader.options:
-            raise InputError(f"{flag} do not apply to a {reader.title} (its reader does not take them)", source)
+            raise InputError(f"{flag} not apply to a {reader.title} (its reader does not take them)", source)
     if "mag_unit" in given and "mag_unit" not in reader.options:
         where = "its column map's [units] mag" if "map" in reader.options else "the log itself"
         raise InputError(

@@ -121,7 +121,14 @@ def _check_header(path: Path, name: str, required) -> int:
     import csv
 
     with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:  # pandas skips a byte-order mark
-        header = next(csv.reader([f.readline()]), [])
+        line = f.readline()
+    if "\x00" in line or "\ufffd" in line:
+        raise InputError(
+            "binary data, not a text table: a log of another format (give --format), or a MATLAB or other file "
+            "to read through a column map (--map, docs/column-maps.md)",
+            name,
+        )
+    header = next(csv.reader([line]), [])
     seen = set()
     for column in (c.strip() for c in header):
         if column in seen:

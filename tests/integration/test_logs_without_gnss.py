@@ -69,3 +69,19 @@ def test_check_on_a_folder_gives_one_line_per_log(bench, tmp_path):
     assert [len(e["magnetometers"]) for e in entries] == [1, 1, 0, 3]  # a table: its one time column
     assert all(e["models"] == ["magnitude", "vector", "both"] for e in entries if e["error"] is None)
     assert np.isclose(entries[1]["duration_s"], 299.9)
+
+
+def test_a_southern_site_a_glob_and_binary_data(bench, tmp_path):
+    """``--site -33.9,151.2`` is a value, not an option; one glob pattern checks every log it names; a binary file
+    named like a table is refused as binary, not with its bytes printed as a header."""
+    proc = run_cli("check", bench / "bench.csv", "--site", "-33.9,151.2", "--date", "2026-06-01", "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["position"]["lat_deg"] == -33.9
+    proc = run_cli("check", str(bench / "*.csv"))
+    assert proc.returncode == 0 and proc.stdout.strip().splitlines()[-1] == "1 of 2 logs readable; 1 refused"
+    (tmp_path / "junk.csv").write_bytes(bytes(range(256)) * 4)
+    proc = run_cli("check", tmp_path / "junk.csv")
+    assert proc.returncode == 2 and proc.stderr == (
+        f"magkf: error: {tmp_path / 'junk.csv'}: binary data, not a text table: a log of another format (give "
+        "--format), or a MATLAB or other file to read through a column map (--map, docs/column-maps.md)\n"
+    )
