@@ -68,6 +68,8 @@ __all__ = [
     "MAX_WIDTH",
 ]
 
+#: Sphere cells the field must turn through for an attitude that never changes to count as a placeholder.
+STILL_CELLS = 3
 #: A clock gap is an interval longer than ``GAP_S`` (s) and than ``GAP_INTERVALS`` median intervals.
 GAP_S = 1.0
 GAP_INTERVALS = 1.5
@@ -497,6 +499,7 @@ def _limits(log, n, attitude_ok, has_pos, status, counts, coverage, dop_max, mod
         nothing = "no epoch has a field, a reference field and an acceptable DOP: nothing to calibrate"
         out.append(_limit("no_model", nothing))
     out += _attitude_limits(attitude_ok)
+    out += _still_attitude(log, attitude_ok, coverage)
     out += _position_limits(log, n, has_pos)
     if counts["gated_dop"]:
         out.append(_limit("dop", f"{counts['gated_dop']} epochs with DOP above {dop_max:g}: gated"))
@@ -520,6 +523,23 @@ def _attitude_limits(attitude_ok: np.ndarray) -> list[dict]:
         )
         return [_limit("missing_attitude", text)]
     return []
+
+
+def _still_attitude(log: DriveLog, attitude_ok: np.ndarray, coverage: dict) -> list[dict]:
+    """An attitude that never changes while the field turns through several sphere cells (``coverage``): a
+    placeholder (an identity quaternion, a driver's default) rather than a measurement."""
+    if attitude_ok.sum() < 2:
+        return []
+    angles = log.attitude[attitude_ok]
+    turned = (coverage.get("sphere_share") or 0.0) * SPHERE_CELLS >= STILL_CELLS
+    if np.any(np.ptp(angles, axis=0) > 0) or not turned:
+        return []
+    text = (
+        f"the attitude reads ({angles[0, 0]:g}, {angles[0, 1]:g}, {angles[0, 2]:g}) deg at every epoch while the field "
+        f"turns through {coverage['sphere_share'] * SPHERE_CELLS:.0f} of {SPHERE_CELLS} sphere cells: it looks like a "
+        "placeholder, not a measurement; use --measure magnitude, or read the attitude from another stream"
+    )
+    return [_limit("still_attitude", text)]
 
 
 def _position_limits(log: DriveLog, n: int, has_pos: np.ndarray) -> list[dict]:

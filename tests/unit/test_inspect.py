@@ -223,3 +223,15 @@ def test_table_stream_is_the_time_column(planar):
     log = DriveLog(planar)
     assert TIME not in log.table.columns
     assert inspect_log(log)["streams"][0]["name"] == "time column"
+
+
+def test_an_attitude_that_never_changes_is_called_a_placeholder():
+    """The example drive's field turns through 12 of 20 sphere cells; with its attitude replaced by zeros (a
+    driver's identity quaternion) the screen says the attitude is a placeholder; with the real one it does not."""
+    log = read_log(DATA / "example_drive.csv")
+    assert "still_attitude" not in codes(inspect_log(log))
+    still = DriveLog(log.table.assign(roll=0.0, pitch=0.0, yaw=0.0), log.source, log.provenance)
+    report = inspect_log(still)
+    text = next(lim["text"] for lim in report["limits"] if lim["code"] == "still_attitude")
+    assert text.startswith("the attitude reads (0, 0, 0) deg at every epoch while the field turns through 12 of 20")
+    assert_fits_screen(report)
