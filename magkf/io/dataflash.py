@@ -49,10 +49,12 @@ Time
     seconds of the date): the offset UTC - boot time is the median over the ``GPS`` samples with a week and a
     3-D fix, so the log-write latency of single samples does not bias it; where those offsets drift (a boot
     clock running at another rate than GPS time, as on some Linux boards of 2014), a straight line through
-    them (``_gnss_clock``). A log whose GNSS never had a 3-D fix with a week has no usable GNSS: its ``time``
-    is seconds since boot, without position columns, and ``provenance["time_base"]`` is "boot"
-    (``magkf.io.site`` then places it at the ``--site`` and ``--date`` given); a GPS time without a fix is
-    only quoted in a note.
+    them (``_gnss_clock``). A log whose GNSS never had a 3-D fix with a week has no GNSS time: its ``time``
+    is seconds since boot and ``provenance["time_base"]`` is "boot" (``magkf.io.site`` then sets its clock at
+    the ``--date`` given). Positions with a 3-D fix but without a GPS week are kept on that time base; a log
+    that never had a 3-D fix has no position columns and is placed at the ``--site`` given; a GPS time without a
+    fix is only quoted in a note. GPS, a slow stream, is interpolated across gaps up to the longer of
+    ``max_gap_s`` and ``SLOW_GAP_INTERVALS`` of its median sample interval.
 
 Raw reconstruction
     ArduPilot 4.x (``AP_Compass_Backend::accumulate_sample``) rotates each sensor sample into the
@@ -655,6 +657,11 @@ def _raw_text(firmware: str, suffix: str, motor_first: bool, scale_used: bool) -
     )
 
 
+#: GPS (1 to 10 Hz) is a slow stream and positions change slowly: an epoch is given a position across a gap up to
+#: the longer of ``max_gap_s`` and this many of the GPS's median sample intervals (one or two lost samples).
+SLOW_GAP_INTERVALS = 3.0
+
+
 #: Median absolute deviation (s) of UTC - boot time over the GPS samples above which the boot clock is taken to
 #: run at another rate than GPS time (log-write latency gives some 10 ms; the boot clock of some Linux boards of
 #: 2014, such as the PXF, ran 8 % slow: seconds over a flight).
@@ -682,6 +689,8 @@ def _time_offset(gps: dict) -> tuple[_Clock | None, str]:
     good = week & (gps.get("Status", np.zeros(len(week))) >= 3) & (gps["TimeUS"] > 0)  # 3.x T of 0: not set
     if not good.any():
         if not week.any():
+            if (gps.get("Status", np.zeros(len(week))) >= 3).any():
+                return None, "the GNSS has a 3-D fix but never a GPS week (no GNSS time)"
             return None, "the GNSS never had a 3-D fix nor a GPS week"
         boot = datetime.fromtimestamp(float(np.median(_utc_minus_boot(gps, week))), UTC).isoformat(timespec="seconds")
         return None, f"the GNSS never had a 3-D fix (its GPS time without a fix puts the boot at {boot})"
@@ -735,12 +744,13 @@ def read_dataflash(path, *, mag: int | None = None, raw: bool = True, max_gap_s:
     ``mag`` picks the magnetometer instance (0-based; default the first logged). With ``raw`` the
     autopilot's calibration is undone (see the module docstring); otherwise the logged, corrected field
     is returned (only its int16 truncation is centred). ``max_gap_s`` (s): an epoch between two samples
-    of a stream further apart than this gets NaN for that stream.
+    of a stream further apart than this gets NaN for that stream (the GPS: further apart than the longer of
+    this and ``SLOW_GAP_INTERVALS`` of its median interval).
 
     Returns ``(frame, provenance)``: a DataFrame with one row per epoch of the magnetometer (N rows):
     ``time`` (UNIX s, UTC; s since boot for a log without usable GNSS, ``provenance["time_base"]`` "boot"),
     ``mag_x, mag_y, mag_z`` (nT), ``roll, pitch, yaw`` (deg), ``lat, lon`` (deg), ``alt`` (m above the
-    ellipsoid), ``hdop``, ``vdop``, ``fix_type`` (GPS status) where logged (not in boot time), and the
+    ellipsoid), ``hdop``, ``vdop``, ``fix_type`` (GPS status) where logged with a 3-D fix, and the
     auxiliary channels ``temp_c``, ``current_a``, ``throttle`` (0..1), ``mag_health`` (0/1) where logged;
     and a JSON-able dict saying where each column came from. Logs of every generation (3.0 to 4.x) read.
 
@@ -764,8 +774,14 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     gps = _by_time(_select(log.table("GPS"), 0))
     clock, time_base = _time_offset(gps)
     source = f"{stream['message']}.{log.time_sources[stream['message']]}"
+    positioned = clock is not None or _has_fix_position(gps)
     if clock is None:
-        notes.append(f"{time_base}: time is in seconds since boot and there is no position (give --date and --site)")
+        kept = (
+            "the GPS positions with a 3-D fix are kept on that time base (give --date)"
+            if positioned
+            else "there is no position (give --date and --site)"
+        )
+        notes.append(f"{time_base}: time is in seconds since boot and {kept}")
         clock, time_base = _Clock(), "boot"
         columns: dict[str, str] = {"time": f"{source} -> s since boot (no usable GNSS)"}
     else:
@@ -781,7 +797,7 @@ def _read(log: _Log, mag: int | None, raw: bool, max_gap_s: float) -> tuple[dict
     frame = {"time": t}
     raw_text, calibrated = _magnetometer_columns(table, stream, params, raw, firmware, frame, columns, notes)
     _attitude(log, t, clock, max_gap_s, frame, columns, notes)
-    if time_base != "boot":
+    if positioned:
         _position(log, gps, t, clock, max_gap_s, frame, columns, notes)
     _auxiliary(log, t, clock, max_gap_s, firmware, frame, columns)
     _damage(log, notes)
@@ -927,12 +943,13 @@ def _position(
         return
     fix = gps["Status"] >= 3
     t_gps = _stream_time(gps, clock)
+    gap = _slow_gap(t_gps, max_gap_s)
     gpa = _by_time(_select(log.table("GPA"), 0))
     gpa_fix = _gpa_fix(gps, gpa, fix) if gpa else None
     alt, alt_text = _ellipsoid_height(gps, gpa, gpa_fix, fix, t_gps, clock)
     if gpa and "VDop" in gpa:
         vdop = np.where(gpa_fix & (gpa["VDop"] < UNKNOWN_DOP_COUNTS * 0.01), gpa["VDop"], np.nan)
-        frame["vdop"] = interpolate_linear(t, _stream_time(gpa, clock), vdop, max_gap_s)[0]
+        frame["vdop"] = interpolate_linear(t, _stream_time(gpa, clock), vdop, gap)[0]
         columns["vdop"] = "GPA.VDop (samples with GPS Status >= 3)"
     for name, values, text in (
         ("lat", np.where(fix, gps["Lat"], np.nan), "GPS.Lat (deg)"),
@@ -940,13 +957,43 @@ def _position(
         ("alt", alt, alt_text),
         ("hdop", np.where(fix, _known_dop(gps.get("HDop")), np.nan), "GPS.HDop"),
     ):
-        frame[name] = interpolate_linear(t, t_gps, values, max_gap_s)[0]
+        frame[name] = interpolate_linear(t, t_gps, values, gap)[0]
         columns[name] = f"{text}, only GPS Status >= 3 (3-D fix), linear"
-    i, _, valid = bracket(t, t_gps, max_gap_s)
+    i, _, valid = bracket(t, t_gps, gap)
     frame["fix_type"] = np.where(valid, gps["Status"][i], np.nan)
     columns["fix_type"] = "GPS.Status of the sample at or before the epoch (0 none, 1 no fix, 2 2-D, 3 3-D, ...)"
     if not fix.any():
         notes.append("the GNSS never had a 3-D fix: no position")
+    bridged = _bridged_note(t, t_gps, gap, max_gap_s)
+    if bridged:
+        notes.append(bridged)
+
+
+def _has_fix_position(gps: dict) -> bool:
+    """Whether some ``GPS`` sample has a 3-D fix (``Status >= 3``) and a latitude and longitude."""
+    if not (gps and {"Status", "Lat", "Lng"} <= gps.keys()):
+        return False
+    return bool(((gps["Status"] >= 3) & np.isfinite(gps["Lat"]) & np.isfinite(gps["Lng"])).any())
+
+
+def _slow_gap(t_src: np.ndarray, max_gap_s: float) -> float:
+    """The longest gap (s) a slow stream (GNSS) at the times ``t_src`` is interpolated across: the longer of
+    ``max_gap_s`` and ``SLOW_GAP_INTERVALS`` of its median sample interval."""
+    if len(t_src) < 2:
+        return max_gap_s
+    return max(max_gap_s, SLOW_GAP_INTERVALS * float(np.median(np.diff(t_src))))
+
+
+def _bridged_note(t, t_gps, gap: float, max_gap_s: float) -> str | None:
+    """A note on the epochs ``t`` that only the longer GNSS gap ``gap`` places (None if there are none)."""
+    bridged = int(bracket(t, t_gps, gap)[2].sum() - bracket(t, t_gps, max_gap_s)[2].sum())
+    if not bridged:
+        return None
+    return (
+        f"{bridged} epochs lie in GPS gaps longer than max_gap_s = {max_gap_s:g} s: their position, DOP and fix are "
+        f"interpolated across gaps up to {gap:.2f} s ({SLOW_GAP_INTERVALS:g} of the GPS's median interval, "
+        f"{float(np.median(np.diff(t_gps))):.2f} s)"
+    )
 
 
 def _gpa_fix(gps: dict, gpa: dict, fix: np.ndarray) -> np.ndarray:

@@ -13,8 +13,10 @@ Time
     first ULogs of 2016 the absolute ``uint64 timestamp_time``); the offset is the median of ``time_utc_usec``
     minus that instant over samples with a fix (``fix_type >= 2``) and a non-zero UTC time. A log without a GNSS
     topic, or whose GNSS never has a UTC time, is read on the boot time base of the drive-log contract: ``time``
-    in seconds since boot, no ``lat, lon, alt`` (nor DOP or fix), ``provenance["time_base"]`` ``"boot"`` and a
-    note saying what is missing (and the median position the GNSS gives, if any); ``magkf.io.site`` places it.
+    in seconds since boot, ``provenance["time_base"]`` ``"boot"`` and a note saying what is missing;
+    ``magkf.io.site`` sets its clock (``--date``). The positions, DOP and fix of a GNSS that has a fix but no
+    UTC time (a simulator's, or a receiver that never decoded the time) are kept on that time base; without any
+    position there are no ``lat, lon, alt`` (nor DOP or fix) and ``--site`` places the log too.
 
 Generations (PX4's msg/*.msg history; ``magkf.io.ulog_write`` writes each)
     * Up to v1.7 (2016 to April 2018) the magnetometer reached the log in ``sensor_combined.magnetometer_ga``
@@ -89,7 +91,7 @@ from .ulog_write import write_ulog
 __all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
 
 NT_PER_GAUSS = NT_PER_UNIT["G"]
-#: Auxiliary streams (battery, throttle) are logged slowly; a gap counts when it exceeds this many of
+#: GNSS and auxiliary streams (battery, throttle) are logged slowly; a gap counts when it exceeds this many of
 #: the stream's median sample intervals (or ``max_gap_s``, whichever is longer).
 AUX_GAP_INTERVALS = 3.0
 #: The topics read; pyulog is told to skip the others.
@@ -635,22 +637,30 @@ def _position_us(g: dict) -> np.ndarray:
 
 def _gnss_columns(gnss: _Gnss, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
     """Position, DOP (linear) and ``fix_type`` (the lower of the bracketing samples) at the epochs ``t`` (s after
-    ``ref_us``), and their provenance; a GNSS stream slower than ``max_gap_s`` is noted."""
+    ``ref_us``), and their provenance.
+
+    Positions change slowly, so the GNSS stream is interpolated across gaps up to the longer of ``max_gap_s`` and
+    ``AUX_GAP_INTERVALS`` of its median sample interval (``_aux_gap``): a 1 to 2 Hz receiver, or one whose samples
+    alternate 0.4 and 0.6 s apart, still places every epoch. Epochs placed only thanks to that longer gap are noted.
+    """
     t_gnss = (_position_us(gnss.data) - ref_us) * 1e-6
-    gap = float(np.median(np.diff(t_gnss))) if len(t_gnss) > 1 else 0.0
-    if gap > max_gap_s:
-        notes.append(
-            f"{gnss.topic} is logged every {gap:.2f} s, more than max_gap_s = {max_gap_s} s: "
-            "positions are missing; raise max_gap_s"
-        )
+    gap = _aux_gap(t_gnss, max_gap_s)
     table, columns = {}, {}
     for column, values in gnss.values.items():
-        table[column], _ = interpolate_linear(t, t_gnss, values, max_gap_s)
+        table[column], _ = interpolate_linear(t, t_gnss, values, gap)
         columns[column] = gnss.source[column] + " (linear)"
-    i, _, valid = bracket(t, t_gnss, max_gap_s)
+    i, _, valid = bracket(t, t_gnss, gap)
     fix = gnss.fix
     table["fix_type"] = np.where(valid, np.minimum(fix[i], fix[np.minimum(i + 1, len(fix) - 1)]), np.nan)
     columns["fix_type"] = f"{gnss.topic}.fix_type (lower of the bracketing samples)"
+    bridged = int(valid.sum() - bracket(t, t_gnss, max_gap_s)[2].sum())
+    if bridged:
+        interval = float(np.median(np.diff(t_gnss)))
+        notes.append(
+            f"{bridged} epochs lie in {gnss.topic} gaps longer than max_gap_s = {max_gap_s:g} s: their position, DOP "
+            f"and fix are interpolated across gaps up to {gap:.2f} s ({AUX_GAP_INTERVALS:g} of the stream's median "
+            f"interval, {interval:.2f} s)"
+        )
     return table, columns
 
 
@@ -769,8 +779,9 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     ``raw=False``) as logged, calibrated; the notes say which and why.
 
     Attitude is interpolated by slerp, GNSS and DOP linearly; an epoch outside a stream's span or across a
-    gap longer than ``max_gap_s`` (s) gets NaN (auxiliary streams use the longer of ``max_gap_s`` and
-    ``AUX_GAP_INTERVALS`` of their own sample intervals). Rows with a repeated time are dropped (noted).
+    gap longer than ``max_gap_s`` (s) gets NaN (the slow GNSS and auxiliary streams use the longer of
+    ``max_gap_s`` and ``AUX_GAP_INTERVALS`` of their own median sample interval; GNSS epochs placed only so are
+    noted). Rows with a repeated time are dropped (noted).
 
     Returns ``(table, provenance)``; the provenance is JSON-able: ``format``, ``file``, ``px4_version``,
     ``columns`` (canonical column -> ``topic.field (conversion)``), ``magnetometer`` (topic, instance,
@@ -778,8 +789,8 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     ``magnetometer_instances``), ``parameters`` (the logged ``CAL_MAG*``), ``rotation`` (``SENS_BOARD_*``,
     ``CAL_MAGn_ROT`` of the chosen magnetometer, whether it is applied), ``time_base`` and ``notes``.
 
-    Without GNSS UTC time, ``time`` is seconds since boot, without ``lat, lon, alt``, and ``time_base`` is
-    ``"boot"`` (see the module docstring).
+    Without GNSS UTC time, ``time`` is seconds since boot and ``time_base`` is ``"boot"``; the GNSS positions are
+    kept where it has a fix, else there are no ``lat, lon, alt`` (see the module docstring).
 
     Raises InputError (one line: what the log lacks and what to do) for a file that is not a ULog, has no
     magnetometer (``NO_MAGNETOMETER``), only a raw one with ``raw=False`` (``NO_CALIBRATED``), no instance
@@ -797,11 +808,13 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     t = (magnetometer.us - ref_us) * 1e-6
     table, columns = _magnetometer_columns(magnetometer, offset_us)
     streams = [_attitude_columns(ulog, t, ref_us, max_gap_s, notes)]
-    if offset_us is not None:
+    positioned = gnss is not None and bool(np.isfinite(gnss.values[LAT]).any())
+    if positioned:
         streams.append(_gnss_columns(gnss, t, ref_us, max_gap_s, notes))
+    if offset_us is not None:
         time_base = clock[1]
     else:
-        notes.append(_boot_time_note(gnss, clock))
+        notes.append(_boot_time_note(gnss, clock, positioned))
         time_base = BOOT
     streams.append(_auxiliary_columns(ulog, magnetometer, t, ref_us, max_gap_s, notes))
     for values, sources in streams:
@@ -814,17 +827,17 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     return pd.DataFrame(table).reset_index(drop=True), provenance
 
 
-def _boot_time_note(gnss: _Gnss | None, why: str | None) -> str:
-    """Why ``time`` is seconds since boot, what the log's GNSS holds (its median position, if any) and what to give."""
+def _boot_time_note(gnss: _Gnss | None, why: str | None, positioned: bool) -> str:
+    """Why ``time`` is seconds since boot, whether the GNSS positions are kept (``positioned``) and what to give."""
     if gnss is None:
         lacks = "no GNSS topic (vehicle_gps_position or sensor_gps)"
     else:
         lacks = f"no GNSS UTC time ({why})"
-        lat, lon = gnss.values[LAT], gnss.values[LON]
-        if np.isfinite(lat).any():
-            lacks += (
-                f"; {gnss.topic} places the log near {np.nanmedian(lat):.6f}, {np.nanmedian(lon):.6f} (median lat, lon)"
-            )
+    if positioned:
+        return (
+            f"time is seconds since boot: {lacks}; the positions of {gnss.topic} are kept on that time base; "
+            "give the date (--date YYYY-MM-DD[THH:MM], the UTC at boot)"
+        )
     return (
         f"time is seconds since boot and the log has no lat, lon or alt: {lacks}; "
         "give the site and date (--site LAT,LON[,ALT] --date YYYY-MM-DD)"

@@ -206,14 +206,21 @@ def test_yaw_interpolated_across_north(tmp_path):
 
 
 def test_synthetic_errors(tmp_path):
-    """A log whose GPS never has a week is read in boot time (the shared step asks for --date and --site); one
-    without a magnetometer, or without the instance asked for, is refused in one line."""
+    """A log whose GPS has a 3-D fix but never a week is read in boot time with its positions (the shared step
+    asks for --date only); one without a magnetometer, or without the instance asked for, is refused in one
+    line."""
     rng = np.random.default_rng(5)
     path, _ = synthetic_log(tmp_path / "noweek.bin", rng, gps_week=False)
     df, prov = read_dataflash(path)
-    assert prov["time_base"] == "boot" and "lat" not in df
-    np.testing.assert_allclose(df["time"], (1_000_000 + np.arange(200) * 100_000) * 1e-6, rtol=0, atol=1e-9)
-    assert any(n.startswith("the GNSS never had a 3-D fix nor a GPS week") for n in prov["notes"])
+    t = (1_000_000 + np.arange(200) * 100_000) * 1e-6
+    assert prov["time_base"] == "boot"
+    np.testing.assert_allclose(df["time"], t, rtol=0, atol=1e-9)
+    # GPS sample j (even) at 1.02 + 0.1 j s holds LAT + 1e-5 j (3-D fix from j = 50): LAT + 1e-4 (t - 1.02) between
+    # fixed samples, to the int32 1e-7 deg of Lat; before the first fix, no position
+    fixed = (t >= 6.02) & (t <= 20.82)
+    np.testing.assert_allclose(df["lat"][fixed], LAT + 1e-4 * (t[fixed] - 1.02), rtol=0, atol=0.5e-7 + 1e-12)
+    assert df["lat"][t < 6.02].isna().all()
+    assert any(n.startswith("the GNSS has a 3-D fix but never a GPS week (no GNSS time)") for n in prov["notes"])
     path, _ = synthetic_log(tmp_path / "nomag.bin", rng, mag=False)
     with pytest.raises(InputError, match="no MAG, MAG2 or MAG3 message") as err:
         read_dataflash(path)

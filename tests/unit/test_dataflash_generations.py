@@ -427,3 +427,60 @@ def test_a_boot_clock_running_slow_is_mapped_by_a_line(tmp_path):
     np.testing.assert_allclose(df["time"], utc, rtol=0, atol=2e-3)
     assert "the boot clock runs at 0.9259 of GPS time" in prov["time_base"]
     assert any(note.startswith("the boot clock runs at 0.9259 of GPS time") for note in prov["notes"])
+
+
+#: The exact refusal of a log timed since boot that has its own position (magkf.io.site.place_at_site).
+DATE_ONLY = (
+    "the log has no GNSS time (its clock counts from boot), which the reference field needs: give --date "
+    "YYYY-MM-DD[THH:MM], the UTC at its boot (the day is enough)"
+)
+#: Lat/Lng are int32 1e-7 deg: rounding to nearest is off by at most 0.5e-7 deg (plus the double arithmetic).
+LATLON_ATOL_DEG = 0.5e-7 + 1e-12
+
+
+@pytest.mark.parametrize("generation", list(GENERATIONS))
+def test_fix_without_gps_week_keeps_its_positions_in_boot_time(tmp_path, drive, generation):
+    """GPS with a 3-D fix (Status 3, Lat/Lng) but week and ms 0 (a receiver without time): seconds since boot,
+    the positions and fix kept, so read_log asks for --date only; with it the logged positions are read."""
+    path = tmp_path / f"noweek-{generation}.bin"
+    write_dataflash(drive, path, generation=generation, gnss_time=False)
+    df, prov = read_dataflash(path)
+    assert prov["time_base"] == "boot"
+    np.testing.assert_allclose(df["lat"], drive["lat"], rtol=0, atol=LATLON_ATOL_DEG)
+    np.testing.assert_allclose(df["lon"], drive["lon"], rtol=0, atol=LATLON_ATOL_DEG)
+    assert (df["fix_type"] == 3).all()
+    assert (
+        "the GNSS has a 3-D fix but never a GPS week (no GNSS time): time is in seconds since boot and the GPS "
+        "positions with a 3-D fix are kept on that time base (give --date)"
+    ) in prov["notes"]
+    with pytest.raises(InputError) as refused:
+        read_log(path)
+    assert str(refused.value) == f"{path}: {DATE_ONLY}"
+    start = datetime(2025, 1, 3, tzinfo=UTC).timestamp()
+    log = read_log(path, site=Site(start=start))
+    np.testing.assert_array_equal(log.table["lat"].to_numpy(), df["lat"].to_numpy())
+    np.testing.assert_allclose(log.time, start + df["time"].to_numpy(), rtol=0, atol=1e-6)
+    assert "site" not in prov or "lat" not in prov["site"]
+
+
+def test_gps_at_5_hz_bridges_a_lost_sample(tmp_path, drive):
+    """A 5 Hz GPS (every other row of a 10 Hz drive) with one sample lost: the epochs in that 0.4 s gap, over
+    max_gap_s = 0.3 s but under 3 of the GPS's 0.2 s intervals, get a position linear between the samples
+    around the gap (int32 1e-7 deg storage); one note counts them. Without the loss there is no note."""
+    fix = np.where(np.arange(len(drive)) % 2 == 0, 3.0, np.nan)
+    lost = 200  # an even row: a GPS sample
+    path = tmp_path / "gps5hz.bin"
+    write_dataflash(drive.assign(fix_type=np.where(np.arange(len(drive)) == lost, np.nan, fix)), path)
+    df, prov = read_dataflash(path, max_gap_s=0.3)
+    inside = slice(0, -1)  # the last row, after the last GPS sample (row 598), has none
+    assert np.isfinite(df["lat"][inside]).all() and (df["fix_type"][inside] == 3).all()
+    expected = np.interp([1.0, 2.0, 3.0], [0.0, 4.0], drive["lat"].to_numpy()[[lost - 2, lost + 2]])
+    np.testing.assert_allclose(df["lat"].to_numpy()[lost - 1 : lost + 2], expected, rtol=0, atol=LATLON_ATOL_DEG)
+    assert (
+        "3 epochs lie in GPS gaps longer than max_gap_s = 0.3 s: their position, DOP and fix are interpolated "
+        "across gaps up to 0.60 s (3 of the GPS's median interval, 0.20 s)"
+    ) in prov["notes"]
+    full = tmp_path / "gps5hz_full.bin"
+    write_dataflash(drive.assign(fix_type=fix), full)
+    _, prov_full = read_dataflash(full, max_gap_s=0.3)
+    assert not any("gaps longer than max_gap_s" in n for n in prov_full["notes"])

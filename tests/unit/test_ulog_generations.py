@@ -22,6 +22,8 @@ from pyulog import ULog
 from magkf.conventions import wrap_deg
 from magkf.errors import InputError
 from magkf.io.px4_sensors import calibration_of_slot, px4_rotation
+from magkf.io.readers import read_log
+from magkf.io.site import Site
 from magkf.io.ulog import NO_CALIBRATED, NO_MAGNETOMETER, magnetometer_instances, read_ulog
 from magkf.io.ulog_combined import RELATIVE_TIMESTAMP_INVALID, combined_samples, undo
 from magkf.io.ulog_write import GENERATIONS, write_ulog
@@ -252,17 +254,79 @@ def test_no_gnss_reads_on_the_boot_time_base(tmp_path, truth, generation):
     )
 
 
-def test_gnss_that_never_has_utc_reads_on_the_boot_time_base(tmp_path, truth):
-    """Positions but no UTC (time_utc_usec 0, or no such field): boot time, no position; the note gives the
-    median position to help the user place the log."""
+#: The exact refusal of a log timed since boot that has its own position (magkf.io.site.place_at_site).
+DATE_ONLY = (
+    "the log has no GNSS time (its clock counts from boot), which the reference field needs: give --date "
+    "YYYY-MM-DD[THH:MM], the UTC at its boot (the day is enough)"
+)
+
+
+def test_gnss_that_never_has_utc_keeps_its_positions_on_the_boot_time_base(tmp_path, truth):
+    """Positions with a 3-D fix but no UTC (time_utc_usec 0, or no such field): boot time, the logged positions
+    and DOP kept (int32 storage bounds), so read_log asks for --date only and places nothing itself."""
     for options in ({"gnss_utc": False}, {"drop_fields": ("vehicle_gps_position.time_utc_usec",)}):
         path = tmp_path / "no_utc.ulg"
         write_ulog(truth, path, generation="1.6", parameters=INTERNAL, **options)
         _parsed(path)
         out, prov = read_ulog(path)
-        assert prov["time_base"] == "boot" and "lat" not in out
+        assert prov["time_base"] == "boot"
+        assert np.max(np.abs(out["lat"] - truth["lat"])) <= LATLON_ATOL_DEG["int"]
+        assert np.max(np.abs(out["lon"] - truth["lon"])) <= LATLON_ATOL_DEG["int"]
+        assert np.max(np.abs(out["alt"] - truth["alt"])) <= ALT_ATOL_M["int"]
+        assert np.max(np.abs(out["hdop"] - truth["hdop"]) / truth["hdop"]) <= F32
+        assert (out["fix_type"] == 3).all()
         note = next(n for n in prov["notes"] if n.startswith("time is seconds since boot"))
-        assert f"places the log near {np.median(truth['lat']):.4f}" in note
+        assert "no lat, lon or alt" not in note and "positions of vehicle_gps_position are kept" in note
+        with pytest.raises(InputError) as refused:
+            read_log(path)
+        assert str(refused.value) == f"{path}: {DATE_ONLY}"
+        start = 1_700_000_000.0
+        log = read_log(path, site=Site(start=start))
+        np.testing.assert_array_equal(log.table["lat"].to_numpy(), out["lat"].to_numpy())
+        expected = start + 10.0 + truth["time"] - truth["time"][0]
+        assert np.max(np.abs(log.time - expected)) <= TIME_ATOL_S + 2.0**-22  # plus a double ulp at 1.7e9 s
+        assert "site" not in prov or "lat" not in prov["site"]
+
+
+def test_gnss_at_2_hz_with_uneven_spacing_places_every_epoch(tmp_path, truth):
+    """A receiver logged at about 2 Hz, its samples alternately 0.4 and 0.6 s apart (as a real PX4 1.12 log):
+    every magnetometer epoch inside the GNSS span lies in a gap of at most 0.6 s, over max_gap_s = 0.5 s, and
+    still gets a position, linear between the two samples (the truth is not linear, so the check is against the
+    interpolation of the samples kept, to the int32 storage bound); one note says so."""
+    full = tmp_path / "full.ulg"
+    write_ulog(truth, full, generation="1.13")
+    ulog = ULog(str(full))
+    gps = ulog.get_dataset("vehicle_gps_position")
+    t_us = gps.data["timestamp"]
+    rel = (t_us - t_us[0]) * 1e-6
+    marks = np.cumsum(np.tile([0.4, 0.6], 60))
+    keep = np.r_[0, np.searchsorted(rel, marks - 1e-6)]
+    keep = keep[keep < len(rel)]
+    assert set(np.round(np.diff(rel[keep]), 6)) == {0.4, 0.6}
+    for field in gps.data:
+        gps.data[field] = gps.data[field][keep]
+    sparse = tmp_path / "sparse.ulg"
+    ulog.write_ulog(str(sparse))
+    out, prov = read_ulog(sparse)
+    t = out["time"].to_numpy() - out["time"].iloc[0]
+    inside = (t >= rel[keep][0]) & (t <= rel[keep][-1])
+    assert np.isfinite(out["lat"][inside]).all() and (out["fix_type"][inside] == 3).all()
+    expected = np.interp(t[inside], rel[keep], gps.data["lat"] * 1e-7)
+    assert np.max(np.abs(out["lat"][inside] - expected)) <= LATLON_ATOL_DEG["int"] + 1e-9  # + float64 of the lerp
+    t_kept = rel[keep]
+    j = np.clip(np.searchsorted(t_kept, t, side="right"), 1, len(t_kept) - 1)
+    # strictly between two samples; the UNIX times read carry ~2e-7 s of rounding (TIME_ATOL_S), so 1e-6 s apart
+    between = (t > t_kept[j - 1] + 1e-6) & (t < t_kept[j] - 1e-6)
+    in_long_gap = inside & between & (t_kept[j] - t_kept[j - 1] > 0.5)
+    gap = 3 * np.median(np.diff(t_kept))  # AUX_GAP_INTERVALS of the median interval (0.4 or 0.6 s)
+    bridged = [n for n in prov["notes"] if "gaps longer than max_gap_s = 0.5 s" in n]
+    assert bridged == [
+        f"{int(in_long_gap.sum())} epochs lie in vehicle_gps_position gaps longer than max_gap_s = 0.5 s: their "
+        f"position, DOP and fix are interpolated across gaps up to {gap:.2f} s (3 of the stream's median interval, "
+        f"{gap / 3:.2f} s)"
+    ]
+    _, prov_full = read_ulog(full)
+    assert not any("gaps longer than max_gap_s" in n for n in prov_full["notes"])
 
 
 def test_gnss_without_dop_fields_uses_what_exists(tmp_path, truth):
