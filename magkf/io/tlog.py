@@ -108,10 +108,12 @@ from .dataflash import (
     NT_PER_MILLIGAUSS,
     _effective_scale,
     _firmware_compass,
+    _motor_first,
     _param_at,
     _param_name,
     _state_index,
     _untruncate,
+    _version,
     compass_correct,
     compass_uncorrect,
 )
@@ -152,11 +154,17 @@ CLOCK_MESSAGES = frozenset(
         "HIGHRES_IMU",
     }
 )
+#: The messages of earlier boots that still hold after a reboot: the parameters (stored on the vehicle) and the
+#: firmware's identity (``STATUSTEXT`` banner, ``AUTOPILOT_VERSION``), which the vehicle may not send again.
+PERSISTING = frozenset({"PARAM_VALUE", "STATUSTEXT", "AUTOPILOT_VERSION"})
 #: An attitude stream slower than ``max_gap_s`` (telemetry at 1 to 4 Hz) is interpolated across gaps up to this many
 #: of its median intervals: one sample lost between two is bridged, a longer loss is not.
 SLOW_ATTITUDE_INTERVALS = 2.5
 #: Slow streams (battery, throttle) count a gap only beyond this many of their median intervals.
 AUX_GAP_INTERVALS = 3.0
+#: Keys of the auxiliary channels' dict (``_auxiliary``) that are not channels: their streams' median intervals (s)
+#: and ``max_gap_s``.
+INTERVALS, MAX_GAP = "_intervals_s", "_max_gap_s"
 #: Receipt stamps further than this (us) from the last good one are not a record's stamp (resynchronising).
 STAMP_JUMP_US = 86_400 * 10**6
 #: Magnetometer messages: (instance, message, unit), in the order a default is chosen.
@@ -395,26 +403,65 @@ class _Vehicle:
         self.sysid, self.compid, self.autopilot_code = sysid, compid, code
         self.autopilot = AUTOPILOTS.get(code) if code is not None else None
         own = [(t, m) for t, m in records.messages if (m.get_srcSystem(), m.get_srcComponent()) == (sysid, compid)]
-        own = self._one_boot(own, notes)
+        own, earlier = self._one_boot(own, notes)
         grouped: dict[str, list] = {}
         for t, m in own:
             grouped.setdefault(m.get_type(), []).append((t, m))
         self.tables = {name: _table(rows) for name, rows in grouped.items() if name != "PARAM_VALUE"}
         self.params = self._parameters(grouped.get("PARAM_VALUE", []))
+        earlier_rows: dict[str, list] = {}
+        for t, m in earlier:
+            earlier_rows.setdefault(m.get_type(), []).append((t, m))
+        #: ``STATUSTEXT`` and ``AUTOPILOT_VERSION`` of earlier boots, for a firmware the boot read does not name.
+        self.earlier_tables = {n: _table(r) for n, r in earlier_rows.items() if n != "PARAM_VALUE"}
+        self._persisting(earlier, notes)
 
     @staticmethod
-    def _one_boot(own: list, notes: list) -> list:
+    def _one_boot(own: list, notes: list) -> tuple[list, list]:
+        """The messages of the boot read, and those of the boots before it that persist across a reboot
+        (``PERSISTING``), both in receipt order."""
         segments = _boot_segments(own)
         if not len(segments) or segments[-1] == 0:
-            return own
+            return own, []
         counts = np.bincount(segments, weights=[m.get_type() in MAG_NAMES for _, m in own])
         keep = int(np.argmax(counts))
+        earlier = [r for r, s in zip(own, segments) if s < keep and r[1].get_type() in PERSISTING]
         notes.append(
             f"the vehicle rebooted {int(segments[-1])} time(s) during the log (boot time fell back): read boot "
             f"{keep + 1} of {int(segments[-1]) + 1}, the one with the most magnetometer messages; "
-            f"{int(np.count_nonzero(segments != keep))} messages of the other boots left aside"
+            f"{int(np.count_nonzero(segments != keep)) - len(earlier)} messages of the other boots left aside"
+            + (
+                f" ({len(earlier)} PARAM_VALUE, STATUSTEXT and AUTOPILOT_VERSION of earlier boots kept)"
+                if earlier
+                else ""
+            )
         )
-        return [r for r, s in zip(own, segments) if s == keep]
+        return [r for r, s in zip(own, segments) if s == keep], earlier
+
+    def _persisting(self, earlier: list, notes: list) -> None:
+        """Add the ``PARAM_VALUE`` values of earlier boots to ``params`` (parameters are stored on the vehicle
+        and persist across a reboot; ``_param_at`` then gives the last value received before an epoch from any
+        boot, else the first received later in the boot read) and note which were used."""
+        before = self._parameters([(t, m) for t, m in earlier if m.get_type() == "PARAM_VALUE"])
+        if not before:
+            return
+        starts = [self.tables[m]["receipt_us"][0] for m in MAG_NAMES if m in self.tables]
+        start = min(starts) if starts else np.inf
+        used = sorted(n for n in before if n not in self.params or self.params[n][0][0] > start)
+        for name, (t, v) in before.items():
+            t_now, v_now = self.params.get(name, (np.zeros(0, np.int64), np.zeros(0)))
+            times, values = np.concatenate((t, t_now)), np.concatenate((v, v_now))
+            order = np.argsort(times, kind="stable")
+            self.params[name] = (times[order], values[order])
+        if not used:
+            return
+        compass = [n for n in used if n.startswith(("COMPASS_", "AHRS_ORIENTATION"))]
+        notes.append(
+            f"parameters from an earlier boot were used: {len(used)} parameters ({len(compass)} of them "
+            "COMPASS_*/AHRS_ORIENTATION) were last received before the reboot and not again before the first "
+            "magnetometer epoch of the boot read; parameters persist across a reboot, so the value in force at an "
+            "epoch is the last received before it from any boot (by receipt time)"
+        )
 
     def _parameters(self, rows: list) -> dict:
         out: dict[str, tuple[list, list]] = {}
@@ -423,7 +470,11 @@ class _Vehicle:
             ts, vs = out.setdefault(name, ([], []))
             ts.append(t)
             vs.append(self._param_value(m))
-        return {k: (np.array(ts, np.int64), np.array(vs, float)) for k, (ts, vs) in out.items()}
+        params = {}
+        for name, (ts, vs) in out.items():
+            order = np.argsort(np.array(ts, np.int64), kind="stable")  # receipt order; a late packet goes back
+            params[name] = (np.array(ts, np.int64)[order], np.array(vs, float)[order])
+        return params
 
     def _param_value(self, m) -> float:
         """A ``PARAM_VALUE``'s value: PX4 sends integer parameters as their bytes in the float field
@@ -585,12 +636,14 @@ def _highres_unit(field: np.ndarray, autopilot: str | None, notes: list) -> tupl
 
 def _firmware(vehicle: _Vehicle) -> tuple[int, int, int] | None:
     """``(major, minor, patch)`` of the vehicle's ``AUTOPILOT_VERSION.flight_sw_version`` (bytes 4, 3, 2 of the
-    uint32, the lowest the release type), None where the log has none."""
-    table = vehicle.tables.get("AUTOPILOT_VERSION")
-    if table is None or not len(table["flight_sw_version"]) or table["flight_sw_version"][-1] == 0:
-        return None
-    v = int(table["flight_sw_version"][-1])
-    return v >> 24 & 0xFF, v >> 16 & 0xFF, v >> 8 & 0xFF
+    uint32, the lowest the release type) in the boot read, else in an earlier boot; None where the log has none."""
+    for tables in (vehicle.tables, vehicle.earlier_tables):
+        table = tables.get("AUTOPILOT_VERSION")
+        if table is None or not len(table["flight_sw_version"]) or table["flight_sw_version"][-1] == 0:
+            continue
+        v = int(table["flight_sw_version"][-1])
+        return v >> 24 & 0xFF, v >> 16 & 0xFF, v >> 8 & 0xFF
+    return None
 
 
 #: The banner an ArduPilot or PX4 vehicle sends as STATUSTEXT at boot and on connection ("ArduSub V4.1.1 (66c674c1)").
@@ -600,8 +653,7 @@ FIRMWARE_BANNER = re.compile(r"^(Ardu\w+|APM:\w+|PX4\w*)\s+V?\d+\.\d+")
 def _firmware_text(vehicle: _Vehicle) -> str | None:
     """The firmware in words: the vehicle's STATUSTEXT banner, else ``AUTOPILOT_VERSION``'s version with the
     autopilot's name, else None."""
-    texts = vehicle.tables.get("STATUSTEXT", {}).get("text", [])
-    banner = next((str(t).strip() for t in texts if FIRMWARE_BANNER.match(str(t).strip())), None)
+    banner = _banner(vehicle)
     if banner is not None:
         return banner
     version = _firmware(vehicle)
@@ -609,6 +661,48 @@ def _firmware_text(vehicle: _Vehicle) -> str | None:
         return None
     name = {"ardupilot": "ArduPilot", "px4": "PX4"}.get(vehicle.autopilot or "", "autopilot")
     return f"{name} {'.'.join(map(str, version))}"
+
+
+def _banner(vehicle: _Vehicle) -> str | None:
+    """The first firmware banner among the ``STATUSTEXT`` of the boot read, else of the earlier boots."""
+    for tables in (vehicle.tables, vehicle.earlier_tables):
+        texts = tables.get("STATUSTEXT", {}).get("text", [])
+        banner = next((str(t).strip() for t in texts if FIRMWARE_BANNER.match(str(t).strip())), None)
+        if banner is not None:
+            return banner
+    return None
+
+
+#: ArduPilot's vehicle of each ``HEARTBEAT.type`` (``MAV_TYPE``): the name its banner gives (``ArduCopter``).
+VEHICLE_OF_TYPE = {1: "Plane", 2: "Copter", 3: "Copter", 4: "Copter", 10: "Rover", 11: "Rover", 12: "Sub"} | {
+    t: "Copter" for t in (13, 14, 15)
+}
+
+
+def _ardupilot_firmware(vehicle: _Vehicle) -> str | None:
+    """ArduPilot's firmware as its banner names it (``APM:Copter V3.5.7 (b11c6af3)``): the ``STATUSTEXT`` banner,
+    else ``Ardu<vehicle> V<version>`` from ``AUTOPILOT_VERSION`` and ``HEARTBEAT.type``; None where neither is
+    in the log."""
+    banner = _banner(vehicle)
+    if banner is not None and banner.startswith(("Ardu", "APM:")):
+        return banner
+    version = _firmware(vehicle)
+    if version is None:
+        return None
+    types = vehicle.tables.get("HEARTBEAT", {}).get("type", [])
+    kind = VEHICLE_OF_TYPE.get(int(types[0]), "Pilot") if len(types) else "Pilot"
+    return f"Ardu{kind} V{'.'.join(map(str, version))}"
+
+
+def _correction_model(firmware: str | None) -> tuple[bool, bool]:
+    """``(motor_first, scale_applies)`` of ArduPilot's ``correct_field`` in ``firmware`` (the banner's
+    words, or None): motor compensation before the soft-iron matrix in the releases of
+    ``magkf.io.dataflash._MOTOR_FIRST`` (Copter 3.3 to 3.5); ``COMPASS_SCALE`` only from 4.0; the 4.x model
+    where the version is unknown."""
+    version = _version(firmware) if firmware else None
+    if version is None:
+        return False, True
+    return _motor_first(firmware), version >= (4, 0)
 
 
 def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None:
@@ -622,27 +716,43 @@ def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None
 
 
 def _uncorrect_ardupilot(
-    field_mg, boot_us, params: dict, instance: int, aux: dict, notes: list
+    field_mg, boot_us, params: dict, instance: int, aux: dict, firmware: str | None, notes: list
 ) -> tuple[np.ndarray, str, int]:
-    """Undo ArduPilot's ``correct_field`` on ``field_mg`` (N, 3) with the ``COMPASS_*`` parameter set of
-    priority ``instance`` in effect at ``boot_us``; returns the raw field, the description and the compass
-    parameter set's number (1..3)."""
+    """Undo ArduPilot's ``correct_field`` of ``firmware`` (``_correction_model``) on ``field_mg`` (N, 3) with the
+    ``COMPASS_*`` parameter set of priority ``instance`` in effect at ``boot_us``; returns the raw field, the
+    description and the compass parameter set's number (1..3)."""
     k = _state_index(params, instance)
     suffix = ("", "2", "3")[k] if k < 3 else ""
     p = {q: _param_at(params, _param_name(q, suffix), boot_us, _CAL_DEFAULTS[q]) for q in _CAL_PARAMS}
     stack = lambda q: np.column_stack([p[f"{q}_{a}"] for a in "XYZ"])  # noqa: E731
     motor, motor_text = _motor(params, suffix, boot_us, aux, notes)
-    raw = compass_uncorrect(field_mg, stack("OFS"), stack("DIA"), stack("ODI"), p["SCALE"], motor)
-    scale_used = bool(np.any(_effective_scale(p["SCALE"]) != 1.0))
-    text = (
-        f"ArduPilot 4.x AP_Compass_Backend::correct_field assumed: field = M ((raw + COMPASS_OFS{suffix}) * "
-        f"COMPASS_SCALE{suffix}) + motor, M from COMPASS_DIA{suffix}/COMPASS_ODI{suffix} (PARAM_VALUE values in "
-        f"effect at each epoch{'' if scale_used else '; SCALE outside [1/1.5, 1.5] or 1, not applied'}). Undone: "
-        f"{motor_text}, soft-iron matrix, scale and offsets; the int16 truncation taken as +-0.5 mG away from "
-        "zero. Raw is in the vehicle-aligned frame after the firmware's rotation (COMPASS_ORIENT, "
+    first, scale_applies = _correction_model(firmware)
+    scale = p["SCALE"] if scale_applies else 1.0
+    raw = compass_uncorrect(field_mg, stack("OFS"), stack("DIA"), stack("ODI"), scale, motor, motor_first=first)
+    return raw, _model_text(firmware, suffix, first, scale_applies, scale, motor_text), k + 1
+
+
+def _model_text(firmware, suffix, motor_first, scale_applies, scale, motor_text) -> str:
+    """What ``_uncorrect_ardupilot`` undid, in words."""
+    if motor_first:
+        model = f"M (raw + COMPASS_OFS{suffix} + motor) (3.3 to 3.5: motor compensation before the matrix; no SCALE)"
+    elif scale_applies:
+        model = f"M ((raw + COMPASS_OFS{suffix}) * COMPASS_SCALE{suffix}) + motor"
+    else:
+        model = f"M (raw + COMPASS_OFS{suffix}) + motor (before 4.0: no COMPASS_SCALE)"
+    unused = scale_applies and not np.any(_effective_scale(scale) != 1.0)
+    scale_note = "; SCALE outside [1/1.5, 1.5] or 1, not applied" if unused else ""
+    if firmware is None or _version(firmware) is None:
+        head = "ArduPilot 4.x AP_Compass_Backend::correct_field assumed (no firmware version in the log)"
+    else:
+        head = f"AP_Compass_Backend::correct_field of {firmware}"
+    return (
+        f"{head}: field = {model}, M from COMPASS_DIA{suffix}/"
+        f"COMPASS_ODI{suffix} (PARAM_VALUE values in effect at each epoch{scale_note}). Undone: {motor_text}, "
+        f"soft-iron matrix{', scale' if scale_applies else ''} and offsets; the int16 truncation taken as +-0.5 mG "
+        "away from zero. Raw is in the vehicle-aligned frame after the firmware's rotation (COMPASS_ORIENT, "
         "AHRS_ORIENTATION)."
     )
-    return raw, text, k + 1
 
 
 def _motor(params: dict, suffix: str, boot_us, aux: dict, notes: list) -> tuple[np.ndarray | float, str]:
@@ -660,6 +770,13 @@ def _motor(params: dict, suffix: str, boot_us, aux: dict, notes: list) -> tuple[
             + ("per-motor compensation is not modelled)" if channel is None else f"no {channel} in the log)")
         )
         return 0.0, "motor compensation not undone"
+    interval = aux.get(INTERVALS, {}).get(channel, float("nan"))
+    if interval > aux.get(MAX_GAP, np.inf):
+        notes.append(
+            f"the motor compensation is undone with {channel} sent every {interval:.3g} s (median), longer than "
+            f"max_gap_s = {aux[MAX_GAP]:g} s: its accuracy is limited by that stream, which misses changes of "
+            f"{channel} between its samples (COMPASS_MOT{suffix} = {_mot_text(mot)} mG per unit)"
+        )
     unknown = int(np.count_nonzero(~np.isfinite(values)))
     if unknown:
         notes.append(
@@ -667,6 +784,12 @@ def _motor(params: dict, suffix: str, boot_us, aux: dict, notes: list) -> tuple[
             "cannot be undone, so their field is left empty"
         )
     return mot * values[:, None], f"motor compensation COMPASS_MOT{suffix} x {channel}"
+
+
+def _mot_text(mot: np.ndarray) -> str:
+    """``COMPASS_MOT`` (N, 3) as ``(x, y, z)`` of its largest row."""
+    row = mot[int(np.argmax(np.abs(mot).sum(axis=1)))]
+    return "(" + ", ".join(f"{v:.3g}" for v in row) + ")"
 
 
 # ------------------------------------------------------------------ reading
@@ -849,13 +972,13 @@ def _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes) -> tuple
             "read as sent; a calibration fitted to it is relative to the autopilot's"
         )
         return f"not done ({why}): the field as the autopilot corrected it", None
-    raw_mg, text, _ = _uncorrect_ardupilot(nt / NT_PER_MILLIGAUSS, boot, vehicle.params, instance, aux, notes)
-    firmware = _firmware(vehicle)
-    if firmware is None or firmware[0] < 4:
-        said = "unknown (no AUTOPILOT_VERSION)" if firmware is None else ".".join(map(str, firmware))
+    firmware = _ardupilot_firmware(vehicle)
+    raw_mg, text, _ = _uncorrect_ardupilot(nt / NT_PER_MILLIGAUSS, boot, vehicle.params, instance, aux, firmware, notes)
+    if firmware is None or _version(firmware) is None:
         notes.append(
-            f"ArduPilot firmware {said}: the 4.x correction model was assumed; before 4.0 there was no "
-            "COMPASS_SCALE and motor compensation was added before the soft-iron matrix"
+            f"ArduPilot firmware {firmware or 'unknown'} (no AUTOPILOT_VERSION or STATUSTEXT banner with a version): "
+            "the 4.x correction model was assumed; before 4.0 there was no COMPASS_SCALE, and Copter 3.3 to 3.5 "
+            "added the motor compensation before the soft-iron matrix"
         )
     return text, raw_mg * NT_PER_MILLIGAUSS
 
@@ -913,9 +1036,9 @@ def _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
     gap = max(max_gap_s, SLOW_ATTITUDE_INTERVALS * step) if np.isfinite(step) else max_gap_s
     if gap > max_gap_s:
         notes.append(
-            f"ATTITUDE comes every {step:.3g} s (median), slower than max_gap_s = {max_gap_s:g} s: it is interpolated "
-            f"across gaps up to {gap:.3g} s, which blurs fast turns; ask the vehicle for a faster attitude stream "
-            "(ArduPilot SRn_EXTRA1, e.g. 10 Hz) for a better calibration"
+            f"ATTITUDE comes every {step:.3g} s (median): it is interpolated across gaps up to {gap:.3g} s "
+            f"({SLOW_ATTITUDE_INTERVALS:g} intervals, beyond max_gap_s = {max_gap_s:g} s), which blurs fast turns; "
+            "ask the vehicle for a faster attitude stream (ArduPilot SRn_EXTRA1, e.g. 10 Hz) for a better calibration"
         )
     q_t, valid = interpolate_quaternions(boot * 1e-6, t_src * 1e-6, q, gap)
     if not valid.all():
@@ -972,7 +1095,8 @@ def _aux_gap(t_src: np.ndarray, max_gap_s: float) -> float:
 
 
 def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -> dict:
-    """``current_a``, ``throttle`` (0..1) and ``temp_c`` at the epochs where the log has them; returns them."""
+    """``current_a``, ``throttle`` (0..1) and ``temp_c`` at the epochs where the log has them; returns them, with
+    ``INTERVALS`` (``{column: median interval of its stream, s}``) and ``MAX_GAP`` (``max_gap_s``)."""
     candidates = {
         "current_a": [
             ("BATTERY_STATUS", "current_battery", 0.01, "cA -> A; -1 unknown"),
@@ -981,7 +1105,7 @@ def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -
         "throttle": [("VFR_HUD", "throttle", 0.01, "percent -> 0..1")],
         "temp_c": [("SCALED_PRESSURE", "temperature", 0.01, "cdegC -> degC")],
     }
-    out = {}
+    out, intervals = {}, {}
     t = boot * 1e-6
     own_temp = table.get("temperature")
     if own_temp is not None and np.any(own_temp != 0):
@@ -1002,12 +1126,13 @@ def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -
             if not len(values) or not np.isfinite(values).any():
                 continue
             t_src = t_src * 1e-6
+            intervals[name] = float(np.median(np.diff(t_src))) if len(t_src) > 1 else float("nan")
             out[name] = interpolate_linear(t, t_src, values, _aux_gap(t_src, max_gap_s))[0]
             timed = "" if _has_boot(source) else ", placed at receipt time"
             columns[name] = f"{message}.{field} ({text}{timed}, linear)"
             break
     frame.update(out)
-    return out
+    return out | {INTERVALS: intervals, MAX_GAP: max_gap_s}
 
 
 # ------------------------------------------------------------------ instances
@@ -1066,7 +1191,9 @@ def write_tlog(
       ``PARAM_VALUE`` for each of ``params`` before the first row (float32; PX4's integers by their bytes).
     * magnetometer at every row with a finite field: ArduPilot ``RAW_IMU`` (``time_usec`` boot us) with the
       ``COMPASS_*`` calibration of ``params`` applied as the firmware does (``compass_correct``; motor
-      compensation ``COMPASS_MOT`` x ``throttle`` or ``current_a`` for ``COMPASS_MOTCT`` 1 or 2), PX4
+      compensation ``COMPASS_MOT`` x ``throttle`` or ``current_a`` for ``COMPASS_MOTCT`` 1 or 2; the vehicle
+      is a quadcopter, so ``firmware`` 3.3 to 3.5 adds it before the soft-iron matrix and below 4.0 there is
+      no ``COMPASS_SCALE``), PX4
       ``SCALED_IMU`` (``time_boot_ms``), uncalibrated; both in mG truncated to int16, ``temperature`` from
       ``temp_c``. InputError where a value does not fit in int16.
     * ``ATTITUDE`` ``attitude_per_row`` times a row (slerp between rows), radians as float32.
@@ -1089,7 +1216,7 @@ def write_tlog(
     if firmware is not None:
         writer.version(firmware)
     writer.parameters(params)
-    writer.magnetometer(frame, params, name)
+    writer.magnetometer(frame, params, name, firmware)
     writer.attitude(frame, attitude_per_row)
     writer.gnss(frame, gps_period_s)
     if system_time:
@@ -1157,13 +1284,22 @@ class _TlogWriter:
             message = self.dialect.MAVLink_param_value_message(key.encode(), number, kind, len(params), index)
             self._send(at, message)
 
-    def magnetometer(self, frame, params: dict, name: str) -> None:
+    def magnetometer(self, frame, params: dict, name: str, firmware: str | None = None) -> None:
         mag_mg = np.column_stack([_column(frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
         rows = np.all(np.isfinite(mag_mg), axis=1)
         if self.autopilot == "ardupilot":
             offsets, diagonals, offdiagonals, scale = _firmware_compass(params)
             motor = _motor_sent(params, frame)[rows]
-            mag_mg[rows] = compass_correct(mag_mg[rows], offsets, diagonals, offdiagonals, scale, motor)
+            first, scale_applies = _correction_model(f"ArduCopter V{firmware}" if firmware else None)
+            mag_mg[rows] = compass_correct(
+                mag_mg[rows],
+                offsets,
+                diagonals,
+                offdiagonals,
+                scale if scale_applies else 1.0,
+                motor,
+                motor_first=first,
+            )
         sent = np.trunc(mag_mg)
         too_large = np.argwhere(rows[:, None] & (np.abs(sent) > np.iinfo(np.int16).max))
         if too_large.size:

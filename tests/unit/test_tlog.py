@@ -26,7 +26,7 @@ import pytest
 from magkf.calibration import Calibration
 from magkf.errors import InputError
 from magkf.io.autopilot import export_instance
-from magkf.io.dataflash import compass_correct
+from magkf.io.dataflash import compass_correct, compass_uncorrect
 from magkf.io.readers import detect_format, magnetometer_instances, read_log
 from magkf.io.site import Site
 from magkf.io.tlog import STORAGE_SIGMA_NT, TelemetryLogReader, read_tlog, write_tlog
@@ -160,7 +160,10 @@ def test_known_calibration_is_undone(flight, tmp_path):
     assert provenance["magnetometer"]["calibrated"] is False
     assert provenance["magnetometer"]["message_calibrated"] is True
     assert provenance["parameters"]["COMPASS_OFS_X"] == 120.0
-    assert provenance["raw_reconstruction"].startswith("ArduPilot 4.x AP_Compass_Backend::correct_field")
+    assert provenance["raw_reconstruction"].startswith(
+        "AP_Compass_Backend::correct_field of ArduCopter V4.5.7: "
+        "field = M ((raw + COMPASS_OFS) * COMPASS_SCALE) + motor"
+    )
     assert provenance["vehicle"]["firmware"] == "4.5.7"
     assert not any("correction model was assumed" in n for n in provenance["notes"])
 
@@ -215,7 +218,11 @@ def test_priority_picks_the_parameter_set_and_the_export_compass(flight, tmp_pat
     truth = flight[["mag_x", "mag_y", "mag_z"]].to_numpy()[:200]
     bound = 100.0 / np.array([1.05, 0.97, 1.01])  # 1 mG through the inverse diagonal
     assert np.all(np.abs(raw[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth) <= bound + 1e-6)
-    assert any(n.startswith("ArduPilot firmware unknown (no AUTOPILOT_VERSION): the 4.x") for n in provenance["notes"])
+    assert any(
+        n.startswith("ArduPilot firmware unknown (no AUTOPILOT_VERSION or STATUSTEXT banner with a version): the 4.x")
+        for n in provenance["notes"]
+    )
+    assert provenance["raw_reconstruction"].startswith("ArduPilot 4.x AP_Compass_Backend::correct_field assumed")
     mag = {"format": provenance["format"], **provenance["magnetometer"]}
     assert mag["compass"] == 2 and mag["parameter_set"].startswith("COMPASS_OFS2")
     cal = Calibration(np.eye(3), np.zeros(3), magnetometer=mag)
@@ -388,6 +395,103 @@ def test_a_reboot_reads_the_longer_boot(flight, tmp_path):
     table, provenance = read_tlog(both)
     np.testing.assert_allclose(table["time"].to_numpy(), later.index.to_numpy(), rtol=0, atol=1e-6)
     assert any(n.startswith("the vehicle rebooted 1 time(s) during the log") for n in provenance["notes"])
+
+
+PARAM_VALUE_ID, AUTOPILOT_VERSION_ID = 22, 148
+
+
+def inverse_row_sums(params: dict) -> np.ndarray:
+    """Row sums of |M^-1| (3,) of the soft-iron matrix of ``params`` (as float32, as PARAM_VALUE holds them): the
+    most a truncation of 1 mG per sent component moves each raw component, in mG."""
+    p = {k: float(np.float32(v)) for k, v in params.items()}
+    d, o = [p[f"COMPASS_DIA_{a}"] for a in "XYZ"], [p[f"COMPASS_ODI_{a}"] for a in "XYZ"]
+    m = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+    return np.abs(np.linalg.inv(m)).sum(axis=1)
+
+
+def test_parameters_sent_before_a_reboot_hold_after_it(flight, tmp_path):
+    """The vehicle sends its COMPASS_* values and AUTOPILOT_VERSION in its first boot only, then reboots: parameters
+    persist on the vehicle, so the longer second boot is uncorrected with them (error within the truncation of 1 mG
+    through M^-1 and the scale) and the 4.5.7 firmware of the first boot picks the model."""
+    first, second = tmp_path / "a.tlog", tmp_path / "b.tlog"
+    write_tlog(flight.iloc[:100], first, params=CALIBRATION, firmware="4.5.7")
+    later = flight.iloc[200:500]
+    write_tlog(later, second, params=CALIBRATION, firmware="4.5.7")
+    kept = [r for r in records(second.read_bytes()) if message_id(r) not in (PARAM_VALUE_ID, AUTOPILOT_VERSION_ID)]
+    both = tmp_path / "reboot.tlog"
+    both.write_bytes(first.read_bytes() + b"".join(kept))
+    table, provenance = read_tlog(both)
+    np.testing.assert_allclose(table["time"].to_numpy(), later.index.to_numpy(), rtol=0, atol=1e-6)
+    bound = inverse_row_sums(CALIBRATION) * 100.0 / float(np.float32(CALIBRATION["COMPASS_SCALE"]))
+    error = np.abs(table[["mag_x", "mag_y", "mag_z"]].to_numpy() - later[["mag_x", "mag_y", "mag_z"]].to_numpy())
+    assert np.all(error <= bound + 1e-6) and error.max() > 1.0
+    assert provenance["magnetometer"]["calibrated"] is False
+    assert provenance["parameters"]["COMPASS_OFS_X"] == 120.0
+    assert provenance["raw_reconstruction"].startswith("AP_Compass_Backend::correct_field of ArduCopter V4.5.7")
+    assert any(
+        n.startswith("parameters from an earlier boot were used: 10 parameters (10 of them COMPASS_*/AHRS_ORIENTATION)")
+        for n in provenance["notes"]
+    )
+    assert any(
+        "(11 PARAM_VALUE, STATUSTEXT and AUTOPILOT_VERSION of earlier boots kept)" in n for n in provenance["notes"]
+    )
+
+
+def test_firmware_3_5_adds_the_motor_compensation_before_the_matrix_and_has_no_scale(flight, tmp_path):
+    """ArduCopter 3.5 computes M (raw + OFS + MOT x current) and has no COMPASS_SCALE (the 1.1 in the parameters is
+    not applied). The reader takes the model from AUTOPILOT_VERSION and HEARTBEAT.type (quadrotor): the error is
+    the truncation, 1 mG through M^-1, plus the current's interpolation (0.0154 A, see the 4.x motor test) and cA
+    rounding (0.005 A) times |MOT|, which is subtracted after M^-1. The 4.x model on the same field errs by more."""
+    t = flight.index.to_numpy()
+    smooth = flight.iloc[:400].assign(current_a=10.0 + 5.0 * np.sin(2 * np.pi * (t[:400] - t[0]) / 20.0))
+    mot = np.array([12.0, -7.0, 4.0])
+    params = CALIBRATION | {"COMPASS_MOTCT": 2} | {f"COMPASS_MOT_{a}": float(v) for a, v in zip("XYZ", mot)}
+    path = tmp_path / "copter35.tlog"
+    write_tlog(smooth, path, params=params, firmware="3.5.7")
+    raw, provenance = read_tlog(path)
+    truth = smooth[["mag_x", "mag_y", "mag_z"]].to_numpy()
+    error = np.abs(raw[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth)
+    known = np.isfinite(error).all(axis=1)
+    bound = (inverse_row_sums(params) + np.abs(mot) * (0.0154 + 0.005)) * 100.0
+    assert known.sum() == 391 and np.all(error[known] <= bound + 1e-6)
+    assert provenance["firmware"] == "ArduPilot 3.5.7"
+    assert provenance["raw_reconstruction"].startswith(
+        "AP_Compass_Backend::correct_field of ArduCopter V3.5.7: field = M (raw + COMPASS_OFS + motor) (3.3 to 3.5"
+    )
+    assert not any("correction model was assumed" in n for n in provenance["notes"])
+    sent, _ = read_tlog(path, raw=False)
+    p = {k: float(np.float32(v)) for k, v in params.items()}
+    as_4x = compass_uncorrect(
+        sent[["mag_x", "mag_y", "mag_z"]].to_numpy() / 100.0,
+        *(np.array([p[f"COMPASS_{q}_{a}"] for a in "XYZ"]) for q in ("OFS", "DIA", "ODI")),
+        p["COMPASS_SCALE"],
+        smooth[["current_a"]].to_numpy() * mot,
+    )
+    assert np.nanmax(np.abs(as_4x * 100.0 - truth)[known]) > 10.0 * bound.max()
+
+
+def test_slow_attitude_and_current_streams_are_noted(flight, tmp_path):
+    """Attitude at 2 Hz is interpolated across 2.5 of its intervals (1.25 s), and a current sent every 1 s limits
+    the motor compensation's accuracy: both notes say so with the streams' median intervals."""
+    slow = flight.iloc[:400:10].assign(current_a=10.0)
+    path = tmp_path / "slow.tlog"
+    params = {"COMPASS_OFS_X": 10.0, "COMPASS_MOTCT": 2, "COMPASS_MOT_X": 3.0}
+    write_tlog(slow, path, params=params, attitude_per_row=1, aux_period_s=1.0)
+    _, provenance = read_tlog(path)
+    assert any(
+        n.startswith(
+            "ATTITUDE comes every 0.5 s (median): it is interpolated across gaps up to 1.25 s (2.5 intervals, beyond "
+            "max_gap_s = 0.5 s)"
+        )
+        for n in provenance["notes"]
+    )
+    assert any(
+        n.startswith(
+            "the motor compensation is undone with current_a sent every 1 s (median), longer than max_gap_s = 0.5 s: "
+            "its accuracy is limited by that stream"
+        )
+        for n in provenance["notes"]
+    )
 
 
 def test_mavlink1_packets_read_with_the_height_above_sea_level(flight, tmp_path):
