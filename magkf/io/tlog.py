@@ -47,7 +47,12 @@ Magnetometer messages (``xmag, ymag, zmag``)
     With ``raw=True`` an ArduPilot field is uncorrected with the ``COMPASS_*`` values the log's own
     ``PARAM_VALUE`` messages give (``magkf.io.dataflash.compass_uncorrect``; the value in effect at each
     epoch); motor compensation is undone where ``COMPASS_MOTCT`` is 1 (throttle) or 2 (current) and that
-    stream is in the log. A field whose calibration cannot be undone (no parameters; PX4's
+    stream is in the log (its accuracy limited by that stream's rate, 1 to 2 Hz in telemetry, noted when its
+    interval exceeds ``max_gap_s``). The model undone is that of the firmware (the ``STATUSTEXT`` banner,
+    ``APM:Copter V3.5.7 (b11c6af3)``, else ``AUTOPILOT_VERSION`` with the vehicle of ``HEARTBEAT.type``), as
+    ``magkf.io.dataflash`` models it: Copter 3.3 to 3.5 (and the other vehicles' releases of those years) added
+    the motor compensation before the soft-iron matrix, and there is no ``COMPASS_SCALE`` before 4.0; 4.x is
+    assumed, and noted, where the log names no version. A field whose calibration cannot be undone (no parameters; PX4's
     ``HIGHRES_IMU``) is read as it is, and the provenance says so (``magnetometer.calibrated``).
 
 Time
@@ -61,7 +66,10 @@ Time
     latency. Messages without a time field (``BATTERY_STATUS``, ``SYS_STATUS``, ``VFR_HUD``,
     ``PARAM_VALUE``) are placed at their receipt time less that median. A boot time that falls back while
     receipt time less boot time jumps by more than ``REBOOT_S`` marks a reboot; the boot with the most
-    magnetometer samples is read.
+    magnetometer samples is read. Parameters are stored on the vehicle and persist across a reboot: the value
+    in force at an epoch is the last ``PARAM_VALUE`` received (by receipt time) before it from that boot or an
+    earlier one, else the first received later in that boot; the firmware banner and ``AUTOPILOT_VERSION`` of
+    an earlier boot name the firmware where the boot read does not.
 
 Streams (interpolated onto the magnetometer's epochs with ``magkf.io.streams``)
     ``ATTITUDE`` ``roll, pitch, yaw`` (rad), else ``ATTITUDE_QUATERNION`` ``q1..q4`` (scalar first),
