@@ -829,6 +829,12 @@ def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict],
     InputError for a log without a magnetometer, an instance it lacks, or (``_live_samples``) a chosen
     stream without ``MagX/MagY/MagZ`` or that reads a constant (when no instance was asked for: the first)."""
     streams = _mag_streams(log)
+    if not streams and any(name in log.reader.name_to_id for name in ("MAG", "MAG2", "MAG3")):
+        raise InputError(
+            "no MAG message, though the log declares its format (FMT): the log ends before the compass's first "
+            "sample (a log cut short) or the compass bit of LOG_BITMASK was unset; use the whole log of the flight",
+            source=log.path,
+        )
     if not streams:
         raise InputError(
             "no MAG, MAG2 or MAG3 message: the compass was not logged; record a log with the compass bit of "
