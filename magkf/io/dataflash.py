@@ -832,7 +832,8 @@ def _chosen_stream(log: _Log, mag: int | None, notes: list) -> tuple[list[dict],
     if not streams and any(name in log.reader.name_to_id for name in ("MAG", "MAG2", "MAG3")):
         raise InputError(
             "no MAG message, though the log declares its format (FMT): the log ends before the compass's first "
-            "sample (a log cut short) or the compass bit of LOG_BITMASK was unset; use the whole log of the flight",
+            "sample (a log cut short), or the compass was not logged (older firmware declares every format at the "
+            "start); use the whole log, or record one with the compass bit of LOG_BITMASK set",
             source=log.path,
         )
     if not streams:
