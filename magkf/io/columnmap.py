@@ -33,7 +33,8 @@ complete example and one per layout):
     ``date_utc`` may be left out of a map shared by many files and set per file with
     ``dataclasses.replace``. Without ``start_utc``, a time since the start (``time_epoch = "start"`` or
     ``rate_hz``) is read as seconds since the start with ``provenance["time_base"] == "boot"``, which
-    ``--date`` places in UTC (``magkf.io.site``); ``date_utc`` is needed by ``seconds_of_day``.
+    ``--date`` places in UTC (``magkf.io.site``); so are seconds of day without ``date_utc``, which
+    ``--date YYYY-MM-DD`` (its midnight UTC) places.
 
 Required columns are the reader's to say: ``read_mapped`` (a drive log) needs ``time`` (or ``rate_hz``) and
 ``mag_x, mag_y, mag_z``; ``read_mapped_table`` reads whatever a caller needs (the offline calibrations' tables,
@@ -767,6 +768,8 @@ def _is_numeric_column(values: pd.Series) -> bool:
 # ---------------------------------------------------------------- conversions
 #: How a time since the start of the record with no start given is described (its time base is ``BOOT``).
 SINCE_START = "since the start of the record (no [units] start_utc: placed in UTC by --date)"
+#: How seconds of day with no date given are described (their time base is ``BOOT``: ``--date`` gives the day).
+SINCE_MIDNIGHT = "(no [units] date_utc: --date YYYY-MM-DD gives the day, its midnight UTC the zero)"
 
 
 def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, column: str) -> tuple[np.ndarray, str]:
@@ -775,11 +778,6 @@ def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, colu
     empty = np.flatnonzero(np.isnan(t))
     if empty.size:
         raise InputError("empty time cell: every record needs a time", source, int(raw.rows[empty[0]]), column)
-    if cmap.time_epoch == "seconds_of_day" and cmap.date_utc is None:
-        raise InputError(
-            f"{_key('date_utc')}: [units] time_epoch = 'seconds_of_day' needs it (the UTC date of the first record)",
-            cmap.source,
-        )
     seconds = t / PER_SECOND[cmap.time]
     unit = {"s": "seconds", "ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}[cmap.time]
     if cmap.time_epoch == "unix":
@@ -789,11 +787,14 @@ def _unix_time(t: np.ndarray, cmap: ColumnMap, raw: _RawTable, source: str, colu
     if cmap.time_epoch == "start":
         start = cmap.start_utc.timestamp()
         return start + seconds, f"{unit} since {cmap.start_utc.isoformat().replace('+00:00', 'Z')}"
-    midnight = datetime.combine(cmap.date_utc, clock_time(), tzinfo=UTC).timestamp()
     step = np.diff(seconds)
     rollover = step < -SECONDS_PER_DAY / 2
     days = np.concatenate([[0], np.cumsum(rollover)])
-    base = f"{unit} of day from 00:00 UTC on {cmap.date_utc.isoformat()}"
+    if cmap.date_utc is None:  # the day comes from --date (midnight UTC), as a time since an unknown start
+        midnight, base = 0.0, f"{unit} of day {SINCE_MIDNIGHT}"
+    else:
+        midnight = datetime.combine(cmap.date_utc, clock_time(), tzinfo=UTC).timestamp()
+        base = f"{unit} of day from 00:00 UTC on {cmap.date_utc.isoformat()}"
     if rollover.any():
         base += (
             f"; {int(days[-1])} midnight rollover{'s' if days[-1] > 1 else ''}, the first at row "
@@ -923,6 +924,8 @@ def _data_format(path: Path, cmap: ColumnMap) -> str:
 
 def _relative(cmap: ColumnMap) -> bool:
     """Whether the map's times count from an unknown start (``provenance["time_base"]`` ``BOOT``)."""
+    if cmap.time_epoch == "seconds_of_day":
+        return cmap.date_utc is None
     return cmap.start_utc is None and (cmap.rate_hz is not None or cmap.time_epoch == "start")
 
 
@@ -1136,7 +1139,9 @@ def read_mapped_table(
     ignored = _unmapped_columns(mapped, out, described)
     if all(c in out for c in MAG):
         _check_unit(out, cmap, source)
-    if time_base == BOOT:
+    if time_base == BOOT and cmap.time_epoch == "seconds_of_day":
+        notes.append("time is seconds of day and the map gives no [units] date_utc: --date gives the day")
+    elif time_base == BOOT:
         notes.append(
             "time counts from the start of the record (the map gives no [units] start_utc): --date places it in UTC"
         )

@@ -125,10 +125,19 @@ def test_survey_extract_through_the_example_map(tmp_path, t0_sod, crosses):
         assert f"the first at row {first_next_day + 2}" in prov["time_base"]
 
 
-def test_survey_map_needs_a_date(tmp_path):
-    write_survey(tmp_path / "s.tsv", survey_truth(np.random.default_rng(1), 5, 100.0))
-    with pytest.raises(InputError, match=r"survey_map\.toml: \[units\] date_utc"):
-        read_mapped(tmp_path / "s.tsv", SURVEY_MAP)
+def test_survey_map_without_a_date_takes_the_day_from_date(tmp_path):
+    """Seconds of day with no ``[units] date_utc``: refused without ``--date``; with ``--date`` (its midnight UTC
+    the zero) the same times as a map that gives the date, across midnight too."""
+    from magkf.io.readers import read_log
+    from magkf.io.site import Site, parse_date
+
+    write_survey(tmp_path / "s.tsv", survey_truth(np.random.default_rng(1), 60, 86_390.0))
+    with pytest.raises(InputError, match=r"s\.tsv: the log has no GNSS time .* give --date"):
+        read_log(tmp_path / "s.tsv", map=SURVEY_MAP)
+    dated = dataclasses.replace(load_column_map(SURVEY_MAP), date_utc="2021-06-30")
+    placed = read_log(tmp_path / "s.tsv", map=SURVEY_MAP, site=Site(start=parse_date("2021-06-30")))
+    np.testing.assert_array_equal(placed.time, read_log(tmp_path / "s.tsv", map=dated).time)
+    assert placed.time[-1] - midnight("2021-06-30") > 86_400.0  # the record crossed midnight
 
 
 # ---------------------------------------------------------------- CSV: quaternion, counts, ms since start
