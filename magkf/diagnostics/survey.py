@@ -37,7 +37,8 @@ def survey_log(path, read, dop_max: float = 5.0) -> dict:
     -------
     dict
         ``file``; for a log read: ``format``, ``software`` (None if the log does not say), ``duration_s``,
-        ``epochs``, ``magnetometers`` (``[{"name", "samples", "rate_hz", "used"}]``), ``models`` (the measurement
+        ``epochs``, ``magnetometers`` (the streams: ``[{"name", "samples", "rate_hz", "used"}]``, and ``device_id``
+        where the log names it), ``models`` (the measurement
         models it allows), ``limits`` (their codes), ``warnings`` (the readers' and checks' warnings, one line
         each) and ``error`` None; for a log refused: ``error`` (its one line) and the rest None or empty.
     """
@@ -61,7 +62,9 @@ def survey_log(path, read, dop_max: float = 5.0) -> dict:
         "duration_s": report["epochs"]["duration_s"],
         "epochs": report["epochs"]["count"],
         "magnetometers": [
-            {k: s.get(k) for k in ("name", "samples", "rate_hz", "used")} for s in report["streams"] if "name" in s
+            {k: s.get(k) for k in ("name", "samples", "rate_hz", "used", "device_id") if k in s}
+            for s in report["streams"]
+            if "name" in s
         ],
         "models": list(report["models"]),
         "limits": [item["code"] for item in report["limits"]],
@@ -80,6 +83,12 @@ def _one_line(exc: BaseException, path: str) -> str:
     return text if path in text or getattr(exc, "filename", None) else f"{path}: {text}"
 
 
+def _sensors(streams: list[dict]) -> int:
+    """How many magnetometers the streams are of: a sensor logged in two topics (PX4's ``sensor_mag`` and
+    ``vehicle_magnetometer`` of one ``device_id``) counts once."""
+    return len({s.get("device_id") or s["name"] for s in streams})
+
+
 def _cells(entry: dict, root: Path | None) -> list[str]:
     """The entry's columns as text (file names relative to ``root``)."""
     name = str(entry["file"])
@@ -91,7 +100,7 @@ def _cells(entry: dict, root: Path | None) -> list[str]:
     if entry["error"] is not None:
         reason = entry["error"].removeprefix(f"{entry['file']}: ").removeprefix(f"{entry['file']}, ")
         return [name, "failed:" if reason.startswith("internal error:") else "refused:", reason]
-    n = len(entry["magnetometers"])
+    n = _sensors(entry["magnetometers"])
     mags = f"{n} magnetometer{'s' if n != 1 else ''}" if n else "1 magnetometer"
     allows = ", ".join(entry["models"]) or "no calibration"
     if entry["limits"]:
