@@ -438,18 +438,28 @@ class _Log:
         return bool(ends) and max(ends) > len(self.buffer)
 
 
-def _select(table: dict, instance: int | None, field: str = "I") -> dict:
-    """Rows of ``table`` with instance ``instance`` (all rows if the message has no instance field)."""
-    if not table or instance is None or field not in table:
+#: The names of a message's instance field across ArduPilot's history: ``I`` (MAG, GPS, GPA, BARO), ``Instance``
+#: (BAT up to 4.0) and ``Inst`` (BAT from 4.1), per the ``LogStructure.h`` files.
+INSTANCE_FIELDS = ("I", "Instance", "Inst")
+
+
+def _select(table: dict, instance: int | None) -> dict:
+    """Rows of ``table`` of instance ``instance``, else of the lowest instance the message has (a second GPS or
+    battery fitted alone); all rows if the message has no instance field (``INSTANCE_FIELDS``)."""
+    field = next((f for f in INSTANCE_FIELDS if f in table), None) if table else None
+    if field is None or instance is None:
         return table
-    keep = table[field] == instance
+    values = table[field]
+    if values.size and not np.any(values == instance):
+        instance = int(values.min())
+    keep = values == instance
     return table if keep.all() else {k: v[keep] for k, v in table.items()}
 
 
 def _by_time(table: dict) -> dict:
     """``table`` sorted by ``TimeUS``, keeping the first of samples with the same ``TimeUS`` (interpolation
     needs strictly increasing times)."""
-    if not table:
+    if not table or not len(table["TimeUS"]):
         return table
     order = np.argsort(table["TimeUS"], kind="stable")
     keep = order[np.concatenate(([True], np.diff(table["TimeUS"][order]) > 0))]

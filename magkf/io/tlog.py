@@ -578,6 +578,8 @@ def _has_boot(table: dict) -> bool:
 def _in_time_order(table: dict, boot_us: np.ndarray) -> tuple[dict, np.ndarray, int, int]:
     """``table`` sorted by boot time with the later of messages of equal boot time dropped: ``(table, boot_us,
     dropped, backwards)``, ``backwards`` the places where the receipt order went back in time."""
+    if not len(boot_us):
+        return table, boot_us, 0, 0
     backwards = int(np.count_nonzero(np.diff(boot_us) < 0))
     order = np.argsort(boot_us, kind="stable")
     keep = order[np.concatenate(([True], np.diff(boot_us[order]) > 0))]
@@ -1126,8 +1128,8 @@ def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -
             source = vehicle.tables.get(message)
             if source is None or field not in source:
                 continue
-            if message == "BATTERY_STATUS":
-                source = {k: v[source["id"] == 0] for k, v in source.items()}
+            if message == "BATTERY_STATUS":  # the first battery: id 0, else the lowest id sent
+                source = {k: v[source["id"] == source["id"].min()] for k, v in source.items()}
             source, t_src, _, _ = _in_time_order(source, clock.boot_us(source))
             values = source[field].astype(float)
             values = np.where(values == -1, np.nan, values * factor) if name == "current_a" else values * factor

@@ -543,3 +543,17 @@ def test_a_reordered_priority_is_exported_as_its_parameter_set(tmp_path):
     mag = {"format": prov["format"], **prov["magnetometer"]}
     assert mag["instance"] == 0 and mag["compass"] == 2 and mag["parameter_set"].startswith("COMPASS_OFS2")
     assert export_instance(Calibration(np.eye(3), np.zeros(3), magnetometer=mag), "ardupilot")[0] == 2
+
+
+def test_instance_fields_of_every_generation_select_one_battery_or_gps():
+    """``BAT`` names its instance ``Instance`` (to 4.0) or ``Inst`` (4.1 on), ``GPS`` ``I``: two batteries' rows
+    interleaved are told apart, and a message of instance 1 alone (a second GPS fitted alone) is read as such."""
+    from magkf.io.dataflash import _select
+
+    t = np.arange(6, dtype=float)
+    for field in ("Instance", "Inst", "I"):
+        table = {"TimeUS": t, field: np.array([0, 1] * 3), "Curr": np.array([1.0, 20.0] * 3)}
+        np.testing.assert_array_equal(_select(table, 0)["Curr"], [1.0, 1.0, 1.0])
+    alone = {"TimeUS": t, "I": np.ones(6, int), "Lat": t}
+    np.testing.assert_array_equal(_select(alone, 0)["Lat"], t)
+    assert _select({"TimeUS": t, "Curr": t}, 0)["Curr"] is t  # no instance field: every row
