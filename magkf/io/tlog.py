@@ -145,6 +145,8 @@ UNIX_MIN_US = 10**15
 UNKNOWN_U16 = 65_535
 #: A packet identical to one received this recently (us) is the same packet logged twice.
 DUPLICATE_WINDOW_US = 2_000_000
+#: Where the height comes from when ``GPS_RAW_INT`` sends ``alt_ellipsoid``.
+ELLIPSOID_HEIGHT = "GPS_RAW_INT.alt_ellipsoid (mm above WGS-84; alt, above MSL, where it is 0)"
 #: A boot time that falls back while the receipt time less the boot time jumps by more than this (s) is a reboot.
 REBOOT_S = 5.0
 #: The messages whose boot time is the vehicle's clock when it sent them, which alone can show a reboot: others
@@ -1085,11 +1087,22 @@ def _position(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
         return
     ell = gps.get("alt_ellipsoid", np.zeros(len(fix)))
     use_ell = bool(np.any(fix & (ell != 0)))
-    alt = (ell if use_ell else gps["alt"]) / 1000.0
+    alt = np.where(ell != 0, ell, gps["alt"]) / 1000.0 if use_ell else gps["alt"] / 1000.0
+    if use_ell and np.any(fix & (ell == 0)):
+        notes.append(
+            f"GPS_RAW_INT.alt_ellipsoid is 0 in {int(np.count_nonzero(fix & (ell == 0)))} fixed samples: the "
+            "height above mean sea level (alt) is used there"
+        )
     for name, values, text in (
         (LAT, gps["lat"] / 1e7, "GPS_RAW_INT.lat (1e-7 deg)"),
         (LON, gps["lon"] / 1e7, "GPS_RAW_INT.lon (1e-7 deg)"),
-        (ALT, alt, "GPS_RAW_INT.alt_ellipsoid (mm above WGS-84)" if use_ell else "GPS_RAW_INT.alt (mm above MSL)"),
+        (
+            ALT,
+            alt,
+            "GPS_RAW_INT.alt_ellipsoid (mm above WGS-84; alt where it is 0)"
+            if use_ell
+            else "GPS_RAW_INT.alt (mm above MSL)",
+        ),
     ):
         frame[name] = interpolate_linear(t, t_gps, np.where(fix, values, np.nan), max_gap_s)[0]
         columns[name] = f"{text}, 3-D fix only, linear across gaps up to {max_gap_s:.3g} s"

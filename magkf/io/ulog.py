@@ -269,6 +269,12 @@ def _utc_offset_us(gnss: dict, fix: np.ndarray, topic: str) -> tuple[float, str]
     return offset, text
 
 
+#: A GNSS topic's height fields, in the order tried: above the WGS-84 ellipsoid, then above mean sea level
+#: (field, factor to m, unit in words).
+_ELLIPSOID_HEIGHTS = (("altitude_ellipsoid_m", 1.0, "m"), ("alt_ellipsoid", 1e-3, "mm -> m"))
+_MSL_HEIGHTS = (("altitude_msl_m", 1.0, "m"), ("alt", 1e-3, "mm -> m"))
+
+
 def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarray]:
     """Position, DOP and fix of the GNSS samples (lat/lon NaN below a 2-D fix, alt below a 3-D fix), their
     provenance and ``fix_type`` (float)."""
@@ -283,19 +289,23 @@ def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarr
     else:
         values[LAT], values[LON] = g["lat"] * 1e-7, g["lon"] * 1e-7
         source[LAT], source[LON] = f"{topic}.lat (x 1e-7 deg)", f"{topic}.lon (x 1e-7 deg)"
-    for field, scale, unit in (
-        ("altitude_ellipsoid_m", 1.0, "m"),
-        ("alt_ellipsoid", 1e-3, "mm -> m"),
-        ("altitude_msl_m", 1.0, "m"),
-        ("alt", 1e-3, "mm -> m"),
-    ):
-        if field in g:
-            values[ALT], source[ALT] = g[field] * scale, f"{topic}.{field} ({unit})"
-            if "ellipsoid" not in field:
-                notes.append(
-                    f"alt is the height above mean sea level ({topic}.{field}): no ellipsoidal height was logged"
-                )
-            break
+    ellipsoid = next(((f, k, u) for f, k, u in _ELLIPSOID_HEIGHTS if f in g), None)
+    msl = next(((f, k, u) for f, k, u in _MSL_HEIGHTS if f in g), None)
+    if ellipsoid is not None:
+        field, scale, unit = ellipsoid
+        values[ALT], source[ALT] = g[field] * scale, f"{topic}.{field} ({unit})"
+        unset = g[field] == 0  # a driver that never fills it, or before the geoid is known
+        if unset.any() and msl is not None:
+            values[ALT] = np.where(unset, g[msl[0]] * msl[1], values[ALT])
+            source[ALT] += f", else {topic}.{msl[0]} ({msl[2]}) where it is 0"
+            notes.append(
+                f"{topic}.{field} is 0 in {int(unset.sum())} of {unset.size} samples: the height above mean sea "
+                f"level ({msl[0]}) is used there"
+            )
+    elif msl is not None:
+        field, scale, unit = msl
+        values[ALT], source[ALT] = g[field] * scale, f"{topic}.{field} ({unit})"
+        notes.append(f"alt is the height above mean sea level ({topic}.{field}): no ellipsoidal height was logged")
     values[LAT][fix < 2] = np.nan
     values[LON][fix < 2] = np.nan
     if ALT in values:

@@ -305,3 +305,21 @@ def test_tagged_real_log_reads_as_before():
     assert np.nanmax(np.abs(table["lat"] - 47.397742)) < 1e-6 and np.nanmax(np.abs(table["lon"] - 8.545594)) < 1e-6
     calibrated, prov = read_ulog(TAGGED, raw=False)
     assert len(calibrated) == 159 and prov["magnetometer"]["topic"] == "vehicle_magnetometer"
+
+
+def test_an_unset_ellipsoidal_height_falls_back_to_the_height_above_sea_level():
+    """Some GNSS drivers leave ``alt_ellipsoid`` at 0 (never filled, or before the geoid is known): those samples
+    take ``alt`` (above mean sea level), with a note, instead of a height of 0 m (about 0.024 nT of field per m)."""
+    from magkf.io.ulog import _gnss_fields
+
+    g = {
+        "lat": np.array([480000000, 480000001]),
+        "lon": np.array([110000000, 110000001]),
+        "alt": np.array([512_000, 513_000]),
+        "alt_ellipsoid": np.array([0, 560_000]),
+        "fix_type": np.array([3, 3]),
+    }
+    notes: list = []
+    values, source, _ = _gnss_fields(g, "vehicle_gps_position", notes)
+    np.testing.assert_array_equal(values["alt"], [512.0, 560.0])
+    assert "alt_ellipsoid is 0 in 1 of 2 samples" in " ".join(notes)
