@@ -318,6 +318,7 @@ def test_an_unset_ellipsoidal_height_falls_back_to_the_height_above_sea_level():
         "alt": np.array([512_000, 513_000]),
         "alt_ellipsoid": np.array([0, 560_000]),
         "fix_type": np.array([3, 3]),
+        "timestamp": np.array([1_000_000, 1_200_000]),
     }
     notes: list = []
     values, source, _ = _gnss_fields(g, "vehicle_gps_position", notes)
