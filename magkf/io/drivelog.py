@@ -347,6 +347,7 @@ def from_table(
     name = str(source)
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
     provenance = dict(provenance or {})
+    provenance["notes"] = list(provenance.get("notes") or [])  # the reader's own list is not changed
     declared = provenance.get("time_base") == BOOT
     if site is not None or declared or (timed_since_boot(table, provenance) and not _has_position(table)):
         table = place_at_site(table, provenance, site, name)  # refuses a log it cannot place, saying what to give

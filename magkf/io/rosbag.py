@@ -725,11 +725,14 @@ class RosBagReader(AutopilotLog):
 
     def recognises(self, path: Path, head: bytes) -> bool:
         """A ROS 1 or MCAP header, an SQLite database with rosbag2's ``topics`` table, or a folder with
-        ``metadata.yaml``."""
+        ``metadata.yaml`` beside a ``.db3`` or ``.mcap`` file (a folder with only some other ``metadata.yaml`` is no
+        bag)."""
         if head.startswith(SQLITE_MAGIC):
             return is_rosbag2_database(path)
         if Path(path).is_dir():
-            return (Path(path) / "metadata.yaml").is_file()
+            folder = Path(path)
+            storage = any(p.suffix.lower() in (".db3", ".mcap") for p in folder.iterdir() if p.is_file())
+            return (folder / "metadata.yaml").is_file() and storage
         return super().recognises(path, head)
 
 
