@@ -552,6 +552,21 @@ def _state_index(params: dict, instance: int) -> int:
     return instance
 
 
+def unmatched_priority(params: dict, instance: int) -> str | None:
+    """A note when ``COMPASS_PRIOn_ID`` of logged instance ``instance`` is set but none of the logged
+    ``COMPASS_DEV_ID*`` holds that device: ``_state_index`` then takes the instance's own parameter set, which
+    may be another compass's calibration. None when the priority matches, or is not logged."""
+    prio = params.get(f"COMPASS_PRIO{instance + 1}_ID")
+    devices = [params[f"COMPASS_DEV_ID{s}"][1][-1] for s in ("", "2", "3") if f"COMPASS_DEV_ID{s}" in params]
+    if prio is None or prio[1][-1] == 0 or not devices or prio[1][-1] in devices:
+        return None
+    return (
+        f"COMPASS_PRIO{instance + 1}_ID = {int(prio[1][-1])} is none of the logged COMPASS_DEV_ID* "
+        f"({', '.join(str(int(d)) for d in devices)}): the parameter set of instance {instance} was assumed, which "
+        "may be another compass's; check the calibration undone against the autopilot's parameters"
+    )
+
+
 def _param_name(quantity: str, suffix: str) -> str:
     """``COMPASS_OFS2_X`` from ``OFS_X`` and suffix ``2``; ``COMPASS_SCALE2`` from ``SCALE``."""
     base, _, axis = quantity.partition("_")
@@ -618,6 +633,8 @@ def _reconstruct_raw(
     is still the calibrated one (True where the log lacks the parameters to undo it)."""
     time_us = table["TimeUS"]
     k = _state_index(params, instance)
+    if (unmatched := unmatched_priority(params, instance)) is not None:
+        notes.append(unmatched)
     suffix = ("", "2", "3")[k] if k < 3 else None
     if not _has_calibration(params, suffix):
         return _as_logged(table, params, instance, notes)

@@ -124,6 +124,7 @@ from .dataflash import (
     _version,
     compass_correct,
     compass_uncorrect,
+    unmatched_priority,
 )
 from .drivelog import AutopilotLog, table_to_write
 from .streams import bracket, interpolate_linear, interpolate_quaternions
@@ -734,6 +735,8 @@ def _uncorrect_ardupilot(
     ``COMPASS_*`` parameter set of priority ``instance`` in effect at ``boot_us``; returns the raw field, the
     description and the compass parameter set's number (1..3)."""
     k = _state_index(params, instance)
+    if (unmatched := unmatched_priority(params, instance)) is not None:
+        notes.append(unmatched)
     suffix = ("", "2", "3")[k] if k < 3 else ""
     p = {q: _param_at(params, _param_name(q, suffix), boot_us, _CAL_DEFAULTS[q]) for q in _CAL_PARAMS}
     stack = lambda q: np.column_stack([p[f"{q}_{a}"] for a in "XYZ"])  # noqa: E731

@@ -557,3 +557,20 @@ def test_instance_fields_of_every_generation_select_one_battery_or_gps():
     alone = {"TimeUS": t, "I": np.ones(6, int), "Lat": t}
     np.testing.assert_array_equal(_select(alone, 0)["Lat"], t)
     assert _select({"TimeUS": t, "Curr": t}, 0)["Curr"] is t  # no instance field: every row
+
+
+def test_a_priority_matching_no_device_is_said():
+    """``COMPASS_PRIO1_ID`` naming a device no ``COMPASS_DEV_ID*`` holds: the instance's own set is assumed, said."""
+    from magkf.io.dataflash import _state_index, unmatched_priority
+
+    def logged(value):
+        return (np.zeros(1), np.array([float(value)]))
+
+    params = {"COMPASS_PRIO1_ID": logged(97539), "COMPASS_DEV_ID": logged(73225), "COMPASS_DEV_ID2": logged(131594)}
+    assert _state_index(params, 0) == 0
+    assert unmatched_priority(params, 0).startswith(
+        "COMPASS_PRIO1_ID = 97539 is none of the logged COMPASS_DEV_ID* (73225, 131594)"
+    )
+    assert unmatched_priority(params | {"COMPASS_DEV_ID2": logged(97539)}, 0) is None  # matched: set 2
+    assert _state_index(params | {"COMPASS_DEV_ID2": logged(97539)}, 0) == 1
+    assert unmatched_priority({"COMPASS_DEV_ID": logged(73225)}, 0) is None  # no priority logged (before 4.0)
