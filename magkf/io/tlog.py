@@ -772,7 +772,16 @@ def _model_text(firmware, suffix, motor_first, scale_applies, scale, motor_text)
 
 def _motor(params: dict, suffix: str, boot_us, aux: dict, notes: list) -> tuple[np.ndarray | float, str]:
     """ArduPilot's motor compensation (N, 3) mG at ``boot_us`` (``COMPASS_MOTCT`` 1: ``COMPASS_MOT`` x
-    throttle 0..1, 2: x current in A) and what was done about it."""
+    throttle 0..1, 2: x current in A) and what was done about it. With ``COMPASS_PMOT_EN`` 1 the first compass's
+    compensation is per motor instead (``AP_Compass_Backend::correct_field``, ``_per_motor.enabled() && i == 0``),
+    which telemetry cannot undo: nothing is undone, and a note says so."""
+    per_motor = int(_param_at(params, "COMPASS_PMOT_EN", boot_us[:1], 0.0)[0]) if len(boot_us) else 0
+    if per_motor == 1 and suffix == "":  # 4.x: per-motor compensation replaces COMPASS_MOTCT for the first compass
+        notes.append(
+            "COMPASS_PMOT_EN = 1: the first compass's motor compensation is per motor (from each motor's output), "
+            "which a telemetry log cannot undo: the field keeps it"
+        )
+        return 0.0, "per-motor compensation (COMPASS_PMOT_EN) not undone"
     motct = int(_param_at(params, "COMPASS_MOTCT", boot_us[:1], 0.0)[0]) if len(boot_us) else 0
     mot = np.column_stack([_param_at(params, f"COMPASS_MOT{suffix}_{a}", boot_us, 0.0) for a in "XYZ"])
     if motct == 0 or not np.any(mot):

@@ -620,3 +620,20 @@ def test_ardupilot_highres_imu_in_its_own_unit_and_a_quaternion_attitude(tmp_pat
     np.testing.assert_allclose(table[["roll", "pitch"]], 0.0, rtol=0, atol=1e-5)
     assert any(n.startswith("HIGHRES_IMU field magnitudes of") for n in provenance["notes"])
     assert provenance["columns"]["yaw"].startswith("ATTITUDE_QUATERNION")
+
+
+def test_per_motor_compensation_is_not_undone_and_said(flight, tmp_path):
+    """``COMPASS_PMOT_EN`` 1 replaces ``COMPASS_MOTCT`` for the first compass (ArduPilot 4.x ``correct_field``); it
+    depends on each motor's output, which telemetry does not carry: nothing is undone, and the note says why."""
+    params = {
+        "COMPASS_PMOT_EN": 1,
+        "COMPASS_MOTCT": 2,
+        "COMPASS_MOT_X": 12.0,
+        "COMPASS_MOT_Y": 0.0,
+        "COMPASS_MOT_Z": 0.0,
+    }
+    path = tmp_path / "per_motor.tlog"
+    write_tlog(flight.iloc[:200].assign(current_a=10.0), path, params=params)
+    _, provenance = read_tlog(path)
+    assert "per-motor compensation (COMPASS_PMOT_EN) not undone" in provenance["raw_reconstruction"]
+    assert any(note.startswith("COMPASS_PMOT_EN = 1: the first compass's motor") for note in provenance["notes"])
