@@ -101,7 +101,7 @@ import numpy as np
 from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, VDOP, YAW, euler_to_quaternion, quaternion_to_euler
 from ..errors import InputError
 from .drivelog import AutopilotLog, table_to_write
-from .streams import bracket, interpolate_linear, interpolate_quaternions
+from .streams import SLOW_GAP_INTERVALS, bracket, interpolate_linear, interpolate_quaternions, slow_gap
 from .timebase import GPS_EPOCH_UNIX, SECONDS_PER_WEEK, gps_to_unix, leap_seconds
 
 if TYPE_CHECKING:
@@ -684,11 +684,6 @@ def _raw_text(firmware: str, suffix: str, motor_first: bool, scale_used: bool) -
     )
 
 
-#: GPS (1 to 10 Hz) is a slow stream and positions change slowly: an epoch is given a position across a gap up to
-#: the longer of ``max_gap_s`` and this many of the GPS's median sample intervals (one or two lost samples).
-SLOW_GAP_INTERVALS = 3.0
-
-
 #: Median absolute deviation (s) of UTC - boot time over the GPS samples above which the boot clock is taken to
 #: run at another rate than GPS time (log-write latency gives some 10 ms; the boot clock of some Linux boards of
 #: 2014, such as the PXF, ran 8 % slow: seconds over a flight).
@@ -977,7 +972,7 @@ def _position(
         return
     fix = gps["Status"] >= 3
     t_gps = _stream_time(gps, clock)
-    gap = _slow_gap(t_gps, max_gap_s)
+    gap = slow_gap(t_gps, max_gap_s)
     gpa = _by_time(_select(log.table("GPA"), 0))
     gpa_fix = _gpa_fix(gps, gpa, fix) if gpa else None
     alt, alt_text = _ellipsoid_height(gps, gpa, gpa_fix, fix, t_gps, clock)
@@ -1008,14 +1003,6 @@ def _has_fix_position(gps: dict) -> bool:
     if not (gps and {"Status", "Lat", "Lng"} <= gps.keys()):
         return False
     return bool(((gps["Status"] >= 3) & np.isfinite(gps["Lat"]) & np.isfinite(gps["Lng"])).any())
-
-
-def _slow_gap(t_src: np.ndarray, max_gap_s: float) -> float:
-    """The longest gap (s) a slow stream (GNSS) at the times ``t_src`` is interpolated across: the longer of
-    ``max_gap_s`` and ``SLOW_GAP_INTERVALS`` of its median sample interval."""
-    if len(t_src) < 2:
-        return max_gap_s
-    return max(max_gap_s, SLOW_GAP_INTERVALS * float(np.median(np.diff(t_src))))
 
 
 def _bridged_note(t, t_gps, gap: float, max_gap_s: float) -> str | None:

@@ -56,7 +56,7 @@ from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, TIME, YAW, dcm_
 from ..errors import InputError
 from .drivelog import AutopilotLog, table_to_write
 from .site import BOOT, UNIX_1990
-from .streams import bracket, interpolate_linear, interpolate_quaternions
+from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap
 
 __all__ = [
     "TOPIC_KINDS",
@@ -91,9 +91,6 @@ TOPIC_KINDS = {
 }
 #: User equivalent range error (m) that turns NavSatFix's horizontal RMS error into an HDOP (see the module).
 UERE_M = 4.0 * math.sqrt(2.0)
-#: NavSatFix, Temperature and BatteryState are slow: an epoch is given their value across a gap up to the
-#: longer of ``max_gap_s`` and this many of the stream's median sample intervals (a 1 Hz receiver's fixes).
-SLOW_GAP_INTERVALS = 3.0
 #: ENU world vectors into NED (east and north swapped, up turned down); its own inverse.
 ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 #: FRD body vectors into FLU (and back): y and z turned over.
@@ -422,12 +419,6 @@ def _seconds(t_ns: np.ndarray) -> np.ndarray:
     return (t_ns // 1_000_000_000).astype(float) + (t_ns % 1_000_000_000) * 1e-9
 
 
-def _slow_gap(t_rel: np.ndarray, max_gap_s: float) -> float:
-    if len(t_rel) < 2:
-        return max_gap_s
-    return max(max_gap_s, SLOW_GAP_INTERVALS * float(np.median(np.diff(t_rel))))
-
-
 # ---------------------------------------------------------------- frames
 def _matrices(q_wxyz: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotation matrices of quaternions (N, 4), scalar first (normalised; NaN rows stay NaN)."""
@@ -521,7 +512,7 @@ def _fix_columns(stream: _Stream, epochs: _Epochs, max_gap_s: float, notes: list
     of the bracketing fixes) at the epochs; ``eph`` and ``hdop`` left out when no covariance is known."""
     t_ns, v = _ordered(stream, epochs.clock, notes)
     t_src, status = _relative(t_ns, epochs), v[:, 0]
-    gap = _slow_gap(t_src, max_gap_s)
+    gap = slow_gap(t_src, max_gap_s)
     v[status < 0, 1:4] = np.nan
     table, columns, topic = {}, {}, stream.topic
     fields = {LAT: (1, "latitude (deg)"), LON: (2, "longitude (deg)"), ALT: (3, "altitude (m, ellipsoid)")}
@@ -546,7 +537,7 @@ def _slow_column(stream: _Stream, epochs: _Epochs, max_gap_s: float, notes: list
     """A one-value stream (Temperature, BatteryState) times ``scale``, linear at the epochs."""
     t_ns, v = _ordered(stream, epochs.clock, notes)
     t_src = _relative(t_ns, epochs)
-    out, _ = interpolate_linear(epochs.t, t_src, v[:, 0] * scale, _slow_gap(t_src, max_gap_s))
+    out, _ = interpolate_linear(epochs.t, t_src, v[:, 0] * scale, slow_gap(t_src, max_gap_s))
     return out
 
 

@@ -17,7 +17,22 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["bracket", "interpolate_linear", "interpolate_quaternions"]
+__all__ = ["bracket", "interpolate_linear", "interpolate_quaternions", "slow_gap", "SLOW_GAP_INTERVALS"]
+
+#: A slow stream (GNSS at 1 to 5 Hz, battery, throttle, temperature) is interpolated across gaps up to this many of
+#: its own median sample intervals where that is longer than ``max_gap_s``: it changes slowly, and a receiver at
+#: 1 to 2 Hz, or one whose samples come unevenly, would otherwise leave most epochs without a value.
+SLOW_GAP_INTERVALS = 3.0
+
+
+def slow_gap(t_src, max_gap_s: float) -> float:
+    """The longest gap (s) across which a slow stream sampled at ``t_src`` (s, increasing) is interpolated: the
+    longer of ``max_gap_s`` and ``SLOW_GAP_INTERVALS`` of its median sample interval (``max_gap_s`` for fewer than
+    two samples)."""
+    t_src = np.asarray(t_src, float)
+    if len(t_src) < 2:
+        return max_gap_s
+    return max(max_gap_s, SLOW_GAP_INTERVALS * float(np.median(np.diff(t_src))))
 
 
 def bracket(t, t_src, max_gap_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

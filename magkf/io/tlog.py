@@ -74,7 +74,7 @@ Time
 Streams (interpolated onto the magnetometer's epochs with ``magkf.io.streams``)
     ``ATTITUDE`` ``roll, pitch, yaw`` (rad), else ``ATTITUDE_QUATERNION`` ``q1..q4`` (scalar first),
     body FRD in NED, across gaps up to ``max_gap_s``. The slower streams (GNSS, battery, throttle; 1 to 5 Hz
-    in telemetry) across gaps up to ``AUX_GAP_INTERVALS`` of their median intervals where that is longer.
+    in telemetry) across gaps up to ``SLOW_GAP_INTERVALS`` of their median intervals where that is longer.
     ``GPS_RAW_INT``: ``fix_type`` (``GPS_FIX_TYPE``: 3 = 3-D), ``lat, lon`` (1e-7 deg),
     ``alt`` (mm above MSL), ``alt_ellipsoid`` (mm above WGS-84; MAVLink 2 extension, 0 when not given),
     ``eph, epv`` (HDOP and VDOP x 100, 65535 unknown). ``BATTERY_STATUS.current_battery`` (battery 0) else
@@ -127,7 +127,7 @@ from .dataflash import (
     unmatched_priority,
 )
 from .drivelog import AutopilotLog, table_to_write
-from .streams import bracket, interpolate_linear, interpolate_quaternions
+from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -171,8 +171,6 @@ PERSISTING = frozenset({"PARAM_VALUE", "STATUSTEXT", "AUTOPILOT_VERSION"})
 #: An attitude stream slower than ``max_gap_s`` (telemetry at 1 to 4 Hz) is interpolated across gaps up to this many
 #: of its median intervals: one sample lost between two is bridged, a longer loss is not.
 SLOW_ATTITUDE_INTERVALS = 2.5
-#: Slow streams (battery, throttle) count a gap only beyond this many of their median intervals.
-AUX_GAP_INTERVALS = 3.0
 #: Keys of the auxiliary channels' dict (``_auxiliary``) that are not channels: their streams' median intervals (s)
 #: and ``max_gap_s``.
 INTERVALS, MAX_GAP = "_intervals_s", "_max_gap_s"
@@ -1084,7 +1082,7 @@ def _position(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
         return
     gps, t_gps, _, _ = _in_time_order(gps, clock.boot_us(gps))
     t, t_gps = boot * 1e-6, t_gps * 1e-6
-    max_gap_s = _aux_gap(t_gps, max_gap_s)  # telemetry sends it at 1 to 5 Hz; the position changes slowly
+    max_gap_s = slow_gap(t_gps, max_gap_s)  # telemetry sends it at 1 to 5 Hz; the position changes slowly
     fix = gps["fix_type"] >= 3
     i, _, valid = bracket(t, t_gps, max_gap_s)
     frame["fix_type"] = np.where(valid, gps["fix_type"][i], np.nan)
@@ -1122,13 +1120,6 @@ def _position(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
         notes.append("GPS_RAW_INT has no alt_ellipsoid: alt is above mean sea level, not the WGS-84 ellipsoid")
 
 
-def _aux_gap(t_src: np.ndarray, max_gap_s: float) -> float:
-    """The longest gap (s) across which a slow stream sampled at ``t_src`` (s) is interpolated: ``max_gap_s`` or
-    ``AUX_GAP_INTERVALS`` median intervals, whichever is longer."""
-    step = float(np.median(np.diff(t_src))) if len(t_src) > 1 else 0.0
-    return max(max_gap_s, AUX_GAP_INTERVALS * step)
-
-
 def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -> dict:
     """``current_a``, ``throttle`` (0..1) and ``temp_c`` at the epochs where the log has them; returns them, with
     ``INTERVALS`` (``{column: median interval of its stream, s}``) and ``MAX_GAP`` (``max_gap_s``)."""
@@ -1162,7 +1153,7 @@ def _auxiliary(vehicle, clock, boot, table, stream, max_gap_s, frame, columns) -
                 continue
             t_src = t_src * 1e-6
             intervals[name] = float(np.median(np.diff(t_src))) if len(t_src) > 1 else float("nan")
-            out[name] = interpolate_linear(t, t_src, values, _aux_gap(t_src, max_gap_s))[0]
+            out[name] = interpolate_linear(t, t_src, values, slow_gap(t_src, max_gap_s))[0]
             timed = "" if _has_boot(source) else ", placed at receipt time"
             columns[name] = f"{message}.{field} ({text}{timed}, linear)"
             break

@@ -84,16 +84,13 @@ from ..conventions import (
 from ..errors import InputError
 from .drivelog import AutopilotLog
 from .site import BOOT
-from .streams import bracket, interpolate_linear, interpolate_quaternions
+from .streams import SLOW_GAP_INTERVALS, bracket, interpolate_linear, interpolate_quaternions, slow_gap
 from .ulog_combined import combined_instances, combined_samples, undo
 from .ulog_write import write_ulog
 
 __all__ = ["magnetometer_instances", "read_ulog", "write_ulog"]
 
 NT_PER_GAUSS = NT_PER_UNIT["G"]
-#: GNSS and auxiliary streams (battery, throttle) are logged slowly; a gap counts when it exceeds this many of
-#: the stream's median sample intervals (or ``max_gap_s``, whichever is longer).
-AUX_GAP_INTERVALS = 3.0
 #: The topics read; pyulog is told to skip the others.
 TOPICS = (
     "sensor_mag",
@@ -320,19 +317,13 @@ def _gnss_fields(g: dict, topic: str, notes: list) -> tuple[dict, dict, np.ndarr
     return values, source, fix
 
 
-def _aux_gap(t_s: np.ndarray, max_gap_s: float) -> float:
-    if len(t_s) < 2:
-        return max_gap_s
-    return max(max_gap_s, AUX_GAP_INTERVALS * float(np.median(np.diff(t_s))))
-
-
 def _battery(ulog, t, ref_us, max_gap_s) -> tuple[np.ndarray, str] | None:
     for instance, b in sorted(_datasets(ulog, "battery_status").items()):
         current = b["current_a"].astype(float)
         current[current == -1.0] = np.nan
         if np.isfinite(current).any():
             t_src = (b["timestamp"].astype(np.int64) - ref_us) * 1e-6
-            values, _ = interpolate_linear(t, t_src, current, _aux_gap(t_src, max_gap_s))
+            values, _ = interpolate_linear(t, t_src, current, slow_gap(t_src, max_gap_s))
             return values, f"battery_status[{instance}].current_a (A; -1 = unknown -> missing)"
     return None
 
@@ -350,7 +341,7 @@ def _throttle(ulog, t, ref_us, max_gap_s) -> tuple[np.ndarray, str] | None:
     else:
         return None
     t_src = (_sample_us(data) - ref_us) * 1e-6
-    out, _ = interpolate_linear(t, t_src, values, _aux_gap(t_src, max_gap_s))
+    out, _ = interpolate_linear(t, t_src, values, slow_gap(t_src, max_gap_s))
     return out, text
 
 
@@ -650,11 +641,11 @@ def _gnss_columns(gnss: _Gnss, t: np.ndarray, ref_us: int, max_gap_s: float, not
     ``ref_us``), and their provenance.
 
     Positions change slowly, so the GNSS stream is interpolated across gaps up to the longer of ``max_gap_s`` and
-    ``AUX_GAP_INTERVALS`` of its median sample interval (``_aux_gap``): a 1 to 2 Hz receiver, or one whose samples
+    ``SLOW_GAP_INTERVALS`` of its median sample interval: a 1 to 2 Hz receiver, or one whose samples
     alternate 0.4 and 0.6 s apart, still places every epoch. Epochs placed only thanks to that longer gap are noted.
     """
     t_gnss = (_position_us(gnss.data) - ref_us) * 1e-6
-    gap = _aux_gap(t_gnss, max_gap_s)
+    gap = slow_gap(t_gnss, max_gap_s)
     table, columns = {}, {}
     for column, values in gnss.values.items():
         table[column], _ = interpolate_linear(t, t_gnss, values, gap)
@@ -668,7 +659,7 @@ def _gnss_columns(gnss: _Gnss, t: np.ndarray, ref_us: int, max_gap_s: float, not
         interval = float(np.median(np.diff(t_gnss)))
         notes.append(
             f"{bridged} epochs lie in {gnss.topic} gaps longer than max_gap_s = {max_gap_s:g} s: their position, DOP "
-            f"and fix are interpolated across gaps up to {gap:.2f} s ({AUX_GAP_INTERVALS:g} of the stream's median "
+            f"and fix are interpolated across gaps up to {gap:.2f} s ({SLOW_GAP_INTERVALS:g} of the stream's median "
             f"interval, {interval:.2f} s)"
         )
     return table, columns
@@ -790,7 +781,7 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
 
     Attitude is interpolated by slerp, GNSS and DOP linearly; an epoch outside a stream's span or across a
     gap longer than ``max_gap_s`` (s) gets NaN (the slow GNSS and auxiliary streams use the longer of
-    ``max_gap_s`` and ``AUX_GAP_INTERVALS`` of their own median sample interval; GNSS epochs placed only so are
+    ``max_gap_s`` and ``SLOW_GAP_INTERVALS`` of their own median sample interval; GNSS epochs placed only so are
     noted). Rows with a repeated time are dropped (noted).
 
     Returns ``(table, provenance)``; the provenance is JSON-able: ``format``, ``file``, ``px4_version``,

@@ -60,3 +60,14 @@ def test_a_bad_quaternion_invalidates_only_its_brackets(bad):
     assert np.array_equal(valid, [True, True, False, False, True])
     yaw, _, _ = quaternion_to_euler(q[valid])
     assert np.allclose(yaw, 10.0 * t[valid], atol=1e-9)
+
+
+def test_a_slow_stream_is_bridged_across_three_of_its_intervals():
+    """A stream whose five intervals alternate 0.4 and 0.6 s (median 0.4 s) is bridged across 1.2 s; a fast
+    stream keeps ``max_gap_s``; one sample gives no interval to scale."""
+    from magkf.io.streams import SLOW_GAP_INTERVALS, slow_gap
+
+    t = np.cumsum([0.0, 0.4, 0.6, 0.4, 0.6, 0.4])
+    assert SLOW_GAP_INTERVALS == 3.0 and slow_gap(t, 0.5) == pytest.approx(1.2)
+    assert slow_gap(np.arange(10) * 0.01, 0.5) == 0.5
+    assert slow_gap(np.array([3.0]), 0.5) == 0.5
