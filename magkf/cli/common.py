@@ -34,6 +34,7 @@ __all__ = [
     "add_model_options",
     "mag_instance",
     "open_log",
+    "log_reader",
     "reading_options",
     "load_calibration",
 ]
@@ -468,16 +469,23 @@ def mag_instance(args):
         raise InputError(f"--mag {args.mag!r}: give an instance number") from None
 
 
-def open_log(args, mag="option"):
-    """The log named on the command line, through ``read_log`` with the reading options (``mag``: an
-    instance number, or None for the log's only magnetometer, instead of the ``--mag`` option)."""
+def log_reader(args, mag="option"):
+    """``read(path) -> DriveLog``: ``read_log`` with the command line's ``--format`` and reading options (``mag``:
+    an instance number, or None for the log's only magnetometer, instead of the ``--mag`` option)."""
     from ..io.readers import read_log
 
     options = reading_options(args)
+    instance = mag_instance(args) if mag == "option" else mag
 
     def read(path):
-        return read_log(path, args.format, mag=mag_instance(args) if mag == "option" else mag, **options)
+        return read_log(path, args.format, mag=instance, **options)
 
+    return read
+
+
+def open_log(args, mag="option"):
+    """The log named on the command line, through ``log_reader``."""
+    read = log_reader(args, mag)
     if args.file != "-":
         return read(args.file)
     return _from_standard_input(read, args.format)

@@ -72,12 +72,8 @@ def _check_many(args) -> int:
     """``check`` of several logs: one line each (``magkf.diagnostics.survey``), or a JSON list with ``--json``."""
     from ..diagnostics.survey import format_survey, survey_logs
     from ..fleet import find_logs
-    from ..io.readers import read_log
 
-    logs = find_logs(args.file)
-    options = common.reading_options(args)
-    mag = common.mag_instance(args)
-    entries = survey_logs(logs, lambda path: read_log(path, args.format, mag=mag, **options), args.dop_max)
+    entries = survey_logs(find_logs(args.file), common.log_reader(args), args.dop_max)
     if args.json:
         common.print_json(entries)
     else:
