@@ -101,7 +101,7 @@ import numpy as np
 from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, VDOP, YAW, euler_to_quaternion, quaternion_to_euler
 from ..errors import InputError
 from .drivelog import AutopilotLog, table_to_write
-from .streams import SLOW_GAP_INTERVALS, bracket, interpolate_linear, interpolate_quaternions, slow_gap
+from .streams import SLOW_GAP_INTERVALS, bracket, interpolate_linear, interpolate_quaternions, slow_gap, time_order
 from .timebase import GPS_EPOCH_UNIX, SECONDS_PER_WEEK, gps_to_unix, leap_seconds
 
 if TYPE_CHECKING:
@@ -459,11 +459,10 @@ def _select(table: dict, instance: int | None) -> dict:
 def _by_time(table: dict) -> dict:
     """``table`` sorted by ``TimeUS``, keeping the first of samples with the same ``TimeUS`` (interpolation
     needs strictly increasing times)."""
-    if not table or not len(table["TimeUS"]):
+    if not table:
         return table
-    order = np.argsort(table["TimeUS"], kind="stable")
-    keep = order[np.concatenate(([True], np.diff(table["TimeUS"][order]) > 0))]
-    return table if np.array_equal(keep, np.arange(len(order))) else {k: v[keep] for k, v in table.items()}
+    keep = time_order(table["TimeUS"])
+    return table if np.array_equal(keep, np.arange(len(table["TimeUS"]))) else {k: v[keep] for k, v in table.items()}
 
 
 def _mag_streams(log: _Log) -> list[dict]:

@@ -56,7 +56,7 @@ from ..conventions import ALT, HDOP, LAT, LON, MAG, PITCH, ROLL, TIME, YAW, dcm_
 from ..errors import InputError
 from .drivelog import AutopilotLog, table_to_write
 from .site import BOOT, UNIX_1990
-from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap
+from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap, time_order
 
 __all__ = [
     "TOPIC_KINDS",
@@ -406,11 +406,10 @@ def _ordered(stream: _Stream, clock: str, notes: list) -> tuple[np.ndarray, np.n
     keep = t != 0 if clock == "header" else np.ones(len(t), bool)
     if not keep.all():
         notes.append(f"{int((~keep).sum())} {stream.topic} messages with a zero header.stamp were dropped")
-    order = np.flatnonzero(keep)[np.argsort(t[keep], kind="stable")]
-    unique = np.r_[True, np.diff(t[order]) > 0] if len(order) else np.zeros(0, bool)
-    if not unique.all():
-        notes.append(f"{int((~unique).sum())} {stream.topic} messages with a repeated time were dropped")
-    rows = order[unique]
+    stamped = np.flatnonzero(keep)
+    rows = stamped[time_order(t[stamped])]
+    if len(rows) < len(stamped):
+        notes.append(f"{len(stamped) - len(rows)} {stream.topic} messages with a repeated time were dropped")
     return t[rows], stream.values[rows]
 
 

@@ -17,12 +17,20 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["bracket", "interpolate_linear", "interpolate_quaternions", "slow_gap", "SLOW_GAP_INTERVALS"]
+__all__ = ["bracket", "interpolate_linear", "interpolate_quaternions", "slow_gap", "SLOW_GAP_INTERVALS", "time_order"]
 
 #: A slow stream (GNSS at 1 to 5 Hz, battery, throttle, temperature) is interpolated across gaps up to this many of
 #: its own median sample intervals where that is longer than ``max_gap_s``: it changes slowly, and a receiver at
 #: 1 to 2 Hz, or one whose samples come unevenly, would otherwise leave most epochs without a value.
 SLOW_GAP_INTERVALS = 3.0
+
+
+def time_order(t) -> np.ndarray:
+    """Indices (M,) that put the samples at times ``t`` (N,) in time order, keeping the first (in ``t``'s order) of
+    samples with the same time: interpolation needs strictly increasing times. ``N - M`` samples are dropped."""
+    t = np.asarray(t)
+    order = np.argsort(t, kind="stable")
+    return order[np.concatenate(([True], np.diff(t[order]) > 0))] if len(t) else order
 
 
 def slow_gap(t_src, max_gap_s: float) -> float:

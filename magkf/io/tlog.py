@@ -127,7 +127,7 @@ from .dataflash import (
     unmatched_priority,
 )
 from .drivelog import AutopilotLog, table_to_write
-from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap
+from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap, time_order
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -579,11 +579,8 @@ def _has_boot(table: dict) -> bool:
 def _in_time_order(table: dict, boot_us: np.ndarray) -> tuple[dict, np.ndarray, int, int]:
     """``table`` sorted by boot time with the later of messages of equal boot time dropped: ``(table, boot_us,
     dropped, backwards)``, ``backwards`` the places where the receipt order went back in time."""
-    if not len(boot_us):
-        return table, boot_us, 0, 0
     backwards = int(np.count_nonzero(np.diff(boot_us) < 0))
-    order = np.argsort(boot_us, kind="stable")
-    keep = order[np.concatenate(([True], np.diff(boot_us[order]) > 0))]
+    keep = time_order(boot_us)
     dropped = len(boot_us) - len(keep)
     return {k: v[keep] for k, v in table.items()}, boot_us[keep], dropped, backwards
 

@@ -84,7 +84,7 @@ from ..conventions import (
 from ..errors import InputError
 from .drivelog import AutopilotLog
 from .site import BOOT
-from .streams import SLOW_GAP_INTERVALS, bracket, interpolate_linear, interpolate_quaternions, slow_gap
+from .streams import SLOW_GAP_INTERVALS, bracket, interpolate_linear, interpolate_quaternions, slow_gap, time_order
 from .ulog_combined import combined_instances, combined_samples, undo
 from .ulog_write import write_ulog
 
@@ -481,11 +481,9 @@ def _magnetometer(ulog, mag: int | None, raw: bool, name: str, notes: list) -> _
     mag_us = _sample_us(m)
     fields = ("x", "y", "z") if topic == "sensor_mag" else tuple(f"magnetometer_ga[{k}]" for k in range(3))
     mag_g = np.column_stack([m[f].astype(float) for f in fields])
-    order = np.argsort(mag_us, kind="stable")
-    keep = np.r_[True, np.diff(mag_us[order]) > 0]
-    if not keep.all():
-        notes.append(f"{int((~keep).sum())} {topic} samples with a repeated timestamp were dropped")
-    rows = order[keep]
+    rows = time_order(mag_us)
+    if len(rows) < len(mag_us):
+        notes.append(f"{len(mag_us) - len(rows)} {topic} samples with a repeated timestamp were dropped")
     stamp = "timestamp_sample" if "timestamp_sample" in m and np.all(m["timestamp_sample"] > 0) else "timestamp"
     temp = "temperature" if "temperature" in m else None
     return _Magnetometer(

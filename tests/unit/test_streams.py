@@ -71,3 +71,12 @@ def test_a_slow_stream_is_bridged_across_three_of_its_intervals():
     assert SLOW_GAP_INTERVALS == 3.0 and slow_gap(t, 0.5) == pytest.approx(1.2)
     assert slow_gap(np.arange(10) * 0.01, 0.5) == 0.5
     assert slow_gap(np.array([3.0]), 0.5) == 0.5
+
+
+def test_time_order_keeps_the_first_of_repeated_times():
+    """Out-of-order times are sorted; of two samples at one time the earlier in the input stays."""
+    from magkf.io.streams import time_order
+
+    t = np.array([3.0, 1.0, 2.0, 1.0, 3.0, 4.0])
+    np.testing.assert_array_equal(time_order(t), [1, 2, 0, 5])
+    assert time_order(np.array([], float)).size == 0
