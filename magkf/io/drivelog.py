@@ -348,11 +348,11 @@ def from_table(
     row_of = row_of or table_rows(table)  # blank lines of a CSV file counted
     provenance = dict(provenance or {})
     provenance["notes"] = list(provenance.get("notes") or [])  # the reader's own list is not changed
+    table = _numbers(table, name, row_of)  # a cell that is not a number is named before any time is shifted
     declared = provenance.get("time_base") == BOOT
     if site is not None or declared or (timed_since_boot(table, provenance) and not _has_position(table)):
         table = place_at_site(table, provenance, site, name)  # refuses a log it cannot place, saying what to give
     _check_columns(table, name, mag_unit, whole)
-    table = _numbers(table, name, row_of)
     require_complete(table, (TIME,), name, row_of)
     check_time_base(table[TIME].to_numpy(dtype=float), name, row_of)
     _check_ranges(table, name, mag_unit, row_of)

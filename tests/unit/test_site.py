@@ -146,3 +146,13 @@ def test_a_reader_without_site_support_refuses_the_option(tmp_path, drive):
         str(info.value)
         == f"{tmp_path / 'a.plain'}: --site and --date do not apply to a plain table (its reader does not take them)"
     )
+
+
+def test_a_time_cell_that_is_no_number_is_named_before_the_clock_is_set(drive):
+    """Placing shifts the time column; a cell of text there is refused with its row and text first, not taken
+    for an empty cell once shifted."""
+    boot = boot_table(drive).astype({"time": object})
+    boot.loc[3, "time"] = "12:00:01"
+    with pytest.raises(InputError) as info:
+        from_table(boot, "bench.csv", provenance={"time_base": "boot"}, site=Site(48.1, 11.6, 0.0, START))
+    assert info.value.column == "time" and "12:00:01" in str(info.value)
