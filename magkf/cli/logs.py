@@ -49,7 +49,8 @@ def add_parsers(sub) -> None:
 
 def run_check(args) -> int:
     """One screen on a log of any supported format: streams and rates, units decided and why, time base, heading and
-    tilt coverage, DOP, the measurement models it allows and what will limit the calibration."""
+    tilt coverage, DOP, the measurement models it allows and what will limit the calibration. On a folder, several
+    logs or a glob pattern: one line per log (format, firmware, duration, magnetometers, what it allows or why not)."""
     from pathlib import Path
 
     from ..diagnostics.inspect import format_inspection, inspect_log
