@@ -421,8 +421,8 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
     g.add_argument(
         "--date",
         metavar="YYYY-MM-DD[THH:MM]",
-        help=f"UTC at the boot of {'logs' if many else 'a log'} timed since boot (without GNSS time); the day is enough "
-        "for the field",
+        help=f"UTC at the boot of {'logs' if many else 'a log'} timed since boot (without GNSS time); the day is "
+        "enough for the field",
     )
     g.add_argument(
         "--topic",
