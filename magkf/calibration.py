@@ -6,7 +6,8 @@ A calibration file is one JSON object. The data contract requires ``R`` (3x3, ro
 
 Version 2 adds the physical effects estimated with the core: ``effects``, a list of objects
 ``{"effect": "NAME[:COLUMN]", "settings": {...}, "parameters": {NAME: {"value", "std", "unit"}}}`` in state
-order, and ``state_covariance``, the covariance over the core and then every effect's parameters. Every
+order, and ``state_covariance``, the covariance over the core and then every effect's parameters, and optionally
+``field_unit`` (absent: nT) and ``model`` (the model family the data determined). Every
 command that uses a calibration restores them (``magkf.effects.restore_effects``). Version 1 files are read
 as they are (their effects, under ``parameters.effects``, are kept there for information only).
 Files are written with Python's shortest round-trip float representation, so reading a written file
@@ -29,6 +30,9 @@ __all__ = ["FORMAT", "VERSION", "PARAMETER_NAMES", "StoredEffect", "Calibration"
 
 FORMAT = "magkf-calibration"
 VERSION = 2
+#: What a calibration's field may be measured in: nT, or no physical unit (a fit to the unit sphere, or to
+#: the sensor's counts without a field magnitude to scale to).
+FIELD_UNITS = ("nT", "unit-sphere", "counts")
 #: Names of the 12 core parameters in state order: R row-major, then b.
 PARAMETER_NAMES = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4)) + ("b_x", "b_y", "b_z")
 
@@ -119,6 +123,14 @@ class Calibration:
     site : dict or None, optional
         The place and date the user gave for a log without GNSS (``DriveLog.site``: ``given`` True, ``lat``,
         ``lon``, ``alt``, ``start_utc``), or None when the log's own GNSS placed it.
+    field_unit : str, optional
+        What the field of ``b`` and of the corrected field is measured in: ``"nT"`` (a physical field, the
+        default), or ``"unit-sphere"`` / ``"counts"`` for a fit that had no physical field to scale to (an
+        ellipsoid without ``--field``); only a calibration in nT can be exported as autopilot parameters.
+    model : dict or None, optional
+        The model family the data determined (``magkf.online.families``): ``family`` (``offsets``, ``scale``,
+        ``soft-iron`` or ``full``), ``held`` (what was held and at which calibration), ``text`` (in words), or
+        None when not recorded.
     effects : tuple of StoredEffect, optional
         ``StoredEffect`` of each physical effect estimated with the core, in state order.
     state_covariance : array_like or None, optional
@@ -148,6 +160,8 @@ class Calibration:
     source: str | None = None
     magnetometer: dict | None = None
     site: dict | None = None
+    field_unit: str = "nT"
+    model: dict | None = None
     effects: tuple = ()
     state_covariance: np.ndarray | None = None
 
@@ -252,6 +266,10 @@ class Calibration:
             out["magnetometer"] = jsonable(self.magnetometer)
         if self.site is not None:
             out["site"] = jsonable(self.site)
+        if self.field_unit != "nT":
+            out["field_unit"] = self.field_unit
+        if self.model is not None:
+            out["model"] = jsonable(self.model)
         if self.effects:
             out["effects"] = [e.to_dict() for e in self.effects]
         if self.state_covariance is not None:
@@ -389,9 +407,12 @@ def _stored_fields(data: dict, source: str) -> dict:
         stored[key] = value
     if not isinstance(data.get("source", ""), str):
         raise InputError("key 'source' must be a string", source)
-    for key in ("magnetometer", "site"):
+    for key in ("magnetometer", "site", "model"):
         if not isinstance(data.get(key, {}), dict):
             raise InputError(f"key {key!r} must be a JSON object", source)
+    field_unit = data.get("field_unit", "nT")
+    if field_unit not in FIELD_UNITS:
+        raise InputError(f"key 'field_unit' is {_shown(field_unit)}; expected one of {', '.join(FIELD_UNITS)}", source)
     method = data.get("method", "unspecified")
     if not isinstance(method, str):
         raise InputError("key 'method' must be a string", source)
@@ -399,6 +420,8 @@ def _stored_fields(data: dict, source: str) -> dict:
         "source": data.get("source"),
         "magnetometer": data.get("magnetometer"),
         "site": data.get("site"),
+        "field_unit": field_unit,
+        "model": data.get("model"),
         "method": method,
     }
 
