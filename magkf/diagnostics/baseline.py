@@ -1,0 +1,251 @@
+"""Raw, the vehicle's own calibration and magkf's, side by side: the magnitude and heading error of each.
+
+``compare_calibrations(log, {"raw": None, "vehicle": ..., "magkf": ...})`` corrects the log's readings with each
+calibration (its stored effects included, as ``magkf.apply`` applies them; None: the raw reading as the field)
+and measures every epoch against magkf's reference field and the log's attitude (``magkf.online.prepare``):
+
+* magnitude error, nT: ``|B| - |B_ref|``, at every epoch with a reading and a reference;
+* heading error, deg: the heading a tilt-compensated compass would give with that calibration less the logged
+  heading, ``wrap(D_ref - D)``, where ``D`` is the direction (clockwise from true north) of the horizontal part
+  of the corrected field taken to NED with the logged attitude and ``D_ref`` the reference field's declination;
+  wrapped into (-180, 180]; only at epochs with attitude as well.
+
+The summary (``Baseline.summary``) gives each calibration's RMS of both over the same epochs (those with
+attitude and a reference where every calibration gives both), so that the rows can be compared.
+``improvement_text`` says in a sentence how magkf's calibration compares with the vehicle's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from ..conventions import body_to_ned, declination_deg, wrap_deg
+from ..io.drivelog import DriveLog
+
+__all__ = [
+    "RAW",
+    "VEHICLE",
+    "MAGKF",
+    "Baseline",
+    "compare_calibrations",
+    "vehicle_calibration",
+    "improvement",
+    "improvement_text",
+]
+
+#: The names ``improvement_text`` and the report give the raw reading, the vehicle's calibration and magkf's.
+RAW, VEHICLE, MAGKF = "raw", "vehicle", "magkf"
+#: Per-epoch statuses of ``Baseline.status``: both errors, the magnitude error only (no attitude), neither.
+STATUSES = ("ok", "missing_attitude", "missing_position", "missing_mag", "missing_effect_input")
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """The errors of several calibrations of one log (``compare_calibrations``).
+
+    Attributes
+    ----------
+    time : numpy.ndarray
+        (N,) UNIX s.
+    heading_deg : numpy.ndarray
+        (N,) the logged heading (yaw) in [0, 360) deg, NaN without attitude: what errors are binned against.
+    magnitude_error_nt : dict
+        Name -> (N,) ``|corrected| - |reference|``, nT; NaN without a reading, a reference or an effect's input.
+    heading_error_deg : dict
+        Name -> (N,) compass heading less the logged heading, deg in (-180, 180]; NaN where the magnitude
+        error is, and without attitude.
+    status : dict
+        Name -> (N,) str, one of ``STATUSES`` (the first that applies of missing_mag, missing_effect_input,
+        missing_position, missing_attitude; else ok).
+    compared : numpy.ndarray
+        (N,) bool, the epochs the summary is taken over: every calibration has both errors there.
+    summary : pandas.DataFrame
+        Indexed by name: ``magnitude_rms_nt``, ``heading_rms_deg`` (RMS over ``compared``), ``magnitude_mean_nt``
+        and ``heading_mean_deg`` (their means), ``n_compared`` (epochs), ``n_magnitude`` and ``n_heading``
+        (epochs where that calibration has each error).
+    """
+
+    time: np.ndarray
+    heading_deg: np.ndarray
+    magnitude_error_nt: dict
+    heading_error_deg: dict
+    status: dict
+    compared: np.ndarray
+    summary: pd.DataFrame
+
+    @property
+    def names(self) -> list:
+        """The calibrations compared, in the order given."""
+        return list(self.magnitude_error_nt)
+
+
+def compare_calibrations(log: DriveLog, calibrations: dict, prep=None) -> Baseline:
+    """Every epoch's magnitude and heading error with each calibration of ``calibrations``.
+
+    Parameters
+    ----------
+    log : DriveLog
+        The log, its readings in the frame the calibrations take (the raw sensor's, as read by default).
+    calibrations : dict
+        Name -> ``Calibration`` (its stored effects applied at their stored values, ``magkf.apply.effect_terms``),
+        or None: the raw reading taken as the field (the identity).
+    prep : PreparedLog or None, optional
+        ``magkf.online.prepare.prepare(log, FilterConfig())`` when already computed (its reference field and
+        attitude matrices are used); None: computed here.
+
+    Returns
+    -------
+    Baseline
+
+    Raises
+    ------
+    InputError
+        A calibration whose stored effect is not registered, or an IGRF date out of range (``magkf.apply``).
+    ValueError
+        No calibration given.
+    """
+    if not calibrations:
+        raise ValueError("compare_calibrations needs at least one calibration (None: the raw reading)")
+    if prep is None:
+        from ..config import FilterConfig
+        from ..online.prepare import prepare
+
+        prep = prepare(log, FilterConfig())
+    has_ref = np.all(np.isfinite(prep.ref), axis=1)
+    has_mag = np.all(np.isfinite(log.mag), axis=1)
+    magnitude, heading, status = {}, {}, {}
+    for name, cal in calibrations.items():
+        field, has_terms = _corrected(log, cal)
+        magnitude[name] = np.linalg.norm(field, axis=1) - prep.ref_mag
+        heading[name] = heading_error_deg(field, prep.c_nb, prep.ref)
+        status[name] = _status(has_mag, has_terms, has_ref, prep.has_attitude)
+    compared = np.all([np.isfinite(h) for h in heading.values()], axis=0)
+    att = log.attitude
+    logged_heading = np.where(prep.has_attitude, att[:, 2] % 360.0, np.nan)
+    summary = _summary(magnitude, heading, compared)
+    return Baseline(prep.time, logged_heading, magnitude, heading, status, compared, summary)
+
+
+def _corrected(log: DriveLog, cal) -> tuple[np.ndarray, np.ndarray]:
+    """The field (N, 3) nT of ``log`` corrected with ``cal`` and its stored effects (None: the raw reading), and
+    (N,) whether the effects' terms are known (their inputs present)."""
+    if cal is None:
+        return log.mag, np.ones(len(log.mag), bool)
+    from ..apply import effect_terms
+
+    terms = effect_terms(log, cal)
+    return cal.correct(log.mag - terms), np.all(np.isfinite(terms), axis=1)
+
+
+def heading_error_deg(field_body, c_nb, ref_ned) -> np.ndarray:
+    """The heading error (N,) deg in (-180, 180] of a compass reading the body field ``field_body`` (N, 3) nT at
+    attitude ``c_nb`` (N, 3, 3, body FRD to NED): the reference's declination less the direction of the
+    field's horizontal part in NED, ``wrap(D_ref - D)``; a field turned clockwise by ``a`` makes the compass read
+    ``a`` less. NaN where any input is not finite.
+
+    Parameters
+    ----------
+    field_body : array_like
+        (N, 3) corrected body field, any unit.
+    c_nb : array_like
+        (N, 3, 3) attitude matrices (NaN without attitude).
+    ref_ned : array_like
+        (N, 3) reference field in NED, any unit.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N,) deg.
+    """
+    field_ned = body_to_ned(np.asarray(c_nb, float), np.asarray(field_body, float))
+    return wrap_deg(declination_deg(np.asarray(ref_ned, float)) - declination_deg(field_ned))
+
+
+def _status(has_mag, has_terms, has_ref, has_attitude) -> np.ndarray:
+    """Each epoch's status (``STATUSES``) from what it has: a reading, the effects' terms, a reference and
+    attitude, (N,) bool each."""
+    return np.select(
+        [~has_mag, ~has_terms, ~has_ref, ~np.asarray(has_attitude, bool)],
+        ["missing_mag", "missing_effect_input", "missing_position", "missing_attitude"],
+        "ok",
+    ).astype(object)
+
+
+def _rms(values) -> float:
+    values = np.asarray(values, float)
+    return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+
+def _summary(magnitude: dict, heading: dict, compared) -> pd.DataFrame:
+    """One row per calibration: RMS and mean of both errors over ``compared`` (N,) bool, and the epoch counts."""
+    rows = {}
+    for name in magnitude:
+        m, h = magnitude[name][compared], heading[name][compared]
+        rows[name] = {
+            "magnitude_rms_nt": _rms(m),
+            "heading_rms_deg": _rms(h),
+            "magnitude_mean_nt": float(np.mean(m)) if m.size else float("nan"),
+            "heading_mean_deg": float(np.mean(h)) if h.size else float("nan"),
+            "n_compared": int(np.sum(compared)),
+            "n_magnitude": int(np.sum(np.isfinite(magnitude[name]))),
+            "n_heading": int(np.sum(np.isfinite(heading[name]))),
+        }
+    return pd.DataFrame.from_dict(rows, orient="index")
+
+
+def vehicle_calibration(log: DriveLog):
+    """The calibration the vehicle flew with, in the raw frame of ``log`` (nT), and its description, or
+    ``(None, reason)`` when the log does not give it (``magkf.io.vehicle_calibration``)."""
+    try:
+        from ..io.vehicle_calibration import describe_logged, logged_calibration
+    except ImportError:  # the reader of the logged calibration is not part of this installation
+        return None, "magkf cannot read a vehicle's own calibration from a log here"
+    cal = logged_calibration(log)
+    if cal is None:
+        return None, "the log does not hold the calibration the vehicle flew with"
+    return cal, describe_logged(cal)
+
+
+def improvement(summary: pd.DataFrame, ours: str = MAGKF, theirs: str = VEHICLE) -> tuple[float, float]:
+    """How much lower ``ours``'s RMS errors are than ``theirs``'s in ``summary`` (``Baseline.summary``):
+    ``(nT of magnitude, deg of heading)``, positive where ``ours`` is better; NaN where either row is absent."""
+    if ours not in summary.index or theirs not in summary.index:
+        return float("nan"), float("nan")
+    a, b = summary.loc[ours], summary.loc[theirs]
+    return (float(b["magnitude_rms_nt"] - a["magnitude_rms_nt"]), float(b["heading_rms_deg"] - a["heading_rms_deg"]))
+
+
+def improvement_text(summary: pd.DataFrame, ours: str = MAGKF, theirs: str = VEHICLE) -> str:
+    """One sentence on ``ours`` against the calibration the vehicle flies (``theirs``) in ``summary``
+    (``Baseline.summary``), from their RMS magnitude (nT) and heading (deg) errors, saying which way each
+    goes: "improves on the calibration the vehicle flies by 120 nT of magnitude and 1.5 degrees of heading
+    (RMS)", "is worse than ...", or improves one and is worse in the other."""
+    nt, deg = improvement(summary, ours, theirs)
+    if not (np.isfinite(nt) and np.isfinite(deg)):
+        return "cannot be compared with the calibration the vehicle flies (the log does not give it)"
+    them = "the calibration the vehicle flies"
+    if nt >= 0 and deg >= 0:
+        return f"improves on {them} by {_nt(nt)} nT of magnitude and {_deg(deg)} degrees of heading (RMS)"
+    if nt < 0 and deg < 0:
+        return f"is worse than {them} by {_nt(-nt)} nT of magnitude and {_deg(-deg)} degrees of heading (RMS)"
+    if nt >= 0:
+        return (
+            f"improves on {them} by {_nt(nt)} nT of magnitude (RMS) but is worse by {_deg(-deg)} degrees of "
+            "heading (RMS)"
+        )
+    return (
+        f"improves on {them} by {_deg(deg)} degrees of heading (RMS) but is worse by {_nt(-nt)} nT of magnitude (RMS)"
+    )
+
+
+def _nt(value: float) -> str:
+    """nT to the unit, or to 0.1 below 10 nT."""
+    return f"{value:.1f}" if value < 10 else f"{value:.0f}"
+
+
+def _deg(value: float) -> str:
+    """Degrees to 0.01 below 1 deg, else to 0.1."""
+    return f"{value:.2f}" if value < 1 else f"{value:.1f}"
