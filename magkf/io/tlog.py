@@ -833,7 +833,8 @@ def read_tlog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
         One row per magnetometer epoch (N rows): ``time`` (UNIX s), ``mag_x, mag_y, mag_z`` (nT),
         ``roll, pitch, yaw`` (deg), ``lat, lon, alt`` (deg, m; only with a 3-D fix in the log), ``hdop``,
         ``vdop``, ``fix_type``, ``current_a``, ``throttle`` (0..1), ``temp_c`` where the log has them; and
-        the JSON-able provenance.
+        the JSON-able provenance (``ardupilot_firmware``: the ArduPilot firmware whose correction model was
+        undone, as its banner names it, or None).
 
     Raises
     ------
@@ -912,6 +913,7 @@ def _read(vehicle: _Vehicle, clock: _Clock, mag, raw: bool, max_gap_s: float, no
             "firmware": ".".join(map(str, _firmware(vehicle))) if _firmware(vehicle) else None,
         },
         "parameters": {k: float(v[-1]) for k, (_, v) in sorted(vehicle.params.items()) if k.startswith(wanted)},
+        "ardupilot_firmware": _ardupilot_firmware(vehicle) if vehicle.autopilot == "ardupilot" else None,
         "raw_reconstruction": raw_text,
         "time_base": clock.time_base,
         "notes": notes,
