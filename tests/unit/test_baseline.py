@@ -1,0 +1,187 @@
+"""``magkf.diagnostics.baseline``: the magnitude and heading errors of raw, a vehicle's calibration and magkf's.
+
+The simulated logs carry white sensor noise of ``NOISE_NT`` per raw axis, no disturbance, the exact logged
+attitude and their reference field (``ref_*``), so every error has a closed form: the calibration's own error
+(deterministic, from the truth) plus the noise through ``R^-1`` along (magnitude) or across (heading) the field.
+The RMS found is checked against that expectation within ``SIGMAS`` standard deviations of the mean of squares.
+"""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from magkf.calibration import Calibration
+from magkf.conventions import declination_deg, euler_to_dcm, wrap_deg
+from magkf.diagnostics.baseline import (
+    MAGKF,
+    RAW,
+    VEHICLE,
+    compare_calibrations,
+    heading_error_deg,
+    improvement,
+    improvement_text,
+)
+from magkf.effects import stored_effect
+from magkf.effects.current_field import CurrentField
+from magkf.io.drivelog import from_table
+from magkf.sim import DriveConfig, simulate_drive
+
+NOISE_NT = 30.0
+#: The vehicle's calibration: the true one with its offset off by this much, nT.
+OFFSET_ERROR_NT = np.array([300.0, -200.0, 100.0])
+#: The mean of squares found may differ from its expectation by this many of its standard deviations (two-sided
+#: normal tail 7e-6: the mean is over thousands of independent epochs, so the normal limit holds).
+SIGMAS = 4.5
+
+
+def _simulated(seed=3, effects=()):
+    config = DriveConfig(duration_s=300, rate_hz=10, seed=seed, noise_nt=NOISE_NT, write_reference=True, disturbances=0)
+    sim = simulate_drive(config, effects=effects)
+    return sim, from_table(sim.table.reset_index(), f"sim{seed}")
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return _simulated()
+
+
+def _field_truth(sim):
+    """The true body field (N, 3) nT and the true attitude matrices (N, 3, 3) of ``sim``."""
+    t = sim.table
+    return sim.field_body, euler_to_dcm(t["yaw"].to_numpy(), t["pitch"].to_numpy(), t["roll"].to_numpy())
+
+
+def _assert_mean_square(found, expected_each, variance_each, label):
+    """The mean of squares ``found`` against the mean of ``expected_each`` (N,), whose terms have variances
+    ``variance_each`` (N,): within ``SIGMAS`` standard deviations of the mean."""
+    expected = float(np.mean(expected_each))
+    sd = float(np.sqrt(np.sum(variance_each))) / len(expected_each)
+    assert abs(found - expected) < SIGMAS * sd, f"{label}: mean square {found:.6g}, expected {expected:.6g} +- {sd:.3g}"
+
+
+def test_magnitude_rms_of_an_offset_calibration_is_the_analytic_one(drive):
+    """With correction ``R^-1 (m - b - delta)`` the field is ``B - c + R^-1 n`` (``c = R^-1 delta``): the error
+    ``a_k = |B - c| - |B|`` plus the noise along the field, of variance ``s_k^2 = sigma^2 |R^-T v_k|^2``
+    (second-order noise terms are below 0.01 nT here). ``E e^2 = a^2 + s^2``, ``var e^2 = 4 a^2 s^2 + 2 s^4``."""
+    sim, log = drive
+    vehicle = Calibration(R=sim.R, b=sim.b + OFFSET_ERROR_NT)
+    base = compare_calibrations(log, {RAW: None, VEHICLE: vehicle, MAGKF: sim.calibration})
+    B, _ = _field_truth(sim)
+    Rinv_T = np.linalg.inv(sim.R).T
+    for name, c in ((VEHICLE, np.linalg.solve(sim.R, OFFSET_ERROR_NT)), (MAGKF, np.zeros(3))):
+        shifted = B - c
+        a = np.linalg.norm(shifted, axis=1) - np.linalg.norm(B, axis=1)
+        v = shifted / np.linalg.norm(shifted, axis=1, keepdims=True)
+        s2 = NOISE_NT**2 * np.sum((v @ Rinv_T) ** 2, axis=1)
+        found = base.summary.loc[name, "magnitude_rms_nt"] ** 2
+        _assert_mean_square(found, a**2 + s2, 4 * a**2 * s2 + 2 * s2**2, name)
+    assert base.summary.loc[RAW, "magnitude_rms_nt"] > base.summary.loc[VEHICLE, "magnitude_rms_nt"]
+    assert base.summary["n_compared"].eq(len(log.table)).all()
+
+
+def _heading_noise_variance(sim, B_ned_direction_deg, B_h):
+    """The variance (N,) deg^2 of the heading error from the sensor noise: the noise ``R^-1 n`` in NED across
+    the horizontal field (direction (N,) deg, horizontal magnitude ``B_h`` (N,) nT), over ``B_h``."""
+    _, c_nb = _field_truth(sim)
+    d = np.radians(B_ned_direction_deg)
+    across = np.stack([-np.sin(d), np.cos(d), np.zeros_like(d)], axis=1)  # (N, 3) NED
+    in_body = np.einsum("kji,kj->ki", c_nb, across)  # C_nb^T across
+    spread = NOISE_NT**2 * np.sum((in_body @ np.linalg.inv(sim.R).T) ** 2, axis=1)
+    return spread / B_h**2 * np.degrees(1.0) ** 2
+
+
+def test_heading_error_of_the_true_calibration_is_the_noise_and_of_an_offset_its_analytic_value(drive):
+    """The true calibration's heading error is the noise across the horizontal field over its size; the
+    offset calibration's adds ``h_k = wrap(D_ref - D(B - c))`` (the field ``B - c`` taken to NED)."""
+    sim, log = drive
+    vehicle = Calibration(R=sim.R, b=sim.b + OFFSET_ERROR_NT)
+    base = compare_calibrations(log, {VEHICLE: vehicle, MAGKF: sim.calibration})
+    B, c_nb = _field_truth(sim)
+    ref = sim.reference_ned
+    for name, c in ((MAGKF, np.zeros(3)), (VEHICLE, np.linalg.solve(sim.R, OFFSET_ERROR_NT))):
+        ned = np.einsum("kij,kj->ki", c_nb, B - c)
+        h = wrap_deg(declination_deg(ref) - declination_deg(ned))
+        var = _heading_noise_variance(sim, declination_deg(ned), np.hypot(ned[:, 0], ned[:, 1]))
+        found = base.summary.loc[name, "heading_rms_deg"] ** 2
+        _assert_mean_square(found, h**2 + var, 4 * h**2 * var + 2 * var**2, name)
+    # 30 nT across a horizontal field of about 21 000 nT: under a tenth of a degree
+    assert base.summary.loc[MAGKF, "heading_rms_deg"] < 0.1
+
+
+@pytest.mark.parametrize("turn_deg", [179.9, -179.9, 180.1, -180.1, 175.0, -175.0, 0.05])
+def test_heading_error_wraps_at_180(turn_deg):
+    """A field turned by ``turn_deg`` clockwise about the down axis, seen at random attitudes, reads
+    ``wrap(-turn_deg)`` exactly, in (-180, 180]."""
+    rng = np.random.default_rng(7)
+    n = 200
+    c_nb = euler_to_dcm(rng.uniform(0, 360, n), rng.uniform(-60, 60, n), rng.uniform(-180, 180, n))
+    ref = np.tile([19_800.0, 1_500.0, 44_000.0], (n, 1))
+    a = np.radians(turn_deg)
+    turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    body = np.einsum("kji,kj->ki", c_nb, ref @ turn.T)
+    error = heading_error_deg(body, c_nb, ref)
+    assert np.all((error > -180.0) & (error <= 180.0))
+    expected = wrap_deg(-turn_deg)
+    # float64 rotations of a 48 000 nT field: about 1e-12 deg; the wrap itself must not add 360
+    assert np.allclose(wrap_deg(error - expected), 0.0, atol=1e-9)
+    assert np.allclose(error, expected, atol=1e-9) or abs(expected) > 179.9
+
+
+def test_epochs_without_attitude_have_a_magnitude_error_and_no_heading_error():
+    sim, _ = _simulated(seed=5)
+    table = sim.table.reset_index()
+    table.loc[100:399, ["roll", "pitch", "yaw"]] = np.nan
+    log = from_table(table, "sim5-gap")
+    base = compare_calibrations(log, {RAW: None, MAGKF: sim.calibration})
+    gap = np.zeros(len(table), bool)
+    gap[100:400] = True
+    for name in (RAW, MAGKF):
+        assert np.all(base.status[name][gap] == "missing_attitude")
+        assert np.all(base.status[name][~gap] == "ok")
+        assert np.all(np.isnan(base.heading_error_deg[name][gap]))
+        assert np.all(np.isfinite(base.magnitude_error_nt[name]))
+    assert np.array_equal(base.compared, ~gap)
+    assert base.summary.loc[MAGKF, "n_compared"] == len(table) - 300
+    assert base.summary.loc[MAGKF, "n_heading"] == len(table) - 300
+    assert base.summary.loc[MAGKF, "n_magnitude"] == len(table)
+    assert np.all(np.isnan(base.heading_deg[gap]))
+
+
+def test_a_calibration_with_effects_is_applied_with_them():
+    """A load's field of 8 nT/A (up to 27 A: about 200 nT) in the log: the calibration that stores it is
+    within the noise, its core alone is not."""
+    theta = np.array([8.0, -5.0, 4.0])
+    sim, log = _simulated(seed=11, effects=[(CurrentField(), theta)])
+    with_effect = Calibration(
+        R=sim.R, b=sim.b, effects=(stored_effect(CurrentField(), theta, np.ones(3)),), method="truth"
+    )
+    base = compare_calibrations(log, {"with": with_effect, "core": with_effect.without_effects()})
+    # the noise along the field through R^-1 (|R^-1| about 1): an RMS near NOISE_NT, far from the core's
+    assert base.summary.loc["with", "magnitude_rms_nt"] < 1.2 * NOISE_NT
+    assert base.summary.loc["core", "magnitude_rms_nt"] > 2.0 * NOISE_NT
+
+
+def _summary(vehicle, ours):
+    """A summary of the vehicle's and magkf's RMS (nT, deg) as ``Baseline.summary`` gives it."""
+    return pd.DataFrame(
+        {"magnitude_rms_nt": [vehicle[0], ours[0]], "heading_rms_deg": [vehicle[1], ours[1]]}, index=[VEHICLE, MAGKF]
+    )
+
+
+def test_improvement_text_says_which_way_each_goes():
+    assert improvement(_summary((250.0, 2.0), (40.0, 0.5))) == (210.0, 1.5)
+    assert improvement_text(_summary((250.0, 2.0), (40.0, 0.5))) == (
+        "improves on the calibration the vehicle flies by 210 nT of magnitude and 1.5 degrees of heading (RMS)"
+    )
+    assert improvement_text(_summary((40.0, 0.5), (46.5, 0.8))) == (
+        "is worse than the calibration the vehicle flies by 6.5 nT of magnitude and 0.30 degrees of heading (RMS)"
+    )
+    mixed = improvement_text(_summary((250.0, 0.5), (40.0, 0.8)))
+    assert mixed.startswith("improves on the calibration the vehicle flies by 210 nT of magnitude")
+    assert "worse by 0.30 degrees of heading" in mixed
+    other = improvement_text(_summary((40.0, 2.0), (60.0, 0.5)))
+    assert other.startswith("improves on the calibration the vehicle flies by 1.5 degrees of heading")
+    assert "worse by 20 nT of magnitude" in other
+    alone = pd.DataFrame({"magnitude_rms_nt": [40.0], "heading_rms_deg": [0.5]}, index=[MAGKF])
+    assert "cannot be compared" in improvement_text(alone)
+    assert all(np.isnan(improvement(alone)))
