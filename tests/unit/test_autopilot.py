@@ -82,7 +82,8 @@ def test_ardupilot_round_trip_symmetric(instance):
     params = to_ardupilot(cal, instance=instance)
     suffix = "" if instance == 1 else str(instance)
     names = [f"COMPASS_{kind}{suffix}_{a}" for kind in ("OFS", "DIA", "ODI") for a in "XYZ"]
-    assert list(params.values) == [*names, f"COMPASS_SCALE{suffix}"]
+    assert list(params.values) == [*names, f"COMPASS_SCALE{suffix}", f"COMPASS_ORIENT{suffix}"]
+    assert params.values[f"COMPASS_ORIENT{suffix}"] == 0  # no mounting rotation: none
     # ArduPilot adds its offsets: OFS = -b, in milligauss.
     np.testing.assert_allclose([params.values[f"COMPASS_OFS{suffix}_{a}"] for a in "XYZ"], -cal.b / NT_PER_MG)
     # The DIA/ODI matrix has determinant 1; the common factor is in SCALE.
@@ -102,7 +103,9 @@ def test_px4_round_trip_symmetric(instance):
     cal = symmetric_calibration(rng)
     m = raw_readings(rng, cal)
     params = to_px4(cal, instance=instance)
-    assert set(params.values) == {f"CAL_MAG{instance}_{a}{kind}" for a in "XYZ" for kind in ("OFF", "SCALE", "ODIAG")}
+    names = {f"CAL_MAG{instance}_{a}{kind}" for a in "XYZ" for kind in ("OFF", "SCALE", "ODIAG")}
+    assert set(params.values) == names | {f"CAL_MAG{instance}_ROT"}
+    assert params.values[f"CAL_MAG{instance}_ROT"] == 0
     # PX4 subtracts its offsets: OFF = b, in gauss.
     np.testing.assert_allclose([params.values[f"CAL_MAG{instance}_{a}OFF"] for a in "XYZ"], cal.b / NT_PER_G)
     assert params.residual_rotation_deg < 1e-9 and params.notes == ()
@@ -191,13 +194,13 @@ def test_current_field_round_trips_through_motor_compensation(label):
 def test_effects_without_a_parameter_give_notes():
     rng = np.random.default_rng(8)
     effects = {
-        "current_field:throttle": current_effect([1, 2, 3]),
+        "current_field:rpm": current_effect([1, 2, 3]),
         "temperature_bias": {"k_x": {"value": 1.0, "std": 0.1, "unit": "nT/degC"}},
     }
     cal = symmetric_calibration(rng, effects)
     for params in (to_ardupilot(cal), to_px4(cal)):
         assert not any(k.startswith("COMPASS_MOT") or k.endswith(("COMP", "COMP_TYP")) for k in params.values)
-        assert any("'throttle'" in n for n in params.notes)
+        assert any("'rpm'" in n for n in params.notes)
         assert any("temperature_bias" in n for n in params.notes)
 
 
@@ -234,7 +237,7 @@ def test_field_unit_and_summary():
     assert any("offsets are in G" in n for n in in_gauss.notes)
     summary = to_px4(cal).summary()
     assert json.loads(json.dumps(summary)) == summary
-    assert set(summary) == {"autopilot", "instance", "values", "residual_rotation_deg", "notes"}
+    assert set(summary) == {"autopilot", "instance", "values", "residual_rotation_deg", "mounting", "notes"}
     assert isinstance(to_px4(cal), ParameterSet)
 
 
