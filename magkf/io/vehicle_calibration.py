@@ -111,11 +111,8 @@ def _as_read(log: DriveLog, form) -> Calibration | None:
     magnetometer = log.magnetometer
     if form not in ("ardupilot-dataflash", "mavlink-tlog", "px4-ulog"):
         return None
-    if (
-        form == "mavlink-tlog"
-        and magnetometer.get("autopilot") != "ardupilot"
-        and magnetometer.get("message") != ("HIGHRES_IMU")
-    ):
+    px4_sensor_mag = magnetometer.get("autopilot") != "ardupilot" and magnetometer.get("message") != "HIGHRES_IMU"
+    if form == "mavlink-tlog" and px4_sensor_mag:
         return None
     text = (
         "the vehicle's calibration is already in the field as logged (read calibrated, "
@@ -228,6 +225,8 @@ def _px4(log: DriveLog, provenance: dict) -> Calibration | None:
     if version is not None and version < (1, 12):
         rotation_only = SensorsCalibration(base.rotation, np.ones(3), np.zeros(3), base.text)
         where = f"sensor_mag of PX4 {provenance['px4_version']}, whose driver had applied the offsets and scales"
+        if _px4_compensation(params, slot)[0]:
+            where += " (its CAL_MAG_COMP_TYP power compensation is not represented)"
         return _px4_calibration(log, params, slot, rotation_only, scale, where, applied=np.eye(3))
     where = "sensor_mag" + ("" if version is not None else " (PX4 version not logged: the v1.12 model assumed)")
     return _px4_calibration(log, params, slot, base, scale, where, compensated=True)
