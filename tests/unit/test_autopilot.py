@@ -13,6 +13,7 @@ from magkf.io.autopilot import (
     ParameterSet,
     apply_ardupilot,
     apply_px4,
+    merged_values,
     read_param_file,
     to_ardupilot,
     to_px4,
@@ -278,3 +279,73 @@ def test_real_ardupilot_parameters_round_trip():
         assert params.values[name] == pytest.approx(real[name], rel=1e-12)
     raw_mg = raw_readings(np.random.default_rng(12), cal) / NT_PER_MG
     assert_close(apply_ardupilot(params.values, raw_mg), apply_ardupilot(real, raw_mg))
+
+
+def test_throttle_field_round_trips_through_throttle_compensation():
+    """A ``current_field`` effect on ``throttle`` (0..1, as every magkf reader scales it) is ArduPilot's
+    ``COMPASS_MOTCT = 1`` (mG at full throttle, added after the matrix) and PX4's ``CAL_MAG_COMP_TYP = 1``
+    (G at full throttle, added to the raw reading)."""
+    rng = np.random.default_rng(17)
+    c = rng.uniform(-3000, 3000, 3)  # nT at full throttle
+    cal = symmetric_calibration(rng, {"current_field:throttle": current_effect(c)})
+    throttle = rng.uniform(0, 1, 200)
+    m = raw_readings(rng, cal) + np.outer(throttle, c)
+    truth = cal.correct(m - np.outer(throttle, c))
+
+    ap = to_ardupilot(cal, instance=3)
+    assert ap.values["COMPASS_MOTCT"] == 1
+    mot = np.array([ap.values[f"COMPASS_MOT3_{a}"] for a in "XYZ"])
+    np.testing.assert_allclose(mot, -np.linalg.inv(cal.R) @ c / NT_PER_MG, rtol=1e-12)
+    assert_close(apply_ardupilot(ap.values, m / NT_PER_MG, instance=3, throttle=throttle) * NT_PER_MG, truth)
+    # The current does not drive a throttle compensation.
+    assert not np.allclose(apply_ardupilot(ap.values, m / NT_PER_MG, instance=3, current_a=throttle) * NT_PER_MG, truth)
+
+    px4 = to_px4(cal, instance=1)
+    assert px4.values["CAL_MAG_COMP_TYP"] == 1
+    np.testing.assert_allclose([px4.values[f"CAL_MAG1_{a}COMP"] for a in "XYZ"], -c / NT_PER_G, rtol=1e-12)
+    assert_close(apply_px4(px4.values, m / NT_PER_G, instance=1, throttle=throttle) * NT_PER_G, truth)
+
+
+def test_current_wins_over_throttle_with_a_note():
+    rng = np.random.default_rng(18)
+    effects = {"current_field": current_effect([1, 2, 3]), "current_field:throttle": current_effect([4, 5, 6])}
+    cal = symmetric_calibration(rng, effects)
+    for params, key in ((to_ardupilot(cal), "COMPASS_MOTCT"), (to_px4(cal), "CAL_MAG_COMP_TYP")):
+        assert params.values[key] == 2
+        assert any("throttle effect is not exported" in n for n in params.notes)
+
+
+def test_several_compasses_in_one_file(tmp_path):
+    rng = np.random.default_rng(19)
+    cals = [symmetric_calibration(rng, {"current_field": current_effect(rng.uniform(-9, 9, 3))}) for _ in range(3)]
+    sets = [to_ardupilot(cal, instance=k) for k, cal in zip((1, 2, 3), cals)]
+    path = tmp_path / "all.param"
+    write_param_file(sets, path)
+    back = read_param_file(path)
+    assert back == merged_values(sets)
+    for k, params in zip((1, 2, 3), sets):
+        assert all(back[name] == value for name, value in params.values.items())
+        m = raw_readings(rng, cals[k - 1])
+        assert_close(apply_ardupilot(back, m / NT_PER_MG, instance=k) * NT_PER_MG, cals[k - 1].correct(m))
+    assert list(back).count("COMPASS_MOTCT") == 1
+    px4 = [to_px4(cal, instance=k) for k, cal in enumerate(cals)]
+    write_param_file(px4, tmp_path / "all.params")
+    assert set(read_param_file(tmp_path / "all.params")) == set(merged_values(px4))
+
+
+def test_several_compasses_that_cannot_share_a_file_are_refused():
+    rng = np.random.default_rng(20)
+    current = symmetric_calibration(rng, {"current_field": current_effect([1, 2, 3])})
+    throttle = symmetric_calibration(rng, {"current_field:throttle": current_effect([1, 2, 3])})
+    with pytest.raises(InputError, match="disagree on COMPASS_MOTCT"):
+        merged_values([to_ardupilot(current, instance=1), to_ardupilot(throttle, instance=2)])
+    with pytest.raises(InputError, match="compass 1"):
+        merged_values([to_ardupilot(current, instance=1), to_ardupilot(throttle, instance=1)])
+    with pytest.raises(InputError, match="one autopilot"):
+        merged_values([to_ardupilot(current), to_px4(current)])
+
+
+def test_firmware_version_must_be_numbers():
+    cal = Calibration(R=np.eye(3), b=[0.0, 0.0, 0.0])
+    with pytest.raises(InputError, match="firmware version"):
+        to_px4(cal, firmware="stable")
