@@ -18,12 +18,18 @@ Two steps:
    ``|K^-1 (S_m - S_0)| - F``, with the second-order noise bias that both fits share estimated by a
    seeded parametric bootstrap and removed (see ``_refine``).
 
+Both steps are robust (``robust=True``, the default): disturbed samples (a passing truck, a bridge) are
+down-weighted by iteratively reweighted least squares with Huber weights, as the online filter does
+(``magkf.online.bootstrap.HUBER_K`` robust standard deviations of the magnitude residual, the scale from
+its median absolute value), and the standard errors are those of the weighted (M-) estimator.
+
 Any unit works: results are in the units of the data; ``F = 1`` normalises to a unit sphere.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -31,6 +37,7 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..conventions import MAG
 from ..errors import InputError
+from ..online.bootstrap import HUBER_K
 from .base import Calibrator
 
 __all__ = [
@@ -40,6 +47,8 @@ __all__ = [
     "POORLY_DETERMINED",
     "BOOTSTRAP_COPIES",
     "BOOTSTRAP_SEED",
+    "ROBUST_ITERATIONS",
+    "huber_weights",
     "patent_matrix",
     "patent_parameters",
     "parameter_names",
@@ -61,6 +70,17 @@ POORLY_DETERMINED = 0.05
 #: Copies of the data simulated to estimate the second-order noise bias of the refined fit, and their seed.
 BOOTSTRAP_COPIES = 8
 BOOTSTRAP_SEED = 20240601
+#: Reweightings of the robust fit at most (each step), and the largest change of a weight that ends them.
+ROBUST_ITERATIONS = 12
+WEIGHT_TOLERANCE = 1e-3
+#: The refinement sets aside samples whose magnitude residual lies beyond this many robust standard deviations
+#: (weight 0), as the online filter's magnitude gate does (``FilterConfig.gate_sigma``).
+GATE_SIGMA = 5.0
+#: Median absolute value of a standard normal variable: the robust scale is ``median |r| / MAD_NORMAL``.
+MAD_NORMAL = 0.6744897501960817
+#: ``E[z^2 | |z| <= HUBER_K]`` of a standard normal ``z``: the mean square of the samples kept at full weight
+#: is this share of the noise variance.
+TRUNCATED_VARIANCE = 1.0 - 2.0 * HUBER_K * np.exp(-0.5 * HUBER_K**2) / np.sqrt(2 * np.pi) / math.erf(HUBER_K / 2**0.5)
 
 
 # ---------------------------------------------------------------- K parameterisations
@@ -98,19 +118,21 @@ def parameter_names(axes: int) -> tuple[str, ...]:
 
 
 # ---------------------------------------------------------------- algebraic fit
-def algebraic_fit(X: np.ndarray, field: float) -> tuple[np.ndarray, np.ndarray]:
+def algebraic_fit(X: np.ndarray, field: float, weights=None) -> tuple[np.ndarray, np.ndarray]:
     """Quadric (conic) least-squares fit; returns ``(K K^T, S_0)`` for samples ``X`` of shape (N, d).
 
-    The data are centred and scaled before the fit for conditioning. Raises InputError when the
-    fitted surface is not an ellipsoid (ellipse).
+    The data are centred and scaled before the fit for conditioning. ``weights`` (N,), between 0 and 1,
+    weigh each sample's squared algebraic residual (None: all 1). Raises InputError when the fitted
+    surface is not an ellipsoid (ellipse).
     """
     d = X.shape[1]
-    mean = X.mean(axis=0)
-    scale = np.sqrt(np.mean(np.sum((X - mean) ** 2, axis=1)))
+    w = np.ones(len(X)) if weights is None else np.asarray(weights, float)
+    mean = w @ X / w.sum()
+    scale = np.sqrt(w @ np.sum((X - mean) ** 2, axis=1) / w.sum())
     Y = (X - mean) / scale
     iu = np.triu_indices(d)
     quad = Y[:, iu[0]] * Y[:, iu[1]] * np.where(iu[0] == iu[1], 1.0, 2.0)
-    D = np.column_stack([quad, 2 * Y, np.ones(len(Y))])
+    D = np.column_stack([quad, 2 * Y, np.ones(len(Y))]) * np.sqrt(w)[:, None]
     v = np.linalg.svd(D, full_matrices=False)[2][-1]
     A = np.zeros((d, d))
     A[iu] = v[: len(iu[0])]
@@ -127,6 +149,91 @@ def algebraic_fit(X: np.ndarray, field: float) -> tuple[np.ndarray, np.ndarray]:
         raise InputError("the samples do not lie on an ellipsoid: the algebraic fit found another quadric")
     S = np.linalg.inv(M) * scale**2 / field**2  # (X - S0)^T A (X - S0) = 1 with |K^-1 (X - S0)| = F
     return S, centre * scale + mean
+
+
+def huber_weights(residuals: np.ndarray, gate: float | None = None) -> tuple[np.ndarray, float]:
+    """Huber weights of residuals and their robust scale.
+
+    Parameters
+    ----------
+    residuals : numpy.ndarray
+        (N,) residuals of a fit, each of the same noise standard deviation (any unit).
+    gate : float or None, optional
+        Residuals beyond this many robust standard deviations get weight 0 (None: no gate).
+
+    Returns
+    -------
+    weights : numpy.ndarray
+        (N,): 1 up to ``HUBER_K`` robust standard deviations, ``HUBER_K * scale / |r|`` beyond, 0 beyond
+        ``gate``.
+    scale : float
+        The robust standard deviation ``median |r| / MAD_NORMAL`` in the residuals' unit; 0 (and all weights 1)
+        when most residuals are exactly 0, which leaves no noise to judge by.
+    """
+    r = np.abs(np.asarray(residuals, float))
+    scale = float(np.median(r)) / MAD_NORMAL
+    if not (np.isfinite(scale) and scale > 0):
+        return np.ones(len(r)), 0.0
+    weights = np.minimum(1.0, HUBER_K * scale / np.maximum(r, 1e-300))
+    if gate is not None:
+        weights[r > gate * scale] = 0.0
+    return weights, scale
+
+
+def _normalised_residuals(X, x, F, d) -> np.ndarray:
+    """Magnitude residuals (N,) of the parameters ``x`` over the standard deviation each has per unit raw noise:
+    residuals of one noise level, in the data's units."""
+    return (_magnitudes(X, x, d) - F) / np.sqrt(_radial_variance(X, x, d))
+
+
+def _parameters(S, centre) -> np.ndarray:
+    """The parameter vector (sensitivities, angles in radians, offsets) of ``K K^T`` and ``S_0``."""
+    k, ang = patent_parameters(S)
+    return np.concatenate([k, ang, centre])
+
+
+def robust_algebraic_fit(X: np.ndarray, field: float, robust: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The algebraic fit (``algebraic_fit``) with disturbed samples down-weighted.
+
+    Iteratively reweighted: Huber weights of the magnitude residuals (``huber_weights``) until no weight changes
+    by ``WEIGHT_TOLERANCE``, then, from that robust start, the same with the samples beyond ``GATE_SIGMA``
+    robust standard deviations set aside (a gate is not convex: it needs a start the disturbances do not pull).
+
+    Parameters
+    ----------
+    X : numpy.ndarray
+        Samples (N, d), data units.
+    field : float
+        The true magnitude, data units.
+    robust : bool, optional
+        False: the plain fit, every weight 1.
+
+    Returns
+    -------
+    x : numpy.ndarray
+        Parameters (sensitivities, angles in radians, offsets), as ``parameter_names`` orders them.
+    weights : numpy.ndarray
+        (N,) Huber weights of the samples' magnitude residuals at ``x`` (``huber_weights``), 1 for an
+        undisturbed sample; all 1 without ``robust``.
+
+    Raises
+    ------
+    InputError
+        A fitted surface that is not an ellipsoid (ellipse).
+    """
+    d = X.shape[1]
+    weights = np.ones(len(X))
+    x = _parameters(*algebraic_fit(X, field))
+    if not robust:
+        return x, weights
+    for gate in (None, GATE_SIGMA):
+        for _ in range(ROBUST_ITERATIONS):
+            new, _ = huber_weights(_normalised_residuals(X, x, field, d), gate)
+            if np.max(np.abs(new - weights)) < WEIGHT_TOLERANCE:
+                break
+            weights = new
+            x = _parameters(*algebraic_fit(X, field, weights))
+    return x, weights
 
 
 # ---------------------------------------------------------------- coverage
@@ -163,7 +270,9 @@ class EllipsoidResult:
     ``|R^-1 (S_m - b)| - field`` (data units after calibration); ``magnitude_spread_before`` and
     ``_after`` are the standard deviations of the magnitude divided by its mean, raw and calibrated;
     ``coverage`` the visited share of the sphere or circle; ``poorly_determined`` lists parameters
-    whose standard error is large (all of them when the refinement did not converge: ``converged`` False).
+    whose standard error is large (all of them when the refinement did not converge: ``converged`` False);
+    ``downweighted_share`` is the share (0 to 1) of the samples the robust fit down-weighted as disturbed
+    (0 for a fit that is not robust).
     """
 
     axes: int
@@ -181,14 +290,58 @@ class EllipsoidResult:
     poorly_determined: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     converged: bool = True
+    downweighted_share: float = 0.0
 
-    def to_calibration(self, source: str | None = None) -> Calibration:
+    def scaled_to(self, magnitude: float) -> EllipsoidResult:
+        """The same fit expressed for a field of ``magnitude`` (data units) instead of ``field``.
+
+        ``|K^-1 (S_m - S_0)| = F`` is ``|(K F / F')^-1 (S_m - S_0)| = F'``: the sensitivities (and ``R``) and
+        their standard errors scale by ``F / F'``, the residual by ``F' / F``; offsets, angles and the
+        relative figures stay.
+
+        Parameters
+        ----------
+        magnitude : float
+            The new field magnitude ``F'``, data units, positive.
+
+        Returns
+        -------
+        EllipsoidResult
+            The rescaled result.
+        """
+        ratio = self.field / float(magnitude)
+
+        def scaled(values: dict) -> dict:
+            return {n: v * ratio if n in ("kx", "ky", "kz") else v for n, v in values.items()}
+
+        return replace(
+            self,
+            field=float(magnitude),
+            R=self.R * ratio,
+            parameters=scaled(self.parameters),
+            standard_errors=scaled(self.standard_errors),
+            algebraic=scaled(self.algebraic),
+            residual_rms=self.residual_rms / ratio,
+            warnings=list(self.warnings),
+            poorly_determined=list(self.poorly_determined),
+        )
+
+    @property
+    def unit_determinant_field(self) -> float:
+        """The field magnitude (data units) at which ``R`` has determinant 1: the sensor's own mean sensitivity
+        (the geometric mean of ``R``'s singular values) taken as 1."""
+        return self.field * abs(float(np.linalg.det(self.R))) ** (1.0 / self.axes)
+
+    def to_calibration(self, source: str | None = None, field_unit: str = "nT") -> Calibration:
         """A 3x3 calibration; for two axes the z row and offset are identity and zero (not calibrated).
 
         Parameters
         ----------
         source : str or None, optional
             The data the calibration was computed from.
+        field_unit : str, optional
+            What the field of ``b`` and of the corrected field is measured in (``Calibration.field_unit``):
+            ``"nT"``, ``"unit-sphere"`` or ``"counts"``.
 
         Returns
         -------
@@ -206,6 +359,7 @@ class EllipsoidResult:
             standard_errors=self.standard_errors,
             quality=quality,
             source=source,
+            field_unit=field_unit,
         )
 
     def summary(self) -> dict:
@@ -222,6 +376,7 @@ class EllipsoidResult:
             "magnitude_spread_after": self.magnitude_spread_after,
             "coverage": self.coverage,
             "n_samples": self.n_samples,
+            "downweighted_share": self.downweighted_share,
             "poorly_determined": self.poorly_determined,
             "warnings": self.warnings,
         }
@@ -245,6 +400,10 @@ class EllipsoidCalibrator(Calibrator):
         IGRF magnitude in nT for a magnetometer).
     refine : bool, optional
         False stops after the algebraic fit.
+    robust : bool, optional
+        True (default): samples whose magnitude residual lies beyond ``HUBER_K`` robust standard deviations are
+        down-weighted (Huber weights, iterated), in the algebraic fit and in its refinement; False: plain
+        least squares.
 
     Attributes
     ----------
@@ -263,8 +422,8 @@ class EllipsoidCalibrator(Calibrator):
     >>> fit.R_, fit.b_, fit.get_params()  # doctest: +SKIP
     """
 
-    def __init__(self, axes: int = 3, field: float = 1.0, refine: bool = True):
-        self.axes, self.field, self.refine = axes, field, refine
+    def __init__(self, axes: int = 3, field: float = 1.0, refine: bool = True, robust: bool = True):
+        self.axes, self.field, self.refine, self.robust = axes, field, refine, robust
 
     def fit(self, X, source: str = "data") -> EllipsoidCalibrator:
         """Fit an ellipsoid (ellipse) to samples turned through all directions.
@@ -272,7 +431,8 @@ class EllipsoidCalibrator(Calibrator):
         An algebraic (quadric) least-squares fit, decomposed into the patent's ``K = K1 K2`` (sensitivities
         ``k``, non-orthogonality angles, offsets ``S_0``), then, with ``refine``, a weighted nonlinear least
         squares on the magnitude residual ``|K^-1 (S_m - S_0)| - field`` with its noise bias removed, which
-        gives the standard errors. Warnings (in ``result_.warnings``) say when the refinement did not
+        gives the standard errors; with ``robust`` both steps down-weight disturbed samples (Huber weights,
+        reported as ``result_.downweighted_share``). Warnings (in ``result_.warnings``) say when the refinement did not
         converge, which parameters are poorly determined, and when the calibrated directions cover less than
         30 % of the sphere (circle).
 
@@ -313,15 +473,13 @@ class EllipsoidCalibrator(Calibrator):
                 source,
             )
         self._check_geometry(X, source)
-        S, centre = algebraic_fit(X, F)
-        k, ang = patent_parameters(S)
-        x_alg = np.concatenate([k, ang, centre])
+        x_alg, weights = robust_algebraic_fit(X, F, bool(self.robust))
         names = parameter_names(d)
         algebraic = dict(zip(names, _readable(x_alg, d)))
         warnings = []
         converged = True
         if self.refine:
-            x, se, converged = _refine(X, x_alg, F, d)
+            x, se, converged, weights = _refine(X, x_alg, F, d, weights, bool(self.robust))
             if not converged:
                 warnings.append(
                     f"the refinement did not converge in {MAX_ITERATIONS} evaluations: the samples do not determine "
@@ -357,6 +515,7 @@ class EllipsoidCalibrator(Calibrator):
             poorly_determined=poorly,
             warnings=warnings,
             converged=converged,
+            downweighted_share=float(np.mean(weights < 1.0)),
         )
         return self
 
@@ -421,43 +580,86 @@ def _samples(X, axes: int) -> np.ndarray:
     return X
 
 
-def _refine(X, x0, F, d):
+def _refine(X, x0, F, d, weights, robust: bool = True):
     """Weighted nonlinear least squares on the magnitude residual, with its noise bias removed.
 
     Isotropic raw noise gives each sample's calibrated magnitude a variance proportional to
     ``u^T L L^T u`` (``L = K^-1``, ``u`` its direction); residuals are weighted by its inverse square
-    root, so the standard errors from the Jacobian hold. Least squares on ``|K^-1 (S_m - S_0)| - F`` is
+    root, so the standard errors from the Jacobian hold. With ``robust``, each sample's weight is also
+    its Huber weight (``huber_weights``), iterated from the algebraic fit's ``weights`` (N,) until no weight
+    changes by ``WEIGHT_TOLERANCE``; the standard errors are then the M-estimator's sandwich (``_covariance``).
+    Least squares on ``|K^-1 (S_m - S_0)| - F`` is
     biased at second order in the noise (the noise across the radius lengthens every sample, and the
     residual's gradient grows with the noise). The bias is estimated by a parametric bootstrap and
     subtracted: the fitted surface is sampled at the observed directions, ``BOOTSTRAP_COPIES`` times,
     with raw noise of the estimated variance (fixed seed, so a fit is repeatable), refitted, and the
     shift of the estimate is the bias. The standard errors include the bootstrap's own scatter.
+
+    Returns ``(x, standard errors, converged, weights (N,))``.
     """
-    first = _least_squares(X, x0, F, d)
+    first = _least_squares(X, x0, F, d, np.sqrt(weights))
     x = first.x
     if first.status == 0:  # no minimum in reach: nothing is determined
-        return x, np.full(len(x), np.nan), False
+        return x, np.full(len(x), np.nan), False, weights
     radial = _radial_variance(X, x, d)
-    fit = _least_squares(X, x, F, d, 1 / np.sqrt(radial))
-    x = fit.x
-    if fit.status == 0:
-        return x, np.full(len(x), np.nan), False
+    if not robust:
+        weights = np.ones(len(X))
+    for _ in range(ROBUST_ITERATIONS):
+        fit = _least_squares(X, x, F, d, np.sqrt(weights / radial))
+        x = fit.x
+        if fit.status == 0:
+            return x, np.full(len(x), np.nan), False, weights
+        if not robust:
+            break
+        new, _ = huber_weights((_magnitudes(X, x, d) - F) / np.sqrt(radial), GATE_SIGMA)
+        if np.max(np.abs(new - weights)) < WEIGHT_TOLERANCE:
+            break
+        weights = new
     K, b = patent_matrix(x[:d], x[d:-d]), x[-d:]
     u = np.linalg.solve(K, (X - b).T).T
     u /= np.linalg.norm(u, axis=1)[:, None]
-    s2 = float(np.mean(fit.fun**2))
+    s2 = _noise_variance(fit.fun, weights)
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     clean = np.tile(F * u @ K.T + b, (BOOTSTRAP_COPIES, 1))
     copies = clean + rng.normal(scale=np.sqrt(s2), size=clean.shape)
     shift = _least_squares(copies, x, F, d, np.tile(1 / np.sqrt(radial), BOOTSTRAP_COPIES)).x - x
-    J = fit.jac
-    dof = max(len(X) - len(x), 1)
     try:
-        cov = np.linalg.inv(J.T @ J) * (2 * fit.cost / dof) * (1 + 1 / BOOTSTRAP_COPIES)
-        se = np.sqrt(np.clip(np.diag(cov), 0, None))
+        se = np.sqrt(np.clip(np.diag(_covariance(fit, weights, robust)), 0, None) * (1 + 1 / BOOTSTRAP_COPIES))
     except np.linalg.LinAlgError:
         se = np.full(len(x), np.nan)
-    return x - shift, se, True
+    return x - shift, se, True, weights
+
+
+def _noise_variance(residuals, weights) -> float:
+    """The raw noise variance (data units squared) from the weighted residuals (N,) ``sqrt(w / radial) r`` of a
+    fit: the mean square of the samples at full weight (all of them when none is down-weighted), divided by
+    ``TRUNCATED_VARIANCE`` when some are, since a normal sample beyond ``HUBER_K`` standard deviations is
+    down-weighted too."""
+    kept = weights >= 1.0
+    if kept.all():
+        return float(np.mean(residuals**2))
+    return float(np.mean(residuals[kept] ** 2)) / TRUNCATED_VARIANCE
+
+
+def _covariance(fit, weights, robust: bool) -> np.ndarray:
+    """The parameters' covariance (p, p) of the refined fit (a ``least_squares`` result, its residuals and
+    Jacobian weighted by ``sqrt(weights / radial)``).
+
+    Plain least squares: ``(J^T J)^-1`` times the residuals' mean square over ``N - p``. Robust: Huber's
+    M-estimator sandwich ``A^-1 B A^-1 N / (N - p)``, ``A = sum psi'(r_i) J_i J_i^T`` over the samples at full
+    weight (where ``psi' = 1``; 0 beyond the threshold), ``B = sum psi(r_i)^2 J_i J_i^T`` over all samples with
+    ``psi(r) = w r``; with the residuals and Jacobian rows weighted by ``sqrt(w)`` this is ``B = sum f_i^2
+    j_i j_i^T``. For a fit that down-weighted none, both give the same in expectation.
+    """
+    J, f = fit.jac, fit.fun
+    n, p = J.shape
+    dof = max(n - p, 1)
+    if not robust:
+        return np.linalg.inv(J.T @ J) * (2 * fit.cost / dof)
+    kept = J[weights >= 1.0]
+    A_inv = np.linalg.inv(kept.T @ kept)
+    B = (J * f[:, None] ** 2).T @ J
+    return A_inv @ B @ A_inv * (n / dof)
 
 
 def _scales(d, F, x):
