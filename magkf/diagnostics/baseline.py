@@ -197,15 +197,13 @@ def _summary(magnitude: dict, heading: dict, compared) -> pd.DataFrame:
 
 
 def vehicle_calibration(log: DriveLog):
-    """The calibration the vehicle flew with, in the raw frame of ``log`` (nT), and its description, or
-    ``(None, reason)`` when the log does not give it (``magkf.io.vehicle_calibration``)."""
-    try:
-        from ..io.vehicle_calibration import describe_logged, logged_calibration
-    except ImportError:  # the reader of the logged calibration is not part of this installation
-        return None, "magkf cannot read a vehicle's own calibration from a log here"
+    """The calibration the vehicle flew with, in the raw frame of ``log`` (nT), and its description
+    (``magkf.io.vehicle_calibration``), or ``(None, reason)`` when the log does not give it."""
+    from ..io.vehicle_calibration import describe_logged, logged_calibration
+
     cal = logged_calibration(log)
     if cal is None:
-        return None, "the log does not hold the calibration the vehicle flew with"
+        return None, "the log does not hold the calibration the vehicle flew with (its autopilot's parameters)"
     return cal, describe_logged(cal)
 
 

@@ -381,26 +381,33 @@ def _estimate_table(run) -> str:
 
 
 def _field_views(log: DriveLog, run) -> list[str]:
-    """The raw and the calibrated field in three projections with the reference sphere, the magnitude error
-    before and after, and the heading deviation against heading (compass swing) before and after."""
+    """The field as read (raw: no calibration, unless the log was read calibrated) and with magkf's calibration
+    in three projections with the reference sphere, the magnitude error of each, and the heading deviation
+    against heading (compass swing) of each."""
     from ..apply import apply_calibration
 
     after = apply_calibration(log, run.calibration)
     before = _raw_as_field(log, after)
     ref = np.linalg.norm(log.reference_ned(), axis=1)
-    views = {"raw reading": log.mag, "calibrated": after[["field_x", "field_y", "field_z"]].to_numpy(float)}
+    names = (_as_read_label(log), MAGKF_LABEL)
+    views = dict(zip(names, (log.mag, after[["field_x", "field_y", "field_z"]].to_numpy(float))))
     projections = _projections(views, float(np.nanmedian(ref)))
-    histogram = _magnitude_errors(before, after, ref)
+    histogram = _magnitude_errors(before, after, ref, names)
     yaw = log.attitude[:, 2] % 360.0
     ok = (after["status"] == "ok").to_numpy()
+    title = f"<h2>Field: {names[0]} and {names[1]}</h2>"
     if not ok.any():
-        return ["<h2>Field before and after calibration</h2>", projections, histogram]
-    return [
-        "<h2>Field before and after calibration</h2>",
-        projections,
-        histogram,
-        _compass_swing(before, after, yaw, ok),
-    ]
+        return [title, projections, histogram]
+    return [title, projections, histogram, _compass_swing(before, after, yaw, ok, names)]
+
+
+#: What the report calls the field corrected with magkf's calibration.
+MAGKF_LABEL = "magkf's calibration"
+
+
+def _as_read_label(log: DriveLog) -> str:
+    """What the log's field as read is: the raw reading (no calibration), or the autopilot's calibrated field."""
+    return "as logged (the autopilot's calibration)" if _read_calibrated(log) else "raw reading (no calibration)"
 
 
 def _raw_as_field(log: DriveLog, after: pd.DataFrame) -> pd.DataFrame:
@@ -430,7 +437,7 @@ def _projections(views: dict, radius: float) -> str:
         for ax, (i, j) in zip(row, ((0, 1), (0, 2), (1, 2))):
             ax.plot(v[:, i], v[:, j], ".", ms=1.5, color="tab:blue", alpha=0.5)
             ax.plot(radius * np.cos(circle), radius * np.sin(circle), "--", color="tab:red", lw=1.2)
-            ax.set(xlabel=f"{'xyz'[i]}, nT", ylabel=f"{'xyz'[j]}, nT", title=f"{name}: {'xyz'[i]}-{'xyz'[j]}")
+            ax.set(xlabel=f"{'xyz'[i]}, nT", ylabel=f"{'xyz'[j]}, nT", title=f"{name}:\n{'xyz'[i]}-{'xyz'[j]}")
             ax.set_aspect("equal", adjustable="datalim")
             ax.xaxis.set_major_locator(plt.MaxNLocator(4))
             ax.yaxis.set_major_locator(plt.MaxNLocator(5))
@@ -438,43 +445,44 @@ def _projections(views: dict, radius: float) -> str:
     fig.suptitle(f"sensor-axis field; dashed: the reference sphere, radius {radius:.0f} nT")
     return _png(
         fig,
-        "raw and calibrated magnetometer field in nT projected on the x-y, x-z and y-z planes, with the "
+        f"magnetometer field in nT, {' and '.join(views)}, projected on the x-y, x-z and y-z planes, with the "
         f"reference field's sphere of radius {radius:.0f} nT dashed",
     )
 
 
-def _magnitude_errors(before: pd.DataFrame, after: pd.DataFrame, ref: np.ndarray) -> str:
-    """Histograms of the field magnitude less the reference magnitude ``ref`` (N,) nT, raw and calibrated."""
+def _magnitude_errors(before: pd.DataFrame, after: pd.DataFrame, ref: np.ndarray, names) -> str:
+    """Histograms of the field magnitude less the reference magnitude ``ref`` (N,) nT, as read and calibrated
+    (``names``: what each is)."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), constrained_layout=True)
-    for ax, (name, frame) in zip(axes, (("raw reading", before), ("calibrated", after))):
+    for ax, name, frame in zip(axes, names, (before, after)):
         error = (frame["magnitude_nt"].to_numpy(float) - ref)[np.isfinite(ref)]
         error = error[np.isfinite(error)]
         rms = float(np.sqrt(np.mean(error**2))) if error.size else float("nan")
         span = np.percentile(error, [0.5, 99.5]) if error.size else (-1.0, 1.0)
         beyond = int(np.sum((error < span[0]) | (error > span[1])))
-        ax.hist(error, bins=60, range=tuple(span), color="tab:blue" if name == "calibrated" else "tab:gray")
+        ax.hist(error, bins=60, range=tuple(span), color="tab:blue" if frame is after else "tab:gray")
         ax.axvline(0, color="k", lw=0.8)
         ax.set(
             xlabel=f"|field| - |reference|, nT ({beyond} beyond the axis)",
             ylabel="epochs",
             title=f"{name}: RMS {rms:.0f} nT over every epoch",
         )
-    fig.suptitle("magnitude error before and after calibration")
-    return _png(fig, "histograms of the field magnitude less the reference magnitude in nT, raw and calibrated")
+    fig.suptitle(f"magnitude error: {names[0]} and {names[1]}")
+    return _png(fig, f"histograms of the field magnitude less the reference magnitude in nT, {names[0]} and {names[1]}")
 
 
-def _compass_swing(before: pd.DataFrame, after: pd.DataFrame, yaw: np.ndarray, ok: np.ndarray) -> str:
-    """The true heading less the logged ``yaw`` (N,) deg against heading over the epochs ``ok`` (mask (N,)), raw
-    and calibrated, with means per 10 deg."""
+def _compass_swing(before: pd.DataFrame, after: pd.DataFrame, yaw: np.ndarray, ok: np.ndarray, names) -> str:
+    """The true heading less the logged ``yaw`` (N,) deg against heading over the epochs ``ok`` (mask (N,)), as read
+    and calibrated (``names``: what each is), with means per 10 deg."""
     import matplotlib.pyplot as plt
 
     from ..conventions import wrap_deg
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
     edges = np.arange(0.0, 361.0, 10.0)
-    for ax, (name, frame) in zip(axes, (("raw reading", before), ("calibrated", after))):
+    for ax, name, frame in zip(axes, names, (before, after)):
         deviation = wrap_deg(frame["heading_true_deg"].to_numpy(float) - yaw)[ok]
         h = yaw[ok]
         pick = _sample(len(h))
@@ -497,7 +505,204 @@ def _compass_swing(before: pd.DataFrame, after: pd.DataFrame, yaw: np.ndarray, o
     return _png(
         fig,
         "heading deviation in deg (tilt-compensated compass heading less the logged yaw) against heading in deg, "
-        "raw and calibrated, with means per 10 deg",
+        f"{names[0]} and {names[1]}, with means per 10 deg",
+    )
+
+
+#: How the calibrations compared (``baseline``) are named and drawn: label, colour, line style.
+BASELINE_STYLE = {
+    "raw": ("raw reading, no calibration", "tab:gray", ":"),
+    "vehicle": ("the vehicle's own calibration", "tab:orange", "--"),
+    "magkf": ("magkf's calibration", "tab:blue", "-"),
+}
+#: Above this ratio of the largest to the next largest calibration's 99th-percentile error, an axis is drawn linear
+#: within the latter's range and logarithmic beyond it, so that raw's thousands of nT do not flatten the others.
+SYMLOG_RATIO = 20.0
+
+
+def _baseline_section(log: DriveLog, run) -> list[str]:
+    """The "Raw, the vehicle's calibration and magkf's" section: each one's RMS magnitude and heading error over
+    the same epochs (``baseline.compare_calibrations``), in a table, over time and against heading."""
+    from .baseline import MAGKF, RAW, VEHICLE, compare_calibrations, improvement_text, vehicle_calibration
+
+    vehicle, words = vehicle_calibration(log)
+    as_read = _read_calibrated(log)
+    cals = {} if as_read else {RAW: None}
+    if vehicle is not None:
+        cals[VEHICLE] = vehicle
+    cals[MAGKF] = run.calibration
+    base = compare_calibrations(log, cals)
+    parts = [
+        "<h2>Raw, the vehicle's calibration and magkf's</h2>",
+        "<p>The field magnitude less the reference field's (magnitude error) and the heading a tilt-compensated "
+        "compass would read less the logged heading (heading error), with each calibration, over the "
+        f"{base.compared.sum()} epochs with attitude and a reference field where each gives both "
+        f"(of {len(base.time)}). <b>Raw</b> is the sensor's reading with no calibration at all"
+        + (" (the autopilot's undone); " if not as_read else "; ")
+        + f"<b>the vehicle's calibration</b>: {html.escape(words)}.</p>",
+    ]
+    if as_read:
+        parts.append(
+            "<p>The log was read with the autopilot's calibration kept (--logged-calibration): its raw reading is "
+            "not known here, and the vehicle's calibration is the field as read.</p>"
+        )
+    if vehicle is not None:
+        parts.append(
+            f"<p><b>magkf's calibration {html.escape(improvement_text(base.summary))}</b>. It was estimated from "
+            "this log, so its figures here are in-sample; <code>magkf validate</code> measures it on another "
+            "log.</p>"
+        )
+    if not base.compared.any():
+        return parts + ["<p>No epoch has both attitude and a reference field: no error to compare.</p>"]
+    return parts + [_baseline_table(base), _baseline_time_plot(base), _baseline_heading_plot(base)]
+
+
+def _read_calibrated(log: DriveLog) -> bool:
+    """Whether the log's field was read as the autopilot calibrated it (not raw)."""
+    return bool((log.magnetometer or {}).get("calibrated"))
+
+
+def _baseline_table(base) -> str:
+    """Each calibration's RMS and mean magnitude (nT) and heading (deg) error over the compared epochs."""
+    s = base.summary
+    return _table(
+        [
+            (
+                BASELINE_STYLE.get(name, (name,))[0],
+                _signed(s.loc[name, "magnitude_rms_nt"], 1),
+                _signed(s.loc[name, "heading_rms_deg"], 2),
+                _signed(s.loc[name, "magnitude_mean_nt"], 1),
+                _signed(s.loc[name, "heading_mean_deg"], 2),
+            )
+            for name in base.names
+        ],
+        [
+            "calibration",
+            "magnitude error RMS, nT",
+            "heading error RMS, deg",
+            "magnitude error mean, nT",
+            "heading error mean, deg",
+        ],
+    )
+
+
+def _signed(value: float, digits: int) -> str:
+    """``value`` to ``digits`` decimals, without the sign of a value that rounds to zero."""
+    return _fixed(0.0 if round(value, digits) == 0 else value, digits) if np.isfinite(value) else "none"
+
+
+def _linear_span(series) -> float | None:
+    """The half-width of an error axis's linear part, or None: a linear axis shows the errors ``series`` (arrays)
+    well. Where the largest 99th percentile of one's absolute values is more than ``SYMLOG_RATIO`` times the next
+    largest (raw's thousands of nT beside calibrated tens), the linear part spans the others (that percentile
+    rounded up to one significant digit) and the largest is drawn logarithmically beyond it."""
+    spans = sorted(float(np.nanpercentile(np.abs(v), 99)) for v in series if np.isfinite(v).any())
+    if len(spans) < 2 or spans[-2] <= 0 or spans[-1] <= SYMLOG_RATIO * spans[-2]:
+        return None
+    unit = 10.0 ** np.floor(np.log10(spans[-2]))
+    return float(np.ceil(spans[-2] / unit) * unit)
+
+
+def _error_axis(ax, linear: float | None, label: str, unit: str) -> None:
+    """Label ``ax`` with ``label, unit``, linear within ``+-linear`` and logarithmic beyond (None: linear
+    throughout), its ticks as plain numbers."""
+    import matplotlib.ticker as ticker
+
+    if linear is not None:
+        ax.set_yscale("symlog", linthresh=linear, linscale=3.0)
+        ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda y, _: f"{y:g}"))
+        label = f"{label}, {unit}\n(linear within +-{linear:g}, log beyond)"
+    else:
+        label = f"{label}, {unit}"
+    ax.set_ylabel(label)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.grid(alpha=0.3)
+
+
+def _baseline_legend(fig, base) -> None:
+    """One legend for the figure's calibrations, above its panels."""
+    handles = [_legend_line(*BASELINE_STYLE.get(name, (name, None, "-"))) for name in base.names]
+    fig.legend(handles=handles, loc="outside upper center", ncol=len(handles))
+
+
+def _legend_line(text: str, colour, style: str):
+    """A legend entry: a line of ``colour`` and ``style`` labelled ``text``."""
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], color=colour, ls=style, lw=1.5, marker="o", ms=3, label=text)
+
+
+#: Most stretches the errors over time are averaged in (a page is a thousand pixels wide; the sensor's noise
+#: would otherwise hide the calibrations' own errors).
+TIME_BINS = 300
+
+
+def _binned_means(position, values, edges) -> np.ndarray:
+    """The mean of the finite ``values`` (N,) in each bin of ``edges`` (k + 1,) by ``position`` (N,); NaN where
+    a bin has none."""
+    ok = np.isfinite(values) & np.isfinite(position)
+    which = np.clip(np.searchsorted(edges, position[ok], side="right") - 1, 0, len(edges) - 2)
+    counts = np.bincount(which, minlength=len(edges) - 1)
+    sums = np.bincount(which, weights=values[ok], minlength=len(edges) - 1)
+    return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+
+
+def _baseline_time_plot(base) -> str:
+    """Magnitude error (nT) and heading error (deg) over time since the start, one line per calibration: means
+    over at most ``TIME_BINS`` equal stretches of the log."""
+    import matplotlib.pyplot as plt
+
+    t = base.time - base.time[0]
+    bins = max(1, min(TIME_BINS, len(t) // 3))
+    edges = np.linspace(0.0, max(float(t[-1]), 1e-9), bins + 1)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6.2), sharex=True, layout="constrained")
+    for ax, errors, label, unit in (
+        (axes[0], base.magnitude_error_nt, "magnitude error", "nT"),
+        (axes[1], base.heading_error_deg, "heading error", "deg"),
+    ):
+        means = {name: _binned_means(t, errors[name], edges) for name in base.names}
+        for name in base.names:
+            text, colour, style = BASELINE_STYLE.get(name, (name, None, "-"))
+            ax.plot(centres, means[name], style, color=colour, lw=1.5, label=text)
+        _error_axis(ax, _linear_span(list(means.values())), label, unit)
+    _baseline_legend(fig, base)
+    axes[0].set_title(f"means over {edges[1] - edges[0]:.2g} s stretches (gaps: no attitude or no reference field)")
+    axes[1].set_xlabel("time since start, s")
+    return _png(
+        fig,
+        "magnitude error in nT and heading error in deg against time since start in s, for the raw reading, "
+        "the vehicle's calibration and magkf's",
+    )
+
+
+def _baseline_heading_plot(base, width_deg: float = 10.0) -> str:
+    """Mean magnitude error (nT) and mean heading error (deg) per ``width_deg`` of logged heading, one line per
+    calibration, over the compared epochs."""
+    import matplotlib.pyplot as plt
+
+    ok = base.compared
+    heading = base.heading_deg[ok]
+    edges = np.arange(0.0, 360.0 + width_deg, width_deg)
+    centres = edges[:-1] + width_deg / 2
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.0), layout="constrained")
+    for ax, errors, label, unit in (
+        (axes[0], base.magnitude_error_nt, "mean magnitude error", "nT"),
+        (axes[1], base.heading_error_deg, "mean heading error", "deg"),
+    ):
+        means = {name: _binned_means(heading, errors[name][ok], edges) for name in base.names}
+        for name in base.names:
+            text, colour, style = BASELINE_STYLE.get(name, (name, None, "-"))
+            ax.plot(centres, means[name], style, marker="o", ms=3, color=colour, lw=1.2, label=text)
+        _error_axis(ax, _linear_span(list(means.values())), label, unit)
+        ax.set(xlabel="logged heading, deg", xlim=(0, 360), xticks=range(0, 361, 90))
+    _baseline_legend(fig, base)
+    flown = int(np.sum(np.isfinite(_binned_means(heading, np.zeros(len(heading)), edges))))
+    axes[0].set_title(f"means per {width_deg:g} deg of heading ({flown} of {len(centres)} flown)", loc="left")
+    return _png(
+        fig,
+        f"mean magnitude error in nT and mean heading error in deg per {width_deg:g} deg of logged heading, for the "
+        "raw reading, the vehicle's calibration and magkf's",
     )
 
 
@@ -590,6 +795,7 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     t0 = log.time[0]
     parts = [
         *_overview(log, run, diag, cal),
+        *_baseline_section(log, run),
         *_noise_section(run, t0),
         *_gates_and_estimate(run, t0),
         *_field_views(log, run),
