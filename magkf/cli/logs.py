@@ -33,14 +33,28 @@ def add_parsers(sub) -> None:
     p = common.command(
         sub, "export", run_export, "a calibration as autopilot parameters (ArduPilot COMPASS_*, PX4 CAL_MAGn_*)"
     )
-    p.add_argument("cal", help="calibration JSON")
+    p.add_argument(
+        "cal",
+        nargs="+",
+        help="calibration JSON; several (e.g. the cal_mag0.json, cal_mag1.json ... of calibrate --mag all): each "
+        "its own compass in one file",
+    )
     p.add_argument("--to", required=True, choices=["ardupilot", "px4"], help="autopilot")
     p.add_argument(
         "--instance",
         type=int,
         help=(
-            "compass instance (ArduPilot 1 to 3, PX4 CAL_MAGn 0 to 3; default: the magnetometer the calibration "
-            "is of, from its log, else ArduPilot 1 and PX4 0)"
+            "compass instance of a single calibration (ArduPilot 1 to 3, PX4 CAL_MAGn 0 to 3; default: the "
+            "magnetometer the calibration is of, from its log, else ArduPilot 1 and PX4 0)"
+        ),
+    )
+    p.add_argument(
+        "--firmware",
+        metavar="VERSION",
+        help=(
+            "the vehicle's firmware version (e.g. 4.5 for ArduPilot, 1.15 for PX4): a mounting no standard "
+            "orientation holds is written as a custom rotation where that version has one (ArduPilot 4.2, PX4 "
+            "1.15 on); default: standard orientations only"
         ),
     )
     p.add_argument("-o", "--output", required=True, metavar="FILE.param", help="parameter file to write")
@@ -118,33 +132,98 @@ def run_convert(args) -> int:
 
 
 def run_export(args) -> int:
-    """Write a calibration file as the parameters an autopilot applies, in the parameter-file format its ground station
-    loads. The rotation part of R cannot be held by either autopilot's symmetric matrix: the angle it leaves is
-    reported. See docs/logs.md."""
+    """Write one or several calibration files as the parameters an autopilot applies, in the parameter-file format
+    its ground station loads, each calibration as its own compass. The mounting rotation goes into the orientation
+    setting (a custom rotation where --firmware has one); what no setting holds is reported. See docs/logs.md."""
     from ..calibration import Calibration
     from ..errors import InputError
-    from ..io.autopilot import export_instance, to_ardupilot, to_px4, write_param_file
+    from ..io.autopilot import merged_values, write_param_file
+
+    if args.instance is not None and len(args.cal) > 1:
+        raise InputError("--instance applies to one calibration; several are each exported as their own compass")
+    cals = [(path, Calibration.load(path)) for path in args.cal]
+    for path, cal in cals:
+        _check_field_unit(path, cal)
+    chosen = _export_instances(args, cals)
+    sets = []
+    for (path, cal), (instance, _why), slot in zip(cals, chosen, _custom_slots(len(cals))):
+        sets.append(_export_one(args, path, cal, instance, slot))
+    try:
+        merged_values(sets)
+    except InputError as exc:  # the calibrations cannot share one file
+        raise InputError(exc.message, ", ".join(args.cal)) from None
+    write_param_file(sets, args.output)
+    if args.json:
+        summaries = [
+            p.summary() | {"calibration": path, "instance_chosen": why}
+            for p, (path, _), (_, why) in zip(sets, cals, chosen)
+        ]
+        common.print_json(summaries[0] if len(summaries) == 1 else summaries)
+        return 0
+    for params, (path, _), (_, why) in zip(sets, cals, chosen):
+        _print_export(args, path, params, why)
+    return 0
+
+
+def _check_field_unit(path, cal) -> None:
+    """InputError unless the calibration's field is in nT (the autopilots' offsets are in a field unit)."""
+    from ..errors import InputError
+
+    fixes = {
+        "unit-sphere": "fitted to the unit sphere: calibrate again with --field (the field magnitude, or igrf) so "
+        "that its offsets are in nT",
+        "counts": "in the sensor's counts: calibrate again with --mag-unit (the unit of the magnetometer "
+        "columns) so that its offsets are in nT",
+    }
+    if cal.field_unit != "nT":
+        raise InputError(f"the calibration's field is {fixes.get(cal.field_unit, cal.field_unit)}", path)
+
+
+def _export_instances(args, cals) -> list:
+    """``[(instance, why), ...]`` for each calibration; InputError if two claim the same compass."""
+    from ..errors import InputError
+    from ..io.autopilot import export_instance
 
     lo, hi = (1, 3) if args.to == "ardupilot" else (0, 3)
-    if args.instance is not None and not lo <= args.instance <= hi:
-        raise InputError(f"--instance {args.instance}: {args.to} compass instances are {lo} to {hi}")
-    cal = Calibration.load(args.cal)
-    if args.instance is None:
-        instance, why = export_instance(cal, args.to)
-    else:
-        instance, why = args.instance, f"compass {args.instance}, asked for with --instance"
+    if args.instance is not None:
+        if not lo <= args.instance <= hi:
+            raise InputError(f"--instance {args.instance}: {args.to} compass instances are {lo} to {hi}")
+        return [(args.instance, f"compass {args.instance}, asked for with --instance")]
+    chosen = [export_instance(cal, args.to) for _, cal in cals]
+    seen = {}
+    for (path, _), (instance, why) in zip(cals, chosen):
+        if instance in seen:
+            raise InputError(
+                f"{seen[instance]} and {path} are both {args.to} compass {instance} ({why}): export one of them "
+                "alone with --instance"
+            )
+        seen[instance] = path
+    return chosen
+
+
+def _custom_slots(count: int) -> list:
+    """ArduPilot's two custom rotations, one per compass in order (a third compass gets none)."""
+    return [1, 2, *([None] * max(count - 2, 0))][:count]
+
+
+def _export_one(args, path, cal, instance, slot):
+    """The ``ParameterSet`` of one calibration; InputError about it names its file."""
+    from ..errors import InputError
+    from ..io.autopilot import to_ardupilot, to_px4
+
     try:
-        params = (to_ardupilot if args.to == "ardupilot" else to_px4)(cal, instance)
+        if args.to == "ardupilot":
+            return to_ardupilot(cal, instance, firmware=args.firmware, custom_slot=slot)
+        return to_px4(cal, instance, firmware=args.firmware)
     except InputError as exc:  # about the calibration
-        raise exc.located(args.cal) from None
-    write_param_file(params, args.output)
-    if args.json:
-        common.print_json(params.summary() | {"instance_chosen": why})
-        return 0
-    print(f"{args.to} parameters of {args.cal} written to {args.output}, as {why}:")
+        raise exc.located(path) from None
+
+
+def _print_export(args, path, params, why) -> None:
+    """The written parameters of one calibration, the rotation left and the notes."""
+    print(f"{args.to} parameters of {path} written to {args.output}, as {why}:")
     for name, value in params.values.items():
         print(f"  {name:18s} {value:.9g}")
     print(f"  rotation the parameters cannot hold: {params.residual_rotation_deg:.3f} deg")
     for note in params.notes:
         print(f"  note: {note}")
-    return 0
