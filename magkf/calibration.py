@@ -128,7 +128,7 @@ class Calibration:
         default), or ``"unit-sphere"`` / ``"counts"`` for a fit that had no physical field to scale to (an
         ellipsoid without ``--field``); only a calibration in nT can be exported as autopilot parameters.
     model : dict or None, optional
-        The model family the data determined (``magkf.online.families``): ``family`` (``offsets``, ``scale``,
+        The model family the data determined (``magkf.families``): ``family`` (``offsets``, ``scale``,
         ``soft-iron`` or ``full``), ``held`` (what was held and at which calibration), ``text`` (in words), or
         None when not recorded.
     effects : tuple of StoredEffect, optional

@@ -80,6 +80,9 @@ class FilterConfig:
         Duration of the blocks of epochs that update the filter together when post-processing a log, s (each
         epoch is still gated on its own; see ``magkf.online.estimator``). 0 updates epoch by epoch, as the
         real-time path does.
+    model : str, default "auto"
+        The model family a post-processing run writes (``magkf.families``): ``offsets``, ``scale``,
+        ``soft-iron``, ``full``, or ``auto``, the richest the log determines.
 
     Raises
     ------
@@ -110,6 +113,7 @@ class FilterConfig:
     init_b_std: float = 300.0
     reference_refresh_m: float = 2000.0
     block_s: float = 1.0
+    model: str = "auto"
 
     def __post_init__(self):
         from .plugins import FILTERS, MEASUREMENTS
@@ -138,6 +142,10 @@ class FilterConfig:
             raise ValueError("huber_prob must lie between 0 and 1")
         if self.noise_method not in NOISE_METHODS:
             raise ValueError(f"noise_method must be one of {', '.join(NOISE_METHODS)}, got {self.noise_method!r}")
+        from .families import MODEL_CHOICES
+
+        if self.model not in MODEL_CHOICES:
+            raise ValueError(f"model must be one of {', '.join(MODEL_CHOICES)}, got {self.model!r}")
         if self.block_s < 0:
             raise ValueError("block_s must not be negative")
         if not 0 < self.innovation_prob < 1:

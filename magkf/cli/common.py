@@ -184,6 +184,7 @@ def filter_config(args):
             "b_walk": args.b_walk,
             "innovation_prob": args.innovation_prob,
             "block_s": args.block_s,
+            "model": getattr(args, "model", None),
         }.items()
         if v is not None
     }
@@ -213,6 +214,7 @@ FILTER_OPTIONS = {
     "b_walk": "--b-walk",
     "innovation_prob": "--innovation-prob",
     "block_s": "--block-s",
+    "model": "--model",
 }
 
 
@@ -455,9 +457,18 @@ def reading_options(args) -> dict:
 
 
 def add_model_options(p) -> None:
-    """``--filter`` and ``--measure``: the filter and the measurement model of a calibration."""
+    """``--filter``, ``--measure`` and ``--model``: the filter, the measurement model and the model family of a
+    calibration."""
+    from ..families import MODEL_CHOICES
+
     p.add_argument("--filter", metavar="|".join(FILTERS), help="filter (default ekf)")
     p.add_argument("--measure", metavar="|".join(MEASUREMENTS), help="measurement model (default both)")
+    p.add_argument(
+        "--model",
+        metavar="|".join(MODEL_CHOICES),
+        help="what to estimate: the offsets, offsets and scale (diagonal of R), soft iron (symmetric R) or all 12 "
+        "parameters; auto (the default): the richest the log determines, the rest held at the vehicle's calibration",
+    )
 
 
 def mag_instance(args):
@@ -523,8 +534,29 @@ def _from_standard_input(read, format):
         os.unlink(tmp)
 
 
+#: What ``--init`` takes for the vehicle's own calibration, read from the log's parameters.
+LOGGED = "logged"
+
+
 def load_calibration(path):
-    """The calibration file ``path``, or None."""
+    """The calibration file ``path``, or None (also for ``LOGGED``, which ``logged_start`` reads from the log)."""
     from ..calibration import Calibration
 
-    return Calibration.load(path) if path else None
+    return Calibration.load(path) if path and path != LOGGED else None
+
+
+def logged_start(args, log, init):
+    """``init``, or with ``--init logged`` the vehicle's own calibration recorded in ``log``
+    (``magkf.io.vehicle_calibration``); InputError naming the log when it records none."""
+    if getattr(args, "init", None) != LOGGED:
+        return init
+    from ..io.vehicle_calibration import logged_calibration
+
+    logged = logged_calibration(log)
+    if logged is None or logged.method == "logged-as-read":
+        raise InputError(
+            "--init logged: the log records no calibration of its own magnetometer (no COMPASS_* or CAL_MAGn_* "
+            "parameters for it, or its field is logged already calibrated); give a calibration file",
+            log.source,
+        )
+    return logged

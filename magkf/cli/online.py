@@ -13,7 +13,11 @@ def add_parsers(sub) -> None:
     """Register ``calibrate``."""
     p = common.command(sub, "calibrate", run_calibrate, "online (Kalman filter) calibration of a drive log")
     common.add_log_options(p, mag_all=True)
-    p.add_argument("--init", help="offline calibration JSON to start from (sinefit, ellipsoid, or an earlier run)")
+    p.add_argument(
+        "--init",
+        help="calibration JSON to start from (sinefit, ellipsoid, or an earlier run), or 'logged': the vehicle's own "
+        "calibration recorded in the log's parameters",
+    )
     # The names are checked by FilterConfig against the filters and the registered measurement models.
     common.add_model_options(p)
     p.add_argument("--batch", action="store_true", help="batch least squares over the whole log instead of the filter")
@@ -50,6 +54,11 @@ def _print_run(summary: dict, names) -> None:
         print("  " + line)
     print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
     print(f"  observability: {s['observability']['text']}")
+    if s.get("model"):
+        print(f"  model: {s['model']['family']}: {s['model']['text']}")
+    if s.get("filter_state"):
+        b_last = ", ".join(f"{v:+.2f}" for v in s["filter_state"]["b"])
+        print(f"  the filter's last state (for real-time use): b ({b_last}) nT; the calibration is the whole-log fit")
     print(f"  verdict: {s['verdict']}")
 
 
@@ -137,6 +146,7 @@ def run_calibrate(args) -> int:
             _calibrate_chunked(args, config, init)
             return 0
         log = common.open_log(args)
+        init = common.logged_start(args, log, init)
         added = common.effects(args, init)  # user code runs once the inputs are read
         _calibrate_one(args, log, config, init, added, args.output, args.states)
         return 0
@@ -157,11 +167,12 @@ def run_calibrate(args) -> int:
         if len(instances) > 1 and not args.json:
             print(f"magnetometer {instance}:")
         try:
+            log = common.open_log(args, mag=instance)
             run = _calibrate_one(
                 args,
-                common.open_log(args, mag=instance),
+                log,
                 config,
-                init,
+                common.logged_start(args, log, init),
                 added,
                 _per_instance(args.output, instance),
                 _per_instance(args.states, instance),
@@ -199,6 +210,8 @@ def _chunked(args) -> bool:
     from ..online.chunked import CHUNKED_EPOCHS, estimated_rows
 
     if args.file == "-" or args.batch or args.map is not None or args.states == "-" or args.mag is not None:
+        return False
+    if args.init == common.LOGGED:  # read from the log's parameters: an autopilot log, read whole
         return False
     if args.site is not None or args.date is not None:  # a log placed by the user is read whole
         return False

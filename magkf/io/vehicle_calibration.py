@@ -294,11 +294,17 @@ def _version(text) -> tuple[int, int] | None:
 # ------------------------------------------------------------------ shared
 def _load_effect(column: str, coefficients: np.ndarray) -> StoredEffect:
     """A ``current_field`` effect on ``column`` with ``coefficients`` (3,) nT per unit, standard deviations
-    unknown."""
-    from ..effects import stored_effect
-    from ..effects.current_field import CurrentField
-
-    return stored_effect(CurrentField(column=column), coefficients, np.full(3, math.nan))
+    unknown, as ``magkf.effects.stored_effect`` would store ``CurrentField(column=column)`` (built here: the
+    readers' layer does not import the effects')."""
+    unit = "nT/A" if column == "current_a" else f"nT/({column})"
+    return StoredEffect(
+        f"current_field:{column}",
+        {"column": column},
+        ("c_x", "c_y", "c_z"),
+        tuple(float(v) for v in coefficients),
+        (math.nan,) * 3,
+        (unit,) * 3,
+    )
 
 
 def _family(diagonals: np.ndarray, offdiagonals: np.ndarray, scale: float) -> str:

@@ -100,6 +100,12 @@ class RunSummary:
         Every effect's parameters by name: ``{"value", "std", "unit"}``.
     config : dict
         The settings of the run (``FilterConfig.as_dict``).
+    model : dict or None
+        The model family of the estimate (``whole_log.WholeLogFit.model``: ``family``, ``text`` in words, the
+        families weighed), or None for an estimate that is the filter's last state.
+    filter_state : dict or None
+        The filter's estimate at the end of the log (``R``, ``b``, ``std`` by name), for real-time use, when the
+        estimate written is the whole-log one; else None.
     """
 
     R: list
@@ -130,6 +136,8 @@ class RunSummary:
     observability: dict
     effects: dict
     config: dict
+    model: dict | None = None
+    filter_state: dict | None = None
 
     def as_dict(self) -> dict:
         """JSON-ready mapping of every field.
@@ -250,6 +258,9 @@ class RunTrace:
     correlation_s: float = 0.0
     stops: np.ndarray | None = None
     nis_rows: tuple = (3, 1)
+    model: dict | None = None
+    filter_x: np.ndarray | None = None
+    filter_P: np.ndarray | None = None
 
     def block_of(self) -> np.ndarray:
         """The block (N,) of every epoch."""
@@ -470,9 +481,26 @@ def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: Fi
         observability=obs,
         effects=effects,
         config=config.as_dict(),
+        model=trace.model,
+        filter_state=_filter_state(layout, trace),
     )
     cal = _run_calibration(source, f"{method}-{config.measure}", layout, trace, R, b, std, summary)
-    return summary, cal, effects
+    return summary, replace(cal, model=trace.model), effects
+
+
+def _filter_state(layout: StateLayout, trace: RunTrace) -> dict | None:
+    """The filter's last state as the summary gives it (``RunSummary.filter_state``), or None."""
+    if trace.model is None or trace.filter_x is None:
+        return None
+    R, b = layout.R_b(trace.filter_x)
+    std = np.sqrt(np.diag(trace.filter_P))
+    return {
+        "R": R.tolist(),
+        "b": b.tolist(),
+        "std": dict(zip(layout.names, std.tolist())),
+        "meaning": "the filter's estimate at the end of the log (for real-time use); the calibration written is "
+        "the whole-log estimate",
+    }
 
 
 def _effect_values(layout: StateLayout, x_final, std) -> dict:

@@ -27,6 +27,7 @@ from .noise import ESTIMATE_EVERY_S
 from .prepare import PreparedLog, RunSetup, prepare, prepare_run
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
+from .whole_log import WholeLogFit, fit_whole_log
 
 __all__ = ["calibrate_log", "filter_trace", "ForwardPass", "blocks", "terminal_progress"]
 
@@ -42,11 +43,14 @@ def calibrate_log(
     progress=None,
     phases=NO_PHASES,
     prepared: PreparedLog | None = None,
+    reference: Calibration | None = None,
 ) -> CalibrationRun:
     """Run the online calibration over a log.
 
     Epochs are processed in blocks of ``config.block_s`` seconds; the per-epoch estimates are those after
-    each epoch's block. The calibration is the estimate at the end of the log.
+    each epoch's block. The calibration is the whole-log estimate over the epochs the filter used, in the
+    model family ``config.model`` (``magkf.online.whole_log``); the filter's state at the end of the log, for
+    real-time use, is the summary's ``filter_state``.
 
     Parameters
     ----------
@@ -66,6 +70,10 @@ def calibrate_log(
         Told the time of each phase.
     prepared : PreparedLog or None, optional
         ``prepare(log, config)`` when the caller has made it already (it is not changed).
+    reference : Calibration or None, optional
+        The calibration whose values the parameters the log does not determine are held at (the vehicle's
+        own, ``magkf.io.vehicle_calibration``); None: ``init``, else the vehicle's calibration the log
+        records, else the identity.
 
     Returns
     -------
@@ -96,11 +104,14 @@ def calibrate_log(
     if smooth:
         with phases("smoother"):
             xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, setup.layout.q_rate())
-    # The calibration is the estimate at the end of the log (smoothing leaves the last estimate as it is).
+    step_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    with phases("whole-log estimate"):
+        whole = whole_log_estimate(log, prep, setup, est, status, updated, config, init, reference, step_s)
     trace = filter_trace(
         est,
         setup,
-        float(np.median(np.diff(t))) if len(t) > 1 else 0.0,
+        step_s,
+        whole=whole,
         xs=xs_b,
         stds=np.sqrt(np.einsum("bii->bi", Ps_b)),
         status=status,
@@ -117,14 +128,20 @@ def calibrate_log(
         return build_run(log, prep, config, setup.layout, setup.x0, setup.P0, trace)
 
 
-def filter_trace(est: Estimator, setup: RunSetup, step_s: float, **per_epoch) -> RunTrace:
-    """The ``RunTrace`` of a filter run started from ``setup`` (``prepare.prepare_run``) and ended with ``est``: its
-    final estimate, information, reacquisitions and learned correlation time (``step_s`` the log's median time
-    step, s), and the start's description; ``per_epoch`` the trace's other fields (``RunTrace``: the per-block
-    states, the per-epoch statuses, the times)."""
+def filter_trace(
+    est: Estimator, setup: RunSetup, step_s: float, whole: WholeLogFit | None = None, **per_epoch
+) -> RunTrace:
+    """The ``RunTrace`` of a filter run started from ``setup`` (``prepare.prepare_run``) and ended with ``est``: the
+    estimate (the whole-log estimate ``whole``, else the filter's final state), information, reacquisitions and
+    learned correlation time (``step_s`` the log's median time step, s), and the start's description;
+    ``per_epoch`` the trace's other fields (``RunTrace``: the per-block states, the per-epoch statuses, the
+    times)."""
     return RunTrace(
-        x=est.x,
-        P=est.P,
+        x=est.x if whole is None else whole.x,
+        P=est.P if whole is None else whole.P,
+        model=None if whole is None else whole.model,
+        filter_x=est.x,
+        filter_P=est.P,
         information=est.information,
         init_how=setup.how,
         reacquisitions=est.reacquisitions,
@@ -132,6 +149,44 @@ def filter_trace(est: Estimator, setup: RunSetup, step_s: float, **per_epoch) ->
         nis_rows=nis_rows(setup.model),
         **per_epoch,
     )
+
+
+def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updated, config, init, reference, step_s):
+    """The whole-log estimate (``whole_log.fit_whole_log``) over the epochs the filter updated with, in the family
+    ``config.model``, the held parameters at ``reference`` (else ``init``, else the vehicle's calibration the log
+    records, else the identity), with the batch length of the filter's learned correlation time."""
+    from ..status import Status
+
+    used = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
+    held, how = held_reference(log, init, reference)
+    return fit_whole_log(
+        prep,
+        setup.layout,
+        est.x,
+        used,
+        vector=setup.model.needs_attitude,
+        model=config.model,
+        held_at=None if held is None else held.state,
+        held_how=how,
+        correlation_s=est.learner.inflation() * step_s,
+        held_std=(config.init_r_std, config.init_b_std),
+        source=log.source,
+    )
+
+
+def held_reference(log, init: Calibration | None, reference: Calibration | None) -> tuple:
+    """``(calibration or None, where it comes from in words)``: what the parameters a log does not determine
+    are held at."""
+    if reference is not None:
+        return reference, f"the calibration given ({reference.method})"
+    if init is not None:
+        return init, f"the starting calibration (--init, {init.method})"
+    from ..io.vehicle_calibration import logged_calibration
+
+    logged = logged_calibration(log)
+    if logged is not None and logged.method != "logged-as-read":
+        return logged, "the vehicle's calibration recorded in the log"
+    return None, "the identity (no calibration of the vehicle in the log, none given)"
 
 
 class ForwardPass:

@@ -1,0 +1,485 @@
+"""The whole-log estimate a post-processing run writes, in the model family the log determines.
+
+A filter's last state is the estimate *at the end* of the log, shaped by its random walk, its gating history
+and the weights of its learned noise. A post-processing run writes instead the constant parameters that fit
+the epochs the filter used best, the exact least-squares optimum of the residual magkf reports:
+
+* an epoch with attitude: the NED residual ``C_nb c - B_ref`` of the calibrated field
+  ``c = R^-1 (m - b - e)`` (its norm equals that of ``c - B_body``, which is what is computed), all three
+  components at one weight;
+* an epoch without attitude (or the magnitude model): the total-field residual ``|c| - |B_ref|``.
+
+It is solved by Gauss-Newton in the family's free directions ``theta`` (``magkf.families``:
+``x = anchor + T theta``) with the analytic Jacobian ``dc/dx = -R^-1 dm/dx`` (the core's ``[I kron c^T, I]``
+at ``c``, the effects' own), steps halved until the cost falls, under a weak prior (``PRIOR_R_STD``,
+``PRIOR_B_STD`` about the held reference, the effects' own priors) that only keeps undetermined directions
+finite. The log is gone through ``CHUNK`` epochs at a time (one chunk with a nonlinear effect, which looks at
+its neighbours); each pass also folds the sums of ``FOLDS`` contiguous stretches of the used epochs and of
+batches of ``batch_s`` seconds.
+
+**Which family** (``model="auto"``): from the poorest up, a family is taken over the one chosen so far when
+
+1. the log *determines* it: the standard deviation of each of its core parameters, from the data's
+   information alone and the residuals' variance inflated by their correlation, leaves a field error below
+   ``DETERMINED_FRACTION`` of the log's field (``R`` entries times the field, ``b`` as it is); and
+2. it predicts *held-out stretches* of the same log at least as well: fitted to all stretches but one, its
+   residual on the one left out, summed over the ``FOLDS`` stretches, is no larger (the quadratic model of the
+   objective at the full fit gives every such fit in one pass).
+
+**Standard deviations** account for the residuals' correlation in time: the covariance is the sandwich
+``H^-1 M H^-1`` with ``M`` the scatter of the gradient's contributions of batches of ``batch_s`` seconds
+(several correlation times; batch means), so a residual correlated over seconds is not counted as
+independent epochs. Held parameters keep the prior's standard deviation and are reported as held.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..conventions import inverse3
+from ..effects.core import core_jacobian
+from ..errors import InputError
+from ..families import FAMILIES, ModelFamily, family
+from .state import CORE_SIZE, StateLayout
+
+__all__ = ["WholeLogFit", "fit_whole_log", "FOLDS", "DETERMINED_FRACTION", "PRIOR_R_STD", "PRIOR_B_STD"]
+
+#: The weak prior of the whole-log fit: standard deviation of each element of R and each offset (nT).
+PRIOR_R_STD = 0.1
+PRIOR_B_STD = 5000.0
+#: Contiguous stretches of the used epochs for the held-out check.
+FOLDS = 5
+#: A family is determined when its parameters' standard deviations leave less than this share of the field.
+DETERMINED_FRACTION = 0.005
+#: An R column is estimated only where its body field component's standard deviation over the used epochs is at
+#: least this share of the field (about 6 degrees of rotation): the regression of a reading on a component that
+#: hardly varies cannot tell its scale from the offset, and a few tens of nT of unmodelled field or attitude
+#: error then move it (on a straight, level flight with the body field varying by 1 to 2 % of the field, the
+#: scale family's R was 5 to 6 of its standard deviations off the truth).
+EXCITATION_FRACTION = 0.1
+#: Epochs evaluated at once.
+CHUNK = 16384
+#: Batches of the covariance last this many correlation times, and there are at least this many per parameter.
+BATCH_CORRELATIONS = 5.0
+BATCHES_PER_PARAMETER = 4
+#: Gauss-Newton stops when every step is below this many standard deviations, or after MAX_ITERATIONS.
+STEP_TOL = 1e-6
+MAX_ITERATIONS = 30
+MAX_HALVINGS = 12
+
+
+@dataclass(frozen=True)
+class WholeLogFit:
+    """The whole-log estimate: state ``x`` (n,) and covariance ``P`` (n, n), the ``family`` chosen, the
+    ``model`` record a calibration file keeps (``family``, ``estimated``, ``held``, ``held_at``, ``text``,
+    ``candidates``), the residual RMS (nT) of the used epochs with attitude (NED norm) and without
+    (magnitude), the number of epochs and the batch length ``batch_s`` of the covariance."""
+
+    x: np.ndarray
+    P: np.ndarray
+    family: str
+    model: dict
+    residual_rms_nt: float
+    magnitude_rms_nt: float
+    n_epochs: int
+    batch_s: float
+
+
+@dataclass
+class _Sums:
+    """The normal equations of the data at one state: ``A`` (n, n), ``g`` (n,), the sum of squares ``ss``, and
+    the same per fold (``A_k`` (F, n, n), ``g_k`` (F, n), ``ss_k`` (F,)), each batch's gradient ``scores``
+    (K, n), and the vector and magnitude sums of squares and counts."""
+
+    A: np.ndarray
+    g: np.ndarray
+    ss: float
+    A_k: np.ndarray
+    g_k: np.ndarray
+    ss_k: np.ndarray
+    scores: np.ndarray
+    vec: list
+    mag: list
+
+    @classmethod
+    def empty(cls, n: int, batches: int) -> _Sums:
+        return cls(
+            np.zeros((n, n)),
+            np.zeros(n),
+            0.0,
+            np.zeros((FOLDS, n, n)),
+            np.zeros((FOLDS, n)),
+            np.zeros(FOLDS),
+            np.zeros((batches, n)),
+            [0, 0.0],
+            [0, 0.0],
+        )
+
+    def add(self, r, J, fold, batch) -> None:
+        """Add epochs' residuals ``r`` (k, q) nT with their Jacobian ``J`` (k, q, n), folds and batches (k,)."""
+        A_e = np.einsum("kqi,kqj->kij", J, J)
+        g_e = np.einsum("kqi,kq->ki", J, r)
+        ss_e = np.einsum("kq,kq->k", r, r)
+        self.A += A_e.sum(axis=0)
+        self.g += g_e.sum(axis=0)
+        self.ss += float(ss_e.sum())
+        np.add.at(self.A_k, fold, A_e)
+        np.add.at(self.g_k, fold, g_e)
+        np.add.at(self.ss_k, fold, ss_e)
+        np.add.at(self.scores, batch, g_e)
+        acc = self.vec if r.shape[1] == 3 else self.mag
+        acc[0] += len(r)
+        acc[1] += float(ss_e.sum())
+
+
+class _Problem:
+    """The whole-log objective of the used epochs of one prepared log."""
+
+    def __init__(self, prep, layout: StateLayout, used, vector: bool, batch_s: float, prior_x, prior_std):
+        self.prep, self.layout = prep, layout
+        idx = np.flatnonzero(used)
+        with_att = prep.has_attitude[idx] if vector else np.zeros(len(idx), bool)
+        self.groups = [(True, idx[with_att]), (False, idx[~with_att])]
+        self.n_used = len(idx)
+        rank = np.empty(len(prep), np.int64)
+        rank[idx] = np.arange(len(idx))
+        self.fold = (FOLDS * rank) // max(len(idx), 1)
+        t = prep.time
+        t0 = t[idx[0]] if len(idx) else 0.0
+        self.batch = np.floor((t - t0) / batch_s).astype(np.int64) if len(idx) else np.zeros(len(prep), np.int64)
+        self.n_batches = int(self.batch[idx].max()) + 1 if len(idx) else 1
+        self.chunk = max(len(idx), 1) if layout.nonlinear else CHUNK
+        self.prior_x = np.asarray(prior_x, float)
+        self.omega = 1.0 / np.asarray(prior_std, float) ** 2
+
+    def chunks(self):
+        for vector, epochs in self.groups:
+            for i in range(0, len(epochs), self.chunk):
+                yield vector, epochs[i : i + self.chunk]
+
+    def residuals(self, x, vector: bool, epochs) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (k, q) nT and Jacobian (k, q, n) of ``epochs`` (k,) at ``x`` (n,): body-frame vector
+        residuals ``c - B_body`` (q = 3) or magnitude residuals ``|c| - |B_ref|`` (q = 1)."""
+        layout, prep = self.layout, self.prep
+        data = prep.data.take(epochs) if layout.has_extra else None
+        terms = 0.0 if data is None else layout.effect_terms(x, data)
+        c = layout.calibrated(x, prep.m[epochs], terms)
+        if data is None:
+            dmdx = core_jacobian(c)
+        else:
+            dmdx = np.nan_to_num(layout.jacobian(x, data))
+            dmdx[:, :, layout.CORE] = core_jacobian(c)
+        dcdx = -(inverse3(layout.R(x)) @ dmdx)
+        if vector:
+            return c - prep.data.field_body[epochs], dcdx
+        norm = np.linalg.norm(c, axis=1)
+        r = (norm - prep.ref_mag[epochs])[:, None]
+        return r, np.einsum("ki,kin->kn", c / norm[:, None], dcdx)[:, None, :]
+
+    def sums(self, x) -> _Sums:
+        s = _Sums.empty(len(x), self.n_batches)
+        for vector, epochs in self.chunks():
+            r, J = self.residuals(x, vector, epochs)
+            s.add(r, J, self.fold[epochs], self.batch[epochs])
+        return s
+
+    def cost(self, x, s: _Sums) -> float:
+        d = x - self.prior_x
+        return 0.5 * (s.ss + float(d @ (self.omega * d)))
+
+    def minimise(self, x, T) -> tuple[np.ndarray, _Sums]:
+        """Gauss-Newton from ``x`` (n,) in the directions ``T`` (n, k), steps halved until the cost falls."""
+        s = self.sums(x)
+        for _ in range(MAX_ITERATIONS):
+            H, grad = self.normal(x, s, T)
+            step, sigma = _solve(H, grad)
+            if np.max(np.abs(step) / sigma) < STEP_TOL:
+                break
+            cost, fraction = self.cost(x, s), 1.0
+            for _ in range(MAX_HALVINGS):
+                trial = x + fraction * (T @ step)
+                s_trial = self.sums(trial)
+                if self.cost(trial, s_trial) <= cost * (1.0 + 1e-12):
+                    break
+                fraction /= 2.0
+            else:
+                break
+            x, s = trial, s_trial
+        return x, s
+
+    def normal(self, x, s: _Sums, T) -> tuple[np.ndarray, np.ndarray]:
+        """The normal equations ``H`` (k, k) and gradient (k,) in the directions ``T`` (n, k), prior included."""
+        H = T.T @ (s.A + np.diag(self.omega)) @ T
+        grad = T.T @ (s.g + self.omega * (x - self.prior_x))
+        return H, grad
+
+
+def _solve(H, grad) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton step ``-H^-1 grad`` (k,) and ``sqrt(diag(H^-1))`` (k,), scaled for conditioning."""
+    D = 1.0 / np.sqrt(np.diag(H))
+    Hi = np.linalg.inv(H * D[:, None] * D[None, :]) * D[:, None] * D[None, :]
+    return -Hi @ grad, np.sqrt(np.abs(np.diag(Hi)))
+
+
+def fit_whole_log(
+    prep,
+    layout: StateLayout,
+    x_start,
+    used,
+    *,
+    vector: bool = True,
+    model: str = "auto",
+    held_at=None,
+    held_how: str = "the identity (no calibration of the vehicle, none given)",
+    correlation_s: float = 0.0,
+    held_std=(0.02, 300.0),
+    source: str | None = None,
+) -> WholeLogFit:
+    """The whole-log estimate over the ``used`` epochs of ``prep`` in the family ``model`` (see the module).
+
+    Parameters
+    ----------
+    prep : PreparedLog
+        The prepared log (its effects' data at the run's initial ``R``).
+    layout : StateLayout
+        The state's blocks.
+    x_start : array_like
+        (n,) where to start (the filter's last state).
+    used : array_like
+        (N,) bool, the epochs the filter used.
+    vector : bool
+        Whether epochs with attitude give the vector residual (False: the magnitude model).
+    model : str
+        ``auto`` or one of ``magkf.families.FAMILIES``.
+    held_at : array_like or None
+        (12,) the core the held directions take (None: the identity and zero offsets).
+    held_how : str
+        Where ``held_at`` comes from, in words.
+    correlation_s : float
+        The residuals' correlation time learned by the filter, s (the batch length of the covariance).
+    held_std : tuple of float
+        Standard deviations stated for held ``R`` elements and offsets (nT): the prior's, not estimated.
+    source : str or None
+        The log's name, for errors.
+
+    Returns
+    -------
+    WholeLogFit
+
+    Raises
+    ------
+    InputError
+        Too few used epochs, or (``auto``) a log that does not determine even the offsets.
+    """
+    used = np.asarray(used, bool)
+    n = layout.size
+    n_used = int(used.sum())
+    if n_used < 3 * n:
+        raise InputError(f"too few used epochs ({n_used}) for a whole-log estimate of {n} parameters", source)
+    core_ref = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if held_at is None else np.asarray(held_at, float)
+    prior_x, prior_std = _prior(layout, core_ref)
+    batch_s = _batch_length(prep.time[used], correlation_s, n)
+    problem = _Problem(prep, layout, used, vector, batch_s, prior_x, prior_std)
+    field_nt = float(np.median(prep.ref_mag[used]))
+    x_start = np.asarray(x_start, float).reshape(n)
+    excited = _excited(prep, used, vector, field_nt)
+    families = {name: family(name).restricted(excited) for name in _possible(vector)}
+    # The richest family the log's motion allows first (from the filter's state): the others are judged at its fit.
+    first = list(families)[-1] if model == "auto" else model
+    x, s = _fit_family(problem, families[first], x_start, core_ref)
+    candidates = _candidates(problem, x, s, core_ref, field_nt, families)
+    chosen = first
+    if model == "auto":
+        if not candidates[FAMILIES[0]]["determined"]:
+            worst = candidates[FAMILIES[0]]["worst_std_nt"]
+            raise InputError(
+                f"the log does not determine even the offsets (their standard deviation is {worst:.3g} nT, over "
+                f"{100 * DETERMINED_FRACTION:g} % of the field): fly straight and level for longer, or give a "
+                "calibration",
+                source,
+            )
+        chosen = _choose(candidates, FAMILIES[0], families)
+        if chosen != first:
+            x, s = _fit_family(problem, families[chosen], x, core_ref)
+    fam = families[chosen]
+    T = fam.state_basis(n)
+    P = _covariance(problem, x, s, T, fam, held_std)
+    record = _record(fam, model, held_how, core_ref, candidates)
+    return WholeLogFit(
+        x=x,
+        P=P,
+        family=chosen,
+        model=record,
+        residual_rms_nt=float(np.sqrt(s.vec[1] / s.vec[0])) if s.vec[0] else float("nan"),
+        magnitude_rms_nt=float(np.sqrt(s.mag[1] / s.mag[0])) if s.mag[0] else float("nan"),
+        n_epochs=n_used,
+        batch_s=batch_s,
+    )
+
+
+def _prior(layout: StateLayout, core_ref) -> tuple[np.ndarray, np.ndarray]:
+    """The weak prior ``(mean (n,), std (n,))``: the core at ``core_ref`` with ``PRIOR_R_STD``/``PRIOR_B_STD``,
+    the effects at their own priors."""
+    x, P = layout.prior()
+    std = np.sqrt(np.diag(P))
+    x[:CORE_SIZE] = core_ref
+    std[:CORE_SIZE] = np.concatenate([np.full(9, PRIOR_R_STD), np.full(3, PRIOR_B_STD)])
+    return x, std
+
+
+def _batch_length(t, correlation_s: float, n: int) -> float:
+    """Batches of ``BATCH_CORRELATIONS`` correlation times, at least two time steps, and short enough for
+    ``BATCHES_PER_PARAMETER`` batches per parameter over the used epochs' span ``t`` (k,) s."""
+    span = float(t[-1] - t[0]) if len(t) > 1 else 1.0
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    wanted = max(BATCH_CORRELATIONS * correlation_s, 2.0 * step)
+    return max(min(wanted, span / (BATCHES_PER_PARAMETER * n)), step)
+
+
+def _excited(prep, used, vector: bool, field_nt: float) -> np.ndarray:
+    """Which components (3,) bool of the field varied by at least ``EXCITATION_FRACTION`` of the field (standard
+    deviation) over the used epochs: the body field's with attitude, else the raw readings'."""
+    values = prep.data.field_body[used & prep.has_attitude] if vector else prep.m[used]
+    if len(values) < 2:
+        return np.zeros(3, bool)
+    return np.std(values, axis=0) >= EXCITATION_FRACTION * field_nt
+
+
+def _possible(vector: bool) -> tuple:
+    """The families a log can determine at all: the magnitude alone cannot see a rotation (no ``full``)."""
+    return FAMILIES if vector else FAMILIES[:-1]
+
+
+def _fit_family(problem: _Problem, fam: ModelFamily, x, core_ref) -> tuple[np.ndarray, _Sums]:
+    """The least-squares fit in family ``fam``, from ``x`` (n,) brought into it (``ModelFamily.project``)."""
+    start = np.array(x, float)
+    start[:CORE_SIZE] = fam.project(start[:CORE_SIZE], core_ref)
+    return problem.minimise(start, fam.state_basis(len(start)))
+
+
+def _candidates(problem: _Problem, x_full, s: _Sums, core_ref, field_nt: float, families: dict) -> dict:
+    """For each of ``families`` (name -> ``ModelFamily``): its worst standard deviation as a field error (nT),
+    whether that is determined, its held-out residual RMS (nT), all from the quadratic model of the objective at
+    ``x_full`` (n,) (the fit so far, whose sums are ``s``), and the number of core parameters it frees."""
+    n = len(x_full)
+    dof = max(s.vec[0] * 3 + s.mag[0] - n, 1)
+    variance = s.ss / dof * _correlation_factor(problem, x_full, s)
+    scale = np.concatenate([np.full(9, field_nt), np.ones(3)])
+    out = {}
+    for name, fam in families.items():
+        T = fam.state_basis(n)
+        anchor = x_full.copy()
+        anchor[:CORE_SIZE] = fam.anchor(core_ref)
+        info = T.T @ s.A @ T
+        try:
+            cov = variance * np.linalg.inv(info)
+            core_cov = (T @ cov @ T.T)[:CORE_SIZE, :CORE_SIZE]
+            worst = float(np.sqrt(np.max(np.abs(np.diag(core_cov)) * scale**2 * (np.abs(fam.basis).sum(axis=1) > 0))))
+        except np.linalg.LinAlgError:
+            worst = float("inf")
+        if not np.isfinite(worst) or np.linalg.cond(info) > 1e14:
+            worst = float("inf")
+        out[name] = {
+            "worst_std_nt": worst,
+            "determined": bool(worst <= DETERMINED_FRACTION * field_nt),
+            "held_out_rms_nt": _held_out(problem, x_full, s, T, anchor),
+            "free": fam.size,
+        }
+    return out
+
+
+def _correlation_factor(problem: _Problem, x, s: _Sums) -> float:
+    """How many times the variance of the gradient's batch contributions exceeds that of independent epochs
+    (at least 1): the residuals' correlation, by batch means, at the full fit ``x``."""
+    n = len(x)
+    H = s.A + np.diag(problem.omega)
+    white = np.linalg.pinv(H) * (s.ss / max(s.vec[0] * 3 + s.mag[0] - n, 1))
+    scores = s.scores - s.scores.mean(axis=0)
+    Hi = np.linalg.pinv(H)
+    hac = Hi @ (scores.T @ scores) @ Hi
+    ratio = np.diag(hac) / np.maximum(np.diag(white), 1e-300)
+    ratio = ratio[np.isfinite(ratio) & (np.diag(white) > 0)]
+    return float(max(np.median(ratio), 1.0)) if len(ratio) else 1.0
+
+
+def _held_out(problem: _Problem, x_full, s: _Sums, T, anchor) -> float:
+    """RMS residual (nT per component) of each fold predicted by the family (directions ``T``, held parts at
+    ``anchor``) fitted to the other folds, summed over the folds, in the quadratic model at ``x_full``."""
+    d = anchor - x_full
+    d[problem.layout.CORE] = d[problem.layout.CORE] - T[:CORE_SIZE] @ (T[:CORE_SIZE].T @ d[problem.layout.CORE])
+    omega = np.diag(problem.omega)
+    prior_grad = problem.omega * (x_full - problem.prior_x)
+    total, count = 0.0, 0
+    for k in range(FOLDS):
+        A, g = s.A - s.A_k[k], s.g - s.g_k[k]
+        H = T.T @ (A + omega) @ T
+        rhs = -T.T @ (g + prior_grad + (A + omega) @ d)
+        try:
+            theta = np.linalg.solve(H, rhs)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        delta = d + T @ theta
+        total += s.ss_k[k] + 2.0 * s.g_k[k] @ delta + delta @ s.A_k[k] @ delta
+    count = s.vec[0] * 3 + s.mag[0]
+    return float(np.sqrt(max(total, 0.0) / max(count, 1)))
+
+
+def _choose(candidates: dict, chosen: str, families: dict) -> str:
+    """The richest family above ``chosen`` that frees more parameters, is determined and predicts the held-out
+    stretches no worse than the best below it, or ``chosen``."""
+    for name in list(families)[list(families).index(chosen) + 1 :]:
+        c = candidates[name]
+        adds = c["free"] > candidates[chosen]["free"]
+        if adds and c["determined"] and c["held_out_rms_nt"] <= candidates[chosen]["held_out_rms_nt"]:
+            chosen = name
+    return chosen
+
+
+def _covariance(problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std) -> np.ndarray:
+    """The covariance (n, n): the batch-means sandwich in the free directions, the prior's standard deviations
+    ``held_std`` (R element, offset nT) along the held ones."""
+    H = T.T @ (s.A + np.diag(problem.omega)) @ T
+    Hi = np.linalg.inv(H)
+    scores = s.scores @ T
+    used_batches = np.any(s.scores != 0, axis=1)
+    k = int(used_batches.sum())
+    scores = scores[used_batches] - scores[used_batches].mean(axis=0)
+    meat = scores.T @ scores * (k / max(k - 1, 1))
+    dof = max(s.vec[0] * 3 + s.mag[0] - T.shape[1], 1)
+    white = Hi * (s.ss / dof)
+    sandwich = Hi @ meat @ Hi
+    # never below independent epochs' covariance: a correlation cannot make the estimate better than white noise
+    scale = np.sqrt(np.maximum(np.diag(sandwich) / np.maximum(np.diag(white), 1e-300), 1.0))
+    d = np.sqrt(np.diag(white)) * scale
+    corr = sandwich / np.sqrt(np.outer(np.diag(sandwich), np.diag(sandwich)))
+    P_theta = corr * np.outer(d, d)
+    P = T @ P_theta @ T.T
+    N = fam.held()
+    if N.shape[1]:
+        held_var = np.concatenate([np.full(9, held_std[0] ** 2), np.full(3, held_std[1] ** 2)])
+        P[:CORE_SIZE, :CORE_SIZE] += N @ (N.T @ (held_var[:, None] * N)) @ N.T
+    return 0.5 * (P + P.T)
+
+
+def _record(fam: ModelFamily, asked: str, held_how: str, core_ref, candidates: dict) -> dict:
+    """The ``model`` record of a calibration file: the family, what it estimated and held, in words."""
+    if fam.name == "full":
+        text = "this log determines all 12 parameters of R and b"
+    else:
+        text = f"this log determines {fam.estimates}; {fam.holds} held at {held_how}"
+    if asked != "auto":
+        text = f"{fam.name} asked for (--model {asked}): {text if fam.name != 'full' else 'all 12 parameters'}"
+        if not candidates[fam.name]["determined"]:
+            text += f"; the log does not determine it (worst std {candidates[fam.name]['worst_std_nt']:.3g} nT)"
+    return {
+        "family": fam.name,
+        "asked": asked,
+        "estimated": fam.estimates,
+        "held": fam.holds,
+        "held_at": held_how,
+        "held_core": np.asarray(core_ref, float).tolist(),
+        "text": text,
+        "candidates": candidates,
+    }
