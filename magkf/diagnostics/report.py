@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -380,10 +381,11 @@ def _estimate_table(run) -> str:
     return _table(rows, ["parameter", "value", "standard deviation", "unit"])
 
 
-def _field_views(log: DriveLog, run) -> list[str]:
-    """The field as read (raw: no calibration, unless the log was read calibrated) and with magkf's calibration
-    in three projections with the reference sphere, the magnitude error of each, and the heading deviation
-    against heading (compass swing) of each."""
+def _field_views(log: DriveLog, run, comparison: Comparison) -> list[str]:
+    """The "Field before and after calibration" section: raw (no calibration, unless the log was read calibrated),
+    the vehicle's own calibration and magkf's compared (``comparison``); then the field as read and with magkf's
+    calibration in three projections with the reference sphere, the magnitude error of each, and the heading
+    deviation against heading (compass swing) of each."""
     from ..apply import apply_calibration
 
     after = apply_calibration(log, run.calibration)
@@ -395,10 +397,15 @@ def _field_views(log: DriveLog, run) -> list[str]:
     histogram = _magnitude_errors(before, after, ref, names)
     yaw = log.attitude[:, 2] % 360.0
     ok = (after["status"] == "ok").to_numpy()
-    title = f"<h2>Field: {names[0]} and {names[1]}</h2>"
+    head = [
+        "<h2>Field before and after calibration</h2>",
+        f"<p>Before: the {names[0]}; after: {names[1]}.</p>",
+        *_baseline_part(comparison),
+        f"<h3>The field: {names[0]} and {names[1]}</h3>",
+    ]
     if not ok.any():
-        return [title, projections, histogram]
-    return [title, projections, histogram, _compass_swing(before, after, yaw, ok, names)]
+        return [*head, projections, histogram]
+    return [*head, projections, histogram, _compass_swing(before, after, yaw, ok, names)]
 
 
 #: What the report calls the field corrected with magkf's calibration.
@@ -520,10 +527,35 @@ BASELINE_STYLE = {
 SYMLOG_RATIO = 20.0
 
 
-def _baseline_section(log: DriveLog, run) -> list[str]:
-    """The "Raw, the vehicle's calibration and magkf's" section: each one's RMS magnitude and heading error over
-    the same epochs (``baseline.compare_calibrations``), in a table, over time and against heading."""
-    from .baseline import MAGKF, RAW, VEHICLE, compare_calibrations, improvement_text, vehicle_calibration
+@dataclass(frozen=True)
+class Comparison:
+    """Raw, the vehicle's calibration and magkf's over one log: ``base`` (``baseline.Baseline``), ``vehicle``
+    (the vehicle's ``Calibration`` or None), ``words`` (it in words, or why there is none) and ``as_read`` (the
+    log was read with the autopilot's calibration kept: no raw row)."""
+
+    base: object
+    vehicle: object
+    words: str
+    as_read: bool
+
+    def sentence(self) -> str:
+        """magkf's calibration against the vehicle's, in one sentence (HTML), or "" without the vehicle's."""
+        from .baseline import improvement_text
+
+        if self.vehicle is None:
+            return ""
+        return (
+            f"<p><b>Against the vehicle's own calibration:</b> magkf's calibration "
+            f"{html.escape(improvement_text(self.base.summary))}, over the {int(self.base.compared.sum())} epochs "
+            "with attitude and a reference field. It was estimated from this log, so its figures are in-sample; "
+            "<code>magkf validate</code> measures it on another log.</p>"
+        )
+
+
+def _compare(log: DriveLog, run) -> Comparison:
+    """The raw reading (unless the log was read calibrated), the vehicle's calibration (when the log gives it)
+    and magkf's (``run.calibration``) compared over ``log`` (``baseline.compare_calibrations``)."""
+    from .baseline import MAGKF, RAW, VEHICLE, compare_calibrations, vehicle_calibration
 
     vehicle, words = vehicle_calibration(log)
     as_read = _read_calibrated(log)
@@ -531,26 +563,26 @@ def _baseline_section(log: DriveLog, run) -> list[str]:
     if vehicle is not None:
         cals[VEHICLE] = vehicle
     cals[MAGKF] = run.calibration
-    base = compare_calibrations(log, cals)
+    return Comparison(compare_calibrations(log, cals), vehicle, words, as_read)
+
+
+def _baseline_part(comparison: Comparison) -> list[str]:
+    """The comparison of raw, the vehicle's calibration and magkf's: each one's RMS and mean magnitude and heading
+    error over the same epochs in a table, and both errors over time and against heading."""
+    base = comparison.base
+    raw = "" if comparison.as_read else " (the autopilot's undone)"
     parts = [
-        "<h2>Raw, the vehicle's calibration and magkf's</h2>",
-        "<p>The field magnitude less the reference field's (magnitude error) and the heading a tilt-compensated "
-        "compass would read less the logged heading (heading error), with each calibration, over the "
-        f"{base.compared.sum()} epochs with attitude and a reference field where each gives both "
-        f"(of {len(base.time)}). <b>Raw</b> is the sensor's reading with no calibration at all"
-        + (" (the autopilot's undone); " if not as_read else "; ")
-        + f"<b>the vehicle's calibration</b>: {html.escape(words)}.</p>",
+        "<h3>Raw, the vehicle's own calibration and magkf's</h3>",
+        "<p>Magnitude error: the field's magnitude less the reference field's. Heading error: the heading a "
+        "tilt-compensated compass would read less the logged heading. Over the "
+        f"{int(base.compared.sum())} epochs (of {len(base.time)}) with attitude and a reference field where each "
+        f"calibration gives both. <b>Raw</b>: the sensor's reading with no calibration at all{raw}; <b>the "
+        f"vehicle's own calibration</b>: {html.escape(comparison.words)}.</p>",
     ]
-    if as_read:
+    if comparison.as_read:
         parts.append(
             "<p>The log was read with the autopilot's calibration kept (--logged-calibration): its raw reading is "
             "not known here, and the vehicle's calibration is the field as read.</p>"
-        )
-    if vehicle is not None:
-        parts.append(
-            f"<p><b>magkf's calibration {html.escape(improvement_text(base.summary))}</b>. It was estimated from "
-            "this log, so its figures here are in-sample; <code>magkf validate</code> measures it on another "
-            "log.</p>"
         )
     if not base.compared.any():
         return parts + ["<p>No epoch has both attitude and a reference field: no error to compare.</p>"]
@@ -577,7 +609,7 @@ def _baseline_table(base) -> str:
             for name in base.names
         ],
         [
-            "calibration",
+            "",
             "magnitude error RMS, nT",
             "heading error RMS, deg",
             "magnitude error mean, nT",
@@ -793,12 +825,12 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
     say("drawing the plots")
     t0 = log.time[0]
+    comparison = _compare(log, run)
     parts = [
-        *_overview(log, run, diag, cal),
-        *_baseline_section(log, run),
+        *_overview(log, run, diag, cal, comparison),
         *_noise_section(run, t0),
         *_gates_and_estimate(run, t0),
-        *_field_views(log, run),
+        *_field_views(log, run, comparison),
         *_residuals_section(diag, t0),
         *_candidates_section(diag),
     ]
@@ -817,15 +849,17 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     )
 
 
-def _overview(log, run, diag, cal) -> list[str]:
-    """The title and the run in a few lines: epochs, filter and start, residuals and NIS, the diagnosis's advice,
-    what the data did not determine, and whether ``magkf calibrate`` would write the calibration."""
+def _overview(log, run, diag, cal, comparison: Comparison) -> list[str]:
+    """The title and the run in a few lines: epochs, filter and start, residuals and NIS, magkf's calibration
+    against the vehicle's (``comparison``), the diagnosis's advice, what the data did not determine, and whether
+    ``magkf calibrate`` would write the calibration."""
     s = run.summary
     return [
         f"<h1>magkf report: {html.escape(log.source)}</h1>",
         f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; residual RMS over the "
         f"epochs used {_fixed(s.residual_rms_nt)} nT (vector norm), magnitude {_fixed(s.residual_rms_magnitude_nt)} "
         f"nT, mean NIS per degree of freedom {_fixed(s.nis_mean)}.</p>",
+        comparison.sentence(),
         f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
         f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
         _plausibility(run, log, cal),
