@@ -395,6 +395,7 @@ def _ardupilot_mounting(cal, suffix: str, version, slot, notes: list) -> tuple[n
     name = f"COMPASS_ORIENT{suffix}"
     logged = mag.get("orientation")
     Q, _ = _polar(np.linalg.inv(cal.R))
+    _calibrated_note(mag, notes)
     fixed = _ardupilot_fixed_frame(mag, logged, name, suffix)
     if fixed is not None:
         notes.append(fixed)
@@ -439,11 +440,7 @@ def _px4_mounting(cal, prefix: str, version, notes: list) -> tuple[np.ndarray, d
     mag = cal.magnetometer or {}
     name = f"{prefix}ROT"
     logged = (mag.get("rotation") or {}).get(name) if isinstance(mag.get("rotation"), dict) else None
-    if mag.get("calibrated"):
-        notes.append(
-            "the calibration is of PX4's vehicle_magnetometer, already rotated and calibrated by PX4: the "
-            "parameters are not of the sensor's own readings; calibrate from sensor_mag instead"
-        )
+    _calibrated_note(mag, notes)
     Q, _ = _polar(np.linalg.inv(cal.R))
     modern = version is None or version >= PX4_MAVLINK_ROTATIONS_FROM
     custom = version is not None and version >= PX4_CUSTOM_FROM
@@ -462,6 +459,17 @@ def _px4_mounting(cal, prefix: str, version, notes: list) -> tuple[np.ndarray, d
     change = _change_note(name, logged, values[name], chosen)
     notes += [] if change is None else [f"{change}; it applies to an external magnetometer"]
     return chosen.matrix, values, _summary(chosen, logged, custom, version)
+
+
+def _calibrated_note(mag: dict, notes: list) -> None:
+    """A note when the log's field was the autopilot's calibrated one (``calibrated`` in the magnetometer record):
+    parameters of it do not apply to the sensor's own readings."""
+    if mag.get("calibrated"):
+        notes.append(
+            "the calibration is of the field the autopilot had already calibrated and rotated (the log's "
+            "magnetometer record says calibrated), not of the sensor's own readings: these parameters would "
+            "replace the autopilot's with a correction of its output; calibrate from the raw field instead"
+        )
 
 
 def _from_autopilot_log(mag: dict, autopilot: str) -> bool:

@@ -252,3 +252,16 @@ def _assert_reported_turn(out, truth, params):
     stated = re.search(r"up to ([0-9.e+]+) nT at a 50000 nT field", params.notes[0])
     assert float(stated.group(1)) == pytest.approx(field_error_nt(params.residual_rotation_deg, FIELD_NT), rel=1e-5)
     assert np.linalg.norm(out - truth, axis=1).max() <= field_error_nt(params.residual_rotation_deg, FIELD_NT) + 1.0
+
+
+def test_logged_custom_orientation_and_calibrated_field_are_reported():
+    rng = np.random.default_rng(13)
+    magnetometer = {"format": "ardupilot-dataflash", "instance": 0, "compass": 1, "orientation": 101}
+    params = to_ardupilot(mounted_calibration(rng, YAW90, magnetometer), firmware="4.5")
+    # The angles of the logged custom rotation are not in the calibration: nothing to compose with.
+    assert "COMPASS_ORIENT" not in params.values
+    assert any("custom rotation whose angles" in n for n in params.notes)
+    assert params.residual_rotation_deg == pytest.approx(90.0, rel=1e-9)
+    calibrated = {"format": "px4-ulog", "instance": 0, "calibrated": True, "calibration_index": 0}
+    params = to_px4(mounted_calibration(rng, np.eye(3), calibrated))
+    assert any("already calibrated and rotated" in n for n in params.notes)
