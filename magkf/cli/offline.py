@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from ..conventions import NT_PER_UNIT, to_nanotesla
+from ..conventions import MAG, NT_PER_UNIT, to_nanotesla
 from ..errors import InputError
 from . import common
 
@@ -44,7 +44,13 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "ellipsoid", run_ellipsoid, "offline ellipsoid (3-axis) or ellipse (2-axis) calibration")
     p.add_argument("file", help="CSV with the sensor columns (or any table with --map)")
     p.add_argument("--map", metavar="MAP.toml", help=MAP_HELP.format(columns="the --columns"))
-    p.add_argument("--field", help="true magnitude in data units, or 'igrf' (default: 1, a unit sphere)")
+    p.add_argument(
+        "--field",
+        help="true magnitude: nT for the magnetometer columns mag_x, mag_y, mag_z (or with --mag-unit), the data's "
+        "units for other --columns; or 'igrf'. The calibration is then in nT (in the data's units for other "
+        "columns). Default: none; R is scaled to determinant 1 and the calibration is in the readings' own units "
+        "(nT only with --mag-unit or --map)",
+    )
     p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
     p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
     p.add_argument(
@@ -123,10 +129,9 @@ def _check_sinefit_inputs(args) -> None:
 
 # ---------------------------------------------------------------- ellipsoid
 def run_ellipsoid(args) -> int:
-    """Ellipsoid or ellipse fit of any vector sensor; the result is in the data's units. Field magnitude: a number,
-    'igrf' (with --lat/--lon/--date; the horizontal part for --axes 2), or a unit sphere by default."""
-    import numpy as np
-
+    """Ellipsoid or ellipse fit of any vector sensor, robust to disturbed samples. Field magnitude: a number,
+    'igrf' (with --lat/--lon/--date; the horizontal part for --axes 2), or none (R scaled to determinant 1); the
+    calibration file records the unit of its field (``_field_unit``)."""
     from ..offline.ellipsoid import EllipsoidCalibrator
     from ..offline.reading import read_offline_table
     from ..plausibility import check_calibration, check_residual
@@ -136,25 +141,16 @@ def run_ellipsoid(args) -> int:
     if len(columns) != args.axes:
         raise InputError(f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}")
     table, _ = read_offline_table(args.file, columns, args.map, mag_unit=args.mag_unit)
-    if args.field == "igrf":
-        field = common.igrf_field(args)["magnitude_nt"]
-        if args.axes == 2:
-            field = field * np.cos(np.radians(common.igrf_field(args)["inclination_deg"]))
-    elif args.field is None:
-        field = 1.0
-    else:
-        try:
-            field = float(args.field)
-        except ValueError:
-            raise InputError(f"--field {args.field!r} is neither a number nor 'igrf'") from None
-        if not (np.isfinite(field) and 1e-9 <= field <= 1e9):
-            raise InputError(f"--field {args.field}: give a magnitude between 1e-9 and 1e9 in the data's units")
+    field = _ellipsoid_field(args)
     X = table[columns].to_numpy()
     if args.mag_unit:
         X = to_nanotesla(X, args.mag_unit)
     result = EllipsoidCalibrator(args.axes, field, refine=not args.algebraic).fit(X, args.file).result_
     known = args.field is not None
-    result.warnings.extend(check_calibration(result.R, result.b / field, args.file, field_known=known))
+    if not known:  # no physical field: the sensor's own mean sensitivity is taken as 1 (R of determinant 1)
+        result = result.scaled_to(result.unit_determinant_field)
+    field_unit = _field_unit(args, columns, result.field)
+    result.warnings.extend(check_calibration(result.R, result.b / result.field, args.file, field_known=known))
     if known:
         result.warnings.extend(check_residual(result.residual_rms, field, args.file))
     tilt = _largest_tilt_deg(table)
@@ -164,24 +160,88 @@ def run_ellipsoid(args) -> int:
             "leaks into the fit (use the 3-axis fit, or level the data first)"
         )
     if args.output:
-        result.to_calibration(source=args.file).save(args.output)
+        result.to_calibration(source=args.file, field_unit=field_unit).save(args.output)
     for w in result.warnings:
         print(f"magkf: warning: {args.file}: {w}", file=sys.stderr)
     if args.json:
-        common.print_json({**result.summary(), "columns": columns})
+        common.print_json({**result.summary(), "columns": columns, "field_unit": field_unit})
     else:
-        kind = "ellipsoid" if args.axes == 3 else "ellipse"
-        print(
-            f"{kind} calibration of {args.file} ({result.n_samples} samples, columns {', '.join(columns)}), "
-            f"field magnitude {field:g}"
-        )
-        for name, value in result.parameters.items():
-            print(f"  {name:10s} {value:14.6g}  +- {result.standard_errors[name]:.3g}")
-        print(
-            f"  residual RMS {result.residual_rms:.4g}; magnitude spread {100 * result.magnitude_spread_before:.2f}% "
-            f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%"
-        )
+        _print_ellipsoid(args, result, columns, field_unit)
     return 0
+
+
+def _ellipsoid_field(args) -> float:
+    """The field magnitude of ``--field``: a number (1e-9 to 1e9), IGRF's (its horizontal part for two axes), or
+    1 when none is given (a unit sphere, rescaled after the fit)."""
+    import numpy as np
+
+    if args.field == "igrf":
+        igrf = common.igrf_field(args)
+        return igrf["magnitude_nt"] * (np.cos(np.radians(igrf["inclination_deg"])) if args.axes == 2 else 1.0)
+    if args.field is None:
+        return 1.0
+    try:
+        field = float(args.field)
+    except ValueError:
+        raise InputError(f"--field {args.field!r} is neither a number nor 'igrf'") from None
+    if not (np.isfinite(field) and 1e-9 <= field <= 1e9):
+        raise InputError(f"--field {args.field}: give a magnitude between 1e-9 and 1e9 in the data's units")
+    return field
+
+
+def _field_unit(args, columns, field: float) -> str:
+    """What the ellipsoid command's calibration measures the field in (``Calibration.field_unit``).
+
+    ``"nT"`` when the readings are known to be in nT: ``--mag-unit``, or ``--map`` of the magnetometer columns
+    (readings converted to nT), ``--field igrf``, or a ``--field`` given for the magnetometer columns
+    ``mag_x, mag_y, mag_z`` (nT by the data contract; without a field they are read in the file's own units,
+    as the command's help says). Otherwise the readings' own units: ``"unit-sphere"`` for a fit to
+    ``--field 1``, ``"counts"`` for any other field or none.
+    """
+    magnetometer_columns = tuple(columns) == MAG[: len(columns)]
+    readings_in_nt = args.mag_unit is not None or (args.map is not None and magnetometer_columns)
+    scaled = args.field is not None
+    if readings_in_nt or args.field == "igrf" or (scaled and magnetometer_columns):
+        return "nT"
+    return "unit-sphere" if scaled and field == 1.0 else "counts"
+
+
+def _field_unit_text(field_unit: str, field_given: bool) -> str:
+    """The unit of an ellipsoid calibration, in words, for the command's report."""
+    if field_given and field_unit == "nT":
+        return "calibration in nT (scaled to the field magnitude)"
+    if field_unit == "nT":
+        return (
+            "no field magnitude given: R is scaled to determinant 1 (the sensor's own mean sensitivity), so the "
+            "calibration is in nT as the sensor measures it; --field igrf scales it to the local field"
+        )
+    what = (
+        "in units of the field's magnitude (unit-sphere)"
+        if field_unit == "unit-sphere"
+        else "in the readings' own units (counts)"
+        + ("" if field_given else ", with R scaled to determinant 1 (the sensor's own mean sensitivity)")
+    )
+    return (
+        f"calibration {what}, not nT: apply it to readings in the same units; magkf export takes only nT: give "
+        "--mag-unit with the readings' unit (or --field igrf) for a calibration in nT"
+    )
+
+
+def _print_ellipsoid(args, result, columns, field_unit: str) -> None:
+    """The text report of ``magkf ellipsoid``: parameters, fit figures, down-weighted share and unit."""
+    kind = "ellipsoid" if args.axes == 3 else "ellipse"
+    print(
+        f"{kind} calibration of {args.file} ({result.n_samples} samples, columns {', '.join(columns)}), "
+        f"field magnitude {result.field:g}"
+    )
+    for name, value in result.parameters.items():
+        print(f"  {name:10s} {value:14.6g}  +- {result.standard_errors[name]:.3g}")
+    print(
+        f"  residual RMS {result.residual_rms:.4g}; magnitude spread {100 * result.magnitude_spread_before:.2f}% "
+        f"before, {100 * result.magnitude_spread_after:.3f}% after; coverage {100 * result.coverage:.0f}%"
+    )
+    print(f"  down-weighted {100 * result.downweighted_share:.1f} % of samples as disturbed")
+    print(f"  {_field_unit_text(field_unit, args.field is not None)}")
 
 
 #: Largest tilt (deg) a 2-axis (ellipse) fit accepts without a warning.
