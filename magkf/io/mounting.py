@@ -8,7 +8,8 @@ standard rotation or, in some firmware versions, a custom rotation given by its 
 * **ArduPilot** ``COMPASS_ORIENT``, ``COMPASS_ORIENT2``, ``COMPASS_ORIENT3`` take ``enum Rotation`` of
   libraries/AP_Math/rotations.h (https://github.com/ArduPilot/ardupilot/blob/master/libraries/AP_Math/rotations.h):
   0 to 43 (41, ``ROTATION_PITCH_7``, is not offered for compasses), each named ``ROTATION_ROLL_r_PITCH_p_YAW_y``
-  for ``Rz(y) Ry(p) Rx(r)``; 38 is roll 90, pitch 68.8, yaw 293.3 (the comment beside it). The parameters'
+  for ``Rz(y) Ry(p) Rx(r)``; 38 is roll 90, pitch 68.8, yaw 293.3 (the comment beside it). The table is the
+  current one; the highest numbers (39 on) were added in later 3.x and 4.x releases. The parameters'
   documentation (libraries/AP_Compass/AP_Compass.cpp,
   https://github.com/ArduPilot/ardupilot/blob/master/libraries/AP_Compass/AP_Compass.cpp) says the value is
   ignored unless the compass is external (``COMPASS_EXTERNAL``/``EXTERN2``/``EXTERN3``); an internal compass
