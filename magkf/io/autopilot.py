@@ -28,8 +28,9 @@ gives the firmware ``O_new d = P m`` with ``P = O_new O_log^T``: the orientation
 4.2 with ``firmware`` given, the custom rotation ``CUST_ROTk`` holding it exactly). With ``R^-1 P^T = Q_r S_r``
 the firmware gets ``S_r`` and ``OFS = -P b`` (``OFS`` is *added*, COMPASS_OFS_X docs), and its output is
 ``Q_r^T B``. Motor compensation is added *after* the matrix (the firmware fits it to the corrected field), so
-``MOT = -S_r P c`` in mG per A (``COMPASS_MOTCT = 2``) or mG at full throttle (``1``; ``Compass::set_throttle``
-takes "the throttle as a percentage from 0.0 to 1.0", AP_Compass.h; the ``COMPASS_MOT_X`` docs: "Offset per Amp or at Full Throttle"). The matrix is
+``MOT = -S_r P c`` in mG per A (``COMPASS_MOTCT = 2``) or mG at full throttle (``1``: ``Compass::set_throttle``
+in AP_Compass.h takes the throttle as a fraction from 0 to 1, and the ``COMPASS_MOT_X`` docs give the unit per
+amp or at full throttle). The matrix is
 ``[[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]``. ``SCALE`` is used only while
 ``COMPASS_MIN_SCALE_FACTOR <= SCALE <= COMPASS_MAX_SCALE_FACTOR`` (``Compass::have_scale_factor``; 0.85 to 1.4
 in 4.1-era firmware, 1/1.5 to 1.5 later, CompassCalibrator.h); ``SCALE = 0``, the default, means no scaling.
@@ -55,8 +56,8 @@ that of ``CAL_MAGn_ROT``. ``sensor_mag``, which the ULog reader gives magkf, is 
 ``rotation Q_r^T rotation^T B``. ``power`` is the battery current in kA for ``CAL_MAG_COMP_TYP`` 2 and 3
 (src/modules/sensors/vehicle_magnetometer/VehicleMagnetometer.cpp: ``current_a * 0.001f``), so ``COMP = -c`` in
 G/kA, or the throttle ``actuator_controls_0.control[INDEX_THROTTLE]``, 0 to 1, for ``CAL_MAG_COMP_TYP = 1``, so
-``COMP = -c`` in G at full throttle (parameter docs of CAL_MAGn_XCOMP: "Unit for
-throttle-based compensation is [G] and for current-based compensation [G/kA]"). The thermal offset of later
+``COMP = -c`` in G at full throttle (the CAL_MAGn_XCOMP docs give gauss for the throttle type and gauss per
+kiloampere for the current types). The thermal offset of later
 firmware is taken as zero. ``CAL_MAGn_ID`` and ``PRIO`` are not written: the ID ties the parameters to the
 device and is known only on the vehicle. ``CAL_MAGn_ROT`` applies to an external magnetometer only (PX4 keeps
 -1 and the board rotation for an internal one).
