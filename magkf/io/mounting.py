@@ -15,9 +15,10 @@ standard rotation or, in some firmware versions, a custom rotation given by its 
   ignored unless the compass is external (``COMPASS_EXTERNAL``/``EXTERN2``/``EXTERN3``); an internal compass
   follows the board's ``AHRS_ORIENTATION``. Custom rotations: from 4.2 (libraries/AP_CustomRotations, added
   with the parameter conversion of November 2021, https://github.com/ArduPilot/ardupilot/pull/19164), values
-  101 and 102 use ``CUST_ROT1_ROLL/PITCH/YAW`` and ``CUST_ROT2_*`` (deg, "euler 321 (yaw, pitch, roll)
-  ordering", ``m.from_euler(roll, pitch, yaw)``, ``v = m v``) with ``CUST_ROT_ENABLE = 1``; 4.1 and older used
-  100 with ``COMPASS_CUS_ROLL/PIT/YAW``, which magkf does not write.
+  101 and 102 use ``CUST_ROT1_ROLL/PITCH/YAW`` and ``CUST_ROT2_*`` (deg; Euler angles applied yaw, then pitch,
+  then roll: ``m.from_euler(roll, pitch, yaw)``, ``v = m v``) with ``CUST_ROT_ENABLE = 1``; older firmware used
+  100 with ``COMPASS_CUS_ROLL/PIT/YAW`` (rotations.h calls 100 the custom rotation of 4.1 and older), which
+  magkf does not write.
 * **PX4** ``CAL_MAGn_ROT`` takes ``enum Rotation`` of src/lib/conversion/rotation.h
   (https://github.com/PX4/PX4-Autopilot/blob/main/src/lib/conversion/rotation.h, ``rot_lookup``): since v1.11
   (https://github.com/PX4/PX4-Autopilot/pull/14797) the numbers 0 to 40 are MAVLink's ``MAV_SENSOR_ORIENTATION``
