@@ -34,6 +34,7 @@ __all__ = [
     "vehicle_calibration",
     "improvement",
     "improvement_text",
+    "improvement_words",
 ]
 
 #: The names ``improvement_text`` and the report give the raw reading, the vehicle's calibration and magkf's.
@@ -218,24 +219,30 @@ def improvement(summary: pd.DataFrame, ours: str = MAGKF, theirs: str = VEHICLE)
 
 def improvement_text(summary: pd.DataFrame, ours: str = MAGKF, theirs: str = VEHICLE) -> str:
     """One sentence on ``ours`` against the calibration the vehicle flies (``theirs``) in ``summary``
-    (``Baseline.summary``), from their RMS magnitude (nT) and heading (deg) errors, saying which way each
-    goes: "improves on the calibration the vehicle flies by 120 nT of magnitude and 1.5 degrees of heading
-    (RMS)", "is worse than ...", or improves one and is worse in the other."""
-    nt, deg = improvement(summary, ours, theirs)
+    (``Baseline.summary``), from their RMS magnitude (nT) and heading (deg) errors (``improvement_words``)."""
+    return improvement_words(*improvement(summary, ours, theirs))
+
+
+def improvement_words(nt: float, deg: float, what: str = "RMS") -> str:
+    """How much better (positive) or worse (negative) a calibration is than the one the vehicle flies, by ``nt``
+    nT of magnitude and ``deg`` degrees of heading (of the ``what``), saying which way each goes: "improves on
+    the calibration the vehicle flies by 120 nT of magnitude and 1.5 degrees of heading (RMS)", "is worse than
+    ...", or improves one and is worse in the other; NaN: it cannot be compared."""
     if not (np.isfinite(nt) and np.isfinite(deg)):
         return "cannot be compared with the calibration the vehicle flies (the log does not give it)"
     them = "the calibration the vehicle flies"
     if nt >= 0 and deg >= 0:
-        return f"improves on {them} by {_nt(nt)} nT of magnitude and {_deg(deg)} degrees of heading (RMS)"
+        return f"improves on {them} by {_nt(nt)} nT of magnitude and {_deg(deg)} degrees of heading ({what})"
     if nt < 0 and deg < 0:
-        return f"is worse than {them} by {_nt(-nt)} nT of magnitude and {_deg(-deg)} degrees of heading (RMS)"
+        return f"is worse than {them} by {_nt(-nt)} nT of magnitude and {_deg(-deg)} degrees of heading ({what})"
     if nt >= 0:
         return (
-            f"improves on {them} by {_nt(nt)} nT of magnitude (RMS) but is worse by {_deg(-deg)} degrees of "
-            "heading (RMS)"
+            f"improves on {them} by {_nt(nt)} nT of magnitude ({what}) but is worse by {_deg(-deg)} degrees of "
+            f"heading ({what})"
         )
     return (
-        f"improves on {them} by {_deg(deg)} degrees of heading (RMS) but is worse by {_nt(-nt)} nT of magnitude (RMS)"
+        f"improves on {them} by {_deg(deg)} degrees of heading ({what}) but is worse by {_nt(-nt)} nT of "
+        f"magnitude ({what})"
     )
 
 

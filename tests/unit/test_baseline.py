@@ -185,3 +185,56 @@ def test_improvement_text_says_which_way_each_goes():
     alone = pd.DataFrame({"magnitude_rms_nt": [40.0], "heading_rms_deg": [0.5]}, index=[MAGKF])
     assert "cannot be compared" in improvement_text(alone)
     assert all(np.isnan(improvement(alone)))
+
+
+#: The autopilot's soft-iron matrix of the DataFlash logs (symmetric, as COMPASS_DIA/ODI give it).
+AUTOPILOT_MATRIX = np.array([[0.96, 0.02, -0.03], [0.02, 1.04, 0.01], [-0.03, 0.01, 0.99]])
+#: The true offset of those logs, nT.
+DATAFLASH_OFFSET_NT = np.array([4000.0, -2500.0, 1500.0])
+#: The autopilot's corrected field is logged in whole mG, truncated, and the reader centres it: an error uniform
+#: over +-50 nT per component, variance 100^2 / 12 nT^2 (``write_dataflash``).
+QUANTISATION_VAR_NT2 = 100.0**2 / 12.0
+
+
+def dataflash_drive(path, seed=4, duration_s=300.0):
+    """A simulated drive written as a DataFlash log whose COMPASS_* parameters hold the true soft iron
+    (``AUTOPILOT_MATRIX``) and an offset off by ``OFFSET_ERROR_NT``; returns the simulation (truth ``R`` the
+    matrix's inverse)."""
+    from magkf.io.dataflash import write_dataflash
+
+    config = DriveConfig(duration_s=duration_s, rate_hz=10, seed=seed, noise_nt=NOISE_NT, disturbances=0)
+    sim = simulate_drive(config, truth=(np.linalg.inv(AUTOPILOT_MATRIX), DATAFLASH_OFFSET_NT))
+    ofs = -(DATAFLASH_OFFSET_NT + OFFSET_ERROR_NT) / 100.0  # mG, ArduPilot's sign: added to the reading
+    M = AUTOPILOT_MATRIX
+    parameters = {f"COMPASS_OFS_{a}": ofs[i] for i, a in enumerate("XYZ")}
+    parameters |= {f"COMPASS_DIA_{a}": M[i, i] for i, a in enumerate("XYZ")}
+    parameters |= {"COMPASS_ODI_X": M[0, 1], "COMPASS_ODI_Y": M[0, 2], "COMPASS_ODI_Z": M[1, 2]}
+    write_dataflash(sim.table, path, parameters=parameters)
+    return sim
+
+
+def test_the_vehicle_s_calibration_read_from_a_dataflash_log_is_compared(tmp_path):
+    """Through ``logged_calibration``: the COMPASS_* parameters give back the vehicle's calibration (to their
+    float32 storage), and its magnitude error is the offset's analytic one with the noise and the log's whole-mG
+    quantisation (``QUANTISATION_VAR_NT2`` per component, added to the noise's variance along the field)."""
+    from magkf.diagnostics.baseline import vehicle_calibration
+    from magkf.io.readers import read_log
+
+    sim = dataflash_drive(tmp_path / "drive.bin")
+    log = read_log(tmp_path / "drive.bin")
+    vehicle, words = vehicle_calibration(log)
+    assert vehicle is not None and "COMPASS_" in words
+    # float32 parameters: 6e-8 relative, so about 1e-7 of R and 3e-3 nT of offsets of about 4 300 nT
+    assert np.allclose(vehicle.R, sim.R, atol=1e-6)
+    assert np.allclose(vehicle.b, sim.b + OFFSET_ERROR_NT, atol=0.01)
+    base = compare_calibrations(log, {RAW: None, VEHICLE: vehicle, MAGKF: sim.calibration})
+    assert base.summary.loc[VEHICLE, "n_compared"] == len(sim.table)
+    B, _ = _field_truth(sim)
+    for name, c in ((VEHICLE, np.linalg.solve(sim.R, OFFSET_ERROR_NT)), (MAGKF, np.zeros(3))):
+        shifted = B - c
+        a = np.linalg.norm(shifted, axis=1) - np.linalg.norm(B, axis=1)
+        v = shifted / np.linalg.norm(shifted, axis=1, keepdims=True)
+        s2 = NOISE_NT**2 * np.sum((v @ np.linalg.inv(sim.R).T) ** 2, axis=1) + QUANTISATION_VAR_NT2
+        found = base.summary.loc[name, "magnitude_rms_nt"] ** 2
+        _assert_mean_square(found, a**2 + s2, 4 * a**2 * s2 + 2 * s2**2, name)
+    assert improvement(base.summary)[0] > 100.0
