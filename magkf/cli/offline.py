@@ -49,14 +49,15 @@ def add_parsers(sub) -> None:
         help="true magnitude: nT for the magnetometer columns mag_x, mag_y, mag_z (or with --mag-unit), the data's "
         "units for other --columns; or 'igrf'. The calibration is then in nT (in the data's units for other "
         "columns). Default: none; R is scaled to determinant 1 and the calibration is in the readings' own units "
-        "(nT only with --mag-unit or --map)",
+        "(nT only with --mag-unit)",
     )
     p.add_argument("--axes", type=int, choices=[2, 3], default=3, help="3 (ellipsoid, default) or 2 (ellipse)")
     p.add_argument("--columns", help="comma-separated sensor columns (default mag_x,mag_y,mag_z)")
     p.add_argument(
         "--mag-unit",
         choices=list(NT_PER_UNIT),
-        help="unit of magnetometer columns, converted to nT (then --field is in nT); default: the data's units",
+        help="unit of magnetometer columns, converted to nT (then --field is in nT and the calibration in nT; with "
+        "--map only nT: the map's [units] mag converts them); default: the data's units",
     )
     p.add_argument("--algebraic", action="store_true", help="stop after the algebraic fit (biased with noise)")
     common.add_igrf_options(p)
@@ -192,14 +193,14 @@ def _ellipsoid_field(args) -> float:
 def _field_unit(args, columns, field: float) -> str:
     """What the ellipsoid command's calibration measures the field in (``Calibration.field_unit``).
 
-    ``"nT"`` when the readings are known to be in nT: ``--mag-unit``, or ``--map`` of the magnetometer columns
-    (readings converted to nT), ``--field igrf``, or a ``--field`` given for the magnetometer columns
-    ``mag_x, mag_y, mag_z`` (nT by the data contract; without a field they are read in the file's own units,
-    as the command's help says). Otherwise the readings' own units: ``"unit-sphere"`` for a fit to
-    ``--field 1``, ``"counts"`` for any other field or none.
+    ``"nT"`` when the readings are known to be in nT: ``--mag-unit`` (with ``--map``, ``--mag-unit nT`` says the
+    map's magnetometer columns, converted by its ``[units] mag``, are nT), ``--field igrf``, or a ``--field``
+    given for the magnetometer columns ``mag_x, mag_y, mag_z`` (nT by the data contract; without a field they
+    are read in the file's own units, as the command's help says). Otherwise the readings' own units:
+    ``"unit-sphere"`` for a fit to ``--field 1``, ``"counts"`` for any other field or none.
     """
     magnetometer_columns = tuple(columns) == MAG[: len(columns)]
-    readings_in_nt = args.mag_unit is not None or (args.map is not None and magnetometer_columns)
+    readings_in_nt = args.mag_unit is not None
     scaled = args.field is not None
     if readings_in_nt or args.field == "igrf" or (scaled and magnetometer_columns):
         return "nT"
