@@ -69,7 +69,7 @@ from .prepare import (
     start_rows,
 )
 from .results import CalibrationRun, FitSums, RunTrace, epoch_columns, states_frame, summarise
-from .run import ForwardPass, filter_trace
+from .run import ForwardPass, filter_trace, held_reference
 from .smoother import rts_smooth
 
 __all__ = [
@@ -454,10 +454,13 @@ def calibrate_file(
         if smooth:
             with phases("smoother"):
                 out.xs, out.stds = _smooth(folder, out.xs, out.Ps, out.dt, setup.layout.q_rate())
+        with phases("whole-log estimate"):
+            whole = _whole_log(log, config, setup, est, out, init, scan.median_step_s)
         trace = filter_trace(
             est,
             setup,
             scan.median_step_s,
+            whole=whole,
             **dict.fromkeys(("xs", "stds", "status", "updated", "nis")),  # on disk, in ``out``
             elapsed_s=0.0,
             smoothed=smooth,
@@ -472,7 +475,35 @@ def calibrate_file(
         summary, cal, effect_values = summarise(
             log.source, config, layout, setup.P0, trace, sums, np.diff(out.stops, prepend=0)
         )
-    return CalibrationRun(cal, est.x, est.P, layout.names, None, summary, effect_values, None)
+    return CalibrationRun(cal, trace.x, trace.P, layout.names, None, summary, effect_values, None)
+
+
+def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out: _Filtered, init, step_s: float):
+    """The whole-log estimate (``whole_log.fit_whole_log_parts``) over the epochs the filter pass updated with,
+    the log read again piece by piece for each of the solver's passes."""
+    from .whole_log import fit_whole_log_parts
+
+    status, updated = out.per_epoch["status"], out.per_epoch["updated"]
+
+    def parts():
+        for piece in pieces(log, config, setup.R0):
+            a, b = piece.epochs.start, piece.epochs.stop
+            code = status.read(a, b)
+            yield piece.own, updated.read(a, b) & ((code == Status.USED) | (code == Status.MISSING_ATTITUDE))
+
+    held, how = held_reference(None, init, None)
+    return fit_whole_log_parts(
+        parts,
+        setup.layout,
+        est.x,
+        vector=setup.model.needs_attitude,
+        model=config.model,
+        held_at=None if held is None else held.state,
+        held_how=how,
+        correlation_s=est.learner.inflation() * step_s,
+        held_std=(config.init_r_std, config.init_b_std),
+        source=log.source,
+    )
 
 
 def _start(log: ChunkedLog, config: FilterConfig, init, effects, scan: _Scan) -> RunSetup:

@@ -176,11 +176,13 @@ def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updat
 
 def held_reference(log, init: Calibration | None, reference: Calibration | None) -> tuple:
     """``(calibration or None, where it comes from in words)``: what the parameters a log does not determine
-    are held at."""
+    are held at (``log`` None: a log that records no calibration of its own)."""
     if reference is not None:
         return reference, f"the calibration given ({reference.method})"
     if init is not None:
         return init, f"the starting calibration (--init, {init.method})"
+    if log is None:
+        return None, "the identity (no calibration of the vehicle in the log, none given)"
     from ..io.vehicle_calibration import logged_calibration
 
     logged = logged_calibration(log)

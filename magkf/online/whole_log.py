@@ -44,7 +44,7 @@ from ..errors import InputError
 from ..families import FAMILIES, ModelFamily, family
 from .state import CORE_SIZE, StateLayout
 
-__all__ = ["WholeLogFit", "fit_whole_log", "FOLDS", "DETERMINED_FRACTION", "PRIOR_R_STD", "PRIOR_B_STD"]
+__all__ = ["WholeLogFit", "fit_whole_log", "fit_whole_log_parts", "FOLDS", "DETERMINED_FRACTION", "PRIOR_R_STD", "PRIOR_B_STD"]
 
 #: The weak prior of the whole-log fit: standard deviation of each element of R and each offset (nT).
 PRIOR_R_STD = 0.1
@@ -135,34 +135,58 @@ class _Sums:
 
 
 class _Problem:
-    """The whole-log objective of the used epochs of one prepared log."""
+    """The whole-log objective of the used epochs of a log given in parts: ``parts()`` yields ``(prep, used)``, a
+    ``PreparedLog`` and its epochs used (k,) bool, in time order (a whole log is one part). A first pass over
+    the parts counts the used epochs and measures the field, the motion and the time span."""
 
-    def __init__(self, prep, layout: StateLayout, used, vector: bool, batch_s: float, prior_x, prior_std):
-        self.prep, self.layout = prep, layout
-        idx = np.flatnonzero(used)
-        with_att = prep.has_attitude[idx] if vector else np.zeros(len(idx), bool)
-        self.groups = [(True, idx[with_att]), (False, idx[~with_att])]
-        self.n_used = len(idx)
-        rank = np.empty(len(prep), np.int64)
-        rank[idx] = np.arange(len(idx))
-        self.fold = (FOLDS * rank) // max(len(idx), 1)
-        t = prep.time
-        t0 = t[idx[0]] if len(idx) else 0.0
-        self.batch = np.floor((t - t0) / batch_s).astype(np.int64) if len(idx) else np.zeros(len(prep), np.int64)
-        self.n_batches = int(self.batch[idx].max()) + 1 if len(idx) else 1
-        self.chunk = max(len(idx), 1) if layout.nonlinear else CHUNK
+    def __init__(self, parts, layout: StateLayout, vector: bool, correlation_s: float, prior_x, prior_std):
+        self.parts, self.layout, self.vector = parts, layout, vector
         self.prior_x = np.asarray(prior_x, float)
         self.omega = 1.0 / np.asarray(prior_std, float) ** 2
+        n_used, times, field, moments, n_moments, step = 0, [], 0.0, np.zeros((2, 3)), 0, None
+        for prep, used in parts():
+            idx = np.flatnonzero(used)
+            if not len(idx):
+                continue
+            n_used += len(idx)
+            times += [prep.time[idx[0]], prep.time[idx[-1]]]
+            field += float(prep.ref_mag[idx].sum())
+            values = prep.data.field_body[idx[prep.has_attitude[idx]]] if vector else prep.m[idx]
+            moments += [values.sum(axis=0), (values**2).sum(axis=0)]
+            n_moments += len(values)
+            if step is None and len(idx) > 1:
+                step = float(np.median(np.diff(prep.time[idx])))
+        self.n_used = n_used
+        self.t0 = times[0] if times else 0.0
+        span = (times[-1] - times[0]) if times else 1.0
+        self.field_nt = field / max(n_used, 1)
+        count = max(n_moments, 1)
+        # the standard deviation of each component over the used epochs: how much the motion turned it
+        self.spread = np.sqrt(np.maximum(moments[1] / count - (moments[0] / count) ** 2, 0.0))
+        self.batch_s = _batch_length(span, step or 1.0, correlation_s, layout.size)
+        self.n_batches = int(np.floor(span / self.batch_s)) + 1
 
     def chunks(self):
-        for vector, epochs in self.groups:
-            for i in range(0, len(epochs), self.chunk):
-                yield vector, epochs[i : i + self.chunk]
+        """``(prep, vector, epochs, fold, batch)`` of every chunk of used epochs: their part, whether they give the
+        vector residual, their indices (k,) into the part, and their folds and batches (k,)."""
+        seen = 0
+        for prep, used in self.parts():
+            idx = np.flatnonzero(used)
+            fold = (FOLDS * (seen + np.arange(len(idx)))) // max(self.n_used, 1)
+            batch = np.minimum(np.floor((prep.time[idx] - self.t0) / self.batch_s).astype(np.int64), self.n_batches - 1)
+            seen += len(idx)
+            with_att = prep.has_attitude[idx] if self.vector else np.zeros(len(idx), bool)
+            chunk = max(len(idx), 1) if self.layout.nonlinear else CHUNK
+            for vector in (True, False):
+                pick = np.flatnonzero(with_att == vector)
+                for i in range(0, len(pick), chunk):
+                    k = pick[i : i + chunk]
+                    yield prep, vector, idx[k], fold[k], batch[k]
 
-    def residuals(self, x, vector: bool, epochs) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (k, q) nT and Jacobian (k, q, n) of ``epochs`` (k,) at ``x`` (n,): body-frame vector
-        residuals ``c - B_body`` (q = 3) or magnitude residuals ``|c| - |B_ref|`` (q = 1)."""
-        layout, prep = self.layout, self.prep
+    def residuals(self, x, prep, vector: bool, epochs) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (k, q) nT and Jacobian (k, q, n) of the ``epochs`` (k,) of ``prep`` at ``x`` (n,): body-frame
+        vector residuals ``c - B_body`` (q = 3) or magnitude residuals ``|c| - |B_ref|`` (q = 1)."""
+        layout = self.layout
         data = prep.data.take(epochs) if layout.has_extra else None
         terms = 0.0 if data is None else layout.effect_terms(x, data)
         c = layout.calibrated(x, prep.m[epochs], terms)
@@ -180,9 +204,9 @@ class _Problem:
 
     def sums(self, x) -> _Sums:
         s = _Sums.empty(len(x), self.n_batches)
-        for vector, epochs in self.chunks():
-            r, J = self.residuals(x, vector, epochs)
-            s.add(r, J, self.fold[epochs], self.batch[epochs])
+        for prep, vector, epochs, fold, batch in self.chunks():
+            r, J = self.residuals(x, prep, vector, epochs)
+            s.add(r, J, fold, batch)
         return s
 
     def cost(self, x, s: _Sums) -> float:
@@ -274,17 +298,44 @@ def fit_whole_log(
         Too few used epochs, or (``auto``) a log that does not determine even the offsets.
     """
     used = np.asarray(used, bool)
+    return fit_whole_log_parts(
+        lambda: iter([(prep, used)]),
+        layout,
+        x_start,
+        vector=vector,
+        model=model,
+        held_at=held_at,
+        held_how=held_how,
+        correlation_s=correlation_s,
+        held_std=held_std,
+        source=source,
+    )
+
+
+def fit_whole_log_parts(
+    parts,
+    layout: StateLayout,
+    x_start,
+    *,
+    vector: bool = True,
+    model: str = "auto",
+    held_at=None,
+    held_how: str = "the identity (no calibration of the vehicle, none given)",
+    correlation_s: float = 0.0,
+    held_std=(0.02, 300.0),
+    source: str | None = None,
+) -> WholeLogFit:
+    """``fit_whole_log`` of a log given in parts: ``parts()`` yields ``(prep, used)`` pairs in time order (each a
+    ``PreparedLog`` and its used epochs (k,) bool), and is called once per pass (a chunked log is read again)."""
     n = layout.size
-    n_used = int(used.sum())
-    if n_used < 3 * n:
-        raise InputError(f"too few used epochs ({n_used}) for a whole-log estimate of {n} parameters", source)
     core_ref = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if held_at is None else np.asarray(held_at, float)
     prior_x, prior_std = _prior(layout, core_ref)
-    batch_s = _batch_length(prep.time[used], correlation_s, n)
-    problem = _Problem(prep, layout, used, vector, batch_s, prior_x, prior_std)
-    field_nt = float(np.median(prep.ref_mag[used]))
+    problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std)
+    if problem.n_used < 3 * n:
+        raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
+    field_nt = problem.field_nt
     x_start = np.asarray(x_start, float).reshape(n)
-    excited = _excited(prep, used, vector, field_nt)
+    excited = problem.spread >= EXCITATION_FRACTION * field_nt
     families = {name: family(name).restricted(excited) for name in _possible(vector)}
     # The richest family the log's motion allows first (from the filter's state): the others are judged at its fit.
     first = list(families)[-1] if model == "auto" else model
@@ -293,13 +344,7 @@ def fit_whole_log(
     chosen = first
     if model == "auto":
         if not candidates[FAMILIES[0]]["determined"]:
-            worst = candidates[FAMILIES[0]]["worst_std_nt"]
-            raise InputError(
-                f"the log does not determine even the offsets (their standard deviation is {worst:.3g} nT, over "
-                f"{100 * DETERMINED_FRACTION:g} % of the field): fly straight and level for longer, or give a "
-                "calibration",
-                source,
-            )
+            raise InputError(_undetermined(candidates[FAMILIES[0]], s, field_nt), source)
         chosen = _choose(candidates, FAMILIES[0], families)
         if chosen != first:
             x, s = _fit_family(problem, families[chosen], x, core_ref)
@@ -314,8 +359,8 @@ def fit_whole_log(
         model=record,
         residual_rms_nt=float(np.sqrt(s.vec[1] / s.vec[0])) if s.vec[0] else float("nan"),
         magnitude_rms_nt=float(np.sqrt(s.mag[1] / s.mag[0])) if s.mag[0] else float("nan"),
-        n_epochs=n_used,
-        batch_s=batch_s,
+        n_epochs=problem.n_used,
+        batch_s=problem.batch_s,
     )
 
 
@@ -329,22 +374,31 @@ def _prior(layout: StateLayout, core_ref) -> tuple[np.ndarray, np.ndarray]:
     return x, std
 
 
-def _batch_length(t, correlation_s: float, n: int) -> float:
-    """Batches of ``BATCH_CORRELATIONS`` correlation times, at least two time steps, and short enough for
-    ``BATCHES_PER_PARAMETER`` batches per parameter over the used epochs' span ``t`` (k,) s."""
-    span = float(t[-1] - t[0]) if len(t) > 1 else 1.0
-    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+def _batch_length(span: float, step: float, correlation_s: float, n: int) -> float:
+    """Batches of ``BATCH_CORRELATIONS`` correlation times, at least two time steps ``step`` s, and short enough
+    for ``BATCHES_PER_PARAMETER`` batches per parameter over the used epochs' ``span`` s."""
     wanted = max(BATCH_CORRELATIONS * correlation_s, 2.0 * step)
     return max(min(wanted, span / (BATCHES_PER_PARAMETER * n)), step)
 
 
-def _excited(prep, used, vector: bool, field_nt: float) -> np.ndarray:
-    """Which components (3,) bool of the field varied by at least ``EXCITATION_FRACTION`` of the field (standard
-    deviation) over the used epochs: the body field's with attitude, else the raw readings'."""
-    values = prep.data.field_body[used & prep.has_attitude] if vector else prep.m[used]
-    if len(values) < 2:
-        return np.zeros(3, bool)
-    return np.std(values, axis=0) >= EXCITATION_FRACTION * field_nt
+#: Residuals beyond this share of the field mean the readings do not follow the reference through the attitude.
+MISFIT_FRACTION = 0.05
+
+
+def _undetermined(offsets: dict, s: _Sums, field_nt: float) -> str:
+    """Why not even the offsets are determined (``offsets`` the family's candidate record), in words."""
+    rms = float(np.sqrt(s.ss / max(s.vec[0] * 3 + s.mag[0], 1)))
+    text = (
+        f"the log does not determine even the offsets (their standard deviation is {offsets['worst_std_nt']:.3g} nT, "
+        f"over {100 * DETERMINED_FRACTION:g} % of the field)"
+    )
+    if rms > MISFIT_FRACTION * field_nt:
+        return (
+            f"{text}: the readings do not follow the reference field through the logged attitude (residuals of "
+            f"{rms:.3g} nT, {100 * rms / field_nt:.0f} % of the field): a wrong attitude or magnetometer unit "
+            "(--mag-unit), a sensor that does not follow the field, or data that do not determine R"
+        )
+    return f"{text}: fly straight and level for longer, or give a calibration (--init)"
 
 
 def _possible(vector: bool) -> tuple:

@@ -48,11 +48,18 @@ def _both(path, tmp_path, smooth, effects=(), suffix=".parquet"):
 @pytest.mark.parametrize("smooth", [False, True])
 @pytest.mark.parametrize("effects", [(), ("time_lag",)])
 def test_same_as_whole_log(logs, tmp_path, smooth, effects):
-    """Own reference field: the same estimates, covariances, statuses and per-epoch states, with and without
-    smoothing, and with a time lag (interpolated between neighbouring epochs across chunk edges)."""
+    """Own reference field: the same filter states, statuses and per-epoch states, with and without smoothing,
+    and with a time lag (interpolated between neighbouring epochs across chunk edges); the same whole-log
+    estimate and covariance to the rounding of their sums, which the two paths add up in different pieces
+    (6000 epochs of float64: about 1e-12 relative). A time lag's whole-log terms interpolate between the used
+    epochs of each piece, which a piece's edge cuts: there, within 1e-4 of a standard deviation."""
     whole, chunked, states = _both(logs[True], tmp_path, smooth, tuple(make_effect(e) for e in effects))
-    np.testing.assert_array_equal(chunked.x, whole.x)
-    np.testing.assert_array_equal(chunked.P, whole.P)
+    if effects:
+        assert np.max(np.abs(chunked.x - whole.x) / whole.std) < 1e-4
+        np.testing.assert_allclose(chunked.std, whole.std, rtol=1e-6)
+    else:
+        np.testing.assert_allclose(chunked.x, whole.x, rtol=1e-12, atol=1e-12 * np.abs(whole.x).max())
+        np.testing.assert_allclose(chunked.P, whole.P, rtol=1e-9, atol=1e-12 * np.abs(whole.P).max())
     w = whole.states
     assert len(states) == len(w) == 6000
     np.testing.assert_array_equal(states["status"].to_numpy(), w["status"].to_numpy())
@@ -63,11 +70,13 @@ def test_same_as_whole_log(logs, tmp_path, smooth, effects):
     a, b = whole.summary.as_dict(), chunked.summary.as_dict()
     assert b["status_counts"] == a["status_counts"] and b["n_updates"] == a["n_updates"]
     assert b["noise"] == a["noise"] and b["verdict"] == a["verdict"] and b["observability"] == a["observability"]
+    rel = 1e-8 if effects else 1e-12  # residuals with estimates 1e-4 of a std apart differ by about 1e-8 of them
     for key in ("residual_rms_nt", "residual_rms_magnitude_nt", "residual_rms_all_nt", "innovation_rms_nt", "nis_mean"):
-        assert b[key] == pytest.approx(a[key], rel=1e-12), key
+        assert b[key] == pytest.approx(a[key], rel=rel), key
     for axis, value in a["residual_rms_axis_nt"].items():
-        assert b["residual_rms_axis_nt"][axis] == pytest.approx(value, rel=1e-12)
-    assert chunked.calibration.R.tolist() == whole.calibration.R.tolist()
+        assert b["residual_rms_axis_nt"][axis] == pytest.approx(value, rel=rel)
+    np.testing.assert_allclose(chunked.calibration.R, whole.calibration.R, rtol=0, atol=1e-9)
+    assert chunked.summary.model["text"] == whole.summary.model["text"]
 
 
 def test_igrf_reference_within_its_interpolation(logs, tmp_path):
@@ -156,7 +165,8 @@ def test_median_read_in_pieces_is_numpys(tmp_path, n):
 
 def test_without_attitude_and_from_a_calibration(logs, tmp_path):
     """The magnitude-only start and noise (no attitude columns) and a start from a calibration (no bootstrap,
-    no starting-noise passes): the same estimates and statuses as the whole-log path."""
+    no starting-noise passes): the same estimates (to the rounding of sums added in other pieces) and statuses as
+    the whole-log path."""
     from magkf.calibration import Calibration
     from magkf.io.drivelog import write_drive_log
 
@@ -167,6 +177,6 @@ def test_without_attitude_and_from_a_calibration(logs, tmp_path):
     for path, start in ((no_attitude, None), (logs[True], init)):
         whole = calibrate_log(read_log(path), FilterConfig(), init=start, smooth=True)
         chunked = calibrate_file(path, FilterConfig(), init=start, smooth=True, rows=ROWS)
-        np.testing.assert_array_equal(chunked.x, whole.x)
+        np.testing.assert_allclose(chunked.x, whole.x, rtol=1e-12, atol=1e-12 * np.abs(whole.x).max())
         assert chunked.summary.status_counts == whole.summary.status_counts
         assert chunked.summary.init == whole.summary.init
