@@ -58,6 +58,10 @@ __all__ = [
     "run_fleet",
     "disagreements",
     "plot_vehicles",
+    "BASELINE_COLUMNS",
+    "baseline_row",
+    "vehicle_improvements",
+    "improvement_lines",
 ]
 
 #: File endings taken from a folder given as a log besides the registered readers' (``log_suffixes``; a file
@@ -382,11 +386,85 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
         "undetermined": "; ".join(u["text"] for u in summary.observability["undetermined"]),
         "recommended_effects": recommended if s.diagnose else None,
     }
+    out.update(baseline_row(log, run.calibration))
     std = run.std
     for i, name in enumerate(run.names):
         out[name] = float(run.x[i])
         out[f"std_{name}"] = float(std[i])
     return out
+
+
+#: The summary's comparison with the calibration each vehicle flies (``baseline_row``).
+BASELINE_COLUMNS = (
+    "vehicle_magnitude_rms_nt",
+    "vehicle_heading_rms_deg",
+    "magnitude_rms_nt",
+    "heading_rms_deg",
+    "improvement_nt",
+    "improvement_deg",
+)
+
+
+def baseline_row(log, calibration) -> dict:
+    """The RMS magnitude (nT) and heading (deg) error of the calibration the vehicle flew (read from the log,
+    ``magkf.diagnostics.baseline.vehicle_calibration``) and of magkf's ``calibration`` over the log's epochs with
+    attitude and a reference field, and how much lower magkf's are (``improvement_nt``, ``improvement_deg``:
+    positive, magkf's is better): ``BASELINE_COLUMNS``. The vehicle's and the improvement are NaN when the log
+    does not give the vehicle's calibration."""
+    from .diagnostics.baseline import MAGKF, VEHICLE, compare_calibrations, improvement, vehicle_calibration
+
+    vehicle, _ = vehicle_calibration(log)
+    cals = {MAGKF: calibration} if vehicle is None else {VEHICLE: vehicle, MAGKF: calibration}
+    try:
+        summary = compare_calibrations(log, cals).summary
+    except InputError as exc:  # the vehicle's calibration cannot be applied here: the row says so, the log goes on
+        warnings.warn(f"not compared with the vehicle's calibration: {exc}", UserWarning, stacklevel=1)
+        return dict.fromkeys(BASELINE_COLUMNS, np.nan)
+    nt, deg = improvement(summary)
+    theirs = summary.loc[VEHICLE] if vehicle is not None else {"magnitude_rms_nt": np.nan, "heading_rms_deg": np.nan}
+    return dict(
+        zip(
+            BASELINE_COLUMNS,
+            (
+                float(theirs["magnitude_rms_nt"]),
+                float(theirs["heading_rms_deg"]),
+                float(summary.loc[MAGKF, "magnitude_rms_nt"]),
+                float(summary.loc[MAGKF, "heading_rms_deg"]),
+                nt,
+                deg,
+            ),
+        )
+    )
+
+
+def vehicle_improvements(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per vehicle of a fleet's ``summary``: ``logs`` (calibrated logs that give the vehicle's own calibration),
+    and the median over them of ``improvement_nt`` and ``improvement_deg`` (NaN without such a log)."""
+    ok = summary[summary["error"] == ""]
+    rows = {}
+    for vehicle, group in ok.groupby("vehicle", sort=True):
+        both = group[["improvement_nt", "improvement_deg"]].astype(float).dropna()
+        rows[vehicle] = {
+            "logs": len(both),
+            "improvement_nt": float(both["improvement_nt"].median()) if len(both) else np.nan,
+            "improvement_deg": float(both["improvement_deg"].median()) if len(both) else np.nan,
+        }
+    return pd.DataFrame.from_dict(rows, orient="index", columns=["logs", "improvement_nt", "improvement_deg"])
+
+
+def improvement_lines(summary: pd.DataFrame) -> list[str]:
+    """One line per vehicle of a fleet's ``summary``: how magkf's calibration compares with the one the vehicle
+    flies, by the medians over its logs (``vehicle_improvements``), or that none of its logs gives it."""
+    from .diagnostics.baseline import improvement_words
+
+    lines = []
+    for vehicle, row in vehicle_improvements(summary).iterrows():
+        if not row["logs"]:
+            lines.append(f"{vehicle}: no calibrated log gives the calibration the vehicle flies")
+            continue
+        words = improvement_words(row["improvement_nt"], row["improvement_deg"], "RMS")
+        lines.append(f"{vehicle}: magkf's calibration {words}; median over {int(row['logs'])} log(s)")
+    return lines
 
 
 def run_fleet(
@@ -408,7 +486,8 @@ def run_fleet(
     The summary has one row per log: ``log``, ``vehicle``, ``output`` (its folder), ``error`` (empty when it
     was calibrated), ``start_time`` (UNIX s), ``duration_s``, ``n_epochs``, ``used_share``, the residual
     RMS (``residual_rms_nt`` over the epochs used, ``residual_rms_magnitude_nt``, ``residual_rms_all_nt``
-    over the whole log, nT), ``nis_mean``, ``verdict`` (the fit verdict in words), ``undetermined``
+    over the whole log, nT), the comparison with the calibration the vehicle flew (``BASELINE_COLUMNS``, see
+    ``baseline_row``), ``nis_mean``, ``verdict`` (the fit verdict in words), ``undetermined``
     (directions the data did not determine), ``recommended_effects`` (with ``diagnose``), every estimate
     (``R11`` ... ``b_z``, effects' parameters) and its ``std_`` standard deviation, ``warnings``,
     ``run_time_s``, ``worker`` and ``peak_rss_mb`` (where it ran, and that process's peak memory),
@@ -453,6 +532,7 @@ FIRST = (
     "residual_rms_nt",
     "residual_rms_magnitude_nt",
     "residual_rms_all_nt",
+    *BASELINE_COLUMNS,
     "nis_mean",
     "verdict",
     "undetermined",

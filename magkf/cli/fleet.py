@@ -102,7 +102,8 @@ def run_fleet(args) -> int:
     Dask cluster (local by default), and with --diagnose diagnose it. Per log, under DIR/<vehicle>/<log file>/:
     calibration.json, states.parquet, diagnosis.json and row.json. DIR/summary.parquet and summary.csv hold one
     row per log (residuals, used share, verdict, estimates and standard deviations, undetermined directions,
-    run time, the error of a log that failed, and whether it disagrees with the rest of its vehicle);
+    run time, the error of a log that failed, whether it disagrees with the rest of its vehicle, and the RMS magnitude
+    and heading error of magkf's calibration and of the one the vehicle flew, read from the log);
     DIR/vehicles.png plots each vehicle's estimates over its flights. A log that fails does not stop the others
     (exit status 2 only when every log failed). A log whose input and settings are unchanged since an earlier
     run into DIR (same content hash) and whose outputs are complete is not calibrated again."""
@@ -110,7 +111,7 @@ def run_fleet(args) -> int:
 
     from ..effects import make_effect
     from ..errors import InputError
-    from ..fleet import FleetSettings, check_out_dir, find_logs
+    from ..fleet import FleetSettings, check_out_dir, find_logs, improvement_lines
     from ..fleet import run_fleet as run
 
     out_dir = check_out_dir(args.out_dir)
@@ -148,6 +149,8 @@ def run_fleet(args) -> int:
         print(f"  failed: {row.error}")
     for row in flagged.itertuples():
         print(f"  disagrees: {row.log}: {row.disagreement}")
+    for line in improvement_lines(s):
+        print(f"  {line}")
     print("  " + _memory_line(result.peak_memory_mb(), result.memory_limits))
     print(
         f"  summary: {result.files['summary_parquet']} and {result.files['summary_csv']}; plot: {result.files['plot']}"
