@@ -21,7 +21,8 @@ Two steps:
 Both steps are robust (``robust=True``, the default): disturbed samples (a passing truck, a bridge) are
 down-weighted by iteratively reweighted least squares with Huber weights, as the online filter does
 (``magkf.online.bootstrap.HUBER_K`` robust standard deviations of the magnitude residual, the scale from
-its median absolute value), and the standard errors are those of the weighted (M-) estimator.
+its median absolute value), then, from that robust start, set aside beyond ``GATE_SIGMA`` of them, as the
+filter's magnitude gate does; the standard errors are those of the weighted (M-) estimator.
 
 Any unit works: results are in the units of the data; ``F = 1`` normalises to a unit sphere.
 """
@@ -48,7 +49,10 @@ __all__ = [
     "BOOTSTRAP_COPIES",
     "BOOTSTRAP_SEED",
     "ROBUST_ITERATIONS",
+    "WEIGHT_TOLERANCE",
+    "GATE_SIGMA",
     "huber_weights",
+    "robust_algebraic_fit",
     "patent_matrix",
     "patent_parameters",
     "parameter_names",
