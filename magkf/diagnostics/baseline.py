@@ -35,6 +35,8 @@ __all__ = [
     "improvement",
     "improvement_text",
     "improvement_words",
+    "logged_declination_deg",
+    "declination_note",
 ]
 
 #: The names ``improvement_text`` and the report give the raw reading, the vehicle's calibration and magkf's.
@@ -206,6 +208,52 @@ def vehicle_calibration(log: DriveLog):
     if cal is None:
         return None, "the log does not hold the calibration the vehicle flew with (its autopilot's parameters)"
     return cal, describe_logged(cal)
+
+
+#: Where the declination a vehicle was set to and the reference field's differ by more than this (deg), the
+#: comparison says so: the logged heading, the autopilot's, is referred to the former.
+DECLINATION_NOTE_DEG = 1.0
+
+
+def logged_declination_deg(log: DriveLog) -> tuple[float, str] | None:
+    """The magnetic declination (deg, east of true north) the vehicle used and the parameter it comes from, when
+    the log's parameters set it by hand: ArduPilot's ``COMPASS_DEC`` (radians) with ``COMPASS_AUTODEC`` 0
+    (https://ardupilot.org/copter/docs/parameters.html#compass-dec); None otherwise (an automatic declination, or
+    a log without those parameters)."""
+    parameters = (log.provenance or {}).get("parameters")
+    if not isinstance(parameters, dict) or "COMPASS_DEC" not in parameters:
+        return None
+    try:
+        automatic, value = float(parameters.get("COMPASS_AUTODEC", 1.0)), float(parameters["COMPASS_DEC"])
+    except (TypeError, ValueError):
+        return None
+    if automatic != 0.0 or not np.isfinite(value):
+        return None
+    return float(np.degrees(value)), "COMPASS_DEC, set by hand: COMPASS_AUTODEC is 0"
+
+
+def declination_note(log: DriveLog, base: Baseline, prep=None) -> str:
+    """A sentence when the declination the vehicle was set to (``logged_declination_deg``) differs from the
+    reference field's (median over the compared epochs of ``base``) by more than ``DECLINATION_NOTE_DEG``: the
+    logged heading is the autopilot's, referred to its own declination, so the heading errors include the
+    difference. "" otherwise."""
+    logged = logged_declination_deg(log)
+    if logged is None or not base.compared.any():
+        return ""
+    if prep is None:
+        from ..config import FilterConfig
+        from ..online.prepare import prepare
+
+        prep = prepare(log, FilterConfig())
+    reference = float(np.median(declination_deg(prep.ref[base.compared])))
+    difference = float(wrap_deg(logged[0] - reference))
+    if abs(difference) <= DECLINATION_NOTE_DEG:
+        return ""
+    return (
+        f"the vehicle's declination ({logged[1]}: {logged[0]:.2f} deg) differs from the reference field's "
+        f"({reference:.2f} deg) by {difference:+.1f} deg; the logged heading is the autopilot's, referred to its own "
+        "declination, so every heading error here includes that difference"
+    )
 
 
 def improvement(summary: pd.DataFrame, ours: str = MAGKF, theirs: str = VEHICLE) -> tuple[float, float]:

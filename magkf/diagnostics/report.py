@@ -530,13 +530,15 @@ SYMLOG_RATIO = 20.0
 @dataclass(frozen=True)
 class Comparison:
     """Raw, the vehicle's calibration and magkf's over one log: ``base`` (``baseline.Baseline``), ``vehicle``
-    (the vehicle's ``Calibration`` or None), ``words`` (it in words, or why there is none) and ``as_read`` (the
-    log was read with the autopilot's calibration kept: no raw row)."""
+    (the vehicle's ``Calibration`` or None), ``words`` (it in words, or why there is none), ``as_read`` (the
+    log was read with the autopilot's calibration kept: no raw row) and ``declination`` (``baseline.declination_note``:
+    the vehicle's declination against the reference's, or "")."""
 
     base: object
     vehicle: object
     words: str
     as_read: bool
+    declination: str = ""
 
     def sentence(self) -> str:
         """magkf's calibration against the vehicle's, in one sentence (HTML), or "" without the vehicle's."""
@@ -548,14 +550,16 @@ class Comparison:
             f"<p><b>Against the vehicle's own calibration:</b> magkf's calibration "
             f"{html.escape(improvement_text(self.base.summary))}, over the {int(self.base.compared.sum())} epochs "
             "with attitude and a reference field. It was estimated from this log, so its figures are in-sample; "
-            "<code>magkf validate</code> measures it on another log.</p>"
+            "<code>magkf validate</code> measures it on another log."
+            + (f" Note: {html.escape(self.declination)}." if self.declination else "")
+            + "</p>"
         )
 
 
 def _compare(log: DriveLog, run) -> Comparison:
     """The raw reading (unless the log was read calibrated), the vehicle's calibration (when the log gives it)
     and magkf's (``run.calibration``) compared over ``log`` (``baseline.compare_calibrations``)."""
-    from .baseline import MAGKF, RAW, VEHICLE, compare_calibrations, vehicle_calibration
+    from .baseline import MAGKF, RAW, VEHICLE, compare_calibrations, declination_note, vehicle_calibration
 
     vehicle, words = vehicle_calibration(log)
     as_read = _read_calibrated(log)
@@ -563,27 +567,38 @@ def _compare(log: DriveLog, run) -> Comparison:
     if vehicle is not None:
         cals[VEHICLE] = vehicle
     cals[MAGKF] = run.calibration
-    return Comparison(compare_calibrations(log, cals), vehicle, words, as_read)
+    base = compare_calibrations(log, cals)
+    return Comparison(base, vehicle, words, as_read, declination_note(log, base))
 
 
 def _baseline_part(comparison: Comparison) -> list[str]:
     """The comparison of raw, the vehicle's calibration and magkf's: each one's RMS and mean magnitude and heading
     error over the same epochs in a table, and both errors over time and against heading."""
     base = comparison.base
-    raw = "" if comparison.as_read else " (the autopilot's undone)"
+    raw = (
+        ""
+        if comparison.as_read
+        else "<b>Raw</b>: the sensor's reading with no calibration at all (the autopilot's undone). "
+    )
+    title = (
+        "The vehicle's own calibration and magkf's"
+        if comparison.as_read
+        else "Raw, the vehicle's own calibration and magkf's"
+    )
     parts = [
-        "<h3>Raw, the vehicle's own calibration and magkf's</h3>",
+        f"<h3>{title}</h3>",
         "<p>Magnitude error: the field's magnitude less the reference field's. Heading error: the heading a "
         "tilt-compensated compass would read less the logged heading. Over the "
         f"{int(base.compared.sum())} epochs (of {len(base.time)}) with attitude and a reference field where each "
-        f"calibration gives both. <b>Raw</b>: the sensor's reading with no calibration at all{raw}; <b>the "
-        f"vehicle's own calibration</b>: {html.escape(comparison.words)}.</p>",
+        f"calibration gives both. {raw}<b>The vehicle's own calibration</b>: {html.escape(comparison.words)}.</p>",
     ]
     if comparison.as_read:
         parts.append(
             "<p>The log was read with the autopilot's calibration kept (--logged-calibration): its raw reading is "
             "not known here, and the vehicle's calibration is the field as read.</p>"
         )
+    if comparison.declination:
+        parts.append(f"<p><b>Note:</b> {html.escape(comparison.declination)}.</p>")
     if not base.compared.any():
         return parts + ["<p>No epoch has both attitude and a reference field: no error to compare.</p>"]
     return parts + [_baseline_table(base), _baseline_time_plot(base), _baseline_heading_plot(base)]
@@ -657,6 +672,11 @@ def _baseline_legend(fig, base) -> None:
     fig.legend(handles=handles, loc="outside upper center", ncol=len(handles))
 
 
+def _drawn(base) -> str:
+    """The calibrations of ``base`` in words, as the legend names them: "raw reading, no calibration; ..."."""
+    return "; ".join(BASELINE_STYLE.get(name, (name,))[0] for name in base.names)
+
+
 def _legend_line(text: str, colour, style: str):
     """A legend entry: a line of ``colour`` and ``style`` labelled ``text``."""
     from matplotlib.lines import Line2D
@@ -702,9 +722,7 @@ def _baseline_time_plot(base) -> str:
     axes[0].set_title(f"means over {edges[1] - edges[0]:.2g} s stretches (gaps: no attitude or no reference field)")
     axes[1].set_xlabel("time since start, s")
     return _png(
-        fig,
-        "magnitude error in nT and heading error in deg against time since start in s, for the raw reading, "
-        "the vehicle's calibration and magkf's",
+        fig, f"magnitude error in nT and heading error in deg against time since start in s, for {_drawn(base)}"
     )
 
 
@@ -733,8 +751,8 @@ def _baseline_heading_plot(base, width_deg: float = 10.0) -> str:
     axes[0].set_title(f"means per {width_deg:g} deg of heading ({flown} of {len(centres)} flown)", loc="left")
     return _png(
         fig,
-        f"mean magnitude error in nT and mean heading error in deg per {width_deg:g} deg of logged heading, for the "
-        "raw reading, the vehicle's calibration and magkf's",
+        f"mean magnitude error in nT and mean heading error in deg per {width_deg:g} deg of logged heading, for "
+        + _drawn(base),
     )
 
 

@@ -200,10 +200,10 @@ QUANTUM_NT = 100.0 * np.sqrt(3.0)
 QUANTUM_HEADING_DEG = 0.5
 
 
-def dataflash_drive(path, seed=4, duration_s=300.0):
+def dataflash_drive(path, seed=4, duration_s=300.0, **more_parameters):
     """A simulated drive written as a DataFlash log whose COMPASS_* parameters hold the true soft iron
-    (``AUTOPILOT_MATRIX``) and an offset off by ``OFFSET_ERROR_NT``; returns the simulation (truth ``R`` the
-    matrix's inverse)."""
+    (``AUTOPILOT_MATRIX``) and an offset off by ``OFFSET_ERROR_NT``, and ``more_parameters``; returns the simulation
+    (truth ``R`` the matrix's inverse)."""
     from magkf.io.dataflash import write_dataflash
 
     config = DriveConfig(duration_s=duration_s, rate_hz=10, seed=seed, noise_nt=NOISE_NT, disturbances=0)
@@ -213,7 +213,7 @@ def dataflash_drive(path, seed=4, duration_s=300.0):
     parameters = {f"COMPASS_OFS_{a}": ofs[i] for i, a in enumerate("XYZ")}
     parameters |= {f"COMPASS_DIA_{a}": M[i, i] for i, a in enumerate("XYZ")}
     parameters |= {"COMPASS_ODI_X": M[0, 1], "COMPASS_ODI_Y": M[0, 2], "COMPASS_ODI_Z": M[1, 2]}
-    write_dataflash(sim.table, path, parameters=parameters)
+    write_dataflash(sim.table, path, parameters=parameters | more_parameters)
     return sim
 
 
@@ -240,3 +240,23 @@ def test_the_vehicle_s_calibration_read_from_a_dataflash_log_is_compared(tmp_pat
         assert np.max(np.abs(base.heading_error_deg[name] - exact.heading_error_deg[name])) < QUANTUM_HEADING_DEG
     # the offset's error (about 170 nT RMS) against the noise and quantisation (about 41 nT RMS)
     assert improvement(base.summary)[0] > 100.0
+
+
+def test_a_declination_set_by_hand_far_from_the_reference_s_is_noted(tmp_path):
+    """COMPASS_DEC is in radians: 0.2 rad (11.46 deg) set by hand, against the reference's about 4 deg at the
+    simulated site, is noted; the same with COMPASS_AUTODEC 1 (the autopilot's own table) is not."""
+    from magkf.diagnostics.baseline import declination_note, logged_declination_deg
+    from magkf.io.readers import read_log
+
+    sim = dataflash_drive(tmp_path / "hand.bin", duration_s=60.0, COMPASS_DEC=0.2, COMPASS_AUTODEC=0)
+    log = read_log(tmp_path / "hand.bin")
+    value, source = logged_declination_deg(log)
+    assert value == pytest.approx(np.degrees(float(np.float32(0.2))), abs=1e-9) and "COMPASS_DEC" in source
+    base = compare_calibrations(log, {MAGKF: sim.calibration})
+    reference = float(np.median(declination_deg(sim.reference_ned)))
+    note = declination_note(log, base)
+    assert f"by {value - reference:+.1f} deg" in note and "11.46 deg" in note
+    dataflash_drive(tmp_path / "auto.bin", duration_s=60.0, COMPASS_DEC=0.2, COMPASS_AUTODEC=1)
+    auto = read_log(tmp_path / "auto.bin")
+    assert logged_declination_deg(auto) is None and declination_note(auto, base) == ""
+    assert logged_declination_deg(from_table(sim.table.reset_index(), "csv")) is None
