@@ -250,7 +250,7 @@ def declination_note(log: DriveLog, base: Baseline, prep=None) -> str:
     if abs(difference) <= DECLINATION_NOTE_DEG:
         return ""
     return (
-        f"the vehicle's declination ({logged[1]}: {logged[0]:.2f} deg) differs from the reference field's "
+        f"the vehicle's declination, {logged[0]:.2f} deg ({logged[1]}), differs from the reference field's "
         f"({reference:.2f} deg) by {difference:+.1f} deg; the logged heading is the autopilot's, referred to its own "
         "declination, so every heading error here includes that difference"
     )
