@@ -481,8 +481,10 @@ def calibrate_file(
 def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out: _Filtered, init, step_s: float):
     """The whole-log estimate (``whole_log.fit_whole_log_parts``) over the epochs the filter pass updated with,
     the log read again piece by piece for each of the solver's passes."""
-    from .whole_log import fit_whole_log_parts
+    from .whole_log import filter_estimate, fit_whole_log_parts, wandering
 
+    if wandering(setup.layout):
+        return filter_estimate(est.x, est.P, wandering(setup.layout))
     status, updated = out.per_epoch["status"], out.per_epoch["updated"]
 
     def parts():
@@ -502,6 +504,7 @@ def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out:
         held_how=how,
         correlation_s=est.learner.inflation() * step_s,
         held_std=(config.init_r_std, config.init_b_std),
+        prior=(setup.x0, setup.P0),
         source=log.source,
     )
 

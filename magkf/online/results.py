@@ -177,6 +177,9 @@ class CalibrationRun:
     fit : pandas.DataFrame or None, optional
         Indexed by time, the residuals with the final estimate (with the smoothed per-epoch estimate when
         smoothed): ``fit_n, fit_e, fit_d`` (NED, nT) and ``fit_mag`` (nT).
+    filter_x, filter_P : numpy.ndarray or None, optional
+        (n,) and (n, n): the filter's state at the end of the log and its covariance, where ``x`` is the
+        whole-log estimate (None: ``x`` is the filter's, or a batch solution).
     """
 
     calibration: Calibration
@@ -187,6 +190,8 @@ class CalibrationRun:
     summary: RunSummary
     effects: dict = field(default_factory=dict)
     fit: pd.DataFrame | None = None
+    filter_x: np.ndarray | None = None
+    filter_P: np.ndarray | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -440,7 +445,16 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     cal = replace(cal, magnetometer=log.magnetometer, site=log.site)
     fit = pd.DataFrame(final, columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False)
     return CalibrationRun(
-        calibration=cal, x=trace.x, P=trace.P, names=names, states=states, summary=summary, effects=effects, fit=fit
+        calibration=cal,
+        x=trace.x,
+        P=trace.P,
+        names=names,
+        states=states,
+        summary=summary,
+        effects=effects,
+        fit=fit,
+        filter_x=trace.filter_x if trace.model is not None else None,
+        filter_P=trace.filter_P if trace.model is not None else None,
     )
 
 

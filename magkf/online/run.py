@@ -27,7 +27,7 @@ from .noise import ESTIMATE_EVERY_S
 from .prepare import PreparedLog, RunSetup, prepare, prepare_run
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
-from .whole_log import WholeLogFit, fit_whole_log
+from .whole_log import WholeLogFit, filter_estimate, fit_whole_log, wandering
 
 __all__ = ["calibrate_log", "filter_trace", "ForwardPass", "blocks", "terminal_progress"]
 
@@ -157,6 +157,9 @@ def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updat
     records, else the identity), with the batch length of the filter's learned correlation time."""
     from ..status import Status
 
+    moving = wandering(setup.layout)
+    if moving:
+        return filter_estimate(est.x, est.P, moving)
     used = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
     held, how = held_reference(log, init, reference)
     return fit_whole_log(
@@ -170,6 +173,7 @@ def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updat
         held_how=how,
         correlation_s=est.learner.inflation() * step_s,
         held_std=(config.init_r_std, config.init_b_std),
+        prior=(setup.x0, setup.P0),
         source=log.source,
     )
 

@@ -5,15 +5,19 @@ and the weights of its learned noise. A post-processing run writes instead the c
 the epochs the filter used best, the exact least-squares optimum of the residual magkf reports:
 
 * an epoch with attitude: the NED residual ``C_nb c - B_ref`` of the calibrated field
-  ``c = R^-1 (m - b - e)`` (its norm equals that of ``c - B_body``, which is what is computed), all three
-  components at one weight;
+  ``c = R^-1 (m - b - e)``, all three components at one weight. Its norm equals that of ``c - B_body``, and is
+  computed as ``W (m - R B_body - b - e)`` with ``W`` the inverse of the filter's final ``R``, held: the same to
+  first order in ``R``'s change from it (a few standard deviations), and a residual in the reading's own units,
+  so that a larger ``R`` cannot shrink the noise of ``c`` (with a field anomaly that trades with ``R``'s scale, a
+  fit of ``c`` itself ran off to ``R`` seven times too large, its residuals seven times smaller than the noise);
 * an epoch without attitude (or the magnitude model): the total-field residual ``|c| - |B_ref|``.
 
 It is solved by Gauss-Newton in the family's free directions ``theta`` (``magkf.families``:
 ``x = anchor + T theta``) with the analytic Jacobian ``dc/dx = -R^-1 dm/dx`` (the core's ``[I kron c^T, I]``
-at ``c``, the effects' own), steps halved until the cost falls, under a weak prior (``PRIOR_R_STD``,
-``PRIOR_B_STD`` about the held reference, the effects' own priors) that only keeps undetermined directions
-finite. The log is gone through ``CHUNK`` epochs at a time (one chunk with a nonlinear effect, which looks at
+at ``c``, the effects' own), steps halved until the cost falls, under the run's prior (the filter's start and its
+standard deviations): the data outweigh it wherever they determine a direction, and where they do not (an
+effect that trades with the core, a constant field anomaly against R's scale) it keeps the estimate where the
+filter kept it. The log is gone through ``CHUNK`` epochs at a time (one chunk with a nonlinear effect, which looks at
 its neighbours); each pass also folds the sums of ``FOLDS`` contiguous stretches of the used epochs and of
 batches of ``batch_s`` seconds.
 
@@ -44,7 +48,17 @@ from ..errors import InputError
 from ..families import FAMILIES, ModelFamily, family
 from .state import CORE_SIZE, StateLayout
 
-__all__ = ["WholeLogFit", "fit_whole_log", "fit_whole_log_parts", "FOLDS", "DETERMINED_FRACTION", "PRIOR_R_STD", "PRIOR_B_STD"]
+__all__ = [
+    "WholeLogFit",
+    "fit_whole_log",
+    "fit_whole_log_parts",
+    "wandering",
+    "filter_estimate",
+    "FOLDS",
+    "DETERMINED_FRACTION",
+    "PRIOR_R_STD",
+    "PRIOR_B_STD",
+]
 
 #: The weak prior of the whole-log fit: standard deviation of each element of R and each offset (nT).
 PRIOR_R_STD = 0.1
@@ -139,10 +153,13 @@ class _Problem:
     ``PreparedLog`` and its epochs used (k,) bool, in time order (a whole log is one part). A first pass over
     the parts counts the used epochs and measures the field, the motion and the time span."""
 
-    def __init__(self, parts, layout: StateLayout, vector: bool, correlation_s: float, prior_x, prior_std):
+    def __init__(self, parts, layout: StateLayout, vector: bool, correlation_s: float, prior_x, prior_std, W):
         self.parts, self.layout, self.vector = parts, layout, vector
+        self.W = np.asarray(W, float)
         self.prior_x = np.asarray(prior_x, float)
-        self.omega = 1.0 / np.asarray(prior_std, float) ** 2
+        cov = np.asarray(prior_std, float)
+        # the prior's information (n, n): a covariance's inverse, or the reciprocal variances of standard deviations
+        self.omega = np.linalg.inv(cov) if cov.ndim == 2 else np.diag(1.0 / cov**2)
         n_used, times, field, moments, n_moments, step = 0, [], 0.0, np.zeros((2, 3)), 0, None
         for prep, used in parts():
             idx = np.flatnonzero(used)
@@ -184,11 +201,21 @@ class _Problem:
                     yield prep, vector, idx[k], fold[k], batch[k]
 
     def residuals(self, x, prep, vector: bool, epochs) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (k, q) nT and Jacobian (k, q, n) of the ``epochs`` (k,) of ``prep`` at ``x`` (n,): body-frame
-        vector residuals ``c - B_body`` (q = 3) or magnitude residuals ``|c| - |B_ref|`` (q = 1)."""
+        """Residuals (k, q) nT and Jacobian (k, q, n) of the ``epochs`` (k,) of ``prep`` at ``x`` (n,): vector
+        residuals ``W (m - R B_body - b - e)`` (q = 3) or magnitude residuals ``|c| - |B_ref|`` (q = 1)."""
         layout = self.layout
         data = prep.data.take(epochs) if layout.has_extra else None
         terms = 0.0 if data is None else layout.effect_terms(x, data)
+        if vector:
+            B = prep.data.field_body[epochs]
+            if data is None:
+                dmdx = core_jacobian(B)
+            else:
+                dmdx = np.nan_to_num(layout.jacobian(x, data))
+                dmdx[:, :, layout.CORE] = core_jacobian(B)
+            R, b = layout.R_b(x)
+            r = (prep.m[epochs] - B @ R.T - b - terms) @ self.W.T
+            return r, -(self.W @ dmdx)
         c = layout.calibrated(x, prep.m[epochs], terms)
         if data is None:
             dmdx = core_jacobian(c)
@@ -196,8 +223,6 @@ class _Problem:
             dmdx = np.nan_to_num(layout.jacobian(x, data))
             dmdx[:, :, layout.CORE] = core_jacobian(c)
         dcdx = -(inverse3(layout.R(x)) @ dmdx)
-        if vector:
-            return c - prep.data.field_body[epochs], dcdx
         norm = np.linalg.norm(c, axis=1)
         r = (norm - prep.ref_mag[epochs])[:, None]
         return r, np.einsum("ki,kin->kn", c / norm[:, None], dcdx)[:, None, :]
@@ -211,7 +236,7 @@ class _Problem:
 
     def cost(self, x, s: _Sums) -> float:
         d = x - self.prior_x
-        return 0.5 * (s.ss + float(d @ (self.omega * d)))
+        return 0.5 * (s.ss + float(d @ self.omega @ d))
 
     def minimise(self, x, T) -> tuple[np.ndarray, _Sums]:
         """Gauss-Newton from ``x`` (n,) in the directions ``T`` (n, k), steps halved until the cost falls."""
@@ -235,8 +260,8 @@ class _Problem:
 
     def normal(self, x, s: _Sums, T) -> tuple[np.ndarray, np.ndarray]:
         """The normal equations ``H`` (k, k) and gradient (k,) in the directions ``T`` (n, k), prior included."""
-        H = T.T @ (s.A + np.diag(self.omega)) @ T
-        grad = T.T @ (s.g + self.omega * (x - self.prior_x))
+        H = T.T @ (s.A + self.omega) @ T
+        grad = T.T @ (s.g + self.omega @ (x - self.prior_x))
         return H, grad
 
 
@@ -259,6 +284,7 @@ def fit_whole_log(
     held_how: str = "the identity (no calibration of the vehicle, none given)",
     correlation_s: float = 0.0,
     held_std=(0.02, 300.0),
+    prior=None,
     source: str | None = None,
 ) -> WholeLogFit:
     """The whole-log estimate over the ``used`` epochs of ``prep`` in the family ``model`` (see the module).
@@ -285,6 +311,9 @@ def fit_whole_log(
         The residuals' correlation time learned by the filter, s (the batch length of the covariance).
     held_std : tuple of float
         Standard deviations stated for held ``R`` elements and offsets (nT): the prior's, not estimated.
+    prior : tuple of array_like or None
+        ``(mean (n,), covariance (n, n) or standard deviations (n,))`` of the prior (the run's start); None: a weak prior
+        (``PRIOR_R_STD``, ``PRIOR_B_STD`` about ``held_at``, the effects' own).
     source : str or None
         The log's name, for errors.
 
@@ -308,6 +337,7 @@ def fit_whole_log(
         held_how=held_how,
         correlation_s=correlation_s,
         held_std=held_std,
+        prior=prior,
         source=source,
     )
 
@@ -323,18 +353,19 @@ def fit_whole_log_parts(
     held_how: str = "the identity (no calibration of the vehicle, none given)",
     correlation_s: float = 0.0,
     held_std=(0.02, 300.0),
+    prior=None,
     source: str | None = None,
 ) -> WholeLogFit:
     """``fit_whole_log`` of a log given in parts: ``parts()`` yields ``(prep, used)`` pairs in time order (each a
     ``PreparedLog`` and its used epochs (k,) bool), and is called once per pass (a chunked log is read again)."""
     n = layout.size
     core_ref = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if held_at is None else np.asarray(held_at, float)
-    prior_x, prior_std = _prior(layout, core_ref)
-    problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std)
+    prior_x, prior_std = _prior(layout, core_ref) if prior is None else (np.asarray(p, float) for p in prior)
+    x_start = np.asarray(x_start, float).reshape(n)
+    problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std, inverse3(layout.R(x_start)))
     if problem.n_used < 3 * n:
         raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
     field_nt = problem.field_nt
-    x_start = np.asarray(x_start, float).reshape(n)
     excited = problem.spread >= EXCITATION_FRACTION * field_nt
     families = {name: family(name).restricted(excited) for name in _possible(vector)}
     # The richest family the log's motion allows first (from the filter's state): the others are judged at its fit.
@@ -362,6 +393,24 @@ def fit_whole_log_parts(
         n_epochs=problem.n_used,
         batch_s=problem.batch_s,
     )
+
+
+def wandering(layout: StateLayout) -> list[str]:
+    """The labels of the effects after the core whose parameters follow a random walk (``bias_drift``): a constant
+    whole-log estimate does not describe them."""
+    return [effect.label for effect, _ in layout.blocks() if np.any(effect.random_walk() > 0)]
+
+
+def filter_estimate(x, P, labels) -> WholeLogFit:
+    """The record of a run whose calibration is the filter's state ``x`` (n,), ``P`` (n, n) at the end of the log,
+    because the effects ``labels`` wander."""
+    text = (
+        f"{', '.join(labels)} wanders in time: the calibration is the filter's estimate at the end of the log (its "
+        "path is in the per-epoch states), not a constant whole-log estimate"
+    )
+    record = {"family": "full", "asked": "auto", "estimated": "the filter's state", "held": "nothing", "text": text}
+    nan = float("nan")
+    return WholeLogFit(np.asarray(x, float), np.asarray(P, float), "full", record, nan, nan, 0, nan)
 
 
 def _prior(layout: StateLayout, core_ref) -> tuple[np.ndarray, np.ndarray]:
@@ -426,15 +475,7 @@ def _candidates(problem: _Problem, x_full, s: _Sums, core_ref, field_nt: float, 
         T = fam.state_basis(n)
         anchor = x_full.copy()
         anchor[:CORE_SIZE] = fam.anchor(core_ref)
-        info = T.T @ s.A @ T
-        try:
-            cov = variance * np.linalg.inv(info)
-            core_cov = (T @ cov @ T.T)[:CORE_SIZE, :CORE_SIZE]
-            worst = float(np.sqrt(np.max(np.abs(np.diag(core_cov)) * scale**2 * (np.abs(fam.basis).sum(axis=1) > 0))))
-        except np.linalg.LinAlgError:
-            worst = float("inf")
-        if not np.isfinite(worst) or np.linalg.cond(info) > 1e14:
-            worst = float("inf")
+        worst = _worst_std(fam.basis, s.A[:CORE_SIZE, :CORE_SIZE], variance, scale)
         out[name] = {
             "worst_std_nt": worst,
             "determined": bool(worst <= DETERMINED_FRACTION * field_nt),
@@ -444,11 +485,28 @@ def _candidates(problem: _Problem, x_full, s: _Sums, core_ref, field_nt: float, 
     return out
 
 
+def _worst_std(basis, A_core, variance: float, scale) -> float:
+    """The largest standard deviation (nT of field error: ``R`` elements times ``scale``, offsets as they are) of
+    the core parameters free in ``basis`` (12, k), from the information ``A_core`` (12, 12) of the core with the
+    effects held at their fit, and the residuals' ``variance`` (nT^2): what the data tell of R and b themselves.
+    An effect that trades with the core (a constant field anomaly with R's scale) is bounded by its prior in
+    the fit; it does not make the family undetermined. Infinite where a direction received no information."""
+    info = basis.T @ A_core @ basis
+    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    normal = info / np.outer(d, d)
+    if np.linalg.eigvalsh(normal).min() < 1e-12:
+        return float("inf")
+    cov = variance * np.linalg.inv(normal) / np.outer(d, d)
+    core_var = np.einsum("ik,kl,il->i", basis, cov, basis)
+    free = np.abs(basis).sum(axis=1) > 0
+    return float(np.sqrt(np.max(np.abs(core_var[free]) * scale[free] ** 2)))
+
+
 def _correlation_factor(problem: _Problem, x, s: _Sums) -> float:
     """How many times the variance of the gradient's batch contributions exceeds that of independent epochs
     (at least 1): the residuals' correlation, by batch means, at the full fit ``x``."""
     n = len(x)
-    H = s.A + np.diag(problem.omega)
+    H = s.A + problem.omega
     white = np.linalg.pinv(H) * (s.ss / max(s.vec[0] * 3 + s.mag[0] - n, 1))
     scores = s.scores - s.scores.mean(axis=0)
     Hi = np.linalg.pinv(H)
@@ -463,8 +521,8 @@ def _held_out(problem: _Problem, x_full, s: _Sums, T, anchor) -> float:
     ``anchor``) fitted to the other folds, summed over the folds, in the quadratic model at ``x_full``."""
     d = anchor - x_full
     d[problem.layout.CORE] = d[problem.layout.CORE] - T[:CORE_SIZE] @ (T[:CORE_SIZE].T @ d[problem.layout.CORE])
-    omega = np.diag(problem.omega)
-    prior_grad = problem.omega * (x_full - problem.prior_x)
+    omega = problem.omega
+    prior_grad = omega @ (x_full - problem.prior_x)
     total, count = 0.0, 0
     for k in range(FOLDS):
         A, g = s.A - s.A_k[k], s.g - s.g_k[k]
@@ -493,8 +551,11 @@ def _choose(candidates: dict, chosen: str, families: dict) -> str:
 
 def _covariance(problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std) -> np.ndarray:
     """The covariance (n, n): the batch-means sandwich in the free directions, the prior's standard deviations
-    ``held_std`` (R element, offset nT) along the held ones."""
-    H = T.T @ (s.A + np.diag(problem.omega)) @ T
+    ``held_std`` (R element, offset nT) along the held ones, and what the held values' uncertainty does to the
+    free estimates (a consider covariance: the free estimate moves by ``S dh`` when the held values move by
+    ``dh``, ``S = -H_ff^-1 H_fh``, so ``P_f + S P_h S^T``). A level drive's ``b_z`` is then as uncertain as
+    ``R_33`` held makes it (``std(R_33) B_z``), not as the data alone would say."""
+    H = T.T @ (s.A + problem.omega) @ T
     Hi = np.linalg.inv(H)
     scores = s.scores @ T
     used_batches = np.any(s.scores != 0, axis=1)
@@ -509,11 +570,17 @@ def _covariance(problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std) -
     d = np.sqrt(np.diag(white)) * scale
     corr = sandwich / np.sqrt(np.outer(np.diag(sandwich), np.diag(sandwich)))
     P_theta = corr * np.outer(d, d)
-    P = T @ P_theta @ T.T
-    N = fam.held()
-    if N.shape[1]:
-        held_var = np.concatenate([np.full(9, held_std[0] ** 2), np.full(3, held_std[1] ** 2)])
-        P[:CORE_SIZE, :CORE_SIZE] += N @ (N.T @ (held_var[:, None] * N)) @ N.T
+    N = np.zeros((len(x), fam.held().shape[1]))
+    N[:CORE_SIZE] = fam.held()
+    if not N.shape[1]:
+        P = T @ P_theta @ T.T
+        return 0.5 * (P + P.T)
+    held_var = np.concatenate([np.full(9, held_std[0] ** 2), np.full(3, held_std[1] ** 2)])
+    P_h = N[:CORE_SIZE].T @ (held_var[:, None] * N[:CORE_SIZE])
+    S = -Hi @ (T.T @ (s.A + problem.omega) @ N)
+    basis = np.hstack([T, N])
+    joint = np.block([[P_theta + S @ P_h @ S.T, S @ P_h], [P_h @ S.T, P_h]])
+    P = basis @ joint @ basis.T
     return 0.5 * (P + P.T)
 
 

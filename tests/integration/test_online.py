@@ -161,7 +161,18 @@ def test_batch_agrees_with_filter(constant_log, measure):
     config = MATCHED.replace(measure=measure)
     flt = calibrate_log(log, config)
     bat = solve_batch(log, config)
-    assert np.all(np.abs(flt.x - bat.x) < flt.std), np.abs(flt.x - bat.x) / flt.std
+    if measure != "magnitude":
+        assert np.all(np.abs(flt.x - bat.x) < flt.std), np.abs(flt.x - bat.x) / flt.std
+        return
+    # The magnitude sees R only up to a rotation (R R^T): the filter's run writes the symmetric R (soft iron), the
+    # batch solver holds the rotation at its prior. The offsets agree within a standard deviation; R R^T within
+    # two of its elements' first-order standard deviation (2 std(R_ii) for R near the identity), three for
+    # three of them compared at once.
+    assert flt.summary.model["family"] == "soft-iron"
+    assert np.all(np.abs(flt.x[9:12] - bat.x[9:12]) < flt.std[9:12])
+    Rf, Rb = flt.calibration.R, bat.calibration.R
+    tolerance = 3 * 2 * np.max(flt.std[[0, 4, 8]])
+    assert np.abs(Rf @ Rf.T - Rb @ Rb.T).max() < tolerance, np.abs(Rf @ Rf.T - Rb @ Rb.T).max() / tolerance
 
 
 @pytest.mark.slow
@@ -263,8 +274,10 @@ def test_realtime_matches_post_processing_epoch_by_epoch():
     rows = sim.table.reset_index().to_dict("records")
     results = [online.step(r) for r in rows]
     assert [r.status for r in results] == list(post.states["status"])
-    # The real-time path uses IGRF from its cache (a knot every 2 km): within 0.1 of a standard deviation.
-    assert np.all(np.abs(results[-1].x - post.x) < 0.1 * post.std)
+    # The real-time path uses IGRF from its cache (a knot every 2 km): within 0.1 of a standard deviation of the
+    # post-processing filter's last state (the calibration it writes is the whole-log estimate).
+    filter_std = np.sqrt(np.diag(post.filter_P))
+    assert np.all(np.abs(results[-1].x - post.filter_x) < 0.1 * filter_std)
     assert online.reference.evaluations <= 2
     last = results[-1]
     assert np.isfinite(last.heading_true_deg) and last.R.shape == (3, 3) and last.std.shape == (12,)
