@@ -312,8 +312,8 @@ def fit_whole_log(
     held_std : tuple of float
         Standard deviations stated for held ``R`` elements and offsets (nT): the prior's, not estimated.
     prior : tuple of array_like or None
-        ``(mean (n,), covariance (n, n) or standard deviations (n,))`` of the prior (the run's start); None: a weak prior
-        (``PRIOR_R_STD``, ``PRIOR_B_STD`` about ``held_at``, the effects' own).
+        ``(mean (n,), covariance (n, n) or standard deviations (n,))`` of the prior (the run's start); None: a
+        weak prior (``PRIOR_R_STD``, ``PRIOR_B_STD`` about ``held_at``, the effects' own).
     source : str or None
         The log's name, for errors.
 

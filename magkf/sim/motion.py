@@ -3,7 +3,8 @@
 Three kinds: ``"3d"`` (drone or aircraft-like: all headings, roll up to about 40 deg, pitch up to about
 30 deg, height changes), ``"planar"`` (car-like: all headings, roll and pitch within about 1 deg,
 constant height; ``tilt_deg`` sets how flat) and ``"straight"`` (a straight, level flight: the heading
-within 5 deg of north-east, roll and pitch within 3 deg, as weak a motion as a calibration meets). Angles in degrees, speed in m/s, positions in degrees and metres.
+within 5 deg of north-east, roll and pitch within 3 deg, as weak a motion as a calibration meets). Angles in
+degrees, speed in m/s, positions in degrees and metres.
 """
 
 from __future__ import annotations

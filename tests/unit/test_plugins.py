@@ -211,7 +211,18 @@ LAYERS = {
     "apply": {"foundation", "io", "effects", "reference", "online"},
     "diagnostics": {"foundation", "io", "effects", "reference", "plausibility", "offline", "online", "apply"},
 }
-FOUNDATION = {"conventions", "errors", "status", "plugins", "config", "calibration", "families", "files", "timing", "blas"}
+FOUNDATION = {
+    "conventions",
+    "errors",
+    "status",
+    "plugins",
+    "config",
+    "calibration",
+    "families",
+    "files",
+    "timing",
+    "blas",
+}
 
 
 def _layer(module: str) -> str | None:
