@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..calibration import PARAMETER_NAMES
 from ..conventions import inverse3
 from ..effects.core import core_jacobian
 from ..errors import InputError
@@ -88,7 +89,8 @@ MAX_HALVINGS = 12
 class WholeLogFit:
     """The whole-log estimate: state ``x`` (n,) and covariance ``P`` (n, n), the ``family`` chosen, the
     ``model`` record a calibration file keeps (``family``, ``estimated``, ``held``, ``held_at``, ``text``,
-    ``candidates``), the residual RMS (nT) of the used epochs with attitude (NED norm) and without
+    ``candidates`` and, where something is held, ``std_given_held``: the free parameters' standard deviations
+    were the held values exact), the residual RMS (nT) of the used epochs with attitude (NED norm) and without
     (magnitude), the number of epochs and the batch length ``batch_s`` of the covariance."""
 
     x: np.ndarray
@@ -381,8 +383,11 @@ def fit_whole_log_parts(
             x, s = _fit_family(problem, families[chosen], x, core_ref)
     fam = families[chosen]
     T = fam.state_basis(n)
-    P = _covariance(problem, x, s, T, fam, held_std)
+    P, given = _covariance(problem, x, s, T, fam, held_std)
     record = _record(fam, model, held_how, core_ref, candidates)
+    if fam.name != "full" or fam.size < CORE_SIZE:
+        free = np.abs(fam.basis).sum(axis=1) > 0
+        record["std_given_held"] = {n: float(v) for n, v, f in zip(PARAMETER_NAMES, given, free) if f}
     return WholeLogFit(
         x=x,
         P=P,
@@ -549,12 +554,13 @@ def _choose(candidates: dict, chosen: str, families: dict) -> str:
     return chosen
 
 
-def _covariance(problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std) -> np.ndarray:
+def _covariance(problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std) -> tuple[np.ndarray, np.ndarray]:
     """The covariance (n, n): the batch-means sandwich in the free directions, the prior's standard deviations
     ``held_std`` (R element, offset nT) along the held ones, and what the held values' uncertainty does to the
     free estimates (a consider covariance: the free estimate moves by ``S dh`` when the held values move by
     ``dh``, ``S = -H_ff^-1 H_fh``, so ``P_f + S P_h S^T``). A level drive's ``b_z`` is then as uncertain as
-    ``R_33`` held makes it (``std(R_33) B_z``), not as the data alone would say."""
+    ``R_33`` held makes it (``std(R_33) B_z``), not as the data alone would say. Also returns the core's
+    standard deviations (12,) given the held values (zero for the held ones)."""
     H = T.T @ (s.A + problem.omega) @ T
     Hi = np.linalg.inv(H)
     scores = s.scores @ T
@@ -572,26 +578,27 @@ def _covariance(problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std) -
     P_theta = corr * np.outer(d, d)
     N = np.zeros((len(x), fam.held().shape[1]))
     N[:CORE_SIZE] = fam.held()
+    given = np.sqrt(np.abs(np.einsum("ik,kl,il->i", T, P_theta, T)))[:CORE_SIZE]
     if not N.shape[1]:
         P = T @ P_theta @ T.T
-        return 0.5 * (P + P.T)
+        return 0.5 * (P + P.T), given
     held_var = np.concatenate([np.full(9, held_std[0] ** 2), np.full(3, held_std[1] ** 2)])
     P_h = N[:CORE_SIZE].T @ (held_var[:, None] * N[:CORE_SIZE])
     S = -Hi @ (T.T @ (s.A + problem.omega) @ N)
     basis = np.hstack([T, N])
     joint = np.block([[P_theta + S @ P_h @ S.T, S @ P_h], [P_h @ S.T, P_h]])
     P = basis @ joint @ basis.T
-    return 0.5 * (P + P.T)
+    return 0.5 * (P + P.T), given
 
 
 def _record(fam: ModelFamily, asked: str, held_how: str, core_ref, candidates: dict) -> dict:
     """The ``model`` record of a calibration file: the family, what it estimated and held, in words."""
-    if fam.name == "full":
+    if fam.size == CORE_SIZE:
         text = "this log determines all 12 parameters of R and b"
     else:
         text = f"this log determines {fam.estimates}; {fam.holds} held at {held_how}"
     if asked != "auto":
-        text = f"{fam.name} asked for (--model {asked}): {text if fam.name != 'full' else 'all 12 parameters'}"
+        text = f"{fam.name} asked for (--model {asked}): {text}"
         if not candidates[fam.name]["determined"]:
             text += f"; the log does not determine it (worst std {candidates[fam.name]['worst_std_nt']:.3g} nT)"
     return {
