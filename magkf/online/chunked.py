@@ -69,7 +69,7 @@ from .prepare import (
     start_rows,
 )
 from .results import CalibrationRun, FitSums, RunTrace, epoch_columns, states_frame, summarise
-from .run import ForwardPass, filter_trace, held_reference
+from .run import ForwardPass, filter_trace, held_reference, learned_noise
 from .smoother import rts_smooth
 
 __all__ = [
@@ -505,6 +505,7 @@ def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out:
         correlation_s=est.learner.inflation() * step_s,
         held_std=(config.init_r_std, config.init_b_std),
         prior=(setup.x0, setup.P0),
+        noise=learned_noise(setup.model, est, config),
         source=log.source,
     )
 

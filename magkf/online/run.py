@@ -174,8 +174,19 @@ def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updat
         correlation_s=est.learner.inflation() * step_s,
         held_std=(config.init_r_std, config.init_b_std),
         prior=(setup.x0, setup.P0),
+        noise=learned_noise(setup.model, est, config),
         source=log.source,
     )
+
+
+def learned_noise(model, est: Estimator, config: FilterConfig):
+    """``(NoiseLevels, field_aligned)``: the noise the filter learned and the alignment of its vector model, for the
+    covariance of the whole-log estimate; None when the noise was not learned (``config.adapt_noise`` False) or
+    the model has no vector noise of that form (a plug-in, the magnitude alone)."""
+    aligned = getattr(model, "field_aligned", None)
+    if not config.adapt_noise or aligned is None or not model.needs_attitude:
+        return None
+    return est.noise, bool(aligned)
 
 
 def held_reference(log, init: Calibration | None, reference: Calibration | None) -> tuple:
