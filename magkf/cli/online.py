@@ -53,7 +53,7 @@ def _print_run(summary: dict, names) -> None:
     for line in _fit_lines(s):
         print("  " + line)
     print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
-    print(f"  observability: {s['observability']['text']}")
+    print(f"  observability (the filter's information): {s['observability']['text']}")
     if s.get("model"):
         print(f"  model: {s['model']['family']}: {s['model']['text']}")
     if s.get("filter_state"):
@@ -304,6 +304,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
         from ..diagnostics.diagnose import compare_runs
 
         summary["before_after"] = compare_runs(run_with([]), run)
+    summary["vehicle"] = _against_the_vehicle(log, run)
     if output:
         run.calibration.save(output)
     if states:
@@ -319,6 +320,40 @@ def _calibrate_one(args, log, config, init, added, output, states):
         )
         for key, unit in (("residual_rms_nt", " nT"), ("nis_mean", ""), ("aic", ""), ("bic", "")):
             print(f"    {key:16s} {ba['before'][key]:12.2f} -> {ba['after'][key]:12.2f}{unit}")
+    if summary["vehicle"]:
+        print(f"  against the vehicle's own calibration: {summary['vehicle']['text']}")
     if output:
         print(f"  calibration written to {output}")
     return run
+
+
+def _against_the_vehicle(log, run) -> dict | None:
+    """The raw reading's, the vehicle's own calibration's and magkf's RMS magnitude (nT) and heading (deg) errors
+    over the log (``magkf.diagnostics.baseline``) and the comparison in words, or None when the log does not give
+    the vehicle's calibration."""
+    from ..diagnostics.baseline import (
+        MAGKF,
+        RAW,
+        VEHICLE,
+        compare_calibrations,
+        declination_note,
+        improvement_text,
+        vehicle_calibration,
+    )
+
+    vehicle, description = vehicle_calibration(log)
+    if vehicle is None or vehicle.method == "logged-as-read":
+        return None
+    base = compare_calibrations(log, {RAW: None, VEHICLE: vehicle, MAGKF: run.calibration})
+    rows = base.summary[["magnitude_rms_nt", "heading_rms_deg"]]
+    figures = {name: {k: float(v) for k, v in rows.loc[name].items()} for name in rows.index}
+    text = (
+        f"{description}; RMS magnitude and heading error: raw {_pair(figures[RAW])}, vehicle "
+        f"{_pair(figures[VEHICLE])}, magkf {_pair(figures[MAGKF])}; magkf {improvement_text(base.summary)}"
+    )
+    note = declination_note(log, base)
+    return {"description": description, "rms": figures, "text": text + (f" ({note})" if note else "")}
+
+
+def _pair(row: dict) -> str:
+    return f"{row['magnitude_rms_nt']:.0f} nT / {row['heading_rms_deg']:.2f} deg"
