@@ -25,7 +25,8 @@ batches of ``batch_s`` seconds.
 
 1. the log *determines* it: the standard deviation of each of its core parameters, from the data's
    information alone and the residuals' variance inflated by their correlation, leaves a field error below
-   ``DETERMINED_FRACTION`` of the log's field (``R`` entries times the field, ``b`` as it is); and
+   ``DETERMINED_FRACTION`` of the log's field (``R`` entries times the field, ``b`` as it is;
+   ``OFFSETS_FRACTION`` for the offsets alone, below which the log is refused); and
 2. it predicts *held-out stretches* of the same log at least as well: fitted to all stretches but one, its
    residual on the one left out, summed over the ``FOLDS`` stretches, is no larger (the quadratic model of the
    objective at the full fit gives every such fit in one pass).
@@ -68,8 +69,12 @@ PRIOR_R_STD = 0.1
 PRIOR_B_STD = 5000.0
 #: Contiguous stretches of the used epochs for the held-out check.
 FOLDS = 5
-#: A family is determined when its parameters' standard deviations leave less than this share of the field.
+#: A family is determined when its parameters' standard deviations leave less than this share of the field
+#: (250 nT at 50 000 nT, about 0.3 deg of heading) ...
 DETERMINED_FRACTION = 0.005
+#: ... except the offsets, the least a calibration gives, which are taken up to this share (1 000 nT at 50 000 nT,
+#: about 1.1 deg of heading: still far better than a vehicle's offsets that are off by thousands of nT).
+OFFSETS_FRACTION = 0.02
 #: An R column is estimated only where its body field component's standard deviation over the used epochs is at
 #: least this share of the field (about 6 degrees of rotation): the regression of a reading on a component that
 #: hardly varies cannot tell its scale from the offset, and a few tens of nT of unmodelled field or attitude
@@ -500,13 +505,14 @@ def _undetermined(offsets: dict, s: _Sums, field_nt: float) -> str:
     rms = float(np.sqrt(s.ss / max(s.vec[0] * 3 + s.mag[0], 1)))
     text = (
         f"the log does not determine even the offsets (their standard deviation is {offsets['worst_std_nt']:.3g} nT, "
-        f"over {100 * DETERMINED_FRACTION:g} % of the field)"
+        f"over {100 * OFFSETS_FRACTION:g} % of the field)"
     )
     if rms > MISFIT_FRACTION * field_nt:
         return (
             f"{text}: the readings do not follow the reference field through the logged attitude (residuals of "
             f"{rms:.3g} nT, {100 * rms / field_nt:.0f} % of the field): a wrong attitude or magnetometer unit "
-            "(--mag-unit), a sensor that does not follow the field, or data that do not determine R"
+            "(--mag-unit), a heading that is not the compass's, a sensor that does not follow the field, or data that "
+            "do not determine R (the magnitude alone, --measure magnitude, needs no attitude)"
         )
     return f"{text}: the data do not determine R or b; record a longer flight, or give a calibration (--init)"
 
@@ -539,7 +545,7 @@ def _candidates(problem: _Problem, x_full, s: _Sums, core_ref, field_nt: float, 
         worst = _worst_std(fam.basis, s.A[:CORE_SIZE, :CORE_SIZE], variance, scale)
         out[name] = {
             "worst_std_nt": worst,
-            "determined": bool(worst <= DETERMINED_FRACTION * field_nt),
+            "determined": bool(worst <= (OFFSETS_FRACTION if name == FAMILIES[0] else DETERMINED_FRACTION) * field_nt),
             "held_out_rms_nt": _held_out(problem, x_full, s, T, anchor),
             "free": fam.size,
         }
