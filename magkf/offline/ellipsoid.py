@@ -608,12 +608,12 @@ def _refine(X, x0, F, d, weights, robust: bool = True):
     radial = _radial_variance(X, x, d)
     if not robust:
         weights = np.ones(len(X))
-    for _ in range(ROBUST_ITERATIONS):
+    for iteration in range(ROBUST_ITERATIONS + 1):  # the last one fits the last reweighting
         fit = _least_squares(X, x, F, d, np.sqrt(weights / radial))
         x = fit.x
         if fit.status == 0:
             return x, np.full(len(x), np.nan), False, weights
-        if not robust:
+        if not robust or iteration == ROBUST_ITERATIONS:
             break
         new, _ = huber_weights((_magnitudes(X, x, d) - F) / np.sqrt(radial), GATE_SIGMA)
         if np.max(np.abs(new - weights)) < WEIGHT_TOLERANCE:
