@@ -20,7 +20,7 @@ Two steps:
 
 Both steps are robust (``robust=True``, the default): disturbed samples (a passing truck, a bridge) are
 down-weighted by iteratively reweighted least squares with Huber weights, as the online filter does
-(``magkf.online.bootstrap.HUBER_K`` robust standard deviations of the magnitude residual, the scale from
+(``HUBER_K`` robust standard deviations of the magnitude residual, the scale from
 its median absolute value), then, from that robust start, set aside beyond ``GATE_SIGMA`` of them, as the
 filter's magnitude gate does; the standard errors are those of the weighted (M-) estimator.
 
@@ -38,7 +38,6 @@ from scipy.optimize import least_squares
 from ..calibration import Calibration
 from ..conventions import MAG
 from ..errors import InputError
-from ..online.bootstrap import HUBER_K
 from .base import Calibrator
 
 __all__ = [
@@ -63,6 +62,9 @@ __all__ = [
     "EllipsoidCalibrator",
 ]
 
+#: Huber's threshold, in robust standard deviations, beyond which a sample is down-weighted: the online filter's
+#: bootstrap takes it from here (``magkf.online.bootstrap``).
+HUBER_K = 3.0
 #: Smallest ratio sqrt(lambda_min / lambda_max) of the centred sample scatter for a 3-axis fit.
 MIN_THICKNESS = 0.05
 #: Cells of the equal-area direction grid used for the coverage figure (3-axis) and bins (2-axis).

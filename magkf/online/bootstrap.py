@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
+from ..offline.ellipsoid import HUBER_K
 
 __all__ = [
     "PRIOR_R_STD",
@@ -37,7 +38,6 @@ PRIOR_R_STD = 0.1
 PRIOR_B_STD = 5000.0
 #: Variance inflation of the bootstrap covariance (the filter sees the same epochs again).
 INFLATION = 100.0
-HUBER_K = 3.0
 MIN_EPOCHS = 50
 
 

@@ -374,11 +374,11 @@ def test_the_small_items_a_new_user_hits(files, capsys, tmp_path):
     imu = pd.read_csv(DATA / "ckexplorer_acc_mag_log.csv")[["mx", "my", "mz"]] * 3000.0  # in counts, about 1 000
     imu.to_csv(tmp_path / "counts.csv", index=False)
     status, out, err = run(capsys, "ellipsoid", tmp_path / "counts.csv", "--columns", "mx,my,mz", "--json")
-    assert status == 0 and "poorly determined" not in err and json.loads(out)["parameters"]["kx"] > 900
+    assert status == 0 and "poorly determined" not in err and json.loads(out)["field"] > 900
     # --mag-unit converts to nT; --axes 2 on tilted data is warned
     status, out, err = run(capsys, "ellipsoid", DATA / "example_drive.csv", "--axes", "2", "--mag-unit", "uT", "--json")
     assert status == 0 and "takes the sensor as level, but roll and pitch reach" in err
-    assert json.loads(out)["parameters"]["kx"] > 1e6  # uT columns converted to nT (1 000 times the numbers)
+    assert json.loads(out)["field"] > 1e6  # uT columns converted to nT (1 000 times the numbers)
     # --curves implies the paper's method; the IGRF date, when not given, is said
     curves = DATA / "paper_example_curves.json"
     status, out, _ = run(capsys, "sinefit", "--curves", curves, "--field", 50000, "--inclination", 43, "--json")
