@@ -139,6 +139,13 @@ def run_calibrate(args) -> int:
     by DOP, field magnitude and innovation. Every epoch gets a status. Without --init the start is bootstrapped
     from the first stretch of the log."""
     config = common.filter_config(args)
+    if args.batch and args.model not in (None, "auto", "full"):
+        from ..errors import InputError
+
+        raise InputError(
+            f"--model {args.model} chooses what the filter's whole-log estimate holds; --batch solves all 12 "
+            "parameters of its own objective: drop --batch (the default run writes the whole-log estimate) or --model"
+        )
     init = common.load_calibration(args.init)
     if args.mag != "all":
         # the comparison before and after added effects needs both runs' per-epoch tables
