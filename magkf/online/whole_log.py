@@ -141,17 +141,23 @@ class _Sums:
         )
 
     def add(self, r, J, fold, batch) -> None:
-        """Add epochs' residuals ``r`` (k, q) nT with their Jacobian ``J`` (k, q, n), folds and batches (k,)."""
-        A_e = np.einsum("kqi,kqj->kij", J, J)
+        """Add epochs' residuals ``r`` (k, q) nT with their Jacobian ``J`` (k, q, n), folds and batches (k,), both
+        non-decreasing (the epochs in time order): each fold's and batch's sums over its run of epochs."""
+        n = J.shape[2]
         g_e = np.einsum("kqi,kq->ki", J, r)
         ss_e = np.einsum("kq,kq->k", r, r)
-        self.A += A_e.sum(axis=0)
+        for f in np.unique(fold):
+            own = fold == f
+            Jf = J[own].reshape(-1, n)
+            A_f = Jf.T @ Jf
+            self.A_k[f] += A_f
+            self.A += A_f
+            self.g_k[f] += g_e[own].sum(axis=0)
+            self.ss_k[f] += float(ss_e[own].sum())
         self.g += g_e.sum(axis=0)
         self.ss += float(ss_e.sum())
-        np.add.at(self.A_k, fold, A_e)
-        np.add.at(self.g_k, fold, g_e)
-        np.add.at(self.ss_k, fold, ss_e)
-        np.add.at(self.scores, batch, g_e)
+        starts = np.flatnonzero(np.diff(batch, prepend=-1))
+        self.scores[batch[starts]] += np.add.reduceat(g_e, starts, axis=0)
         acc = self.vec if r.shape[1] == 3 else self.mag
         acc[0] += len(r)
         acc[1] += float(ss_e.sum())
