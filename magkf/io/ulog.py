@@ -746,6 +746,8 @@ def _provenance(
             "calibrated": mag.calibrated,
             "fields": ", ".join(f"{mag.topic}.{f}" for f in mag.fields),
             "calibration_index": cal_index,
+            # the logged rotation travels with a calibration of this magnetometer (``magkf export`` compares it)
+            "rotation": {k: v for k, v in rotation.items() if k not in ("applied", "meaning")},
         },
         "magnetometers": _instances(ulog),
         "gnss": None if gnss is None else {"topic": gnss.topic, "instance": int(gnss.instance)},
