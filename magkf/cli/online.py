@@ -139,13 +139,7 @@ def run_calibrate(args) -> int:
     by DOP, field magnitude and innovation. Every epoch gets a status. Without --init the start is bootstrapped
     from the first stretch of the log."""
     config = common.filter_config(args)
-    if args.batch and args.model not in (None, "auto", "full"):
-        from ..errors import InputError
-
-        raise InputError(
-            f"--model {args.model} chooses what the filter's whole-log estimate holds; --batch solves all 12 "
-            "parameters of its own objective: drop --batch (the default run writes the whole-log estimate) or --model"
-        )
+    _batch_takes_no_family(args)
     init = common.load_calibration(args.init)
     if args.mag != "all":
         # the comparison before and after added effects needs both runs' per-epoch tables
@@ -196,6 +190,17 @@ def run_calibrate(args) -> int:
     if not rows and errors:
         raise errors[0]
     return 0
+
+
+def _batch_takes_no_family(args) -> None:
+    """InputError for ``--batch`` with a ``--model`` family other than ``auto`` or ``full``."""
+    if args.batch and args.model not in (None, "auto", "full"):
+        from ..errors import InputError
+
+        raise InputError(
+            f"--model {args.model} chooses what the filter's whole-log estimate holds; --batch solves all 12 "
+            "parameters of its own objective: drop --batch (the default run writes the whole-log estimate) or --model"
+        )
 
 
 def _per_instance(path, instance):

@@ -36,6 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..conventions import euler_to_dcm
+from .mounting import AP_ROTATIONS
 
 __all__ = [
     "ROTATIONS",
@@ -48,33 +49,7 @@ __all__ = [
 
 #: PX4's ``enum Rotation`` (``SENS_BOARD_ROT``, ``CAL_MAGn_ROT``) as (roll, pitch, yaw) in degrees, entries 0 to 34
 #: as in v1.8 (v1.4 to v1.7 have 0 to 31 or 32 of them, with the same values).
-ROTATIONS = {
-    0: (0, 0, 0),
-    1: (0, 0, 45),
-    2: (0, 0, 90),
-    3: (0, 0, 135),
-    4: (0, 0, 180),
-    5: (0, 0, 225),
-    6: (0, 0, 270),
-    7: (0, 0, 315),
-    8: (180, 0, 0),
-    9: (180, 0, 45),
-    10: (180, 0, 90),
-    11: (180, 0, 135),
-    12: (0, 180, 0),
-    13: (180, 0, 225),
-    14: (180, 0, 270),
-    15: (180, 0, 315),
-    16: (90, 0, 0),
-    17: (90, 0, 45),
-    18: (90, 0, 90),
-    19: (90, 0, 135),
-    20: (270, 0, 0),
-    21: (270, 0, 45),
-    22: (270, 0, 90),
-    23: (270, 0, 135),
-    24: (0, 90, 0),
-    25: (0, 270, 0),
+ROTATIONS = {k: v for k, v in AP_ROTATIONS.items() if k <= 25} | {  # 0 to 25 have always meant the same
     26: (270, 0, 270),
     27: (180, 270, 0),
     28: (0, 90, 180),

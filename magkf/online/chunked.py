@@ -69,7 +69,7 @@ from .prepare import (
     start_rows,
 )
 from .results import CalibrationRun, FitSums, RunTrace, epoch_columns, states_frame, summarise
-from .run import ForwardPass, filter_trace, held_reference, learned_noise
+from .run import ForwardPass, filter_trace, held_reference, whole_log_options
 from .smoother import rts_smooth
 
 __all__ = [
@@ -493,21 +493,8 @@ def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out:
             code = status.read(a, b)
             yield piece.own, updated.read(a, b) & ((code == Status.USED) | (code == Status.MISSING_ATTITUDE))
 
-    held, how = held_reference(None, init, None)
-    return fit_whole_log_parts(
-        parts,
-        setup.layout,
-        est.x,
-        vector=setup.model.needs_attitude,
-        model=config.model,
-        held_at=None if held is None else held.state,
-        held_how=how,
-        correlation_s=est.learner.inflation() * step_s,
-        held_std=(config.init_r_std, config.init_b_std),
-        prior=(setup.x0, setup.P0),
-        noise=learned_noise(setup.model, est, config),
-        source=log.source,
-    )
+    options = whole_log_options(setup, est, config, held_reference(None, init, None), step_s, log.source)
+    return fit_whole_log_parts(parts, setup.layout, est.x, **options)
 
 
 def _start(log: ChunkedLog, config: FilterConfig, init, effects, scan: _Scan) -> RunSetup:

@@ -152,31 +152,34 @@ def filter_trace(
 
 
 def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updated, config, init, reference, step_s):
-    """The whole-log estimate (``whole_log.fit_whole_log``) over the epochs the filter updated with, in the family
-    ``config.model``, the held parameters at ``reference`` (else ``init``, else the vehicle's calibration the log
-    records, else the identity), with the batch length of the filter's learned correlation time."""
+    """The whole-log estimate (``whole_log.fit_whole_log``) over the epochs the filter updated with (``status``,
+    ``updated`` (N,)), with ``whole_log_options``; the filter's estimate where an effect wanders."""
     from ..status import Status
 
     moving = wandering(setup.layout)
     if moving:
         return filter_estimate(est.x, est.P, moving)
     used = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
-    held, how = held_reference(log, init, reference)
-    return fit_whole_log(
-        prep,
-        setup.layout,
-        est.x,
-        used,
-        vector=setup.model.needs_attitude,
-        model=config.model,
-        held_at=None if held is None else held.state,
-        held_how=how,
-        correlation_s=est.learner.inflation() * step_s,
-        held_std=(config.init_r_std, config.init_b_std),
-        prior=(setup.x0, setup.P0),
-        noise=learned_noise(setup.model, est, config),
-        source=log.source,
-    )
+    options = whole_log_options(setup, est, config, held_reference(log, init, reference), step_s, log.source)
+    return fit_whole_log(prep, setup.layout, est.x, used, **options)
+
+
+def whole_log_options(setup: RunSetup, est: Estimator, config: FilterConfig, held: tuple, step_s: float, source):
+    """The options of ``whole_log.fit_whole_log`` for a run from ``setup`` ended with ``est``: the family
+    ``config.model``, the held parameters at ``held`` (``held_reference``), the run's prior, the noise and
+    correlation time the filter learned (``step_s`` the log's median time step, s)."""
+    calibration, how = held
+    return {
+        "vector": setup.model.needs_attitude,
+        "model": config.model,
+        "held_at": None if calibration is None else calibration.state,
+        "held_how": how,
+        "correlation_s": est.learner.inflation() * step_s,
+        "held_std": (config.init_r_std, config.init_b_std),
+        "prior": (setup.x0, setup.P0),
+        "noise": learned_noise(setup.model, est, config),
+        "source": source,
+    }
 
 
 def learned_noise(model, est: Estimator, config: FilterConfig):

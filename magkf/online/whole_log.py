@@ -335,11 +335,18 @@ def _solve(H, grad) -> tuple[np.ndarray, np.ndarray]:
     return -Hi @ grad, np.sqrt(np.abs(np.diag(Hi)))
 
 
-def fit_whole_log(
-    prep,
+def fit_whole_log(prep, layout: StateLayout, x_start, used, **options) -> WholeLogFit:
+    """The whole-log estimate over the ``used`` epochs (N,) bool of the prepared log ``prep`` (its effects' data at
+    the run's initial ``R``), from ``x_start`` (n,), the filter's last state: ``fit_whole_log_parts`` of the log
+    as one part, with its ``options``."""
+    used = np.asarray(used, bool)
+    return fit_whole_log_parts(lambda: iter([(prep, used)]), layout, x_start, **options)
+
+
+def fit_whole_log_parts(
+    parts,
     layout: StateLayout,
     x_start,
-    used,
     *,
     vector: bool = True,
     model: str = "auto",
@@ -351,18 +358,18 @@ def fit_whole_log(
     noise=None,
     source: str | None = None,
 ) -> WholeLogFit:
-    """The whole-log estimate over the ``used`` epochs of ``prep`` in the family ``model`` (see the module).
+    """The whole-log estimate in the family ``model`` (see the module) of a log given in parts.
 
     Parameters
     ----------
-    prep : PreparedLog
-        The prepared log (its effects' data at the run's initial ``R``).
+    parts : callable
+        ``parts()`` yields ``(prep, used)`` pairs in time order, each a ``PreparedLog`` (its effects' data at the
+        run's initial ``R``) and its used epochs (k,) bool; it is called once per pass (a chunked log is read
+        again).
     layout : StateLayout
         The state's blocks.
     x_start : array_like
         (n,) where to start (the filter's last state).
-    used : array_like
-        (N,) bool, the epochs the filter used.
     vector : bool
         Whether epochs with attitude give the vector residual (False: the magnitude model).
     model : str
@@ -393,40 +400,6 @@ def fit_whole_log(
     InputError
         Too few used epochs, or (``auto``) a log that does not determine even the offsets.
     """
-    used = np.asarray(used, bool)
-    return fit_whole_log_parts(
-        lambda: iter([(prep, used)]),
-        layout,
-        x_start,
-        vector=vector,
-        model=model,
-        held_at=held_at,
-        held_how=held_how,
-        correlation_s=correlation_s,
-        held_std=held_std,
-        prior=prior,
-        noise=noise,
-        source=source,
-    )
-
-
-def fit_whole_log_parts(
-    parts,
-    layout: StateLayout,
-    x_start,
-    *,
-    vector: bool = True,
-    model: str = "auto",
-    held_at=None,
-    held_how: str = "the identity (no calibration of the vehicle, none given)",
-    correlation_s: float = 0.0,
-    held_std=(0.02, 300.0),
-    prior=None,
-    noise=None,
-    source: str | None = None,
-) -> WholeLogFit:
-    """``fit_whole_log`` of a log given in parts: ``parts()`` yields ``(prep, used)`` pairs in time order (each a
-    ``PreparedLog`` and its used epochs (k,) bool), and is called once per pass (a chunked log is read again)."""
     n = layout.size
     core_ref = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if held_at is None else np.asarray(held_at, float)
     prior_x, prior_std = _prior(layout, core_ref) if prior is None else (np.asarray(p, float) for p in prior)
