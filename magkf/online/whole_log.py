@@ -275,8 +275,9 @@ class _Problem:
                 heading = None if prep.heading is None else prep.heading[epochs]
                 F = sensor_frame(B, heading, R)  # (k, 3, 3): rows along, h, v
                 cov = vector_noise(B, R, noise, field_aligned, heading)
-                sd = np.sqrt(np.abs(np.einsum("kci,kij,kcj->kc", F, cov, F)))  # (k, 3)
-                G = np.einsum("kqn,qp,kcp->kcn", J, self.W, F) * sd[:, :, None]  # (k, 3, n) per unit noise
+                sd = np.sqrt(np.abs(np.sum((F @ cov) * F, axis=2)))  # (k, 3): each component's standard deviation
+                # (k, 3, n): the gradient's contribution per unit noise in each component, J^T W F^T
+                G = np.swapaxes(np.swapaxes(J, 1, 2) @ (self.W @ np.swapaxes(F, 1, 2)), 1, 2) * sd[:, :, None]
             else:
                 sd = np.sqrt(noise.sensor_nt**2 + noise.reference_nt**2)
                 G = np.zeros((len(epochs), 3, n))
@@ -285,7 +286,9 @@ class _Problem:
                 if taus[c] < 2.0 * step_s:
                     white += G[:, c].T @ G[:, c]
                 else:
-                    np.add.at(batches[c], np.minimum((t / widths[c]).astype(np.int64), counts[c] - 1), G[:, c])
+                    index = np.minimum((t / widths[c]).astype(np.int64), counts[c] - 1)  # non-decreasing in time
+                    starts = np.flatnonzero(np.diff(index, prepend=-1))
+                    batches[c][index[starts]] += np.add.reduceat(G[:, c], starts, axis=0)
         meat = white
         for c in range(3):
             if taus[c] < 2.0 * step_s:
