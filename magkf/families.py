@@ -72,7 +72,8 @@ class ModelFamily:
     def restricted(self, excited) -> ModelFamily:
         """The family without the elements of ``R`` in the columns that ``excited`` (3,) bool marks False: ``R_ij``
         multiplies the body field's component ``j``, and a component that hardly varies over the log cannot be
-        told from the offset (a level drive's vertical). The same family when every column is excited."""
+        told from the offset (a level drive's vertical). The same family when every column is excited; the
+        ``offsets`` family when no element of ``R`` is left."""
         excited = np.asarray(excited, bool)
         if excited.all():
             return self
@@ -81,6 +82,9 @@ class ModelFamily:
         if len(keep) == self.size:
             return self
         lacking = " and ".join("xyz"[j] for j in range(3) if not excited[j])
+        if not np.any(np.abs(self.basis[:9, keep]) > 0):  # no element of R left: the offsets alone
+            reason = f"R (the body field's {lacking} components hardly varied)"
+            return ModelFamily("offsets", self.basis[:, keep], "the offsets", reason)
         return ModelFamily(
             self.name,
             self.basis[:, keep],

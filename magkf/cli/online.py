@@ -56,9 +56,6 @@ def _print_run(summary: dict, names) -> None:
     print(f"  observability (the filter's information): {s['observability']['text']}")
     if s.get("model"):
         print(f"  model: {s['model']['family']}: {s['model']['text']}")
-    if s.get("filter_state"):
-        b_last = ", ".join(f"{v:+.2f}" for v in s["filter_state"]["b"])
-        print(f"  the filter's last state (for real-time use): b ({b_last}) nT; the calibration is the whole-log fit")
     print(f"  verdict: {s['verdict']}")
 
 
@@ -316,11 +313,11 @@ def _calibrate_one(args, log, config, init, added, output, states):
         from ..diagnostics.diagnose import compare_runs
 
         summary["before_after"] = compare_runs(run_with([]), run)
-    summary["vehicle"] = _against_the_vehicle(log, run)
     if output:
         run.calibration.save(output)
     if states:
         write_drive_log(run.states, states)
+    summary["vehicle"] = _against_the_vehicle(log, run)  # after writing: a comparison cannot lose the calibration
     if args.json:
         common.print_json(summary)
         return run
@@ -353,17 +350,25 @@ def _against_the_vehicle(log, run) -> dict | None:
         vehicle_calibration,
     )
 
+    from ..config import FilterConfig
+    from ..errors import InputError
+    from ..online.prepare import prepare
+
     vehicle, description = vehicle_calibration(log)
     if vehicle is None or vehicle.method == "logged-as-read":
         return None
-    base = compare_calibrations(log, {RAW: None, VEHICLE: vehicle, MAGKF: run.calibration})
+    try:
+        prep = prepare(log, FilterConfig())
+        base = compare_calibrations(log, {RAW: None, VEHICLE: vehicle, MAGKF: run.calibration}, prep)
+    except InputError as exc:  # the comparison is an addition: say why it is missing, keep the run
+        return {"description": description, "rms": None, "text": f"not compared ({exc.message})"}
     rows = base.summary[["magnitude_rms_nt", "heading_rms_deg"]]
     figures = {name: {k: float(v) for k, v in rows.loc[name].items()} for name in rows.index}
     text = (
         f"{description}; RMS magnitude and heading error: raw {_pair(figures[RAW])}, vehicle "
         f"{_pair(figures[VEHICLE])}, magkf {_pair(figures[MAGKF])}; magkf {improvement_text(base.summary)}"
     )
-    note = declination_note(log, base)
+    note = declination_note(log, base, prep)
     return {"description": description, "rms": figures, "text": text + (f" ({note})" if note else "")}
 
 

@@ -234,7 +234,9 @@ def to_ardupilot(
     per_unit = _unit(field_unit)
     suffix = "" if instance == 1 else str(instance)
     notes: list[str] = []
+    cal = _rotation_known(cal, notes)
     P, orientation, summary = _ardupilot_mounting(cal, suffix, _version(firmware), custom_slot, notes)
+    orientation = {} if cal.method in ROTATION_UNKNOWN else orientation  # not known: the vehicle's stays
     S, angle = _symmetric_part(np.linalg.inv(cal.R) @ P.T)
     common = float(np.linalg.det(S)) ** (1.0 / 3.0)
     scale = min(max(common, AP_SCALE_SAFE[0]), AP_SCALE_SAFE[1])
@@ -290,7 +292,9 @@ def to_px4(cal, instance: int = 0, firmware: str | None = None) -> ParameterSet:
         raise InputError(f"PX4 magnetometer instance must be 0 to 3, got {instance!r}")
     prefix = f"CAL_MAG{instance}_"
     notes: list[str] = []
+    cal = _rotation_known(cal, notes)
     rotation, orientation, summary = _px4_mounting(cal, prefix, _version(firmware), notes)
+    orientation = {} if cal.method in ROTATION_UNKNOWN else orientation  # not known: the vehicle's stays
     S, angle = _symmetric_part(rotation.T @ np.linalg.inv(cal.R))
     gauss = NT_PER_UNIT["G"]
     values = {f"{prefix}{a}OFF": float(v) for a, v in zip(AXES, cal.b / gauss)}
@@ -324,6 +328,28 @@ def _unit(field_unit: str) -> float:
 def _offdiagonal(M: np.ndarray) -> np.ndarray:
     """The (0,1), (0,2), (1,2) elements: both autopilots' X, Y, Z off-diagonal parameters."""
     return np.array([M[0, 1], M[0, 2], M[1, 2]])
+
+
+#: Methods whose ``R`` holds a rotation the data did not determine (an ellipsoid fits the field's magnitude alone;
+#: its ``K = K1 K2`` form turns ``R`` by whatever its triangular factor takes).
+ROTATION_UNKNOWN = ("ellipsoid", "ellipse")
+
+
+def _rotation_known(cal, notes: list):
+    """``cal``, or for a calibration whose rotation the data did not determine (``ROTATION_UNKNOWN``) the same with
+    ``R`` replaced by its symmetric part (``R^-1 = Q S``: ``R = S^-1``), saying so in ``notes``: its rotation is
+    not the sensor's mounting, and writing it as one would turn the compass."""
+    from dataclasses import replace
+
+    if cal.method not in ROTATION_UNKNOWN:
+        return cal
+    Q, S = _polar(np.linalg.inv(cal.R))
+    angle = mt.rotation_angle_deg(Q)
+    notes.append(
+        f"an {cal.method} fit does not determine the sensor's rotation (its R holds {angle:.3g} deg of one that "
+        "the magnitude cannot see): only the symmetric part is written, the orientation is left as the vehicle has it"
+    )
+    return replace(cal, R=np.linalg.inv(S), covariance=None, state_covariance=None)
 
 
 def _polar(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

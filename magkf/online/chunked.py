@@ -475,7 +475,19 @@ def calibrate_file(
         summary, cal, effect_values = summarise(
             log.source, config, layout, setup.P0, trace, sums, np.diff(out.stops, prepend=0)
         )
-    return CalibrationRun(cal, trace.x, trace.P, layout.names, None, summary, effect_values, None)
+    filter_last = summary.filter_state is not None
+    return CalibrationRun(
+        cal,
+        trace.x,
+        trace.P,
+        layout.names,
+        None,
+        summary,
+        effect_values,
+        None,
+        filter_x=trace.filter_x if filter_last else None,
+        filter_P=trace.filter_P if filter_last else None,
+    )
 
 
 def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out: _Filtered, init, step_s: float):

@@ -453,8 +453,8 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
         summary=summary,
         effects=effects,
         fit=fit,
-        filter_x=trace.filter_x if trace.model is not None else None,
-        filter_P=trace.filter_P if trace.model is not None else None,
+        filter_x=trace.filter_x if _filter_state(layout, trace) is not None else None,
+        filter_P=trace.filter_P if _filter_state(layout, trace) is not None else None,
     )
 
 
@@ -502,9 +502,13 @@ def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: Fi
     return summary, replace(cal, model=trace.model), effects
 
 
+#: What ``whole_log.filter_estimate`` records as estimated: the calibration is the filter's state itself.
+FILTER_STATE = "the filter's state"
+
+
 def _filter_state(layout: StateLayout, trace: RunTrace) -> dict | None:
     """The filter's last state as the summary gives it (``RunSummary.filter_state``), or None."""
-    if trace.model is None or trace.filter_x is None:
+    if trace.model is None or trace.filter_x is None or trace.model.get("estimated") == FILTER_STATE:
         return None
     R, b = layout.R_b(trace.filter_x)
     std = np.sqrt(np.diag(trace.filter_P))

@@ -175,7 +175,9 @@ def whole_log_options(setup: RunSetup, est: Estimator, config: FilterConfig, hel
         "held_at": None if calibration is None else calibration.state,
         "held_how": how,
         "correlation_s": est.learner.inflation() * step_s,
-        "held_std": (config.init_r_std, config.init_b_std),
+        "held_std": (config.init_r_std, config.init_b_std)
+        if calibration is None or calibration.covariance is None
+        else np.sqrt(np.diag(calibration.covariance)),
         "prior": (setup.x0, setup.P0),
         "noise": learned_noise(setup.model, est, config),
         "source": source,

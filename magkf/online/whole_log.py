@@ -50,6 +50,7 @@ from ..conventions import inverse3
 from ..effects.core import core_jacobian
 from ..errors import InputError
 from ..families import FAMILIES, ModelFamily, family
+from .results import FILTER_STATE
 from .state import CORE_SIZE, StateLayout
 
 __all__ = [
@@ -126,8 +127,14 @@ class _Sums:
     vec: list
     mag: list
 
+    @property
+    def count(self) -> int:
+        """The residual components summed: three per vector epoch, one per magnitude epoch."""
+        return self.vec[0] * 3 + self.mag[0]
+
     @classmethod
     def empty(cls, n: int, batches: int) -> _Sums:
+        """Zero sums over ``n`` parameters and ``batches`` batches."""
         return cls(
             np.zeros((n, n)),
             np.zeros(n),
@@ -257,7 +264,8 @@ class _Problem:
         inflation implies (``tau = inflation * step_s / 2``: the sum of an exponential correlation over epochs
         ``step_s`` apart is ``2 tau / step_s``). Each component's gradient contributions are summed over short
         batches (``tau / 8``) and the batches' cross products weighted by ``exp(-lag / tau)`` out to ``5 tau``;
-        a component correlated over less than two epochs counts as white."""
+        a component correlated over less than two epochs counts as independent epochs, each inflated by its
+        inflation."""
         from .measurements import sensor_frame, vector_noise
 
         R = self.layout.R(x)
@@ -283,8 +291,8 @@ class _Problem:
                 G = np.zeros((len(epochs), 3, n))
                 G[:, 0] = J[:, 0] * sd
             for c in range(3):
-                if taus[c] < 2.0 * step_s:
-                    white += G[:, c].T @ G[:, c]
+                if taus[c] < 2.0 * step_s:  # correlated over less than two epochs: inflated, not kernel-summed
+                    white += max(noise.inflations[c], 1.0) * (G[:, c].T @ G[:, c])
                 else:
                     index = np.minimum((t / widths[c]).astype(np.int64), counts[c] - 1)  # non-decreasing in time
                     starts = np.flatnonzero(np.diff(index, prepend=-1))
@@ -303,6 +311,14 @@ class _Problem:
     def cost(self, x, s: _Sums) -> float:
         d = x - self.prior_x
         return 0.5 * (s.ss + float(d @ self.omega @ d))
+
+    def weigh_prior(self, x, inflation: float) -> None:
+        """Put the prior in the residuals' units: its information (per parameter unit squared) times the residuals'
+        variance per component at ``x`` (n,) (nT^2; the filter's last state, near the optimum) and their
+        correlation ``inflation`` (each epoch counts ``1 / inflation`` of an independent one), so that the cost
+        ``(ss + sigma^2 inflation d^T Omega d) / 2`` weighs the data and the prior as the filter did."""
+        s = self.sums(x)
+        self.omega = self.omega * (s.ss / max(s.count, 1) * inflation)
 
     def minimise(self, x, T) -> tuple[np.ndarray, _Sums]:
         """Gauss-Newton from ``x`` (n,) in the directions ``T`` (n, k), steps halved until the cost falls."""
@@ -383,8 +399,9 @@ def fit_whole_log_parts(
         Where ``held_at`` comes from, in words.
     correlation_s : float
         The residuals' correlation time learned by the filter, s (the batch length of the covariance).
-    held_std : tuple of float
-        Standard deviations stated for held ``R`` elements and offsets (nT): the prior's, not estimated.
+    held_std : tuple of float or array_like
+        Standard deviations of the held values: ``(R element, offset nT)``, or (12,) one per core parameter (the
+        held calibration's own): not estimated here, they widen the free parameters' (consider covariance).
     prior : tuple of array_like or None
         ``(mean (n,), covariance (n, n) or standard deviations (n,))`` of the prior (the run's start); None: a
         weak prior (``PRIOR_R_STD``, ``PRIOR_B_STD`` about ``held_at``, the effects' own).
@@ -410,9 +427,16 @@ def fit_whole_log_parts(
     problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std, inverse3(layout.R(x_start)))
     if problem.n_used < 3 * n:
         raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
+    problem.weigh_prior(x_start, 1.0 if noise is None else max(noise[0].inflation, 1.0))
     field_nt = problem.field_nt
     excited = problem.spread >= EXCITATION_FRACTION * field_nt
     families = {name: family(name).restricted(excited) for name in _possible(vector)}
+    if model != "auto" and model not in families:
+        raise InputError(
+            f"--model {model}: the magnitude alone cannot see the rotation between sensor and body; measure the "
+            "vector too (--measure both, with attitude) or take soft-iron",
+            source,
+        )
     # The richest family the log's motion allows first (from the filter's state): the others are judged at its fit.
     first = list(families)[-1] if model == "auto" else model
     x, s = _fit_family(problem, families[first], x_start, core_ref)
@@ -427,14 +451,14 @@ def fit_whole_log_parts(
     fam = families[chosen]
     T = fam.state_basis(n)
     P, given = _covariance(problem, x, s, T, fam, held_std, noise)
-    record = _record(fam, model, held_how, core_ref, candidates)
+    record = _record(fam, model, held_how, core_ref, candidates, chosen)
     if fam.name != "full" or fam.size < CORE_SIZE:
         free = np.abs(fam.basis).sum(axis=1) > 0
         record["std_given_held"] = {n: float(v) for n, v, f in zip(PARAMETER_NAMES, given, free) if f}
     return WholeLogFit(
         x=x,
         P=P,
-        family=chosen,
+        family=fam.name,
         model=record,
         residual_rms_nt=float(np.sqrt(s.vec[1] / s.vec[0])) if s.vec[0] else float("nan"),
         magnitude_rms_nt=float(np.sqrt(s.mag[1] / s.mag[0])) if s.mag[0] else float("nan"),
@@ -456,7 +480,7 @@ def filter_estimate(x, P, labels) -> WholeLogFit:
         f"{', '.join(labels)} wanders in time: the calibration is the filter's estimate at the end of the log (its "
         "path is in the per-epoch states), not a constant whole-log estimate"
     )
-    record = {"family": "full", "asked": "auto", "estimated": "the filter's state", "held": "nothing", "text": text}
+    record = {"family": "full", "asked": "auto", "estimated": FILTER_STATE, "held": "nothing", "text": text}
     nan = float("nan")
     return WholeLogFit(np.asarray(x, float), np.asarray(P, float), "full", record, nan, nan, 0, nan)
 
@@ -484,7 +508,7 @@ MISFIT_FRACTION = 0.05
 
 def _undetermined(offsets: dict, s: _Sums, field_nt: float) -> str:
     """Why not even the offsets are determined (``offsets`` the family's candidate record), in words."""
-    rms = float(np.sqrt(s.ss / max(s.vec[0] * 3 + s.mag[0], 1)))
+    rms = float(np.sqrt(s.ss / max(s.count, 1)))
     text = (
         f"the log does not determine even the offsets (their standard deviation is {offsets['worst_std_nt']:.3g} nT, "
         f"over {100 * OFFSETS_FRACTION:g} % of the field)"
@@ -516,7 +540,7 @@ def _candidates(problem: _Problem, x_full, s: _Sums, core_ref, field_nt: float, 
     whether that is determined, its held-out residual RMS (nT), all from the quadratic model of the objective at
     ``x_full`` (n,) (the fit so far, whose sums are ``s``), and the number of core parameters it frees."""
     n = len(x_full)
-    dof = max(s.vec[0] * 3 + s.mag[0] - n, 1)
+    dof = max(s.count - n, 1)
     variance = s.ss / dof * _correlation_factor(problem, x_full, s)
     scale = np.concatenate([np.full(9, field_nt), np.ones(3)])
     out = {}
@@ -556,7 +580,7 @@ def _correlation_factor(problem: _Problem, x, s: _Sums) -> float:
     (at least 1): the residuals' correlation, by batch means, at the full fit ``x``."""
     n = len(x)
     H = s.A + problem.omega
-    white = np.linalg.pinv(H) * (s.ss / max(s.vec[0] * 3 + s.mag[0] - n, 1))
+    white = np.linalg.pinv(H) * (s.ss / max(s.count - n, 1))
     scores = s.scores - s.scores.mean(axis=0)
     Hi = np.linalg.pinv(H)
     hac = Hi @ (scores.T @ scores) @ Hi
@@ -583,7 +607,7 @@ def _held_out(problem: _Problem, x_full, s: _Sums, T, anchor) -> float:
             return float("inf")
         delta = d + T @ theta
         total += s.ss_k[k] + 2.0 * s.g_k[k] @ delta + delta @ s.A_k[k] @ delta
-    count = s.vec[0] * 3 + s.mag[0]
+    count = s.count
     return float(np.sqrt(max(total, 0.0) / max(count, 1)))
 
 
@@ -622,14 +646,11 @@ def _covariance(
     k = int(used_batches.sum())
     scores = scores[used_batches] - scores[used_batches].mean(axis=0)
     meat = scores.T @ scores * (k / max(k - 1, 1))
-    dof = max(s.vec[0] * 3 + s.mag[0] - T.shape[1], 1)
+    dof = max(s.count - T.shape[1], 1)
     white = Hi * (s.ss / dof)
     sandwich = Hi @ meat @ Hi
     # never below independent epochs' covariance: a correlation cannot make the estimate better than white noise
-    scale = np.sqrt(np.maximum(np.diag(sandwich) / np.maximum(np.diag(white), 1e-300), 1.0))
-    d = np.sqrt(np.diag(white)) * scale
-    corr = sandwich / np.sqrt(np.outer(np.diag(sandwich), np.diag(sandwich)))
-    P_theta = corr * np.outer(d, d)
+    P_theta = _at_least(white, sandwich)
     if noise is not None:  # the learned noise model's correlation, in place of the batches (see the docstring)
         P_theta = _at_least(white, Hi @ (T.T @ problem.model_meat(x, *noise, problem.step_s) @ T) @ Hi)
     N = np.zeros((len(x), fam.held().shape[1]))
@@ -638,13 +659,21 @@ def _covariance(
     if not N.shape[1]:
         P = T @ P_theta @ T.T
         return 0.5 * (P + P.T), given
-    held_var = np.concatenate([np.full(9, held_std[0] ** 2), np.full(3, held_std[1] ** 2)])
+    held_var = _held_variances(held_std)
     P_h = N[:CORE_SIZE].T @ (held_var[:, None] * N[:CORE_SIZE])
     S = -Hi @ (T.T @ (s.A + problem.omega) @ N)
     basis = np.hstack([T, N])
     joint = np.block([[P_theta + S @ P_h @ S.T, S @ P_h], [P_h @ S.T, P_h]])
     P = basis @ joint @ basis.T
     return 0.5 * (P + P.T), given
+
+
+def _held_variances(held_std) -> np.ndarray:
+    """The variances (12,) of the held core: ``held_std`` as ``(R element, offset nT)`` or one per parameter (12,)."""
+    std = np.asarray(held_std, float)
+    if std.shape == (CORE_SIZE,):
+        return std**2
+    return np.concatenate([np.full(9, std[0] ** 2), np.full(3, std[1] ** 2)])
 
 
 def _at_least(P, Q) -> np.ndarray:
@@ -654,16 +683,17 @@ def _at_least(P, Q) -> np.ndarray:
     return P + (V * np.maximum(w, 0.0)) @ V.T
 
 
-def _record(fam: ModelFamily, asked: str, held_how: str, core_ref, candidates: dict) -> dict:
-    """The ``model`` record of a calibration file: the family, what it estimated and held, in words."""
+def _record(fam: ModelFamily, asked: str, held_how: str, core_ref, candidates: dict, key: str) -> dict:
+    """The ``model`` record of a calibration file: the family, what it estimated and held, in words (``key`` the
+    family's name among ``candidates``; ``fam.name`` may be poorer, as the motion allowed)."""
     if fam.size == CORE_SIZE:
         text = "this log determines all 12 parameters of R and b"
     else:
         text = f"this log determines {fam.estimates}; {fam.holds} held at {held_how}"
     if asked != "auto":
-        text = f"{fam.name} asked for (--model {asked}): {text}"
-        if not candidates[fam.name]["determined"]:
-            text += f"; the log does not determine it (worst std {candidates[fam.name]['worst_std_nt']:.3g} nT)"
+        text = f"{asked} asked for (--model {asked}): {text}"
+        if not candidates[key]["determined"]:
+            text += f"; the log does not determine it (worst std {candidates[key]['worst_std_nt']:.3g} nT)"
     return {
         "family": fam.name,
         "asked": asked,

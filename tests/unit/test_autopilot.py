@@ -349,3 +349,21 @@ def test_firmware_version_must_be_numbers():
     cal = Calibration(R=np.eye(3), b=[0.0, 0.0, 0.0])
     with pytest.raises(InputError, match="firmware version"):
         to_px4(cal, firmware="stable")
+
+
+def test_an_ellipsoid_fit_writes_no_mounting_and_keeps_the_magnitude():
+    """An ellipsoid's R holds a rotation the magnitude cannot see (its K1 K2 form): the export writes the symmetric
+    part only and no orientation, and the firmware's field has the calibration's magnitude (to float32 rounding of
+    the parameters, about 1e-7 of 50 000 nT)."""
+    from magkf.conventions import euler_to_dcm
+
+    rng = np.random.default_rng(8)
+    Q = euler_to_dcm(np.array([2.0]), np.array([-1.0]), np.array([1.5]))[0]
+    S = np.array([[1.03, 0.01, -0.02], [0.01, 0.97, 0.015], [-0.02, 0.015, 1.01]])
+    cal = Calibration(R=np.linalg.inv(Q @ S), b=[300.0, -150.0, 80.0], method="ellipsoid")
+    params = to_ardupilot(cal)
+    assert not any(name.startswith("COMPASS_ORIENT") for name in params.values)
+    assert any("does not determine the sensor's rotation" in note for note in params.notes)
+    raw = rng.normal(size=(200, 3)) * 30_000.0
+    firmware = apply_ardupilot(params.values, raw / 100.0) * 100.0
+    np.testing.assert_allclose(np.linalg.norm(firmware, axis=1), np.linalg.norm(cal.correct(raw), axis=1), atol=0.05)
