@@ -340,6 +340,7 @@ def _against_the_vehicle(log, run) -> dict | None:
     """The raw reading's, the vehicle's own calibration's and magkf's RMS magnitude (nT) and heading (deg) errors
     over the log (``magkf.diagnostics.baseline``) and the comparison in words, or None when the log does not give
     the vehicle's calibration."""
+    from ..config import FilterConfig
     from ..diagnostics.baseline import (
         MAGKF,
         RAW,
@@ -349,8 +350,6 @@ def _against_the_vehicle(log, run) -> dict | None:
         improvement_text,
         vehicle_calibration,
     )
-
-    from ..config import FilterConfig
     from ..errors import InputError
     from ..online.prepare import prepare
 
