@@ -524,8 +524,8 @@ def _filter_state(layout: StateLayout, trace: RunTrace) -> dict | None:
 def _effect_values(layout: StateLayout, x_final, std) -> dict:
     """Each effect's parameters ``{effect: {parameter: {value, std, unit}}}`` from the final state (n,)."""
     effects = {}
-    for effect, sl in layout.blocks():
-        effects[effect.name] = {
+    for key, (effect, sl) in zip(layout.keys[1:], layout.blocks()):
+        effects[key] = {
             p: {
                 "value": float(x_final[sl][j]),
                 "std": float(std[sl][j]),

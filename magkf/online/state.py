@@ -45,9 +45,9 @@ class StateLayout:
     def __post_init__(self):
         if not self.effects or not isinstance(self.effects[0], SoftHardIron):
             raise ValueError("the first block of the state must be the core SoftHardIron effect")
-        names = [e.name for e in self.effects]
-        if len(set(names)) != len(names):
-            raise ValueError(f"an effect appears twice: {names}")
+        labels = [e.label for e in self.effects]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"an effect appears twice: {labels}")
 
     @classmethod
     def with_core(cls, effects=()) -> StateLayout:
@@ -69,11 +69,18 @@ class StateLayout:
         return len(self.effects) > 1
 
     @cached_property
+    def keys(self) -> tuple[str, ...]:
+        """What names each block in the state's names and the summaries: its effect's name, or its label
+        (``NAME:COLUMN``) where two blocks share a name (a load effect on the current and one on the throttle)."""
+        names = [e.name for e in self.effects]
+        return tuple(e.name if names.count(e.name) == 1 else e.label for e in self.effects)
+
+    @cached_property
     def slices(self) -> dict:
-        """Effect name -> slice of the state vector."""
+        """Block key (``keys``) -> slice of the state vector."""
         out, start = {}, 0
-        for e in self.effects:
-            out[e.name] = slice(start, start + e.size)
+        for key, e in zip(self.keys, self.effects):
+            out[key] = slice(start, start + e.size)
             start += e.size
         return out
 
@@ -93,10 +100,10 @@ class StateLayout:
 
     @property
     def names(self) -> list[str]:
-        """State names: the core parameters as they are, others as ``effect.parameter``."""
+        """State names: the core parameters as they are, others as ``key.parameter`` (``keys``)."""
         out = list(self.core.parameter_names)
-        for e in self.effects[1:]:
-            out += [f"{e.name}.{p}" for p in e.parameter_names]
+        for key, e in zip(self.keys[1:], self.effects[1:]):
+            out += [f"{key}.{p}" for p in e.parameter_names]
         return out
 
     def prior(self) -> tuple[np.ndarray, np.ndarray]:

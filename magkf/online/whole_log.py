@@ -427,7 +427,7 @@ def fit_whole_log_parts(
     problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std, inverse3(layout.R(x_start)))
     if problem.n_used < 3 * n:
         raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
-    problem.weigh_prior(x_start, 1.0 if noise is None else max(noise[0].inflation, 1.0))
+    problem.weigh_prior(x_start, 1.0)
     field_nt = problem.field_nt
     excited = problem.spread >= EXCITATION_FRACTION * field_nt
     families = {name: family(name).restricted(excited) for name in _possible(vector)}
