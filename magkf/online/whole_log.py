@@ -17,7 +17,8 @@ It is solved by Gauss-Newton in the family's free directions ``theta`` (``magkf.
 at ``c``, the effects' own), steps halved until the cost falls, under the run's prior (the filter's start and its
 covariance), weighed as one of the data's epochs (``_Problem.weigh_prior``): the data outweigh it wherever they
 determine a direction, and where they do not (an effect that trades with the core, a constant field anomaly
-against R's scale) it holds the estimate near the start. The log is gone through ``CHUNK`` epochs at a time (one chunk with a nonlinear effect, which looks at
+against R's scale) it holds the estimate near the start.
+The log is gone through ``CHUNK`` epochs at a time (one chunk with a nonlinear effect, which looks at
 its neighbours); each pass also folds the sums of ``FOLDS`` contiguous stretches of the used epochs and of
 batches of ``batch_s`` seconds.
 
