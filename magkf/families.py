@@ -128,4 +128,4 @@ def family(name: str) -> ModelFamily:
         )
     if name == "full":
         return ModelFamily(name, np.eye(_CORE), "all 12 parameters of R and b", "nothing")
-    raise ValueError(f"model must be one of {', '.join(MODEL_CHOICES)}, got {name!r}")
+    raise ValueError(f"a model family is one of {', '.join(FAMILIES)}, got {name!r}")

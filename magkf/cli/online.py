@@ -159,19 +159,19 @@ def run_calibrate(args) -> int:
         for m in magnetometer_instances(args.file, args.format)
         if m.get("topic") != "vehicle_magnetometer"
     ]
-    added = common.effects(args, init)
     rows, errors = [], []
     for instance in instances:
         if len(instances) > 1 and not args.json:
             print(f"magnetometer {instance}:")
         try:
             log = common.open_log(args, mag=instance)
+            start = common.logged_start(args, log, init)
             run = _calibrate_one(
                 args,
                 log,
                 config,
-                common.logged_start(args, log, init),
-                added,
+                start,
+                common.effects(args, start),  # the effects a start from the log stores, per magnetometer
                 _per_instance(args.output, instance),
                 _per_instance(args.states, instance),
             )

@@ -537,6 +537,10 @@ def _summary(chosen: mt.Mounting, logged, custom_possible: bool, version) -> dic
 
 
 # ---------------------------------------------------------------- compensation
+#: A compensation whose every coefficient lies within this many standard deviations of zero gets a note.
+UNDETERMINED_SIGMA = 2.0
+
+
 def _compensation(cal, notes: list, target: str) -> tuple[str | None, np.ndarray | None]:
     """``(column, c)``: the ``current_field`` coefficients ``c`` (3,) in nT per unit of ``current_a`` (A) or
     ``throttle`` (0..1), current preferred; ``(None, None)`` without. Other effects get notes."""
@@ -552,6 +556,13 @@ def _compensation(cal, notes: list, target: str) -> tuple[str | None, np.ndarray
             )
             continue
         found[column] = np.array([stored.values[stored.names.index(p)] for p in ("c_x", "c_y", "c_z")])
+        stds = np.array([stored.stds[stored.names.index(p)] for p in ("c_x", "c_y", "c_z")])
+        if np.all(np.isfinite(stds)) and np.all(np.abs(found[column]) < UNDETERMINED_SIGMA * stds):
+            notes.append(
+                f"effect {stored.label!r} is not determined by its log (every coefficient within "
+                f"{UNDETERMINED_SIGMA:g} standard deviations of 0): {target} is written from it, but loading it may "
+                "add noise rather than remove a disturbance"
+            )
     if len(found) == 2:
         notes.append(
             f"the throttle effect is not exported: {target} compensates either current or throttle, and the "

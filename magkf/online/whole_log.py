@@ -615,7 +615,7 @@ def _held_out(problem: _Problem, x_full, s: _Sums, T, anchor) -> float:
 
 def _choose(candidates: dict, chosen: str, families: dict) -> str:
     """The richest family above ``chosen`` that frees more parameters, is determined and predicts the held-out
-    stretches no worse than the best below it, or ``chosen``."""
+    stretches no worse than the family chosen so far, or ``chosen``."""
     for name in list(families)[list(families).index(chosen) + 1 :]:
         c = candidates[name]
         adds = c["free"] > candidates[chosen]["free"]

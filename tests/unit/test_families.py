@@ -50,6 +50,6 @@ def test_restricted_drops_the_columns_of_a_component_that_did_not_vary():
 
 
 def test_unknown_family_is_refused():
-    with pytest.raises(ValueError, match="auto"):
+    with pytest.raises(ValueError, match="soft-iron"):
         family("diagonal")
     assert MODEL_CHOICES[0] == "auto"
