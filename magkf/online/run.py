@@ -178,8 +178,9 @@ def whole_log_options(setup: RunSetup, est: Estimator, config: FilterConfig, hel
         "held_std": (config.init_r_std, config.init_b_std)
         if calibration is None or calibration.covariance is None
         else np.sqrt(np.diag(calibration.covariance)),
-        "prior": (setup.x0, setup.P0),
+        "prior": None,
         "noise": learned_noise(setup.model, est, config),
+        "prior_noise": est.noise,
         "source": source,
     }
 

@@ -182,7 +182,8 @@ class _Problem:
         self.prior_x = np.asarray(prior_x, float)
         cov = np.asarray(prior_std, float)
         # the prior's information (n, n): a covariance's inverse, or the reciprocal variances of standard deviations
-        self.omega = np.linalg.inv(cov) if cov.ndim == 2 else np.diag(1.0 / cov**2)
+        self.information = np.linalg.inv(cov) if cov.ndim == 2 else np.diag(1.0 / cov**2)
+        self.omega = self.information
         n_used, times, field, moments, n_moments, step = 0, [], 0.0, np.zeros((2, 3)), 0, None
         for prep, used in parts():
             idx = np.flatnonzero(used)
@@ -313,14 +314,15 @@ class _Problem:
         d = x - self.prior_x
         return 0.5 * (s.ss + float(d @ self.omega @ d))
 
-    def weigh_prior(self, x) -> None:
-        """Put the prior in the residuals' units: its information (per parameter unit squared) times the residuals'
-        variance per component at ``x`` (n,) (nT^2; the filter's last state, near the optimum), so that the cost
-        ``(ss + sigma^2 d^T Omega d) / 2`` weighs the prior as one of the data's independent epochs would. (Weighed
-        also by the residuals' correlation, as the filter weighs it, it pulled a coloured-noise log's estimate away
-        from the optimum, by 0.1 % of its held-out residual.)"""
-        s = self.sums(x)
-        self.omega = self.omega * (s.ss / max(s.count, 1))
+    def weigh_prior(self, variance_nt2: float) -> None:
+        """Put the prior in the residuals' units: its information (per parameter unit squared) times the variance of
+        a residual component ``variance_nt2`` (nT^2), so that the cost ``(ss + sigma^2 d^T Omega d) / 2`` weighs
+        the prior as one of the data's independent epochs would. Weighed first by the filter's noise, then by
+        the mean square residual of the first fit. (Weighed also by the residuals' correlation, as
+        the filter weighs it, it pulled a coloured-noise log's estimate away from the optimum by 0.1 % of its
+        held-out residual; measured at the filter's last state instead of taken from its learned noise, a
+        wandered last state made the prior outweigh the data.)"""
+        self.omega = self.information * float(variance_nt2)
 
     def minimise(self, x, T) -> tuple[np.ndarray, _Sums]:
         """Gauss-Newton from ``x`` (n,) in the directions ``T`` (n, k), steps halved until the cost falls."""
@@ -377,6 +379,7 @@ def fit_whole_log_parts(
     held_std=(0.02, 300.0),
     prior=None,
     noise=None,
+    prior_noise=None,
     source: str | None = None,
 ) -> WholeLogFit:
     """The whole-log estimate in the family ``model`` (see the module) of a log given in parts.
@@ -410,6 +413,9 @@ def fit_whole_log_parts(
     noise : tuple or None
         ``(NoiseLevels, field_aligned)`` the filter's learned noise and whether its vector noise is aligned with
         the field, which the covariance is computed with (see ``_covariance``; None: batch means).
+    prior_noise : NoiseLevels or None
+        The noise the filter ran with, which the prior is weighed by when ``noise`` is None
+        (``_Problem.weigh_prior``).
     source : str or None
         The log's name, for errors.
 
@@ -429,7 +435,7 @@ def fit_whole_log_parts(
     problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std, inverse3(layout.R(x_start)))
     if problem.n_used < 3 * n:
         raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
-    problem.weigh_prior(x_start)
+    problem.weigh_prior(_component_variance(prior_noise, problem.field_nt, config_noise=noise))
     field_nt = problem.field_nt
     excited = problem.spread >= EXCITATION_FRACTION * field_nt
     families = {name: family(name).restricted(excited) for name in _possible(vector)}
@@ -442,6 +448,9 @@ def fit_whole_log_parts(
     # The richest family the log's motion allows first (from the filter's state): the others are judged at its fit.
     first = list(families)[-1] if model == "auto" else model
     x, s = _fit_family(problem, families[first], x_start, core_ref)
+    # the prior weighed again by the residuals of this fit (the filter's last noise may be a passing disturbance's)
+    problem.weigh_prior(s.ss / max(s.count, 1))
+    x, s = problem.minimise(x, families[first].state_basis(n))
     candidates = _candidates(problem, x, s, core_ref, field_nt, families)
     chosen = first
     if model == "auto":
@@ -530,11 +539,23 @@ def _possible(vector: bool) -> tuple:
     return FAMILIES if vector else FAMILIES[:-1]
 
 
+#: Fits of a family, each whitened with the ``R`` of the one before (``_fit_family``).
+WHITENINGS = 3
+
+
 def _fit_family(problem: _Problem, fam: ModelFamily, x, core_ref) -> tuple[np.ndarray, _Sums]:
-    """The least-squares fit in family ``fam``, from ``x`` (n,) brought into it (``ModelFamily.project``)."""
-    start = np.array(x, float)
-    start[:CORE_SIZE] = fam.project(start[:CORE_SIZE], core_ref)
-    return problem.minimise(start, fam.state_basis(len(start)))
+    """The least-squares fit in family ``fam``, from ``x`` (n,) brought into it (``ModelFamily.project``), the
+    vector residuals whitened with the inverse of the ``R`` fitted (``_Problem.W``): first at the start's, then
+    again at each fit's, ``WHITENINGS`` times (a start from a filter whose ``R`` wandered is far from the fit's;
+    the whitening's error is of second order in the change, so a few rounds reach the calibrated field's own
+    optimum)."""
+    x = np.array(x, float)
+    x[:CORE_SIZE] = fam.project(x[:CORE_SIZE], core_ref)
+    T = fam.state_basis(len(x))
+    for _ in range(WHITENINGS):
+        problem.W = inverse3(problem.layout.R(x))
+        x, s = problem.minimise(x, T)
+    return x, s
 
 
 def _candidates(problem: _Problem, x_full, s: _Sums, core_ref, field_nt: float, families: dict) -> dict:
@@ -668,6 +689,17 @@ def _covariance(
     joint = np.block([[P_theta + S @ P_h @ S.T, S @ P_h], [P_h @ S.T, P_h]])
     P = basis @ joint @ basis.T
     return 0.5 * (P + P.T), given
+
+
+def _component_variance(levels, field_nt: float, config_noise=None) -> float:
+    """The variance (nT^2) of one residual component in the noise ``levels`` (``NoiseLevels``: the sensor's, the
+    reference's, and the attitude error's across the field, two components of three, at ``field_nt``); the learned
+    noise of ``config_noise`` when given; 1 nT^2 without either."""
+    levels = config_noise[0] if config_noise is not None else levels
+    if levels is None:
+        return 1.0
+    attitude = (levels.attitude_rad * field_nt) ** 2 * 2.0 / 3.0
+    return levels.sensor_nt**2 + levels.reference_nt**2 + attitude
 
 
 def _held_variances(held_std) -> np.ndarray:
