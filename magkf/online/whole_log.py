@@ -51,6 +51,7 @@ from ..conventions import inverse3
 from ..effects.core import core_jacobian
 from ..errors import InputError
 from ..families import FAMILIES, ModelFamily, family
+from ..plausibility import RESIDUAL_REFUSED
 from .results import FILTER_STATE
 from .state import CORE_SIZE, StateLayout
 
@@ -430,8 +431,8 @@ def fit_whole_log_parts(
     """
     n = layout.size
     core_ref = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if held_at is None else np.asarray(held_at, float)
-    prior_x, prior_std = _prior(layout, core_ref) if prior is None else (np.asarray(p, float) for p in prior)
     x_start = np.asarray(x_start, float).reshape(n)
+    prior_x, prior_std = _prior(layout, core_ref) if prior is None else (np.asarray(p, float) for p in prior)
     problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std, inverse3(layout.R(x_start)))
     if problem.n_used < 3 * n:
         raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
@@ -449,7 +450,9 @@ def fit_whole_log_parts(
     first = list(families)[-1] if model == "auto" else model
     x, s = _fit_family(problem, families[first], x_start, core_ref)
     # the prior weighed again by the residuals of this fit (the filter's last noise may be a passing disturbance's)
+    # and its core centred at the fit: it then holds only what the data leave free, where this fit put it
     problem.weigh_prior(s.ss / max(s.count, 1))
+    problem.prior_x[:CORE_SIZE] = x[:CORE_SIZE]
     x, s = problem.minimise(x, families[first].state_basis(n))
     candidates = _candidates(problem, x, s, core_ref, field_nt, families)
     chosen = first
@@ -460,6 +463,9 @@ def fit_whole_log_parts(
         if chosen != first:
             x, s = _fit_family(problem, families[chosen], x, core_ref)
     fam = families[chosen]
+    rms = float(np.sqrt(s.ss / max(s.count, 1)))
+    if rms > MISFIT_FRACTION * field_nt:
+        raise InputError(f"no calibration fits: {_misfit_words(rms, field_nt)}; nothing written", source)
     T = fam.state_basis(n)
     P, given = _covariance(problem, x, s, T, fam, held_std, noise)
     record = _record(fam, model, held_how, core_ref, candidates, chosen)
@@ -497,7 +503,7 @@ def filter_estimate(x, P, labels) -> WholeLogFit:
 
 
 def _prior(layout: StateLayout, core_ref) -> tuple[np.ndarray, np.ndarray]:
-    """The weak prior ``(mean (n,), std (n,))``: the core at ``core_ref`` with ``PRIOR_R_STD``/``PRIOR_B_STD``,
+    """The weak prior ``(mean (n,), std (n,))``: the core at ``core_ref`` (12,) with ``PRIOR_R_STD``/``PRIOR_B_STD``,
     the effects at their own priors."""
     x, P = layout.prior()
     std = np.sqrt(np.diag(P))
@@ -513,8 +519,9 @@ def _batch_length(span: float, step: float, correlation_s: float, n: int) -> flo
     return max(min(wanted, span / (BATCHES_PER_PARAMETER * n)), step)
 
 
-#: Residuals beyond this share of the field mean the readings do not follow the reference through the attitude.
-MISFIT_FRACTION = 0.05
+#: Residuals beyond this share of the field mean the readings do not follow the reference through the attitude:
+#: the rule the offline fits follow (``magkf.plausibility.RESIDUAL_REFUSED``).
+MISFIT_FRACTION = RESIDUAL_REFUSED
 
 
 def _undetermined(offsets: dict, s: _Sums, field_nt: float) -> str:
@@ -525,13 +532,18 @@ def _undetermined(offsets: dict, s: _Sums, field_nt: float) -> str:
         f"over {100 * OFFSETS_FRACTION:g} % of the field)"
     )
     if rms > MISFIT_FRACTION * field_nt:
-        return (
-            f"{text}: the readings do not follow the reference field through the logged attitude (residuals of "
-            f"{rms:.3g} nT, {100 * rms / field_nt:.0f} % of the field): a wrong attitude or magnetometer unit "
-            "(--mag-unit), a heading that is not the compass's, a sensor that does not follow the field, or data that "
-            "do not determine R (the magnitude alone, --measure magnitude, needs no attitude)"
-        )
+        return f"{text}: {_misfit_words(rms, field_nt)}"
     return f"{text}: the data do not determine R or b; record a longer flight, or give a calibration (--init)"
+
+
+def _misfit_words(rms: float, field_nt: float) -> str:
+    """That residuals of ``rms`` nT against a field of ``field_nt`` nT are no calibration, and what may cause them."""
+    return (
+        f"the readings do not follow the reference field through the logged attitude (residuals of {rms:.3g} nT, "
+        f"{100 * rms / field_nt:.0f} % of the field): a wrong attitude or magnetometer unit (--mag-unit), a heading "
+        "that is not the compass's, a disturbing field (motors, currents), a sensor that does not follow the field, "
+        "or data that do not determine R (the magnitude alone, --measure magnitude, needs no attitude)"
+    )
 
 
 def _possible(vector: bool) -> tuple:
