@@ -118,15 +118,15 @@ def _as_read(log: DriveLog, form) -> Calibration | None:
         "the vehicle's calibration is already in the field as logged (read calibrated, "
         f"{magnetometer.get('topic') or magnetometer.get('message') or 'its magnetometer'}): the identity"
     )
-    return Calibration(
-        R=np.eye(3),
-        b=np.zeros(3),
-        method="logged-as-read",
-        parameters=_numbers(log.provenance.get("parameters", {})),
-        source=log.source,
+    return _vehicle_calibration(
+        log,
+        np.eye(3),
+        np.zeros(3),
+        "logged-as-read",
+        _numbers(log.provenance.get("parameters", {})),
+        "offsets",
+        text,
         magnetometer=magnetometer,
-        site=log.site,
-        model={"family": "offsets", "text": text},
     )
 
 
@@ -161,17 +161,8 @@ def _ardupilot(log: DriveLog, params: dict, firmware, *, telemetry: bool) -> Cal
         f"{', ' + motor_text if motor_text else ''}; last logged values"
         f"{', firmware ' + str(firmware) if firmware else ''})"
     )
-    return Calibration(
-        R=R,
-        b=-ofs * NT_PER_MILLIGAUSS,
-        method="logged-ardupilot",
-        parameters=used,
-        source=log.source,
-        magnetometer=log.magnetometer,
-        site=log.site,
-        model={"family": family, "text": text},
-        effects=effects,
-    )
+    b = -ofs * NT_PER_MILLIGAUSS
+    return _vehicle_calibration(log, R, b, "logged-ardupilot", used, family, text, effects=effects)
 
 
 def _scale_applies(firmware, telemetry: bool) -> bool:
@@ -259,17 +250,7 @@ def _px4_calibration(
         f"the vehicle's calibration ({what}: {base.text}{'; ' + load_text if load_text else ''}), of {where}, "
         "rotated into the body frame"
     )
-    return Calibration(
-        R=R,
-        b=base.offset_g * NT_PER_GAUSS,
-        method="logged-px4",
-        parameters=used,
-        source=log.source,
-        magnetometer=log.magnetometer,
-        site=log.site,
-        model={"family": family, "text": text},
-        effects=effects,
-    )
+    return _vehicle_calibration(log, R, base.offset_g * NT_PER_GAUSS, "logged-px4", used, family, text, effects=effects)
 
 
 def _px4_compensation(params: dict, slot: int) -> tuple[tuple, str]:
@@ -292,6 +273,25 @@ def _version(text) -> tuple[int, int] | None:
 
 
 # ------------------------------------------------------------------ shared
+def _vehicle_calibration(
+    log: DriveLog, R, b, method: str, used: dict, family: str, text: str, *, effects=(), magnetometer=None
+):
+    """The ``Calibration`` of the vehicle's calibration of ``log``: ``R`` (3, 3), ``b`` (3,) nT, the parameters
+    ``used``, its ``family`` and ``text`` (the ``model`` record), its ``effects``, the log's source, site and
+    ``magnetometer`` (default the log's)."""
+    return Calibration(
+        R=R,
+        b=b,
+        method=method,
+        parameters=used,
+        source=log.source,
+        magnetometer=log.magnetometer if magnetometer is None else magnetometer,
+        site=log.site,
+        model={"family": family, "text": text},
+        effects=effects,
+    )
+
+
 def _load_effect(column: str, coefficients: np.ndarray) -> StoredEffect:
     """A ``current_field`` effect on ``column`` with ``coefficients`` (3,) nT per unit, standard deviations
     unknown, as ``magkf.effects.stored_effect`` would store ``CurrentField(column=column)`` (built here: the

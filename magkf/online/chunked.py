@@ -495,8 +495,9 @@ def _whole_log(log: ChunkedLog, config: FilterConfig, setup: RunSetup, est, out:
     the log read again piece by piece for each of the solver's passes."""
     from .whole_log import filter_estimate, fit_whole_log_parts, wandering
 
-    if wandering(setup.layout):
-        return filter_estimate(est.x, est.P, wandering(setup.layout))
+    moving = wandering(setup.layout)
+    if moving:
+        return filter_estimate(est.x, est.P, moving)
     status, updated = out.per_epoch["status"], out.per_epoch["updated"]
 
     def parts():

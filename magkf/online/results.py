@@ -453,8 +453,8 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
         summary=summary,
         effects=effects,
         fit=fit,
-        filter_x=trace.filter_x if _filter_state(layout, trace) is not None else None,
-        filter_P=trace.filter_P if _filter_state(layout, trace) is not None else None,
+        filter_x=trace.filter_x if summary.filter_state is not None else None,
+        filter_P=trace.filter_P if summary.filter_state is not None else None,
     )
 
 

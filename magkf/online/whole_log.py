@@ -177,9 +177,9 @@ class _Problem:
     ``PreparedLog`` and its epochs used (k,) bool, in time order (a whole log is one part). A first pass over
     the parts counts the used epochs and measures the field, the motion and the time span."""
 
-    def __init__(self, parts, layout: StateLayout, vector: bool, correlation_s: float, prior_x, prior_std, W):
+    def __init__(self, parts, layout: StateLayout, vector: bool, correlation_s: float, prior_x, prior_std):
         self.parts, self.layout, self.vector = parts, layout, vector
-        self.W = np.asarray(W, float)
+        self.W = np.eye(3)  # the whitening of the vector residuals: the inverse of the fitted R (``_fit_family``)
         self.prior_x = np.asarray(prior_x, float)
         cov = np.asarray(prior_std, float)
         # the prior's information (n, n): a covariance's inverse, or the reciprocal variances of standard deviations
@@ -206,7 +206,7 @@ class _Problem:
         # the standard deviation of each component over the used epochs: how much the motion turned it
         self.spread = np.sqrt(np.maximum(moments[1] / count - (moments[0] / count) ** 2, 0.0))
         self.span_s, self.step_s = span, step or 1.0
-        self.batch_s = _batch_length(span, step or 1.0, correlation_s, layout.size)
+        self.batch_s = _batch_length(span, self.step_s, correlation_s, layout.size)
         self.n_batches = int(np.floor(span / self.batch_s)) + 1
 
     def chunks(self):
@@ -234,44 +234,44 @@ class _Problem:
         terms = 0.0 if data is None else layout.effect_terms(x, data)
         if vector:
             B = prep.data.field_body[epochs]
-            if data is None:
-                dmdx = core_jacobian(B)
-            else:
-                dmdx = np.nan_to_num(layout.jacobian(x, data))
-                dmdx[:, :, layout.CORE] = core_jacobian(B)
             R, b = layout.R_b(x)
             r = (prep.m[epochs] - B @ R.T - b - terms) @ self.W.T
-            return r, -(self.W @ dmdx)
+            return r, -(self.W @ self._model_jacobian(x, data, B))
         c = layout.calibrated(x, prep.m[epochs], terms)
-        if data is None:
-            dmdx = core_jacobian(c)
-        else:
-            dmdx = np.nan_to_num(layout.jacobian(x, data))
-            dmdx[:, :, layout.CORE] = core_jacobian(c)
-        dcdx = -(inverse3(layout.R(x)) @ dmdx)
+        dcdx = -(inverse3(layout.R(x)) @ self._model_jacobian(x, data, c))
         norm = np.linalg.norm(c, axis=1)
         r = (norm - prep.ref_mag[epochs])[:, None]
         return r, np.einsum("ki,kin->kn", c / norm[:, None], dcdx)[:, None, :]
 
+    def _model_jacobian(self, x, data, field) -> np.ndarray:
+        """``dm/dx`` (k, 3, n) of the reading ``R field + b + e`` at ``x``: the core's at the body ``field`` (k, 3)
+        nT, the effects' own at their ``data`` (None: no effects; missing inputs count as 0)."""
+        if data is None:
+            return core_jacobian(field)
+        dmdx = np.nan_to_num(self.layout.jacobian(x, data))
+        dmdx[:, :, self.layout.CORE] = core_jacobian(field)
+        return dmdx
+
     def sums(self, x) -> _Sums:
+        """The data's normal equations and sums (``_Sums``) at ``x`` (n,), one pass over the parts."""
         s = _Sums.empty(len(x), self.n_batches)
         for prep, vector, epochs, fold, batch in self.chunks():
             r, J = self.residuals(x, prep, vector, epochs)
             s.add(r, J, fold, batch)
         return s
 
-    def model_meat(self, x, noise, field_aligned: bool, step_s: float) -> np.ndarray:
+    def model_meat(self, x, noise, field_aligned: bool) -> np.ndarray:
         """The covariance (n, n) of the gradient ``sum J^T r`` at ``x`` were the residuals' noise the filter's
         learned one, ``noise`` (``NoiseLevels``), each of its three components in the field's frame (along the
         field, along the heading axis, across both) a Gauss-Markov process of the correlation time its
         inflation implies (``tau = inflation * step_s / 2``: the sum of an exponential correlation over epochs
-        ``step_s`` apart is ``2 tau / step_s``). Each component's gradient contributions are summed over short
-        batches (``tau / 8``) and the batches' cross products weighted by ``exp(-lag / tau)`` out to ``5 tau``;
-        a component correlated over less than two epochs counts as independent epochs, each inflated by its
-        inflation."""
+        ``step_s`` apart, the log's median time step, is ``2 tau / step_s``). Each component's gradient
+        contributions are summed over short batches (``tau / 8``) and the batches' cross products weighted by
+        ``exp(-lag / tau)`` out to ``5 tau``; a component correlated over less than two epochs counts as
+        independent epochs, each inflated by its inflation."""
         from .measurements import sensor_frame, vector_noise
 
-        R = self.layout.R(x)
+        R, step_s = self.layout.R(x), self.step_s
         n = len(x)
         taus = [0.5 * max(f, 1.0) * step_s for f in noise.inflations]
         widths = [max(tau / 8.0, step_s) for tau in taus]
@@ -279,7 +279,7 @@ class _Problem:
         batches = [np.zeros((k, n)) for k in counts]
         white = np.zeros((n, n))
         for prep, vector, epochs, _, _ in self.chunks():
-            r, J = self.residuals(x, prep, vector, epochs)
+            _, J = self.residuals(x, prep, vector, epochs)
             t = prep.time[epochs] - self.t0
             if vector:
                 B = prep.data.field_body[epochs]
@@ -433,7 +433,7 @@ def fit_whole_log_parts(
     core_ref = np.concatenate([np.eye(3).ravel(), np.zeros(3)]) if held_at is None else np.asarray(held_at, float)
     x_start = np.asarray(x_start, float).reshape(n)
     prior_x, prior_std = _prior(layout, core_ref) if prior is None else (np.asarray(p, float) for p in prior)
-    problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std, inverse3(layout.R(x_start)))
+    problem = _Problem(parts, layout, vector, correlation_s, prior_x, prior_std)
     if problem.n_used < 3 * n:
         raise InputError(f"too few used epochs ({problem.n_used}) for a whole-log estimate of {n} parameters", source)
     problem.weigh_prior(_component_variance(prior_noise, problem.field_nt, config_noise=noise))
@@ -614,10 +614,9 @@ def _correlation_factor(problem: _Problem, x, s: _Sums) -> float:
     """How many times the variance of the gradient's batch contributions exceeds that of independent epochs
     (at least 1): the residuals' correlation, by batch means, at the full fit ``x``."""
     n = len(x)
-    H = s.A + problem.omega
-    white = np.linalg.pinv(H) * (s.ss / max(s.count - n, 1))
+    Hi = np.linalg.pinv(s.A + problem.omega)
+    white = Hi * (s.ss / max(s.count - n, 1))
     scores = s.scores - s.scores.mean(axis=0)
-    Hi = np.linalg.pinv(H)
     hac = Hi @ (scores.T @ scores) @ Hi
     ratio = np.diag(hac) / np.maximum(np.diag(white), 1e-300)
     ratio = ratio[np.isfinite(ratio) & (np.diag(white) > 0)]
@@ -687,7 +686,7 @@ def _covariance(
     # never below independent epochs' covariance: a correlation cannot make the estimate better than white noise
     P_theta = _at_least(white, sandwich)
     if noise is not None:  # the learned noise model's correlation, in place of the batches (see the docstring)
-        P_theta = _at_least(white, Hi @ (T.T @ problem.model_meat(x, *noise, problem.step_s) @ T) @ Hi)
+        P_theta = _at_least(white, Hi @ (T.T @ problem.model_meat(x, *noise) @ T) @ Hi)
     N = np.zeros((len(x), fam.held().shape[1]))
     N[:CORE_SIZE] = fam.held()
     given = np.sqrt(np.abs(np.einsum("ik,kl,il->i", T, P_theta, T)))[:CORE_SIZE]
