@@ -291,6 +291,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
     """Calibrate one log (one magnetometer), write and print what the options ask; returns the run."""
     import sys
 
+    from ..calibration import Calibration
     from ..io.drivelog import write_drive_log
     from ..online.run import calibrate_log, terminal_progress
     from ..plausibility import check_run, log_field_nt
@@ -317,7 +318,13 @@ def _calibrate_one(args, log, config, init, added, output, states):
         run.calibration.save(output)
     if states:
         write_drive_log(run.states, states)
-    summary["vehicle"] = _against_the_vehicle(log, run)  # after writing: a comparison cannot lose the calibration
+    # after writing: a comparison cannot lose the calibration; the file judged as it was written
+    written = Calibration.load(output) if output else run.calibration
+    summary["written"], summary["vehicle"] = _comparisons(log, run, written)
+    if summary["written"].get("worse_than_start"):
+        warning = f"the calibration written fits this log worse than its start ({summary['written']['text']})"
+        summary["warnings"].append(warning)
+        print(f"magkf: warning: {log.source}: {warning}", file=sys.stderr)
     if args.json:
         common.print_json(summary)
         return run
@@ -329,6 +336,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
         )
         for key, unit in (("residual_rms_nt", " nT"), ("nis_mean", ""), ("aic", ""), ("bic", "")):
             print(f"    {key:16s} {ba['before'][key]:12.2f} -> {ba['after'][key]:12.2f}{unit}")
+    print(f"  {summary['written']['text']}")
     if summary["vehicle"]:
         print(f"  against the vehicle's own calibration: {summary['vehicle']['text']}")
     if output:
@@ -336,39 +344,53 @@ def _calibrate_one(args, log, config, init, added, output, states):
     return run
 
 
-def _against_the_vehicle(log, run) -> dict | None:
-    """The raw reading's, the vehicle's own calibration's and magkf's RMS magnitude (nT) and heading (deg) errors
-    over the log (``magkf.diagnostics.baseline``) and the comparison in words, or None when the log does not give
-    the vehicle's calibration."""
+def _comparisons(log, run, written) -> tuple[dict | None, dict | None]:
+    """``(written, vehicle)``: the calibration written (``written``, as read back from its file) applied to the log
+    as ``magkf apply`` does against the run's start (``baseline.written_figures``), and the raw reading's, the
+    vehicle's own calibration's and magkf's RMS magnitude (nT) and heading (deg) errors with the comparison in
+    words (None when the log does not give the vehicle's calibration); either is a dict with ``text`` saying why
+    when it could not be made."""
     from ..config import FilterConfig
     from ..diagnostics.baseline import (
         MAGKF,
         RAW,
+        START,
         VEHICLE,
+        WRITTEN,
         compare_calibrations,
         declination_note,
         improvement_text,
         vehicle_calibration,
+        written_figures,
     )
     from ..errors import InputError
     from ..online.prepare import prepare
 
     vehicle, description = vehicle_calibration(log)
-    if vehicle is None or vehicle.method == "logged-as-read":
-        return None
+    if vehicle is not None and vehicle.method == "logged-as-read":
+        vehicle = None
+    calibrations = {RAW: None, WRITTEN: written} | ({START: run.start} if run.start is not None else {})
+    if vehicle is not None:
+        calibrations[VEHICLE] = vehicle
     try:
         prep = prepare(log, FilterConfig())
-        base = compare_calibrations(log, {RAW: None, VEHICLE: vehicle, MAGKF: run.calibration}, prep)
+        base = compare_calibrations(log, calibrations, prep)
     except InputError as exc:  # the comparison is an addition: say why it is missing, keep the run
-        return {"description": description, "rms": None, "text": f"not compared ({exc.message})"}
-    rows = base.summary[["magnitude_rms_nt", "heading_rms_deg"]]
-    figures = {name: {k: float(v) for k, v in rows.loc[name].items()} for name in rows.index}
+        why = {"rms": None, "text": f"not compared ({exc.message})"}
+        return why, (None if vehicle is None else {"description": description, **why})
+    used = (run.states["status"] == "used").to_numpy() if run.states is not None else base.compared
+    judged = written_figures(base, used, run.summary.innovation_rms_nt)
+    if vehicle is None:
+        return judged, None
+    rows = base.summary.rename(index={WRITTEN: MAGKF})[["magnitude_rms_nt", "heading_rms_deg"]]
+    figures = {name: {k: float(v) for k, v in rows.loc[name].items()} for name in (RAW, VEHICLE, MAGKF)}
     text = (
         f"{description}; RMS magnitude and heading error: raw {_pair(figures[RAW])}, vehicle "
-        f"{_pair(figures[VEHICLE])}, magkf {_pair(figures[MAGKF])}; magkf {improvement_text(base.summary)}"
+        f"{_pair(figures[VEHICLE])}, magkf {_pair(figures[MAGKF])}; magkf "
+        f"{improvement_text(base.summary.rename(index={WRITTEN: MAGKF}))}"
     )
     note = declination_note(log, base, prep)
-    return {"description": description, "rms": figures, "text": text + (f" ({note})" if note else "")}
+    return judged, {"description": description, "rms": figures, "text": text + (f" ({note})" if note else "")}
 
 
 def _pair(row: dict) -> str:

@@ -5,6 +5,8 @@ calibration (its stored effects included, as ``magkf.apply`` applies them; None:
 and measures every epoch against magkf's reference field and the log's attitude (``magkf.online.prepare``):
 
 * magnitude error, nT: ``|B| - |B_ref|``, at every epoch with a reading and a reference;
+* vector error, nT: ``|C_nb B - B_ref|``, the corrected field taken to NED with the logged attitude less the
+  reference, at every epoch with attitude as well;
 * heading error, deg: the heading a tilt-compensated compass would give with that calibration less the logged
   heading, ``wrap(D_ref - D)``, where ``D`` is the direction (clockwise from true north) of the horizontal part
   of the corrected field taken to NED with the logged attitude and ``D_ref`` the reference field's declination;
@@ -17,7 +19,7 @@ attitude and a reference where every calibration gives both), so that the rows c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -37,10 +39,15 @@ __all__ = [
     "improvement_words",
     "logged_declination_deg",
     "declination_note",
+    "START",
+    "WRITTEN",
+    "written_figures",
 ]
 
 #: The names ``improvement_text`` and the report give the raw reading, the vehicle's calibration and magkf's.
 RAW, VEHICLE, MAGKF = "raw", "vehicle", "magkf"
+#: The names ``written_figures`` gives the calibration a run started from and the file it wrote.
+START, WRITTEN = "start", "written"
 #: Per-epoch statuses of ``Baseline.status``: both errors, the magnitude error only (no attitude), neither.
 STATUSES = ("ok", "missing_attitude", "missing_position", "missing_mag", "missing_effect_input")
 
@@ -66,9 +73,11 @@ class Baseline:
     compared : numpy.ndarray
         (N,) bool, the epochs the summary is taken over: every calibration has both errors there.
     summary : pandas.DataFrame
-        Indexed by name: ``magnitude_rms_nt``, ``heading_rms_deg`` (RMS over ``compared``), ``magnitude_mean_nt``
-        and ``heading_mean_deg`` (their means), ``n_compared`` (epochs), ``n_magnitude`` and ``n_heading``
-        (epochs where that calibration has each error).
+        Indexed by name: ``magnitude_rms_nt``, ``heading_rms_deg``, ``vector_rms_nt`` (RMS over ``compared``),
+        ``magnitude_mean_nt`` and ``heading_mean_deg`` (their means), ``n_compared`` (epochs), ``n_magnitude`` and
+        ``n_heading`` (epochs where that calibration has each error).
+    vector_error_nt : dict
+        Name -> (N,) ``|C_nb corrected - reference|``, nT; NaN where the heading error is.
     """
 
     time: np.ndarray
@@ -78,6 +87,7 @@ class Baseline:
     status: dict
     compared: np.ndarray
     summary: pd.DataFrame
+    vector_error_nt: dict = field(default_factory=dict)
 
     @property
     def names(self) -> list:
@@ -119,17 +129,19 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None) -> Baseli
         prep = prepare(log, FilterConfig())
     has_ref = np.all(np.isfinite(prep.ref), axis=1)
     has_mag = np.all(np.isfinite(log.mag), axis=1)
-    magnitude, heading, status = {}, {}, {}
+    magnitude, heading, vector, status = {}, {}, {}, {}
     for name, cal in calibrations.items():
-        field, has_terms = _corrected(log, cal)
-        magnitude[name] = np.linalg.norm(field, axis=1) - prep.ref_mag
-        heading[name] = heading_error_deg(field, prep.c_nb, prep.ref)
+        corrected, has_terms = _corrected(log, cal)
+        magnitude[name] = np.linalg.norm(corrected, axis=1) - prep.ref_mag
+        heading[name] = heading_error_deg(corrected, prep.c_nb, prep.ref)
+        vector[name] = np.linalg.norm(body_to_ned(prep.c_nb, corrected) - prep.ref, axis=1)
+        vector[name][~np.isfinite(heading[name])] = np.nan
         status[name] = _status(has_mag, has_terms, has_ref, prep.has_attitude)
     compared = np.all([np.isfinite(h) for h in heading.values()], axis=0)
     att = log.attitude
     logged_heading = np.where(prep.has_attitude, att[:, 2] % 360.0, np.nan)
-    summary = _summary(magnitude, heading, compared)
-    return Baseline(prep.time, logged_heading, magnitude, heading, status, compared, summary)
+    summary = _summary(magnitude, heading, vector, compared)
+    return Baseline(prep.time, logged_heading, magnitude, heading, status, compared, summary, vector)
 
 
 def _corrected(log: DriveLog, cal) -> tuple[np.ndarray, np.ndarray]:
@@ -182,14 +194,15 @@ def _rms(values) -> float:
     return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
 
 
-def _summary(magnitude: dict, heading: dict, compared) -> pd.DataFrame:
-    """One row per calibration: RMS and mean of both errors over ``compared`` (N,) bool, and the epoch counts."""
+def _summary(magnitude: dict, heading: dict, vector: dict, compared) -> pd.DataFrame:
+    """One row per calibration: RMS and mean of the errors over ``compared`` (N,) bool, and the epoch counts."""
     rows = {}
     for name in magnitude:
         m, h = magnitude[name][compared], heading[name][compared]
         rows[name] = {
             "magnitude_rms_nt": _rms(m),
             "heading_rms_deg": _rms(h),
+            "vector_rms_nt": _rms(vector[name][compared]),
             "magnitude_mean_nt": float(np.mean(m)) if m.size else float("nan"),
             "heading_mean_deg": float(np.mean(h)) if h.size else float("nan"),
             "n_compared": int(np.sum(compared)),
@@ -197,6 +210,66 @@ def _summary(magnitude: dict, heading: dict, compared) -> pd.DataFrame:
             "n_heading": int(np.sum(np.isfinite(heading[name]))),
         }
     return pd.DataFrame.from_dict(rows, orient="index")
+
+
+def written_figures(base: Baseline, used, innovation_rms_nt: float) -> dict:
+    """The calibration written (``WRITTEN``) applied to the log as ``magkf apply`` applies it, against the one the
+    run started from (``START``, when ``base`` has it) and the filter's innovations, from ``base``
+    (``compare_calibrations`` of both on one log).
+
+    ``used`` (N,) bool marks the epochs the run updated with: the figures are taken over those (the epochs a
+    calibration is judged on; the others hold the disturbances and bad positions the run refused) and over the
+    whole log (every epoch ``base`` compares).
+
+    Returns
+    -------
+    dict
+        ``written`` and ``start``: ``{"vector_rms_nt", "magnitude_rms_nt", "vector_rms_all_nt"}``, nT, over the
+        used epochs with attitude (``n_used``) and over the whole log (``n_compared``); ``innovation_rms_nt`` the
+        filter's RMS innovation (nT); ``worse_than_start``: True when the written calibration's vector residual
+        over the used epochs (its magnitude residual on a log without attitude) is larger than the start's;
+        ``text``: the figures in words.
+    """
+    used = np.asarray(used, bool)
+    on = used & base.compared
+    magnitude_on = used & np.all([np.isfinite(m) for m in base.magnitude_error_nt.values()], axis=0)
+    figures = {
+        name: {
+            "vector_rms_nt": _rms(base.vector_error_nt[name][on]),
+            "magnitude_rms_nt": _rms(base.magnitude_error_nt[name][magnitude_on]),
+            "vector_rms_all_nt": float(base.summary.loc[name, "vector_rms_nt"]),
+        }
+        for name in (START, WRITTEN)
+        if name in base.names
+    }
+    key = "vector_rms_nt" if on.any() else "magnitude_rms_nt"
+    start = figures.get(START)
+    worse = bool(start is not None and figures[WRITTEN][key] > start[key])
+    ours = figures[WRITTEN]
+    text = (
+        f"the file written, applied as 'magkf apply' does: RMS vector residual {_nt_text(ours['vector_rms_nt'])}, "
+        f"magnitude {_nt_text(ours['magnitude_rms_nt'])} over the {int(on.sum())} epochs used"
+    )
+    if start is not None:
+        text += f" (the start's: {_nt_text(start['vector_rms_nt'])} and {_nt_text(start['magnitude_rms_nt'])})"
+    text += f", {_nt_text(ours['vector_rms_all_nt'])} over the whole log ({int(base.compared.sum())} epochs)"
+    if np.isfinite(innovation_rms_nt):
+        text += f"; the filter's innovations {_nt_text(innovation_rms_nt)}"
+    if worse:
+        text += "; WORSE than the calibration the run started from"
+    return {
+        WRITTEN: ours,
+        START: start,
+        "n_used": int(on.sum()),
+        "n_compared": int(base.compared.sum()),
+        "innovation_rms_nt": float(innovation_rms_nt),
+        "worse_than_start": worse,
+        "text": text,
+    }
+
+
+def _nt_text(value: float) -> str:
+    return f"{value:.1f} nT" if np.isfinite(value) else "n/a"
 
 
 def vehicle_calibration(log: DriveLog):

@@ -180,6 +180,9 @@ class CalibrationRun:
     filter_x, filter_P : numpy.ndarray or None, optional
         (n,) and (n, n): the filter's state at the end of the log and its covariance, where ``x`` is the
         whole-log estimate (None: ``x`` is the filter's, or a batch solution).
+    start : Calibration or None, optional
+        The calibration the run started from (the one given, or the bootstrap's), with its effects at their
+        starting values: what the calibration written is judged against (``magkf.diagnostics.baseline``).
     """
 
     calibration: Calibration
@@ -192,6 +195,7 @@ class CalibrationRun:
     fit: pd.DataFrame | None = None
     filter_x: np.ndarray | None = None
     filter_P: np.ndarray | None = None
+    start: Calibration | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -455,7 +459,31 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
         fit=fit,
         filter_x=trace.filter_x if summary.filter_state is not None else None,
         filter_P=trace.filter_P if summary.filter_state is not None else None,
+        start=start_calibration(cal, layout, x0, P0),
     )
+
+
+def start_calibration(cal: Calibration, layout: StateLayout, x0, P0) -> Calibration | None:
+    """The calibration a run started from: its state ``x0`` (n,) with covariance ``P0`` (n, n) of ``layout``, with
+    ``cal``'s (the run's calibration's) magnetometer, site and source; None when the start is degenerate (``R``
+    singular: a start that cannot be applied)."""
+    std = np.sqrt(np.clip(np.diag(P0), 0.0, None))
+    R, b = layout.R_b(x0)
+    try:
+        return replace(
+            cal,
+            R=R,
+            b=b,
+            method="start",
+            covariance=P0[layout.CORE, layout.CORE],
+            effects=tuple(stored_effect(e, x0[sl], std[sl]) for e, sl in layout.blocks()),
+            state_covariance=P0 if layout.has_extra else None,
+            standard_errors=dict(zip(layout.names[layout.CORE], std[layout.CORE].tolist())),
+            quality={},
+            model=None,
+        )
+    except ValueError:
+        return None
 
 
 def summarise(source, config, layout: StateLayout, P0, trace: RunTrace, sums: FitSums, counts) -> tuple:

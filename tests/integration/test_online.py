@@ -340,3 +340,26 @@ def test_magnitude_start_is_not_taken_from_a_patch_of_the_sphere():
     assert "bootstrap-ellipsoid" in run.summary.init and "120 s" in run.summary.init
     z = (run.x[9:12] - sim.b) / run.std[9:12]
     assert np.all(np.abs(z) < 4.0), z  # 3 offsets: |z| >= 4 by chance has probability < 2e-4
+
+
+@pytest.mark.slow
+def test_calibrate_reports_the_file_written_as_apply_applies_it(tmp_path):
+    """The headline figures of ``calibrate`` are those of the file it writes, applied as ``magkf apply`` applies
+    it: the RMS vector residual over the epochs used equals the one computed here from ``apply`` of the file and
+    the reference columns (to float32 rounding of the states table's statuses: exactly), and the file is no worse
+    than the start there (the written estimate is the least-squares optimum over those epochs)."""
+    from magkf.conventions import body_to_ned, euler_to_dcm
+
+    sim = simulate_drive(DriveConfig(duration_s=300, rate_hz=10, seed=11, write_reference=True))
+    sim.table.to_csv(tmp_path / "log.csv")
+    out = cli_json("calibrate", tmp_path / "log.csv", "-o", tmp_path / "cal.json", "--states", tmp_path / "s.csv")
+    written = out["written"]
+    assert not written["worse_than_start"] and written["written"]["vector_rms_nt"] <= written["start"]["vector_rms_nt"]
+    log = DriveLog(sim.table)
+    field = apply_calibration(log, Calibration.load(tmp_path / "cal.json"))[["field_x", "field_y", "field_z"]]
+    t = sim.table
+    c_nb = euler_to_dcm(t["yaw"].to_numpy(), t["pitch"].to_numpy(), t["roll"].to_numpy())
+    error = np.linalg.norm(body_to_ned(c_nb, field.to_numpy()) - t[["ref_n", "ref_e", "ref_d"]].to_numpy(), axis=1)
+    used = (pd.read_csv(tmp_path / "s.csv")["status"] == "used").to_numpy()
+    assert written["n_used"] == used.sum()
+    assert written["written"]["vector_rms_nt"] == pytest.approx(np.sqrt(np.mean(error[used] ** 2)), rel=1e-9)

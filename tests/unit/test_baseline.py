@@ -260,3 +260,34 @@ def test_a_declination_set_by_hand_far_from_the_reference_s_is_noted(tmp_path):
     auto = read_log(tmp_path / "auto.bin")
     assert logged_declination_deg(auto) is None and declination_note(auto, base) == ""
     assert logged_declination_deg(from_table(sim.table.reset_index(), "csv")) is None
+
+
+def test_vector_error_of_the_true_calibration_is_the_noise(drive):
+    """With the truth, ``C_nb R^-1 (m - b) - B_ref`` is ``R^-1`` times the raw noise, rotated: its mean square
+    is ``NOISE_NT^2 trace(R^-T R^-1)`` per epoch, each epoch's square a weighted sum of three chi-square(1)
+    terms (variance ``2 NOISE_NT^4 sum of squared eigenvalues``)."""
+    sim, log = drive
+    base = compare_calibrations(log, {MAGKF: sim.calibration})
+    Rinv = np.linalg.inv(sim.R)
+    eig = np.linalg.eigvalsh(Rinv.T @ Rinv) * NOISE_NT**2
+    n = int(base.compared.sum())
+    found = float(base.summary.loc[MAGKF, "vector_rms_nt"]) ** 2
+    _assert_mean_square(found, np.full(n, eig.sum()), np.full(n, 2 * np.sum(eig**2)), "vector error")
+
+
+def test_written_figures_say_when_the_file_written_is_worse_than_the_start(drive):
+    """The file written judged against the start on the epochs used: an offset moved by ``OFFSET_ERROR_NT`` is
+    worse than the truth, and the figures over the used epochs are the RMS of the per-epoch errors there."""
+    from magkf.diagnostics.baseline import START, WRITTEN, written_figures
+
+    sim, log = drive
+    off = Calibration(R=sim.R, b=sim.b + OFFSET_ERROR_NT)
+    base = compare_calibrations(log, {START: sim.calibration, WRITTEN: off})
+    used = np.arange(len(base.time)) % 2 == 0
+    judged = written_figures(base, used, 50.0)
+    assert judged["worse_than_start"] and "WORSE" in judged["text"]
+    on = used & base.compared
+    assert judged[WRITTEN]["vector_rms_nt"] == pytest.approx(np.sqrt(np.mean(base.vector_error_nt[WRITTEN][on] ** 2)))
+    assert judged["n_used"] == int(on.sum())
+    better = written_figures(compare_calibrations(log, {START: off, WRITTEN: sim.calibration}), used, 50.0)
+    assert not better["worse_than_start"] and "WORSE" not in better["text"]
