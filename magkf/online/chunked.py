@@ -652,11 +652,13 @@ class _Head:
 
 
 def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
-    """Passes 2 and 3: the starting noise (``prepare.start_noise``) from the fit sample and the residual scale."""
+    """Passes 2 and 3: the starting noise and the robust whole-log start (``prepare.start_noise``) from the fit
+    sample and the residual scale."""
     start = configured_noise(config)
+    x = x0
     if attitude:
         if scan.n_used < 50:
-            return start
+            return start, x0
         positions = fit_positions(scan.n_used)
         m, H, seen = [], [], 0
         for piece in pieces(log, config, R0):
@@ -671,7 +673,7 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
         wanted = _scale_positions(scan.n_used)
     else:
         if scan.n_magnitude < 10:
-            return start
+            return start, x0
         wanted = _scale_positions(scan.n_magnitude)
     parts, ref_mag, ref, seen = [], [], [], 0
     for piece in pieces(log, config, R0):
@@ -688,7 +690,7 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
         seen += len(usable)
     parts = np.concatenate(parts)
     along, cross = (parts[:, 0], parts[:, 1:]) if attitude else (parts, None)
-    return start_levels(along, cross, np.concatenate(ref_mag), np.concatenate(ref), config)
+    return start_levels(along, cross, np.concatenate(ref_mag), np.concatenate(ref), config), x
 
 
 def _smooth(folder, xs_file: Spill, Ps_file: Spill, dt, q_rate) -> tuple[Spill, Spill]:

@@ -405,8 +405,9 @@ class RunSetup:
         return Estimator(self.layout, config, self.x0, self.P0, self.noise, self.model)
 
 
-#: ``(layout, x0, attitude) -> NoiseLevels``: the starting noise of a run at the start ``x0`` (n,) of state
-#: ``layout``, for a model that uses the attitude or not (``start_noise``'s arguments beside the log's).
+#: ``(layout, x0, attitude) -> (NoiseLevels, x)``: the starting noise of a run from the start ``x0`` (n,) of state
+#: ``layout`` and the robust whole-log start ``x``, for a model that uses the attitude or not (``start_noise``'s
+#: arguments beside the log's).
 NoiseStart = Callable[[StateLayout, np.ndarray, bool], NoiseLevels]
 
 
@@ -428,8 +429,10 @@ def prepare_run(
        ``prep`` without the field's rates when no effect is added (``without_rates``);
     3. the measurement model (``estimator.run_model``): the magnitude alone when no epoch has attitude; with the
        magnitude alone and linear effects, their starting spread checked (``check_magnitude_start``);
-    4. bootstrapped (no ``init``): the starting noise (``start_noise``, or ``noise_start``), by whose correlation
-       the bootstrap's information is deflated (``deflate_bootstrap``); kept when ``config.adapt_noise``.
+    4. bootstrapped (no ``init``): the start moved to the robust (Huber-weighted) fit over the whole log, and the
+       starting noise its residuals' scale (``start_noise``, or ``noise_start``), by whose correlation the
+       bootstrap's information is deflated (``deflate_bootstrap``); kept when ``config.adapt_noise``. A
+       disturbance in the bootstrap's first stretch then does not pull the start off.
 
     Parameters
     ----------
@@ -447,8 +450,8 @@ def prepare_run(
     any_attitude : bool or None
         Whether any epoch of the log has attitude (None: any of ``prep``'s; a chunked log's scan knows).
     noise_start : callable or None
-        ``(layout, x0, attitude) -> NoiseLevels`` the starting noise (None: ``start_noise`` over ``prep``);
-        a chunked log's is computed in passes over the file.
+        ``(layout, x0, attitude) -> (NoiseLevels, x)`` the starting noise and the robust whole-log start (None:
+        ``start_noise`` over ``prep``); a chunked log's is computed in passes over the file.
     batch : bool
         For the batch solver: the model ``config.measure`` names whatever the attitude (the epochs without
         it go to its fallback), no check of the magnitude's starting spread (the batch solver is what its
@@ -475,11 +478,15 @@ def prepare_run(
     except InputError as exc:
         raise exc.located(source) from None
     noise = None
-    if init is None:  # bootstrapped: the noise starts from the log's robust scale too
+    if init is None:  # bootstrapped: the start moves to the robust whole-log fit, the noise starts from its scale
         if noise_start is None:
-            start = start_noise(prep, config, x0, layout, model.needs_attitude, base)
+            start, x_fit = start_noise(prep, config, x0, layout, model.needs_attitude, base)
         else:
-            start = noise_start(layout, x0, model.needs_attitude)
+            start, x_fit = noise_start(layout, x0, model.needs_attitude)
+        if x_fit is not x0:
+            x0 = np.asarray(x_fit, float)
+            prep = with_initial_R(prep, x0) if prep is not None else None
+            how += "; moved to the robust fit over the whole log"
         P0 = deflate_bootstrap(P0, layout, start.inflation)
         noise = start if config.adapt_noise else None
     return RunSetup(prep, base, layout, x0, P0, how, model, noise)
@@ -548,21 +555,25 @@ def calibration_start(
     return layout, x0, P0
 
 
-def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout, attitude: bool, base) -> NoiseLevels:
-    """The noise to start from: a robust scale of the residuals of a whole-log fit (fitted to at most
-    ``FIT_EPOCHS`` epochs spread evenly over the log; the scale over every usable epoch).
+def start_noise(
+    prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout, attitude: bool, base
+) -> tuple[NoiseLevels, np.ndarray]:
+    """The noise to start from and the robust whole-log start: ``(NoiseLevels, x)``, the noise a robust scale of the
+    residuals of a whole-log fit ``x`` (n,) (fitted to at most ``FIT_EPOCHS`` epochs spread evenly over the log;
+    the scale over every usable epoch).
 
     With ``attitude`` (a model that uses it), the fit is a robust (Huber-weighted) linear least squares of
     ``m = H x`` (``H`` the layout's linear Jacobian) over the usable epochs, starting from ``x0``: over the
     bootstrap's short stretch alone, a slowly wandering attitude error is absorbed into ``R`` and ``b`` and
     its residuals understate the noise (and its correlation), which lets the filter trust its first
-    minutes far too much. Without attitude, the residual magnitudes at ``x0``. ``base`` (N,) the statuses
-    before filtering. The log is gone through in pieces of ``CHUNK`` epochs."""
+    minutes far too much, and a disturbance in that stretch pulls the start off. Without attitude, the residual
+    magnitudes at ``x0``, and ``x`` is ``x0``. ``base`` (N,) the statuses before filtering. The log is gone
+    through in pieces of ``CHUNK`` epochs."""
     start = configured_noise(config)
     if attitude:
         usable = np.flatnonzero(base == Status.USED)
         if len(usable) < 50:
-            return start
+            return start, x0
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
         fit = usable[fit_positions(len(usable))]
@@ -575,9 +586,9 @@ def start_noise(prep: PreparedLog, config: FilterConfig, x0, layout: StateLayout
     else:
         usable = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)
         if usable.sum() < 10:
-            return start
-        along, cross = magnitude_residuals(prep.take(usable), x0), None
-    return start_levels(along, cross, prep.ref_mag[usable], prep.ref[usable], config)
+            return start, x0
+        along, cross, x = magnitude_residuals(prep.take(usable), x0), None, x0
+    return start_levels(along, cross, prep.ref_mag[usable], prep.ref[usable], config), x
 
 
 def configured_noise(config: FilterConfig) -> NoiseLevels:
@@ -647,21 +658,35 @@ CHUNK = 8_192
 FIT_EPOCHS = 50_000
 
 
+#: Huber's threshold of the start's robust fit, in robust scales of the residual norm (1.4826 times its median:
+#: about 2.3 noise standard deviations for Gaussian noise, so 3 of them are about 7 standard deviations); the
+#: epochs beyond it are left out of the last ``REJECT_ITERATIONS`` iterations (a disturbance, not noise).
+ROBUST_SCALES = 3.0
+REJECT_ITERATIONS = 2
+
+
 def robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:
     """``x`` (n,) minimising Huber-weighted ``|m - H x|^2`` over epochs ``m`` (N, 3) nT, ``H`` (N, 3, n), with a
-    weak pull towards ``x0`` that keeps directions the log does not determine where the start put them."""
+    weak pull towards ``x0`` that keeps directions the log does not determine where the start put them.
+
+    ``iterations`` of Huber weights (threshold ``ROBUST_SCALES`` robust scales of the residual norm), then
+    ``REJECT_ITERATIONS`` with the epochs beyond it left out: a Huber weight bounds a disturbance's pull but
+    keeps it (a 5 000 nT bump over 5 % of a log moved the offsets by 3 nT, six standard errors), a redescending
+    step removes it."""
     x0 = np.asarray(x0, float)
     n = len(x0)
     rows, y = H.reshape(-1, n), m.reshape(-1)  # (3N, n) and (3N,): one row per component
     pull = noise_var / (1e6 * (np.abs(x0) * 1e-3 + 1e-3)) ** 2
     w = np.ones(len(m))
     x = x0
-    for _ in range(iterations):
+    for i in range(iterations + REJECT_ITERATIONS):
         weighted = rows * np.repeat(w, 3)[:, None]
         x = np.linalg.solve(rows.T @ weighted + np.diag(pull), weighted.T @ y + pull * x0)
         r = np.linalg.norm((y - rows @ x).reshape(-1, 3), axis=1)
         s = 1.4826 * np.median(r) + 1e-9
-        w = np.minimum(1.0, 3.0 * s / np.maximum(r, 1e-12))
+        w = np.minimum(1.0, ROBUST_SCALES * s / np.maximum(r, 1e-12))
+        if i + 1 >= iterations:
+            w = np.where(w < 1.0, 0.0, 1.0)
     return x
 
 
