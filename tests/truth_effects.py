@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "TRUE_PARAMETERS",
     "EFFECT_NAMES",
+    "MAG_COLUMNS",
     "NOISES",
     "TruthInputs",
     "TruthLog",
