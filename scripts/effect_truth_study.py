@@ -277,7 +277,8 @@ def _progress(row: dict, done: int, total: int) -> str:
     figures = " ".join(f"{k} {row[f'rms_{k}']:.1f}" for k in ("none", "rec", "true") if f"rms_{k}" in row)
     return (
         f"[{done}/{total}] {key}: floor {row['floor_nt']:.1f} {figures} nT; recommended [{row['recommended']}]"
-        f"{' WORSE' if row['worse'] else ''} ({row['seconds']:.1f} s)"
+        f"{' WORSE' if row['worse'] else ''}{' REFUSED ' + row['refused'][:100] if row['refused'] else ''} "
+        f"({row['seconds']:.1f} s)"
     )
 
 
@@ -291,6 +292,7 @@ def matrix(rows: list) -> list:
     for (hidden, motion, noise), group in groups.items():
         ok = [r for r in group if "error" not in r]
         ratios = np.array([r["ratio_true"] for r in ok], float)
+        ratios = ratios[np.isfinite(ratios)]  # a refused file has none
 
         def med(key, rows=ok):
             values = [r[key] for r in rows if np.isfinite(r[key])]
@@ -307,13 +309,14 @@ def matrix(rows: list) -> list:
                 "recommended": sum(r["recommended_hidden"] for r in ok),
                 "recommended_first": sum(r["recommended_first"] for r in ok),
                 "worse": sum(r["worse"] for r in ok),
+                "refused": sum(bool(r["refused"]) for r in ok),
                 "median_rms_none": med("rms_none"),
                 "median_rms_rec": med("rms_rec"),
                 "median_rms_true": med("rms_true"),
                 "median_rms_free": med("rms_free"),
                 "median_floor": med("floor_nt"),
-                "median_ratio_true": float(np.nanmedian(ratios)) if ratios.size else float("nan"),
-                "max_ratio_true": float(np.nanmax(ratios)) if ratios.size else float("nan"),
+                "median_ratio_true": float(np.median(ratios)) if ratios.size else float("nan"),
+                "max_ratio_true": float(np.max(ratios)) if ratios.size else float("nan"),
                 "true_within_5pct": int(np.sum(ratios <= FLOOR_FACTOR)),
                 "median_ratio_true_noise": med("ratio_true_noise"),
                 "median_z_rms_true": med("z_rms_true"),
@@ -346,6 +349,7 @@ def acceptance(rows: list) -> dict:
         "first_and_recommended": found,
         "first_and_recommended_lower_99": lower,
         "worse": sum(r["worse"] for r in hid),
+        "refused": sum(bool(r.get("refused")) for r in hid),
         "true_within_5pct": sum(r.get("ratio_true", np.inf) <= FLOOR_FACTOR for r in hid),
         "errors": sum("error" in r for r in rows),
     }
@@ -353,7 +357,7 @@ def acceptance(rows: list) -> dict:
 
 def print_report(rows: list, alpha: float) -> None:
     head = (
-        f"{'hidden':18s} {'motion':6s} {'noise':8s} {'logs':>4s} {'first':>5s} {'rec':>4s} {'worse':>5s} "
+        f"{'hidden':18s} {'motion':6s} {'noise':8s} {'logs':>4s} {'first':>5s} {'rec':>4s} {'worse':>5s} {'refus':>5s} "
         f"{'none':>7s} {'rec':>7s} {'true':>7s} {'free':>7s} {'noise':>6s} {'true/free':>9s} {'max':>6s} "
         f"{'<=1.05':>6s} {'true/noise':>10s} {'RMS z':>6s}"
     )
@@ -361,7 +365,8 @@ def print_report(rows: list, alpha: float) -> None:
     for m in matrix(rows):
         print(
             f"{m['hidden']:18s} {m['motion']:6s} {m['noise']:8s} {m['logs']:4d} {m['ranked_first']:5d} "
-            f"{m['recommended']:4d} {m['worse']:5d} {m['median_rms_none']:7.1f} {m['median_rms_rec']:7.1f} "
+            f"{m['recommended']:4d} {m['worse']:5d} {m['refused']:5d} {m['median_rms_none']:7.1f} "
+            f"{m['median_rms_rec']:7.1f} "
             f"{m['median_rms_true']:7.1f} {m['median_rms_free']:7.1f} {m['median_floor']:6.1f} "
             f"{m['median_ratio_true']:9.3f} {m['max_ratio_true']:6.3f} {m['true_within_5pct']:6d} "
             f"{m['median_ratio_true_noise']:10.3f} {m['median_z_rms_true']:6.2f}"
@@ -375,6 +380,7 @@ def print_report(rows: list, alpha: float) -> None:
     print(
         f"hidden effect ranked first and recommended in {a['first_and_recommended']} of {a['logs']} logs "
         f"(99 % lower bound {a['first_and_recommended_lower_99']:.3f}); worse than without in {a['worse']}; "
+        f"a calibration refused in {a['refused']}; "
         f"true effect within 5 % of the floor in {a['true_within_5pct']}; errors {a['errors']}"
     )
 
