@@ -312,7 +312,10 @@ def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wan
     stored = list(restore_effects(cal)) if cal is not None else []
     prep = prepare(log, config)
     run, layout, x, used = _model(log, config, cal, effects, stored, run, prep, say)
-    problem = EpochSet.of(prep, used, config, _learned_noise(run, config), wander_s)
+    noise = _learned_noise(run, config)
+    if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be
+        noise, used = _gated_as_calibrate(prep, config, layout, x, used)
+    problem = EpochSet.of(prep, used, config, noise, wander_s)
     channels = list(prep.data.columns)
     if len(problem) < 10:
         raise InputError(
@@ -348,6 +351,32 @@ def _model(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
     return run, layout, x, used
+
+
+def _gated_as_calibrate(prep, config: FilterConfig, layout: StateLayout, x, used) -> tuple[NoiseLevels, np.ndarray]:
+    """``(noise, used)``: for a calibration diagnosed as it is (state ``x`` (n,) of ``layout``), the noise learned
+    from the log at it as ``calibrate`` learns its starting noise (``prepare.start_noise``: a robust scale of the
+    residuals), which weighs the residuals, and the epochs ``used`` (N,) bool less those the filter's magnitude
+    gate refuses (``| |calibrated m| - |B_ref| |`` beyond ``gate_sigma`` of that noise along the field, or
+    ``gate_nt``): the disturbances, which ``calibrate`` refuses the same way. The calibration is held fixed, so no
+    uncertainty of its own widens the gate."""
+    import math
+
+    from ..online.prepare import start_noise
+
+    noise, _ = start_noise(prep, config, x, layout, True, np.where(used, Status.USED, Status.GATED_DOP))
+    width = max(config.gate_nt, config.gate_sigma * math.sqrt(noise.along_var))
+    rows = np.flatnonzero(used)
+    data = replace(prep.data, R0=layout.R(x))
+    distance = np.empty(len(rows))
+    for i in range(0, len(rows), CHUNK):
+        at = rows[i : i + CHUNK]
+        terms = np.nan_to_num(layout.extra_terms(x, layout.linear_jacobian(data, rows=at), data, rows=at))
+        c = layout.calibrated(x, prep.m[at], terms)
+        distance[i : i + CHUNK] = np.abs(np.linalg.norm(c, axis=1) - prep.ref_mag[at])
+    kept = used.copy()
+    kept[rows[distance > width]] = False
+    return noise, kept
 
 
 def _pool(candidates, problem: EpochSet, present: set) -> list:
