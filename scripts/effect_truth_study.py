@@ -23,6 +23,10 @@ over the log is a turn of the attitude that no calibration can tell from the sen
 effect-free log's file stays above the noise floor by it (``ratio_true_noise`` gives the true effect's residual
 over the bare noise floor too). The acceptance: ``rms_true <= 1.05 rms_free``.
 
+"Needed": the file written without effects leaves more than the effect-free log's (``rms_free``) plus the
+tolerance, so the core alone does not absorb the effect (a horizontal field anomaly on level motion is a turn
+and scale of the horizontal field, which ``R`` holds); "missed": needed and not recommended.
+
 "Worse" compares the file written with the recommended effects with the one written without effects: worse
 when its truth-judged residual exceeds the other's by more than ``tolerance_nt`` (``rms_tolerance``), the
 amount by which two RMS figures over this many epochs of this noise differ by chance at the 99 % level.
@@ -233,6 +237,8 @@ def run_case(case: Case, minutes: float, rate_hz: float, alpha: float) -> dict:
     row["worse"] = bool(row["rms_rec"] > row["rms_none"] + row["tolerance_nt"])
     if true_labels:
         row["ratio_true"] = row["rms_true"] / row["rms_free"]
+        row["needed"] = bool(row["rms_none"] > row["rms_free"] + row["tolerance_nt"])
+        row["missed"] = row["needed"] and not row["recommended_hidden"]
         row["ratio_true_noise"] = row["rms_true"] / floor
     row["seconds"] = time.perf_counter() - started
     return row
@@ -310,6 +316,8 @@ def matrix(rows: list) -> list:
                 "recommended_first": sum(r["recommended_first"] for r in ok),
                 "worse": sum(r["worse"] for r in ok),
                 "refused": sum(bool(r["refused"]) for r in ok),
+                "needed": sum(r["needed"] for r in ok),
+                "missed": sum(r["missed"] for r in ok),
                 "median_rms_none": med("rms_none"),
                 "median_rms_rec": med("rms_rec"),
                 "median_rms_true": med("rms_true"),
@@ -348,6 +356,8 @@ def acceptance(rows: list) -> dict:
         "logs": n,
         "first_and_recommended": found,
         "first_and_recommended_lower_99": lower,
+        "needed": sum(r["needed"] for r in hid),
+        "missed": sum(r["missed"] for r in hid),
         "worse": sum(r["worse"] for r in hid),
         "refused": sum(bool(r.get("refused")) for r in hid),
         "true_within_5pct": sum(r.get("ratio_true", np.inf) <= FLOOR_FACTOR for r in hid),
@@ -355,22 +365,37 @@ def acceptance(rows: list) -> dict:
     }
 
 
+#: The printed matrix: heading, key of ``matrix``'s rows, format.
+MATRIX_COLUMNS = (
+    ("hidden", "hidden", "18s"),
+    ("motion", "motion", "6s"),
+    ("noise", "noise", "8s"),
+    ("logs", "logs", "4d"),
+    ("first", "ranked_first", "5d"),
+    ("rec", "recommended", "4d"),
+    ("need", "needed", "4d"),
+    ("miss", "missed", "4d"),
+    ("worse", "worse", "5d"),
+    ("refus", "refused", "5d"),
+    ("none", "median_rms_none", "7.1f"),
+    ("rec", "median_rms_rec", "7.1f"),
+    ("true", "median_rms_true", "7.1f"),
+    ("free", "median_rms_free", "7.1f"),
+    ("noise", "median_floor", "6.1f"),
+    ("true/free", "median_ratio_true", "9.3f"),
+    ("max", "max_ratio_true", "6.3f"),
+    ("<=1.05", "true_within_5pct", "6d"),
+    ("true/noise", "median_ratio_true_noise", "10.3f"),
+    ("RMS z", "median_z_rms_true", "6.2f"),
+)
+
+
 def print_report(rows: list, alpha: float) -> None:
-    head = (
-        f"{'hidden':18s} {'motion':6s} {'noise':8s} {'logs':>4s} {'first':>5s} {'rec':>4s} {'worse':>5s} {'refus':>5s} "
-        f"{'none':>7s} {'rec':>7s} {'true':>7s} {'free':>7s} {'noise':>6s} {'true/free':>9s} {'max':>6s} "
-        f"{'<=1.05':>6s} {'true/noise':>10s} {'RMS z':>6s}"
-    )
-    print(head)
+    """The matrix (medians of the truth-judged residuals in nT), the null logs' false alarms and the acceptance."""
+    width = [int(fmt.rstrip("sdf").split(".")[0]) for _, _, fmt in MATRIX_COLUMNS]
+    print(" ".join(f"{h:{'<' if f.endswith('s') else '>'}{w}s}" for (h, _, f), w in zip(MATRIX_COLUMNS, width)))
     for m in matrix(rows):
-        print(
-            f"{m['hidden']:18s} {m['motion']:6s} {m['noise']:8s} {m['logs']:4d} {m['ranked_first']:5d} "
-            f"{m['recommended']:4d} {m['worse']:5d} {m['refused']:5d} {m['median_rms_none']:7.1f} "
-            f"{m['median_rms_rec']:7.1f} "
-            f"{m['median_rms_true']:7.1f} {m['median_rms_free']:7.1f} {m['median_floor']:6.1f} "
-            f"{m['median_ratio_true']:9.3f} {m['max_ratio_true']:6.3f} {m['true_within_5pct']:6d} "
-            f"{m['median_ratio_true_noise']:10.3f} {m['median_z_rms_true']:6.2f}"
-        )
+        print(" ".join(f"{m[key]:{fmt}}" for _, key, fmt in MATRIX_COLUMNS))
     n = null_summary(rows, alpha)
     print(
         f"null logs: false alarms {n['false_alarms']} of {n['logs']} (99 % binomial bound of alpha {alpha:g}: "
@@ -379,7 +404,8 @@ def print_report(rows: list, alpha: float) -> None:
     a = acceptance(rows)
     print(
         f"hidden effect ranked first and recommended in {a['first_and_recommended']} of {a['logs']} logs "
-        f"(99 % lower bound {a['first_and_recommended_lower_99']:.3f}); worse than without in {a['worse']}; "
+        f"(99 % lower bound {a['first_and_recommended_lower_99']:.3f}); missed where needed in {a['missed']} of "
+        f"{a['needed']}; worse than without in {a['worse']}; "
         f"a calibration refused in {a['refused']}; "
         f"true effect within 5 % of the floor in {a['true_within_5pct']}; errors {a['errors']}"
     )
