@@ -17,6 +17,10 @@ known the row and column) and no estimates; the other logs go on. The summary (`
 ``summary.csv`` in ``out_dir``) has one row per log, sorted by vehicle, start time and path; ``vehicles.png``
 plots each vehicle's estimates over its flights.
 
+With ``settings.diagnose``, each vehicle's diagnoses are also pooled over its flights
+(``magkf.diagnostics.pooled``: a combined test per candidate, the coefficient's consistency across flights, the
+recommendation for the vehicle) into ``out_dir/pooled_diagnosis.json`` (``pooled_diagnoses``).
+
 Vehicle identity (``vehicle_from``): ``parent``, the name of the folder holding the log (``fleet/V12/
 2026-05-01.ulg`` belongs to ``V12``); ``name``, the log file's name up to its first ``_``
 (``V12_2026-05-01.ulg``); ``none``, one vehicle for all. ``disagreements`` compares every log of a vehicle
@@ -62,6 +66,9 @@ __all__ = [
     "baseline_row",
     "vehicle_improvements",
     "improvement_lines",
+    "POOLED",
+    "pooled_diagnoses",
+    "pooled_lines",
 ]
 
 #: File endings taken from a folder given as a log besides the registered readers' (``log_suffixes``; a file
@@ -86,6 +93,8 @@ RUN_COLUMNS = ("run_time_s", "worker", "peak_rss_mb", "reused")
 #: The outputs of a log (``diagnosis.json`` only when diagnosed), under its folder.
 OUTPUTS = ("calibration.json", "states.parquet")
 DIAGNOSIS = "diagnosis.json"
+#: The diagnoses of each vehicle pooled over its flights, in the output folder (with ``settings.diagnose``).
+POOLED = "pooled_diagnosis.json"
 MANIFEST = "row.json"
 
 
@@ -139,11 +148,13 @@ class LogTask:
 @dataclass(frozen=True)
 class FleetResult:
     """Outcome of ``run_fleet``: ``summary`` (one row per log, see ``run_fleet``), the files written by name
-    (``summary_parquet``, ``summary_csv``, ``plot``), and each worker's memory limit in bytes (0: none)."""
+    (``summary_parquet``, ``summary_csv``, ``plot``, ``pooled_diagnosis``), each worker's memory limit in bytes
+    (0: none), and with ``settings.diagnose`` each vehicle's ``PooledDiagnosis`` by vehicle (``pooled``)."""
 
     summary: pd.DataFrame
     files: dict
     memory_limits: dict = field(default_factory=dict)
+    pooled: dict = field(default_factory=dict)
 
     @property
     def failed(self) -> pd.DataFrame:
@@ -517,7 +528,56 @@ def run_fleet(
     if plot:
         files["plot"] = out / "vehicles.png"
         plot_vehicles(summary, files["plot"])
-    return FleetResult(summary, {k: str(v) for k, v in files.items()}, memory_limits(client))
+    pooled = {}
+    if settings.diagnose:
+        pooled = pooled_diagnoses(summary, settings.alpha)
+        files["pooled_diagnosis"] = out / POOLED
+        _write_pooled(pooled, summary, files["pooled_diagnosis"])
+    return FleetResult(summary, {k: str(v) for k, v in files.items()}, memory_limits(client), pooled)
+
+
+def _flights(summary: pd.DataFrame) -> dict:
+    """Per vehicle, its diagnosed logs: ``{vehicle: {flight: (log, diagnosis.json path)}}``, a flight named by its
+    output folder's name (the log's file name, made unique within the vehicle)."""
+    ok = summary[summary["error"] == ""]
+    out: dict = {}
+    for row in ok.itertuples():
+        path = Path(row.output) / DIAGNOSIS
+        if path.is_file():
+            out.setdefault(row.vehicle, {})[Path(row.output).name] = (row.log, path)
+    return out
+
+
+def pooled_diagnoses(summary: pd.DataFrame, alpha: float = 0.01) -> dict:
+    """Each vehicle's diagnoses (the ``diagnosis.json`` of its calibrated logs, in ``summary``'s order: by start
+    time) pooled over its flights (``magkf.diagnostics.pooled.pool`` at ``alpha``): ``{vehicle: PooledDiagnosis}``,
+    the vehicles with no diagnosed log left out."""
+    from .diagnostics.pooled import pool
+
+    out = {}
+    for vehicle, flights in _flights(summary).items():
+        diagnoses = {name: json.loads(path.read_text(encoding="utf-8")) for name, (_, path) in flights.items()}
+        out[vehicle] = pool(diagnoses, alpha)
+    return out
+
+
+def _write_pooled(pooled: dict, summary: pd.DataFrame, path) -> None:
+    """``pooled_diagnosis.json``: per vehicle, its flights' logs (flight name -> log path) and the pooled summary."""
+    from .calibration import jsonable
+    from .files import output_text
+
+    flights = _flights(summary)
+    data = {
+        vehicle: {"logs": {name: log for name, (log, _) in flights[vehicle].items()}, **p.summary()}
+        for vehicle, p in pooled.items()
+    }
+    output_text(path, json.dumps(jsonable(data), indent=2) + "\n")
+
+
+def pooled_lines(pooled: dict) -> list[str]:
+    """One line per vehicle of ``pooled`` (``pooled_diagnoses``): what its flights recommend together, and the
+    effects whose coefficient differs between its flights."""
+    return [f"{vehicle}: {p.text}" for vehicle, p in sorted(pooled.items())]
 
 
 #: The first columns of the summary, in order; estimates and the rest follow.

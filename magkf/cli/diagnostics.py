@@ -13,7 +13,14 @@ __all__ = ["add_parsers", "run_diagnose", "run_report", "run_validate"]
 def add_parsers(sub) -> None:
     """Register ``diagnose`` and ``report``."""
     p = common.command(sub, "diagnose", run_diagnose, "where the model fails and which physical effect is missing")
-    common.add_log_options(p)
+    p.add_argument(
+        "file",
+        nargs="+",
+        metavar="LOG",
+        help=f"{common.LOG_HELP}; several logs: flights of one vehicle, each diagnosed and every candidate's "
+        "evidence pooled over them",
+    )
+    common.add_reading_options(p)
     p.add_argument("--cal", help="calibration JSON to diagnose (default: run the filter)")
     common.add_diagnosis_options(p, "significance level over all candidates")
     common.add_filter_options(p)
@@ -40,21 +47,23 @@ def add_parsers(sub) -> None:
 def run_diagnose(args) -> int:
     """Compare the calibrated model with the measurements (residuals against time, attitude, auxiliary channels, rates)
     and test every candidate effect by a correlation-robust F test, with its residual on held-out data. Without --cal
-    the online filter runs first; a calibration's stored effects are part of the model."""
-    from ..diagnostics.diagnose import diagnose
+    the online filter runs first; a calibration's stored effects are part of the model.
 
+    Several logs are taken as flights of one vehicle: each is diagnosed as above, then every candidate's evidence is
+    pooled over them (magkf.diagnostics.pooled): a combined test (Lancaster's sum of the flights' chi-square values,
+    at --alpha over the candidates tested), the coefficient's consistency across the flights (inverse-variance pooled
+    estimate, Cochran's Q), and the recommendation for the vehicle: an effect significant over the flights and
+    consistent is recommended even when no single flight reaches significance; one whose coefficient differs between
+    flights is named with those flights and not recommended. --json and -o give every log's diagnosis and the pooled
+    one."""
+    if len(args.file) > 1:
+        return _diagnose_flights(args)
+    args.file = args.file[0]
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
     added = common.effects(args, cal)  # user code runs once the inputs are read
-    result, run = diagnose(
-        log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
-    )
-    summary = result.summary()
-    summary["verdict"] = _verdict(run)
-    summary["calibration_warnings"] = _judged(run, log, cal)
-    for warning in summary["calibration_warnings"]:
-        warnings.warn(f"{args.file}: the calibration diagnosed: {warning}", stacklevel=1)
+    result, summary = _diagnosed(args, args.file, log, config, cal, added)
     if common.write_json_result(args, summary):
         return 0
     ax = result.residual_rms_axis_nt
@@ -95,6 +104,78 @@ def run_diagnose(args) -> int:
     print(f"  {result.text}")
     print(f"  verdict: {summary['verdict']}")
     return 0
+
+
+def _diagnosed(args, name: str, log, config, cal, added) -> tuple:
+    """The diagnosis of the log ``name`` and its summary with the run's verdict and the calibration's warnings
+    (each also issued as a warning naming the log)."""
+    from ..diagnostics.diagnose import diagnose
+
+    result, run = diagnose(
+        log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
+    )
+    summary = result.summary()
+    summary["verdict"] = _verdict(run)
+    summary["calibration_warnings"] = _judged(run, log, cal)
+    for warning in summary["calibration_warnings"]:
+        warnings.warn(f"{name}: the calibration diagnosed: {warning}", stacklevel=1)
+    return result, summary
+
+
+def _diagnose_flights(args) -> int:
+    """``magkf diagnose A B C``: each log diagnosed, then the candidates pooled over them (``run_diagnose``)."""
+    from ..diagnostics.pooled import pool
+
+    names = list(args.file)
+    if "-" in names:
+        raise InputError("standard input ('-') can be the only log: name each log of several by its file")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise InputError(f"a log is named more than once ({', '.join(twice)}): name each flight once")
+    config = common.filter_config(args)
+    cal = common.load_calibration(args.cal)
+    read = common.log_reader(args)
+    logs = {name: read(name) for name in names}  # every log read before any work
+    added = common.effects(args, cal)  # user code runs once the inputs are read
+    results, summaries = {}, {}
+    for name, log in logs.items():
+        results[name], summaries[name] = _diagnosed(args, name, log, config, cal, added)
+        logs[name] = None  # let the log go once it is diagnosed
+    pooled = pool(results, alpha=args.alpha)
+    if common.write_json_result(args, {"logs": summaries, "pooled": pooled.summary()}):
+        return 0
+    _print_flights(results, pooled)
+    return 0
+
+
+def _print_flights(results: dict, pooled) -> None:
+    """Each log's diagnosis in a line, then the pooled candidates and the advice for the vehicle."""
+    model = ", ".join(next(iter(results.values())).model_effects) or "core only"
+    print(f"diagnosis of {len(results)} flights of one vehicle ({model}):")
+    for name, r in results.items():
+        took = " ".join(c.option for c in r.recommended) or "nothing"
+        print(
+            f"  {name}: {r.n_epochs_used} epochs; residual RMS {r.residual_rms_nt:.2f} nT "
+            f"({r.residual_rms_held_out_nt:.2f} on held-out blocks); takes {took}"
+        )
+    print(f"pooled over the {len(results)} flights:")
+    print(f"  {'candidate':28s} {'statistic':>10s} {'dof':>5s} {'p-value':>9s} {'alone':>6s}  verdict")
+    for c in pooled.candidates:
+        if not c.flights:
+            print(f"  {c.effect:28s} {'':>10s} {'':>5s} {'':>9s} {'':>6s}  not tested")
+            continue
+        verdict = c.verdict + (f": {', '.join(c.consistency.disagreeing)}" if c.verdict.startswith("differs") else "")
+        alone = f"{len(c.alone)}/{len(c.flights)}"
+        print(f"  {c.effect:28s} {c.statistic:10.1f} {c.dof:5d} {c.p_value:9.2g} {alone:>6s}  {verdict}")
+    print(
+        f"  (combined test: Lancaster's sum of each flight's chi-square value on their summed dof, significant at "
+        f"p < {pooled.alpha:g} / {pooled.n_tested} candidates tested; alone: flights where it is significant by "
+        "itself; consistency: Cochran's Q of the flights' estimates, judged as Welch does)"
+    )
+    for c in pooled.candidates:
+        if c.verdict != "not significant" or c.missing or c.untested:
+            print(f"  {c.words()}")
+    print(f"  {pooled.text}")
 
 
 def _verdict(run) -> str:

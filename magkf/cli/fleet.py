@@ -12,7 +12,13 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "fleet", run_fleet, "calibrate (and diagnose) every log of a fleet, on Dask")
     p.add_argument("logs", nargs="+", metavar="LOG", help="log files, folders (every log below) or glob patterns")
     p.add_argument("-o", "--out", dest="out_dir", required=True, metavar="DIR", help="output folder (made if missing)")
-    p.add_argument("--diagnose", action="store_true", help="also diagnose each log (diagnosis.json per log)")
+    p.add_argument(
+        "--diagnose",
+        action="store_true",
+        help="also diagnose each log (diagnosis.json per log) and pool each vehicle's diagnoses over its flights "
+        "(DIR/pooled_diagnosis.json: a combined test per candidate, the coefficient's consistency across flights, "
+        "the effect recommended for the vehicle and the flights that disagree)",
+    )
     p.add_argument(
         "--alpha",
         type=common.probability,
@@ -104,14 +110,17 @@ def run_fleet(args) -> int:
     row per log (residuals, used share, verdict, estimates and standard deviations, undetermined directions,
     run time, the error of a log that failed, whether it disagrees with the rest of its vehicle, and the RMS magnitude
     and heading error of magkf's calibration and of the one the vehicle flew, read from the log);
-    DIR/vehicles.png plots each vehicle's estimates over its flights. A log that fails does not stop the others
-    (exit status 2 only when every log failed). A log whose input and settings are unchanged since an earlier
+    DIR/vehicles.png plots each vehicle's estimates over its flights. With --diagnose, DIR/pooled_diagnosis.json pools
+    each vehicle's diagnoses over its flights (magkf.diagnostics.pooled): each candidate's combined test over the
+    flights, its coefficient's consistency across them, and the effect recommended for the vehicle even when no single
+    flight reaches significance, or the flights whose coefficient differs; one line per vehicle says it. A log that
+    fails does not stop the others (exit status 2 only when every log failed). A log whose input and settings are unchanged since an earlier
     run into DIR (same content hash) and whose outputs are complete is not calibrated again."""
     from pathlib import Path
 
     from ..effects import make_effect
     from ..errors import InputError
-    from ..fleet import FleetSettings, check_out_dir, find_logs, improvement_lines
+    from ..fleet import FleetSettings, check_out_dir, find_logs, improvement_lines, pooled_lines
     from ..fleet import run_fleet as run
 
     out_dir = check_out_dir(args.out_dir)
@@ -151,9 +160,12 @@ def run_fleet(args) -> int:
         print(f"  disagrees: {row.log}: {row.disagreement}")
     for line in improvement_lines(s):
         print(f"  {line}")
+    for line in pooled_lines(result.pooled):
+        print(f"  diagnosis pooled over the flights of {line}")
     print("  " + _memory_line(result.peak_memory_mb(), result.memory_limits))
     print(
         f"  summary: {result.files['summary_parquet']} and {result.files['summary_csv']}; plot: {result.files['plot']}"
+        + (f"; pooled diagnosis: {result.files['pooled_diagnosis']}" if "pooled_diagnosis" in result.files else "")
     )
     if len(failed) == len(s):
         raise InputError(f"every log failed; the first: {failed['error'].iloc[0]}")
