@@ -46,7 +46,7 @@ CASES = [
     study.Case(("eddy_current",), "3d", "white", 1002, True),
     study.Case(("time_lag",), "planar", "coloured", 1000, True),
     study.Case(("bias_drift",), "3d", "white", 1000, True),
-    study.Case(("field_anomaly",), "planar", "coloured", 1001, True),
+    study.Case(("field_anomaly",), "3d", "coloured", 1001, True),
 ]
 NULL_CASES = [
     study.Case((), motion, noise, 5000, True) for motion in ("3d", "planar") for noise in ("white", "coloured")
