@@ -57,6 +57,9 @@ __all__ = [
     "held_out_residual",
     "HeldOut",
     "f_sf",
+    "WALK_RATIOS",
+    "WalkRate",
+    "walk_rate",
 ]
 
 #: ``K`` is at most this share of the number of independent epochs ``n / tau``: the scores' spectrum then
@@ -440,3 +443,81 @@ def held_out_residual(rows, y: np.ndarray, edges: np.ndarray, chunks) -> np.ndar
     for a, b in chunks:
         out[3 * a : 3 * b] = held.residual(rows(a, b), a, b, beta)
     return out
+
+
+#: Ratios of a random walk's variance over the whole stretch of data to the noise variance of one stretch
+#: mean tried by ``walk_rate`` (the walk's rate is profiled over them; 0 is tried too).
+WALK_RATIOS = np.logspace(-6.0, 6.0, 481)
+
+
+@dataclass(frozen=True)
+class WalkRate:
+    """Outcome of ``walk_rate``: the rate ``rate`` (nT per sqrt(s)) of a random-walk offset the stretch means
+    show, and its ``confidence`` interval ``low`` to ``high`` (``high`` infinite when the data do not bound
+    it); ``noise_nt`` the standard deviation of a stretch mean's noise per axis (at the median count of
+    epochs), ``stretches`` the stretches used and ``axes`` the directions used per stretch."""
+
+    rate: float
+    low: float
+    high: float
+    confidence: float
+    noise_nt: float
+    stretches: int
+    axes: int
+
+
+def walk_rate(means, start, stop, counts, drop=None, confidence: float = 0.95) -> WalkRate | None:
+    """The rate of a random walk on an offset from the means of a residual over consecutive stretches of time.
+
+    ``means`` (K, 3) nT: the residual's mean in each stretch, per sensor axis; ``start`` and ``stop`` (K,) s
+    the stretches' ends; ``counts`` (K,) their epochs. The model: ``means_k = c + w_k + e_k`` with ``c`` an
+    unknown constant (the offset the core fits), ``w_k`` the mean over stretch k of a random walk of rate ``q``
+    nT/sqrt(s) on each axis (independent axes, one rate), ``e_k`` independent noise of variance ``s^2 / counts_k``
+    per axis. Stretch means of a walk ``W`` (from the first stretch's start) have covariance ``q^2`` times
+    ``(a_j + b_j) / 2`` for stretches ``j`` before ``k`` and ``a_k + L_k / 3`` on the diagonal (``a`` the start,
+    ``b`` the end, ``L`` the length). ``drop`` (K, 3) unit vectors: a direction per stretch left out of the
+    means (where a nuisance, the logged heading's error, has been or would be taken out); None: all three axes.
+
+    ``q`` and ``s`` are estimated by restricted maximum likelihood (the constant integrated out), ``s``
+    profiled analytically and ``q`` over a grid of the walk's to the noise's variance (``WALK_RATIOS``), all of
+    them at the cost of one eigen-decomposition; the interval is the profile likelihood's (a likelihood ratio
+    within the chi-square quantile of one degree of freedom). None with fewer than four stretches.
+    """
+    means, counts = np.asarray(means, float), np.asarray(counts, float)
+    start, stop = np.asarray(start, float), np.asarray(stop, float)
+    K = len(means)
+    if K < 4:
+        return None
+    if drop is None:
+        U = np.broadcast_to(np.eye(3), (K, 3, 3))
+    else:
+        U = np.swapaxes(np.linalg.svd(np.asarray(drop, float)[:, None, :])[2][:, 1:, :], 1, 2)  # (K, 3, 2)
+    m = U.shape[2]
+    a, length = start - start[0], stop - start
+    span = max(stop[-1] - start[0], 1e-9)
+    mid = a + length / 2.0
+    B = np.minimum.outer(mid, mid)  # E[w_j w_k] / q^2 for j != k: the earlier stretch's midpoint
+    B[np.diag_indices(K)] = a + length / 3.0
+    weight = np.sqrt(np.median(counts) / counts)  # noise standard deviation of each mean, relative
+    G = np.einsum("jam,kan->jmkn", U, U) * (B / span)[:, None, :, None]
+    G = G.reshape(K * m, K * m) / np.repeat(weight, m)[:, None] / np.repeat(weight, m)[None, :]
+    y = np.einsum("kam,ka->km", U, means).ravel() / np.repeat(weight, m)
+    X = np.swapaxes(U, 1, 2).reshape(K * m, 3) / np.repeat(weight, m)[:, None]
+    d, Q = np.linalg.eigh(G)
+    d = np.clip(d, 0.0, None)
+    yt, Xt = Q.T @ y, Q.T @ X
+    n_free = K * m - 3
+    ratios = np.r_[0.0, WALK_RATIOS]
+    loglik, noise = np.empty(len(ratios)), np.empty(len(ratios))
+    for i, ratio in enumerate(ratios):
+        w = 1.0 / (ratio * d + 1.0)
+        normal = Xt.T @ (w[:, None] * Xt)
+        beta = np.linalg.solve(normal, Xt.T @ (w * yt))
+        noise[i] = float(np.sum(w * (yt - Xt @ beta) ** 2)) / n_free
+        loglik[i] = -0.5 * (n_free * np.log(noise[i]) - np.sum(np.log(w)) + np.linalg.slogdet(normal)[1])
+    rates = np.sqrt(ratios * noise / span)
+    best = int(np.argmax(loglik))
+    inside = 2.0 * (loglik[best] - loglik) <= special.chdtri(1, 1.0 - confidence)
+    high = float(np.max(rates[inside])) if not inside[-1] else float("inf")
+    low = 0.0 if inside[0] else float(np.min(rates[inside]))
+    return WalkRate(float(rates[best]), low, high, confidence, float(np.sqrt(noise[best])), K, m)

@@ -9,12 +9,32 @@ re-mounted sensor), the effects are what should travel, so on B:
 * **without** each effect: B's core refitted with that effect left out (the others held);
 * **core only**: B's core refitted with no effect.
 
-All residuals are NED vector residuals in nT on the same epochs (B's usable epochs, gross outliers
-left out). Whether an effect helps is decided on contiguous blocks of B, each much longer than the
-residual's correlation time (``magkf.diagnostics.inference.fold_edges``): per block, the sum of squared
-whitened residuals without the effect less that with it; a one-sided t test over the blocks (the blocks are
-nearly independent, the effect's parameters were not fitted on B) says whether the effect helps beyond
-chance, and the opposite test whether it makes B worse beyond chance.
+All residuals are NED vector residuals in nT on the same epochs (B's usable epochs, gross outliers left
+out), **held out**: B is cut into contiguous blocks, each much longer than the residual's correlation time
+(``validation_edges``), and each block's residual is that of the core fitted on the other blocks
+(``magkf.diagnostics.inference.held_out_residual``), so that a refitted core cannot take up what an effect
+would explain and make it look useless, nor fit the noise. The in-sample figures (the core fitted on all of
+B) are kept beside them.
+
+**Whether an effect helps** is a paired test on the same epochs. With the core linearised once (at its fit
+with the stored effects) the held-out residual is linear in the reading, so the residual without an effect
+is that with it plus ``c``, the effect's whitened contribution at A's values less what the held-out core
+takes of it. Adding the effect lowers the held-out sum of squares by ``D = 2 r.c - c.c`` (``r`` the residual
+without it): B's residual shows ``g = r.c / c.c`` times A's predicted contribution (1: as predicted), and
+the effect helps exactly when ``g > 1/2``. ``D / 2 = sum_t c_t . e_t`` plus ``(g - 1/2) c.c``, with ``e = r - g c``
+the residual once that share is taken out: its uncertainty is the long-run variance of the per-epoch scores
+``c_t . e_t`` (``magkf.diagnostics.inference.score_test``: a cosine-series estimate robust to the residual's
+correlation, Student's t with its K terms as degrees of freedom). A projection on the effect's one predicted
+shape: one degree of freedom, and the between-block spread of the effect's own size (a temperature that
+varies over the flight) does not count as noise, as it did in a t test over blocks. The test states its
+power: the smallest fall of the held-out (whitened) residual's RMS it would detect with probability
+``POWER`` at the level asked (``EffectCheck.detectable``).
+
+**A wandering effect** (``Effect.wanders``, a drifting offset) has no value that carries to another log:
+the path stored is that of A. What can be tested is its rate: B's residual (core refitted, the heading's
+error left to a direction per stretch) is averaged over stretches of time, the random walk's rate these
+means show is estimated with a confidence interval (``magkf.diagnostics.inference.walk_rate``), and the
+rate A's file stores is either inside it or not (``WanderCheck``).
 """
 
 from __future__ import annotations
@@ -35,25 +55,71 @@ from ..online.prepare import prepare
 from ..online.state import StateLayout
 from ..status import Status
 from .fitting import WANDER_BLOCK_S, EpochSet, inliers
-from .inference import fold_edges, integrated_time
+from .inference import BLOCK_TAUS, held_out_residual, high_passed, integrated_time, score_test, walk_rate
 
-__all__ = ["EffectCheck", "Validation", "validate"]
+__all__ = ["POWER", "MAX_BLOCKS", "EffectCheck", "WanderCheck", "Validation", "validation_edges", "validate"]
+
+#: Probability of detection at which ``EffectCheck.detectable`` is stated.
+POWER = 0.8
+#: Held-out blocks at most. Each is at least ``BLOCK_TAUS`` correlation times long, so that the core fitted on
+#: the others hardly sees the block's own noise (the correlation leaks over about one correlation time at each
+#: edge, at most 1 / BLOCK_TAUS of the block); as many as that allows, since the core is then fitted on
+#: ``1 - 1 / blocks`` of the log, nearly what a core fitted on all of B leaves on data it has not seen.
+MAX_BLOCKS = 40
+#: Confidence of the interval of a wandering effect's rate.
+RATE_CONFIDENCE = 0.95
 
 
 @dataclass(frozen=True)
 class EffectCheck:
-    """One stored effect on the new log: the residual RMS (nT) with and without it (B's core refitted both
-    times), the relative change, the blocks' t statistic and the p-values that it helps (``p_helps``) or
-    hurts (``p_hurts``) beyond chance, and the verdict in words."""
+    """One stored effect on the new log.
+
+    ``with_nt`` and ``without_nt``: the held-out residual RMS (nT) with and without it (B's core refitted),
+    ``change`` their relative change, ``with_in_sample_nt`` and ``without_in_sample_nt`` the same with the
+    core fitted on all of B. ``gain`` (``gain_se`` its standard error): the share of A's predicted
+    contribution that B's residual shows (1: as predicted; above 1/2 the effect lowers the residual). ``t``
+    with ``dof`` degrees of freedom and the one-sided p-values that it helps (``p_helps``) or hurts
+    (``p_hurts``) beyond chance. ``detectable``: the smallest relative fall of the held-out whitened RMS that
+    the test detects with probability ``POWER`` at its level. ``blocks_helped`` of ``blocks``: the held-out
+    blocks whose sum of squares falls. ``verdict`` in words."""
 
     effect: str
     with_nt: float
     without_nt: float
     change: float
+    with_in_sample_nt: float
+    without_in_sample_nt: float
+    gain: float
+    gain_se: float
     t: float
-    blocks: int
+    dof: int
     p_helps: float
     p_hurts: float
+    detectable: float
+    blocks: int
+    blocks_helped: int
+    verdict: str
+
+    def as_dict(self) -> dict:
+        return dict(vars(self))
+
+
+@dataclass(frozen=True)
+class WanderCheck:
+    """One stored wandering effect on the new log: the rate its file stores (``stored_rate``, nT per sqrt(s)
+    per axis), the rate B's residual shows (``rate``) and its ``confidence`` interval ``low`` to ``high``,
+    ``within`` whether the stored rate lies in it, the ``stretches`` of ``stretch_s`` seconds used and the
+    ``verdict`` in words (what can and cannot be tested)."""
+
+    effect: str
+    stored_rate: float
+    rate: float
+    low: float
+    high: float
+    confidence: float
+    within: bool
+    stretches: int
+    stretch_s: float
     verdict: str
 
     def as_dict(self) -> dict:
@@ -62,23 +128,39 @@ class EffectCheck:
 
 @dataclass(frozen=True)
 class Validation:
-    """Outcome of ``validate``: residual RMS (nT) on the new log ``as_stored``, ``with_effects`` and
-    ``core_only``, one ``EffectCheck`` per stored effect, the epochs used and the text."""
+    """Outcome of ``validate``: residual RMS (nT) on the new log ``as_stored``, and held out ``with_effects``
+    and ``core_only`` (in sample: ``*_in_sample_nt``), one ``EffectCheck`` per stored effect that holds a
+    value and one ``WanderCheck`` per wandering effect, the epochs and held-out ``blocks`` used, the level
+    ``alpha`` and the text."""
 
     source: str
     calibration: str
     n_epochs: int
     correlation_s: float
+    blocks: int
+    alpha: float
     as_stored_nt: float
     with_effects_nt: float
     core_only_nt: float
+    with_effects_in_sample_nt: float
+    core_only_in_sample_nt: float
     effects: list = field(default_factory=list)
+    wandering: list = field(default_factory=list)
     text: str = ""
 
     def summary(self) -> dict:
-        out = {k: v for k, v in vars(self).items() if k != "effects"}
+        out = {k: v for k, v in vars(self).items() if k not in ("effects", "wandering")}
         out["effects"] = [e.as_dict() for e in self.effects]
+        out["wandering"] = [w.as_dict() for w in self.wandering]
         return out
+
+
+def validation_edges(n: int, tau: float) -> np.ndarray:
+    """Edges (epoch indices) of the held-out blocks of ``n`` epochs whose residual is correlated over ``tau``
+    epochs: as many as leave each block ``BLOCK_TAUS`` correlation times long, at least 2 and at most
+    ``MAX_BLOCKS``."""
+    blocks = int(np.clip(n // (BLOCK_TAUS * max(tau, 1.0)), 2, MAX_BLOCKS))
+    return np.linspace(0, n, blocks + 1).astype(int)
 
 
 @one_thread
@@ -91,7 +173,8 @@ def validate(
     wander_s: float | None = WANDER_BLOCK_S,
 ) -> Validation:
     """Check the calibration ``cal`` (learned elsewhere) and each effect it stores on ``log``; an effect
-    helps (or hurts) when its one-sided p-value is below ``alpha``. The logged heading's slow error is
+    helps (or hurts) when its one-sided p-value is below ``alpha``, and a wandering effect's stored rate is
+    compared with a ``RATE_CONFIDENCE`` interval of the rate ``log`` shows. The logged heading's slow error is
     taken out over stretches of ``wander_s`` seconds as in ``diagnose`` (None: not)."""
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
@@ -99,30 +182,33 @@ def validate(
     layout = StateLayout.with_core(effects)
     x = cal.full_state
     epochs = _epochs(log, config, effects, layout, x, wander_s)
-    refit = _Refit(epochs, layout, x)
-    res_stored = refit.stored.residual(x).reshape(-1, 3)  # exact for nonlinear effects too (at x)
-    as_stored = _rms(_ned(refit.stored, res_stored, x))
-    with_w, with_ned = refit(effects)
-    core_w, core_ned = refit(())
-    tau = integrated_time(with_w)
-    edges = fold_edges(len(epochs), tau)
-    dt = float(np.median(np.diff(epochs.data.time)))
-    checks = []
-    for effect in effects:
-        without_w, without_ned = refit(tuple(e for e in effects if e is not effect))
-        checks.append(_check(effect.label, with_w, without_w, with_ned, without_ned, edges, alpha))
-    text = _describe(checks, as_stored, _rms(with_ned), _rms(core_ned), alpha)
-    return Validation(
+    stored = epochs.at(layout, x)
+    as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))  # exact for nonlinear effects too (at x)
+    held = tuple(e for e in effects if not e.wanders)
+    contributions = {e: e.contribution(x[sl], stored.data) for e, sl in layout.blocks() if e in held}
+    fit = epochs.less(sum(contributions.values(), np.zeros_like(epochs.m))).fit(StateLayout.with_core(), x[:12])
+    n = len(epochs)
+    tau = integrated_time(high_passed(fit.r.reshape(n, 3)))
+    compare = _Comparison(fit, validation_edges(n, tau))
+    checks = [compare.check(e.label, contributions[e], alpha) for e in held]
+    core_held, core_in = compare.less_all([contributions[e] for e in held])
+    wandering = [_rate_check(epochs, contributions, e, x, wander_s) for e in effects if e.wanders]
+    result = Validation(
         log.source,
         str(cal.source or cal.method),
-        len(epochs),
-        tau * dt,
+        n,
+        tau * float(np.median(np.diff(epochs.data.time))),
+        len(compare.edges) - 1,
+        alpha,
         as_stored,
-        _rms(with_ned),
-        _rms(core_ned),
+        _rms(_ned(fit, compare.r_with.reshape(-1, 3))),
+        _rms(_ned(fit, core_held.reshape(-1, 3))),
+        _rms(_ned(fit, fit.r.reshape(-1, 3))),
+        _rms(_ned(fit, core_in.reshape(-1, 3))),
         checks,
-        text,
+        wandering,
     )
+    return _with_text(result)
 
 
 def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x, wander_s):
@@ -142,29 +228,149 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
     return epochs.take(inliers(raw.residual(x).reshape(-1, 3)))
 
 
-class _Refit:
-    """The new log's core refitted with some of the stored effects held at their stored values: ``refit(subset)``
-    gives the whitened (n, 3) and NED (n, 3) nT residuals. ``stored`` is the calibration as it is on the epochs."""
+class _Comparison:
+    """B's core linearised at its fit ``fit`` with the stored effects held (a ``Linearised``), and the
+    held-out blocks ``edges``: residuals (3n,) whitened of readings that differ from the fitted one by
+    effects' contributions, held out and in sample (both linear in the reading)."""
 
-    def __init__(self, epochs, layout: StateLayout, x):
-        self.epochs, self.layout, self.x = epochs, layout, x
-        self.stored = epochs.at(layout, x)
+    def __init__(self, fit, edges: np.ndarray):
+        self.fit, self.edges = fit, edges
+        self.r_with = self.held_out(fit.y)
 
-    def terms(self, subset) -> np.ndarray:
-        """Raw-field contribution (n, 3) nT of the stored effects in ``subset`` at their stored values."""
-        out = np.zeros_like(self.epochs.m)
-        for effect, sl in self.layout.blocks():
-            if effect in subset:
-                out += effect.contribution(self.x[sl], self.stored.data)
-        return out
+    def held_out(self, y: np.ndarray) -> np.ndarray:
+        """The held-out residual (3n,) of the whitened reading ``y`` (3n,): each block's by the core fitted on
+        the others."""
+        return held_out_residual(self.fit.rows, y, self.edges, self.fit.chunks)
 
-    def __call__(self, subset):
-        """Whitened (n, 3) and NED (n, 3) nT residuals with B's core refitted, ``subset`` held fixed."""
-        fixed = self.epochs.less(self.terms(subset))
-        core = StateLayout.with_core()
-        fit = fixed.fit(core, self.x[:12])
-        res_w = fit.residual(fit.x_fit).reshape(-1, 3)
-        return res_w, _ned(fit, res_w)
+    def in_sample(self, y: np.ndarray) -> np.ndarray:
+        """The residual (3n,) of ``y`` (3n,) with the core fitted on all epochs (in the directions the data
+        determine, as ``EpochSet.at``)."""
+        fit, chunks = self.fit, self.fit.chunks
+        moment = sum(fit.rows(a, b).T @ y[3 * a : 3 * b] for a, b in chunks)
+        coef = fit.span @ (fit.span.T @ moment)
+        return y - np.concatenate([fit.rows(a, b) @ coef for a, b in chunks])
+
+    def whitened(self, contribution: np.ndarray) -> np.ndarray:
+        """An effect's contribution (n, 3) nT to the raw reading, whitened as the reading is (3n,)."""
+        return self.fit.whitened(contribution[:, :, None]).ravel()
+
+    def less_all(self, contributions) -> tuple[np.ndarray, np.ndarray]:
+        """Held-out and in-sample residuals (3n,) with the ``contributions`` ((n, 3) nT each) not taken off."""
+        y = self.fit.y + sum((self.whitened(c) for c in contributions), np.zeros_like(self.fit.y))
+        return self.held_out(y), self.in_sample(y)
+
+    def check(self, label: str, contribution: np.ndarray, alpha: float) -> EffectCheck:
+        """The paired held-out comparison of one effect whose contribution (n, 3) nT is held (module's docstring)."""
+        g = self.whitened(contribution)
+        c = self.held_out(g)  # what the effect adds to the held-out residual when it is left out
+        r_with, r_without = self.r_with, self.r_with + c
+        score = _share_test(r_without, c, alpha)
+        fall = np.sum((r_without**2 - r_with**2).reshape(-1, 3), axis=1)
+        per_block = np.add.reduceat(fall, self.edges[:-1])
+        fit = self.fit
+        w, wo = _rms(_ned(fit, r_with.reshape(-1, 3))), _rms(_ned(fit, r_without.reshape(-1, 3)))
+        in_with = fit.r
+        in_without = in_with + self.in_sample(g)
+        return EffectCheck(
+            label,
+            w,
+            wo,
+            (w - wo) / wo,
+            _rms(_ned(fit, in_with.reshape(-1, 3))),
+            _rms(_ned(fit, in_without.reshape(-1, 3))),
+            **score,
+            blocks=len(per_block),
+            blocks_helped=int(np.sum(per_block > 0)),
+            verdict=_verdict(score, alpha),
+        )
+
+
+def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float) -> dict:
+    """The one-degree-of-freedom test that adding ``c`` (3n,) lowers the sum of squares of ``r_without`` (3n,),
+    i.e. that the share ``g = r.c / c.c`` exceeds 1/2 (module's docstring), with its power: ``gain``, ``gain_se``,
+    ``t``, ``dof``, ``p_helps``, ``p_hurts`` and ``detectable`` (``EffectCheck``)."""
+    cc = float(c @ c)
+    none = dict(gain=float("nan"), gain_se=float("inf"), t=0.0, dof=0, p_helps=1.0, p_hurts=1.0, detectable=1.0)
+    if not cc > 0:
+        return none
+    gain = float(r_without @ c) / cc
+    e = r_without - gain * c
+    half_fall = (gain - 0.5) * cc  # half the fall of the sum of squares
+    test = score_test(np.sum((c * e).reshape(-1, 3), axis=1)[:, None], np.array([half_fall]))
+    if test is None:
+        return none
+    sd, dof = float(np.sqrt(test.cov[0, 0])), test.dof_denominator
+    t = half_fall / sd
+    # smallest fall of the sum of squares detected with probability POWER: the noncentrality at which the
+    # one-sided t test rejects that often (normal approximation of the noncentral t)
+    smallest = 2.0 * sd * (special.stdtrit(dof, 1.0 - alpha) + special.stdtrit(dof, POWER))
+    total = float(r_without @ r_without)
+    detectable = 1.0 - np.sqrt(max(1.0 - smallest / total, 0.0))
+    return dict(
+        gain=gain,
+        gain_se=sd / cc,
+        t=float(t),
+        dof=int(dof),
+        p_helps=float(special.stdtr(dof, -t)),
+        p_hurts=float(special.stdtr(dof, t)),
+        detectable=float(detectable),
+    )
+
+
+def _verdict(score: dict, alpha: float) -> str:
+    if score["p_helps"] < alpha:
+        return "helps beyond chance"
+    if score["p_hurts"] < alpha:
+        return "makes the new log worse beyond chance: leave it out"
+    return (
+        f"no difference beyond chance (the test would have detected a fall of {100 * score['detectable']:.1f} % "
+        f"or more with probability {POWER:g})"
+    )
+
+
+def _rate_check(epochs: EpochSet, contributions: dict, effect, x, wander_s) -> WanderCheck:
+    """The rate of the wandering ``effect`` B shows, against the rate it stores (module's docstring): B's core
+    refitted without a heading nuisance (the effects that hold a value held), its residual in sensor axes
+    averaged over stretches of ``wander_s`` s (``_stretch_means``)."""
+    stretch_s = wander_s or WANDER_BLOCK_S
+    plain = epochs.with_wander(None).less(sum(contributions.values(), np.zeros_like(epochs.m)))
+    fit = plain.fit(StateLayout.with_core(), x[:12])
+    found = walk_rate(*_stretch_means(fit, epochs.heading, stretch_s, bool(wander_s)), confidence=RATE_CONFIDENCE)
+    stored = float(np.sqrt(np.mean(np.square(effect.random_walk())))) if effect.size else 0.0
+    if found is None:
+        verdict = "the log is too short to measure a rate: nothing could be tested"
+        nothing = (float("nan"), 0.0, float("inf"), RATE_CONFIDENCE, True, 0)
+        return WanderCheck(effect.label, stored, *nothing, stretch_s, verdict)
+    within = bool(found.low <= stored <= found.high)
+    verdict = (
+        "its path cannot be tested on another log (the values stored are those of the log it was learned on); "
+        f"its rate can: this log shows {found.rate:.3g} nT/sqrt(s) ({100 * RATE_CONFIDENCE:g} % interval "
+        f"{found.low:.3g} to {found.high:.3g}), the file stores {stored:.3g}: "
+        + ("consistent with this log" if within else "not consistent with this log")
+    )
+    interval = (found.rate, found.low, found.high, RATE_CONFIDENCE, within, found.stretches)
+    return WanderCheck(effect.label, stored, *interval, stretch_s, verdict)
+
+
+def _stretch_means(fit, heading: np.ndarray, stretch_s: float, drop_heading: bool) -> tuple:
+    """``walk_rate``'s inputs from the residual of the core fit ``fit`` (a ``Linearised`` without heading
+    nuisance): its means (K, 3) nT in sensor axes over stretches of ``stretch_s`` s, their starts and ends (K,)
+    s and epochs (K,), and (``drop_heading``) the heading's direction in sensor axes in each (K, 3), which is
+    left out (the logged heading's error moves the reading along it; None: not). Stretches cut to less than
+    half the usual by gaps are left out."""
+    raw = np.einsum("nij,nj->ni", fit.unwhitening, fit.r.reshape(-1, 3))
+    t = fit.data.time
+    stretch = np.floor((t - t[0]) / stretch_s).astype(int)
+    starts = np.flatnonzero(np.r_[True, np.diff(stretch) != 0])
+    counts = np.diff(np.r_[starts, len(t)])
+    keep = counts >= 0.5 * np.median(counts)
+    means = np.add.reduceat(raw, starts, axis=0) / counts[:, None]
+    ends = np.r_[t[starts[1:] - 1], t[-1]] + float(np.median(np.diff(t)))
+    drop = None
+    if drop_heading:
+        axis = np.add.reduceat(heading @ fit.layout.R(fit.x_fit).T, starts, axis=0)[keep]
+        drop = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    return means[keep], t[starts][keep], ends[keep], counts[keep], drop
 
 
 def _ned(fit, residual_w, x=None) -> np.ndarray:
@@ -178,31 +384,14 @@ def _rms(ned: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
 
 
-def _check(label, with_w, without_w, with_ned, without_ned, edges, alpha) -> EffectCheck:
-    """The blocked paired comparison of one effect (see the module's docstring)."""
-    sq_with, sq_without = np.sum(with_w**2, axis=1), np.sum(without_w**2, axis=1)
-    d = np.array([np.sum(sq_without[a:b] - sq_with[a:b]) for a, b in zip(edges[:-1], edges[1:])])
-    k = len(d)
-    sd = float(np.std(d, ddof=1)) if k > 1 else 0.0
-    t = float(np.mean(d) / (sd / np.sqrt(k))) if sd > 0 else 0.0
-    # Student's t with k - 1 dof (scipy.stats.t.sf and .cdf are these, without that module's import time)
-    p_helps = float(special.stdtr(k - 1, -t)) if k > 1 else 1.0
-    p_hurts = float(special.stdtr(k - 1, t)) if k > 1 else 1.0
-    w, wo = _rms(with_ned), _rms(without_ned)
-    if p_helps < alpha:
-        verdict = "helps beyond chance"
-    elif p_hurts < alpha:
-        verdict = "makes the new log worse beyond chance: leave it out"
-    else:
-        verdict = "no difference beyond chance"
-    return EffectCheck(label, w, wo, (w - wo) / wo, t, k, p_helps, p_hurts, verdict)
-
-
-def _describe(checks, as_stored, with_effects, core_only, alpha) -> str:
+def _with_text(v: Validation) -> Validation:
+    """``v`` with its text: the residuals, each effect's change and verdict, each wandering effect's rate."""
     text = (
-        f"as stored {as_stored:.1f} nT; with the core refitted on this log {with_effects:.1f} nT with the stored "
-        f"effects, {core_only:.1f} nT without them"
+        f"as stored {v.as_stored_nt:.1f} nT; with the core refitted on this log (held out over {v.blocks} blocks) "
+        f"{v.with_effects_nt:.1f} nT with the stored effects, {v.core_only_nt:.1f} nT without them"
     )
-    for c in checks:
-        text += f"; {c.effect}: {100 * c.change:+.1f} % ({c.verdict}, alpha {alpha:g})"
-    return text
+    for c in v.effects:
+        text += f"; {c.effect}: {100 * c.change:+.1f} % held out ({c.verdict}, alpha {v.alpha:g})"
+    for w in v.wandering:
+        text += f"; {w.effect} wanders: {w.verdict}"
+    return Validation(**{**vars(v), "text": text})
