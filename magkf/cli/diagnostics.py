@@ -30,7 +30,7 @@ def add_parsers(sub) -> None:
     p = common.command(sub, "validate", run_validate, "a calibration learned on one log, checked on another")
     common.add_log_options(p)
     p.add_argument("--cal", required=True, help="calibration JSON learned on another log (with its effects)")
-    common.add_diagnosis_options(p, "level of each effect's one-sided test")
+    common.add_diagnosis_options(p, "level of each effect's one-sided held-out test")
     common.add_filter_options(p)
     common.add_effect_file_option(p)
     common.add_output_options(p, "validation (JSON)")
@@ -187,9 +187,10 @@ def _verdict(run) -> str:
 
 def run_validate(args) -> int:
     """Check a calibration learned on another log (or another part of the flight) on this log: the residual as
-    stored, with the core refitted here with and without the stored effects, and for each effect whether it
-    helps here beyond chance (a one-sided t test over blocks longer than the residual's correlation)."""
-    from ..diagnostics.validate import validate
+    stored, and held out (each block's residual with the core refitted on the other blocks) with and without the
+    stored effects; for each effect whether it helps here beyond chance (a correlation-robust paired test of its
+    predicted contribution) and the smallest fall the test would detect; for a wandering effect, its rate."""
+    from ..diagnostics.validate import POWER, validate
 
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
@@ -201,17 +202,31 @@ def run_validate(args) -> int:
         return 0
     print(
         f"validation of {args.cal} on {args.file}: {result.n_epochs} epochs; residual RMS as stored "
-        f"{result.as_stored_nt:.2f} nT; core refitted here: {result.with_effects_nt:.2f} nT with the stored effects, "
-        f"{result.core_only_nt:.2f} nT without (correlated over {result.correlation_s:.2g} s)"
+        f"{result.as_stored_nt:.2f} nT; core refitted here, held out over {result.blocks} blocks: "
+        f"{result.with_effects_nt:.2f} nT with the stored effects, {result.core_only_nt:.2f} nT without "
+        f"(in sample {result.with_effects_in_sample_nt:.2f} and {result.core_only_in_sample_nt:.2f} nT; "
+        f"correlated over {result.correlation_s:.2g} s)"
     )
     if result.effects:
-        print(f"  {'effect':28s} {'with':>10s} {'without':>10s} {'change':>8s} {'p helps':>9s} {'p hurts':>9s}")
+        print(
+            f"  {'effect':28s} {'with':>10s} {'without':>10s} {'change':>8s} {'share':>11s} {'p helps':>9s} "
+            f"{'p hurts':>9s} {'detects':>8s}"
+        )
     for c in result.effects:
         print(
             f"  {c.effect:28s} {c.with_nt:7.2f} nT {c.without_nt:7.2f} nT {100 * c.change:+7.1f}% "
-            f"{c.p_helps:9.2g} {c.p_hurts:9.2g}  {c.verdict}"
+            f"{c.gain:5.2f}+-{c.gain_se:4.2f} {c.p_helps:9.2g} {c.p_hurts:9.2g} {100 * c.detectable:7.1f}%  "
+            + c.verdict.split(" (")[0]
         )
-    if not result.effects:
+    if result.effects:
+        print(
+            f"  (held-out RMS; share: how much of the predicted contribution this log shows, 1 as predicted, above "
+            f"0.5 it helps; detects: the smallest fall of the residual the test finds with probability {POWER:g} "
+            f"at alpha {args.alpha:g})"
+        )
+    for w in result.wandering:
+        print(f"  {w.effect} wanders: {w.verdict}")
+    if not result.effects and not result.wandering:
         print("  the calibration stores no effect: only the core was checked")
     return 0
 
