@@ -508,13 +508,11 @@ def walk_rate(means, start, stop, counts, drop=None, confidence: float = 0.95) -
     yt, Xt = Q.T @ y, Q.T @ X
     n_free = K * m - 3
     ratios = np.r_[0.0, WALK_RATIOS]
-    loglik, noise = np.empty(len(ratios)), np.empty(len(ratios))
-    for i, ratio in enumerate(ratios):
-        w = 1.0 / (ratio * d + 1.0)
-        normal = Xt.T @ (w[:, None] * Xt)
-        beta = np.linalg.solve(normal, Xt.T @ (w * yt))
-        noise[i] = float(np.sum(w * (yt - Xt @ beta) ** 2)) / n_free
-        loglik[i] = -0.5 * (n_free * np.log(noise[i]) - np.sum(np.log(w)) + np.linalg.slogdet(normal)[1])
+    w = 1.0 / (ratios[:, None] * d + 1.0)  # (ratios, N): the inverse covariance's eigenvalues, noise as unit
+    normal = np.einsum("rn,ni,nj->rij", w, Xt, Xt)
+    beta = np.linalg.solve(normal, ((w * yt) @ Xt)[..., None])[..., 0]
+    noise = np.sum(w * (yt - beta @ Xt.T) ** 2, axis=1) / n_free
+    loglik = -0.5 * (n_free * np.log(noise) - np.sum(np.log(w), axis=1) + np.linalg.slogdet(normal)[1])
     rates = np.sqrt(ratios * noise / span)
     best = int(np.argmax(loglik))
     inside = 2.0 * (loglik[best] - loglik) <= special.chdtri(1, 1.0 - confidence)
