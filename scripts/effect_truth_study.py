@@ -5,6 +5,9 @@ applied as ``magkf apply`` does, and the calibrated field compared with the true
 
     python scripts/effect_truth_study.py [--seeds 3] [--minutes 10] [--rate 10] [--jobs 2] [--out DIR]
 
+The default matrix (7 effects x 2 motions x 2 noises x 3 seeds, and 20 null logs: 104 logs of 10 minutes at
+10 Hz) takes about 4 minutes with ``--jobs 2`` on two cores.
+
 A log is magkf's simulator's (drone ``3d`` or car ``planar`` motion; white noise, or Gauss-Markov noise of
 2 s with the logged yaw wandering by 0.2 deg; 30 nT noise; the simulator's six disturbances) without effects,
 plus the hidden effect's contribution written from its physics and, with ``--early-disturbance on``, a
@@ -14,7 +17,9 @@ The truth-judged residual of a calibration file is the RMS (nT, of the vector: `
 states its residuals) of ``e = field - B_true`` over the clean epochs: ``field`` the calibrated body field
 ``apply`` gives, ``B_true`` the true Earth field along the true attitude, the clean epochs those with status
 ``ok`` at least a second away from every disturbance. Its floor is the RMS of the sensor noise seen through
-the true calibration, ``R^-1 n``, on the same epochs: what a perfect calibration leaves. The calibration's own
+the true calibration, ``R^-1 n``, on the same epochs: what a perfect calibration leaves. ``B_true`` is the
+reference's own field: ``apply`` takes a stored field anomaly out, so a file without it is judged with the
+anomaly it leaves in. The calibration's own
 error, ``e`` less the noise seen through the calibration, is reported as well (``err_*``).
 
 "Reaching the noise level" is judged against the same log with the hidden effect taken out, calibrated without
