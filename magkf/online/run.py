@@ -27,7 +27,7 @@ from .noise import ESTIMATE_EVERY_S
 from .prepare import PreparedLog, RunSetup, prepare, prepare_run
 from .results import CalibrationRun, RunTrace, build_run
 from .smoother import rts_smooth
-from .whole_log import WholeLogFit, filter_estimate, fit_whole_log, wandering
+from .whole_log import WholeLogFit, fit_whole_log, wandering
 
 __all__ = ["calibrate_log", "filter_trace", "ForwardPass", "blocks", "terminal_progress"]
 
@@ -153,14 +153,17 @@ def filter_trace(
 
 def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updated, config, init, reference, step_s):
     """The whole-log estimate (``whole_log.fit_whole_log``) over the epochs the filter updated with (``status``,
-    ``updated`` (N,)), with ``whole_log_options``; the filter's estimate where an effect wanders."""
+    ``updated`` (N,)), with ``whole_log_options``; where an effect wanders, with its departure a zero-mean
+    path (``drift_path.fit_with_drift``: ``b`` the offset's mean, the path and its learned rate)."""
     from ..status import Status
 
-    moving = wandering(setup.layout)
-    if moving:
-        return filter_estimate(est.x, est.P, moving)
     used = updated & ((status == Status.USED) | (status == Status.MISSING_ATTITUDE))
     options = whole_log_options(setup, est, config, held_reference(log, init, reference), step_s, log.source)
+    moving = wandering(setup.layout)
+    if moving:
+        from .drift_path import fit_with_drift
+
+        return fit_with_drift(prep, setup.layout, est.x, est.P, used, moving, **options)
     return fit_whole_log(prep, setup.layout, est.x, used, **options)
 
 

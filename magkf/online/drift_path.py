@@ -1,0 +1,399 @@
+"""The whole-log estimate of a layout with a wandering offset (``bias_drift``): ``b`` as the offset's mean over the
+log, the drift's smoothed path and its learned rate.
+
+A drifting offset is ``b + d(t)``, its departure ``d`` a random walk of ``walk`` nT/sqrt(s) on each sensor axis.
+No constant describes it, and the filter's last value of ``d`` is the departure at the end of the log only: a
+calibration file that stored it shifted every epoch by it. Here the departure is a zero-mean path, and
+
+1. the core and the other effects are the whole-log estimate (``whole_log.fit_whole_log``, its family choice and
+   covariance) of the readings less the path, so ``b`` is the offset's mean over the epochs used;
+2. the residual ``r = m - R B_body - b - e`` of those epochs (sensor axes, nT) is averaged in bins of ``BIN_S``
+   seconds (at least ``MIN_BIN_EPOCHS`` epochs) and is taken as a *local level* per axis: ``r_k = d(t_k) + e_k``,
+   ``d`` a random walk of variance ``q dt``, ``e_k`` white with variance ``s c_k`` (``c_k`` each axis's variance
+   within the bins over the bin's epochs; ``s`` one scale for all axes, learned, which takes up a correlation of
+   the residuals shorter than a bin). The filter's learned correlation time is not used: the filter's residuals
+   hold the part of the drift its random walk did not follow (on a 10-minute drive with a drift of 2 nT/sqrt(s)
+   and white noise it learned 17 s);
+3. ``q = walk^2`` is learned by maximising the exact marginal likelihood of the bins (Kalman filter with a
+   diffuse start, ``s`` concentrated out) over a grid in ``log q``, refined about its maximum; its 95 % interval
+   is where twice the log-likelihood is within ``CHI2_95`` (one degree of freedom) of its maximum;
+4. the path is the Rauch-Tung-Striebel smoothed level at the learned rate, made zero-mean over the epochs used
+   (its mean is ``b``'s), and steps 1 and 2 are repeated with it (``ROUNDS``).
+
+The path is kept at knots (``KNOTS_PER_SCALE`` per smoothing time ``sqrt(noise per s / q)``, at most ``MAX_KNOTS``)
+with its standard deviation, the log's time span and a fingerprint (first and last time, epoch count):
+``magkf apply`` subtracts it on the log it was learned on and predicts the mean (zero departure) with a growing
+uncertainty elsewhere (``path_terms``). The whole-log machinery is reused as it is; nothing here solves for
+``R`` or ``b``.
+
+The bins' noise model is exact for white residuals; a residual correlated over longer than a bin is partly taken
+for wander (the rate learned is then too large). The walk within a bin (``q BIN_S / 12`` of variance) is left
+out of the bin's noise: under 1 % of it for rates below 3 nT/sqrt(s) at 30 nT of noise and 10 Hz.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .state import StateLayout
+from .whole_log import WholeLogFit, filter_estimate, fit_whole_log
+
+__all__ = [
+    "Binned",
+    "WalkRate",
+    "DriftPath",
+    "bin_residuals",
+    "profile_log_likelihood",
+    "learn_walk",
+    "smooth_level",
+    "fit_with_drift",
+    "path_terms",
+    "BIN_S",
+    "ROUNDS",
+]
+
+#: Bin length of the residuals (s), at least ``MIN_BIN_EPOCHS`` epochs; at most ``MAX_BINS`` bins over the log.
+BIN_S = 1.0
+MIN_BIN_EPOCHS = 4
+MAX_BINS = 4000
+#: Bins needed to learn a rate (fewer: the effect's own ``walk`` is kept, said not learned).
+MIN_BINS = 20
+#: The grid of ``q`` (nT^2/s): ``log10 q`` from ``Q_DECADES[0]`` to ``Q_DECADES[1]``, ``COARSE`` points a decade,
+#: then ``FINE`` points a decade over ``REFINE_DECADES`` either side of the coarse maximum.
+Q_DECADES = (-6.0, 6.0)
+COARSE = 6
+FINE = 40
+REFINE_DECADES = 0.75
+#: Twice the log-likelihood's drop at the edge of a 95 % interval (chi-square, one degree of freedom).
+CHI2_95 = 3.841
+#: Rounds of whole-log fit and path.
+ROUNDS = 2
+#: Knots of the stored path: per smoothing time, and at most.
+KNOTS_PER_SCALE = 2.0
+MAX_KNOTS = 1000
+
+
+@dataclass(frozen=True)
+class Binned:
+    """Residuals averaged in bins: ``time`` (K,) UNIX s (the epochs' mean), ``y`` (K, 3) nT, ``c`` (K, 3) nT^2
+    the variance of each bin's mean up to one scale, ``counts`` (K,) epochs."""
+
+    time: np.ndarray
+    y: np.ndarray
+    c: np.ndarray
+    counts: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+
+@dataclass(frozen=True)
+class WalkRate:
+    """The learned random walk: ``value`` nT/sqrt(s), its standard deviation (from the width of the 95 %
+    interval of ``log q``), the 95 % interval ``(low, high)`` (``low`` 0 where the likelihood does not fall
+    below the grid), ``scale`` the bins' noise scale ``s`` (1 when the within-bin variance is the bins' noise) and
+    ``learned`` False where the log had too few bins."""
+
+    value: float
+    std: float
+    interval: tuple
+    scale: float
+    learned: bool = True
+
+
+@dataclass(frozen=True)
+class DriftPath:
+    """A wandering offset's departure from ``b`` over the log: ``time`` (K,) UNIX s knots, ``values`` (K, 3) nT,
+    ``std`` (K, 3) nT, the log's ``span`` ``(first, last)`` UNIX s and epoch count ``n_epochs``, its ``rate``."""
+
+    time: np.ndarray
+    values: np.ndarray
+    std: np.ndarray
+    span: tuple
+    n_epochs: int
+    rate: WalkRate
+
+    def departure_rms(self) -> np.ndarray:
+        """(3,) nT the path's RMS per axis (its mean is zero): how far the offset departs from ``b``."""
+        return np.sqrt(np.mean(self.values**2, axis=0))
+
+    def record(self, label: str) -> dict:
+        """The JSON-ready record a calibration file keeps with the effect ``label`` (see docs/data-contract.md)."""
+        r = self.rate
+        return {
+            "effect": label,
+            "walk": {
+                "value": r.value,
+                "std": r.std,
+                "interval_95": [r.interval[0], r.interval[1]],
+                "unit": "nT/sqrt(s)",
+                "learned": r.learned,
+            },
+            "departure": {"mean": [0.0, 0.0, 0.0], "rms": self.departure_rms().tolist(), "unit": "nT"},
+            "span": [float(self.span[0]), float(self.span[1])],
+            "fingerprint": {"first": float(self.span[0]), "last": float(self.span[1]), "n_epochs": self.n_epochs},
+            "path": {"time": self.time.tolist(), "values": self.values.tolist(), "std": self.std.tolist()},
+        }
+
+
+# ------------------------------------------------------------------ the bins
+
+
+def bin_length(time: np.ndarray) -> float:
+    """The bins' length (s) for epochs at ``time`` (N,) UNIX s."""
+    step = float(np.median(np.diff(time))) if len(time) > 1 else 1.0
+    span = float(time[-1] - time[0]) if len(time) > 1 else 1.0
+    return max(BIN_S, MIN_BIN_EPOCHS * step, span / MAX_BINS)
+
+
+def bin_residuals(time, r, length_s: float) -> Binned:
+    """Residuals ``r`` (N, 3) nT at ``time`` (N,) UNIX s averaged in bins of ``length_s``: each bin's mean, and the
+    variance of that mean up to one scale, each axis's pooled within-bin variance over the bin's epochs. Bins of
+    one epoch are dropped."""
+    time = np.asarray(time, float)
+    index = np.floor((time - time[0]) / length_s).astype(np.int64)
+    _, start, counts = np.unique(index, return_index=True, return_counts=True)
+    keep = counts >= 2
+    sums = np.add.reduceat(r, start, axis=0)
+    means = sums / counts[:, None]
+    deviation = r - np.repeat(means, counts, axis=0)
+    own = np.repeat(keep, counts)
+    dof = max(int(counts[keep].sum() - keep.sum()), 1)
+    within = (deviation[own] ** 2).sum(axis=0) / dof  # (3,)
+    t_mean = np.add.reduceat(time, start) / counts
+    n = counts[keep].astype(float)
+    c = within[None, :] / n[:, None]
+    return Binned(t_mean[keep], means[keep], c, counts[keep])
+
+
+# ------------------------------------------------------------------ the rate
+
+
+def profile_log_likelihood(binned: Binned, rho) -> tuple[np.ndarray, np.ndarray]:
+    """``(W, logdet)`` (G,) of the bins under a walk of ``rho`` (G,) per s in units of the bins' noise scale:
+    ``sum nu^2 / F`` and ``sum log F`` over the bins after the first and the axes of the local-level Kalman filter
+    with noise ``c`` (diffuse start: the first bin's level is its reading). With the scale ``s``, the marginal
+    log-likelihood of ``q = rho s`` is ``-(m log s + logdet + W / s) / 2`` up to a constant, ``m`` the terms."""
+    y, c = binned.y, binned.c
+    dt = np.diff(binned.time)
+    rho = np.asarray(rho, float)
+    level = np.broadcast_to(y[0], (len(rho), 3)).copy()
+    var = np.broadcast_to(c[0], (len(rho), 3)).copy()
+    weighted, logdet = np.zeros(len(rho)), np.zeros(len(rho))
+    walk = rho[:, None]
+    for k in range(1, len(y)):
+        predicted = var + walk * dt[k - 1]
+        F = predicted + c[k]
+        nu = y[k] - level
+        weighted += (nu * nu / F).sum(axis=1)
+        logdet += np.log(F).sum(axis=1)
+        gain = predicted / F
+        level += gain * nu
+        var = predicted * c[k] / F
+    return weighted, logdet
+
+
+def learn_walk(binned: Binned, default_walk: float) -> WalkRate:
+    """The walk (nT/sqrt(s)) that maximises the bins' marginal likelihood, with its 95 % interval from the
+    profile likelihood of ``q`` (the scale maximised at each ``q``); the effect's ``default_walk`` (not learned)
+    when there are fewer than ``MIN_BINS`` bins."""
+    if len(binned) < MIN_BINS:
+        return WalkRate(float(default_walk), float("nan"), (float("nan"), float("nan")), 1.0, learned=False)
+    m = 3 * (len(binned) - 1)
+    lo, hi = Q_DECADES
+    grid = np.linspace(lo, hi, int((hi - lo) * COARSE) + 1)  # log10 rho
+    W, logdet = profile_log_likelihood(binned, 10.0**grid)
+    centre = grid[int(np.argmax(-(m * np.log(W / m) + logdet)))]
+    fine = np.linspace(centre - REFINE_DECADES, centre + REFINE_DECADES, int(2 * REFINE_DECADES * FINE) + 1)
+    W_f, logdet_f = profile_log_likelihood(binned, 10.0**fine)
+    grid, order = np.unique(np.concatenate([grid, fine]), return_index=True)
+    W, logdet = np.concatenate([W, W_f])[order], np.concatenate([logdet, logdet_f])[order]
+    best = int(np.argmax(-(m * np.log(W / m) + logdet)))
+    scale = float(W[best] / m)
+    log_q = grid + np.log10(scale)  # the profile of q on the same points, the scale maximised at each
+    s = 10.0 ** (log_q[:, None] - grid[None, :])  # (q, rho): the scale that makes rho s = q
+    ll = np.max(-0.5 * (m * np.log(s) + logdet[None, :] + W[None, :] / s), axis=1)
+    top = int(np.argmax(ll))
+    drop = 2.0 * (ll[top] - ll)
+    low, high = _crossing(log_q, drop, top, -1), _crossing(log_q, drop, top, +1)
+    walk = float(np.sqrt(10.0 ** log_q[top]))
+    if np.isfinite(low):
+        std_log_q = (high - low) * np.log(10.0) / (2.0 * 1.96)
+    else:  # one-sided: the upper half-width stands for both
+        std_log_q = (high - log_q[top]) * np.log(10.0) / 1.96
+    interval = (float(np.sqrt(10.0**low)) if np.isfinite(low) else 0.0, float(np.sqrt(10.0**high)))
+    return WalkRate(walk, walk * std_log_q / 2.0, interval, scale)
+
+
+def _crossing(grid, drop, top: int, direction: int) -> float:
+    """``log10 q`` where ``drop`` (twice the log-likelihood's fall from its maximum at ``grid[top]``) first reaches
+    ``CHI2_95`` going ``direction`` from ``top``, linearly interpolated; -inf (below) or the grid's end (above)
+    where it never does."""
+    order = np.arange(top, -1 if direction < 0 else len(grid), direction)
+    over = order[drop[order] >= CHI2_95]
+    if not len(over):
+        return float("-inf") if direction < 0 else float(grid[-1])
+    j = int(over[0])
+    i = j - direction
+    return float(grid[i] + (grid[j] - grid[i]) * (CHI2_95 - drop[i]) / (drop[j] - drop[i]))
+
+
+# ------------------------------------------------------------------ the path
+
+
+def smooth_level(binned: Binned, q: float, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Rauch-Tung-Striebel smoothed level (K, 3) nT and its variance (K, 3) nT^2 of the bins under a walk
+    ``q`` nT^2/s and the bins' noise ``scale * c``."""
+    y, c = binned.y, binned.c * scale
+    dt = np.diff(binned.time)
+    K = len(y)
+    level, var, predicted = np.empty((K, 3)), np.empty((K, 3)), np.empty((K, 3))
+    level[0], var[0], predicted[0] = y[0], c[0], np.inf
+    for k in range(1, K):
+        predicted[k] = var[k - 1] + q * dt[k - 1]
+        gain = predicted[k] / (predicted[k] + c[k])
+        level[k] = level[k - 1] + gain * (y[k] - level[k - 1])
+        var[k] = predicted[k] * (1.0 - gain)
+    for k in range(K - 2, -1, -1):
+        back = var[k] / predicted[k + 1]
+        level[k] = level[k] + back * (level[k + 1] - level[k])
+        var[k] = var[k] + back**2 * (var[k + 1] - predicted[k + 1])
+    return level, var
+
+
+def _knots(binned: Binned, q: float, scale: float) -> np.ndarray:
+    """Indices (k,) of the bins kept as the stored path's knots: ``KNOTS_PER_SCALE`` per smoothing time
+    ``sqrt(noise per s / q)`` (s), at most ``MAX_KNOTS``, the first and last always."""
+    K = len(binned)
+    span = float(binned.time[-1] - binned.time[0]) if K > 1 else 1.0
+    length = span / max(K - 1, 1)
+    noise_per_s = float(np.median(binned.c.mean(axis=1))) * scale * length
+    smoothing_s = np.sqrt(noise_per_s / max(q, 1e-12))
+    wanted = min(max(span / (smoothing_s / KNOTS_PER_SCALE), 1.0), MAX_KNOTS - 1, K - 1)
+    return np.unique(np.round(np.linspace(0, K - 1, int(wanted) + 1)).astype(np.int64))
+
+
+def _drift_path(binned: Binned, rate: WalkRate, time, weights, span, n_epochs) -> tuple[DriftPath, np.ndarray]:
+    """The zero-mean path at the rate learned, and its values (N, 3) at the epochs ``time`` (N,) whose ``weights``
+    (N,) make the mean (the epochs used)."""
+    level, var = smooth_level(binned, rate.value**2, rate.scale)
+    at_epochs = np.column_stack([np.interp(time, binned.time, level[:, i]) for i in range(3)])
+    mean = np.average(at_epochs, axis=0, weights=weights)
+    knots = _knots(binned, rate.value**2, rate.scale)
+    path = DriftPath(binned.time[knots], level[knots] - mean, np.sqrt(var[knots]), span, n_epochs, rate)
+    return path, at_epochs - mean
+
+
+# ------------------------------------------------------------------ the whole-log estimate
+
+
+def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, **options) -> WholeLogFit:
+    """The whole-log estimate of ``layout`` whose effects ``labels`` wander (see the module), over the ``used``
+    epochs (N,) of ``prep``, from the filter's last state ``x_filter`` (n,), ``P_filter`` (n, n), with the
+    options of ``whole_log.fit_whole_log``: ``x`` (n,) with the
+    core and the other effects at the whole-log fit and the wandering block at zero (the mean departure), ``P``
+    (n, n) with the block's variance the path's mean square (the spread a start from the file allows), and
+    the ``model`` record with ``wandering`` (label -> ``DriftPath.record``). Falls back to the filter's state
+    (``whole_log.filter_estimate``) for what it does not model: a wandering effect that is not an offset on
+    each axis, two of them, or the magnitude alone."""
+    drift = _offset_block(layout, labels)
+    if drift is None or not options.get("vector", True):
+        return filter_estimate(x_filter, P_filter, labels)
+    effect, block = drift
+    still = StateLayout(tuple(e for e in layout.effects if e is not effect))
+    keep = np.ones(layout.size, bool)
+    keep[block] = False
+    x_still = np.asarray(x_filter, float)[keep]
+    used = np.asarray(used, bool) & prep.has_attitude
+    idx = np.flatnonzero(used)
+    departure = np.zeros((len(prep), 3))
+    for _ in range(ROUNDS):
+        fit = fit_whole_log(replace(prep, m=prep.m - departure), still, x_still, used, **options)
+        x_still = fit.x
+        r = _residuals(prep, still, fit.x, idx)
+        binned = bin_residuals(prep.time[idx], r, bin_length(prep.time[idx]))
+        rate = learn_walk(binned, float(np.sqrt(effect.random_walk()[0] ** 2)))
+        span = (float(prep.time[0]), float(prep.time[-1]))
+        path, at_used = _drift_path(binned, rate, prep.time[idx], np.ones(len(idx)), span, len(prep))
+        departure = np.column_stack([np.interp(prep.time, path.time, path.values[:, i]) for i in range(3)])
+    return _with_block(fit, layout, keep, block, path, effect.label)
+
+
+def _offset_block(layout: StateLayout, labels):
+    """``(effect, slice)`` of the one wandering effect of ``labels`` that adds an offset on each sensor axis
+    (three linear parameters, Jacobian the identity), or None."""
+    found = [(e, sl) for e, sl in layout.blocks() if e.label in labels]
+    if len(found) != 1 or len(labels) != 1:
+        return None
+    effect, sl = found[0]
+    if effect.size != 3 or not effect.linear or not hasattr(effect, "design"):
+        return None
+    probe = effect.design(_probe_data())
+    return (effect, sl) if np.allclose(probe, np.eye(3)) else None
+
+
+def _probe_data():
+    """Two epochs of plausible data to check an effect's regressors on."""
+    from ..effects.base import EpochData
+
+    field = np.array([[20000.0, 1000.0, 43000.0], [-5000.0, 19000.0, 43000.0]])
+    return EpochData(np.array([0.0, 1.0]), field, field)
+
+
+def _residuals(prep, layout: StateLayout, x, idx) -> np.ndarray:
+    """``m - R B_body - b - e`` (k, 3) nT at the epochs ``idx`` (k,), sensor axes: the offset's departure and
+    the noise."""
+    data = prep.data.take(idx)
+    terms = layout.effect_terms(x, data) if layout.has_extra else 0.0
+    R, b = layout.R_b(x)
+    return prep.m[idx] - data.field_body @ R.T - b - terms
+
+
+def _with_block(fit: WholeLogFit, layout: StateLayout, keep, block, path: DriftPath, label: str) -> WholeLogFit:
+    """``fit`` of the layout without the wandering block made one of ``layout``: the block at zero, its variance
+    the path's mean square plus its mean variance, no covariance with the rest; the path in the record."""
+    n = layout.size
+    x = np.zeros(n)
+    x[keep] = fit.x
+    P = np.zeros((n, n))
+    P[np.ix_(keep, keep)] = fit.P
+    spread = np.mean(path.values**2 + path.std**2, axis=0)
+    P[block, block] = np.diag(np.maximum(spread, 1e-12))
+    rate = path.rate
+    words = (
+        f"{label} wanders: b is the offset's mean over the log, the departure's smoothed path is kept for this log "
+        f"({len(path.time)} knots); rate {rate.value:.3g} nT/sqrt(s)"
+        + (" learned" if rate.learned else " as set (too short a log to learn it)")
+    )
+    record = dict(fit.model, text=f"{fit.model['text']}; {words}", wandering={label: path.record(label)})
+    return replace(fit, x=x, P=P, model=record)
+
+
+# ------------------------------------------------------------------ applying a stored path
+
+
+def path_terms(wander: dict | None, time) -> tuple[np.ndarray, np.ndarray]:
+    """The departure (N, 3) nT a stored wandering effect adds at ``time`` (N,) UNIX s, and its standard deviation
+    (N,) nT (RMS over the axes): within the stored path's span, the path interpolated and its own standard
+    deviation; outside it, zero (the offset's mean, ``b``) with the uncertainty of that prediction,
+    ``sqrt(rms^2 + walk^2 |t - nearest end of the span|)`` (``rms`` the path's spread about ``b``). ``wander``
+    None (a file without a path): zero departure, NaN standard deviation."""
+    time = np.asarray(time, float)
+    if wander is None:
+        return np.zeros((len(time), 3)), np.full(len(time), np.nan)
+    path = wander["path"]
+    knots = np.asarray(path["time"], float)
+    values, std = np.asarray(path["values"], float), np.asarray(path["std"], float)
+    first, last = (float(v) for v in wander["span"])
+    inside = (time >= first) & (time <= last)
+    out = np.zeros((len(time), 3))
+    sd = np.empty(len(time))
+    for i in range(3):
+        out[inside, i] = np.interp(time[inside], knots, values[:, i])
+    sd[inside] = np.sqrt(np.mean([np.interp(time[inside], knots, std[:, i] ** 2) for i in range(3)], axis=0))
+    away = np.maximum(first - time, time - last)[~inside]
+    spread = float(np.mean(np.asarray(wander["departure"]["rms"], float) ** 2))
+    sd[~inside] = np.sqrt(spread + float(wander["walk"]["value"]) ** 2 * away)
+    return out, sd
