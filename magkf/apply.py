@@ -10,7 +10,7 @@ from .conventions import declination_deg, magnetic_heading_deg
 from .errors import names_the_log
 from .io.drivelog import DriveLog
 
-__all__ = ["COLUMNS", "apply_calibration", "effect_terms"]
+__all__ = ["COLUMNS", "apply_calibration", "effect_terms", "drift_terms"]
 
 #: Output columns of ``apply_calibration`` besides the time index.
 COLUMNS = (
@@ -28,19 +28,55 @@ COLUMNS = (
 def effect_terms(log: DriveLog, cal: Calibration) -> np.ndarray:
     """The raw-field contribution (N, 3) nT of the physical effects ``cal`` stores, at their stored values,
     at every epoch of ``log`` (NaN where an effect lacks its input: a channel, or the attitude and reference
-    of the effects of the body field); zeros when it stores none. User effects must be registered
+    of the effects of the body field); zeros when it stores none. A wandering effect (``bias_drift``) adds its
+    departure from ``b`` as ``drift_terms`` gives it, never its stored value. User effects must be registered
     (``load_effect_file``)."""
+    return _terms(log, cal)[0]
+
+
+def drift_terms(time, cal: Calibration, wandering=None, mag=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The departure (N, 3) nT from ``b`` of the wandering effects ``cal`` stores at ``time`` (N,) UNIX s, and its
+    standard deviation (N,) nT (None when ``cal`` stores no wandering effect): on the log a stored path was learned
+    on (``time`` within its span), the path; elsewhere the offset's mean, zero departure, with an uncertainty
+    growing as the walk from the path's end (``magkf.online.drift_path.path_terms``). A file written before paths
+    were stored holds the drift's last value: it is not applied (zero departure) and the uncertainty is unknown
+    (NaN). ``wandering`` (k,) bool: which of ``cal.effects`` wander (None: rebuilt from the file); ``mag`` (N, 3) nT
+    the log's raw readings, by which the log a path was learned on is told from another of the same times (None:
+    by the times alone)."""
+    from .online.drift_path import path_terms
+
+    if wandering is None:
+        from .effects import restore_effects
+
+        wandering = [e.wanders for e in restore_effects(cal)]
+    time = np.asarray(time, float)
+    total, variance, any_wander = np.zeros((len(time), 3)), np.zeros(len(time)), False
+    for stored, wanders in zip(cal.effects, wandering):
+        if wanders:
+            departure, std = path_terms(stored.wander, time, mag)
+            total, variance, any_wander = total + departure, variance + std**2, True
+    return total, (np.sqrt(variance) if any_wander else None)
+
+
+def _terms(log: DriveLog, cal: Calibration) -> tuple[np.ndarray, np.ndarray | None]:
+    """``effect_terms`` (N, 3) nT and the wandering effects' standard deviation (N,) nT or None (``drift_terms``)."""
     if not cal.effects:
-        return np.zeros((len(log.table), 3))
+        return np.zeros((len(log.table), 3)), None
     from .config import FilterConfig
     from .effects import restore_effects
     from .online.prepare import prepare, with_initial_R
     from .online.state import StateLayout
 
-    layout = StateLayout.with_core(restore_effects(cal))
-    x = cal.full_state
+    effects = restore_effects(cal)
+    layout = StateLayout.with_core(effects)
+    x = cal.full_state.copy()
+    for effect, sl in layout.blocks():
+        if effect.wanders:  # its departure comes from its path, never from a stored (last) value
+            x[sl] = 0.0
     prep = with_initial_R(prepare(log, FilterConfig()), x)
-    return layout.extra_terms(x, layout.linear_jacobian(prep.data), prep.data)
+    terms = layout.extra_terms(x, layout.linear_jacobian(prep.data), prep.data)
+    departure, std = drift_terms(log.time, cal, [e.wanders for e in effects], log.mag)
+    return terms + departure, std
 
 
 @names_the_log
@@ -63,7 +99,11 @@ def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
         ``declination_deg`` (from ``ref_*`` or IGRF), ``heading_true_deg`` and ``status``: ``ok``,
         ``missing_mag`` (no field), ``missing_effect_input`` (a stored effect lacks its channel, or the
         attitude and position it needs), ``missing_attitude`` (field but no heading) or ``missing_position``
-        (magnetic heading but no true heading).
+        (magnetic heading but no true heading). When ``cal`` stores a wandering effect (``bias_drift``), also
+        ``drift_std_nt``: the standard deviation (nT, per axis) of the offset's departure from ``b`` subtracted
+        at each epoch (``drift_terms``): the smoothed path's own on the log it was learned on; on another log,
+        where the departure is taken as zero (``b`` is the offset's mean), its spread about ``b`` growing as the
+        walk since the path's end; NaN for a file without a path.
 
     Raises
     ------
@@ -71,7 +111,7 @@ def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
         An IGRF date out of range, or an effect ``cal`` stores whose class is not registered
         (``magkf.plugins.EFFECTS``); it names the log.
     """
-    terms = effect_terms(log, cal)
+    terms, drift_std = _terms(log, cal)
     field = cal.correct(log.mag - terms)
     att = log.attitude
     heading = magnetic_heading_deg(field, att[:, 0], att[:, 1])
@@ -97,4 +137,6 @@ def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
         },
         index=log.table.index,
     )
+    if drift_std is not None:
+        out["drift_std_nt"] = drift_std
     return out

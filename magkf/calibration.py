@@ -41,7 +41,13 @@ PARAMETER_NAMES = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4)) + 
 class StoredEffect:
     """A physical effect as a calibration file holds it: ``label`` (``NAME[:COLUMN]``, as ``--effect``
     takes it), the constructor ``settings`` that rebuild it (``Effect.settings``), and its parameters'
-    ``names``, ``values``, ``stds`` and ``units``."""
+    ``names``, ``values``, ``stds`` and ``units``.
+
+    A wandering offset (``bias_drift``) also holds ``wander`` (None for every other effect, and in files written
+    before it): its learned rate ``walk`` (``value``, ``std``, ``interval_95``, nT/sqrt(s)), its ``departure``
+    from ``b`` (``mean`` zero by construction, ``rms`` per axis, nT), and its smoothed ``path`` on the log it was
+    learned on (``time`` (K,) UNIX s, ``values`` and ``std`` (K, 3) nT) with that log's ``span`` (first, last
+    UNIX s) and ``fingerprint`` (``first``, ``last``, ``n_epochs``); see ``magkf.online.drift_path``."""
 
     label: str
     settings: dict
@@ -49,6 +55,7 @@ class StoredEffect:
     values: tuple
     stds: tuple
     units: tuple
+    wander: dict | None = None
 
     @property
     def name(self) -> str:
@@ -59,7 +66,10 @@ class StoredEffect:
             n: {"value": float(v), **({"std": float(s)} if math.isfinite(s) else {}), "unit": u}  # NaN: not JSON
             for n, v, s, u in zip(self.names, self.values, self.stds, self.units)
         }
-        return {"effect": self.label, "settings": jsonable(self.settings), "parameters": params}
+        out = {"effect": self.label, "settings": jsonable(self.settings), "parameters": params}
+        if self.wander is not None:
+            out["wander"] = jsonable({k: v for k, v in self.wander.items() if k != "effect"})
+        return out
 
     @classmethod
     def from_dict(cls, data, source: str) -> StoredEffect:
@@ -87,7 +97,34 @@ class StoredEffect:
             values.append(value)
             stds.append(std)
             units.append(str(p.get("unit", "")))
-        return cls(data["effect"], dict(settings), tuple(names), tuple(values), tuple(stds), tuple(units))
+        wander = _wander(data, source) if "wander" in data else None
+        return cls(data["effect"], dict(settings), tuple(names), tuple(values), tuple(stds), tuple(units), wander)
+
+
+def _wander(data: dict, source: str) -> dict:
+    """The checked ``wander`` record of a calibration file's effect entry ``data`` (``StoredEffect.wander``):
+    a ``walk`` value, a ``departure`` rms, a ``span`` and a ``path`` of increasing times with values and
+    standard deviations of three axes at each; InputError naming ``source`` otherwise."""
+    where = f"key 'effects': effect {data['effect']!r}, 'wander'"
+    wander = data["wander"]
+    if not isinstance(wander, dict) or not all(isinstance(wander.get(k), dict) for k in ("walk", "departure", "path")):
+        raise InputError(f"{where} must be an object with 'walk', 'departure' and 'path' objects", source)
+    walk, path = wander["walk"], wander["path"]
+    if not (_numbers(walk.get("value"), 0) and math.isfinite(float(walk["value"])) and walk["value"] >= 0):
+        raise InputError(f"{where}: 'walk' needs a 'value' (nT/sqrt(s), at least 0)", source)
+    if not _numbers(wander["departure"].get("rms"), 1) or len(wander["departure"]["rms"]) != 3:
+        raise InputError(f"{where}: 'departure' needs 'rms' of three axes (nT)", source)
+    span = wander.get("span")
+    if not (_numbers(span, 1) and len(span) == 2 and span[0] <= span[1]):
+        raise InputError(f"{where}: 'span' must be [first, last] UNIX seconds", source)
+    time = path.get("time")
+    if not (_numbers(time, 1) and len(time) >= 1 and np.all(np.diff(np.asarray(time, float)) > 0)):
+        raise InputError(f"{where}: 'path' needs increasing 'time' (UNIX s)", source)
+    for key in ("values", "std"):
+        value = path.get(key)
+        if not (_numbers(value, 2) and np.shape(value) == (len(time), 3) and np.all(np.isfinite(value))):
+            raise InputError(f"{where}: 'path' needs {key!r} of three axes at each of its {len(time)} times", source)
+    return dict(wander, effect=data["effect"])
 
 
 @dataclass(frozen=True)
@@ -184,7 +221,9 @@ class Calibration:
                 raise ValueError(f"covariance must be 12x12, got {cov.shape}")
             cov.setflags(write=False)
             object.__setattr__(self, "covariance", cov)
-        object.__setattr__(self, "effects", tuple(self.effects))
+        effects, model = _wander_kept_with_effects(tuple(self.effects), self.model)
+        object.__setattr__(self, "effects", effects)
+        object.__setattr__(self, "model", model)
         if self.state_covariance is not None:
             n = 12 + sum(len(e.values) for e in self.effects)
             cov = np.array(self.state_covariance, dtype=float)
@@ -424,6 +463,17 @@ def _stored_fields(data: dict, source: str) -> dict:
         "model": data.get("model"),
         "method": method,
     }
+
+
+def _wander_kept_with_effects(effects: tuple, model: dict | None) -> tuple[tuple, dict | None]:
+    """``(effects, model)`` with each wandering effect's record, as the whole-log estimate gives it in its model
+    record (``model['wandering']``, label -> record; ``magkf.online.drift_path``), kept with the stored effect
+    it describes (``StoredEffect.wander``) and no longer in the model record (neither is changed in place)."""
+    if not model or "wandering" not in model:
+        return effects, model
+    records = model["wandering"]
+    kept = tuple(replace(e, wander=records[e.label]) if e.label in records and e.wander is None else e for e in effects)
+    return kept, {k: v for k, v in model.items() if k != "wandering"}
 
 
 def _stored_effects(data: dict, source: str) -> tuple[StoredEffect, ...]:

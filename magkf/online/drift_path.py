@@ -70,6 +70,9 @@ REFINE_DECADES = 0.75
 CHI2_95 = 3.841
 #: Rounds of whole-log fit and path.
 ROUNDS = 2
+#: Epochs whose raw readings the fingerprint keeps, and how close (nT) a reading must be to be the same.
+FINGERPRINT_EPOCHS = 8
+SAME_READING_NT = 1e-3
 #: Knots of the stored path: per smoothing time, and at most.
 KNOTS_PER_SCALE = 2.0
 MAX_KNOTS = 1000
@@ -106,7 +109,9 @@ class WalkRate:
 @dataclass(frozen=True)
 class DriftPath:
     """A wandering offset's departure from ``b`` over the log: ``time`` (K,) UNIX s knots, ``values`` (K, 3) nT,
-    ``std`` (K, 3) nT, the log's ``span`` ``(first, last)`` UNIX s and epoch count ``n_epochs``, its ``rate``."""
+    ``std`` (K, 3) nT, the log's ``span`` ``(first, last)`` UNIX s and epoch count ``n_epochs``, its ``rate``, and
+    ``sample``: the times (S,) UNIX s and raw readings (S, 3) nT of ``FINGERPRINT_EPOCHS`` of the log's epochs, by
+    which another log of the same times is told from it (``same_log``)."""
 
     time: np.ndarray
     values: np.ndarray
@@ -114,6 +119,7 @@ class DriftPath:
     span: tuple
     n_epochs: int
     rate: WalkRate
+    sample: tuple = (np.zeros(0), np.zeros((0, 3)))
 
     def departure_rms(self) -> np.ndarray:
         """(3,) nT the path's RMS per axis (its mean is zero): how far the offset departs from ``b``."""
@@ -133,7 +139,13 @@ class DriftPath:
             },
             "departure": {"mean": [0.0, 0.0, 0.0], "rms": self.departure_rms().tolist(), "unit": "nT"},
             "span": [float(self.span[0]), float(self.span[1])],
-            "fingerprint": {"first": float(self.span[0]), "last": float(self.span[1]), "n_epochs": self.n_epochs},
+            "fingerprint": {
+                "first": float(self.span[0]),
+                "last": float(self.span[1]),
+                "n_epochs": self.n_epochs,
+                "time": np.asarray(self.sample[0], float).tolist(),
+                "mag": np.asarray(self.sample[1], float).tolist(),
+            },
             "path": {"time": self.time.tolist(), "values": self.values.tolist(), "std": self.std.tolist()},
         }
 
@@ -316,9 +328,19 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
         binned = bin_residuals(prep.time[idx], r, bin_length(prep.time[idx]))
         rate = learn_walk(binned, float(np.sqrt(effect.random_walk()[0] ** 2)))
         span = (float(prep.time[0]), float(prep.time[-1]))
-        path, at_used = _drift_path(binned, rate, prep.time[idx], np.ones(len(idx)), span, len(prep))
+        path, _ = _drift_path(binned, rate, prep.time[idx], np.ones(len(idx)), span, len(prep))
         departure = np.column_stack([np.interp(prep.time, path.time, path.values[:, i]) for i in range(3)])
-    return _with_block(fit, layout, keep, block, path, effect.label)
+    return _with_block(fit, layout, keep, block, replace(path, sample=_sample(prep)), effect.label)
+
+
+def _sample(prep) -> tuple[np.ndarray, np.ndarray]:
+    """The times (S,) and raw readings (S, 3) nT of ``FINGERPRINT_EPOCHS`` epochs spread over ``prep``'s epochs with
+    a reading."""
+    has = np.flatnonzero(np.all(np.isfinite(prep.m), axis=1))
+    pick = (
+        has[np.unique(np.round(np.linspace(0, len(has) - 1, FINGERPRINT_EPOCHS)).astype(np.int64))] if len(has) else has
+    )
+    return prep.time[pick].copy(), prep.m[pick].copy()
 
 
 def _offset_block(layout: StateLayout, labels):
@@ -374,12 +396,32 @@ def _with_block(fit: WholeLogFit, layout: StateLayout, keep, block, path: DriftP
 # ------------------------------------------------------------------ applying a stored path
 
 
-def path_terms(wander: dict | None, time) -> tuple[np.ndarray, np.ndarray]:
+def same_log(wander: dict, time, mag) -> bool:
+    """Whether the log of epochs at ``time`` (N,) UNIX s with raw readings ``mag`` (N, 3) nT (None: not compared) is
+    the one a stored path was learned on (or a part of it): every fingerprint epoch within its times is there,
+    with its reading within ``SAME_READING_NT``, and at least one is; without a fingerprint sample, or without
+    ``mag``, a log within the path's span is taken as its own."""
+    time = np.asarray(time, float)
+    sample = wander.get("fingerprint", {})
+    s_time, s_mag = np.asarray(sample.get("time", []), float), np.asarray(sample.get("mag", []), float)
+    if mag is None or not len(s_time) or not len(time):
+        return True
+    within = s_time[(s_time >= time[0]) & (s_time <= time[-1])]
+    at = np.clip(np.searchsorted(time, within), 0, len(time) - 1)
+    found = np.abs(time[at] - within) <= 1e-6 * np.maximum(np.abs(within), 1.0)
+    readings = np.asarray(mag, float)[at]
+    close = np.all(np.abs(readings - s_mag[np.isin(s_time, within)]) <= SAME_READING_NT, axis=1)
+    return bool(len(within)) and bool(np.all(found & close))
+
+
+def path_terms(wander: dict | None, time, mag=None) -> tuple[np.ndarray, np.ndarray]:
     """The departure (N, 3) nT a stored wandering effect adds at ``time`` (N,) UNIX s, and its standard deviation
-    (N,) nT (RMS over the axes): within the stored path's span, the path interpolated and its own standard
-    deviation; outside it, zero (the offset's mean, ``b``) with the uncertainty of that prediction,
-    ``sqrt(rms^2 + walk^2 |t - nearest end of the span|)`` (``rms`` the path's spread about ``b``). ``wander``
-    None (a file without a path): zero departure, NaN standard deviation."""
+    (N,) nT (RMS over the axes): on the log it was learned on (``same_log`` with the raw readings ``mag`` (N, 3)
+    nT, None: by time alone) and within its span, the path interpolated and its own standard deviation;
+    elsewhere zero (the offset's mean, ``b``) with the uncertainty of that prediction,
+    ``sqrt(rms^2 + walk^2 |t - nearest end of the span|)`` (``rms`` the path's spread about ``b``; within the span
+    of another log, ``walk^2`` times the span's half length stands for the time). ``wander`` None (a file without
+    a path): zero departure, NaN standard deviation."""
     time = np.asarray(time, float)
     if wander is None:
         return np.zeros((len(time), 3)), np.full(len(time), np.nan)
@@ -388,12 +430,14 @@ def path_terms(wander: dict | None, time) -> tuple[np.ndarray, np.ndarray]:
     values, std = np.asarray(path["values"], float), np.asarray(path["std"], float)
     first, last = (float(v) for v in wander["span"])
     inside = (time >= first) & (time <= last)
+    if not same_log(wander, time, mag):
+        inside[:] = False
     out = np.zeros((len(time), 3))
     sd = np.empty(len(time))
     for i in range(3):
         out[inside, i] = np.interp(time[inside], knots, values[:, i])
     sd[inside] = np.sqrt(np.mean([np.interp(time[inside], knots, std[:, i] ** 2) for i in range(3)], axis=0))
-    away = np.maximum(first - time, time - last)[~inside]
+    away = np.maximum(np.maximum(first - time, time - last), 0.5 * (last - first))[~inside]
     spread = float(np.mean(np.asarray(wander["departure"]["rms"], float) ** 2))
     sd[~inside] = np.sqrt(spread + float(wander["walk"]["value"]) ** 2 * away)
     return out, sd
