@@ -147,9 +147,11 @@ def test_small_effect_in_every_flight_is_recommended_for_the_vehicle():
 
 def test_heterogeneity_names_the_flight_far_off():
     """Five flights share a coefficient but flight 2's first parameter is 10 standard deviations off. Its ``z``
-    has mean ``10 sqrt(1 - 1/5) = 8.9`` against a limit near 4 (t of 40 dof at ``alpha / 15``): it is named
-    first in every one of 200 vehicles but a binomial few; with every flight alike, a vehicle is called
-    inconsistent in at most the binomial bound of ``2 alpha`` (Welch's Q at alpha, the flights' z at alpha)."""
+    has mean ``10 sqrt(1 - 1/5) = 8.9`` against a limit of 3.8 (t of 40 dof at ``alpha / 15``, two-sided); taking
+    4.5 to allow for the spread of the estimated standard deviations, it is named first with probability at
+    least ``P(N(8.9, 1) > 4.5)`` in each of 200 vehicles, and the count must reach that binomial's lower
+    quantile. With every flight alike, a vehicle is called inconsistent in at most the binomial bound of
+    ``2 alpha`` (Welch's Q at alpha, the flights' z at alpha)."""
     rng = np.random.default_rng(51)
     n, theta = 200, np.ones(Q)
     off = np.array([10.0, 0.0, 0.0])
