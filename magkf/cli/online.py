@@ -50,6 +50,8 @@ def _print_run(summary: dict, names) -> None:
             f"  {effect}: "
             + ", ".join(f"{p} = {v['value']:.4g} +- {v['std']:.2g} {v['unit']}".rstrip() for p, v in params.items())
         )
+    for label, wander in (s.get("model") or {}).get("wandering", {}).items():
+        print(f"  {_wander_line(label, wander)}")
     for line in _fit_lines(s):
         print("  " + line)
     print("  epochs: " + ", ".join(f"{k} {v}" for k, v in s["status_counts"].items() if v))
@@ -57,6 +59,21 @@ def _print_run(summary: dict, names) -> None:
     if s.get("model"):
         print(f"  model: {s['model']['family']}: {s['model']['text']}")
     print(f"  verdict: {s['verdict']}")
+
+
+def _wander_line(label: str, wander: dict) -> str:
+    """A wandering effect's learned rate with its 95 % interval, its spread about b and its path, in words."""
+    walk, rms = wander["walk"], wander["departure"]["rms"]
+    if walk["learned"]:
+        low, high = walk["interval_95"]
+        rate = f"rate {walk['value']:.3g} +- {walk['std']:.2g} nT/sqrt(s) learned (95 %: {low:.3g} to {high:.3g})"
+    else:
+        rate = f"rate {walk['value']:.3g} nT/sqrt(s) as set (the log is too short to learn it)"
+    return (
+        f"{label} wanders: {rate}; b is the offset's mean, its departure RMS "
+        f"{', '.join(f'{v:.3g}' for v in rms)} nT (x, y, z) over the log, whose smoothed path "
+        f"({len(wander['path']['time'])} knots) the calibration keeps for this log"
+    )
 
 
 def _fit_lines(s: dict) -> list[str]:
