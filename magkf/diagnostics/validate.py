@@ -10,25 +10,28 @@ re-mounted sensor), the effects are what should travel, so on B:
 * **core only**: B's core refitted with no effect.
 
 All residuals are NED vector residuals in nT on the same epochs (B's usable epochs, gross outliers left
-out), **held out**: B is cut into contiguous blocks, each much longer than the residual's correlation time
-(``validation_edges``), and each block's residual is that of the core fitted on the other blocks
-(``magkf.diagnostics.inference.held_out_residual``), so that a refitted core cannot take up what an effect
-would explain and make it look useless, nor fit the noise. The in-sample figures (the core fitted on all of
-B) are kept beside them.
+out), **truly held out**: B is cut into contiguous blocks, each much longer than the residual's correlation
+time (``validation_edges``), and each block's residual is that of the core fitted on the other blocks, with
+nothing fitted on the block itself (not even the logged heading's slow error, which the fit on the other
+blocks takes out as ``diagnose`` does): a refitted core can neither take up what an effect would explain
+nor fit the noise. The in-sample figures (the core and the heading's error fitted on all of B) are kept
+beside them.
 
 **Whether an effect helps** is a paired test on the same epochs. With the core linearised once (at its fit
 with the stored effects) the held-out residual is linear in the reading, so the residual without an effect
 is that with it plus ``c``, the effect's whitened contribution at A's values less what the held-out core
 takes of it. Adding the effect lowers the held-out sum of squares by ``D = 2 r.c - c.c`` (``r`` the residual
 without it): B's residual shows ``g = r.c / c.c`` times A's predicted contribution (1: as predicted), and
-the effect helps exactly when ``g > 1/2``. ``D / 2 = sum_t c_t . e_t`` plus ``(g - 1/2) c.c``, with ``e = r - g c``
-the residual once that share is taken out: its uncertainty is the long-run variance of the per-epoch scores
-``c_t . e_t`` (``magkf.diagnostics.inference.score_test``: a cosine-series estimate robust to the residual's
-correlation, Student's t with its K terms as degrees of freedom). A projection on the effect's one predicted
-shape: one degree of freedom, and the between-block spread of the effect's own size (a temperature that
-varies over the flight) does not count as noise, as it did in a t test over blocks. The test states its
-power: the smallest fall of the held-out (whitened) residual's RMS it would detect with probability
-``POWER`` at the level asked (``EffectCheck.detectable``).
+the effect helps exactly when ``g > 1/2``. ``D / 2 = (g - 1/2) c.c`` is a sum over epochs, ``sum_t c_t . r_t``
+less a constant; its uncertainty is the long-run variance of the per-epoch scores ``c_t . e_t``, ``e = r - g c``
+the residual once that share is taken out (``magkf.diagnostics.inference.score_test``: a cosine-series
+estimate robust to the residual's correlation, Student's t with its K terms as degrees of freedom). The test
+reads the held-out residual with the heading's error of each stretch taken out (a nuisance, as in
+``diagnose``: it would otherwise be most of the noise); with fewer than three cosine terms it has no power
+and says so. It projects on the effect's one predicted shape (one degree of freedom), and the between-block
+spread of the effect's own size (a temperature that varies over the flight) does not count as noise, as it
+did in a t test over blocks. It states its power: the smallest fall of the truly held-out (whitened)
+residual's RMS it would detect with probability ``POWER`` at the level asked (``EffectCheck.detectable``).
 
 **A wandering effect** (``Effect.wanders``, a drifting offset) has no value that carries to another log:
 the path stored is that of A. What can be tested is its rate: B's residual (core refitted, the heading's
@@ -55,7 +58,7 @@ from ..online.prepare import prepare
 from ..online.state import StateLayout
 from ..status import Status
 from .fitting import WANDER_BLOCK_S, EpochSet, inliers
-from .inference import BLOCK_TAUS, held_out_residual, high_passed, integrated_time, score_test, walk_rate
+from .inference import BLOCK_TAUS, HeldOut, high_passed, integrated_time, score_test, walk_rate
 
 __all__ = ["POWER", "MAX_BLOCKS", "EffectCheck", "WanderCheck", "Validation", "validation_edges", "validate"]
 
@@ -186,10 +189,12 @@ def validate(
     as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))  # exact for nonlinear effects too (at x)
     held = tuple(e for e in effects if not e.wanders)
     contributions = {e: e.contribution(x[sl], stored.data) for e, sl in layout.blocks() if e in held}
-    fit = epochs.less(sum(contributions.values(), np.zeros_like(epochs.m))).fit(StateLayout.with_core(), x[:12])
+    fixed = epochs.less(sum(contributions.values(), np.zeros_like(epochs.m)))
+    fit = fixed.fit(StateLayout.with_core(), x[:12])
+    plain = fixed.with_wander(None).at(fit.layout, fit.x) if fit.wander is not None else fit
     n = len(epochs)
     tau = integrated_time(high_passed(fit.r.reshape(n, 3)))
-    compare = _Comparison(fit, validation_edges(n, tau))
+    compare = _Comparison(fit, plain, validation_edges(n, tau))
     checks = [compare.check(e.label, contributions[e], alpha) for e in held]
     core_held, core_in = compare.less_all([contributions[e] for e in held])
     wandering = [_rate_check(epochs, contributions, e, x, wander_s) for e in effects if e.wanders]
@@ -201,7 +206,7 @@ def validate(
         len(compare.edges) - 1,
         alpha,
         as_stored,
-        _rms(_ned(fit, compare.r_with.reshape(-1, 3))),
+        _rms(_ned(fit, compare.with_held.reshape(-1, 3))),
         _rms(_ned(fit, core_held.reshape(-1, 3))),
         _rms(_ned(fit, fit.r.reshape(-1, 3))),
         _rms(_ned(fit, core_in.reshape(-1, 3))),
@@ -229,42 +234,63 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
 
 
 class _Comparison:
-    """B's core linearised at its fit ``fit`` with the stored effects held (a ``Linearised``), and the
-    held-out blocks ``edges``: residuals (3n,) whitened of readings that differ from the fitted one by
-    effects' contributions, held out and in sample (both linear in the reading)."""
+    """B's core linearised at its fit ``fit`` with the stored effects held (a ``Linearised``; ``plain`` the same
+    linearisation without the heading nuisance, or ``fit`` itself when there is none), and the held-out blocks
+    ``edges``: residuals (3n,) whitened of readings that differ from the fitted one by effects' contributions,
+    held out and in sample (all linear in the reading)."""
 
-    def __init__(self, fit, edges: np.ndarray):
-        self.fit, self.edges = fit, edges
-        self.r_with = self.held_out(fit.y)
+    def __init__(self, fit, plain, edges: np.ndarray):
+        self.fit, self.plain, self.edges = fit, plain, edges
+        self.with_tested, self.with_held = self.held_out(fit.y, plain.y)
 
-    def held_out(self, y: np.ndarray) -> np.ndarray:
-        """The held-out residual (3n,) of the whitened reading ``y`` (3n,): each block's by the core fitted on
-        the others."""
-        return held_out_residual(self.fit.rows, y, self.edges, self.fit.chunks)
+    def held_out(self, y: np.ndarray, y_plain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Held-out residuals (3n,) of the whitened reading ``y`` (3n; the heading nuisance taken out) and
+        ``y_plain`` (3n,; the same reading without): each block's by the core fitted on the others (with the
+        nuisance). The first has the nuisance fitted on the block itself taken out too (what the test reads);
+        the second is truly held out, nothing fitted on the block (the headline)."""
+        fit, plain = self.fit, self.plain
+        held = HeldOut(y, self.edges)
+        for a, b in fit.chunks:
+            held.add(fit.rows(a, b), a, b)
+        beta = held.coefficients()
+        tested = np.concatenate([held.residual(fit.rows(a, b), a, b, beta) for a, b in fit.chunks])
+        if plain is fit:
+            return tested, tested
+        truly = np.empty_like(y_plain)
+        for a, b in plain.chunks:
+            X = plain.rows(a, b)
+            for f, rows, sl in held.pieces(a, b):
+                truly[sl] = y_plain[sl] - X[rows] @ beta[f]
+        return tested, truly
 
     def in_sample(self, y: np.ndarray) -> np.ndarray:
-        """The residual (3n,) of ``y`` (3n,) with the core fitted on all epochs (in the directions the data
-        determine, as ``EpochSet.at``)."""
+        """The residual (3n,) of ``y`` (3n,) with the core (and the heading nuisance) fitted on all epochs (in the
+        directions the data determine, as ``EpochSet.at``)."""
         fit, chunks = self.fit, self.fit.chunks
         moment = sum(fit.rows(a, b).T @ y[3 * a : 3 * b] for a, b in chunks)
         coef = fit.span @ (fit.span.T @ moment)
         return y - np.concatenate([fit.rows(a, b) @ coef for a, b in chunks])
 
-    def whitened(self, contribution: np.ndarray) -> np.ndarray:
-        """An effect's contribution (n, 3) nT to the raw reading, whitened as the reading is (3n,)."""
-        return self.fit.whitened(contribution[:, :, None]).ravel()
+    def whitened(self, contribution: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """An effect's contribution (n, 3) nT to the raw reading, whitened as the reading is (3n,), with the heading
+        nuisance taken out and without."""
+        G = contribution[:, :, None]
+        return self.fit.whitened(G).ravel(), self.plain.whitened(G).ravel()
 
     def less_all(self, contributions) -> tuple[np.ndarray, np.ndarray]:
-        """Held-out and in-sample residuals (3n,) with the ``contributions`` ((n, 3) nT each) not taken off."""
-        y = self.fit.y + sum((self.whitened(c) for c in contributions), np.zeros_like(self.fit.y))
-        return self.held_out(y), self.in_sample(y)
+        """Truly held-out and in-sample residuals (3n,) with the ``contributions`` ((n, 3) nT each) not taken off."""
+        y, y_plain = self.fit.y.copy(), self.plain.y.copy()
+        for contribution in contributions:
+            g, g_plain = self.whitened(contribution)
+            y, y_plain = y + g, y_plain + g_plain
+        return self.held_out(y, y_plain)[1], self.in_sample(y)
 
     def check(self, label: str, contribution: np.ndarray, alpha: float) -> EffectCheck:
         """The paired held-out comparison of one effect whose contribution (n, 3) nT is held (module's docstring)."""
-        g = self.whitened(contribution)
-        c = self.held_out(g)  # what the effect adds to the held-out residual when it is left out
-        r_with, r_without = self.r_with, self.r_with + c
-        score = _share_test(r_without, c, alpha)
+        g, g_plain = self.whitened(contribution)
+        c_tested, c_held = self.held_out(g, g_plain)  # what the effect adds to the residuals when it is left out
+        r_with, r_without = self.with_held, self.with_held + c_held
+        score = _share_test(self.with_tested + c_tested, c_tested, alpha, float(r_without @ r_without))
         fall = np.sum((r_without**2 - r_with**2).reshape(-1, 3), axis=1)
         per_block = np.add.reduceat(fall, self.edges[:-1])
         fit = self.fit
@@ -285,10 +311,11 @@ class _Comparison:
         )
 
 
-def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float) -> dict:
+def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float, total: float | None = None) -> dict:
     """The one-degree-of-freedom test that adding ``c`` (3n,) lowers the sum of squares of ``r_without`` (3n,),
     i.e. that the share ``g = r.c / c.c`` exceeds 1/2 (module's docstring), with its power: ``gain``, ``gain_se``,
-    ``t``, ``dof``, ``p_helps``, ``p_hurts`` and ``detectable`` (``EffectCheck``)."""
+    ``t``, ``dof``, ``p_helps``, ``p_hurts`` and ``detectable`` (``EffectCheck``), the smallest fall detected
+    relative to the sum of squares ``total`` (default: ``r_without``'s)."""
     cc = float(c @ c)
     none = dict(gain=float("nan"), gain_se=float("inf"), t=0.0, dof=0, p_helps=1.0, p_hurts=1.0, detectable=1.0)
     if not cc > 0:
@@ -304,7 +331,7 @@ def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float) -> dict:
     # smallest fall of the sum of squares detected with probability POWER: the noncentrality at which the
     # one-sided t test rejects that often (normal approximation of the noncentral t)
     smallest = 2.0 * sd * (special.stdtrit(dof, 1.0 - alpha) + special.stdtrit(dof, POWER))
-    total = float(r_without @ r_without)
+    total = float(r_without @ r_without) if total is None else total
     detectable = 1.0 - np.sqrt(max(1.0 - smallest / total, 0.0))
     return dict(
         gain=gain,
@@ -318,6 +345,11 @@ def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float) -> dict:
 
 
 def _verdict(score: dict, alpha: float) -> str:
+    if score["dof"] == 0:
+        return (
+            "not tested: the log holds too few stretches longer than its residual's correlation for a test with "
+            "any power (a longer log would tell)"
+        )
     if score["p_helps"] < alpha:
         return "helps beyond chance"
     if score["p_hurts"] < alpha:
