@@ -8,7 +8,8 @@
 
 A family is an affine subspace of the core's 12 parameters: ``x = anchor + T theta``, with ``T`` (12, k)
 orthonormal columns spanning its free directions and the anchor holding the rest at a reference
-calibration. Added effects are free in every family.
+calibration. Added effects are free in every family, but for the directions the log does not determine
+(``effects``: a basis of their free directions, ``magkf.diagnostics.fitting.held_directions``).
 """
 
 from __future__ import annotations
@@ -34,12 +35,14 @@ _PAIRS = ((1, 3), (2, 6), (5, 7))
 @dataclass(frozen=True)
 class ModelFamily:
     """One family: its ``name``, the ``basis`` (12, k) of its free directions in the core (``R`` row-major,
-    then ``b``), what it estimates and what it holds, in words."""
+    then ``b``), what it estimates and what it holds, in words; ``effects`` (q, j) a basis of the free directions
+    of the q parameters of the added effects (None: all free)."""
 
     name: str
     basis: np.ndarray
     estimates: str
     holds: str
+    effects: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -63,10 +66,12 @@ class ModelFamily:
         return anchor + T @ (T.T @ (np.asarray(core, float) - anchor))
 
     def state_basis(self, n: int) -> np.ndarray:
-        """The basis (n, k + n - 12) of the whole state: the family's in the core, every effect's parameter free."""
-        T = np.zeros((n, self.size + n - _CORE))
+        """The basis (n, k + j) of the whole state: the family's in the core, the effects' free directions (all n -
+        12 of their parameters unless ``effects`` says otherwise)."""
+        E = np.eye(n - _CORE) if self.effects is None else self.effects
+        T = np.zeros((n, self.size + E.shape[1]))
         T[:_CORE, : self.size] = self.basis
-        T[_CORE:, self.size :] = np.eye(n - _CORE)
+        T[_CORE:, self.size :] = E
         return T
 
     def restricted(self, excited) -> ModelFamily:

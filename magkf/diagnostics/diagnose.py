@@ -164,7 +164,10 @@ class Diagnosis:
     the baseline of the candidates' ``residual_rms_after_nt``; ``level`` the p-value below which a
     candidate is significant (``alpha / n_tested``); ``correlation_s`` the residual's integrated
     autocorrelation time; ``untried`` the auxiliary channels no candidate could use (unknown kind);
-    ``heading_wander_s`` the stretches over which the heading's error was taken out (None: it was not).
+    ``heading_wander_s`` the stretches over which the heading's error was taken out (None: it was not);
+    ``residual_rms_held_out_exact_heading_nt`` ``[before, after]`` the held-out residual of the model and of the model
+    with the candidates taken, both with the logged heading taken as exact (None: the wander was not taken out, or
+    nothing was taken): what the candidates explain that the heading's wander, fitted with them, takes up.
     """
 
     residual_rms_nt: float
@@ -184,6 +187,7 @@ class Diagnosis:
     untried: list = field(default_factory=list)
     model_effects: list = field(default_factory=list)
     heading_wander_s: float | None = None
+    residual_rms_held_out_exact_heading_nt: list | None = None
 
     @property
     def recommended(self) -> list:
@@ -207,6 +211,7 @@ class Diagnosis:
             "level": self.level,
             "correlation_s": self.correlation_s,
             "heading_wander_s": self.heading_wander_s,
+            "residual_rms_held_out_exact_heading_nt": self.residual_rms_held_out_exact_heading_nt,
             "model_effects": self.model_effects,
             "candidates": [c.as_dict() for c in self.candidates],
             "recommended": [c.option for c in self.recommended],
@@ -445,13 +450,16 @@ def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residua
 class _Tests:
     """The candidates tested by the decision rule: the ``selection`` (its level and the count tested), the
     ``results`` (``Candidate``s, taken ones first), the residual's integrated autocorrelation time ``tau``
-    (epochs), the median epoch interval ``dt`` (s) and the model's own held-out residual ``baseline`` (nT)."""
+    (epochs), the median epoch interval ``dt`` (s) and the model's own held-out residual ``baseline`` (nT);
+    ``unwandered`` the held-out residual (nT) before and after the candidates taken with the logged heading taken as
+    exact (``_without_wander``; None where the wander was not taken out or nothing was taken)."""
 
     selection: _Selection
     results: list
     tau: float
     dt: float
     baseline: float
+    unwandered: tuple | None = None
 
 
 def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float, say) -> _Tests:
@@ -465,7 +473,23 @@ def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float,
     edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
     baseline = _held_out_nt(null, edges)
     selection = _Selection(problem, pool, edges, dt, alpha, say)
-    return _Tests(selection, selection.run(null, baseline), tau, dt, baseline)
+    results = selection.run(null, baseline)
+    unwandered = None
+    if problem.wander_s and any(c.significant for c in results):
+        unwandered = _without_wander(problem, null, selection.final, edges)
+    return _Tests(selection, results, tau, dt, baseline, unwandered)
+
+
+def _without_wander(problem: EpochSet, null: Linearised, final: Linearised, edges) -> tuple[float, float]:
+    """The held-out residual RMS (nT) of the model ``null`` and of the model with the candidates taken (``final``),
+    each refitted with the logged heading taken as exact: how much the candidates explain when the heading's wander,
+    a nuisance fitted jointly with them, does not take up part of it (a time lag on a car looks like a heading error
+    within each stretch)."""
+    exact = problem.with_wander(None)
+    return (
+        _held_out_nt(exact.fit(null.layout, null.x_fit), edges),
+        _held_out_nt(exact.fit(final.layout, final.x_fit), edges),
+    )
 
 
 def _diagnosis(problem: EpochSet, res: _Residuals, tests: _Tests, untried: list, model_effects: list, wander_s):
@@ -481,7 +505,7 @@ def _diagnosis(problem: EpochSet, res: _Residuals, tests: _Tests, untried: list,
         tests.results,
         signals,
         _largest(problem.data.time, res.ned),
-        _describe(tests.results, signals, selection, tests.baseline),
+        _describe(tests.results, signals, selection, tests.baseline, tests.unwandered),
         binned,
         {"time": problem.data.time, "ned": res.ned, "body": res.body, "magnitude": res.mag},
         residual_rms_held_out_nt=tests.baseline,
@@ -491,6 +515,7 @@ def _diagnosis(problem: EpochSet, res: _Residuals, tests: _Tests, untried: list,
         untried=untried,
         model_effects=model_effects,
         heading_wander_s=wander_s,
+        residual_rms_held_out_exact_heading_nt=None if tests.unwandered is None else list(tests.unwandered),
     )
 
 
@@ -745,6 +770,7 @@ class _Selection:
         self.alpha = alpha
         self.m = 0
         self.level = float("nan")
+        self.final = None  # the model with the candidates taken, once ``run`` is done
 
     def trial(self, effect, fit: Linearised) -> _Trial:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
@@ -846,6 +872,7 @@ class _Selection:
         rest = sorted(
             (trials[e.label] for e in remaining), key=lambda t: (t.test is None, t.test.p_value if t.test else 1.0)
         )
+        self.final = fit
         return taken + [t.candidate(False, self.dt) for t in rest]
 
     def _hits(self, trials: dict, remaining: list, refused: set) -> list[_Trial]:
@@ -1003,8 +1030,10 @@ def _largest(t: np.ndarray, ned: np.ndarray, count: int = 3) -> list:
     return out
 
 
-def _describe(results, signals, selection, baseline: float) -> str:
-    """The advice: what the decision rule took, or what the residual still follows."""
+def _describe(results, signals, selection, baseline: float, unwandered=None) -> str:
+    """The advice: what the decision rule took (and, ``unwandered`` the held-out residual before and after with the
+    logged heading taken as exact, how much the heading's wander took up of it), or what the residual still
+    follows."""
     taken = [r for r in results if r.significant]
     following = [s for s in signals if s["significant"]]
     if taken:
@@ -1017,6 +1046,12 @@ def _describe(results, signals, selection, baseline: float) -> str:
         )
         if len(taken) > 1:
             text += "; then also " + ", ".join(r.option for r in taken[1:])
+        if unwandered is not None and unwandered[0] - unwandered[1] > baseline - taken[-1].residual_rms_after_nt:
+            text += (
+                f" (with the logged heading taken as exact, the held-out residual falls from {unwandered[0]:.1f} to "
+                f"{unwandered[1]:.1f} nT: the heading's wander, fitted with the candidates, takes up part of what "
+                "they explain)"
+            )
         return text
     text = (
         f"no candidate explains the residual beyond chance ({selection.m} tested, each at p < "

@@ -33,6 +33,8 @@ __all__ = [
     "gram_svd",
     "CHUNK",
     "finite_regressors",
+    "HeldDirections",
+    "held_directions",
 ]
 
 #: Iterations of the refit (whitening and linearisation at the estimate), and its tolerance on the change
@@ -323,22 +325,40 @@ class EpochSet:
     def __len__(self):
         return len(self.m)
 
-    def at(self, layout: StateLayout, x, keep: int | None = None) -> Linearised:
-        """The model ``layout`` linearised and whitened at ``x``, and its least-squares fit. The first ``keep``
-        columns of the whitened Jacobian (where a block starts; default all) are kept for the whole set, the
-        others made again a chunk at a time when they are read (``Linearised.rows``)."""
-        x = np.asarray(x, float)
+    def _whitening(self, layout: StateLayout, x):
+        """``(data, W, wander)`` at state ``x``: the data with ``R0`` of ``x``, the whitening (n, 3, 3) of the vector
+        measurement in the set's noise, and the heading's wander (None: not modelled)."""
         R = layout.R(x)
         data = replace(self.data, R0=R)
         model = measurement_model(self.config, layout, x)
         if self.noise is not None:
             model.set_noise(self.noise)
         W = model.whitening(data.field_body, R, self.heading)
-        n, p = len(self.m), layout.size
-        keep = p if keep is None else keep
         wander = None
         if self.wander_s:
             wander = HeadingWander(np.einsum("nij,nj->ni", W, self.heading @ R.T), data.time, self.wander_s)
+        return data, W, wander
+
+    def gram(self, layout: StateLayout, x) -> np.ndarray:
+        """``A^T A`` (p, p) of the whitened Jacobian ``A`` at state ``x``, the heading's wander taken out (as in
+        ``at``), made a chunk at a time."""
+        x = np.asarray(x, float)
+        data, W, wander = self._whitening(layout, x)
+        p, gram = layout.size, np.zeros((layout.size, layout.size))
+        for a, b in _chunks(len(self.m), wander):
+            X = (W[a:b] @ _jacobian(layout, x, data, slice(a, b))[0]).reshape(-1, p)
+            X = X if wander is None else wander.remove(X, a, b)
+            gram += X.T @ X
+        return gram
+
+    def at(self, layout: StateLayout, x, keep: int | None = None) -> Linearised:
+        """The model ``layout`` linearised and whitened at ``x``, and its least-squares fit. The first ``keep``
+        columns of the whitened Jacobian (where a block starts; default all) are kept for the whole set, the
+        others made again a chunk at a time when they are read (``Linearised.rows``)."""
+        x = np.asarray(x, float)
+        data, W, wander = self._whitening(layout, x)
+        n, p = len(self.m), layout.size
+        keep = p if keep is None else keep
         chunks = _chunks(n, wander)
         y, kept = np.empty(3 * n), np.empty((3 * n, keep))
         gram, moment = 0.0, 0.0
@@ -376,3 +396,87 @@ class EpochSet:
             x_next, f = f.x_fit, None  # one linearisation held at a time
             f = self.at(layout, x_next, keep)
         return f
+
+
+@dataclass(frozen=True)
+class HeldDirections:
+    """The directions of the added effects' parameters that the data do not determine beside the rest of the model
+    and the heading's wander, held at their prior mean, as the diagnosis holds them (``held_directions``).
+
+    ``free`` (q, j): a basis of the free directions of the q effect parameters (the state after the core);
+    ``projector`` (q, q): takes a change of those parameters onto the free directions (their held part dropped, in
+    the metric of the parameters' prior spread); ``held_basis`` (q, h) the held directions, each scaled to one
+    prior standard deviation (the prior's covariance along them is ``held_basis @ held_basis.T``); ``held``
+    ``{effect label: directions held}``."""
+
+    free: np.ndarray
+    projector: np.ndarray
+    held_basis: np.ndarray
+    held: dict
+
+    @property
+    def held_cov(self) -> np.ndarray:
+        """(q, q) the prior's covariance along the held directions: what a held parameter's uncertainty is."""
+        return self.held_basis @ self.held_basis.T
+
+    @property
+    def count(self) -> int:
+        """Directions held in all."""
+        return int(sum(self.held.values()))
+
+    def hold(self, x_effects, mean) -> np.ndarray:
+        """Effect parameters ``x_effects`` (q,) with their held part at the prior ``mean`` (q,)."""
+        mean = np.asarray(mean, float)
+        return mean + self.projector @ (np.asarray(x_effects, float) - mean)
+
+    def text(self) -> str:
+        """The held directions in words ("" when none is held)."""
+        parts = [f"{k} of {label}" for label, k in self.held.items() if k]
+        if not parts:
+            return ""
+        return (
+            f"held at the prior mean, as the diagnosis holds them: {', '.join(parts)} direction(s) the data do not "
+            "determine beside the model and the heading's wander"
+        )
+
+
+def held_directions(problem: EpochSet, layout: StateLayout, x) -> HeldDirections | None:
+    """The directions of each added effect's parameters (blocks after the core; an effect that ``wanders`` is left
+    free) whose standard error, beside every other parameter carrying its prior and the heading's wander taken out
+    (``EpochSet.gram``), exceeds ``DETERMINED`` prior spreads (``determined``, the diagnosis's rule; the core's spread
+    the default core's, ``StateLayout.with_core``, as in the diagnosis): the data say
+    less about them than the prior, and a fit would let them absorb the heading's wander. None when the layout
+    adds no effect.
+
+    In units of the prior spread ``D`` the information is ``G = D A^T A D``; a block's, beside the others,
+    ``G_bb - G_bo (G_oo + I)^-1 G_ob``; its eigenvectors with eigenvalue at least ``1 / DETERMINED^2`` are free.
+    """
+    n = layout.size
+    q = n - layout.CORE.stop
+    if q <= 0:
+        return None
+    # the diagnosis's spreads: the default core's (not a run's start, which the data narrowed) and the effects' own
+    spread = np.sqrt(np.diag(StateLayout.with_core(layout.extra()).prior()[1]))
+    G = spread[:, None] * problem.gram(layout, x) * spread[None, :]
+    free, held_basis, projector, held = [], [], np.zeros((q, q)), {}
+    start = layout.CORE.stop
+    for key, (effect, sl) in zip(layout.keys[1:], layout.blocks()):
+        local = slice(sl.start - start, sl.stop - start)
+        D = spread[sl]
+        if effect.wanders:
+            vectors, keep = np.eye(effect.size), np.ones(effect.size, bool)
+        else:
+            others = np.setdiff1d(np.arange(n), np.arange(sl.start, sl.stop))
+            Goo = G[np.ix_(others, others)] + np.eye(len(others))
+            Gbo = G[sl][:, others]
+            info = G[sl, sl] - Gbo @ np.linalg.solve(Goo, Gbo.T)
+            values, vectors = np.linalg.eigh(0.5 * (info + info.T))
+            keep = values >= 1.0 / DETERMINED**2
+        Vk, Vh = vectors[:, keep], vectors[:, ~keep]
+        for kept, out in ((Vk, free), (Vh, held_basis)):
+            column = np.zeros((q, kept.shape[1]))
+            column[local] = D[:, None] * kept
+            out.append(column)
+        projector[local, local] = (D[:, None] * Vk) @ (Vk.T / D[None, :])
+        held[key] = int((~keep).sum())
+    return HeldDirections(np.hstack(free), projector, np.hstack(held_basis), held)

@@ -58,6 +58,7 @@ from .prepare import (
     RunSetup,
     concat_prepared,
     configured_noise,
+    effect_spread,
     fit_positions,
     magnitude_residuals,
     mark_missing_columns,
@@ -668,7 +669,9 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
             m.append(rows[0])
             H.append(rows[1])
             seen += len(usable)
-        x = robust_linear_fit(np.concatenate(m), np.concatenate(H), x0, start.along_var)
+        x = robust_linear_fit(
+            np.concatenate(m), np.concatenate(H), x0, start.along_var, prior_std=effect_spread(layout)
+        )
         del m, H
         wanted = _scale_positions(scan.n_used)
     else:

@@ -394,6 +394,7 @@ class RunSetup:
     how: str
     model: MeasurementModel
     noise: NoiseLevels | None
+    held: object = None
 
     @property
     def R0(self) -> np.ndarray:
@@ -489,7 +490,45 @@ def prepare_run(
             how += "; moved to the robust fit over the whole log"
         P0 = deflate_bootstrap(P0, layout, start.inflation)
         noise = start if config.adapt_noise else None
-    return RunSetup(prep, base, layout, x0, P0, how, model, noise)
+    held = None
+    if layout.has_extra and model.needs_attitude and prep is not None:
+        x0, P0, held = hold_undetermined(prep, config, layout, x0, P0, base, noise)
+    return RunSetup(prep, base, layout, x0, P0, how, model, noise, held)
+
+
+#: Held directions get this share of their prior variance in the filter's start (zero would make the
+#: covariance singular, which the unscented filter's square root cannot take): held for good, as no process
+#: noise reaches them.
+HELD_VARIANCE_SHARE = 1e-8
+
+
+def hold_undetermined(prep: PreparedLog, config: FilterConfig, layout: StateLayout, x0, P0, base, noise):
+    """The start ``(x0, P0, held)`` with the directions of the added effects' parameters that the log does not
+    determine beside the rest of the model and the heading's wander (``diagnostics.fitting.held_directions``, the
+    diagnosis's rule, over the epochs used with attitude at ``x0``) held at their prior mean: ``x0``'s part along
+    them set to it, ``P0``'s variance along them nearly zero, so that the filter, the whole-log estimate and the
+    diagnosis agree on what is determined and an effect cannot absorb what the data do not determine (a field
+    anomaly across the horizontal field is a heading offset). The heading's wander is a nuisance there unless the
+    starting noise ``noise`` found the logged heading exact (``heading_rad`` 0): then a heading-like direction is
+    determined. ``held`` is None when none is held or too few epochs say."""
+    from ..diagnostics.fitting import WANDER_BLOCK_S, EpochSet, held_directions
+
+    used = (base == Status.USED) & prep.has_attitude
+    if used.sum() < 10 * layout.size:
+        return x0, P0, None
+    wander_s = None if noise is not None and noise.heading_rad == 0.0 else WANDER_BLOCK_S
+    held = held_directions(EpochSet.of(prep, used, config, noise, wander_s), layout, x0)
+    if held is None or not held.count:
+        return x0, P0, None
+    core = layout.CORE.stop
+    mean = layout.prior()[0][core:]
+    x0 = np.array(x0, float)
+    x0[core:] = held.hold(x0[core:], mean)
+    K = np.eye(layout.size)
+    K[core:, core:] = held.projector
+    P0 = K @ np.asarray(P0, float) @ K.T
+    P0[core:, core:] += HELD_VARIANCE_SHARE * held.held_cov
+    return x0, 0.5 * (P0 + P0.T), held
 
 
 #: The largest spread (one standard deviation, at the 95th percentile of the epochs) that the start's uncertainty
@@ -577,7 +616,9 @@ def start_noise(
         # The fit needs far fewer epochs than a long log has: its error is then still far below the noise
         # whose scale it is for. Every epoch's residual counts in the scale.
         fit = usable[fit_positions(len(usable))]
-        x = robust_linear_fit(*start_rows(layout, x0, prep.data, prep.m[fit], fit), x0, start.along_var)
+        x = robust_linear_fit(
+            *start_rows(layout, x0, prep.data, prep.m[fit], fit), x0, start.along_var, prior_std=effect_spread(layout)
+        )
         R = StateLayout.R(np.asarray(x0, float))
         parts_of_e = np.empty((len(usable), 3))
         for i in range(0, len(usable), CHUNK):
@@ -589,6 +630,14 @@ def start_noise(
             return start, x0
         along, cross, x = magnitude_residuals(prep.take(usable), x0), None, x0
     return start_levels(along, cross, prep.ref_mag[usable], prep.ref[usable], config), x
+
+
+def effect_spread(layout: StateLayout) -> np.ndarray:
+    """(n,) the added effects' prior standard deviations, infinite for the core: the prior of the start's robust fit
+    (``robust_linear_fit``)."""
+    spread = np.sqrt(np.diag(layout.prior()[1]))
+    spread[layout.CORE] = np.inf
+    return spread
 
 
 def configured_noise(config: FilterConfig) -> NoiseLevels:
@@ -665,9 +714,11 @@ ROBUST_SCALES = 3.0
 REJECT_ITERATIONS = 2
 
 
-def robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.ndarray:
+def robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6, prior_std=None) -> np.ndarray:
     """``x`` (n,) minimising Huber-weighted ``|m - H x|^2`` over epochs ``m`` (N, 3) nT, ``H`` (N, 3, n), with a
-    weak pull towards ``x0`` that keeps directions the log does not determine where the start put them.
+    weak pull towards ``x0`` that keeps directions the log does not determine where the start put them: where
+    ``prior_std`` (n,) is finite, a prior of that standard deviation weighed as one epoch's (an effect's own, which
+    keeps a direction it shares with the core, a field anomaly along the field with R's scale, near its mean).
 
     ``iterations`` of Huber weights (threshold ``ROBUST_SCALES`` robust scales of the residual norm), then
     ``REJECT_ITERATIONS`` with the epochs beyond it left out: a Huber weight bounds a disturbance's pull but
@@ -677,6 +728,9 @@ def robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6) -> np.nda
     n = len(x0)
     rows, y = H.reshape(-1, n), m.reshape(-1)  # (3N, n) and (3N,): one row per component
     pull = noise_var / (1e6 * (np.abs(x0) * 1e-3 + 1e-3)) ** 2
+    if prior_std is not None:
+        std = np.asarray(prior_std, float)
+        pull = np.where(np.isfinite(std), noise_var / std**2, pull)
     w = np.ones(len(m))
     x = x0
     for i in range(iterations + REJECT_ITERATIONS):

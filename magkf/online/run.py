@@ -170,7 +170,8 @@ def whole_log_estimate(log, prep, setup: RunSetup, est: Estimator, status, updat
 def whole_log_options(setup: RunSetup, est: Estimator, config: FilterConfig, held: tuple, step_s: float, source):
     """The options of ``whole_log.fit_whole_log`` for a run from ``setup`` ended with ``est``: the family
     ``config.model``, the held parameters at ``held`` (``held_reference``), the run's prior, the noise and
-    correlation time the filter learned (``step_s`` the log's median time step, s)."""
+    correlation time the filter learned (``step_s`` the log's median time step, s), the effects' directions the
+    run's start held (``RunSetup.held``)."""
     calibration, how = held
     return {
         "vector": setup.model.needs_attitude,
@@ -185,6 +186,7 @@ def whole_log_options(setup: RunSetup, est: Estimator, config: FilterConfig, hel
         "noise": learned_noise(setup.model, est, config),
         "prior_noise": est.noise,
         "source": source,
+        "held_effects": setup.held,
     }
 
 

@@ -42,7 +42,7 @@ prior's standard deviation, and what it does to the free ones is added (a consid
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -382,6 +382,7 @@ def fit_whole_log_parts(
     noise=None,
     prior_noise=None,
     source: str | None = None,
+    held_effects=None,
 ) -> WholeLogFit:
     """The whole-log estimate in the family ``model`` (see the module) of a log given in parts.
 
@@ -419,6 +420,9 @@ def fit_whole_log_parts(
         (``_Problem.weigh_prior``).
     source : str or None
         The log's name, for errors.
+    held_effects : magkf.diagnostics.fitting.HeldDirections or None
+        The directions of the effects' parameters the log does not determine (the run's start found them), held
+        at the prior mean with the prior's variance (None: every effect parameter free).
 
     Returns
     -------
@@ -440,6 +444,10 @@ def fit_whole_log_parts(
     field_nt = problem.field_nt
     excited = problem.spread >= EXCITATION_FRACTION * field_nt
     families = {name: family(name).restricted(excited) for name in _possible(vector)}
+    if held_effects is not None:  # the effects' undetermined directions at the prior mean, in every family
+        families = {name: replace(f, effects=held_effects.free) for name, f in families.items()}
+        x_start = x_start.copy()
+        x_start[CORE_SIZE:] = held_effects.hold(x_start[CORE_SIZE:], prior_x[CORE_SIZE:])
     if model != "auto" and model not in families:
         raise InputError(
             f"--model {model}: the magnitude alone cannot see the rotation between sensor and body; measure the "
@@ -467,8 +475,10 @@ def fit_whole_log_parts(
     if rms > MISFIT_FRACTION * field_nt:
         raise InputError(f"no calibration fits: {_misfit_words(rms, field_nt)}; nothing written", source)
     T = fam.state_basis(n)
-    P, given = _covariance(problem, x, s, T, fam, held_std, noise)
+    P, given = _covariance(problem, x, s, T, fam, held_std, noise, held_effects)
     record = _record(fam, model, held_how, core_ref, candidates, chosen)
+    if held_effects is not None:
+        record["effects_held"] = held_effects.text()
     if fam.name != "full" or fam.size < CORE_SIZE:
         free = np.abs(fam.basis).sum(axis=1) > 0
         record["std_given_held"] = {n: float(v) for n, v, f in zip(PARAMETER_NAMES, given, free) if f}
@@ -657,10 +667,12 @@ def _choose(candidates: dict, chosen: str, families: dict) -> str:
 
 
 def _covariance(
-    problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std, noise=None
+    problem: _Problem, x, s: _Sums, T, fam: ModelFamily, held_std, noise=None, held_effects=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The covariance (n, n): the batch-means sandwich in the free directions, the prior's standard deviations
-    ``held_std`` (R element, offset nT) along the held ones, and what the held values' uncertainty does to the
+    ``held_std`` (R element, offset nT) along the held ones (and the effects' own prior along their held directions,
+    ``held_effects``: a field anomaly along the field, held, widens R's scale as much as it trades with it), and
+    what the held values' uncertainty does to the
     free estimates (a consider covariance: the free estimate moves by ``S dh`` when the held values move by
     ``dh``, ``S = -H_ff^-1 H_fh``, so ``P_f + S P_h S^T``). A level drive's ``b_z`` is then as uncertain as
     ``R_33`` held makes it (``std(R_33) B_z``), not as the data alone would say. Also returns the core's
@@ -687,14 +699,19 @@ def _covariance(
     P_theta = _at_least(white, sandwich)
     if noise is not None:  # the learned noise model's correlation, in place of the batches (see the docstring)
         P_theta = _at_least(white, Hi @ (T.T @ problem.model_meat(x, *noise) @ T) @ Hi)
-    N = np.zeros((len(x), fam.held().shape[1]))
-    N[:CORE_SIZE] = fam.held()
+    core_held = fam.held()
+    effect_held = np.zeros((len(x) - CORE_SIZE, 0)) if held_effects is None else held_effects.held_basis
+    N = np.zeros((len(x), core_held.shape[1] + effect_held.shape[1]))
+    N[:CORE_SIZE, : core_held.shape[1]] = core_held
+    N[CORE_SIZE:, core_held.shape[1] :] = effect_held
     given = np.sqrt(np.abs(np.einsum("ik,kl,il->i", T, P_theta, T)))[:CORE_SIZE]
     if not N.shape[1]:
         P = T @ P_theta @ T.T
         return 0.5 * (P + P.T), given
     held_var = _held_variances(held_std)
-    P_h = N[:CORE_SIZE].T @ (held_var[:, None] * N[:CORE_SIZE])
+    P_h = np.eye(N.shape[1])  # the effects' held directions: one prior standard deviation each
+    h = core_held.shape[1]
+    P_h[:h, :h] = core_held.T @ (held_var[:, None] * core_held)
     S = -Hi @ (T.T @ (s.A + problem.omega) @ N)
     basis = np.hstack([T, N])
     joint = np.block([[P_theta + S @ P_h @ S.T, S @ P_h], [P_h @ S.T, P_h]])
