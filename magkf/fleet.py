@@ -551,14 +551,32 @@ def _flights(summary: pd.DataFrame) -> dict:
 def pooled_diagnoses(summary: pd.DataFrame, alpha: float = 0.01) -> dict:
     """Each vehicle's diagnoses (the ``diagnosis.json`` of its calibrated logs, in ``summary``'s order: by start
     time) pooled over its flights (``magkf.diagnostics.pooled.pool`` at ``alpha``): ``{vehicle: PooledDiagnosis}``,
-    the vehicles with no diagnosed log left out."""
+    the vehicles with no diagnosed log left out, and those whose ``diagnosis.json`` cannot be read (with a
+    warning)."""
     from .diagnostics.pooled import pool
 
     out = {}
     for vehicle, flights in _flights(summary).items():
-        diagnoses = {name: json.loads(path.read_text(encoding="utf-8")) for name, (_, path) in flights.items()}
-        out[vehicle] = pool(diagnoses, alpha)
+        try:
+            out[vehicle] = pool({name: _diagnosis_file(path) for name, (_, path) in flights.items()}, alpha)
+        except InputError as exc:  # a diagnosis.json changed since it was written: the vehicle is left out
+            warnings.warn(f"{vehicle}: its diagnoses are not pooled: {exc}", UserWarning, stacklevel=1)
     return out
+
+
+def _diagnosis_file(path: Path) -> dict:
+    """The diagnosis summary in ``path`` (``diagnosis.json``); InputError naming it when it cannot be read or
+    pooled."""
+    from .diagnostics.pooled import candidates_of
+
+    try:
+        diagnosis = json.loads(path.read_text(encoding="utf-8"))
+        candidates_of(diagnosis)
+    except InputError as exc:
+        raise InputError(exc.message, str(path)) from None
+    except (OSError, ValueError, AttributeError) as exc:
+        raise InputError(f"cannot be read as a diagnosis ({exc})", str(path)) from None
+    return diagnosis
 
 
 def _write_pooled(pooled: dict, summary: pd.DataFrame, path) -> None:

@@ -60,7 +60,7 @@ B. L. Welch, "On the comparison of several mean values: an alternative approach"
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import MISSING, dataclass, fields, replace
 
 import numpy as np
 from scipy import special
@@ -80,17 +80,27 @@ def candidates_of(diagnosis) -> tuple[list[Candidate], float, float]:
     """The candidates of a ``Diagnosis`` or of its ``summary()`` (``diagnosis.json``), that flight's level (the
     p-value below which a candidate is significant there) and its model's held-out residual RMS, nT."""
     if isinstance(diagnosis, dict):
-        names = {f.name for f in fields(Candidate)}
-        tests = {text: key for key, text in TESTS.items()}
-        found = []
-        for c in diagnosis.get("candidates", []):
-            kept = {k: v for k, v in c.items() if k in names}
-            kept["test"] = tests.get(c.get("test"), c.get("test", "F"))
-            kept["statistic"] = np.nan if kept.get("statistic") is None else kept["statistic"]
-            found.append(Candidate(**kept))
+        found = [_candidate(c) for c in diagnosis.get("candidates", [])]
         level, held_out = diagnosis.get("level"), diagnosis.get("residual_rms_held_out_nt")
         return found, _number(level), _number(held_out)
     return list(diagnosis.candidates), float(diagnosis.level), float(diagnosis.residual_rms_held_out_nt)
+
+
+#: The fields a candidate of a diagnosis summary must have.
+REQUIRED = tuple(f.name for f in fields(Candidate) if f.default is MISSING and f.default_factory is MISSING)
+
+
+def _candidate(c: dict) -> Candidate:
+    """A ``Candidate`` from its ``as_dict()`` (the test named in words, a NaN statistic as null)."""
+    tests = {text: key for key, text in TESTS.items()}
+    kept = {f.name: c[f.name] for f in fields(Candidate) if f.name in c}
+    kept["test"] = tests.get(c.get("test"), c.get("test", "F"))
+    if kept.get("statistic", 0.0) is None:
+        kept["statistic"] = np.nan
+    lacking = [name for name in REQUIRED if name not in kept]
+    if lacking:
+        raise InputError(f"a candidate of the diagnosis lacks {', '.join(lacking)}: diagnose the log again")
+    return Candidate(**kept)
 
 
 def _number(value) -> float:

@@ -229,3 +229,28 @@ def test_held_out_ratio_is_reported_not_decisive():
     c = _effect(pool(fleet))
     assert c.held_out_ratio == pytest.approx(30.0 / 29.0) and c.as_dict()["held_out_ratio"] == c.held_out_ratio
     assert c.verdict == "recommended" and "held-out residual 103.4 %" in c.words()
+
+
+def test_fleet_pools_each_vehicles_diagnosis_files(tmp_path):
+    """``magkf.fleet.pooled_diagnoses`` reads each calibrated log's ``diagnosis.json`` and pools them per vehicle
+    (a failed log left out); a vehicle whose file cannot be pooled is left out with a warning naming the file."""
+    import pandas as pd
+
+    from magkf.fleet import DIAGNOSIS, pooled_diagnoses
+
+    rng = np.random.default_rng(91)
+    rows = []
+    for vehicle, thetas in (("V1", [np.full(Q, 5.0)] * 3), ("V2", [np.zeros(Q)] * 3)):
+        for name, summary in _fleet(rng, thetas).items():
+            folder = tmp_path / vehicle / name
+            folder.mkdir(parents=True)
+            (folder / DIAGNOSIS).write_text(json.dumps(summary))
+            rows.append({"vehicle": vehicle, "output": str(folder), "error": "", "log": f"{name}.csv"})
+    rows.append({"vehicle": "V1", "output": str(tmp_path / "nowhere"), "error": "x.csv: unreadable", "log": "x.csv"})
+    summary = pd.DataFrame(rows)
+    pooled = pooled_diagnoses(summary, ALPHA)
+    assert sorted(pooled) == ["V1", "V2"] and pooled["V1"].flights == ("flight0", "flight1", "flight2")
+    assert pooled["V1"].recommended[0].effect == "temperature_bias"
+    (tmp_path / "V2" / "flight1" / DIAGNOSIS).write_text('{"alpha": 0.01, "candidates": [{"effect": "x"}]}')
+    with pytest.warns(UserWarning, match=r"V2: its diagnoses are not pooled: .*flight1.*lacks statistic"):
+        assert sorted(pooled_diagnoses(summary, ALPHA)) == ["V1"]
