@@ -13,7 +13,7 @@ from magkf import Calibration
 from magkf.blas import one_thread
 from magkf.config import FilterConfig
 from magkf.diagnostics.inference import walk_rate
-from magkf.diagnostics.validate import MAX_BLOCKS, POWER, _share_test, validate, validation_edges
+from magkf.diagnostics.validate import MAX_BLOCKS, POWER, _share_test, _verdict, validate, validation_edges
 from magkf.effects import BUILTIN, stored_effect
 from magkf.io.drivelog import DriveLog
 from magkf.online.run import calibrate_log
@@ -85,6 +85,16 @@ def test_share_test_keeps_its_size_at_the_boundary_and_its_stated_power():
     gain = 0.5 + fall / (2.0 * cc)  # (2 g - 1) c.c is the fall
     found = sum(_share_test(gain * c + scale * _ar1(rng, n), c, 0.05)["p_helps"] < 0.05 for _ in range(trials))
     assert _at_least(POWER - 0.02, trials) <= found <= _at_most(POWER + 0.02, trials)
+
+
+def test_a_test_without_power_says_so():
+    """300 epochs correlated over about 40 (AR(1), phi 0.95): fewer than three independent stretches, so
+    no test is made, and the verdict says it was not tested instead of "no difference"."""
+    rng = np.random.default_rng(2)
+    n = 300
+    out = _share_test(_ar1(rng, n, phi=0.95), _shape(n), 0.01)
+    assert out["dof"] == 0 and out["p_helps"] == 1.0 and out["detectable"] == 1.0
+    assert _verdict(out, 0.01).startswith("not tested")
 
 
 @one_thread  # small matrices: BLAS threads only contend (as in validate)
