@@ -114,8 +114,9 @@ def run_fleet(args) -> int:
     each vehicle's diagnoses over its flights (magkf.diagnostics.pooled): each candidate's combined test over the
     flights, its coefficient's consistency across them, and the effect recommended for the vehicle even when no single
     flight reaches significance, or the flights whose coefficient differs; one line per vehicle says it. A log that
-    fails does not stop the others (exit status 2 only when every log failed). A log whose input and settings are unchanged since an earlier
-    run into DIR (same content hash) and whose outputs are complete is not calibrated again."""
+    fails does not stop the others (exit status 2 only when every log failed). A log whose input and settings are
+    unchanged since an earlier run into DIR (same content hash) and whose outputs are complete is not calibrated
+    again."""
     from pathlib import Path
 
     from ..effects import make_effect
