@@ -442,14 +442,15 @@ class HeldDirections:
 
 def held_directions(problem: EpochSet, layout: StateLayout, x) -> HeldDirections | None:
     """The directions of each added effect's parameters (blocks after the core; an effect that ``wanders`` is left
-    free) whose standard error, beside every other parameter carrying its prior and the heading's wander taken out
+    free) whose standard error, beside every other parameter and the heading's wander taken out
     (``EpochSet.gram``), exceeds ``DETERMINED`` prior spreads (``determined``, the diagnosis's rule; the core's spread
     the default core's, ``StateLayout.with_core``, as in the diagnosis): the data say
     less about them than the prior, and a fit would let them absorb the heading's wander. None when the layout
     adds no effect.
 
-    In units of the prior spread ``D`` the information is ``G = D A^T A D``; a block's, beside the others,
-    ``G_bb - G_bo (G_oo + I)^-1 G_ob``; its eigenvectors with eigenvalue at least ``1 / DETERMINED^2`` are free.
+    In units of the prior spread ``D`` the information is ``G = D A^T A D``; a block's, beside the others (free,
+    whatever their prior: a field anomaly along the field is R's scale however narrow R's prior),
+    ``G_bb - G_bo G_oo^+ G_ob``; its eigenvectors with eigenvalue at least ``1 / DETERMINED^2`` are free.
     """
     n = layout.size
     q = n - layout.CORE.stop
@@ -467,9 +468,8 @@ def held_directions(problem: EpochSet, layout: StateLayout, x) -> HeldDirections
             vectors, keep = np.eye(effect.size), np.ones(effect.size, bool)
         else:
             others = np.setdiff1d(np.arange(n), np.arange(sl.start, sl.stop))
-            Goo = G[np.ix_(others, others)] + np.eye(len(others))
             Gbo = G[sl][:, others]
-            info = G[sl, sl] - Gbo @ np.linalg.solve(Goo, Gbo.T)
+            info = G[sl, sl] - Gbo @ np.linalg.pinv(G[np.ix_(others, others)], rcond=1e-9, hermitian=True) @ Gbo.T
             values, vectors = np.linalg.eigh(0.5 * (info + info.T))
             keep = values >= 1.0 / DETERMINED**2
         Vk, Vh = vectors[:, keep], vectors[:, ~keep]
