@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .measurements import heading_axis
 from .state import StateLayout
 from .whole_log import WholeLogFit, filter_estimate, fit_whole_log
 
@@ -54,10 +55,16 @@ __all__ = [
     "ROUNDS",
 ]
 
-#: Bin length of the residuals (s), at least ``MIN_BIN_EPOCHS`` epochs; at most ``MAX_BINS`` bins over the log.
+#: Bin length of the residuals (s), at least ``MIN_BIN_EPOCHS`` epochs and ``CORRELATIONS_PER_BIN`` of the noise's
+#: correlation times (``noise_correlation_s``); at most ``MAX_BINS`` bins over the log.
 BIN_S = 1.0
 MIN_BIN_EPOCHS = 4
+CORRELATIONS_PER_BIN = 3.0
 MAX_BINS = 4000
+#: The noise's correlation is measured against its variance within windows of this length (s), and a correlation
+#: of consecutive epochs below ``WHITE_CORRELATION`` is taken as white noise.
+VARIANCE_WINDOW_S = 30.0
+WHITE_CORRELATION = 0.2
 #: Bins needed to learn a rate (fewer: the effect's own ``walk`` is kept, said not learned).
 MIN_BINS = 20
 #: The grid of ``q`` (nT^2/s): ``log10 q`` from ``Q_DECADES[0]`` to ``Q_DECADES[1]``, ``COARSE`` points a decade,
@@ -81,12 +88,30 @@ MAX_KNOTS = 1000
 @dataclass(frozen=True)
 class Binned:
     """Residuals averaged in bins: ``time`` (K,) UNIX s (the epochs' mean), ``y`` (K, 3) nT, ``c`` (K, 3) nT^2
-    the variance of each bin's mean up to one scale, ``counts`` (K,) epochs."""
+    the variance of each bin's mean up to one scale, ``counts`` (K,) epochs, and ``h`` (K, 3) nT/rad the
+    heading axis in the sensor frame (what a heading error of one radian adds to the reading; None: zero)."""
 
     time: np.ndarray
     y: np.ndarray
     c: np.ndarray
     counts: np.ndarray
+    h: np.ndarray | None = None
+    field: np.ndarray | None = None
+
+    def heading(self) -> np.ndarray:
+        """``h`` (K, 3), zeros where none was given."""
+        return np.zeros_like(self.y) if self.h is None else self.h
+
+    def regressors(self) -> np.ndarray:
+        """(K, 3, STATE) of each bin's mean: ``y = d + h a + dR B + e``, ``B`` the bin's mean body field (``field``,
+        nT; zero where none was given) and ``dR`` (row-major) the error of the fitted ``R``."""
+        H = np.zeros((len(self.y), 3, STATE))
+        H[:, :, :3] = np.eye(3)
+        H[:, :, 3] = self.heading()
+        if self.field is not None:
+            for i in range(3):
+                H[:, i, 4 + 3 * i : 7 + 3 * i] = self.field
+        return H
 
     def __len__(self) -> int:
         return len(self.time)
@@ -96,14 +121,16 @@ class Binned:
 class WalkRate:
     """The learned random walk: ``value`` nT/sqrt(s), its standard deviation (from the width of the 95 %
     interval of ``log q``), the 95 % interval ``(low, high)`` (``low`` 0 where the likelihood does not fall
-    below the grid), ``scale`` the bins' noise scale ``s`` (1 when the within-bin variance is the bins' noise) and
-    ``learned`` False where the log had too few bins."""
+    below the grid), ``scale`` the bins' noise scale ``s`` (1 when the within-bin variance is the bins' noise),
+    ``learned`` False where the log had too few bins, and ``heading_q`` (rad^2/s) the random walk of the logged
+    heading's error learned with it (0: none)."""
 
     value: float
     std: float
     interval: tuple
     scale: float
     learned: bool = True
+    heading_q: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -153,17 +180,41 @@ class DriftPath:
 # ------------------------------------------------------------------ the bins
 
 
-def bin_length(time: np.ndarray) -> float:
-    """The bins' length (s) for epochs at ``time`` (N,) UNIX s."""
+def bin_length(time: np.ndarray, correlation_s: float = 0.0) -> float:
+    """The bins' length (s) for epochs at ``time`` (N,) UNIX s whose noise is correlated over ``correlation_s``."""
     step = float(np.median(np.diff(time))) if len(time) > 1 else 1.0
     span = float(time[-1] - time[0]) if len(time) > 1 else 1.0
-    return max(BIN_S, MIN_BIN_EPOCHS * step, span / MAX_BINS)
+    return max(BIN_S, MIN_BIN_EPOCHS * step, CORRELATIONS_PER_BIN * correlation_s, span / MAX_BINS)
 
 
-def bin_residuals(time, r, length_s: float) -> Binned:
+def noise_correlation_s(time, r) -> float:
+    """The correlation time (s) of the noise in residuals ``r`` (N, 3) nT at ``time`` (N,) UNIX s, as a first-order
+    Gauss-Markov process: from the correlation ``rho = 1 - var(step difference) / (2 var)`` of consecutive epochs,
+    ``var`` each axis's variance within ``VARIANCE_WINDOW_S`` windows (short against the offset's wander), both
+    pooled over the axes; ``tau = -step / ln rho``, 0 where ``rho`` is below ``WHITE_CORRELATION``."""
+    time = np.asarray(time, float)
+    if len(time) < 3:
+        return 0.0
+    window = np.floor((time - time[0]) / VARIANCE_WINDOW_S).astype(np.int64)
+    _, start, counts = np.unique(window, return_index=True, return_counts=True)
+    means = np.repeat(np.add.reduceat(r, start, axis=0) / counts[:, None], counts, axis=0)
+    variance = float(np.sum((r - means) ** 2) / max(r.size - 3 * len(counts), 1))
+    same = np.diff(window) == 0
+    steps = np.diff(r, axis=0)[same]
+    if not len(steps) or variance <= 0:
+        return 0.0
+    rho = 1.0 - float(np.mean(steps**2)) / (2.0 * variance)
+    if rho < WHITE_CORRELATION:
+        return 0.0
+    step = float(np.median(np.diff(time)[same]))
+    return -step / np.log(min(rho, 0.999))
+
+
+def bin_residuals(time, r, length_s: float, heading=None, field=None) -> Binned:
     """Residuals ``r`` (N, 3) nT at ``time`` (N,) UNIX s averaged in bins of ``length_s``: each bin's mean, and the
-    variance of that mean up to one scale, each axis's pooled within-bin variance over the bin's epochs. Bins of
-    one epoch are dropped."""
+    variance of that mean up to one scale, each axis's pooled within-bin variance over the bin's epochs; the
+    sensor-frame ``heading`` axis (N, 3) nT/rad and the body ``field`` (N, 3) nT averaged alike (None: none). Bins
+    of one epoch are dropped."""
     time = np.asarray(time, float)
     index = np.floor((time - time[0]) / length_s).astype(np.int64)
     _, start, counts = np.unique(index, return_index=True, return_counts=True)
@@ -177,55 +228,96 @@ def bin_residuals(time, r, length_s: float) -> Binned:
     t_mean = np.add.reduceat(time, start) / counts
     n = counts[keep].astype(float)
     c = within[None, :] / n[:, None]
-    return Binned(t_mean[keep], means[keep], c, counts[keep])
+    h, f = (
+        (None if a is None else (np.add.reduceat(a, start, axis=0) / counts[:, None])[keep]) for a in (heading, field)
+    )
+    return Binned(t_mean[keep], means[keep], c, counts[keep], h, f)
 
 
 # ------------------------------------------------------------------ the rate
 
 
-def profile_log_likelihood(binned: Binned, rho) -> tuple[np.ndarray, np.ndarray]:
-    """``(W, logdet)`` (G,) of the bins under a walk of ``rho`` (G,) per s in units of the bins' noise scale:
-    ``sum nu^2 / F`` and ``sum log F`` over the bins after the first and the axes of the local-level Kalman filter
-    with noise ``c`` (diffuse start: the first bin's level is its reading). With the scale ``s``, the marginal
-    log-likelihood of ``q = rho s`` is ``-(m log s + logdet + W / s) / 2`` up to a constant, ``m`` the terms."""
-    y, c = binned.y, binned.c
-    dt = np.diff(binned.time)
+def profile_log_likelihood(binned: Binned, rho, rho_heading=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(W, logdet)`` (G,) of the bins under a walk of ``rho`` (G,) per s of the offset and ``rho_heading`` (G,)
+    rad^2 per s of the logged heading's error (None: zeros), both in units of the bins' noise scale: ``sum nu^T
+    S^-1 nu`` and ``sum log det S`` over the bins after the first ``SKIP_BINS`` of the Kalman filter of the
+    state (departure (3,), heading error, the fitted R's error (9,), ``Binned.regressors``) with noise ``c``. With
+    the scale ``s``, the marginal log-likelihood of ``q = rho s`` is ``-(m log s + logdet + W / s) / 2`` up to a
+    constant, ``m = 3 (K - SKIP_BINS)``."""
     rho = np.asarray(rho, float)
-    level = np.broadcast_to(y[0], (len(rho), 3)).copy()
-    var = np.broadcast_to(c[0], (len(rho), 3)).copy()
+    rho_heading = np.zeros(len(rho)) if rho_heading is None else np.asarray(rho_heading, float)
+    walk = np.column_stack([rho, rho, rho, rho_heading, np.zeros((len(rho), STATE - 4))])  # (G, STATE)
+    x, P = _diffuse(len(rho))
     weighted, logdet = np.zeros(len(rho)), np.zeros(len(rho))
-    walk = rho[:, None]
-    for k in range(1, len(y)):
-        predicted = var + walk * dt[k - 1]
-        F = predicted + c[k]
-        nu = y[k] - level
-        weighted += (nu * nu / F).sum(axis=1)
-        logdet += np.log(F).sum(axis=1)
-        gain = predicted / F
-        level += gain * nu
-        var = predicted * c[k] / F
+    dt = np.diff(binned.time, prepend=binned.time[0])
+    y, c, H = binned.y, binned.c, binned.regressors()
+    for k in range(len(y)):
+        P[:, _DIAG, _DIAG] += walk * dt[k]
+        nu, S, gain, PHt = _update_terms(x, P, y[k], c[k], H[k])
+        if k >= SKIP_BINS:
+            weighted += np.einsum("gi,gij,gj->g", nu, np.linalg.inv(S), nu)
+            logdet += np.linalg.slogdet(S)[1]
+        x += np.einsum("gij,gj->gi", gain, nu)
+        P -= gain @ np.swapaxes(PHt, 1, 2)
     return weighted, logdet
 
 
+#: The state: the departure (3), the logged heading's error (rad) and the error of the fitted R (9, constant:
+#: the residual of a fit that took part of the drift for R, which the path must not take for drift). Its
+#: start: a departure of 1e4 nT, a heading error of 1 rad and R's error of ``R_ERROR`` (standard deviations),
+#: the first ``SKIP_BINS`` bins left out of the likelihood (they settle the start).
+STATE = 13
+_DIAG = np.arange(STATE)
+DIFFUSE_NT = 1e4
+DIFFUSE_RAD = 1.0
+R_ERROR = 0.01
+SKIP_BINS = 5
+
+
+def _diffuse(G: int) -> tuple[np.ndarray, np.ndarray]:
+    """The start of ``G`` filters: state (G, STATE) zero, covariance (G, STATE, STATE) diffuse."""
+    P = np.zeros((G, STATE, STATE))
+    P[:, _DIAG, _DIAG] = [DIFFUSE_NT**2] * 3 + [DIFFUSE_RAD**2] + [R_ERROR**2] * 9
+    return np.zeros((G, STATE)), P
+
+
+def _update_terms(x, P, y, c, H) -> tuple:
+    """The innovation (G, 3), its covariance (G, 3, 3), the gain (G, STATE, 3) and ``P H^T`` (G, STATE, 3) of a
+    bin ``y`` (3,) with noise ``c`` (3,) and regressors ``H`` (3, STATE) (``Binned.regressors``)."""
+    PHt = P @ H.T
+    S = H @ PHt + np.diag(c)
+    nu = y - x @ H.T
+    gain = np.linalg.solve(S, np.swapaxes(PHt, 1, 2))  # S^-1 H P, S and P symmetric
+    return nu, S, np.swapaxes(gain, 1, 2), PHt
+
+
+#: The heading error's walk (rad^2/s, in units of the noise scale) tried beside none: 10^-10 to 10^-4.
+HEADING_DECADES = (-10.0, -4.0)
+HEADING_PER_DECADE = 2
+
+
 def learn_walk(binned: Binned, default_walk: float) -> WalkRate:
-    """The walk (nT/sqrt(s)) that maximises the bins' marginal likelihood, with its 95 % interval from the
-    profile likelihood of ``q`` (the scale maximised at each ``q``); the effect's ``default_walk`` (not learned)
-    when there are fewer than ``MIN_BINS`` bins."""
+    """The walk (nT/sqrt(s)) that maximises the bins' marginal likelihood, the logged heading's wander maximised
+    with it (none, or a walk on ``HEADING_DECADES``), with its 95 % interval from the profile likelihood of ``q``
+    (the scale and the heading's walk maximised at each ``q``); the effect's ``default_walk`` (not learned) when
+    there are fewer than ``MIN_BINS`` bins."""
     if len(binned) < MIN_BINS:
         return WalkRate(float(default_walk), float("nan"), (float("nan"), float("nan")), 1.0, learned=False)
-    m = 3 * (len(binned) - 1)
+    m = 3 * (len(binned) - SKIP_BINS)
     lo, hi = Q_DECADES
-    grid = np.linspace(lo, hi, int((hi - lo) * COARSE) + 1)  # log10 rho
-    W, logdet = profile_log_likelihood(binned, 10.0**grid)
-    centre = grid[int(np.argmax(-(m * np.log(W / m) + logdet)))]
-    fine = np.linspace(centre - REFINE_DECADES, centre + REFINE_DECADES, int(2 * REFINE_DECADES * FINE) + 1)
-    W_f, logdet_f = profile_log_likelihood(binned, 10.0**fine)
-    grid, order = np.unique(np.concatenate([grid, fine]), return_index=True)
-    W, logdet = np.concatenate([W, W_f])[order], np.concatenate([logdet, logdet_f])[order]
+    coarse = np.linspace(lo, hi, int((hi - lo) * COARSE) + 1)  # log10 rho
+    heading = _heading_grid(binned)
+    grid, gh = (a.ravel() for a in np.meshgrid(coarse, heading, indexing="ij"))
+    W, logdet = profile_log_likelihood(binned, 10.0**grid, gh)
+    best = int(np.argmax(-(m * np.log(W / m) + logdet)))
+    fine = np.linspace(grid[best] - REFINE_DECADES, grid[best] + REFINE_DECADES, int(2 * REFINE_DECADES * FINE) + 1)
+    W_f, logdet_f = profile_log_likelihood(binned, 10.0**fine, np.full(len(fine), gh[best]))
+    grid, gh = np.concatenate([grid, fine]), np.concatenate([gh, np.full(len(fine), gh[best])])
+    W, logdet = np.concatenate([W, W_f]), np.concatenate([logdet, logdet_f])
     best = int(np.argmax(-(m * np.log(W / m) + logdet)))
     scale = float(W[best] / m)
-    log_q = grid + np.log10(scale)  # the profile of q on the same points, the scale maximised at each
-    s = 10.0 ** (log_q[:, None] - grid[None, :])  # (q, rho): the scale that makes rho s = q
+    log_q = np.unique(grid) + np.log10(scale)  # the profile of q, the scale and the heading's walk maximised
+    s = 10.0 ** (log_q[:, None] - grid[None, :])  # (q, evaluated): the scale that makes rho s = q
     ll = np.max(-0.5 * (m * np.log(s) + logdet[None, :] + W[None, :] / s), axis=1)
     top = int(np.argmax(ll))
     drop = 2.0 * (ll[top] - ll)
@@ -236,7 +328,16 @@ def learn_walk(binned: Binned, default_walk: float) -> WalkRate:
     else:  # one-sided: the upper half-width stands for both
         std_log_q = (high - log_q[top]) * np.log(10.0) / 1.96
     interval = (float(np.sqrt(10.0**low)) if np.isfinite(low) else 0.0, float(np.sqrt(10.0**high)))
-    return WalkRate(walk, walk * std_log_q / 2.0, interval, scale)
+    return WalkRate(walk, walk * std_log_q / 2.0, interval, scale, heading_q=float(gh[best] * scale))
+
+
+def _heading_grid(binned: Binned) -> np.ndarray:
+    """The heading error's walks tried (rad^2/s): none, and ``HEADING_DECADES`` where the bins have a heading
+    axis."""
+    if binned.h is None or not np.any(binned.h):
+        return np.zeros(1)
+    lo, hi = HEADING_DECADES
+    return np.concatenate([[0.0], 10.0 ** np.linspace(lo, hi, int((hi - lo) * HEADING_PER_DECADE) + 1)])
 
 
 def _crossing(grid, drop, top: int, direction: int) -> float:
@@ -255,24 +356,25 @@ def _crossing(grid, drop, top: int, direction: int) -> float:
 # ------------------------------------------------------------------ the path
 
 
-def smooth_level(binned: Binned, q: float, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """The Rauch-Tung-Striebel smoothed level (K, 3) nT and its variance (K, 3) nT^2 of the bins under a walk
-    ``q`` nT^2/s and the bins' noise ``scale * c``."""
-    y, c = binned.y, binned.c * scale
-    dt = np.diff(binned.time)
-    K = len(y)
-    level, var, predicted = np.empty((K, 3)), np.empty((K, 3)), np.empty((K, 3))
-    level[0], var[0], predicted[0] = y[0], c[0], np.inf
-    for k in range(1, K):
-        predicted[k] = var[k - 1] + q * dt[k - 1]
-        gain = predicted[k] / (predicted[k] + c[k])
-        level[k] = level[k - 1] + gain * (y[k] - level[k - 1])
-        var[k] = predicted[k] * (1.0 - gain)
-    for k in range(K - 2, -1, -1):
-        back = var[k] / predicted[k + 1]
-        level[k] = level[k] + back * (level[k + 1] - level[k])
-        var[k] = var[k] + back**2 * (var[k + 1] - predicted[k + 1])
-    return level, var
+def smooth_level(binned: Binned, rate: WalkRate) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Rauch-Tung-Striebel smoothed departure (K, 3) nT, its variance (K, 3) nT^2 and the smoothed heading
+    error (K,) rad of the bins under the walks of ``rate`` (the offset's ``value^2``, the heading error's
+    ``heading_q``) and the bins' noise ``rate.scale * c`` (``magkf.online.smoother.rts_smooth``)."""
+    from .smoother import rts_smooth
+
+    walk = np.array([rate.value**2] * 3 + [rate.heading_q] + [0.0] * (STATE - 4))
+    x, P = _diffuse(1)
+    dt = np.diff(binned.time, prepend=binned.time[0])
+    y, c, H = binned.y, binned.c * rate.scale, binned.regressors()
+    xs, Ps = np.empty((len(y), STATE)), np.empty((len(y), STATE, STATE))
+    for k in range(len(y)):
+        P[:, _DIAG, _DIAG] += walk * dt[k]
+        nu, _, gain, PHt = _update_terms(x, P, y[k], c[k], H[k])
+        x = x + np.einsum("gij,gj->gi", gain, nu)
+        P = P - gain @ np.swapaxes(PHt, 1, 2)
+        xs[k], Ps[k] = x[0], 0.5 * (P[0] + P[0].T)
+    xs, Ps = rts_smooth(xs, Ps, dt, walk)
+    return xs[:, :3], np.einsum("kii->ki", Ps[:, :3, :3]), xs[:, 3]
 
 
 def _knots(binned: Binned, q: float, scale: float) -> np.ndarray:
@@ -287,15 +389,16 @@ def _knots(binned: Binned, q: float, scale: float) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, K - 1, int(wanted) + 1)).astype(np.int64))
 
 
-def _drift_path(binned: Binned, rate: WalkRate, time, weights, span, n_epochs) -> tuple[DriftPath, np.ndarray]:
-    """The zero-mean path at the rate learned, and its values (N, 3) at the epochs ``time`` (N,) whose ``weights``
-    (N,) make the mean (the epochs used)."""
-    level, var = smooth_level(binned, rate.value**2, rate.scale)
+def _drift_path(binned: Binned, rate: WalkRate, time, span, n_epochs) -> tuple[DriftPath, np.ndarray]:
+    """The path at the rate learned, zero-mean over the epochs at ``time`` (N,) (the epochs used), and the logged
+    heading's error (N,) rad at those epochs less its mean."""
+    level, var, heading = smooth_level(binned, rate)
     at_epochs = np.column_stack([np.interp(time, binned.time, level[:, i]) for i in range(3)])
-    mean = np.average(at_epochs, axis=0, weights=weights)
+    mean = at_epochs.mean(axis=0)
     knots = _knots(binned, rate.value**2, rate.scale)
     path = DriftPath(binned.time[knots], level[knots] - mean, np.sqrt(var[knots]), span, n_epochs, rate)
-    return path, at_epochs - mean
+    error = np.interp(time, binned.time, heading)
+    return path, error - error.mean()
 
 
 # ------------------------------------------------------------------ the whole-log estimate
@@ -321,16 +424,28 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
     used = np.asarray(used, bool) & prep.has_attitude
     idx = np.flatnonzero(used)
     departure = np.zeros((len(prep), 3))
+    span = (float(prep.time[0]), float(prep.time[-1]))
     for _ in range(ROUNDS):
         fit = fit_whole_log(replace(prep, m=prep.m - departure), still, x_still, used, **options)
         x_still = fit.x
         r = _residuals(prep, still, fit.x, idx)
-        binned = bin_residuals(prep.time[idx], r, bin_length(prep.time[idx]))
+        heading = np.nan_to_num(heading_axis(prep.c_nb, prep.ref)) @ still.R(fit.x).T  # (N, 3) nT/rad, sensor axes
+        length = bin_length(prep.time[idx], noise_correlation_s(prep.time[idx], _across(r, heading[idx])))
+        binned = bin_residuals(prep.time[idx], r, length, heading[idx], prep.data.field_body[idx])
         rate = learn_walk(binned, float(np.sqrt(effect.random_walk()[0] ** 2)))
-        span = (float(prep.time[0]), float(prep.time[-1]))
-        path, _ = _drift_path(binned, rate, prep.time[idx], np.ones(len(idx)), span, len(prep))
-        departure = np.column_stack([np.interp(prep.time, path.time, path.values[:, i]) for i in range(3)])
+        path, error = _drift_path(binned, rate, prep.time[idx], span, len(prep))
+        # the next fit takes the readings less the departure and the heading error's wander about its mean (the
+        # logged attitude's error, not the sensor's): neither is R's or b's
+        wander = np.interp(prep.time, prep.time[idx], error)[:, None] * heading
+        departure = np.column_stack([np.interp(prep.time, path.time, path.values[:, i]) for i in range(3)]) + wander
     return _with_block(fit, layout, keep, block, replace(path, sample=_sample(prep)), effect.label)
+
+
+def _across(r, heading) -> np.ndarray:
+    """The residuals ``r`` (k, 3) nT less their component along the ``heading`` axis (k, 3): what a wandering
+    logged heading leaves alone (its correlation is not the sensor noise's)."""
+    unit = heading / np.maximum(np.linalg.norm(heading, axis=1, keepdims=True), 1e-9)
+    return r - np.sum(r * unit, axis=1, keepdims=True) * unit
 
 
 def _sample(prep) -> tuple[np.ndarray, np.ndarray]:
