@@ -137,8 +137,10 @@ def log_field_nt(log) -> float:
 
 def check_run(run, source: str, field_nt: float, init=None) -> list[str]:
     """Judge a filter or batch ``CalibrationRun`` over a field of ``field_nt`` (and the calibration ``init``
-    it started from, if any): ``check_calibration`` on its R and b, no epoch used refused, few used and a
-    large move from ``init`` warned."""
+    it started from, if any): ``check_calibration`` on its R and b, no epoch used and a whole-log estimate that
+    fits no better than ``RESIDUAL_REFUSED`` of the field (``model.misfit``) refused, few used and a large move
+    from ``init`` warned. ``diagnose`` and ``report`` run on such a log all the same (``judge_run``): what is
+    missing may be what they find."""
     s = run.summary
     used = round(s.used_share * s.n_epochs)  # by any measurement (magnitude-only epochs lack attitude)
     if used == 0:
@@ -146,6 +148,9 @@ def check_run(run, source: str, field_nt: float, init=None) -> list[str]:
             "no epoch was used (every one gated or missing a value): nothing written; see the epoch counts with --json",
             source,
         )
+    misfit = (s.model or {}).get("misfit")
+    if misfit:  # the whole-log estimate leaves residuals beyond RESIDUAL_REFUSED of the field
+        raise InputError(f"{misfit}; nothing written", source)
     R, b = np.asarray(s.R, float), np.asarray(s.b, float)
     known = bool(np.isfinite(field_nt) and field_nt > 0)
     warnings = check_calibration(R, b / (field_nt if known else np.mean(np.abs(np.linalg.svd(R)[1]))), source, known)

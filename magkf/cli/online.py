@@ -335,8 +335,8 @@ def _calibrate_one(args, log, config, init, added, output, states):
         run.calibration.save(output)
     if states:
         write_drive_log(run.states, states)
-    # after writing: a comparison cannot lose the calibration; the file judged as it was written
-    written = Calibration.load(output) if output else run.calibration
+    # after writing: a comparison cannot lose the calibration; judged as the file holds it (its JSON read back)
+    written = Calibration.from_dict(run.calibration.to_dict(), str(output or log.source))
     summary["written"], summary["vehicle"] = _comparisons(log, run, written)
     if summary["written"].get("worse_than_start"):
         warning = f"the calibration written fits this log worse than its start ({summary['written']['text']})"

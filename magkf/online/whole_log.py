@@ -472,11 +472,11 @@ def fit_whole_log_parts(
             x, s = _fit_family(problem, families[chosen], x, core_ref)
     fam = families[chosen]
     rms = float(np.sqrt(s.ss / max(s.count, 1)))
-    if rms > MISFIT_FRACTION * field_nt:
-        raise InputError(f"no calibration fits: {_misfit_words(rms, field_nt)}; nothing written", source)
     T = fam.state_basis(n)
     P, given = _covariance(problem, x, s, T, fam, held_std, noise, held_effects)
     record = _record(fam, model, held_how, core_ref, candidates, chosen)
+    if rms > MISFIT_FRACTION * field_nt:  # refused by the plausibility rule before anything is written
+        record["misfit"] = f"no calibration fits: {_misfit_words(rms, field_nt)}"
     if held_effects is not None:
         record["effects_held"] = held_effects.text()
     if fam.name != "full" or fam.size < CORE_SIZE:
