@@ -6,29 +6,37 @@ No constant describes it, and the filter's last value of ``d`` is the departure 
 calibration file that stored it shifted every epoch by it. Here the departure is a zero-mean path, and
 
 1. the core and the other effects are the whole-log estimate (``whole_log.fit_whole_log``, its family choice and
-   covariance) of the readings less the path, so ``b`` is the offset's mean over the epochs used;
+   covariance) of the readings less the path (at first none), so ``b`` is the offset's mean over the epochs used;
 2. the residual ``r = m - R B_body - b - e`` of those epochs (sensor axes, nT) is averaged in bins of ``BIN_S``
-   seconds (at least ``MIN_BIN_EPOCHS`` epochs) and is taken as a *local level* per axis: ``r_k = d(t_k) + e_k``,
-   ``d`` a random walk of variance ``q dt``, ``e_k`` white with variance ``s c_k`` (``c_k`` each axis's variance
-   within the bins over the bin's epochs; ``s`` one scale for all axes, learned, which takes up a correlation of
-   the residuals shorter than a bin). The filter's learned correlation time is not used: the filter's residuals
-   hold the part of the drift its random walk did not follow (on a 10-minute drive with a drift of 2 nT/sqrt(s)
-   and white noise it learned 17 s);
+   seconds, at least ``MIN_BIN_EPOCHS`` epochs and ``CORRELATIONS_PER_BIN`` correlation times of the noise
+   (``noise_correlation_s``, measured across the heading axis). Each bin's mean is taken as
+   ``y_k = d_k + h_k a_k + dR B_k + e_k``: the departure ``d`` a random walk of variance ``q dt`` per axis; the
+   logged heading's error ``a`` (rad) a random walk of its own, ``h`` the heading axis in the sensor frame (what a
+   heading error adds to the reading); ``dR`` the error of the fitted ``R`` (constant, ``B`` the bin's mean body
+   field: a first fit that took part of the drift for ``R`` leaves a residual that follows the attitude, which
+   the path must not take for drift); ``e_k`` white with variance ``s c_k`` (``c_k`` each axis's variance within
+   the bins over the bin's epochs; ``s`` one scale, learned, which takes up a correlation shorter than a bin).
+   The filter's learned correlation time is not used: the filter's residuals hold the part of the drift its
+   random walk did not follow (on a 10-minute drive with a drift of 2 nT/sqrt(s) and white noise it learned
+   17 s);
 3. ``q = walk^2`` is learned by maximising the exact marginal likelihood of the bins (Kalman filter with a
-   diffuse start, ``s`` concentrated out) over a grid in ``log q``, refined about its maximum; its 95 % interval
-   is where twice the log-likelihood is within ``CHI2_95`` (one degree of freedom) of its maximum;
-4. the path is the Rauch-Tung-Striebel smoothed level at the learned rate, made zero-mean over the epochs used
-   (its mean is ``b``'s), and steps 1 and 2 are repeated with it (``ROUNDS``).
+   diffuse start, ``s`` concentrated out, the heading's walk maximised with it on a grid) over a grid in
+   ``log q``, refined about its maximum; its 95 % interval is where twice the profile log-likelihood is within
+   ``CHI2_95`` (one degree of freedom) of its maximum;
+4. the path is the Rauch-Tung-Striebel smoothed departure at the learned rates
+   (``magkf.online.smoother.rts_smooth``), made zero-mean over the epochs used (its mean is ``b``'s); the next
+   round's fit takes the readings less the path and less the heading error's wander about its mean (``ROUNDS``).
 
 The path is kept at knots (``KNOTS_PER_SCALE`` per smoothing time ``sqrt(noise per s / q)``, at most ``MAX_KNOTS``)
-with its standard deviation, the log's time span and a fingerprint (first and last time, epoch count):
-``magkf apply`` subtracts it on the log it was learned on and predicts the mean (zero departure) with a growing
-uncertainty elsewhere (``path_terms``). The whole-log machinery is reused as it is; nothing here solves for
-``R`` or ``b``.
+with its standard deviation, the log's time span and a fingerprint (first and last time, epoch count, and the
+raw readings of ``FINGERPRINT_EPOCHS`` epochs): ``magkf apply`` subtracts it on the log it was learned on and
+predicts the mean (zero departure) with a growing uncertainty elsewhere (``path_terms``). The whole-log machinery
+is reused as it is; nothing here solves for ``R`` or ``b``.
 
-The bins' noise model is exact for white residuals; a residual correlated over longer than a bin is partly taken
-for wander (the rate learned is then too large). The walk within a bin (``q BIN_S / 12`` of variance) is left
-out of the bin's noise: under 1 % of it for rates below 3 nT/sqrt(s) at 30 nT of noise and 10 Hz.
+The bins' noise model is exact for white residuals; a residual correlated over about a bin is partly taken
+for wander (with noise correlated over 3 s the rates learned were 2.1 to 3.3 nT/sqrt(s) for a true 2). The walk
+within a bin (``q BIN_S / 12`` of variance) is left out of the bin's noise: under 1 % of it for rates below
+3 nT/sqrt(s) at 30 nT of noise and 10 Hz.
 """
 
 from __future__ import annotations
@@ -57,10 +65,10 @@ __all__ = [
 
 #: Bin length of the residuals (s), at least ``MIN_BIN_EPOCHS`` epochs and ``CORRELATIONS_PER_BIN`` of the noise's
 #: correlation times (``noise_correlation_s``); at most ``MAX_BINS`` bins over the log.
-BIN_S = 1.0
+BIN_S = 2.0
 MIN_BIN_EPOCHS = 4
 CORRELATIONS_PER_BIN = 3.0
-MAX_BINS = 4000
+MAX_BINS = 1000
 #: The noise's correlation is measured against its variance within windows of this length (s), and a correlation
 #: of consecutive epochs below ``WHITE_CORRELATION`` is taken as white noise.
 VARIANCE_WINDOW_S = 30.0
@@ -70,8 +78,8 @@ MIN_BINS = 20
 #: The grid of ``q`` (nT^2/s): ``log10 q`` from ``Q_DECADES[0]`` to ``Q_DECADES[1]``, ``COARSE`` points a decade,
 #: then ``FINE`` points a decade over ``REFINE_DECADES`` either side of the coarse maximum.
 Q_DECADES = (-6.0, 6.0)
-COARSE = 6
-FINE = 40
+COARSE = 2
+FINE = 30
 REFINE_DECADES = 0.75
 #: Twice the log-likelihood's drop at the edge of a 95 % interval (chi-square, one degree of freedom).
 CHI2_95 = 3.841
@@ -253,10 +261,10 @@ def profile_log_likelihood(binned: Binned, rho, rho_heading=None) -> tuple[np.nd
     y, c, H = binned.y, binned.c, binned.regressors()
     for k in range(len(y)):
         P[:, _DIAG, _DIAG] += walk * dt[k]
-        nu, S, gain, PHt = _update_terms(x, P, y[k], c[k], H[k])
+        nu, (w, d), gain, PHt = _update_terms(x, P, y[k], c[k], H[k])
         if k >= SKIP_BINS:
-            weighted += np.einsum("gi,gij,gj->g", nu, np.linalg.inv(S), nu)
-            logdet += np.linalg.slogdet(S)[1]
+            weighted += w
+            logdet += d
         x += np.einsum("gij,gj->gi", gain, nu)
         P -= gain @ np.swapaxes(PHt, 1, 2)
     return weighted, logdet
@@ -282,18 +290,20 @@ def _diffuse(G: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _update_terms(x, P, y, c, H) -> tuple:
-    """The innovation (G, 3), its covariance (G, 3, 3), the gain (G, STATE, 3) and ``P H^T`` (G, STATE, 3) of a
-    bin ``y`` (3,) with noise ``c`` (3,) and regressors ``H`` (3, STATE) (``Binned.regressors``)."""
+    """The innovation ``nu`` (G, 3), ``nu^T S^-1 nu`` and ``log det S`` (G,) of its covariance ``S``, the gain
+    (G, STATE, 3) and ``P H^T`` (G, STATE, 3) of a bin ``y`` (3,) with noise ``c`` (3,) and regressors ``H``
+    (3, STATE) (``Binned.regressors``)."""
     PHt = P @ H.T
     S = H @ PHt + np.diag(c)
     nu = y - x @ H.T
-    gain = np.linalg.solve(S, np.swapaxes(PHt, 1, 2))  # S^-1 H P, S and P symmetric
-    return nu, S, np.swapaxes(gain, 1, 2), PHt
+    solved = np.linalg.solve(S, np.concatenate([np.swapaxes(PHt, 1, 2), nu[:, :, None]], axis=2))  # S^-1 [H P, nu]
+    weighted = np.einsum("gi,gi->g", nu, solved[:, :, -1])
+    return nu, (weighted, np.linalg.slogdet(S)[1]), np.swapaxes(solved[:, :, :-1], 1, 2), PHt
 
 
 #: The heading error's walk (rad^2/s, in units of the noise scale) tried beside none: 10^-10 to 10^-4.
 HEADING_DECADES = (-10.0, -4.0)
-HEADING_PER_DECADE = 2
+HEADING_PER_DECADE = 1
 
 
 def learn_walk(binned: Binned, default_walk: float) -> WalkRate:
@@ -311,12 +321,15 @@ def learn_walk(binned: Binned, default_walk: float) -> WalkRate:
     W, logdet = profile_log_likelihood(binned, 10.0**grid, gh)
     best = int(np.argmax(-(m * np.log(W / m) + logdet)))
     fine = np.linspace(grid[best] - REFINE_DECADES, grid[best] + REFINE_DECADES, int(2 * REFINE_DECADES * FINE) + 1)
-    W_f, logdet_f = profile_log_likelihood(binned, 10.0**fine, np.full(len(fine), gh[best]))
-    grid, gh = np.concatenate([grid, fine]), np.concatenate([gh, np.full(len(fine), gh[best])])
+    near = np.unique(gh[best] * np.array([10.0**-0.5, 1.0, 10.0**0.5]))  # the heading's walk about its best
+    fine, near = (a.ravel() for a in np.meshgrid(fine, near, indexing="ij"))
+    W_f, logdet_f = profile_log_likelihood(binned, 10.0**fine, near)
+    grid, gh = np.concatenate([grid, fine]), np.concatenate([gh, near])
     W, logdet = np.concatenate([W, W_f]), np.concatenate([logdet, logdet_f])
     best = int(np.argmax(-(m * np.log(W / m) + logdet)))
     scale = float(W[best] / m)
-    log_q = np.unique(grid) + np.log10(scale)  # the profile of q, the scale and the heading's walk maximised
+    # the profile of q on the points evaluated, the scale and the heading's walk maximised at each
+    log_q = np.unique(np.round(grid, 9)) + np.log10(scale)
     s = 10.0 ** (log_q[:, None] - grid[None, :])  # (q, evaluated): the scale that makes rho s = q
     ll = np.max(-0.5 * (m * np.log(s) + logdet[None, :] + W[None, :] / s), axis=1)
     top = int(np.argmax(ll))
