@@ -202,7 +202,7 @@ def test_the_noise_correlation_is_measured():
 def test_the_interval_holds_the_truth_as_often_as_it_says():
     """Over 100 simulated sets of 600 bins (a 2 nT/sqrt(s) walk under 9.5 nT of noise) the 95 % interval holds the
     truth at least as often as the binomial(100, 0.95) bound that fails by chance one time in a thousand allows
-    (on 1 000 sets it held 94 %)."""
+    (on 300 other sets it held 94.3 %, and 97.7 % with a wandering heading as below)."""
     from scipy import stats
 
     n = 100
