@@ -425,7 +425,7 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
     (n, n) with the block's variance the path's mean square (the spread a start from the file allows), and
     the ``model`` record with ``wandering`` (label -> ``DriftPath.record``). Falls back to the filter's state
     (``whole_log.filter_estimate``) for what it does not model: a wandering effect that is not an offset on
-    each axis, two of them, or the magnitude alone."""
+    each axis, two of them, the magnitude alone, or fewer than ``MIN_BINS`` bins' epochs with attitude."""
     drift = _offset_block(layout, labels)
     if drift is None or not options.get("vector", True):
         return filter_estimate(x_filter, P_filter, labels)
@@ -436,6 +436,8 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
     x_still = np.asarray(x_filter, float)[keep]
     used = np.asarray(used, bool) & prep.has_attitude
     idx = np.flatnonzero(used)
+    if len(idx) < MIN_BINS * MIN_BIN_EPOCHS:  # too few epochs with attitude to follow a path
+        return filter_estimate(x_filter, P_filter, labels)
     departure = np.zeros((len(prep), 3))
     span = (float(prep.time[0]), float(prep.time[-1]))
     for _ in range(ROUNDS):

@@ -172,3 +172,14 @@ def test_coloured_noise_and_a_wandering_heading(seed):
         assert mean <= bound, f"{flight.source}: {_rms(new, ok):.1f} nT against {_rms(none, ok):.1f} without the drift"
     low, high = with_drift.effects[0].wander["walk"]["interval_95"]
     assert low < WALK + 2.0 * (high - low)
+
+
+def test_the_magnitude_alone_keeps_the_filter_state():
+    """The magnitude alone cannot follow a path on each axis: the file is the filter's state, and says so."""
+    from magkf.config import FilterConfig
+    from magkf.online.results import FILTER_STATE
+
+    _, log = _flight(3, duration_s=120.0, rate_hz=5.0)
+    run = calibrate_log(log, FilterConfig(measure="magnitude"), effects=[BUILTIN["bias_drift"]()])
+    assert run.calibration.model["estimated"] == FILTER_STATE
+    assert run.calibration.effects[0].wander is None
