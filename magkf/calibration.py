@@ -472,8 +472,17 @@ def _wander_kept_with_effects(effects: tuple, model: dict | None) -> tuple[tuple
     if not model or "wandering" not in model:
         return effects, model
     records = model["wandering"]
-    kept = tuple(replace(e, wander=records[e.label]) if e.label in records and e.wander is None else e for e in effects)
+    kept = tuple(_with_wander(e, records[e.label]) if e.label in records and e.wander is None else e for e in effects)
     return kept, {k: v for k, v in model.items() if k != "wandering"}
+
+
+def _with_wander(effect: StoredEffect, record: dict) -> StoredEffect:
+    """``effect`` with its wandering ``record``; a ``walk`` setting takes the rate learned, so that what is rebuilt
+    from the file (a filter started from it, ``validate``'s test of the rate) walks as the log showed."""
+    settings = effect.settings
+    if "walk" in settings and record.get("walk", {}).get("learned"):
+        settings = dict(settings, walk=float(record["walk"]["value"]))
+    return replace(effect, settings=settings, wander=record)
 
 
 def _stored_effects(data: dict, source: str) -> tuple[StoredEffect, ...]:

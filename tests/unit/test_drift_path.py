@@ -211,3 +211,15 @@ def test_the_interval_holds_the_truth_as_often_as_it_says():
         for i in range(n)
     )
     assert held >= stats.binom.ppf(0.001, n, 0.95), held
+
+
+def test_the_learned_rate_becomes_the_walk_setting():
+    """What is rebuilt from the file (a filter's start, validate's test of the rate) walks at the learned rate."""
+    stored = Calibration.from_dict(_file(_drift_entry()), "cal.json")
+    record = _wander()
+    record["walk"]["value"] = 3.5
+    cal = Calibration(stored.R, stored.b, effects=stored.effects, model={"wandering": {"bias_drift": record}})
+    assert cal.effects[0].settings == {"walk": 3.5}
+    record["walk"]["learned"] = False
+    cal = Calibration(stored.R, stored.b, effects=stored.effects, model={"wandering": {"bias_drift": record}})
+    assert cal.effects[0].settings == {"walk": 2.0}
