@@ -45,6 +45,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..calibration import PARAMETER_NAMES
 from .measurements import heading_axis
 from .state import StateLayout
 from .whole_log import WholeLogFit, filter_estimate, fit_whole_log
@@ -105,6 +106,7 @@ class Binned:
     counts: np.ndarray
     h: np.ndarray | None = None
     field: np.ndarray | None = None
+    r_free: np.ndarray | None = None
 
     def heading(self) -> np.ndarray:
         """``h`` (K, 3), zeros where none was given."""
@@ -112,13 +114,16 @@ class Binned:
 
     def regressors(self) -> np.ndarray:
         """(K, 3, STATE) of each bin's mean: ``y = d + h a + dR B + e``, ``B`` the bin's mean body field (``field``,
-        nT; zero where none was given) and ``dR`` (row-major) the error of the fitted ``R``."""
+        nT; zero where none was given) and ``dR`` (row-major) the error of the fitted ``R`` in the elements the fit
+        is free to change (``r_free`` (9,) bool, None: all): one the calibration holds stays in the residual, and
+        the path may take it."""
         H = np.zeros((len(self.y), 3, STATE))
         H[:, :, :3] = np.eye(3)
         H[:, :, 3] = self.heading()
         if self.field is not None:
+            free = np.ones(9, bool) if self.r_free is None else np.asarray(self.r_free, bool)
             for i in range(3):
-                H[:, i, 4 + 3 * i : 7 + 3 * i] = self.field
+                H[:, i, 4 + 3 * i : 7 + 3 * i] = self.field * free[3 * i : 3 * i + 3]
         return H
 
     def __len__(self) -> int:
@@ -448,12 +453,24 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
         length = bin_length(prep.time[idx], noise_correlation_s(prep.time[idx], _across(r, heading[idx])))
         binned = bin_residuals(prep.time[idx], r, length, heading[idx], prep.data.field_body[idx])
         rate = learn_walk(binned, float(np.sqrt(effect.random_walk()[0] ** 2)))
+        # the rate with every element of R's error in the state (what a held R leaves is not drift); the path on
+        # this log with the free ones only (what the calibration holds stays in the residual: the path may take it)
+        binned = replace(binned, r_free=_free_R(fit.model))
         path, error = _drift_path(binned, rate, prep.time[idx], span, len(prep))
         # the next fit takes the readings less the departure and the heading error's wander about its mean (the
         # logged attitude's error, not the sensor's): neither is R's or b's
         wander = np.interp(prep.time, prep.time[idx], error)[:, None] * heading
         departure = np.column_stack([np.interp(prep.time, path.time, path.values[:, i]) for i in range(3)]) + wander
     return _with_block(fit, layout, keep, block, replace(path, sample=_sample(prep)), effect.label)
+
+
+def _free_R(model: dict) -> np.ndarray:
+    """(9,) bool: the elements of ``R`` the whole-log fit of ``model`` (its record) was free to change: all in the
+    ``full`` family, else those with a ``std_given_held``."""
+    given = model.get("std_given_held")
+    if given is None:
+        return np.full(9, model.get("family") == "full")
+    return np.array([name in given for name in PARAMETER_NAMES[:9]])
 
 
 def _across(r, heading) -> np.ndarray:
