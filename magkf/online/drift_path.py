@@ -14,7 +14,8 @@ calibration file that stored it shifted every epoch by it. Here the departure is
    logged heading's error ``a`` (rad) a random walk of its own, ``h`` the heading axis in the sensor frame (what a
    heading error adds to the reading); ``dR`` the error of the fitted ``R`` (constant, ``B`` the bin's mean body
    field: a first fit that took part of the drift for ``R`` leaves a residual that follows the attitude, which
-   the path must not take for drift); ``e_k`` white with variance ``s c_k`` (``c_k`` each axis's variance within
+   the rate must not take for drift; for the path, only the elements the model family lets the fit change,
+   ``Binned.r_free``); ``e_k`` white with variance ``s c_k`` (``c_k`` each axis's variance within
    the bins over the bin's epochs; ``s`` one scale, learned, which takes up a correlation shorter than a bin).
    The filter's learned correlation time is not used: the filter's residuals hold the part of the drift its
    random walk did not follow (on a 10-minute drive with a drift of 2 nT/sqrt(s) and white noise it learned
