@@ -48,7 +48,7 @@ import numpy as np
 
 from ..calibration import PARAMETER_NAMES
 from .measurements import heading_axis
-from .state import StateLayout
+from .state import CORE_SIZE, StateLayout
 from .whole_log import WholeLogFit, filter_estimate, fit_whole_log
 
 __all__ = [
@@ -440,6 +440,8 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
     keep = np.ones(layout.size, bool)
     keep[block] = False
     x_still = np.asarray(x_filter, float)[keep]
+    if options.get("held_effects") is not None:
+        options = dict(options, held_effects=_without_rows(options["held_effects"], keep[CORE_SIZE:], effect.label))
     used = np.asarray(used, bool) & prep.has_attitude
     idx = np.flatnonzero(used)
     if len(idx) < MIN_BINS * MIN_BIN_EPOCHS:  # too few epochs with attitude to follow a path
@@ -463,6 +465,20 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
         wander = np.interp(prep.time, prep.time[idx], error)[:, None] * heading
         departure = np.column_stack([np.interp(prep.time, path.time, path.values[:, i]) for i in range(3)]) + wander
     return _with_block(fit, layout, keep, block, replace(path, sample=_sample(prep)), effect.label)
+
+
+def _without_rows(held, rows, label: str):
+    """The run's held directions of the effects' parameters (``diagnostics.fitting.HeldDirections``) over the
+    parameters ``rows`` (q,) bool only, the wandering effect ``label``'s (which is left free) dropped; None when
+    nothing is held then."""
+    free = held.free[rows]
+    free = free[:, np.abs(free).sum(axis=0) > 1e-12]
+    basis = held.held_basis[rows]
+    basis = basis[:, np.abs(basis).sum(axis=0) > 1e-12]
+    counts = {k: v for k, v in held.held.items() if k != label}
+    if not sum(counts.values()):
+        return None
+    return replace(held, free=free, projector=held.projector[np.ix_(rows, rows)], held_basis=basis, held=counts)
 
 
 def _free_R(model: dict) -> np.ndarray:

@@ -183,3 +183,13 @@ def test_the_magnitude_alone_keeps_the_filter_state():
     run = calibrate_log(log, FilterConfig(measure="magnitude"), effects=[BUILTIN["bias_drift"]()])
     assert run.calibration.model["estimated"] == FILTER_STATE
     assert run.calibration.effects[0].wander is None
+
+
+def test_a_drift_beside_an_effect_with_held_directions():
+    """Beside a field anomaly, one of whose directions the run holds at its prior (the diagnosis's rule), the
+    drift's whole-log estimate holds it too and keeps its path; the anomaly's held direction is said."""
+    _, log = _flight(4, duration_s=300.0, rate_hz=5.0)
+    run = calibrate_log(log, effects=[BUILTIN["field_anomaly"](), BUILTIN["bias_drift"]()])
+    anomaly, drift = run.calibration.effects
+    assert drift.wander is not None and drift.values == (0.0, 0.0, 0.0)
+    assert "field_anomaly" in run.calibration.model.get("effects_held", "")
