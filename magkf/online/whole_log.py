@@ -443,11 +443,7 @@ def fit_whole_log_parts(
     problem.weigh_prior(_component_variance(prior_noise, problem.field_nt, config_noise=noise))
     field_nt = problem.field_nt
     excited = problem.spread >= EXCITATION_FRACTION * field_nt
-    families = {name: family(name).restricted(excited) for name in _possible(vector)}
-    if held_effects is not None:  # the effects' undetermined directions at the prior mean, in every family
-        families = {name: replace(f, effects=held_effects.free) for name, f in families.items()}
-        x_start = x_start.copy()
-        x_start[CORE_SIZE:] = held_effects.hold(x_start[CORE_SIZE:], prior_x[CORE_SIZE:])
+    families, x_start = _families(vector, excited, held_effects, x_start, prior_x)
     if model != "auto" and model not in families:
         raise InputError(
             f"--model {model}: the magnitude alone cannot see the rotation between sensor and body; measure the "
@@ -471,17 +467,9 @@ def fit_whole_log_parts(
         if chosen != first:
             x, s = _fit_family(problem, families[chosen], x, core_ref)
     fam = families[chosen]
-    rms = float(np.sqrt(s.ss / max(s.count, 1)))
-    T = fam.state_basis(n)
-    P, given = _covariance(problem, x, s, T, fam, held_std, noise, held_effects)
+    P, given = _covariance(problem, x, s, fam.state_basis(n), fam, held_std, noise, held_effects)
     record = _record(fam, model, held_how, core_ref, candidates, chosen)
-    if rms > MISFIT_FRACTION * field_nt:  # refused by the plausibility rule before anything is written
-        record["misfit"] = f"no calibration fits: {_misfit_words(rms, field_nt)}"
-    if held_effects is not None:
-        record["effects_held"] = held_effects.text()
-    if fam.name != "full" or fam.size < CORE_SIZE:
-        free = np.abs(fam.basis).sum(axis=1) > 0
-        record["std_given_held"] = {n: float(v) for n, v, f in zip(PARAMETER_NAMES, given, free) if f}
+    record |= _notes(fam, given, float(np.sqrt(s.ss / max(s.count, 1))), field_nt, held_effects)
     return WholeLogFit(
         x=x,
         P=P,
@@ -492,6 +480,34 @@ def fit_whole_log_parts(
         n_epochs=problem.n_used,
         batch_s=problem.batch_s,
     )
+
+
+def _families(vector: bool, excited, held_effects, x_start, prior_x) -> tuple[dict, np.ndarray]:
+    """``(families, x_start)``: the families the fit may take (name -> ``ModelFamily``, restricted to the body
+    field's ``excited`` (3,) components), with the effects' undetermined directions (``held_effects``) held at the
+    prior mean ``prior_x`` (n,) in every family and in the start ``x_start`` (n,)."""
+    families = {name: family(name).restricted(excited) for name in _possible(vector)}
+    if held_effects is None:
+        return families, x_start
+    x_start = x_start.copy()
+    x_start[CORE_SIZE:] = held_effects.hold(x_start[CORE_SIZE:], prior_x[CORE_SIZE:])
+    return {name: replace(f, effects=held_effects.free) for name, f in families.items()}, x_start
+
+
+def _notes(fam: ModelFamily, given, rms: float, field_nt: float, held_effects) -> dict:
+    """What the ``model`` record adds about the estimate: ``misfit`` where its residual RMS ``rms`` (nT per
+    component) exceeds ``MISFIT_FRACTION`` of the field (the plausibility rule refuses it before anything is
+    written), ``effects_held``, and ``std_given_held`` (the free core parameters' standard deviations ``given``
+    (12,) were the held values exact) for a family that holds some."""
+    notes = {}
+    if rms > MISFIT_FRACTION * field_nt:
+        notes["misfit"] = f"no calibration fits: {_misfit_words(rms, field_nt)}"
+    if held_effects is not None:
+        notes["effects_held"] = held_effects.text()
+    if fam.name != "full" or fam.size < CORE_SIZE:
+        free = np.abs(fam.basis).sum(axis=1) > 0
+        notes["std_given_held"] = {n: float(v) for n, v, f in zip(PARAMETER_NAMES, given, free) if f}
+    return notes
 
 
 def wandering(layout: StateLayout) -> list[str]:
