@@ -9,7 +9,7 @@
 A family is an affine subspace of the core's 12 parameters: ``x = anchor + T theta``, with ``T`` (12, k)
 orthonormal columns spanning its free directions and the anchor holding the rest at a reference
 calibration. Added effects are free in every family, but for the directions the log does not determine
-(``effects``: a basis of their free directions, ``magkf.diagnostics.fitting.held_directions``).
+(``effects``: a basis of their free directions, ``magkf.online.determined.held_directions``).
 """
 
 from __future__ import annotations

@@ -468,7 +468,7 @@ def fit_with_drift(prep, layout: StateLayout, x_filter, P_filter, used, labels, 
 
 
 def _without_rows(held, rows, label: str):
-    """The run's held directions of the effects' parameters (``diagnostics.fitting.HeldDirections``) over the
+    """The run's held directions of the effects' parameters (``determined.HeldDirections``) over the
     parameters ``rows`` (q,) bool only, the wandering effect ``label``'s (which is left free) dropped; None when
     nothing is held then."""
     free = held.free[rows]

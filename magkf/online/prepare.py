@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..io.drivelog import DriveLog
 from ..status import MISSING_ATTITUDE, MISSING_COLUMN, USED, Status, epoch_status, first_dop
 from .bootstrap import PRIOR_B_STD, PRIOR_R_STD, bootstrap_magnitude, bootstrap_vector
+from .determined import WANDER_BLOCK_S, held_directions, whitened_gram
 from .estimator import Estimator, run_model
 from .measurements import MEASUREMENTS, Block, MeasurementModel, heading_axis, sensor_frame
 from .noise import NoiseLevels, robust_start
@@ -504,20 +505,19 @@ HELD_VARIANCE_SHARE = 1e-8
 
 def hold_undetermined(prep: PreparedLog, config: FilterConfig, layout: StateLayout, x0, P0, base, noise):
     """The start ``(x0, P0, held)`` with the directions of the added effects' parameters that the log does not
-    determine beside the rest of the model and the heading's wander (``diagnostics.fitting.held_directions``, the
+    determine beside the rest of the model and the heading's wander (``determined.held_directions``, the
     diagnosis's rule, over the epochs used with attitude at ``x0``) held at their prior mean: ``x0``'s part along
     them set to it, ``P0``'s variance along them nearly zero, so that the filter, the whole-log estimate and the
     diagnosis agree on what is determined and an effect cannot absorb what the data do not determine (a field
     anomaly across the horizontal field is a heading offset). The heading's wander is a nuisance there unless the
     starting noise ``noise`` found the logged heading exact (``heading_rad`` 0): then a heading-like direction is
     determined. ``held`` is None when none is held or too few epochs say."""
-    from ..diagnostics.fitting import WANDER_BLOCK_S, EpochSet, held_directions
-
     used = (base == Status.USED) & prep.has_attitude
     if used.sum() < 10 * layout.size:
         return x0, P0, None
     wander_s = None if noise is not None and noise.heading_rad == 0.0 else WANDER_BLOCK_S
-    held = held_directions(EpochSet.of(prep, used, config, noise, wander_s), layout, x0)
+    gram = whitened_gram(prep.data.take(used), prep.heading[used], config, noise, wander_s, layout, x0)
+    held = held_directions(gram, layout)
     if held is None or not held.count:
         return x0, P0, None
     core = layout.CORE.stop

@@ -420,7 +420,7 @@ def fit_whole_log_parts(
         (``_Problem.weigh_prior``).
     source : str or None
         The log's name, for errors.
-    held_effects : magkf.diagnostics.fitting.HeldDirections or None
+    held_effects : magkf.online.determined.HeldDirections or None
         The directions of the effects' parameters the log does not determine (the run's start found them), held
         at the prior mean with the prior's variance (None: every effect parameter free).
 

@@ -1,0 +1,228 @@
+"""What a log determines of a model's parameters, the heading's slow error taken out: shared by the run (the
+directions of an added effect held at its prior, ``held_directions``) and the diagnosis
+(``magkf.diagnostics.fitting``, which tests and fits on the same whitened rows).
+
+* ``HeadingWander``: the logged heading's slow error, a straight line in time over each stretch of
+  ``WANDER_BLOCK_S`` seconds, taken out of whitened rows (Frisch-Waugh);
+* ``whitening`` and ``whitened_gram``: the vector measurement whitened at a state, and the Gram matrix of its
+  whitened Jacobian with the wander taken out, made ``CHUNK`` epochs at a time;
+* ``held_directions``: the directions of each added effect's parameters that the data do not determine beside
+  the rest of the model (``DETERMINED``), which the filter, the whole-log estimate and the diagnosis hold at the
+  effect's prior mean.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..effects.base import at_rows
+from .measurements import measurement_model
+from .state import StateLayout
+
+__all__ = [
+    "WANDER_BLOCK_S",
+    "CHUNK",
+    "DETERMINED",
+    "HeadingWander",
+    "wander_chunks",
+    "model_jacobian",
+    "whitening",
+    "whitened_gram",
+    "HeldDirections",
+    "held_directions",
+]
+
+#: Stretches (s) over which the logged heading's error is let be a straight line in time (``HeadingWander``).
+WANDER_BLOCK_S = 10.0
+#: Epochs per chunk of a pass over a set of epochs (cut where a stretch of the heading wander starts): whitened
+#: rows are made and reduced a chunk at a time, never held for the whole log.
+CHUNK = 8192
+#: A direction of the parameters counts as determined by the data when its standard error (noise as whitened)
+#: is below this share of its prior spread: the data then say more about it than the prior does.
+DETERMINED = 1.0
+
+
+class HeadingWander:
+    """The projection that takes a slowly wandering error of the logged heading out of whitened residuals
+    and regressors.
+
+    An INS heading wanders by tenths of a degree over minutes; each tenth moves the body-frame field by
+    ``0.0017 |B_h|`` (tens of nT) along the heading axis ``h`` (``heading_axis``). Unmodelled, that slow
+    error dominates the residual and its correlation leaves too few independent stretches to test an effect.
+    Here the heading error is a nuisance, a straight line in time over each stretch of ``block_s`` seconds
+    (two coefficients a stretch), fitted and removed jointly with the model: by Frisch-Waugh, projecting
+    it out of the whitened reading and of every regressor before the least-squares fit gives the fit of
+    the model with the nuisance (the partial-residual treatment of a partly linear model, Speckman 1988).
+    What is lost: the part of an effect that looks like a heading change within a stretch, notably a
+    constant field anomaly across the horizontal field (the same thing as a heading offset).
+
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing.
+    """
+
+    def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):
+        t = np.asarray(time, float)
+        block = np.floor((t - t[0]) / block_s).astype(int)
+        self.starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
+        self.block = np.cumsum(np.r_[False, np.diff(block) != 0])  # index of each epoch's stretch
+        centre = (np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)]))[self.block]
+        s = 2.0 * (t - centre) / block_s
+        self.Z = np.stack([Z, Z * s[:, None]], axis=2)  # (n, 3, 2)
+        normal = np.add.reduceat(np.swapaxes(self.Z, 1, 2) @ self.Z, self.starts, axis=0)
+        self.inverse = np.linalg.pinv(normal, rcond=1e-9)  # (blocks, 2, 2)
+
+    def remove(self, X: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """``X`` (3m,) or (3m, k), epoch-major, the rows of epochs ``start`` to ``stop`` (default: all; both at
+        the start of a stretch, or the end), less its least-squares fit by the wander of each stretch."""
+        stop = len(self.block) if stop is None else stop
+        Xr = X.reshape(stop - start, 3, -1)
+        Z, block = self.Z[start:stop], self.block[start:stop] - self.block[start]
+        first, last = np.searchsorted(self.starts, [start, stop])
+        # batched matrix products: about twice as fast as the same einsums on long logs
+        c = np.add.reduceat(np.swapaxes(Z, 1, 2) @ Xr, self.starts[first:last] - start, axis=0)
+        coef = self.inverse[first:last] @ c  # (blocks, 2, k)
+        return (Xr - Z @ coef[block]).reshape(X.shape)
+
+    def cuts(self, size: int) -> np.ndarray:
+        """Edges (epoch indices, from 0 to n) of chunks of about ``size`` epochs, each cut at a stretch's start."""
+        n = len(self.block)
+        at = self.starts[np.searchsorted(self.starts, np.arange(size, n, size), side="right") - 1]
+        return np.unique(np.r_[0, at, n])
+
+
+def wander_chunks(n: int, wander: HeadingWander | None) -> list:
+    """``(start, stop)`` of the chunks of ``CHUNK`` epochs of ``n``, cut at the ``wander``'s stretches."""
+    edges = wander.cuts(CHUNK) if wander is not None else np.unique(np.r_[np.arange(0, n, CHUNK), n])
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def model_jacobian(layout: StateLayout, x, data, rows, first: int = 0):
+    """The model's Jacobian (m, 3, p - first) in its columns from ``first`` (where a block starts) at the epochs
+    ``rows`` of ``data``, the nonlinear effects among them linearised at ``x`` (a Gauss-Newton step), and
+    what their linearisation leaves (m, 3) nT; an effect's input unknown at an epoch (a rate at a gap) adds
+    nothing there, as in ``finite_regressors``."""
+    m = len(at_rows(data.time, rows))
+    H = np.zeros((m, 3, layout.size - first))
+    offset = np.zeros((m, 3))
+    for effect, sl in layout.blocks(include_core=True):
+        if sl.start < first:
+            continue
+        cols = slice(sl.start - first, sl.stop - first)
+        if effect.linear:  # the Jacobian of a linear effect does not depend on its parameters
+            H[:, :, cols] = effect.jacobian(np.zeros(effect.size), data, rows=rows)
+        else:
+            H[:, :, cols] = effect.jacobian(x[sl], data, rows=rows)
+            offset += effect.contribution(x[sl], data, rows=rows) - H[:, :, cols] @ x[sl]
+    return np.nan_to_num(H, copy=False, nan=0.0, posinf=0.0, neginf=0.0), np.nan_to_num(offset)
+
+
+def whitening(data, heading, config, noise, wander_s, layout: StateLayout, x):
+    """``(data, W, wander)`` at state ``x``: the data with ``R0`` of ``x``, the whitening (n, 3, 3) of the vector
+    measurement in the set's noise, and the heading's wander (None: not modelled)."""
+    R = layout.R(x)
+    data = replace(data, R0=R)
+    model = measurement_model(config, layout, x)
+    if noise is not None:
+        model.set_noise(noise)
+    W = model.whitening(data.field_body, R, heading)
+    wander = None
+    if wander_s:
+        wander = HeadingWander(np.einsum("nij,nj->ni", W, heading @ R.T), data.time, wander_s)
+    return data, W, wander
+
+
+def whitened_gram(data, heading, config, noise, wander_s, layout: StateLayout, x) -> np.ndarray:
+    """``A^T A`` (p, p) of the whitened Jacobian ``A`` at state ``x``, the heading's wander taken out (as in
+    ``at``), made a chunk at a time."""
+    x = np.asarray(x, float)
+    data, W, wander = whitening(data, heading, config, noise, wander_s, layout, x)
+    p, gram = layout.size, np.zeros((layout.size, layout.size))
+    for a, b in wander_chunks(len(data.time), wander):
+        X = (W[a:b] @ model_jacobian(layout, x, data, slice(a, b))[0]).reshape(-1, p)
+        X = X if wander is None else wander.remove(X, a, b)
+        gram += X.T @ X
+    return gram
+
+
+@dataclass(frozen=True)
+class HeldDirections:
+    """The directions of the added effects' parameters that the data do not determine beside the rest of the model
+    and the heading's wander, held at their prior mean, as the diagnosis holds them (``held_directions``).
+
+    ``free`` (q, j): a basis of the free directions of the q effect parameters (the state after the core);
+    ``projector`` (q, q): takes a change of those parameters onto the free directions (their held part dropped, in
+    the metric of the parameters' prior spread); ``held_basis`` (q, h) the held directions, each scaled to one
+    prior standard deviation (the prior's covariance along them is ``held_basis @ held_basis.T``); ``held``
+    ``{effect label: directions held}``."""
+
+    free: np.ndarray
+    projector: np.ndarray
+    held_basis: np.ndarray
+    held: dict
+
+    @property
+    def held_cov(self) -> np.ndarray:
+        """(q, q) the prior's covariance along the held directions: what a held parameter's uncertainty is."""
+        return self.held_basis @ self.held_basis.T
+
+    @property
+    def count(self) -> int:
+        """Directions held in all."""
+        return int(sum(self.held.values()))
+
+    def hold(self, x_effects, mean) -> np.ndarray:
+        """Effect parameters ``x_effects`` (q,) with their held part at the prior ``mean`` (q,)."""
+        mean = np.asarray(mean, float)
+        return mean + self.projector @ (np.asarray(x_effects, float) - mean)
+
+    def text(self) -> str:
+        """The held directions in words ("" when none is held)."""
+        parts = [f"{k} of {label}" for label, k in self.held.items() if k]
+        if not parts:
+            return ""
+        return (
+            f"held at the prior mean, as the diagnosis holds them: {', '.join(parts)} direction(s) the data do not "
+            "determine beside the model and the heading's wander"
+        )
+
+
+def held_directions(gram: np.ndarray, layout: StateLayout) -> HeldDirections | None:
+    """The directions of each added effect's parameters (blocks after the core; an effect that ``wanders`` is left
+    free) whose standard error, beside every other parameter and the heading's wander taken out (``gram`` (n, n):
+    ``whitened_gram`` at the state), exceeds ``DETERMINED`` prior spreads (the diagnosis's rule; the core's spread
+    the default core's, ``StateLayout.with_core``, as in the diagnosis): the data say less about them than the
+    prior, and a fit would let them absorb the heading's wander. None when the layout adds no effect.
+
+    In units of the prior spread ``D`` the information is ``G = D A^T A D``; a block's, beside the others (free,
+    whatever their prior: a field anomaly along the field is R's scale however narrow R's prior),
+    ``G_bb - G_bo G_oo^+ G_ob``; its eigenvectors with eigenvalue at least ``1 / DETERMINED^2`` are free.
+    """
+    n = layout.size
+    q = n - layout.CORE.stop
+    if q <= 0:
+        return None
+    # the diagnosis's spreads: the default core's (not a run's start, which the data narrowed) and the effects' own
+    spread = np.sqrt(np.diag(StateLayout.with_core(layout.extra()).prior()[1]))
+    G = spread[:, None] * gram * spread[None, :]
+    free, held_basis, projector, held = [], [], np.zeros((q, q)), {}
+    start = layout.CORE.stop
+    for key, (effect, sl) in zip(layout.keys[1:], layout.blocks()):
+        local = slice(sl.start - start, sl.stop - start)
+        D = spread[sl]
+        if effect.wanders:
+            vectors, keep = np.eye(effect.size), np.ones(effect.size, bool)
+        else:
+            others = np.setdiff1d(np.arange(n), np.arange(sl.start, sl.stop))
+            Gbo = G[sl][:, others]
+            info = G[sl, sl] - Gbo @ np.linalg.pinv(G[np.ix_(others, others)], rcond=1e-9, hermitian=True) @ Gbo.T
+            values, vectors = np.linalg.eigh(0.5 * (info + info.T))
+            keep = values >= 1.0 / DETERMINED**2
+        Vk, Vh = vectors[:, keep], vectors[:, ~keep]
+        for kept, out in ((Vk, free), (Vh, held_basis)):
+            column = np.zeros((q, kept.shape[1]))
+            column[local] = D[:, None] * kept
+            out.append(column)
+        projector[local, local] = (D[:, None] * Vk) @ (Vk.T / D[None, :])
+        held[key] = int((~keep).sum())
+    return HeldDirections(np.hstack(free), projector, np.hstack(held_basis), held)
