@@ -453,9 +453,9 @@ WALK_RATIOS = np.logspace(-6.0, 6.0, 481)
 @dataclass(frozen=True)
 class WalkRate:
     """Outcome of ``walk_rate``: the rate ``rate`` (nT per sqrt(s)) of a random-walk offset the stretch means
-    show, and its ``confidence`` interval ``low`` to ``high`` (``high`` infinite when the data do not bound
-    it); ``noise_nt`` the standard deviation of a stretch mean's noise per axis (at the median count of
-    epochs), ``stretches`` the stretches used and ``axes`` the directions used per stretch."""
+    show, and its ``confidence`` interval ``low`` to ``high``; ``noise_nt`` the standard deviation of a stretch
+    mean's noise per axis (at the median count of epochs), ``stretches`` the stretches used and ``axes`` the
+    directions used per stretch."""
 
     rate: float
     low: float
@@ -516,6 +516,8 @@ def walk_rate(means, start, stop, counts, drop=None, confidence: float = 0.95) -
     rates = np.sqrt(ratios * noise / span)
     best = int(np.argmax(loglik))
     inside = 2.0 * (loglik[best] - loglik) <= special.chdtri(1, 1.0 - confidence)
-    high = float(np.max(rates[inside])) if not inside[-1] else float("inf")
+    # at large ratios the noise's estimate falls as 1 / ratio and the rate tends to that of a walk without noise:
+    # the grid's last point stands for the limit
+    high = float(np.max(rates[inside]))
     low = 0.0 if inside[0] else float(np.min(rates[inside]))
     return WalkRate(float(rates[best]), low, high, confidence, float(np.sqrt(noise[best])), K, m)
