@@ -523,7 +523,12 @@ def hold_undetermined(prep: PreparedLog, config: FilterConfig, layout: StateLayo
     core = layout.CORE.stop
     mean = layout.prior()[0][core:]
     x0 = np.array(x0, float)
-    x0[core:] = held.hold(x0[core:], mean)
+    moved = held.hold(x0[core:], mean) - x0[core:]
+    # the core follows the effects' held part as the start's covariance ties them (the conditional mean): a field
+    # anomaly along the field set back to 0 takes R's scale with it
+    P0 = np.asarray(P0, float)
+    x0[:core] += P0[:core, core:] @ np.linalg.pinv(P0[core:, core:], rcond=1e-12, hermitian=True) @ moved
+    x0[core:] += moved
     K = np.eye(layout.size)
     K[core:, core:] = held.projector
     P0 = K @ np.asarray(P0, float) @ K.T
