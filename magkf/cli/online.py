@@ -309,9 +309,13 @@ def _calibrate_one(args, log, config, init, added, output, states):
     import sys
 
     from ..calibration import Calibration
+    from ..errors import names_the_log
     from ..io.drivelog import write_drive_log
+    from ..online.prepare import prepare
     from ..online.run import calibrate_log, terminal_progress
     from ..plausibility import check_run, log_field_nt
+
+    prep = names_the_log(prepare)(log, config)  # the reference field and attitude, once for runs and comparisons
 
     def run_with(effect_list):
         if args.batch:
@@ -319,7 +323,9 @@ def _calibrate_one(args, log, config, init, added, output, states):
 
             return solve_batch(log, config, init, effect_list)
         progress = None if args.quiet else terminal_progress()
-        return calibrate_log(log, config, init, effects=effect_list, smooth=args.smooth, progress=progress)
+        return calibrate_log(
+            log, config, init, effects=effect_list, smooth=args.smooth, progress=progress, prepared=prep
+        )
 
     run = run_with(added)
     summary = run.summary.as_dict()
@@ -337,7 +343,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
         write_drive_log(run.states, states)
     # after writing: a comparison cannot lose the calibration; judged as the file holds it (its JSON read back)
     written = Calibration.from_dict(run.calibration.to_dict(), str(output or log.source))
-    summary["written"], summary["vehicle"] = _comparisons(log, run, written)
+    summary["written"], summary["vehicle"] = _comparisons(log, run, written, prep)
     if summary["written"].get("worse_than_start"):
         warning = f"the calibration written fits this log worse than its start ({summary['written']['text']})"
         summary["warnings"].append(warning)
@@ -361,13 +367,13 @@ def _calibrate_one(args, log, config, init, added, output, states):
     return run
 
 
-def _comparisons(log, run, written) -> tuple[dict | None, dict | None]:
+def _comparisons(log, run, written, prep) -> tuple[dict | None, dict | None]:
     """``(written, vehicle)``: the calibration written (``written``, as read back from its file) applied to the log
     as ``magkf apply`` does against the run's start (``baseline.written_figures``), and the raw reading's, the
     vehicle's own calibration's and magkf's RMS magnitude (nT) and heading (deg) errors with the comparison in
     words (None when the log does not give the vehicle's calibration); either is a dict with ``text`` saying why
-    when it could not be made."""
-    from ..config import FilterConfig
+    when it could not be made. ``prep`` the log prepared for the run (``online.prepare.prepare``), whose reference
+    field and attitude the comparisons use."""
     from ..diagnostics.baseline import (
         MAGKF,
         RAW,
@@ -381,7 +387,6 @@ def _comparisons(log, run, written) -> tuple[dict | None, dict | None]:
         written_figures,
     )
     from ..errors import InputError
-    from ..online.prepare import prepare
 
     vehicle, description = vehicle_calibration(log)
     if vehicle is not None and vehicle.method == "logged-as-read":
@@ -390,7 +395,6 @@ def _comparisons(log, run, written) -> tuple[dict | None, dict | None]:
     if vehicle is not None:
         calibrations[VEHICLE] = vehicle
     try:
-        prep = prepare(log, FilterConfig())
         base = compare_calibrations(log, calibrations, prep)
     except InputError as exc:  # the comparison is an addition: say why it is missing, keep the run
         why = {"rms": None, "text": f"not compared ({exc.message})"}
