@@ -36,7 +36,9 @@ class _Parser(argparse.ArgumentParser):
     """argparse with usage errors on one line, as every other error (exit status 2)."""
 
     def error(self, message: str):
-        print(f"magkf: error: {self.prog}: {_one_line(message)} (see {self.prog} --help)", file=sys.stderr)
+        command = self.prog.removeprefix("magkf").strip()  # "diagnose" for a command's parser, "" for magkf's
+        where = f"{command}: " if command else ""
+        print(f"magkf: error: {where}{_one_line(message)} (see {self.prog} --help)", file=sys.stderr)
         sys.exit(2)
 
 
