@@ -66,10 +66,29 @@ def run_diagnose(args) -> int:
     result, summary = _diagnosed(args, args.file, log, config, cal, added)
     if common.write_json_result(args, summary):
         return 0
-    ax = result.residual_rms_axis_nt
     model = ", ".join(result.model_effects) or "core only"
+    judged = summary["judgement"]
+    if judged["refusal"]:
+        print(
+            f"diagnosis of {args.file} ({model}): magkf calibrate would not write this calibration: {judged['refusal']}"
+        )
+    if judged["figures_withheld"]:
+        print(f"  no residuals or candidate tests shown: {judged['figures_withheld']}")
+        print(f"  verdict: {summary['verdict']}")
+        return 0
+    _print_diagnosis(args, args.file, log, result, summary, model)
+    return 0
+
+
+def _print_diagnosis(args, name: str, log, result, summary: dict, model: str) -> None:
+    """The diagnosis of one log on screen: residual figures, the candidates' table, the signals the residual
+    follows, its largest stretches, the decision and the verdict with the next step."""
+    ax = result.residual_rms_axis_nt
+    head = f"diagnosis of {name} ({model}):"
+    if summary["judgement"]["refusal"]:  # the refusal is on the line above
+        head = "  residuals of the calibration calibrate would not write:"
     print(
-        f"diagnosis of {args.file} ({model}): {result.n_epochs_used} epochs used; residual RMS "
+        f"{head} {result.n_epochs_used} epochs used; residual RMS "
         f"{result.residual_rms_nt:.2f} nT (N {ax['north']:.2f}, E {ax['east']:.2f}, D {ax['down']:.2f}); "
         f"{result.residual_rms_held_out_nt:.2f} nT on held-out blocks; correlated over {result.correlation_s:.2g} s"
     )
@@ -103,23 +122,55 @@ def run_diagnose(args) -> int:
         )
     print(f"  {result.text}")
     print(f"  verdict: {summary['verdict']}")
-    return 0
 
 
 def _diagnosed(args, name: str, log, config, cal, added) -> tuple:
     """The diagnosis of the log ``name`` and its summary with the run's verdict and the calibration's warnings
     (each also issued as a warning naming the log)."""
     from ..diagnostics.diagnose import diagnose
+    from ..diagnostics.judgement import judge
 
+    if cal is not None and not added:  # diagnosed as it is: a calibration no magnetometer has is not diagnosed
+        own = judge(None, log, cal=cal)
+        if own.withheld:
+            raise InputError(
+                f"magkf's plausibility rule refuses this calibration ({own.refusal}): its residuals on {name} would "
+                "measure that, not a missing effect; diagnose a calibration magkf calibrate writes",
+                args.cal,
+            )
     result, run = diagnose(
         log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
     )
+    judged = judge(run, log, cal, cal=cal)
     summary = result.summary()
-    summary["verdict"] = _verdict(run)
-    summary["calibration_warnings"] = _judged(run, log, cal)
-    for warning in summary["calibration_warnings"]:
+    if judged.withheld:  # residuals of a calibration no magnetometer has: none, and why (in "judgement")
+        summary = _withheld(summary)
+    summary["judgement"] = judged.as_dict()
+    summary["verdict"] = _verdict(run, result, judged)
+    summary["calibration_warnings"] = list(judged.warnings)
+    if judged.refusal:
+        summary["calibration_warnings"].append(f"calibrate would not write it: {judged.refusal}")
+    for warning in judged.warnings:
         warnings.warn(f"{name}: the calibration diagnosed: {warning}", stacklevel=1)
     return result, summary
+
+
+#: The figures of a diagnosis left out (None, or empty) when its calibration's own figures are withheld.
+WITHHELD = (
+    "residual_rms_nt",
+    "residual_rms_axis_nt",
+    "residual_rms_held_out_nt",
+    "residual_rms_held_out_exact_heading_nt",
+)
+
+
+def _withheld(summary: dict) -> dict:
+    """``summary`` without the residual figures, candidates and signals of a calibration whose figures mean
+    nothing (``judgement.Judgement.withheld``)."""
+    out = {k: (None if k in WITHHELD else v) for k, v in summary.items()}
+    out |= {"candidates": [], "recommended": [], "signals": [], "largest_residuals": []}
+    out["text"] = "no diagnosis: the calibration diagnosed is refused by its own R and b"
+    return out
 
 
 def _diagnose_flights(args) -> int:
@@ -178,11 +229,18 @@ def _print_flights(results: dict, pooled) -> None:
     print(f"  {pooled.text}")
 
 
-def _verdict(run) -> str:
-    """The run's verdict on its noise model, or why there is none (a calibration diagnosed as it is)."""
+def _verdict(run, result, judged) -> str:
+    """The run's verdict on its noise model with the next step that fits ``diagnose`` (what its candidates say,
+    not ``run magkf diagnose``); for a refused calibration, the refusal; for a calibration diagnosed as it is,
+    why there is no verdict."""
+    from ..diagnostics.judgement import next_step
+    from ..online.verdict import retold
+
+    if judged.withheld:
+        return f"none: magkf calibrate would not write this calibration ({judged.refusal}); fix what it names first"
     if run is None:
         return "none: the noise was not learned (the calibration from --cal was diagnosed as it is, without a run)"
-    return run.summary.verdict
+    return retold(run.summary.verdict, next_step(result.recommended, judged))
 
 
 def run_validate(args) -> int:
@@ -229,17 +287,6 @@ def run_validate(args) -> int:
     if not result.effects and not result.wandering:
         print("  the calibration stores no effect: only the core was checked")
     return 0
-
-
-def _judged(run, log, init) -> list:
-    """What ``magkf.plausibility`` says of the run diagnosed (a refusal becomes a warning here: the
-    diagnosis is still worth reading, it says where the model fails)."""
-    from ..plausibility import judge_run
-
-    if run is None:
-        return []
-    reason, warnings = judge_run(run, log, init)
-    return warnings if reason is None else [f"calibrate would not write it: {reason}"]
 
 
 def run_report(args) -> int:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ATTITUDE_RESOLUTION_DEG", "NIS_TOLERANCE", "band_text", "verdict"]
+__all__ = ["ATTITUDE_RESOLUTION_DEG", "DIAGNOSE", "MISSES", "NIS_TOLERANCE", "band_text", "retold", "verdict"]
 
 #: The least attitude error the verdict reports: about what the robust scale of a minute of residuals can
 #: tell from none (0.02 deg is 17 nT across a 48 000 nT field).
@@ -19,6 +19,10 @@ ATTITUDE_RESOLUTION_DEG = 0.02
 #: *and* further than this from 1: with thousands of epochs the band is a few per cent wide, narrower than
 #: the approximations of a learned noise model.
 NIS_TOLERANCE = 0.2
+#: The words of a verdict that the model misses something, and the next step ``calibrate`` gives with them
+#: (another command replaces the step with its own: ``retold``).
+MISSES = "the model misses something"
+DIAGNOSE = "run magkf diagnose"
 
 
 def band_text(lo: float, hi: float) -> str:
@@ -32,7 +36,9 @@ def band_text(lo: float, hi: float) -> str:
 def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     """What the learned noise, the NIS and the used share say about the fit, in words. A run whose noise was held
     as stated (``--fixed-noise``) is judged by its NIS and used share alone; one without NIS (a batch solution)
-    gets no verdict."""
+    gets no verdict. A misfit on a log that leaves part of the calibration's core at its prior (``obs``, the
+    run's ``observability.analyse``) is put down to what the log lacks, not to a missing effect; otherwise it
+    ends with ``calibrate``'s next step, which ``retold`` replaces for another command."""
     mean = nis_stats["mean"]
     fixed = not noise["adapted"]
     if fixed and not np.isfinite(mean):
@@ -51,11 +57,37 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
         nis = f", mean NIS {mean:.2f} per degree of freedom" if np.isfinite(mean) else ""
         return f"the model fits the data at the level of the noise (residuals white{nis})"
     text = "; ".join(words)
+    undetermined = _undetermined_core(obs)
     if fixed:
         text += " (the noise was held fixed: learning it, the default, tells which)"
+    elif misses and undetermined:
+        text += (
+            f": the log does not determine {undetermined} (left at the prior: the data lack turning through "
+            "headings and attitudes), so the residual may be that part of the calibration rather than a missing "
+            "effect; a log that turns more determines it"
+        )
     elif misses:
-        text += ": the model misses something; run magkf diagnose"
+        text += f": {MISSES}; {DIAGNOSE}"
     return text[0].upper() + text[1:]
+
+
+def retold(text: str, next_step: str | None) -> str:
+    """A ``verdict`` whose next step (``run magkf diagnose``, what ``calibrate`` advises) is replaced by
+    ``next_step``, the one that fits the command printing it (None or empty: no step); other verdicts as
+    they are."""
+    tail = f"; {DIAGNOSE}"
+    if not text.endswith(tail):
+        return text
+    return text[: -len(tail)] + (f"; {next_step}" if next_step else "")
+
+
+def _undetermined_core(obs: dict | None) -> str:
+    """The calibration's core (columns or orientation of R, offsets b) that the run's observability
+    (``magkf.online.observability.analyse``) leaves at its prior, in words; "" when the log determines it all
+    (an effect's parameters left at their prior are not the core's: the effect is held, the core determined)."""
+    groups = {g for f in (obs or {}).get("undetermined", []) for g in f.get("groups", []) if g == "b" or " of R" in g}
+    named = [("the offsets b" if g == "b" else g) for g in sorted(groups, key=lambda g: (g == "b", g))]
+    return ", ".join(named[:-1]) + (" and " if len(named) > 1 else "") + named[-1] if named else ""
 
 
 def _learned_noise_words(noise: dict) -> tuple[list, bool]:
