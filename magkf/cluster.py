@@ -7,9 +7,14 @@ recipes): each task opens or simulates its own log there. A task that the cluste
 died, for instance by exceeding its memory limit) gives a ``TaskFailed`` in its place, and the others go on.
 
 ``local_client(workers, memory_limit)`` starts a ``LocalCluster`` of worker processes on 127.0.0.1 (one
-thread each: the filter is Python code that holds the GIL) with random free ports and no dashboard;
-``connect(address)`` joins an existing scheduler. ``task_resources()`` is what a task reports of the process
-it ran in: the worker's address and its peak resident memory so far.
+thread each: the filter is Python code that holds the GIL) with random free ports and no dashboard.
+Its scheduler, workers and client speak TLS with a certificate made for this cluster alone and held in
+memory (``local_security()``: ``distributed.security.Security.temporary``), and each side requires the
+other's: another process of the machine, even of the same user, cannot join as a client or a worker,
+where a plain ``tcp://`` cluster would run the code any local process sends it. The HTTP server every
+Dask scheduler and worker starts listens on 127.0.0.1 at a random port and answers only ``/health``.
+``connect(address, security)`` joins an existing scheduler (TLS: docs/fleet.md). ``task_resources()`` is
+what a task reports of the process it ran in: the worker's address and its peak resident memory so far.
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ __all__ = [
     "task_error",
     "map_tasks",
     "local_client",
+    "local_security",
+    "tls_security",
     "connect",
     "task_resources",
     "cores",
@@ -89,45 +96,111 @@ def map_tasks(func, items, client=None, progress=None) -> list:
     return out
 
 
+HTTP_ROUTES = ["distributed.http.health"]
+"""What the HTTP servers of magkf's local cluster answer: ``/health`` only (no task names, logs or
+worker details; Dask's defaults add Prometheus metrics, scheduler and worker pages, a proxy)."""
+
+
+def local_security():
+    """A ``distributed.security.Security`` for one local cluster: a self-signed certificate and key made
+    now and held in memory only (never written), used by the scheduler, workers and client alike, TLS
+    required both ways. Needs ``cryptography`` (a dependency of magkf for this)."""
+    from distributed.security import Security
+
+    return Security.temporary()
+
+
+@contextmanager
+def _broken_pipes_raise():
+    """SIGPIPE ignored while a cluster is open, its previous handler restored after (in the main thread only).
+
+    ``magkf``'s command line restores the system's SIGPIPE handler so that a closed pipe ends it quietly; but
+    then a TLS connection that Dask writes to after its peer closed it (which it does as it starts and stops)
+    would kill the process. Ignored, the write raises an exception that Dask handles."""
+    import signal
+    import threading
+
+    if not hasattr(signal, "SIGPIPE") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGPIPE, previous)
+
+
 @contextmanager
 def local_client(workers: int | None = None, memory_limit: str | float | None = "auto"):
     """A ``Client`` of a new ``LocalCluster``: ``workers`` processes (default one per core), one thread each,
     each limited to ``memory_limit`` (bytes, or text such as ``"2GB"``; ``"auto"``: the machine's memory
     shared out among the workers; None: no limit; beyond 95 % of it Dask restarts the worker), on 127.0.0.1
-    with random free ports and no dashboard. Closed when the block ends."""
+    with random free ports, TLS with this cluster's own certificate (``local_security``), no dashboard and
+    HTTP servers that answer ``/health`` only. Closed when the block ends."""
+    import dask
     from distributed import Client, LocalCluster
 
-    cluster = LocalCluster(
-        n_workers=workers or cores(),
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        scheduler_port=0,
-        dashboard_address=None,
-        memory_limit=memory_limit if memory_limit is not None else 0,
-        silence_logs=40,
-    )
-    try:
-        with Client(cluster) as client:
-            yield client
-    finally:
-        cluster.close()
+    security = local_security()
+    routes = {"distributed.scheduler.http.routes": HTTP_ROUTES, "distributed.worker.http.routes": HTTP_ROUTES}
+    with _broken_pipes_raise(), dask.config.set(routes):  # routes: read here and passed on to the workers
+        cluster = LocalCluster(
+            n_workers=workers or cores(),
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            protocol="tls://",
+            security=security,
+            scheduler_port=0,
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+            memory_limit=memory_limit if memory_limit is not None else 0,
+            silence_logs=40,
+        )
+        try:
+            with Client(cluster, security=security) as client:
+                yield client
+        finally:
+            cluster.close()
+
+
+def tls_security(ca_file: str | None, cert: str | None, key: str | None):
+    """The ``Security`` of a client of a TLS scheduler from PEM files (the certificate authority's
+    certificate, the client's certificate and its key; the key may be inside ``cert``), or None when no
+    file is given (Dask then takes what its configuration says, ``distributed.comm.tls.*``)."""
+    if ca_file is None and cert is None and key is None:
+        return None
+    from distributed.security import Security
+
+    return Security(tls_ca_file=ca_file, tls_client_cert=cert, tls_client_key=key, require_encryption=True)
 
 
 @contextmanager
-def connect(address: str, timeout_s: float = 30.0):
-    """A ``Client`` of the scheduler at ``address`` (``tcp://host:port``); closed (the cluster left running)
-    when the block ends. Raises OSError when no scheduler answers within ``timeout_s`` seconds."""
+def connect(address: str, timeout_s: float = 30.0, security=None):
+    """A ``Client`` of the scheduler at ``address`` (``tls://host:port``, or ``tcp://`` for a cluster
+    without encryption); ``security`` is a ``Security`` (``tls_security``) or None (Dask's configuration).
+    Closed (the cluster left running) when the block ends. Raises OSError when no scheduler answers within
+    ``timeout_s`` seconds."""
+    with _broken_pipes_raise():
+        client = _client_of(address, timeout_s, security)
+        try:
+            yield client
+        finally:
+            client.close()
+
+
+def _client_of(address: str, timeout_s: float, security):
+    """``distributed.Client(address)``, its failures to connect as one-line ``OSError``s."""
     from distributed import Client
 
     try:
-        client = Client(address, timeout=timeout_s)
-    except (OSError, TimeoutError) as exc:
+        return Client(address, timeout=timeout_s, security=security)
+    except TypeError:  # Dask's way of saying that a tls:// address came without certificates
+        raise OSError(
+            f"{address}: a TLS scheduler needs the certificate authority's certificate and this client's "
+            "certificate and key (--tls-ca-file, --tls-cert, --tls-key, or Dask's distributed.comm.tls settings)"
+        ) from None
+    except (OSError, TimeoutError, ValueError) as exc:
         raise OSError(f"no Dask scheduler answered at {address} within {timeout_s:g} s ({exc})") from None
-    try:
-        yield client
-    finally:
-        client.close()
 
 
 def memory_limits(client) -> dict:

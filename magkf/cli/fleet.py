@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 from . import common
 
 __all__ = ["add_parsers", "run_fleet", "run_study"]
@@ -49,9 +52,13 @@ def add_cluster_options(p) -> None:
     g.add_argument(
         "--scheduler",
         metavar="ADDRESS",
-        help="an existing Dask scheduler (tcp://host:port); its workers must see the inputs and DIR at the same "
-        "paths (default: a local cluster)",
+        help="an existing Dask scheduler (tls://host:port, with --tls-*; tcp:// has no encryption nor "
+        "authentication); its workers must see the inputs and DIR at the same paths (default: a local cluster, "
+        "on 127.0.0.1 with TLS and a certificate of its own)",
     )
+    g.add_argument("--tls-ca-file", metavar="CA.pem", help="with --scheduler tls://: the certificate authority's")
+    g.add_argument("--tls-cert", metavar="CERT.pem", help="with --scheduler tls://: this client's certificate")
+    g.add_argument("--tls-key", metavar="KEY.pem", help="with --scheduler tls://: this client's private key")
     g.add_argument(
         "--workers",
         type=common.count_in(0, 1024),
@@ -72,14 +79,28 @@ def _client(args):
     """The Dask client the options ask for (a context manager giving None: serial, in this process)."""
     from contextlib import nullcontext
 
-    from ..cluster import connect, local_client
+    from ..cluster import connect, local_client, tls_security
+    from ..errors import InputError
 
+    tls = (args.tls_ca_file, args.tls_cert, args.tls_key)
     if args.scheduler:
         if args.workers is not None:
-            from ..errors import InputError
-
             raise InputError("--workers is for the local cluster: leave it out with --scheduler")
-        return connect(args.scheduler)
+        for path in tls:
+            if path is not None and not Path(path).is_file():
+                raise InputError("no such file", path)
+        if args.scheduler.startswith("tcp://"):
+            print(
+                f"magkf: warning: {args.scheduler}: no encryption nor authentication: whoever reaches that address "
+                "can run code as the workers' user; use tls:// (docs/fleet.md, 'On a multi-node cluster')",
+                file=sys.stderr,
+            )
+        return connect(args.scheduler, security=tls_security(*tls))
+    if any(path is not None for path in tls):
+        raise InputError(
+            "--tls-ca-file, --tls-cert and --tls-key are for --scheduler tls://...: the local cluster "
+            "makes its own certificate"
+        )
     if args.workers == 0:
         return nullcontext(None)
     limit = None if args.memory_limit.lower() in ("none", "0") else args.memory_limit
