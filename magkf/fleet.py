@@ -393,7 +393,7 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
         "residual_rms_magnitude_nt": float(summary.residual_rms_magnitude_nt),
         "residual_rms_all_nt": float(summary.residual_rms_all_nt),
         "nis_mean": float(summary.nis_mean),
-        "verdict": summary.verdict,
+        "verdict": _verdict(summary, task.path, diagnosis),
         "undetermined": "; ".join(u["text"] for u in summary.observability["undetermined"]),
         "recommended_effects": recommended if s.diagnose else None,
     }
@@ -403,6 +403,17 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
         out[name] = float(run.x[i])
         out[f"std_{name}"] = float(std[i])
     return out
+
+
+def _verdict(summary, path: str, diagnosis) -> str:
+    """The run's verdict with the next step that fits the fleet: what the log's diagnosis says when it was
+    diagnosed (``settings.diagnose``), else to diagnose it."""
+    from .diagnostics.judgement import next_step
+    from .online.verdict import retold, undetermined_core
+
+    if diagnosis is None:
+        return retold(summary.verdict, f"run magkf diagnose {path} (or the fleet with --diagnose)")
+    return retold(summary.verdict, next_step(diagnosis.recommended, None, undetermined_core(summary.observability)))
 
 
 #: The summary's comparison with the calibration each vehicle flies (``baseline_row``).
@@ -645,15 +656,19 @@ def disagreements(summary: pd.DataFrame, alpha: float = 0.01) -> pd.DataFrame:
     """``summary`` with ``disagreement_z``, ``disagrees``, ``disagreement`` (in words) for every log, and
     ``vehicle_scatter`` for every log of a compared vehicle.
 
-    The calibrated logs of a vehicle with at least ``FEWEST`` of them are compared, for each of R's nine
-    elements and b's three, by their standard deviations: a log's ``z`` is the difference between its
-    estimate ``x_i`` (standard deviation ``s_i``) and the inverse-variance weighted mean ``m`` of the other
-    logs, over ``sqrt(s_i^2 + 1 / sum(w))``. Where the log with the largest ``|z|`` exceeds the two-sided
-    normal limit at ``alpha`` shared (Bonferroni) among the vehicle's logs and parameters, it disagrees; it
-    is set aside and the others are compared again among themselves, until none exceeds the limit or fewer
-    than ``FEWEST`` remain. So a flight whose offset jumped is flagged, and the flights before and after it
-    are not measured against a mean it pulled. When every estimate is within its standard deviations of the
-    truth, a vehicle has a log flagged with probability at most about ``alpha``.
+    The calibrated logs of a vehicle are compared, for each of R's nine elements and b's three, by their
+    standard deviations, against the logs whose own verdict finds nothing wrong with the fit (``verdict.fits``;
+    a log whose model misses something is no reference: its estimate carries what it misses): a log's ``z``
+    is the difference between its estimate ``x_i`` (standard deviation ``s_i``) and the inverse-variance
+    weighted mean ``m`` of those other logs, over ``sqrt(s_i^2 + 1 / sum(w))``. A vehicle with fewer than
+    ``FEWEST - 1`` such logs is not compared (said in ``disagreement``); the reference logs themselves are
+    compared among themselves when there are at least ``FEWEST`` of them. Where the log with the largest
+    ``|z|`` exceeds the two-sided normal limit at ``alpha`` shared (Bonferroni) among the vehicle's logs and
+    parameters, it disagrees; a reference log is then set aside and the others are compared again among
+    themselves, until none exceeds the limit or fewer than ``FEWEST`` remain. So a flight whose offset jumped
+    is flagged, and the flights before and after it are not measured against a mean it pulled. When every
+    estimate is within its standard deviations of the truth, a vehicle has a log flagged with probability at
+    most about ``alpha``.
 
     ``vehicle_scatter``: how many times their standard deviations the logs left scatter (the largest over
     the parameters of ``sqrt(Q / (m - 1))``, Cochran's ``Q`` of the ``m`` logs left): about 1 when the
@@ -668,27 +683,49 @@ def disagreements(summary: pd.DataFrame, alpha: float = 0.01) -> pd.DataFrame:
     ok = out["error"] == ""
     names = [n for n in COMPARED if n in out and f"std_{n}" in out]
     for vehicle, group in out[ok].groupby("vehicle", sort=True):
+        reference = _fitting(group)
         if len(group) < FEWEST or not names:
             out.loc[group.index, "disagreement"] = f"not compared: {len(group)} calibrated log(s) of {vehicle}"
-            continue
-        _compare_vehicle(out, group, vehicle, names, alpha)
+        elif reference.sum() < FEWEST - 1:
+            out.loc[group.index, "disagreement"] = (
+                f"not compared: {reference.sum()} of the {len(group)} calibrated logs of {vehicle} have a verdict "
+                f"that the model fits, too few to judge a log against (at least {FEWEST - 1})"
+            )
+        else:
+            _compare_vehicle(out, group, vehicle, names, alpha, reference)
     return out
 
 
-def _compare_vehicle(out: pd.DataFrame, group: pd.DataFrame, vehicle, names: list, alpha: float) -> None:
-    """Compare the calibrated logs ``group`` of one vehicle on the parameters ``names`` and write their
-    ``disagreement_z``, ``disagrees``, ``disagreement`` and ``vehicle_scatter`` into ``out``."""
+def _fitting(group: pd.DataFrame) -> np.ndarray:
+    """Which logs of ``group`` (n,) have a verdict that finds nothing wrong with the fit (all, for a table
+    without verdicts)."""
+    from .online.verdict import fits
+
+    if "verdict" not in group:
+        return np.ones(len(group), bool)
+    return np.array([fits(v) if isinstance(v, str) else True for v in group["verdict"]], bool)
+
+
+def _compare_vehicle(out: pd.DataFrame, group, vehicle, names: list, alpha: float, reference: np.ndarray) -> None:
+    """Compare the calibrated logs ``group`` of one vehicle on the parameters ``names`` against its logs
+    ``reference`` (n,) whose verdict finds nothing wrong, and write their ``disagreement_z``, ``disagrees``,
+    ``disagreement`` and ``vehicle_scatter`` into ``out``."""
     from scipy.stats import norm
 
     n = len(group)
     x = group[names].to_numpy(float)
     s2 = group[[f"std_{name}" for name in names]].to_numpy(float) ** 2
     limit = float(norm.isf(alpha / (2 * n * len(names))))
-    z, centre, left = _set_aside(x, s2, limit)
-    out.loc[group.index, "vehicle_scatter"] = _scatter(x[left], s2[left])
+    z, centre, left = _against_reference(x, s2, limit, reference)
+    out.loc[group.index, "vehicle_scatter"] = _scatter(x[left], s2[left]) if left.sum() > 1 else np.nan
     for k, index in enumerate(group.index):
+        if reference[k] and reference.sum() < FEWEST:
+            out.loc[index, "disagreement"] = (
+                f"not compared: one other log of {vehicle} has a verdict that the model fits"
+            )
+            continue
         out.loc[index, "disagreement_z"] = float(np.max(np.abs(z[k])))
-        if left[k]:
+        if left[k] or (not reference[k] and np.max(np.abs(z[k])) <= limit):
             continue
         out.loc[index, "disagrees"] = True
         beyond = [j for j in np.argsort(-np.abs(z[k])) if abs(z[k, j]) > limit][:3]
@@ -696,7 +733,23 @@ def _compare_vehicle(out: pd.DataFrame, group: pd.DataFrame, vehicle, names: lis
             f"{names[j]} {x[k, j] - centre[k, j]:+.4g}{' nT' if names[j].startswith('b') else ''} from the "
             f"rest of {vehicle} (z {z[k, j]:+.1f}, limit {limit:.1f})"
             for j in beyond
-        )
+        ) + ("" if reference[k] else f" (judged against the {int(left.sum())} logs whose model fits)")
+
+
+def _against_reference(x, s2, limit: float, reference: np.ndarray) -> tuple:
+    """``(z, centre, left)`` as ``_set_aside``, the reference logs (``reference`` (n,)) compared among themselves
+    when there are ``FEWEST`` of them, and every other log against the weighted mean of the reference logs left;
+    ``left`` marks the reference logs not set aside."""
+    z, centre = np.full_like(x, np.nan), np.full_like(x, np.nan)
+    left = reference.copy()
+    if reference.sum() >= FEWEST:
+        z[reference], centre[reference], left[reference] = _set_aside(x[reference], s2[reference], limit)
+    w = 1.0 / s2[left]
+    mean, spread = np.sum(w * x[left], axis=0) / np.sum(w, axis=0), 1.0 / np.sum(w, axis=0)
+    for k in np.flatnonzero(~reference):
+        centre[k] = mean
+        z[k] = (x[k] - mean) / np.sqrt(s2[k] + spread)
+    return z, centre, left
 
 
 def _set_aside(x, s2, limit: float) -> tuple:

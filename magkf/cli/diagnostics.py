@@ -150,7 +150,7 @@ def _diagnosed(args, name: str, log, config, cal, added) -> tuple:
     summary["calibration_warnings"] = list(judged.warnings)
     if judged.refusal:
         summary["calibration_warnings"].append(f"calibrate would not write it: {judged.refusal}")
-    for warning in judged.warnings:
+    for warning in summary["calibration_warnings"]:
         warnings.warn(f"{name}: the calibration diagnosed: {warning}", stacklevel=1)
     return result, summary
 
@@ -234,13 +234,15 @@ def _verdict(run, result, judged) -> str:
     not ``run magkf diagnose``); for a refused calibration, the refusal; for a calibration diagnosed as it is,
     why there is no verdict."""
     from ..diagnostics.judgement import next_step
-    from ..online.verdict import retold
+    from ..online.verdict import retold, undetermined_core
 
     if judged.withheld:
         return f"none: magkf calibrate would not write this calibration ({judged.refusal}); fix what it names first"
     if run is None:
         return "none: the noise was not learned (the calibration from --cal was diagnosed as it is, without a run)"
-    return retold(run.summary.verdict, next_step(result.recommended, judged))
+    return retold(
+        run.summary.verdict, next_step(result.recommended, judged, undetermined_core(run.summary.observability))
+    )
 
 
 def run_validate(args) -> int:

@@ -3,6 +3,11 @@ calibration: the noise learned from the log against the configured one and the v
 (``RunSummary.noise``, ``nis_mean``, ``verdict``) with the learned noise over time, gate statistics,
 estimates with standard-deviation bands over time, residuals over time and against the signals they
 follow, the ranking of candidate effects, and before/after for any added effect.
+
+A calibration ``magkf calibrate`` would not write (``magkf.plausibility``, through ``judgement.judge``) is said
+so at the top of the page, in a box, and nothing of it is drawn: a plot of it would look like a result. Its
+tables stay, headed as the refused calibration's; a calibration refused by its own ``R`` and ``b`` has no
+residuals or candidate tests shown at all (they would measure the refusal).
 """
 
 from __future__ import annotations
@@ -21,9 +26,10 @@ from ..effects.channels import channel_unit
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
-from ..online.verdict import band_text
+from ..online.verdict import band_text, retold, undetermined_core
 from .diagnose import compare_runs, diagnose
 from .fitting import WANDER_BLOCK_S
+from .judgement import Judgement, judge, next_step
 
 __all__ = ["COMPONENT_COLOURS", "build_report"]
 
@@ -223,22 +229,22 @@ def _thinned(n: int) -> np.ndarray:
     return np.unique(np.r_[np.linspace(0, n - 1, MAX_LINE_POINTS).astype(int), n - 1])
 
 
-def _noise_section(run, t0: float) -> list[str]:
+def _noise_section(run, t0: float, verdict: str, plots: bool = True) -> list[str]:
     """The "Noise and verdict" section: configured against learned noise, NIS, used share and residuals
-    (``RunSummary``), the verdict, and the learned noise over time."""
+    (``RunSummary``), the ``verdict`` in words, and (with ``plots``) the learned noise over time."""
     s = run.summary
     how = (
         "learned from the log's innovations" if s.noise.get("adapted") else "not learned: the configured noise was used"
     )
     return [
         "<h2>Noise and verdict</h2>",
-        f"<p><b>Verdict:</b> {html.escape(s.verdict)}.</p>",
+        f"<p><b>Verdict:</b> {html.escape(verdict)}.</p>",
         f"<p>Measurement noise {how}. Residuals with the final estimate: vector norm in NED over the epochs used "
         "and over the whole log (every epoch with attitude and a reference, gated ones included); the magnitude "
         "residual likewise.</p>",
         _noise_table(s.noise),
         _fit_table(s),
-        _noise_plot(run, t0),
+        _noise_plot(run, t0) if plots else "",
     ]
 
 
@@ -352,19 +358,34 @@ def _noise_plot(run, t0: float) -> str:
     )
 
 
-def _plausibility(run, log, init) -> str:
-    """What ``magkf.plausibility`` says of the run: whether ``magkf calibrate`` would write it, and why not."""
-    from ..plausibility import judge_run
+#: The box that says, at the top of the page, that the calibration reported on would not be written.
+REFUSED_STYLE = "border:3px solid #b00000;background:#fff0f0;padding:8px 12px;margin:12px 0"
 
-    reason, warnings = judge_run(run, log, init)
-    if reason is not None:
-        return (
-            "<p><b>Plausibility:</b> <code>magkf calibrate</code> would not write this calibration: "
-            f"{html.escape(reason)}.</p>"
-        )
-    if not warnings:
+
+def _refusal_box(judged: Judgement) -> str:
+    """The box that opens the page of a calibration ``magkf calibrate`` would not write: why, and that nothing of
+    it is drawn (empty for one it would write)."""
+    if judged.refusal is None:
+        return ""
+    figures = (
+        f"No residuals or candidate tests are shown: {judged.withheld}."
+        if judged.withheld
+        else "Its tables below are those of the refused calibration; none of it is drawn."
+    )
+    return (
+        f"<div style='{REFUSED_STYLE}'><p><b>Refused: <code>magkf calibrate</code> would not write this "
+        f"calibration</b>: {html.escape(judged.refusal)}.</p><p>Do not load or export it. {html.escape(figures)}</p>"
+        "</div>"
+    )
+
+
+def _plausibility(judged: Judgement) -> str:
+    """What ``magkf.plausibility`` says of the run: whether ``magkf calibrate`` would write it, and why not."""
+    if judged.refusal is not None:
+        return "<p><b>Plausibility:</b> refused (see the box above).</p>"
+    if not judged.warnings:
         return "<p><b>Plausibility:</b> the calibration passes magkf's rule for writing it.</p>"
-    return f"<p><b>Plausibility:</b> written with warnings: {html.escape('; '.join(warnings))}.</p>"
+    return f"<p><b>Plausibility:</b> written with warnings: {html.escape('; '.join(judged.warnings))}.</p>"
 
 
 def _estimate_table(run) -> str:
@@ -765,11 +786,12 @@ EFFECT_SIGNAL = {
 }
 
 
-def _advice(diag) -> list[str]:
-    """What to do: the option that adds the recommended effect, its held-out before and after, and the
-    residual against the effect's channel."""
+def _advice(diag, judged: Judgement, lacks: str = "") -> list[str]:
+    """What to do: the option that adds the recommended effect, its held-out before and after, and (for a
+    calibration that would be written) the residual against the effect's channel; with none, ``next_step``
+    (``lacks``: the core the log leaves at its prior)."""
     if not diag.recommended:
-        return ["<p><b>What to do:</b> no candidate effect is needed; " + html.escape(diag.text) + ".</p>"]
+        return [f"<p><b>What to do:</b> {html.escape(next_step([], judged, lacks))}. {html.escape(diag.text)}.</p>"]
     best = diag.recommended[0]
     name, _, column = best.effect.partition(":")
     signal = column or EFFECT_SIGNAL.get(name, diag.signals[0]["signal"] if diag.signals else "time_s")
@@ -786,7 +808,9 @@ def _advice(diag) -> list[str]:
             ],
             ["NED residual RMS", "model as it is, nT", f"with {best.effect}, nT"],
         ),
-        _binned_plot(diag, [signal], f"residual against {signal}, the channel of {best.effect} (binned means)"),
+        _binned_plot(diag, [signal], f"residual against {signal}, the channel of {best.effect} (binned means)")
+        if judged.refusal is None
+        else "",
     ]
 
 
@@ -843,17 +867,17 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
     say("drawing the plots")
     t0 = log.time[0]
+    judged = judge(run, log, cal)
     comparison = _compare(log, run)
-    parts = [
-        *_overview(log, run, diag, cal, comparison),
-        *_noise_section(run, t0),
-        *_gates_and_estimate(run, t0),
-        *_field_views(log, run, comparison),
-        *_residuals_section(diag, t0),
-        *_candidates_section(diag),
-    ]
-    if effects:
-        parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)
+    verdict = retold(run.summary.verdict, next_step(diag.recommended, judged, _lacks(run)))
+    parts = [*_overview(log, run, diag, comparison, judged), *_noise_section(run, t0, verdict, judged.refusal is None)]
+    if judged.refusal is None:
+        parts += [*_gates_and_estimate(run, t0), *_field_views(log, run, comparison), *_residuals_section(diag, t0)]
+        parts += _candidates_section(diag, judged, _lacks(run))
+        if effects:
+            parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)
+    else:
+        parts += _refused_sections(run, diag, judged)
     style = (
         "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
         "td,th{border:1px solid #bbb;padding:2px 8px;font-size:14px}th{background:#f2f2f2}img{max-width:100%}"
@@ -867,21 +891,50 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     )
 
 
-def _overview(log, run, diag, cal, comparison: Comparison) -> list[str]:
-    """The title and the run in a few lines: epochs, filter and start, residuals and NIS, magkf's calibration
-    against the vehicle's (``comparison``), the diagnosis's advice, what the data did not determine, and whether
-    ``magkf calibrate`` would write the calibration."""
+def _overview(log, run, diag, comparison: Comparison, judged: Judgement) -> list[str]:
+    """The title, the refusal's box when ``magkf calibrate`` would not write the calibration (``judged``), and the
+    run in a few lines: epochs, filter and start, residuals and NIS, magkf's calibration against the vehicle's
+    (``comparison``, left out for a refused one), the diagnosis's advice, what the data did not determine, and the
+    plausibility rule's word."""
     s = run.summary
+    if judged.withheld:
+        return [
+            f"<h1>magkf report: {html.escape(log.source)}</h1>",
+            _refusal_box(judged),
+            f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}.</p>",
+            f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
+        ]
     return [
         f"<h1>magkf report: {html.escape(log.source)}</h1>",
+        _refusal_box(judged),
         f"<p>{s.n_epochs} epochs, {s.filter} ({s.measure}), start: {html.escape(s.init)}; residual RMS over the "
         f"epochs used {_fixed(s.residual_rms_nt)} nT (vector norm), magnitude {_fixed(s.residual_rms_magnitude_nt)} "
         f"nT, mean NIS per degree of freedom {_fixed(s.nis_mean)}.</p>",
-        comparison.sentence(),
+        comparison.sentence() if judged.refusal is None else "",
         f"<p><b>Diagnosis:</b> {html.escape(diag.text)}.</p>",
         f"<p><b>Observability:</b> {html.escape(s.observability['text'])}.</p>",
-        _plausibility(run, log, cal),
+        _plausibility(judged),
     ]
+
+
+def _refused_sections(run, diag, judged: Judgement) -> list[str]:
+    """The sections of a calibration ``magkf calibrate`` would not write: the epochs' gates and the refused
+    estimate as tables, then the candidates' tests (none when its own figures are withheld); no plot."""
+    parts = [
+        "<h2>Gates</h2>",
+        _table([(k, v) for k, v in run.summary.status_counts.items()], ["status", "epochs"]),
+        "<h2>Estimate (refused: not written)</h2>",
+        _estimate_table(run),
+    ]
+    if judged.withheld:
+        return parts
+    title = "Which effect is missing (residuals of the refused calibration)"
+    return parts + _candidates_section(diag, judged, _lacks(run), title)
+
+
+def _lacks(run) -> str:
+    """The calibration's core that ``run``'s log leaves at its prior, in words ("" when it determines it all)."""
+    return undetermined_core(run.summary.observability)
 
 
 def _gates_and_estimate(run, t0: float) -> list[str]:
@@ -920,16 +973,16 @@ def _residuals_section(diag, t0: float) -> list[str]:
     ]
 
 
-def _candidates_section(diag) -> list[str]:
-    """The "Which effect is missing" section: how the candidates were tested, their ranking, what to do, and every
-    signal the residual follows."""
+def _candidates_section(diag, judged: Judgement, lacks: str, title: str = "Which effect is missing") -> list[str]:
+    """The "Which effect is missing" section (headed ``title``): how the candidates were tested, their ranking,
+    what to do (``_advice``), and every signal the residual follows."""
     wander = (
         f", after the heading's slow error was taken out over {diag.heading_wander_s:g} s stretches"
         if diag.heading_wander_s
         else ""
     )
     return [
-        "<h2>Which effect is missing</h2>",
+        f"<h2>{html.escape(title)}</h2>",
         f"<p>{diag.n_tested} candidates tested, each by a correlation-robust F test (a drifting offset: L, "
         f"Nyblom's constancy test) at p &lt; {diag.level:.2g} (alpha {diag.alpha:g} over the candidates)"
         + wander
@@ -937,7 +990,7 @@ def _candidates_section(diag) -> list[str]:
         f"{diag.correlation_s:.2g} s. Held-out RMS: the NED residual on blocks of the log left out of the fit "
         f"(the model's own: {_fixed(diag.residual_rms_held_out_nt)} nT).</p>",
         _candidate_table(diag.candidates),
-        *_advice(diag),
+        *_advice(diag, judged, lacks),
         _table(
             [
                 (_signal_label(x["signal"]), x["component"], _p(x["p_value"]), f"{x['binned_range_nt']:.1f}")

@@ -10,7 +10,16 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ATTITUDE_RESOLUTION_DEG", "DIAGNOSE", "MISSES", "NIS_TOLERANCE", "band_text", "retold", "verdict"]
+__all__ = [
+    "ATTITUDE_RESOLUTION_DEG",
+    "DIAGNOSE",
+    "MISSES",
+    "NIS_TOLERANCE",
+    "band_text",
+    "retold",
+    "undetermined_core",
+    "verdict",
+]
 
 #: The least attitude error the verdict reports: about what the robust scale of a minute of residuals can
 #: tell from none (0.02 deg is 17 nT across a 48 000 nT field).
@@ -57,7 +66,7 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
         nis = f", mean NIS {mean:.2f} per degree of freedom" if np.isfinite(mean) else ""
         return f"the model fits the data at the level of the noise (residuals white{nis})"
     text = "; ".join(words)
-    undetermined = _undetermined_core(obs)
+    undetermined = undetermined_core(obs)
     if fixed:
         text += " (the noise was held fixed: learning it, the default, tells which)"
     elif misses and undetermined:
@@ -71,6 +80,17 @@ def verdict(noise: dict, nis_stats: dict, used_share: float, obs: dict) -> str:
     return text[0].upper() + text[1:]
 
 
+#: Words only a verdict that finds fault with the fit says (``fits``).
+FAULTS = (MISSES, "does not fit", "does not determine")
+
+
+def fits(text: str) -> bool:
+    """Whether the ``verdict`` ``text`` finds nothing wrong with the fit: the model fits at the noise's level (a
+    quieter sensor or a low used share aside); False when it says the model misses something, the noise model
+    does not fit, or the log does not determine the calibration."""
+    return not any(fault in str(text) for fault in FAULTS)
+
+
 def retold(text: str, next_step: str | None) -> str:
     """A ``verdict`` whose next step (``run magkf diagnose``, what ``calibrate`` advises) is replaced by
     ``next_step``, the one that fits the command printing it (None or empty: no step); other verdicts as
@@ -81,7 +101,7 @@ def retold(text: str, next_step: str | None) -> str:
     return text[: -len(tail)] + (f"; {next_step}" if next_step else "")
 
 
-def _undetermined_core(obs: dict | None) -> str:
+def undetermined_core(obs: dict | None) -> str:
     """The calibration's core (columns or orientation of R, offsets b) that the run's observability
     (``magkf.online.observability.analyse``) leaves at its prior, in words; "" when the log determines it all
     (an effect's parameters left at their prior are not the core's: the effect is held, the core determined)."""
