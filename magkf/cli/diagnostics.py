@@ -264,7 +264,8 @@ def run_validate(args) -> int:
         f"validation of {args.cal} on {args.file}: {result.n_epochs} epochs; residual RMS as stored "
         f"{result.as_stored_nt:.2f} nT; core refitted here, held out over {result.blocks} blocks: "
         f"{result.with_effects_nt:.2f} nT with the stored effects, {result.core_only_nt:.2f} nT without "
-        f"(in sample {result.with_effects_in_sample_nt:.2f} and {result.core_only_in_sample_nt:.2f} nT; "
+        f"(in sample, the core and the heading's error fitted on this log: {result.with_effects_in_sample_nt:.2f} "
+        f"and {result.core_only_in_sample_nt:.2f} nT; "
         f"correlated over {result.correlation_s:.2g} s)"
     )
     if result.effects:
@@ -276,7 +277,7 @@ def run_validate(args) -> int:
         print(
             f"  {c.effect:28s} {c.with_nt:7.2f} nT {c.without_nt:7.2f} nT {100 * c.change:+7.1f}% "
             f"{c.gain:5.2f}+-{c.gain_se:4.2f} {c.p_helps:9.2g} {c.p_hurts:9.2g} {100 * c.detectable:7.1f}%  "
-            + c.verdict.split(" (")[0]
+            + _short(c)
         )
     if result.effects:
         print(
@@ -289,6 +290,16 @@ def run_validate(args) -> int:
     if not result.effects and not result.wandering:
         print("  the calibration stores no effect: only the core was checked")
     return 0
+
+
+def _short(check) -> str:
+    """An ``EffectCheck``'s verdict short enough for the table's line: its words before any parenthesis, and for a
+    test without power on this log the fall it would detect against the one the effect predicts."""
+    if check.verdict.startswith("no power"):
+        return (
+            f"no power here (detects {100 * check.detectable:.1f}%, the effect predicts {100 * check.predicted:.1f}%)"
+        )
+    return check.verdict.split(" (")[0]
 
 
 def run_report(args) -> int:

@@ -4,7 +4,7 @@
 stores, ``magkf.effects.restore_effects``) to log B. The core may change between flights (a new offset, a
 re-mounted sensor), the effects are what should travel, so on B:
 
-* **as stored**: the residual of A's calibration as it is;
+* **as stored**: the residual of A's calibration as it is (nothing fitted on B, not even the heading's error);
 * **with the stored effects**: B's core refitted with A's effects held at A's values;
 * **without** each effect: B's core refitted with that effect left out (the others held);
 * **core only**: B's core refitted with no effect.
@@ -83,8 +83,9 @@ class EffectCheck:
     contribution that B's residual shows (1: as predicted; above 1/2 the effect lowers the residual). ``t``
     with ``dof`` degrees of freedom and the one-sided p-values that it helps (``p_helps``) or hurts
     (``p_hurts``) beyond chance. ``detectable``: the smallest relative fall of the held-out whitened RMS that
-    the test detects with probability ``POWER`` at its level. ``blocks_helped`` of ``blocks``: the held-out
-    blocks whose sum of squares falls. ``verdict`` in words."""
+    the test detects with probability ``POWER`` at its level; ``predicted``: the fall the effect brings if this
+    log shows it as stored (``gain`` 1); a test whose ``detectable`` fall exceeds it has no power here.
+    ``blocks_helped`` of ``blocks``: the held-out blocks whose sum of squares falls. ``verdict`` in words."""
 
     effect: str
     with_nt: float
@@ -102,6 +103,7 @@ class EffectCheck:
     blocks: int
     blocks_helped: int
     verdict: str
+    predicted: float = float("nan")
 
     def as_dict(self) -> dict:
         return dict(vars(self))
@@ -185,8 +187,9 @@ def validate(
     layout = StateLayout.with_core(effects)
     x = cal.full_state
     epochs = _epochs(log, config, effects, layout, x, wander_s)
-    stored = epochs.at(layout, x)
-    as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))  # exact for nonlinear effects too (at x)
+    # as stored: nothing fitted on this log, not even the heading's slow error (exact for nonlinear effects too)
+    stored = epochs.with_wander(None).at(layout, x)
+    as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))
     held = tuple(e for e in effects if not e.wanders)
     contributions = {e: e.contribution(x[sl], stored.data) for e, sl in layout.blocks() if e in held}
     fixed = epochs.less(sum(contributions.values(), np.zeros_like(epochs.m)))
@@ -317,7 +320,10 @@ def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float, total: float
     ``t``, ``dof``, ``p_helps``, ``p_hurts`` and ``detectable`` (``EffectCheck``), the smallest fall detected
     relative to the sum of squares ``total`` (default: ``r_without``'s)."""
     cc = float(c @ c)
+    total = float(r_without @ r_without) if total is None else total
+    predicted = _fall(cc, total)  # the effect exactly as stored: the sum of squares falls by c.c
     none = dict(gain=float("nan"), gain_se=float("inf"), t=0.0, dof=0, p_helps=1.0, p_hurts=1.0, detectable=1.0)
+    none["predicted"] = predicted
     if not cc > 0:
         return none
     gain = float(r_without @ c) / cc
@@ -331,8 +337,7 @@ def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float, total: float
     # smallest fall of the sum of squares detected with probability POWER: the noncentrality at which the
     # one-sided t test rejects that often (normal approximation of the noncentral t)
     smallest = 2.0 * sd * (special.stdtrit(dof, 1.0 - alpha) + special.stdtrit(dof, POWER))
-    total = float(r_without @ r_without) if total is None else total
-    detectable = 1.0 - np.sqrt(max(1.0 - smallest / total, 0.0))
+    detectable = _fall(smallest, total)
     return dict(
         gain=gain,
         gain_se=sd / cc,
@@ -341,7 +346,13 @@ def _share_test(r_without: np.ndarray, c: np.ndarray, alpha: float, total: float
         p_helps=float(special.stdtr(dof, -t)),
         p_hurts=float(special.stdtr(dof, t)),
         detectable=float(detectable),
+        predicted=predicted,
     )
+
+
+def _fall(fall: float, total: float) -> float:
+    """The relative fall of an RMS whose sum of squares ``total`` falls by ``fall`` (1: to nothing)."""
+    return float(1.0 - np.sqrt(max(1.0 - fall / total, 0.0))) if total > 0 else float("nan")
 
 
 def _verdict(score: dict, alpha: float) -> str:
@@ -354,6 +365,13 @@ def _verdict(score: dict, alpha: float) -> str:
         return "helps beyond chance"
     if score["p_hurts"] < alpha:
         return "makes the new log worse beyond chance: leave it out"
+    predicted = score.get("predicted", float("nan"))
+    if score["detectable"] >= predicted:  # even the effect exactly as stored would likely pass unseen
+        return (
+            f"no power on this log: the test detects a fall of {100 * score['detectable']:.1f} % or more (with "
+            f"probability {POWER:g}) and the effect as stored predicts {100 * predicted:.1f} %, so no difference "
+            "says nothing (a longer log, or one where the effect's channel varies more, would tell)"
+        )
     return (
         f"no difference beyond chance (the test would have detected a fall of {100 * score['detectable']:.1f} % "
         f"or more with probability {POWER:g})"

@@ -1,0 +1,110 @@
+"""Advice that fits the command and the data: the verdict's words on a log that does not determine the
+calibration, the next step each command gives, the judgement of a calibration ``calibrate`` would not write,
+the fleet's disagreement test against the logs whose model fits only, and a validation test without power."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+
+from magkf.diagnostics.judgement import judge, next_step
+from magkf.diagnostics.validate import _verdict as validation_verdict
+from magkf.fleet import COMPARED, disagreements
+from magkf.online.verdict import DIAGNOSE, MISSES, fits, retold, verdict
+
+#: A learned noise five times the configured one: a verdict that finds fault.
+NOISY = {
+    "adapted": True,
+    "configured": {"sensor_nt": 30.0, "attitude_deg": 0.1},
+    "learned": {"sensor_median_nt": 150.0},
+    "inflation": 1.0,
+    "correlation_s": 0.1,
+}
+NIS = {"mean": 1.0, "band": (0.9, 1.1)}
+R_UNDETERMINED = {"undetermined": [{"groups": ["the third column of R"]}, {"groups": ["the first column of R", "b"]}]}
+
+
+def test_a_misfit_on_a_log_that_does_not_determine_r_blames_the_turning_not_an_effect():
+    text = verdict(NOISY, NIS, 0.9, R_UNDETERMINED)
+    assert MISSES not in text and DIAGNOSE not in text, text
+    assert "does not determine the first column of R, the third column of R and the offsets b" in text
+    assert "lack turning" in text and not fits(text)
+
+
+def test_a_misfit_on_a_determined_log_says_the_model_misses_something_and_each_command_gives_its_own_step():
+    text = verdict(NOISY, NIS, 0.9, {"undetermined": [{"groups": ["the current_field parameters"]}]})
+    assert text.endswith(f"{MISSES}; {DIAGNOSE}") and not fits(text)  # what calibrate says
+    assert retold(text, "add it").endswith(f"{MISSES}; add it")
+    assert retold(text, None).endswith(MISSES)
+    quiet = verdict({**NOISY, "learned": {"sensor_median_nt": 29.0}}, NIS, 0.9, {})
+    assert fits(quiet) and retold(quiet, "add it") == quiet
+
+
+def test_the_next_step_names_the_effects_taken_the_refusal_or_what_the_log_lacks():
+    taken = [SimpleNamespace(option="--effect time_lag")]
+    assert "magkf calibrate --effect time_lag" in next_step(taken)
+    refused = SimpleNamespace(refusal="R is singular")
+    assert "refuse" in next_step([], refused)
+    assert "turns through more headings" in next_step([], None, "the first column of R")
+    assert "diagnose" not in next_step([]) and "diagnose" not in next_step(taken)
+
+
+def _log():
+    """A log whose reference field is 49 000 nT (the plausibility rule reads its ``ref_*`` columns)."""
+    table = pd.DataFrame(
+        {"ref_n": [20_000.0] * 3, "ref_e": [0.0] * 3, "ref_d": [np.sqrt(49_000.0**2 - 20_000.0**2)] * 3}
+    )
+    return SimpleNamespace(table=table, source="log.csv")
+
+
+def _run(R, b, used_share=1.0):
+    summary = SimpleNamespace(R=R, b=b, used_share=used_share, n_epochs=1000, model={})
+    return SimpleNamespace(summary=summary)
+
+
+def test_a_calibration_refused_by_its_own_r_has_its_figures_withheld_and_one_that_passes_has_none():
+    absurd = judge(_run(6.0 * np.eye(3), np.zeros(3)), _log())
+    assert "sensitivities" in absurd.refusal and absurd.withheld and "not what the model misses" in absurd.withheld
+    fine = judge(_run(np.eye(3), np.array([300.0, -200.0, 100.0])), _log())
+    assert fine.refusal is None and fine.withheld is None and fine.warnings == ()
+    unused = judge(_run(np.eye(3), np.zeros(3), used_share=0.0), _log())
+    assert "no epoch was used" in unused.refusal and unused.withheld
+
+
+def _vehicle(verdicts, b_x, vehicle="v"):
+    """One vehicle's logs: every parameter 0 with standard deviation 1, but ``b_x`` (one per log)."""
+    rows = []
+    for k, (text, value) in enumerate(zip(verdicts, b_x)):
+        row = {name: 0.0 for name in COMPARED} | {f"std_{name}": 1.0 for name in COMPARED}
+        rows.append(row | {"b_x": value, "verdict": text, "vehicle": vehicle, "log": f"{vehicle}/{k}", "error": ""})
+    return pd.DataFrame(rows)
+
+
+GOOD = "the model fits the data at the level of the noise (residuals white)"
+BAD = f"Residuals are 5 times the stated sensor noise: {MISSES}; {DIAGNOSE}"
+
+
+def test_the_one_correct_log_of_four_is_not_flagged_against_three_that_miss_something():
+    """Three logs whose model misses something agree with one another 20 standard deviations away from the one
+    log whose model fits: judged against them it was flagged (z = 20 / sqrt(1 + 1/3), about 17, against the
+    limit 3.7, the normal quantile of 0.01 / (2 x 4 logs x 12 parameters)); with one log whose model fits there is
+    nothing to judge against."""
+    out = disagreements(_vehicle([GOOD, BAD, BAD, BAD], [0.0, 20.0, 20.0, 20.0]), 0.01)
+    assert not out["disagrees"].any()
+    assert out["disagreement"].str.startswith("not compared: 1 of the 4 calibrated logs of v").all()
+
+
+def test_a_log_that_misses_something_is_judged_against_the_logs_whose_model_fits():
+    """Three logs that fit agree within their standard deviations; the fourth, whose model misses something,
+    is 20 of them off (z about 17 against the limit 3.7 at alpha 0.01 over 4 logs and 12 parameters): flagged, and
+    only it; the three are within 0.8 of one another (z below 1)."""
+    out = disagreements(_vehicle([GOOD, GOOD, BAD, GOOD], [0.3, -0.5, 20.0, 0.1]), 0.01)
+    assert out["disagrees"].tolist() == [False, False, True, False]
+    assert "judged against the 3 logs whose model fits" in out.loc[2, "disagreement"]
+
+
+def test_a_validation_test_without_power_says_so_instead_of_no_difference():
+    score = {"dof": 4, "p_helps": 0.3, "p_hurts": 0.7, "detectable": 0.25, "predicted": 0.04}
+    assert validation_verdict(score, 0.01).startswith("no power on this log")
+    powered = {**score, "detectable": 0.01}
+    assert validation_verdict(powered, 0.01).startswith("no difference beyond chance")
