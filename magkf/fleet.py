@@ -366,7 +366,7 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
         load_effect_file(path)
     effects = [make_effect(spec) for spec in s.effects]
     run = calibrate_log(log, s.config, effects=effects)
-    checks = check_run(run, task.path, log_field_nt(log))
+    checks = check_run(run, task.path, log_field_nt(log), log=log)
     for text in checks:
         warnings.warn(text, UserWarning, stacklevel=1)
     recommended = ""

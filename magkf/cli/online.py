@@ -154,7 +154,10 @@ def run_calibrate(args) -> int:
     from the first stretch of the log."""
     config = common.filter_config(args)
     _batch_takes_no_family(args)
+    from ..plausibility import check_start
+
     init = common.load_calibration(args.init)
+    check_start(init, args.init)  # magkf.plausibility: a mirrored or absurd start is refused before the run
     if args.mag != "all":
         # the comparison before and after added effects needs both runs' per-epoch tables
         if not (getattr(args, "effect", None) or (init is not None and init.effects)) and _chunked(args):
@@ -330,7 +333,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
     run = run_with(added)
     summary = run.summary.as_dict()
     # the rule of magkf.plausibility: refused before anything is written, or warned
-    summary["warnings"] = check_run(run, log.source, log_field_nt(log), init)
+    summary["warnings"] = check_run(run, log.source, log_field_nt(log), init, log)
     for warning in summary["warnings"]:
         print(f"magkf: warning: {log.source}: {warning}", file=sys.stderr)
     if added:
