@@ -4,7 +4,11 @@ Exit status 0 on success; 2 on bad usage or bad input, with one line on standard
 names the file, row and column where it applies; ``ValueError`` is a setting that cannot be used; an
 ``OSError`` a file that cannot be read or written); 1 with one line for an internal error, whose traceback
 ``--debug`` shows. Output paths are checked before any work (``magkf.files``); ``-`` is standard
-output for ``-o`` and ``--states``, standard input for a log.
+output for ``-o`` and ``--states``, standard input for a log or a calibration. A command's outputs are
+moved into place together once it has succeeded (``magkf.files.committed``: the ``-o`` file last).
+SIGINT, SIGTERM and SIGHUP stop a command alike (``magkf.interruption``): its temporaries are removed, the
+targets keep their old content, ``magkf: interrupted (SIGTERM)`` is printed and the exit status is 128 +
+the signal's number (130, 143, 129).
 """
 
 from __future__ import annotations
@@ -69,8 +73,27 @@ def _files(args) -> tuple[dict, list]:
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 done, 2 bad input or usage, 1 internal error)."""
+    from ..interruption import stop_on_signals
+
+    stop_on_signals()
     if hasattr(signal, "SIGPIPE"):  # output piped into head and the like: stop quietly when it closes
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:  # before or after the command (while parsing, printing the warnings)
+        return _interrupted(exc)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    """Say that the command was stopped by a signal; its exit status (128 + the signal's number)."""
+    from ..interruption import exit_status
+
+    name = getattr(exc, "signum", None)
+    print("magkf: interrupted" + (f" ({signal.Signals(name).name})" if name else ""), file=sys.stderr)
+    return exit_status(exc)
+
+
+def _main(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(_values_joined(sys.argv[1:] if argv is None else list(argv)))
     if getattr(args, "noise", 0) is None:
@@ -101,11 +124,13 @@ def _run(args, pending: list) -> int:
         print(f"magkf: error: {text}" + (f" [warned before: {'; '.join(before)}]" if before else ""), file=sys.stderr)
 
     try:
-        from ..files import STDIO, check_outputs, messages_to_stderr
+        from ..files import STDIO, check_outputs, committed, messages_to_stderr
 
         outputs, inputs = _files(args)
         check_outputs(outputs, inputs)
         with contextlib.ExitStack() as scope:
+            if outputs:  # written together once the command succeeded, its -o last
+                scope.enter_context(committed(last=[outputs.get("-o")]))
             for registry in REGISTRIES.values():  # what the command registers (--effect-file) ends with it
                 scope.enter_context(registry.restoring())
             if STDIO in outputs.values():  # the result goes to standard output, the messages to standard error
@@ -123,9 +148,8 @@ def _run(args, pending: list) -> int:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         error(_one_line(f"{where}{exc.strerror or exc}"))
         return 2
-    except KeyboardInterrupt:
-        print("magkf: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: the outputs' temporaries are removed
+        return _interrupted(exc)
     except Exception as exc:  # a defect of magkf: one line, the traceback on request
         if args.debug:
             raise

@@ -254,12 +254,13 @@ def _chunked(args) -> bool:
 def _calibrate_chunked(args, config, init) -> None:
     """``calibrate`` of a long canonical log in chunks (``magkf.online.chunked``): per-epoch states written as
     they are computed, as Parquet unless the file's name ends in ``.csv``; the plausibility rule applied
-    before the calibration and the states are put in place."""
+    before the calibration and the states are put in place, together when the command ends (the
+    calibration last: ``magkf.files.committed``)."""
     import sys
     from contextlib import nullcontext
     from pathlib import Path
 
-    from ..files import written
+    from ..files import main_output, written
     from ..online.chunked import ChunkedLog, calibrate_file, states_format
     from ..online.run import terminal_progress
     from ..plausibility import check_run, log_field_nt
@@ -283,7 +284,8 @@ def _calibrate_chunked(args, config, init) -> None:
         summary["warnings"] = check_run(run, args.file, log_field_nt(first), init)
     for warning in summary["warnings"]:
         print(f"magkf: warning: {args.file}: {warning}", file=sys.stderr)
-    if args.output:
+    if args.output:  # moved into place after the states (magkf.files.committed)
+        main_output(args.output)
         run.calibration.save(args.output)
     if args.json:
         common.print_json(summary)
@@ -313,6 +315,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
 
     from ..calibration import Calibration
     from ..errors import names_the_log
+    from ..files import main_output
     from ..io.drivelog import write_drive_log
     from ..online.prepare import prepare
     from ..online.run import calibrate_log, terminal_progress
@@ -340,11 +343,14 @@ def _calibrate_one(args, log, config, init, added, output, states):
         from ..diagnostics.diagnose import compare_runs
 
         summary["before_after"] = compare_runs(run_with([]), run)
-    if output:
-        run.calibration.save(output)
+    # within the command's commit (magkf.files.committed): both moved into place once complete, the
+    # calibration after the states
     if states:
         write_drive_log(run.states, states)
-    # after writing: a comparison cannot lose the calibration; judged as the file holds it (its JSON read back)
+    if output:
+        main_output(output)
+        run.calibration.save(output)
+    # judged as the file holds it (its JSON read back)
     written = Calibration.from_dict(run.calibration.to_dict(), str(output or log.source))
     summary["written"], summary["vehicle"] = _comparisons(log, run, written, prep)
     if summary["written"].get("worse_than_start"):

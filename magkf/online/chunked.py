@@ -34,7 +34,6 @@ starting noise's scale is taken over at most ``SCALE_EPOCHS`` usable epochs.
 
 from __future__ import annotations
 
-import tempfile
 import time as _time
 import warnings
 from collections.abc import Iterator
@@ -49,6 +48,7 @@ from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import MAG, TIME
 from ..errors import InputError
+from ..files import temporary_folder
 from ..io.drivelog import MAX_GAP_S, MIN_EPOCHS, DriveLog, TimeBaseWarning, from_table, whole_log_checks, write_frames
 from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, check_layout, checked_table
 from ..status import Status
@@ -441,7 +441,7 @@ def calibrate_file(
     Parquet for ``.parquet``; ``states_parquet`` True or False: whatever the name). Returns a
     ``CalibrationRun`` whose ``states`` and ``fit`` are None (the per-epoch table is in ``states``)."""
     started = _time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="magkf-") as folder:
+    with temporary_folder() as folder:  # removed on any exit; a later run removes it after SIGKILL
         log = ChunkedLog(path, mag_unit, rows, cache=folder)
         with phases("scan (read, reference field, statuses)"):
             scan = _scan(log, config, effects, init, folder)

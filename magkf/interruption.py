@@ -1,0 +1,72 @@
+"""Stopping on a signal: SIGINT, SIGTERM and SIGHUP all stop the ``magkf`` command the same way, by raising
+``Interrupted`` (a ``KeyboardInterrupt``) in the main thread, so that every ``finally`` and ``with`` on the
+way out runs and removes what the command had begun to write (``magkf.files``).
+
+A signal that arrives while ``held()`` is active (moving outputs into place, removing temporaries) waits
+for the block to end; one that arrives while the command is already stopping is ignored, so that a second
+Ctrl-C or a SIGTERM after a SIGHUP cannot cut the clean-up short. SIGKILL cannot be caught: what it leaves
+is removed by the next run (``magkf.files``).
+"""
+
+from __future__ import annotations
+
+import signal
+from contextlib import contextmanager
+
+__all__ = ["Interrupted", "SIGNALS", "stop_on_signals", "held", "exit_status"]
+
+#: The signals that stop a command cleanly (those the platform has).
+SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class Interrupted(KeyboardInterrupt):
+    """The command was stopped by the signal ``signum``."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+_holding = 0  # depth of held() blocks
+_pending: int | None = None  # a signal that arrived within held()
+_stopping = False  # an Interrupted has been raised
+
+
+def _handler(signum, frame) -> None:
+    global _pending, _stopping
+    if _stopping:
+        return
+    if _holding:
+        _pending = _pending or signum
+        return
+    _stopping = True
+    raise Interrupted(signum)
+
+
+def stop_on_signals() -> None:
+    """Make SIGINT, SIGTERM and SIGHUP raise ``Interrupted`` (call from the main thread)."""
+    global _pending, _stopping
+    _pending, _stopping = None, False
+    for signum in SIGNALS:
+        signal.signal(signum, _handler)
+
+
+@contextmanager
+def held():
+    """Within the block, a stopping signal waits: ``Interrupted`` is raised when the block ends (unless the
+    command is stopping already). Blocks may nest."""
+    global _holding, _pending, _stopping
+    _holding += 1
+    try:
+        yield
+    finally:
+        _holding -= 1
+    if not _holding and _pending is not None and not _stopping:
+        signum, _pending = _pending, None
+        _stopping = True
+        raise Interrupted(signum)
+
+
+def exit_status(exc: KeyboardInterrupt) -> int:
+    """The exit status of a command stopped by ``exc``: 128 + the signal's number (130 for Ctrl-C)."""
+    return 128 + getattr(exc, "signum", signal.SIGINT)
