@@ -50,6 +50,7 @@ __all__ = [
     "main_output",
     "temporary_folder",
     "read_input",
+    "input_name",
     "remove_leftovers",
     "standard_output",
     "messages_to_stderr",
@@ -428,6 +429,11 @@ def temporary_folder(folder=None):
     finally:
         with held():
             shutil.rmtree(path, ignore_errors=True)
+
+
+def input_name(path) -> str:
+    """How messages name the input ``path``: ``<stdin>`` for ``-``."""
+    return STDIN_NAME if path == STDIO else str(path)
 
 
 def read_input(read, path, suffix: str = ".csv"):

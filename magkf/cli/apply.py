@@ -19,10 +19,9 @@ def add_parsers(sub) -> None:
 def run_apply(args) -> int:
     """Apply a calibration file to a drive log; every epoch is written with a status."""
     from ..apply import apply_calibration
-    from ..calibration import Calibration
     from ..io.drivelog import write_drive_log
 
-    cal = Calibration.load(args.cal)
+    cal = common.load_calibration(args.cal)
     log = common.open_log(args)
     common.effects(args, cal)  # user code runs once the inputs are read
     out = apply_calibration(log, cal)

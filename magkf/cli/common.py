@@ -511,27 +511,24 @@ def suffix(format: str | None) -> str:
 
 
 def _from_standard_input(read, format):
-    """``read(path)`` of the log on standard input (copied to a temporary file; errors name ``<stdin>``)."""
-    import os
-    import shutil
-    import sys
-    import tempfile
+    """``read(path)`` of the log on standard input (``magkf.files.read_input``: errors name ``<stdin>``)."""
+    from dataclasses import replace
 
-    fd, tmp = tempfile.mkstemp(suffix=suffix(format))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            shutil.copyfileobj(sys.stdin.buffer, f)
-        if os.path.getsize(tmp) == 0:
-            raise InputError("standard input is empty", "<stdin>")
-        try:
-            log = read(tmp)
-        except InputError as exc:
-            raise InputError(exc.message, "<stdin>", exc.row, exc.column) from None
-        from dataclasses import replace
+    from ..files import STDIN_NAME, STDIO, read_input
 
-        return replace(log, source="<stdin>")
-    finally:
-        os.unlink(tmp)
+    return replace(read_input(read, STDIO, suffix(format)), source=STDIN_NAME)
+
+
+def read_input_file(args, read, suffix: str = ".csv"):
+    """``read(path)`` of the command's input ``args.file``; for ``-`` of a copy of standard input
+    (``magkf.files.read_input``), after which ``args.file`` is ``<stdin>``, the name the command's messages
+    and outputs give it."""
+    from ..files import STDIN_NAME, STDIO, read_input
+
+    result = read_input(read, args.file, suffix)
+    if args.file == STDIO:
+        args.file = STDIN_NAME
+    return result
 
 
 #: What ``--init`` takes for the vehicle's own calibration, read from the log's parameters.
@@ -539,10 +536,12 @@ LOGGED = "logged"
 
 
 def load_calibration(path):
-    """The calibration file ``path``, or None (also for ``LOGGED``, which ``logged_start`` reads from the log)."""
+    """The calibration file ``path`` (``-``: standard input), or None (also for ``LOGGED``, which
+    ``logged_start`` reads from the log)."""
     from ..calibration import Calibration
+    from ..files import read_input
 
-    return Calibration.load(path) if path and path != LOGGED else None
+    return read_input(Calibration.load, path, ".json") if path and path != LOGGED else None
 
 
 def logged_start(args, log, init):

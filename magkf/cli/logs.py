@@ -101,33 +101,37 @@ def run_convert(args) -> int:
     """Read a log of any supported format and write the canonical drive log; the provenance (where each column
     came from, what was converted or undone) is written beside it, as OUT.csv.provenance.json for OUT.csv."""
     import json
+    import warnings
     from pathlib import Path
 
     from ..calibration import jsonable
-    from ..errors import InputError
-    from ..files import check_outputs, output_text
+    from ..files import STDIO, check_outputs, output_text
     from ..io.drivelog import write_drive_log
 
     out = Path(args.output)
-    if args.output == "-":
-        raise InputError("convert writes a file and its provenance beside it: give -o OUT.csv or OUT.parquet")
-    beside = out.with_name(out.name + ".provenance.json")
-    check_outputs({"provenance": str(beside)}, [args.file, args.map])
+    beside = None if args.output == STDIO else out.with_name(out.name + ".provenance.json")
+    if beside is None:  # the canonical CSV on standard output: nowhere beside it for the provenance
+        note = "with -o - the provenance is not written (-o OUT.csv writes it beside the log)"
+        warnings.warn(note, common.Note, stacklevel=1)
+    else:
+        check_outputs({"provenance": str(beside)}, [args.file, args.map])
     log = common.open_log(args)
-    write_drive_log(log.table, out)
-    output_text(beside, json.dumps(jsonable(log.provenance), indent=2) + "\n")
+    write_drive_log(log.table, args.output)
+    if beside is not None:
+        output_text(beside, json.dumps(jsonable(log.provenance), indent=2) + "\n")
     summary = {
         "input": args.file,
         "format": log.provenance.get("format"),
         "epochs": len(log),
         "columns": ["time", *log.table.columns],
         "output": str(out),
-        "provenance": str(beside),
+        "provenance": None if beside is None else str(beside),
     }
     if args.json:
         common.print_json(summary)
     else:
-        print(f"converted {args.file} ({summary['format']}, {len(log)} epochs) to {out}; provenance in {beside}")
+        where = "" if beside is None else f"; provenance in {beside}"
+        print(f"converted {args.file} ({summary['format']}, {len(log)} epochs) to {out}{where}")
     return 0
 
 
@@ -135,13 +139,13 @@ def run_export(args) -> int:
     """Write one or several calibration files as the parameters an autopilot applies, in the parameter-file format
     its ground station loads, each calibration as its own compass. The mounting rotation goes into the orientation
     setting (a custom rotation where --firmware has one); what no setting holds is reported. See docs/logs.md."""
-    from ..calibration import Calibration
     from ..errors import InputError
+    from ..files import input_name
     from ..io.autopilot import merged_values, write_param_file
 
     if args.instance is not None and len(args.cal) > 1:
         raise InputError("--instance applies to one calibration; several are each exported as their own compass")
-    cals = [(path, Calibration.load(path)) for path in args.cal]
+    cals = [(input_name(path), common.load_calibration(path)) for path in args.cal]  # - : standard input
     for path, cal in cals:
         _check_field_unit(path, cal)
     chosen = _export_instances(args, cals)

@@ -87,7 +87,7 @@ def run_sinefit(args) -> int:
         except InputError as exc:  # about the curves
             raise exc.located(args.curves) from None
     else:
-        table = read_turntable(args.file, args.mag_unit, column_map=args.map)
+        table = common.read_input_file(args, lambda path: read_turntable(path, args.mag_unit, column_map=args.map))
         try:
             result = SineFitCalibrator(field, inclination, args.method or "exact").fit(table, args.file).result_
         except InputError as exc:  # about the run's data
@@ -141,7 +141,9 @@ def run_ellipsoid(args) -> int:
     columns = columns[: args.axes]
     if len(columns) != args.axes:
         raise InputError(f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}")
-    table, _ = read_offline_table(args.file, columns, args.map, mag_unit=args.mag_unit)
+    table, _ = common.read_input_file(
+        args, lambda path: read_offline_table(path, columns, args.map, mag_unit=args.mag_unit)
+    )
     field = _ellipsoid_field(args)
     X = table[columns].to_numpy()
     if args.mag_unit:
