@@ -406,18 +406,21 @@ class StudyResult:
 
     def write(self, out_dir) -> dict:
         """Write ``runs`` and ``summary`` (Parquet and CSV) and ``study.png`` into ``out_dir`` (made when its
-        parent exists); returns the files by name."""
+        parent exists), all five moved into place together once complete (``magkf.files.committed``); returns
+        the files by name."""
+        from .files import committed
         from .fleet import check_out_dir
         from .io.drivelog import write_drive_log
 
         out = check_out_dir(out_dir)
         files = {}
-        for name, table in (("runs", self.runs), ("summary", self.summary)):
-            for suffix in ("parquet", "csv"):
-                files[f"{name}_{suffix}"] = str(out / f"{name}.{suffix}")
-                write_drive_log(table, files[f"{name}_{suffix}"])
-        files["plot"] = str(out / "study.png")
-        plot(self, files["plot"])
+        with committed():
+            for name, table in (("runs", self.runs), ("summary", self.summary)):
+                for suffix in ("parquet", "csv"):
+                    files[f"{name}_{suffix}"] = str(out / f"{name}.{suffix}")
+                    write_drive_log(table, files[f"{name}_{suffix}"])
+            files["plot"] = str(out / "study.png")
+            plot(self, files["plot"])
         return files
 
 
