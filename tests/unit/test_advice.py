@@ -2,15 +2,22 @@
 calibration, the next step each command gives, the judgement of a calibration ``calibrate`` would not write,
 the fleet's disagreement test against the logs whose model fits only, and a validation test without power."""
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
+import pytest
 
+from magkf.calibration import Calibration
+from magkf.config import FilterConfig
 from magkf.diagnostics.judgement import judge, next_step
 from magkf.diagnostics.validate import _verdict as validation_verdict
 from magkf.fleet import COMPARED, disagreements
+from magkf.io.drivelog import DriveLog
+from magkf.online.run import calibrate_log
 from magkf.online.verdict import DIAGNOSE, MISSES, fits, retold, verdict
+from magkf.sim import DriveConfig, simulate_drive
 
 #: A learned noise five times the configured one: a verdict that finds fault.
 NOISY = {
@@ -49,26 +56,27 @@ def test_the_next_step_names_the_effects_taken_the_refusal_or_what_the_log_lacks
     assert "diagnose" not in next_step([]) and "diagnose" not in next_step(taken)
 
 
-def _log():
-    """A log whose reference field is 49 000 nT (the plausibility rule reads its ``ref_*`` columns)."""
-    table = pd.DataFrame(
-        {"ref_n": [20_000.0] * 3, "ref_e": [0.0] * 3, "ref_d": [np.sqrt(49_000.0**2 - 20_000.0**2)] * 3}
-    )
-    return SimpleNamespace(table=table, source="log.csv")
+@pytest.fixture(scope="module")
+def sim_run():
+    """A 2-minute simulated flight (10 Hz, seeded) and the filter's run over it: a calibration calibrate writes."""
+    log = DriveLog(simulate_drive(DriveConfig(duration_s=120, rate_hz=10, seed=3)).table, "sim.csv")
+    return log, calibrate_log(log, FilterConfig())
 
 
-def _run(R, b, used_share=1.0):
-    summary = SimpleNamespace(R=R, b=b, used_share=used_share, n_epochs=1000, model={})
-    return SimpleNamespace(summary=summary)
+def _with(run, **summary):
+    return replace(run, summary=replace(run.summary, **summary))
 
 
-def test_a_calibration_refused_by_its_own_r_has_its_figures_withheld_and_one_that_passes_has_none():
-    absurd = judge(_run(6.0 * np.eye(3), np.zeros(3)), _log())
+def test_a_calibration_refused_by_its_own_r_has_its_figures_withheld_and_one_that_passes_has_none(sim_run):
+    log, run = sim_run
+    fine = judge(run, log)
+    assert fine.refusal is None and fine.withheld is None
+    absurd = judge(_with(run, R=(6.0 * np.eye(3)).tolist()), log)  # sensitivities of 6: beyond any magnetometer
     assert "sensitivities" in absurd.refusal and absurd.withheld and "not what the model misses" in absurd.withheld
-    fine = judge(_run(np.eye(3), np.array([300.0, -200.0, 100.0])), _log())
-    assert fine.refusal is None and fine.withheld is None and fine.warnings == ()
-    unused = judge(_run(np.eye(3), np.zeros(3), used_share=0.0), _log())
+    unused = judge(_with(run, used_share=0.0), log)
     assert "no epoch was used" in unused.refusal and unused.withheld
+    as_given = judge(None, log, cal=Calibration(R=6.0 * np.eye(3), b=np.zeros(3), method="ellipsoid"))
+    assert as_given.withheld and as_given.warnings == ()
 
 
 def _vehicle(verdicts, b_x, vehicle="v"):
