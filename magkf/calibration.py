@@ -37,6 +37,83 @@ FIELD_UNITS = ("nT", "unit-sphere", "counts")
 PARAMETER_NAMES = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4)) + ("b_x", "b_y", "b_z")
 
 
+def _schema() -> dict:
+    """The JSON Schema (``magkf.schema``) of a calibration file: every key of the data contract, of its type;
+    any other key is refused. ``parameters``, ``standard_errors``, ``quality`` and ``model`` are the method's
+    records, objects kept as they are; ``magnetometer`` is the log reader's record, whose keys that ``export``
+    reads are checked (a reader's own others are kept)."""
+    from .schema import BOOLEAN, INTEGER, NUMBER, OBJECT, STRING, nullable, numbers, strict
+
+    def index(least: int, most: int | None = None) -> dict:
+        return nullable(INTEGER | {"minimum": least} | ({} if most is None else {"maximum": most}))
+
+    magnetometer = {
+        "type": "object",
+        "properties": {
+            "format": nullable(STRING),
+            "instance": index(0),
+            "calibration_index": index(0),
+            "compass": index(1, 3),
+            "device_id": nullable(INTEGER),
+            "orientation": index(0),
+            "external": {"type": ["integer", "boolean", "null"]},
+            "calibrated": nullable(BOOLEAN),
+            "rotation": nullable(OBJECT),
+            "autopilot": nullable(STRING),
+            "message": nullable(STRING),
+            "topic": nullable(STRING),
+        },
+    }
+    site = strict({"given": BOOLEAN, "lat": NUMBER, "lon": NUMBER, "alt": NUMBER, "start_utc": STRING}, ["given"])
+    parameter = strict({"value": NUMBER, "std": NUMBER, "unit": STRING}, ["value"])
+    array = {"type": "array"}
+    wander = strict(
+        {
+            "effect": STRING,
+            "walk": strict(
+                {"value": NUMBER, "std": nullable(NUMBER), "interval_95": array, "unit": STRING, "learned": BOOLEAN},
+                ["value"],
+            ),
+            "departure": strict({"mean": array, "rms": array, "unit": STRING}, ["rms"]),
+            "span": numbers((2,)),
+            "fingerprint": strict({"first": NUMBER, "last": NUMBER, "n_epochs": INTEGER, "time": array, "mag": array}),
+            "path": strict({"time": array, "values": array, "std": array}, ["time", "values", "std"]),
+        },
+        ["walk", "departure", "path"],
+    )
+    effect = strict(
+        {
+            "effect": STRING | {"minLength": 1},
+            "settings": OBJECT,
+            "parameters": {"type": "object", "additionalProperties": parameter, "minProperties": 1},
+            "wander": wander,
+        },
+        ["effect", "parameters"],
+    )
+    square = {"type": "array", "items": {"type": "array", "items": NUMBER}}
+    return strict(
+        {
+            "format": {"const": FORMAT},
+            "version": INTEGER | {"minimum": 1},
+            "method": STRING,
+            "R": numbers((3, 3)),
+            "b": numbers((3,)),
+            "covariance": numbers((12, 12)),
+            "parameters": OBJECT,
+            "standard_errors": OBJECT,
+            "quality": OBJECT,
+            "source": STRING,
+            "magnetometer": magnetometer,
+            "site": site,
+            "effects": {"type": "array", "items": effect},
+            "state_covariance": square,
+            "field_unit": {"enum": list(FIELD_UNITS)},
+            "model": OBJECT,
+        },
+        ["R", "b"],
+    )
+
+
 @dataclass(frozen=True)
 class StoredEffect:
     """A physical effect as a calibration file holds it: ``label`` (``NAME[:COLUMN]``, as ``--effect``
@@ -172,6 +249,8 @@ class Calibration:
         ``StoredEffect`` of each physical effect estimated with the core, in state order.
     state_covariance : array_like or None, optional
         (n, n) over the core then every effect's parameters, or None.
+    file : str or None, optional
+        The calibration file it was read from (``load``), named in the errors of its effects; never written.
 
     Raises
     ------
@@ -201,6 +280,7 @@ class Calibration:
     model: dict | None = None
     effects: tuple = ()
     state_covariance: np.ndarray | None = None
+    file: str | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         R = np.array(self.R, dtype=float)
@@ -346,10 +426,15 @@ class Calibration:
         Raises
         ------
         InputError
-            The object is malformed (not an object, another format or a newer version, a key of the wrong
-            type or shape, values beyond a calibration's range, an effect stored twice).
+            The object is malformed (not an object, another format or a newer version, a key the data contract
+            does not define (with the nearest one it does), a key of the wrong type or shape, values beyond a
+            calibration's range, an effect stored twice, a built-in effect's settings or parameters that are not
+            its own).
         """
         _check_format(data, source)
+        from .schema import check
+
+        check(data, _schema(), source)
         R, b, cov = _core(data, source)
         stored = _stored_fields(data, source)
         effects = _stored_effects(data, source)
@@ -379,7 +464,7 @@ class Calibration:
             The file is missing or malformed; it names the file.
         """
         name = str(path)
-        return cls.from_dict(read_json(path, "calibration file"), name)
+        return replace(cls.from_dict(read_json(path, "calibration file"), name), file=name)
 
 
 def read_json(path, what: str = "file"):
@@ -492,11 +577,40 @@ def _stored_effects(data: dict, source: str) -> tuple[StoredEffect, ...]:
     if not isinstance(stored, list):
         raise InputError("key 'effects' must be a list", source)
     effects = tuple(StoredEffect.from_dict(e, source) for e in stored)
+    for i, effect in enumerate(effects):
+        _builtin_checked(effect, i, source)
     labels = [e.label for e in effects]
     if len(set(labels)) < len(labels):
         twice = next(label for label in labels if labels.count(label) > 1)
         raise InputError(f"effect {twice!r} is stored twice", source)
     return effects
+
+
+def _builtin_checked(effect: StoredEffect, i: int, source: str) -> None:
+    """InputError naming ``source`` unless the ``i``-th stored ``effect``, when it is one of magkf's own, has the
+    settings its schema takes, the column its label names, and its own parameters (``export`` reads them without
+    rebuilding the effect); a plug-in's are checked when it is rebuilt (``magkf.effects.restore_effects``)."""
+    from .plugins import EFFECTS
+
+    column = effect.label.partition(":")[2]
+    if column and effect.settings.get("column", column) != column:
+        raise InputError(
+            f"key 'effects[{i}]': effect {effect.label!r} has setting column {effect.settings['column']!r}; "
+            "the label and the setting must name the same column",
+            source,
+        )
+    if not EFFECTS.is_builtin(effect.name):
+        return
+    from .schema import check
+
+    cls = EFFECTS[effect.name]
+    check(effect.settings, cls.settings_json_schema(), source, f"effects[{i}].settings", finite=True)
+    if tuple(effect.names) != tuple(cls.parameter_names):
+        raise InputError(
+            f"key 'effects[{i}].parameters': effect {effect.label!r} has parameters "
+            f"{', '.join(cls.parameter_names)}, not {', '.join(effect.names)}",
+            source,
+        )
 
 
 def _state_covariance(data: dict, effects: tuple, source: str) -> np.ndarray | None:

@@ -18,7 +18,7 @@ import numpy as np
 from ..calibration import Calibration, StoredEffect
 from ..errors import InputError
 from ..plugins import EFFECTS, PluginError
-from .base import Effect, EpochData
+from .base import Effect, EpochData, missing_column
 from .channels import channel_kind
 from .core import SoftHardIron
 from .linear import LinearEffect
@@ -207,26 +207,57 @@ def stored_effect(effect: Effect, values, stds) -> StoredEffect:
 
 def restore_effects(cal: Calibration) -> tuple[Effect, ...]:
     """The effects a calibration file stores, rebuilt with their settings (user effects need their classes
-    registered, e.g. by ``load_effect_file``); raises InputError naming the calibration's source when one
-    cannot be rebuilt or its parameters do not match."""
+    registered, e.g. by ``load_effect_file``). Each remembers the calibration file (``Effect.stored_in``), which
+    its errors name (a column the log lacks).
+
+    Raises
+    ------
+    InputError
+        Naming the calibration file (``Calibration.file``; None for one not read from a file): an effect that is
+        not registered, settings that its schema refuses (``check_settings``) or its class does not take, or
+        parameters that are not the effect's.
+    """
     out = []
-    for stored in cal.effects:
+    source = cal.file
+    for i, stored in enumerate(cal.effects):
         where = f"calibration effect {stored.label!r}"
         if stored.name not in EFFECTS:
-            raise InputError(f"{where} is not a built-in; give the --effect-file that defines it", cal.source)
-        cls = _effect_class(stored.name, cal.source)
+            raise InputError(f"{where} is not a built-in; give the --effect-file that defines it", source)
+        cls = _effect_class(stored.name, source)
+        check_settings(cls, stored.settings, source, f"effects[{i}].settings")
         try:
             effect = cls(**stored.settings)
-        except TypeError as exc:
-            raise InputError(f"{where}: its settings do not fit {cls.__name__} ({exc})", cal.source) from None
+        except Exception as exc:  # a constructor (the user's code, for a plug-in) that refuses the settings
+            what = " ".join(str(exc).split())
+            raise InputError(f"{where}: its settings do not fit {cls.__name__} ({what})", source) from None
         if tuple(effect.parameter_names) != tuple(stored.names):
             raise InputError(
                 f"{where} stores parameters {', '.join(stored.names)}; the effect has "
                 f"{', '.join(effect.parameter_names)}",
-                cal.source,
+                source,
             )
+        effect.stored_in = source
         out.append(effect)
     return tuple(out)
+
+
+def check_columns(effects, columns, log: str | None = None) -> None:
+    """InputError unless a log with the auxiliary ``columns`` has every column the ``effects`` read: it names the
+    calibration file an effect was restored from (``Effect.stored_in``) and the column, else the ``log``."""
+    columns = list(columns)
+    for effect in effects:
+        for column in effect.columns:
+            if column not in columns:
+                raise missing_column(effect, column, columns, log)
+
+
+def check_settings(cls, settings: dict, source, root: str = "settings") -> None:
+    """InputError naming ``source`` unless ``settings`` are what the effect class ``cls`` takes: its settings'
+    schema (``Effect.settings_json_schema``: no unknown key, each of its type) and finite numbers. ``root`` is
+    the settings' path in their file (``effects[0].settings``), named in the error."""
+    from ..schema import check
+
+    check(settings, cls.settings_json_schema(), source, root, finite=True)
 
 
 def _default_column(cls):
@@ -247,6 +278,8 @@ __all__ = [
     "untried_columns",
     "stored_effect",
     "restore_effects",
+    "check_settings",
+    "check_columns",
     "channel_kind",
 ]
 

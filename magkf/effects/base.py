@@ -25,7 +25,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FD_STEP", "EpochData", "at_rows", "rate_of_change", "Effect", "ROW_METHODS"]
+from ..errors import InputError
+
+__all__ = [
+    "FD_STEP",
+    "EpochData",
+    "at_rows",
+    "rate_of_change",
+    "Effect",
+    "ROW_METHODS",
+    "missing_column",
+    "effect_file",
+]
 
 #: Relative and absolute step of the finite-difference Jacobian default.
 FD_STEP = 1e-6
@@ -106,6 +117,87 @@ def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
 ROW_METHODS = ("contribution", "jacobian", "regressors")
 
 
+def _data_argument(args, kwargs) -> EpochData:
+    """The ``data`` argument of a per-epoch method called with ``args`` and ``kwargs`` (it comes last)."""
+    return kwargs["data"] if "data" in kwargs else args[-1]
+
+
+def missing_column(effect, column: str, columns, log: str | None = None) -> InputError:
+    """The error for ``effect`` needing ``column``, which a log with the auxiliary ``columns`` lacks: it names the
+    calibration file the effect was restored from (``Effect.stored_in``), else the ``log``."""
+    where = "the log" if log is None or effect.stored_in is None else log
+    listed = ", ".join(columns) or "none"
+    return InputError(
+        f"effect {effect.label!r} needs column {column!r}, which {where} lacks (its auxiliary columns: {listed}); "
+        "give a log that records it, or leave the effect out",
+        effect.stored_in or log,
+    )
+
+
+def _guarded(method, own: bool):
+    """A per-epoch method that first checks the log has the effect's columns (InputError naming the calibration
+    file the effect came from, not a KeyError); for an effect that is not magkf's own (``own`` False), what the
+    user's code raises, and values that are not finite where its inputs are, are errors naming its file."""
+
+    @functools.wraps(method)
+    def checked(self, *args, rows=None, **kwargs):
+        data = _data_argument(args, kwargs)
+        for column in self.columns:
+            if column not in data.columns:
+                raise missing_column(self, column, list(data.columns))
+        if own:
+            return method(self, *args, rows=rows, **kwargs)
+        try:
+            out = method(self, *args, rows=rows, **kwargs)
+        except InputError:
+            raise
+        except Exception as exc:  # the user's code: reported on one line, naming its file
+            what = " ".join(str(exc).split())
+            raise InputError(
+                f"effect {self.name!r} fails on the log in {method.__name__}(): {type(exc).__name__}: {what}",
+                effect_file(type(self)),
+            ) from None
+        _check_finite(self, method.__name__, out, data, rows, args)
+        return out
+
+    return checked
+
+
+def effect_file(cls) -> str:
+    """The file that defines the effect class ``cls`` (its ``--effect-file``), as errors name it."""
+    from ..plugins import _source_file
+
+    return _source_file(cls) or cls.__module__
+
+
+def _check_finite(effect, name: str, out, data: EpochData, rows, args) -> None:
+    """InputError naming the effect's file where the per-epoch values ``out`` of its method ``name`` are infinite,
+    or NaN at an epoch whose field, reading and the effect's columns are all known."""
+    known = np.all(np.isfinite(at_rows(data.field_body, rows)), axis=1)
+    try:
+        values = np.asarray(out, dtype=float)
+        axis = 1 if name == "contribution" and np.ndim(args[0]) == 2 else 0
+        per_epoch = np.moveaxis(values, axis, 0).reshape(len(known), -1)
+    except (TypeError, ValueError, np.exceptions.AxisError):
+        raise InputError(
+            f"effect {effect.name!r}: {name}() gives {np.shape(out)} for {len(known)} epochs of the log, not a value "
+            "per epoch",
+            effect_file(type(effect)),
+        ) from None
+    if data.mag is not None:
+        known &= np.all(np.isfinite(at_rows(data.mag, rows)), axis=1)
+    for column in effect.columns:
+        known &= np.isfinite(at_rows(np.asarray(data.columns[column], float), rows))
+    bad = np.isinf(per_epoch).any(axis=1) | (np.isnan(per_epoch).any(axis=1) & known)
+    if bad.any():
+        raise InputError(
+            f"effect {effect.name!r}: {name}() gives values that are not finite at {int(bad.sum())} of "
+            f"{len(bad)} epochs of the log whose inputs are finite (first at epoch {int(np.argmax(bad))}); "
+            "the effect must give finite values wherever its inputs are",
+            effect_file(type(effect)),
+        )
+
+
 def _epoch_by_epoch(method):
     """A per-epoch method written without ``rows`` (``contribution(theta, data)``, as a user's effect may be):
     evaluated on ``data.take(rows)``, the effect being computed epoch by epoch."""
@@ -165,12 +257,48 @@ class Effect(ABC):
     #: How many true parameters ``simulate`` accepts (default: the effect's own parameters).
     simulation_sizes: tuple = ()
 
+    #: JSON Schema properties of the settings (``settings``; constructor argument -> schema, ``magkf.schema``),
+    #: by which a calibration file's settings of the effect are checked; None: read from ``__init__``'s
+    #: defaults (a number, a string, true or false), every argument without a default required.
+    settings_schema: dict | None = None
+    #: The calibration file the effect was restored from (``magkf.effects.restore_effects``), named in its errors.
+    stored_in: str | None = None
+
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        own = cls.__module__.startswith("magkf.")
         for name in ROW_METHODS:
             method = cls.__dict__.get(name)
             if callable(method) and "rows" not in inspect.signature(method).parameters:
-                setattr(cls, name, _epoch_by_epoch(method))
+                method = _epoch_by_epoch(method)
+            if callable(method):
+                setattr(cls, name, _guarded(method, own))
+
+    @classmethod
+    def settings_json_schema(cls) -> dict:
+        """The JSON Schema (``magkf.schema``) of the settings a calibration file stores for this effect: an object
+        of exactly the constructor's arguments (``settings_schema``, else read from ``__init__``'s defaults)."""
+        from ..schema import BOOLEAN, NUMBER, STRING, strict
+
+        if cls.settings_schema is not None:
+            return strict(dict(cls.settings_schema))
+        properties, required, open_ = {}, [], False
+        if cls.__init__ is not object.__init__:
+            for name, p in inspect.signature(cls.__init__).parameters.items():
+                if name == "self" or p.kind is p.VAR_POSITIONAL:
+                    continue
+                if p.kind is p.VAR_KEYWORD:
+                    open_ = True
+                    continue
+                default = p.default
+                if default is p.empty:
+                    required.append(name)
+                kind = next(
+                    (s for t, s in ((bool, BOOLEAN), ((int, float), NUMBER), (str, STRING)) if isinstance(default, t)),
+                    {},
+                )
+                properties[name] = kind
+        return strict(properties, required, additionalProperties=open_)
 
     @property
     def label(self) -> str:

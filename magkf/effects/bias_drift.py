@@ -24,6 +24,8 @@ class BiasDrift(LinearEffect):
     prior_std = 1.0
     simulation_sizes = (1, 3)  # one walk for every axis, or one each
     wanders = True
+    #: the random walk, nT per sqrt(s)
+    settings_schema = {"walk": {"type": "number", "minimum": 0}}
 
     def __init__(self, walk: float = 2.0):
         self.walk = walk

@@ -17,6 +17,7 @@ class CurrentField(LinearEffect):
     parameter_names = ("c_x", "c_y", "c_z")
     channels = ("current", "throttle")
     prior_std = 1000.0
+    settings_schema = {"column": {"type": "string", "minLength": 1}}
 
     def __init__(self, column: str = "current_a"):
         self.columns = (column,)
