@@ -41,7 +41,7 @@ from ..blas import one_thread
 from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import body_to_ned
-from ..effects import Effect, LinearEffect, restore_effects
+from ..effects import Effect, LinearEffect, check_columns, restore_effects
 from ..effects import candidates as default_candidates
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
@@ -316,6 +316,7 @@ def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wan
     prepared arrays are let go once the diagnosed epochs are copied out of them."""
     stored = list(restore_effects(cal)) if cal is not None else []
     prep = prepare(log, config)
+    check_columns(stored + list(effects), prep.data.columns, log.source)  # naming the calibration file
     run, layout, x, used = _model(log, config, cal, effects, stored, run, prep, say)
     noise = _learned_noise(run, config)
     if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be

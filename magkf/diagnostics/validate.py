@@ -51,7 +51,7 @@ from ..blas import one_thread
 from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import body_to_ned
-from ..effects import restore_effects
+from ..effects import check_columns, restore_effects
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
 from ..online.prepare import prepare
@@ -224,10 +224,9 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
     the calibration can use, with attitude and every column the effects read, gross outliers left out."""
     prep = prepare(log, config)
     used = (prep.base == Status.USED) & prep.has_attitude
+    check_columns(effects, prep.data.columns, log.source)  # naming the calibration file and the column
     for effect in effects:
         for column in effect.columns:
-            if column not in prep.data.columns:
-                raise InputError(f"the calibration's effect {effect.label!r} needs column {column!r}", log.source)
             used &= np.isfinite(prep.data.columns[column])
     epochs = EpochSet.of(prep, used, config, wander_s=wander_s)
     if len(epochs) < 50:

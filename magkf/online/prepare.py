@@ -281,15 +281,12 @@ def mark_missing_columns(prep: PreparedLog, effects, source: str) -> np.ndarray:
     """The base statuses with ``missing_column`` where an added effect's channel is empty, or where a linear
     effect's Jacobian is not finite for want of an input it derives (the field's rate where the attitude is
     missing on both sides); raises InputError when the log lacks a channel an effect needs altogether."""
+    from ..effects import check_columns
+
     base = prep.base.copy()
+    check_columns(effects, prep.data.columns, source)  # naming the calibration file an effect came from
     for effect in effects:
         for c in effect.columns:
-            if c not in prep.data.columns:
-                raise InputError(
-                    f"effect {effect.name!r} needs column {c!r}, which the log lacks "
-                    f"(auxiliary columns: {', '.join(prep.data.columns) or 'none'})",
-                    source,
-                )
             updating = (base == Status.USED) | (base == Status.MISSING_ATTITUDE)  # the latter by its magnitude
             base[updating & ~np.isfinite(prep.data.columns[c])] = Status.MISSING_COLUMN
         if effect.linear:
