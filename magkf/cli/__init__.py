@@ -39,11 +39,21 @@ INPUTS = ("file", "cal", "init", "map", "curves", "truth_cal", "effect_file")
 class _Parser(argparse.ArgumentParser):
     """argparse with usage errors on one line, as every other error (exit status 2)."""
 
-    def error(self, message: str):
-        command = self.prog.removeprefix("magkf").strip()  # "diagnose" for a command's parser, "" for magkf's
+    def error(self, message: str, prog: str | None = None):
+        prog = prog or self.prog
+        command = prog.removeprefix("magkf").strip()  # "diagnose" for a command's parser, "" for magkf's
         where = f"{command}: " if command else ""
-        print(f"magkf: error: {where}{_one_line(message)} (see {self.prog} --help)", file=sys.stderr)
+        print(f"magkf: error: {where}{_one_line(message)} (see {prog} --help)", file=sys.stderr)
         sys.exit(2)
+
+    def parse_args(self, args=None, namespace=None):
+        """As argparse's, with arguments no parser took named against the command given (its --help)."""
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            command = getattr(parsed, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            self.error(f"unrecognized arguments: {' '.join(extras)}", prog)
+        return parsed
 
 
 def build_parser() -> argparse.ArgumentParser:
