@@ -20,6 +20,9 @@ def test_usage_errors_name_the_command_once():
         proc = run_cli(*args)
         assert proc.returncode == 2
         assert proc.stderr.startswith(f"magkf: error: {command}") and "magkf: error: magkf" not in proc.stderr
+    proc = run_cli("diagnose", "x.csv", "--no-such-option")  # argparse finds it after the command's parser ran
+    assert proc.stderr.startswith("magkf: error: diagnose: unrecognized arguments: --no-such-option")
+    assert proc.stderr.rstrip().endswith("(see magkf diagnose --help)")
 
 
 def test_a_folder_given_as_a_log_is_called_a_folder(tmp_path):
