@@ -864,13 +864,19 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     after adding the effects when there are any."""
     say("calibrating")
     run = calibrate_log(log, config, init=cal, effects=effects)
-    diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
+    judged = judge(run, log, cal)
+    diag = None  # a calibration refused by its own R and b is not diagnosed: its residuals measure the refusal
+    if not judged.withheld:
+        diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
     say("drawing the plots")
     t0 = log.time[0]
-    judged = judge(run, log, cal)
     comparison = _compare(log, run)
-    verdict = retold(run.summary.verdict, next_step(diag.recommended, judged, _lacks(run)))
-    parts = [*_overview(log, run, diag, comparison, judged), *_noise_section(run, t0, verdict, judged.refusal is None)]
+    parts = _overview(log, run, diag, comparison, judged)
+    if judged.withheld:  # no figure of a calibration no magnetometer has, the learned noise's included
+        parts.append("<p><b>Verdict:</b> none: the figures of this calibration measure its refusal.</p>")
+    else:
+        verdict = retold(run.summary.verdict, next_step(diag.recommended, judged, _lacks(run)))
+        parts += _noise_section(run, t0, verdict, judged.refusal is None)
     if judged.refusal is None:
         parts += [*_gates_and_estimate(run, t0), *_field_views(log, run, comparison), *_residuals_section(diag, t0)]
         parts += _candidates_section(diag, judged, _lacks(run))

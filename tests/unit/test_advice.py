@@ -138,3 +138,17 @@ def test_validate_as_stored_has_nothing_fitted_on_the_log_checked():
     v = validate(log, cal)
     assert abs(v.as_stored_nt - plain) < 0.01 * plain, (v.as_stored_nt, plain)
     assert v.with_effects_in_sample_nt < 0.5 * plain  # the heading's error fitted here: labelled in sample
+
+
+def test_the_report_of_a_calibration_refused_by_its_own_r_shows_no_figure_of_it(sim_run, monkeypatch):
+    """The report judges the run it makes; judged as refused by its own R (as a calibration of sensitivities 6
+    is), the page says so in its box and shows neither plots nor residual figures nor a diagnosis."""
+    import magkf.diagnostics.report as report
+
+    log, _ = sim_run
+    reason = "sensitivities 6 to 6 of the field, outside [0.2, 5]"
+    refused = report.Judgement(reason, (), f"the calibration itself is refused ({reason})")
+    monkeypatch.setattr(report, "judge", lambda *args: refused)
+    page = report.build_report(log)
+    assert "Refused: <code>magkf calibrate</code> would not write this calibration" in page and reason in page
+    assert "<img" not in page and "residual RMS" not in page and "Which effect is missing" not in page
