@@ -192,10 +192,20 @@ def _diagnose_flights(args) -> int:
     for name, log in logs.items():
         results[name], summaries[name] = _diagnosed(args, name, log, config, cal, added)
         logs[name] = None  # let the log go once it is diagnosed
-    pooled = pool(results, alpha=args.alpha)
-    if common.write_json_result(args, {"logs": summaries, "pooled": pooled.summary()}):
+    # a flight whose calibration is refused by its own R and b has no diagnosis worth pooling
+    withheld = [name for name in results if summaries[name]["judgement"]["figures_withheld"]]
+    kept = {name: r for name, r in results.items() if name not in withheld}
+    if len(kept) < 2:
+        raise InputError(
+            f"fewer than two flights left to pool: the calibration of {', '.join(withheld)} is refused by its own "
+            "R and b (diagnose each log alone to see why)"
+        )
+    pooled = pool(kept, alpha=args.alpha)
+    if common.write_json_result(args, {"logs": summaries, "pooled": pooled.summary(), "not_pooled": withheld}):
         return 0
-    _print_flights(results, pooled)
+    for name in withheld:
+        print(f"{name}: not pooled: {summaries[name]['judgement']['figures_withheld']}")
+    _print_flights(kept, pooled)
     return 0
 
 
