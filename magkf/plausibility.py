@@ -323,25 +323,44 @@ def check_start(init, source: str) -> None:
 _START_LACKS = "the start calibration does not map readings to a field: correct it, or calibrate without --init"
 
 
-def check_loaded(cal, source: str, field_nt: float = float("nan")) -> list[str]:
-    """Judge a calibration file ``cal`` (read from ``source``) before it is used (``apply``, ``export``): as
-    ``check_calibration`` against the field ``field_nt`` (the log's, ``log_field_nt``; NaN: the Earth's largest,
-    ``EARTH_FIELD_NT``) for a calibration in nT, against its own radius otherwise, and its offsets' standard
-    deviations (its covariance) against the field; the warnings, or InputError naming ``source``."""
+def check_loaded(cal, source: str, field_nt: float = float("nan"), readings=None) -> list[str]:
+    """Judge a calibration file ``cal`` (read from ``source``) before it is used (``apply``, ``export``); the
+    warnings, or InputError naming ``source``.
+
+    A calibration in nT: ``check_calibration`` against the field ``field_nt`` (the log's, ``log_field_nt``; NaN:
+    the Earth's largest, ``EARTH_FIELD_NT``), and its offsets' standard deviations (its covariance) against that
+    field. A calibration in the readings' own units (``counts``, ``unit-sphere``): its determinant and stretch,
+    and its offset against the radius it gives the ``readings`` (N, 3) of the log (the median calibrated
+    magnitude; without readings the offset is not judged)."""
     nt = getattr(cal, "field_unit", "nT") == "nT"
     field = field_nt if np.isfinite(field_nt) and field_nt > 0 else EARTH_FIELD_NT[1]
-    fix = "calibrate again on a log that turns through every heading with some pitch and roll"
+    fix = (
+        "a fit to data that did not determine it, or to readings in another unit: calibrate again on a log that "
+        "turns through every heading with some pitch and roll"
+    )
     R, b = np.asarray(cal.R, float), np.asarray(cal.b, float)
+    scale = field if nt else _radius(cal, readings)
     try:
-        scale = field if nt else float(np.mean(np.linalg.svd(R, compute_uv=False)))
-        warnings = check_calibration(R, b / scale, source, field_known=nt, lacks=fix)
+        warnings = check_calibration(R, b / scale, source, field_known=nt, lacks=fix, unit_option=False)
         if nt and cal.covariance is not None:
             warnings += check_offset_std(np.sqrt(np.clip(np.diag(cal.covariance)[9:12], 0, None)), field, source, fix)
     except InputError as exc:
         raise InputError(
-            "the calibration is not applied: " + exc.message.replace("(nothing written)", "(nothing used)"), source
+            "the calibration is not used: " + exc.message.replace("(nothing written)", "(nothing used)"), source
         ) from None
     return warnings
+
+
+def _radius(cal, readings) -> float:
+    """The median magnitude of the ``readings`` (N, 3) calibrated by ``cal`` (its field's radius, in its own
+    units), or infinity (the offset not judged) without finite readings or with a singular R."""
+    m = np.asarray(readings if readings is not None else np.empty((0, 3)), float)
+    m = m[np.isfinite(m).all(axis=1)] if m.ndim == 2 else np.empty((0, 3))
+    R = np.asarray(cal.R, float)
+    if not len(m) or not np.isfinite(R).all() or abs(np.linalg.det(R)) == 0:
+        return float("inf")
+    radius = float(np.median(np.linalg.norm(np.linalg.solve(R, (m - np.asarray(cal.b, float)).T), axis=0)))
+    return radius if radius > 0 else float("inf")
 
 
 def check_run(run, source: str, field_nt: float, init=None, log=None) -> list[str]:
@@ -363,6 +382,8 @@ def check_run(run, source: str, field_nt: float, init=None, log=None) -> list[st
         )
     misfit = (s.model or {}).get("misfit")
     if misfit:  # the whole-log estimate leaves residuals beyond RESIDUAL_REFUSED of the field
+        if not unit_option(source):  # the log states its unit: --mag-unit is refused for it
+            misfit = misfit.replace(" (--mag-unit)", "")
         raise InputError(f"{misfit}; nothing written", source)
     R, b = np.asarray(s.R, float), np.asarray(s.b, float)
     known = bool(np.isfinite(field_nt) and field_nt > 0)

@@ -70,7 +70,7 @@ def run_sinefit(args) -> int:
     import numpy as np
 
     from ..offline.sinefit import SineFitCalibrator, paper_from_curves, read_curves, read_turntable
-    from ..plausibility import check_calibration, check_residual
+    from ..plausibility import check_calibration, check_offset_std, check_residual
 
     if args.field is None or args.inclination is None:
         igrf = common.igrf_field(args)
@@ -97,8 +97,9 @@ def run_sinefit(args) -> int:
         cal = result.to_calibration(source=source)
     except ValueError as exc:  # R singular or not finite: the data do not determine it
         raise InputError(f"the fit is degenerate ({exc}): the data do not determine the parameters", source) from None
-    warnings = check_calibration(cal.R, np.asarray(cal.b) / field, source)
+    warnings = check_calibration(cal.R, np.asarray(cal.b) / field, source, lacks=SINEFIT_LACKS)
     warnings += check_residual(result.residual_rms_nt, field, source, refuse=result.method == "exact")
+    warnings += check_offset_std(_offset_std(result.standard_errors, ("b_x", "b_y", "b_z")), field, source)
     for warning in warnings:
         print(f"magkf: warning: {source}: {warning}", file=sys.stderr)
     if args.output:
@@ -120,6 +121,18 @@ def run_sinefit(args) -> int:
     return 0
 
 
+#: What a turntable run that does not determine the sine fit lacks, in words.
+SINEFIT_LACKS = (
+    "a turntable run that does not determine it (turn the table through full circles in both planes, or check "
+    "--field and --inclination)"
+)
+
+
+def _offset_std(standard_errors: dict, names) -> list:
+    """The offsets' standard errors (3,) from a fit's ``standard_errors`` by ``names`` (NaN where absent)."""
+    return [float(standard_errors.get(n, float("nan"))) for n in names]
+
+
 def _check_sinefit_inputs(args) -> None:
     """InputError unless exactly one of a turntable table and ``--curves`` is given (``--map`` only with a table)."""
     if (args.file is None) == (args.curves is None):
@@ -135,8 +148,9 @@ def run_ellipsoid(args) -> int:
     calibration file records the unit of its field (``_field_unit``)."""
     from ..offline.ellipsoid import EllipsoidCalibrator
     from ..offline.reading import read_offline_table
-    from ..plausibility import check_calibration, check_residual
+    from ..plausibility import check_calibration, check_offset_std, check_residual
 
+    _check_field_given(args)
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
     columns = columns[: args.axes]
     if len(columns) != args.axes:
@@ -153,9 +167,13 @@ def run_ellipsoid(args) -> int:
     if not known:  # no physical field: the sensor's own mean sensitivity is taken as 1 (R of determinant 1)
         result = result.scaled_to(result.unit_determinant_field)
     field_unit = _field_unit(args, columns, result.field)
-    result.warnings.extend(check_calibration(result.R, result.b / result.field, args.file, field_known=known))
+    result.warnings.extend(
+        check_calibration(result.R, result.b / result.field, args.file, field_known=known, lacks=ELLIPSOID_LACKS)
+    )
     if known:
         result.warnings.extend(check_residual(result.residual_rms, field, args.file))
+    offsets = _offset_std(result.standard_errors, ("S0_x", "S0_y", "S0_z")[: args.axes])
+    result.warnings.extend(check_offset_std(offsets, result.field, args.file, ELLIPSOID_LACKS))
     tilt = _largest_tilt_deg(table)
     if args.axes == 2 and tilt > LEVEL_DEG:
         result.warnings.append(
@@ -171,6 +189,26 @@ def run_ellipsoid(args) -> int:
     else:
         _print_ellipsoid(args, result, columns, field_unit)
     return 0
+
+
+#: What samples that do not determine an ellipsoid lack, in words.
+ELLIPSOID_LACKS = (
+    "samples that do not determine it (turn the sensor through every orientation: a full circle of heading at "
+    "several pitches and rolls; the report's coverage says how much of the sphere was seen)"
+)
+
+
+def _check_field_given(args) -> None:
+    """InputError for ``ellipsoid --mag-unit`` without ``--field`` writing a file (``-o``): R would be scaled to
+    determinant 1, not to the field, so the file would claim nT without mapping the readings to the field."""
+    if args.output and args.mag_unit is not None and args.field is None:
+        raise InputError(
+            f"--mag-unit {args.mag_unit} without --field: R would be scaled to determinant 1, not to the field, so the "
+            "file would not map the readings to the field in nT (nothing written): give --field with the field's "
+            "magnitude in nT, or --field igrf with --lat, --lon and --date; or drop --mag-unit for a file in the "
+            "readings' own units",
+            args.file,
+        )
 
 
 def _ellipsoid_field(args) -> float:

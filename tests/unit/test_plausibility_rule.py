@@ -1,0 +1,126 @@
+"""The one write rule of magkf.plausibility: a mirrored R, the offsets' standard deviations against the field,
+offsets the data carried nothing about, a batch estimate far from the log's own start, a --init calibration
+and a calibration that is used (apply, export), with refusals that say what the data lack."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from magkf.calibration import Calibration
+from magkf.errors import InputError
+from magkf.plausibility import (
+    OFFSET_STD_REFUSED,
+    OFFSET_STD_WARNED,
+    check_calibration,
+    check_loaded,
+    check_offset_std,
+    check_run,
+    check_start,
+    turning_text,
+    unit_option,
+)
+
+FIELD = 49_000.0
+MIRROR = np.diag([1.0, 1.0, -1.0])
+
+
+def test_a_mirrored_r_is_refused_and_a_rotation_is_not():
+    with pytest.raises(InputError, match=r"R is mirrored \(determinant -1, not positive\)"):
+        check_calibration(MIRROR, np.zeros(3), "cal")
+    c, s = np.cos(0.3), np.sin(0.3)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    assert check_calibration(rotation, np.zeros(3), "cal") == []
+
+
+def test_the_offsets_standard_deviations_are_judged_against_the_field():
+    """Below 1 % nothing is said, 1 to 3 % is warned, above 3 % refused; an unknown field says nothing."""
+    assert check_offset_std([2.0, 2.0, 9.5], FIELD, "log") == []
+    (warning,) = check_offset_std([976.0] * 3, FIELD, "log", "turn it")
+    assert "976 (1.99 % of the field 49000)" in warning and warning.endswith("turn it")
+    with pytest.raises(InputError, match=r"more than 3 %: the data do not determine them; turn it \(nothing written"):
+        check_offset_std([3500.0, 10.0, 10.0], FIELD, "log", "turn it")
+    assert check_offset_std([1e9] * 3, float("nan"), "log") == []
+    assert OFFSET_STD_WARNED < OFFSET_STD_REFUSED < 0.10  # the acceptance: never above 10 % of the field
+
+
+def test_mag_unit_is_suggested_only_where_it_applies():
+    R = np.eye(3) * 7.0
+    for source, suggested in (("flight.bin", False), ("flight.ulg", False), ("log.csv", True)):
+        assert unit_option(source) is suggested
+        with pytest.raises(InputError) as caught:
+            check_calibration(R, np.zeros(3), source, unit_option=unit_option(source))
+        assert ("--mag-unit" in str(caught.value)) is suggested
+
+
+def test_a_mirrored_start_is_refused_as_the_start_itself():
+    start = Calibration(R=MIRROR, b=np.zeros(3), covariance=np.eye(12) * 1e-12)
+    with pytest.raises(InputError, match="mirror.json: the start calibration itself is mirrored"):
+        check_start(start, "mirror.json")
+    check_start(None, "none")  # no --init: nothing to judge
+    check_start(Calibration(R=np.eye(3) * 1.02, b=[300.0, -200.0, 100.0]), "good.json")
+
+
+def test_an_absurd_calibration_is_not_used():
+    """R = 1e-3 I and b = 1e7 nT: calibrated magnitudes of 1e10 nT; refused naming the file, nothing used."""
+    absurd = Calibration(R=np.eye(3) * 1e-3, b=np.full(3, 1e7))
+    with pytest.raises(InputError, match=r"absurd.json: the calibration is not used: sensitivities 0.001"):
+        check_loaded(absurd, "absurd.json", FIELD)
+    with pytest.raises(InputError, match="nothing used"):
+        check_loaded(absurd, "absurd.json")  # no log: against the Earth's largest field
+    assert check_loaded(Calibration(R=np.eye(3), b=[400.0, -300.0, 200.0]), "good.json", FIELD) == []
+
+
+def _run(b_std=10.0, undetermined=(), model=None, start=None, method="ekf", R=None, b=(100.0, 0.0, 0.0)):
+    """A stand-in for a CalibrationRun with what check_run reads."""
+    summary = SimpleNamespace(
+        used_share=1.0,
+        n_epochs=1000,
+        model=model,
+        R=(np.eye(3) if R is None else np.asarray(R)).tolist(),
+        b=list(b),
+        std={k: b_std for k in ("b_x", "b_y", "b_z")},
+        observability={"undetermined": list(undetermined), "text": "; ".join(u["text"] for u in undetermined)},
+        filter=method,
+    )
+    covariance = np.diag([1e-4] * 9 + [b_std**2] * 3)
+    calibration = SimpleNamespace(covariance=covariance)
+    return SimpleNamespace(summary=summary, calibration=calibration, start=start, states=None)
+
+
+def test_a_run_whose_offsets_remain_at_their_prior_is_refused():
+    """A direction of b alone that the data carried a thousandth of the prior's information about: b is where it
+    started, refused; at 0.89 of the prior's information (the PX4 sample flight) it is written."""
+    at_prior = {"ratio": 1e-3, "groups": ["b"], "text": "b remains at its prior (data carried 0.001 of ...)"}
+    with pytest.raises(InputError, match=r"the data do not determine the offsets; b remains at its prior"):
+        check_run(_run(undetermined=[at_prior]), "flight.bin", FIELD)
+    partly = dict(at_prior, ratio=0.89)
+    assert check_run(_run(undetermined=[partly]), "flight.bin", FIELD) == []
+
+
+def test_a_batch_estimate_far_from_the_logs_own_start_is_refused():
+    """No --init and no whole-log family: 10 of the start's standard deviations away is refused; a whole-log
+    family's estimate (which may hold R at another calibration) is not judged so."""
+    start = Calibration(R=np.eye(3), b=np.zeros(3), covariance=np.diag([1e-4] * 9 + [100.0**2] * 3))
+    run = _run(start=start, method="batch", b=(1000.0, 0.0, 0.0))
+    with pytest.raises(InputError, match=r"left the log's own starting fit by 10 of its standard deviations.*--batch"):
+        check_run(run, "log.csv", FIELD)
+    held = _run(start=start, model={"family": "offsets"}, b=(1000.0, 0.0, 0.0))
+    assert check_run(held, "log.csv", FIELD) == []
+
+
+def test_a_run_with_a_mirrored_estimate_or_start_is_refused():
+    with pytest.raises(InputError, match="R is mirrored"):
+        check_run(_run(R=MIRROR), "log.csv", FIELD)
+    start = Calibration(R=MIRROR, b=np.zeros(3))
+    with pytest.raises(InputError, match="the start calibration itself is mirrored"):
+        check_run(_run(), "log.csv", FIELD, init=start)
+
+
+def test_the_turning_is_said_over_the_epochs_used():
+    table = pd.DataFrame({"yaw": [10.0, 10.5, 11.0, 200.0], "pitch": [1.0, 2.0, 3.0, 40.0], "roll": [0.0] * 4})
+    log = SimpleNamespace(table=table)
+    used = np.array([True, True, True, False])
+    assert turning_text(log, used).startswith("the 3 epochs used turn through 1 deg of heading, pitch 1 to 3 deg")
+    assert turning_text(SimpleNamespace(table=table[["pitch"]])) == ""
