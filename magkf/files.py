@@ -196,7 +196,7 @@ def _dead_leftover(entry: os.DirEntry) -> str | None:
 
 def remove_leftovers(folder) -> int:
     """Complete the interrupted commits and remove the temporaries left in ``folder`` by this host's
-    processes that are no longer alive (killed by SIGKILL, or by a power cut); returns how many entries
+    processes that are no longer alive (killed by SIGKILL); returns how many entries
     were removed or completed. Errors are ignored (another run may be cleaning the same folder)."""
     folder = Path(folder or ".")
     try:

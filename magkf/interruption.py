@@ -13,7 +13,7 @@ from __future__ import annotations
 import signal
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "SIGNALS", "stop_on_signals", "held", "exit_status"]
+__all__ = ["Interrupted", "SIGNALS", "stop_on_signals", "restore", "held", "exit_status"]
 
 #: The signals that stop a command cleanly (those the platform has).
 SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -43,12 +43,18 @@ def _handler(signum, frame) -> None:
     raise Interrupted(signum)
 
 
-def stop_on_signals() -> None:
-    """Make SIGINT, SIGTERM and SIGHUP raise ``Interrupted`` (call from the main thread)."""
+def stop_on_signals() -> dict:
+    """Make SIGINT, SIGTERM and SIGHUP raise ``Interrupted`` (call from the main thread); returns the
+    handlers they had, for ``restore``."""
     global _pending, _stopping
     _pending, _stopping = None, False
-    for signum in SIGNALS:
-        signal.signal(signum, _handler)
+    return {signum: signal.signal(signum, _handler) for signum in SIGNALS}
+
+
+def restore(handlers: dict) -> None:
+    """Put back the signal ``handlers`` that ``stop_on_signals`` returned."""
+    for signum, handler in handlers.items():
+        signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
 @contextmanager

@@ -83,15 +83,17 @@ def _files(args) -> tuple[dict, list]:
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 done, 2 bad input or usage, 1 internal error)."""
-    from ..interruption import stop_on_signals
+    from ..interruption import restore, stop_on_signals
 
-    stop_on_signals()
+    previous = stop_on_signals()
     if hasattr(signal, "SIGPIPE"):  # output piped into head and the like: stop quietly when it closes
         signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     try:
         return _main(argv)
     except KeyboardInterrupt as exc:  # before or after the command (while parsing, printing the warnings)
         return _interrupted(exc)
+    finally:
+        restore(previous)  # main called from Python: its caller's handlers again
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:
