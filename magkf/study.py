@@ -89,10 +89,9 @@ class StudySpec:
     def from_dict(cls, data: dict, source: str = "study", root: Path | None = None) -> StudySpec:
         """Check and expand a spec's tables (see the module docstring); ``root``: the folder relative log
         paths and globs are taken from. Raises InputError naming ``source`` and the key at fault."""
-        known = {"study", "base", "grid", "settings", "sample", "recipes", "logs"}
-        for key in data:
-            if key not in known:
-                raise InputError(f"unknown table [{key}] (known: {', '.join(sorted(known))})", source)
+        from .schema import check
+
+        check(data, spec_schema(), source)
         head = _table(data, "study", source)
         seed = _integer(head.get("seed", 0), "study.seed", source, 0)
         replicates = _integer(head.get("replicates", 1), "study.replicates", source, 1)
@@ -130,6 +129,51 @@ class StudySpec:
         """The setting keys whose values differ between settings."""
         keys = dict.fromkeys(k for s in self.settings for k in s)
         return [k for k in keys if len({repr(s.get(k)) for s in self.settings}) > 1]
+
+
+def _typed(default) -> dict:
+    """The JSON Schema (``magkf.schema``) of a setting whose default value is ``default``."""
+    from .schema import BOOLEAN, INTEGER, NUMBER, STRING
+
+    if isinstance(default, tuple):
+        return {"type": "array", "items": NUMBER, "minItems": len(default), "maxItems": len(default)}
+    return next(
+        s for t, s in ((bool, BOOLEAN), (int, INTEGER), (float, NUMBER), (str, STRING)) if isinstance(default, t)
+    )
+
+
+def spec_schema() -> dict:
+    """The JSON Schema (``magkf.schema``) of a study spec (see the module docstring): its tables and their keys,
+    a setting's keys the ``FilterConfig`` fields (of their types) and ``effects``, a recipe's the ``DriveConfig``
+    fields but ``seed``, ``name`` and ``effects``; every other key is refused."""
+    from .schema import INTEGER, NUMBER, STRING, numbers, strict
+    from .sim import DriveConfig
+
+    effects = {"type": "array", "items": STRING}
+    value = {f.name: _typed(getattr(FilterConfig(), f.name)) for f in fields(FilterConfig)} | {"effects": effects}
+    setting = strict(value)
+    grid = strict({k: {"type": "array", "items": v, "minItems": 1} for k, v in value.items()})
+    bounds = numbers((2,))
+    draw = {
+        k: strict({"uniform": bounds, "log_uniform": bounds, "choice": {"type": "array", "items": v, "minItems": 1}})
+        | {"minProperties": 1, "maxProperties": 1}
+        for k, v in value.items()
+    }
+    sample = strict({"count": INTEGER | {"minimum": 1}} | draw, ["count"])
+    truth = {"type": ["number", "array"], "items": NUMBER}
+    drive = {f.name: _typed(getattr(DriveConfig(), f.name)) for f in fields(DriveConfig) if f.name != "seed"}
+    recipe = strict(drive | {"name": STRING, "effects": {"type": "object", "additionalProperties": truth}})
+    return strict(
+        {
+            "study": strict({"name": STRING, "seed": INTEGER | {"minimum": 0}, "replicates": INTEGER | {"minimum": 1}}),
+            "base": setting,
+            "grid": grid,
+            "settings": {"type": "array", "items": setting},
+            "sample": sample,
+            "recipes": {"type": "array", "items": recipe},
+            "logs": strict({"paths": {"type": "array", "items": STRING}}),
+        }
+    )
 
 
 def load_spec(path) -> StudySpec:
@@ -290,7 +334,54 @@ def _logs(logs: dict, root: Path, source: str) -> list:
         return []
     from .fleet import find_logs
 
-    return [str(p) for p in find_logs([p if Path(p).is_absolute() else str(root / p) for p in paths])]
+    found = find_logs([p if Path(p).is_absolute() else str(root / p) for p in paths])
+    return [_checked_log(p, source) for p in found]
+
+
+def _checked_log(path: Path, source: str) -> str:
+    """``path`` when it is a log a reader reads (``magkf.io.readers``): recognised by its first bytes or its
+    name's ending, and for a canonical CSV, a first line naming ``time`` and the magnetometer columns; otherwise
+    InputError naming the spec ``source`` and the path, never quoting the file's content (a spec may name any
+    file, and a run's error is written into ``runs.csv``)."""
+    from .fleet import log_suffixes
+    from .io.readers import HEAD_BYTES, detect_format
+
+    name = str(path)
+    fmt = detect_format(path)
+    if path.is_file():
+        with open(path, "rb") as f:
+            head = f.read(HEAD_BYTES)
+        if fmt == "csv" and path.suffix.lower() not in log_suffixes() + (".csv",):
+            raise InputError(
+                f"logs.paths: {name!r} is not a log: no reader recognises its content and its name does not end "
+                f"as a log's ({', '.join(sorted(set(log_suffixes() + ('.csv',))))})",
+                source,
+            )
+        if fmt == "csv" and not _drive_log_header(path, head):
+            raise InputError(
+                f"logs.paths: {name!r} is not a drive log: its first line does not name the columns time, mag_x, "
+                "mag_y and mag_z (docs/data-contract.md); convert another table with magkf convert --map first",
+                source,
+            )
+    return name
+
+
+def _drive_log_header(path: Path, head: bytes) -> bool:
+    """Whether the text file ``path`` (first bytes ``head``) starts with a CSV header naming ``time`` and
+    ``mag_x, mag_y, mag_z``."""
+    import csv
+
+    from .conventions import MAG, TIME
+
+    if b"\x00" in head:
+        return False
+    with open(path, "rb") as f:
+        line = f.readline(1 << 16)
+    try:
+        header = {c.strip() for c in next(csv.reader([line.decode("utf-8-sig")]), [])}
+    except (UnicodeDecodeError, csv.Error):
+        return False
+    return {TIME, *MAG} <= header
 
 
 def _config(setting: dict) -> FilterConfig:
@@ -404,6 +495,17 @@ class StudyResult:
     runs: pd.DataFrame
     summary: pd.DataFrame
 
+    @property
+    def failure(self) -> str | None:
+        """When every run failed, one line saying so with the first run's reason (the tables are still written);
+        None when a run succeeded."""
+        errors = self.runs["error"] if "error" in self.runs else pd.Series(dtype=str)
+        if len(self.runs) == 0 or not (errors != "").all():
+            return None
+        n = len(self.runs)
+        first = f"run {self.runs['run'].iloc[0]}: {errors.iloc[0]}"
+        return f"every run of the study failed ({n} run{'s' if n != 1 else ''}); {first}"
+
     def write(self, out_dir) -> dict:
         """Write ``runs`` and ``summary`` (Parquet and CSV) and ``study.png`` into ``out_dir`` (made when its
         parent exists), all five moved into place together once complete (``magkf.files.committed``); returns
@@ -444,6 +546,9 @@ def run(spec, client=None, progress=None) -> StudyResult:
         for t, r in zip(tasks, results)
     ]
     table = pd.DataFrame(rows).sort_values("run", kind="stable").reset_index(drop=True)
+    for name in MEASURED:  # every run failed: the columns are there, empty
+        if name not in table:
+            table[name] = np.nan
     return StudyResult(spec, table, summarise(table, spec))
 
 

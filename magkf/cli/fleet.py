@@ -224,4 +224,8 @@ def run_study(args) -> int:
         print(f"  run {row.run} failed: {row.error}")
     print("  " + _memory_line(runs.groupby("worker")["peak_rss_mb"].max().to_dict(), limits))
     print(f"  written: {', '.join(files.values())}")
+    if result.failure is not None:  # the tables say why each run failed; the exit status says that all did
+        from ..errors import InputError
+
+        raise InputError(result.failure, args.spec)
     return 0
