@@ -2778,10 +2778,12 @@ def _any_of(text) -> tuple:
 
 
 def _key_named(*keys) -> tuple:
-    """The ways an error line may name any of ``keys``: a key of one or two characters only quoted."""
+    """The ways an error line may name any of ``keys``: quoted, or ending a quoted path (``'effects[0].T0'``,
+    ``'R[0]'``); a key of three characters or more anywhere."""
     out = []
     for key in keys:
-        out += [f"'{key}'", f'"{key}"'] if len(key) < 3 else [key]
+        out += [f"'{key}'", f'"{key}"', f".{key}'", f"'{key}[", f".{key}[", f"[{key}]"]
+        out += [key] if len(key) >= 3 else []
     return tuple(out)
 
 
