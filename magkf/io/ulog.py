@@ -577,9 +577,12 @@ def _magnetometer_columns(mag: _Magnetometer, offset_us: float | None) -> tuple[
     return table, columns
 
 
-def _attitude_columns(ulog, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list) -> tuple[dict, dict]:
+def _attitude_columns(
+    ulog, t: np.ndarray, ref_us: int, max_gap_s: float, notes: list, name: str = "log"
+) -> tuple[dict, dict]:
     """``roll, pitch, yaw`` (deg) at the epochs ``t`` (s after ``ref_us``) from ``vehicle_attitude`` by slerp, and
-    their provenance; empty (noted) without the topic or without an attitude in it."""
+    their provenance; empty (noted) without the topic or without an attitude in it. Samples of a repeated time
+    are dropped (noted); times that go backwards are an InputError naming the file ``name``."""
     att = _datasets(ulog, "vehicle_attitude")
     if 0 not in att:
         notes.append("no vehicle_attitude topic: roll, pitch and yaw are absent")
@@ -589,9 +592,28 @@ def _attitude_columns(ulog, t: np.ndarray, ref_us: int, max_gap_s: float, notes:
         notes.append("vehicle_attitude has neither q nor roll, pitch and yaw: roll, pitch and yaw are absent")
         return {}, {}
     q_src, text = found
-    q, _ = interpolate_quaternions(t, (_sample_us(att[0]) - ref_us) * 1e-6, q_src, max_gap_s)
+    att_us = _increasing(_sample_us(att[0]), "vehicle_attitude", name)
+    rows = time_order(att_us)
+    if len(rows) < len(att_us):
+        notes.append(f"{len(att_us) - len(rows)} vehicle_attitude samples with a repeated timestamp were dropped")
+    q, _ = interpolate_quaternions(t, (att_us[rows] - ref_us) * 1e-6, q_src[rows], max_gap_s)
     yaw, pitch, roll = quaternion_to_euler(q)
     return {ROLL: roll, PITCH: pitch, YAW: yaw}, dict.fromkeys((ROLL, PITCH, YAW), text)
+
+
+def _increasing(t_us: np.ndarray, topic: str, name: str) -> np.ndarray:
+    """``t_us`` (us since boot) when it never decreases; otherwise InputError naming the file ``name``: a damaged
+    log, whose samples cannot be put on one time line."""
+    back = np.flatnonzero(np.diff(t_us) < 0)
+    if len(back):
+        k = int(back[0]) + 1
+        raise InputError(
+            f"the {topic} timestamps go backwards ({'once' if len(back) == 1 else f'{len(back)} times'}; first at "
+            f"sample {k}, {t_us[k] * 1e-6:.6f} s since boot after {t_us[k - 1] * 1e-6:.6f} s): the log is damaged; "
+            "read a log whose clock runs forward",
+            name,
+        )
+    return t_us
 
 
 #: A logged quaternion is taken as valid when its norm is within this of 1 (float32 components: ~1e-7).
@@ -808,7 +830,7 @@ def read_ulog(path, *, mag: int | None = None, raw: bool = True, max_gap_s: floa
     ref_us = int(magnetometer.us[0])
     t = (magnetometer.us - ref_us) * 1e-6
     table, columns = _magnetometer_columns(magnetometer, offset_us)
-    streams = [_attitude_columns(ulog, t, ref_us, max_gap_s, notes)]
+    streams = [_attitude_columns(ulog, t, ref_us, max_gap_s, notes, name)]
     positioned = gnss is not None and bool(np.isfinite(gnss.values[LAT]).any())
     if positioned:
         streams.append(_gnss_columns(gnss, t, ref_us, max_gap_s, notes))
