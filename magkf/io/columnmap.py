@@ -691,7 +691,33 @@ def _parse(
         ) from None
     if len(frame) != len(rows):
         raise InputError("a quoted cell spans several lines; magkf reads one record per line", name)
+    _refuse_short_rows(data_lines[0 if names is None else 1 :], frame.shape[1], options, name, rows, names)
     return frame
+
+
+def _refuse_short_rows(lines: list[str], width: int, options: dict, name: str, rows: list[int], names) -> None:
+    """InputError naming the file ``name`` and the row (of ``rows``) for the first of ``lines`` with fewer fields
+    than ``width`` (pandas would fill the missing ones with empty cells: a cut record is not a record with
+    missing values). Lines with quotes or fewer separators than ``width - 1`` are counted with the csv module."""
+    import csv
+
+    sep, comment = options["sep"], options.get("comment")
+    for k, line in enumerate(lines):
+        text = line.split(comment, 1)[0] if comment else line
+        if sep == r"\s+":
+            fields = len(text.split())
+        elif '"' not in text and text.count(sep) >= width - 1:
+            continue
+        else:
+            fields = len(next(csv.reader([text], delimiter=sep, skipinitialspace=True), []))
+        if fields < width:
+            what = "the header has" if names else "the first row has"
+            raise InputError(
+                f"{fields} fields where {what} {width}: a short record is refused, not filled with empty cells "
+                "(write an empty cell, between separators, for a missing value)",
+                name,
+                int(rows[k]),
+            )
 
 
 def _read_parquet(path: Path) -> _RawTable:
