@@ -1794,10 +1794,14 @@ def absurd_cal_cases(base: Base, rng) -> list[Case]:
             label = f"absurd-cal/{name}" + ("" if confident else "/no-covariance")
             files = base.files(**{CAL: json.dumps(data).encode()})
             used = [r for r in cal_runs() if r[0] != "simulate"]
-            refused = [r for r in used if r[1][0] != "calibrate"]
+            # calibrate --init may move away from its start; a sensor mounted upside down is a real one's
+            # orientation, which export (that sees no log) may write
+            free = ("calibrate",) + (("export",) if name == "rotated-180" else ())
+            refused = [r for r in used if r[0] not in free]
             cases.append(Case(label, "absurd-cal", files, refused, [CAL], invalid=True, says=(CAL,)))
-            init = [r for r in used if r[1][0] == "calibrate"]
-            cases.append(Case(label + "/init", "absurd-cal", files, init, [CAL]))
+            judged = [r for r in used if r[0] in free]
+            suffix = "/init" if len(judged) == 1 else "/init-and-export"
+            cases.append(Case(label + suffix, "absurd-cal", files, judged, [CAL]))
     return cases
 
 
@@ -1872,6 +1876,7 @@ def geometry_cases(base: Base, rng) -> list[Case]:
             runs = [
                 ("calibrate", ["calibrate", "geom.csv", "-o", "out_cal.json"]),
                 ("calibrate", ["calibrate", "geom.csv", "--batch", "-o", "out_cal.json"]),
+                ("calibrate", ["calibrate", "geom.csv", "--model", "full", "-o", "out_cal.json"]),
                 ("ellipsoid", ["ellipsoid", "geom.csv", "--field", f"{field_nt:.1f}", "-o", "ellipsoid.json"]),
             ]
             files = base.files(**{"geom.csv": data})
@@ -2507,6 +2512,8 @@ def execute(job: dict) -> dict:
     result["modified"] = sorted(k for k, v in before.items() if after.get(k) != v)
     _compare(job, result, before, after)
     result["modified"] = [k for k in result["modified"] if k not in result["touched"]]
+    if job["baseline"] and result["code"] == 2 and result["seconds"] > 0.5:  # a first use's loading, or the work?
+        result["seconds_cold"], result["seconds"] = result["seconds"], _timed_again(job, folder)
     result["over_input"] = sorted(k for k in result["modified"] if _norm(k) in outputs)
     created = sorted(k for k in after if k not in before)
     result["stray"] = [k for k in created if Path(k).name.startswith(".")]
@@ -2522,6 +2529,26 @@ def execute(job: dict) -> dict:
             os.chdir(old_cwd)
     _remove(folder, job["keep"])
     return result
+
+
+def _timed_again(job: dict, folder: Path) -> float:
+    """The seconds a second, identical run of ``job`` takes in ``folder`` (what a refusal costs once the worker
+    has loaded what a first use loads)."""
+    from magkf.cli import main
+
+    old_cwd = os.getcwd()
+    os.chdir(folder)
+    start = time.perf_counter()
+    try:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            signal.alarm(job["timeout"])
+            main(job["argv"])
+    except BaseException:  # noqa: BLE001, S110  (only the time is wanted)
+        pass
+    finally:
+        signal.alarm(0)
+        os.chdir(old_cwd)
+    return time.perf_counter() - start
 
 
 def _remove(folder: Path, keep: bool) -> None:
@@ -3211,6 +3238,7 @@ def main(argv=None) -> int:
                     "interrupt": case.interrupt,
                     "targets": case.targets,
                     "stdio": case.stdio,
+                    "baseline": case.baseline,
                     "keep": bool(args.keep),
                 }
             )
