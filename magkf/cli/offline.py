@@ -151,12 +151,17 @@ def run_ellipsoid(args) -> int:
     from ..plausibility import check_calibration, check_offset_std, check_residual
 
     _check_field_given(args)
-    columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"]
-    columns = columns[: args.axes]
+    columns = [c.strip() for c in args.columns.split(",")] if args.columns else ["mag_x", "mag_y", "mag_z"][: args.axes]
     if len(columns) != args.axes:
-        raise InputError(f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}")
+        other = f", or give --axes {len(columns)}" if len(columns) in (2, 3) else ""
+        raise InputError(
+            f"--columns names {len(columns)} columns, --axes {args.axes} needs {args.axes}: name {args.axes}{other}"
+        )
+    left_out = [] if args.columns else ["mag_z"][: 3 - args.axes]  # the default's third axis, never dropped silently
+    fix = "give --axes 3 to calibrate the three axes, or --columns mag_x,mag_y to fit the two horizontal ones alone"
     table, _ = common.read_input_file(
-        args, lambda path: read_offline_table(path, columns, args.map, mag_unit=args.mag_unit)
+        args,
+        lambda path: read_offline_table(path, columns, args.map, mag_unit=args.mag_unit, left_out=left_out, fix=fix),
     )
     field = _ellipsoid_field(args)
     X = table[columns].to_numpy()

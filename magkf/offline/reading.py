@@ -22,7 +22,13 @@ __all__ = ["read_offline_table"]
 
 
 def read_offline_table(
-    path, required: Sequence[str], column_map=None, text_columns: Sequence[str] = (), mag_unit: str | None = None
+    path,
+    required: Sequence[str],
+    column_map=None,
+    text_columns: Sequence[str] = (),
+    mag_unit: str | None = None,
+    left_out: Sequence[str] = (),
+    fix: str = "",
 ) -> tuple[pd.DataFrame, Callable[[int], int]]:
     """The table of an offline calibration, with every ``required`` cell present.
 
@@ -40,6 +46,11 @@ def read_offline_table(
     mag_unit : str, optional
         The unit the command was told the magnetometer columns are in: with a map only ``None`` or ``"nT"``
         (the map's ``[units] mag`` says the unit).
+    left_out : sequence of str, optional
+        Sensor columns the calibration would leave out (``mag_z`` of a two-axis fit chosen by default): a table
+        that holds one is refused rather than read without it, with ``fix``, what to give instead, in words.
+    fix : str, optional
+        The options that would make it work, for the refusal of a ``left_out`` column.
 
     Returns
     -------
@@ -67,6 +78,9 @@ def read_offline_table(
     else:
         table = _read_canonical(path, required, text_columns)
         row_of = table_rows(table)
+    dropped = [c for c in left_out if c in table.columns]
+    if dropped:
+        raise InputError(f"the table holds {', '.join(dropped)}, which the fit would leave out: {fix}", name)
     numeric = [c for c in required if c not in text_columns]
     require_complete(table, numeric, name, row_of)
     return table, row_of
