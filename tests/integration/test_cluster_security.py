@@ -9,10 +9,15 @@ milliseconds; the bound only guards against a refusal by time-out being taken fo
 authentication).
 """
 
+import json
+import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
+import pandas as pd
 import pytest
 
 TIMEOUT_S = 5.0
@@ -71,3 +76,129 @@ def test_http_server_on_loopback_answers_health_only(client):
         with pytest.raises(urllib.error.HTTPError) as info:
             urllib.request.urlopen(f"http://{host}:{port}{path}", timeout=TIMEOUT_S)
         assert info.value.code == 404, path
+
+
+@pytest.mark.slow
+def test_tls_options_refused_without_a_tls_scheduler(tmp_path):
+    """One line, exit status 2: certificates for the local cluster, and a tls:// scheduler without them."""
+    from ..conftest import run_cli
+
+    log = tmp_path / "a.csv"
+    log.write_text("time,mag_x,mag_y,mag_z\n")
+    proc = run_cli("fleet", log, "-o", tmp_path / "out", "--tls-cert", tmp_path / "c.pem", cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert "the local cluster makes its own certificate" in proc.stderr
+    proc = run_cli("fleet", log, "-o", tmp_path / "out", "--scheduler", "tls://127.0.0.1:9", cwd=tmp_path)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert "--tls-ca-file, --tls-cert, --tls-key" in proc.stderr
+
+
+def _openssl_certificates(folder) -> None:
+    """The certificate authority and the scheduler's, worker's and client's certificates, made by the
+    ``openssl`` commands of docs/fleet.md ("Certificates")."""
+    script = """
+    openssl req -x509 -newkey rsa:3072 -nodes -days 365 -subj "/CN=magkf-dask-ca" -keyout ca.key -out ca.pem
+    for role in scheduler worker client; do
+      openssl req -newkey rsa:3072 -nodes -subj "/CN=magkf-dask-$role" -keyout $role.key -out $role.csr
+      openssl x509 -req -in $role.csr -CA ca.pem -CAkey ca.key -CAcreateserial -days 365 -out $role.pem
+    done
+    """
+    subprocess.run(["bash", "-e", "-c", script], cwd=folder, check=True, capture_output=True, timeout=120)
+
+
+def _start(command: list, log) -> subprocess.Popen:
+    with open(log, "w") as out:
+        return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=log.parent)
+
+
+def _stop(processes) -> None:
+    for p in processes:
+        p.terminate()
+    for p in processes:
+        try:
+            p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+@pytest.mark.slow
+def test_documented_tls_recipe_runs_a_fleet(tmp_path):
+    """docs/fleet.md's multi-machine recipe on 127.0.0.1: certificates made with openssl, a ``dask scheduler``
+    and a ``dask worker`` started with them, ``magkf fleet --scheduler tls://... --tls-*`` calibrating a log;
+    the same without the client's certificate refused."""
+    from magkf.sim import DriveConfig, simulate_drive
+
+    from ..conftest import run_cli
+
+    _openssl_certificates(tmp_path)
+    simulate_drive(DriveConfig(duration_s=120, rate_hz=10, seed=3)).write(tmp_path / "flight.csv")
+    dask = str(Path(sys.executable).with_name("dask"))
+    tls = ["--tls-ca-file", "ca.pem"]
+    info = tmp_path / "scheduler.json"
+    started = [
+        _start(
+            [
+                dask,
+                "scheduler",
+                "--protocol",
+                "tls",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--scheduler-file",
+                str(info),
+                *tls,
+                "--tls-cert",
+                "scheduler.pem",
+                "--tls-key",
+                "scheduler.key",
+                "--dashboard-address",
+                "127.0.0.1:0",
+            ],
+            tmp_path / "scheduler.log",
+        )
+    ]
+    try:
+        deadline = time.monotonic() + 60
+        while not info.is_file() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert info.is_file(), (tmp_path / "scheduler.log").read_text()
+        address = json.loads(info.read_text())["address"]
+        assert address.startswith("tls://127.0.0.1:")
+        started.append(
+            _start(
+                [
+                    dask,
+                    "worker",
+                    address,
+                    *tls,
+                    "--tls-cert",
+                    "worker.pem",
+                    "--tls-key",
+                    "worker.key",
+                    "--nworkers",
+                    "1",
+                    "--nthreads",
+                    "1",
+                    "--host",
+                    "127.0.0.1",
+                    "--no-dashboard",
+                    "--dashboard-address",
+                    "127.0.0.1:0",
+                    "--memory-limit",
+                    "2GB",
+                ],
+                tmp_path / "worker.log",
+            )
+        )
+        client_tls = [*tls, "--tls-cert", "client.pem", "--tls-key", "client.key"]
+        proc = run_cli("fleet", "flight.csv", "-o", "out", "--scheduler", address, *client_tls, "--quiet", cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+        assert "1 calibrated" in proc.stdout and "0 failed" in proc.stdout
+        summary = pd.read_csv(tmp_path / "out" / "summary.csv")
+        assert summary["worker"].str.startswith("tls://127.0.0.1:").all()
+        proc = run_cli("fleet", "flight.csv", "-o", "out2", "--scheduler", address, "--quiet", cwd=tmp_path)
+        assert proc.returncode == 2 and "a TLS scheduler needs" in proc.stderr
+    finally:
+        _stop(started)
