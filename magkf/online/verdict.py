@@ -1,8 +1,12 @@
 """The verdict in words of a run: what its learned noise, its mean NIS against the 95 % band and the share of
 epochs it used say about the fit.
 
-The figures come from ``magkf.online.results`` (``noise_summary``, ``FitSums.nis_summary``); this module only
-puts them into sentences, with the thresholds that decide which sentences are said. Noise in nT, attitude in
+The figures come from ``magkf.online.results`` (``noise_summary``, ``FitSums.nis_summary``, the observability);
+this module only puts them into sentences, with the thresholds that decide which sentences are said. A misfit
+on a log that leaves part of the calibration's core at its prior is put down to the turning the log lacks, not
+to a missing effect; any other misfit ends with ``calibrate``'s next step, which ``retold`` replaces with the
+step that fits the command printing it (``diagnose``, the report, the fleet). ``fits`` tells a verdict that
+finds nothing wrong. Noise in nT, attitude in
 degrees, NIS per degree of freedom (dimensionless), shares as fractions in [0, 1].
 """
 
