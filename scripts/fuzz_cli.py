@@ -2900,6 +2900,17 @@ def report(cases, jobs, results, seconds, spot_results) -> int:
         counts = {k: sum(cases[j["case"]].group == g for j in by_class[k]) for k in CLASSES}
         print(f"  {g:11s} " + " ".join(f"{counts[k]:9d}" for k in CLASSES))
 
+    failing_runs = {job["id"] for k in FAILING for job in by_class[k]} | {j["id"] for k in FLAGS for j in flags[k]}
+    for job in jobs:
+        r = results[job["id"]]
+        r["flags"] = (
+            [k for k in FLAGS if any(j["id"] == job["id"] for j in flags[k])] if job["id"] in failing_runs else []
+        )
+    print(f"\n  failing runs by group (a run counted once):\n  {'group':16s} {'runs':>6s} {'failing':>8s}")
+    for g in groups:
+        ids = [j["id"] for j in jobs if cases[j["case"]].group == g]
+        print(f"  {g:16s} {len(ids):6d} {sum(i in failing_runs for i in ids):8d}")
+
     summarise(cases, jobs, results, by_class, flags)
 
     def show(title, selected, detail):
@@ -3283,6 +3294,7 @@ def main(argv=None) -> int:
                         "after_work",
                         "targets_bad",
                         "stdio_bad",
+                        "flags",
                     )
                 },
             }
