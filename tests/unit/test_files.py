@@ -188,11 +188,9 @@ def test_read_input_from_standard_input(monkeypatch, tmp_path, fresh):
 @pytest.fixture
 def signals():
     """Install magkf's handlers for the test, and put back the previous ones after it."""
-    previous = {s: signal.getsignal(s) for s in interruption.SIGNALS}
-    interruption.stop_on_signals()
+    previous = interruption.stop_on_signals()
     yield
-    for s, handler in previous.items():
-        signal.signal(s, handler)
+    interruption.restore(previous)
 
 
 def test_signal_waits_for_held_block(signals):
