@@ -64,8 +64,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     name = str(path)
     if path.suffix.lower() in PARQUET_SUFFIXES:  # the Parquet twin of a CSV file is read alike
         return read_parquet(path, required, text_columns)
-    if not path.is_file():
-        raise InputError("no such file", name)
+    _check_is_file(path, name)
     rows = check_layout(path, name, required)
     try:
         table = pd.read_csv(
@@ -80,13 +79,20 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     return checked_table(table, name, required, text_columns, "the file has a header but no data rows")
 
 
+def _check_is_file(path: Path, name: str) -> None:
+    """InputError naming ``name`` unless ``path`` is a file: a folder is told apart from a missing file."""
+    if path.is_dir():
+        raise InputError("a folder, not a table file: give the file inside it", name)
+    if not path.is_file():
+        raise InputError("no such file", name)
+
+
 def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str] = ()) -> pd.DataFrame:
     """Read a Parquet table into a DataFrame of floats, with the checks of ``read_csv``; rows are named as the
     CSV twin's would be (record i is row i + 2, the header being row 1)."""
     path = Path(path)
     name = str(path)
-    if not path.is_file():
-        raise InputError("no such file", name)
+    _check_is_file(path, name)
     try:
         table = pd.read_parquet(path)
     except Exception as exc:  # pyarrow raises several types for a damaged or foreign file

@@ -135,3 +135,14 @@ def test_a_time_in_a_finer_unit_is_named():
         check_time_base(1.7e9 + np.arange(100) * 50.0, "log.csv")
     with pytest.warns(TimeBaseWarning, match="the clock jumps by 60 s at row 52"):
         check_time_base(np.r_[t[:50], t[50:] + 60.0], "log.csv")
+
+
+@pytest.mark.parametrize("name", ["table.csv", "table.parquet"])
+def test_folder_given_as_a_table_is_named_a_folder(tmp, name):
+    from magkf.io.tables import read_csv
+
+    folder = tmp / name
+    folder.mkdir()
+    with pytest.raises(InputError, match="a folder, not a table file") as err:
+        read_csv(folder)
+    assert str(err.value).startswith(str(folder))
