@@ -62,9 +62,13 @@ def nullable(schema: dict) -> dict:
 
 def numbers(shape: tuple) -> dict:
     """The schema of nested lists of numbers of ``shape`` (``()``: one number; ``(3, 3)``: 3 lists of 3)."""
+    return _nested(shape) | {"x-shape": list(shape)}
+
+
+def _nested(shape: tuple) -> dict:
     if not shape:
         return NUMBER
-    return {"type": "array", "items": numbers(shape[1:]), "minItems": shape[0], "maxItems": shape[0]}
+    return {"type": "array", "items": _nested(shape[1:]), "minItems": shape[0], "maxItems": shape[0]}
 
 
 def key_path(path) -> str:
@@ -102,6 +106,16 @@ def check(document, schema: dict, source: str | None, root: str = "", finite: bo
     error = best_match(Draft202012Validator(schema).iter_errors(document), key=_relevance)
     if error is not None:
         path = ([root] if root else []) + list(error.absolute_path)
+        shaped = _shaped(schema, list(error.absolute_path))
+        if shaped is not None:  # an array of numbers: its shape named, whichever element is wrong
+            depth, shape = shaped
+            whole = ([root] if root else []) + list(error.absolute_path)[:depth]
+            value = error.instance
+            found = f"{len(value)} items" if error.validator in ("minItems", "maxItems") else _shown(value)
+            where = key_path(path)
+            raise InputError(
+                f"key {key_path(whole)!r} must hold numbers, shape {tuple(shape)}; {where} holds {found}", source
+            )
         raise InputError(_message(error, path), source)
     if finite:
         _check_finite(document, [root] if root else [], source)
@@ -117,6 +131,24 @@ def _check_finite(value, path: list, source: str | None) -> None:
             _check_finite(item, [*path, i], source)
     elif isinstance(value, float) and not math.isfinite(value):
         raise InputError(f"key {key_path(path)!r} must be a finite number, not {value!r}", source)
+
+
+def _shaped(schema: dict, path: list) -> tuple[int, list] | None:
+    """``(depth, shape)`` of the first schema along ``path`` (keys and indices) that is an array of numbers of a
+    shape (``numbers``), or None."""
+    for depth in range(len(path) + 1):
+        if "x-shape" in schema:
+            return depth, schema["x-shape"]
+        if depth == len(path):
+            return None
+        part = path[depth]
+        if isinstance(part, int):
+            schema = schema.get("items", {})
+        else:
+            schema = schema.get("properties", {}).get(part, schema.get("additionalProperties", {}))
+        if not isinstance(schema, dict):
+            return None
+    return None
 
 
 def _relevance(error):
@@ -146,13 +178,25 @@ def _message(error, path: list) -> str:
     if rule in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
         bound = {"minimum": "at least", "exclusiveMinimum": "above", "maximum": "at most"}.get(rule, "below")
         return f"{subject} must be {bound} {expected:g}, not {_shown(value)}"
-    if rule in ("minItems", "maxItems"):
-        size = error.schema.get("minItems") == error.schema.get("maxItems")
-        count = f"exactly {expected}" if size else f"{'at least' if rule == 'minItems' else 'at most'} {expected}"
-        return f"{subject} must hold {count} items, not {len(value)}"
+    if rule in ("minItems", "maxItems", "minProperties", "maxProperties"):
+        return _count_message(subject, rule, error.schema, value)
     if rule == "minLength":
         return f"{subject} must not be empty"
     return f"{subject}: {' '.join(error.message.split())}"
+
+
+def _count_message(subject: str, rule: str, schema: dict, value) -> str:
+    """The message for a list or an object of too few or too many items (keys)."""
+    kind = "Items" if rule.endswith("Items") else "Properties"
+    low, high = schema.get(f"min{kind}"), schema.get(f"max{kind}")
+    what = "item" if kind == "Items" else "key"
+    if low == high:
+        count = f"exactly {low}"
+    else:
+        count = f"at least {low}" if rule.startswith("min") else f"at most {high}"
+    number = int(count.split()[-1])
+    keys = f" (of {', '.join(schema['properties'])})" if kind == "Properties" and schema.get("properties") else ""
+    return f"{subject} must hold {count} {what}{'s' if number != 1 else ''}{keys}, not {len(value)}"
 
 
 def _unknown_key(value: dict, schema: dict, where: str) -> str:

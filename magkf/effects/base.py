@@ -134,10 +134,11 @@ def missing_column(effect, column: str, columns, log: str | None = None) -> Inpu
     )
 
 
-def _guarded(method, own: bool):
+def _guarded(method):
     """A per-epoch method that first checks the log has the effect's columns (InputError naming the calibration
-    file the effect came from, not a KeyError); for an effect that is not magkf's own (``own`` False), what the
-    user's code raises, and values that are not finite where its inputs are, are errors naming its file."""
+    file the effect came from, not a KeyError); for an effect whose class is not magkf's own (a user's, even
+    where the method is inherited from ``LinearEffect``), what its code raises, and values that are not finite
+    where its inputs are, are errors naming its file."""
 
     @functools.wraps(method)
     def checked(self, *args, rows=None, **kwargs):
@@ -145,7 +146,7 @@ def _guarded(method, own: bool):
         for column in self.columns:
             if column not in data.columns:
                 raise missing_column(self, column, list(data.columns))
-        if own:
+        if type(self).__module__.startswith("magkf."):
             return method(self, *args, rows=rows, **kwargs)
         try:
             out = method(self, *args, rows=rows, **kwargs)
@@ -173,19 +174,19 @@ def effect_file(cls) -> str:
 def _check_finite(effect, name: str, out, data: EpochData, rows, args) -> None:
     """InputError naming the effect's file where the per-epoch values ``out`` of its method ``name`` are infinite,
     or NaN at an epoch whose field, reading and the effect's columns are all known."""
-    known = np.all(np.isfinite(at_rows(data.field_body, rows)), axis=1)
     try:
         values = np.asarray(out, dtype=float)
         axis = 1 if name == "contribution" and np.ndim(args[0]) == 2 else 0
+        known = np.ones(values.shape[axis], bool)
+        for given in (data.field_body, data.mag):  # either may be absent (a data set made for one effect)
+            if given is not None:
+                known &= np.all(np.isfinite(np.asarray(at_rows(given, rows), float)), axis=1)
         per_epoch = np.moveaxis(values, axis, 0).reshape(len(known), -1)
-    except (TypeError, ValueError, np.exceptions.AxisError):
+    except (TypeError, ValueError, IndexError, np.exceptions.AxisError):
         raise InputError(
-            f"effect {effect.name!r}: {name}() gives {np.shape(out)} for {len(known)} epochs of the log, not a value "
-            "per epoch",
+            f"effect {effect.name!r}: {name}() gives values of shape {np.shape(out)}, not a value per epoch of the log",
             effect_file(type(effect)),
         ) from None
-    if data.mag is not None:
-        known &= np.all(np.isfinite(at_rows(data.mag, rows)), axis=1)
     for column in effect.columns:
         known &= np.isfinite(at_rows(np.asarray(data.columns[column], float), rows))
     bad = np.isinf(per_epoch).any(axis=1) | (np.isnan(per_epoch).any(axis=1) & known)
@@ -266,13 +267,12 @@ class Effect(ABC):
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        own = cls.__module__.startswith("magkf.")
         for name in ROW_METHODS:
             method = cls.__dict__.get(name)
             if callable(method) and "rows" not in inspect.signature(method).parameters:
                 method = _epoch_by_epoch(method)
             if callable(method):
-                setattr(cls, name, _guarded(method, own))
+                setattr(cls, name, _guarded(method))
 
     @classmethod
     def settings_json_schema(cls) -> dict:
