@@ -300,21 +300,32 @@ def process_file(path: Path, write: bool) -> tuple[list[str], dict]:
         return problems, counts
     workspace = Workspace()
     try:
-        new_bodies = {}
-        for block in runnable:  # the setup blocks first
-            produced = regenerate(block, workspace)
-            same = block.kind == "setup" or not compare(block.body, produced, "", str(workspace.path))
-            new_bodies[block.first] = block.body if same else produced  # no churn of run times alone
-            if any(INTERNAL_ERROR in line for line in produced):
-                problems.append(f"{rel}:{block.first}: a command ended in an internal error of magkf (not written)")
-                new_bodies[block.first] = block.body
-            if not write and not same:
-                problems.append(compare(block.body, produced, f"{rel}:{block.first}", str(workspace.path)))
+        new_bodies, differences = _regenerate_all(runnable, workspace, str(rel))
     finally:
         workspace.close()
+    problems.extend(d for d in differences if not (write and d.startswith("---")))  # written, not a problem
     if write:
         path.write_text(_replace_bodies(text, runnable, new_bodies))
     return problems, counts
+
+
+def _regenerate_all(blocks: list[Block], workspace: Workspace, rel: str) -> tuple[dict, list[str]]:
+    """Each block's new body (the shown one where it differs only by what ``normalise`` replaces, or where its
+    command ended in an internal error) by its first line, and the problems: a diff per block that differs,
+    a line per internal error."""
+    new_bodies, problems = {}, []
+    for block in blocks:
+        produced = regenerate(block, workspace)
+        diff = (
+            "" if block.kind == "setup" else compare(block.body, produced, f"{rel}:{block.first}", str(workspace.path))
+        )
+        new_bodies[block.first] = produced if diff else block.body  # no churn of run times alone
+        if diff:
+            problems.append(diff)
+        if any(INTERNAL_ERROR in line for line in produced):
+            problems.append(f"{rel}:{block.first}: a command ended in an internal error of magkf (not written)")
+            new_bodies[block.first] = block.body
+    return new_bodies, problems
 
 
 def _replace_bodies(text: str, blocks: list[Block], bodies: dict) -> str:
@@ -353,7 +364,8 @@ def main(argv=None) -> int:
         failed |= bool(problems)
     if not args.list:
         summary = ", ".join(f"{n} {kind}" for kind, n in totals.items())
-        print(f"doc outputs: {summary} block(s); " + ("some differ or are unmarked" if failed else "all as shown"))
+        verdict = "some differ or are unmarked" if failed else ("written" if args.write else "all as shown")
+        print(f"doc outputs: {summary} block(s); {verdict}")
     return 1 if failed else 0
 
 
