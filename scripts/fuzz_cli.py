@@ -2026,6 +2026,18 @@ OUTPUTS = [
     ("simulate", ["simulate", "drive", "--duration", "10", "--rate", "10"], "-o", [], "sim.csv"),
     ("simulate", ["simulate", "drive", "--duration", "10", "--rate", "10", "-o", "sim.csv"], "--truth", [], "t.json"),
 ]
+#: Commands whose output is a folder: (command, argv before -o, argv after).
+FOLDER_OUTPUTS = [
+    ("fleet", ["fleet", LOG], ["--workers", "0", "--quiet"]),
+    ("study", ["study", SPEC], ["--workers", "0", "--quiet"]),
+]
+#: Folder targets that are not folders: kind -> (the name given, what is made there).
+FOLDER_TARGETS = {
+    "fifo": ("target.fifo", "fifo"),
+    "device": ("null.dev", "chardev"),
+    "regular-file": ("a_file.txt", "file"),
+    "name-256-bytes": ("d" * 256, None),
+}
 #: Targets that are not regular files: kind -> (the name given, what is made there, refused).
 TARGETS = {
     "fifo": ("target.fifo", "fifo", True),
@@ -2064,6 +2076,27 @@ def target_cases(base: Base, rng) -> list[Case]:
                     invalid=refused,
                     special=made,
                     untouched=untouched,
+                    baseline=key,
+                    timeout=30,
+                )
+            )
+    files = {**files, SPEC: base.spec_bytes}
+    for command, before, after in FOLDER_OUTPUTS:
+        key = f"{command} -o"
+        runs = [(command, [*before, "-o", "out_folder", *after])]
+        cases.append(Case(f"target/{command}/regular", "target", dict(files), runs, ["out_folder"], baseline=key))
+        for kind, (name, special) in FOLDER_TARGETS.items():
+            runs = [(command, [*before, "-o", name, *after])]
+            cases.append(
+                Case(
+                    f"target/{command}/{kind}",
+                    "target",
+                    dict(files),
+                    runs,
+                    [name, "-o"],
+                    invalid=True,
+                    special=[(special, name)] if special else [],
+                    untouched=[name] if special else [],
                     baseline=key,
                     timeout=30,
                 )
@@ -2144,6 +2177,12 @@ STDIN_RUNS = [
     ("ellipsoid -", ["ellipsoid", "-", "--field", f"{SPHERE_FIELD:g}", "-o", "ellipsoid.json"], "sphere"),
     ("check --map -", ["check", MAPPED, "--map", "-"], "map"),
     ("study -", ["study", "-", "-o", "study_out", "--workers", "0", "--quiet"], "spec_bytes"),
+    (
+        "simulate --truth-cal -",
+        ["simulate", "drive", "--duration", "10", "--rate", "10", "-o", "s.csv", "--truth-cal", "-"],
+        "cal",
+    ),
+    ("fleet -", ["fleet", "-", "-o", "fleet_out", "--workers", "0", "--quiet"], "log"),
 ]
 #: Runs that write to standard output: (label, argv, what standard output must hold).
 STDOUT_RUNS = [
@@ -2346,6 +2385,8 @@ def _make_special(folder: Path, kind: str, name: str) -> None:
         (folder / "a_folder").mkdir()
         (folder / "a_folder" / "kept.txt").write_text("kept\n")
         os.symlink("a_folder", path)
+    elif kind == "file":
+        path.write_text("a file that is not a folder\n")
     elif kind == "readonly-dir":
         path.mkdir()
         path.chmod(0o555)
