@@ -301,7 +301,8 @@ def committed(last=()):
             commit.apply()
         except OSError as exc:
             commit.discard()
-            raise InputError(f"cannot write: {exc.strerror or exc}", str(exc.filename or "")) from None
+            where = str(exc.filename2 or exc.filename) if exc.filename else None  # the target, if known
+            raise InputError(f"cannot write: {exc.strerror or exc}", where) from None
 
 
 def main_output(path) -> None:
