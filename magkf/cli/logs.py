@@ -99,7 +99,8 @@ def _check_many(args) -> int:
 
 def run_convert(args) -> int:
     """Read a log of any supported format and write the canonical drive log; the provenance (where each column
-    came from, what was converted or undone) is written beside it, as OUT.csv.provenance.json for OUT.csv."""
+    came from, what was converted or undone) is written beside it, as OUT.csv.provenance.json for OUT.csv
+    (with -o -, the CSV goes to standard output and the provenance is not written)."""
     import json
     import warnings
     from pathlib import Path
