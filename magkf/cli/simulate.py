@@ -82,8 +82,9 @@ def _mounting(text: str) -> str:
 def run_simulate(args) -> int:
     """Simulate a turntable run (sine fit) or a drive log, with a truth JSON."""
     from ..calibration import Calibration
+    from ..files import read_input
 
-    truth = Calibration.load(args.truth_cal) if args.truth_cal else None
+    truth = read_input(Calibration.load, args.truth_cal, ".json") if args.truth_cal else None  # -: standard input
     info = _turntable(args, truth) if args.kind == "turntable" else _drive(args, truth)
     if args.json:
         common.print_json(info)
