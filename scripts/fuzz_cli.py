@@ -2288,8 +2288,11 @@ def runtime_effect_cases(base: Base, rng) -> list[Case]:
                 continue
             for value in values:
                 data = json.loads(json.dumps(effects))
-                data["effects"] = [dict(stored, settings={**stored["settings"], key: value})]
-                runs = [r for r in cal_runs() if r[0] in ("apply", "validate", "diagnose", "calibrate")]
+                # parameters of 1 (a zero coefficient would make any T0 harmless); apply does not use a walk
+                parameters = {p: {**v, "value": 1.0} for p, v in stored["parameters"].items()}
+                data["effects"] = [dict(stored, settings={**stored["settings"], key: value}, parameters=parameters)]
+                commands = ("validate", "diagnose", "calibrate") + (("apply",) if key != "walk" else ())
+                runs = [r for r in cal_runs() if r[0] in commands]
                 cases.append(
                     Case(
                         f"effect-runtime/{stored['effect'].split(':')[0]}-{key}-{value:g}",
