@@ -53,6 +53,8 @@ __all__ = [
     "FEW_EPOCHS",
     "MOVED_SIGMA",
     "MOVED_REFUSED",
+    "BATCH_HEADING_DEG",
+    "heading_span",
     "UNIT_STATED_SUFFIXES",
     "check_calibration",
     "check_offset_std",
@@ -93,8 +95,15 @@ RESIDUAL_WARNED = 0.01
 #: A run without ``--init`` starts from the log's own robust linear fit (the bootstrap moved to the whole log);
 #: an estimate further than this many of that start's standard deviations from it went where the data do not
 #: take it (measured: at most 2.3 on simulated 3-D, level and straight flights; 9.8 and 10.9 for the batch
-#: solver on straight level flights, whose offsets were then 13 to 29 of their own standard deviations off).
+#: solver on straight level flights, its offsets then 13 to 29 of their own standard deviations off).
 MOVED_REFUSED = 5.0
+#: An estimate of all 12 parameters that is not a whole-log family's (``--batch``) over epochs that turn through
+#: fewer degrees of heading than this is refused: the body field's direction hardly changes, R's columns and b
+#: trade off, and the solution's covariance counts on the attitude's small variations alone (measured on a
+#: straight level flight turning through 6 deg at 50 Hz: offsets 12 of their standard deviations, 3 200 nT, off
+#: the truth with a standard deviation of 0.55 % of the field). The default run holds what such a log does
+#: not determine (``magkf.families``).
+BATCH_HEADING_DEG = 90.0
 #: Log formats that state the magnetometer's unit themselves: ``--mag-unit`` is refused for them, so a
 #: refusal does not suggest it.
 UNIT_STATED_SUFFIXES = (".bin", ".log", ".ulg", ".tlog", ".bag", ".db3", ".mcap", ".mat")
@@ -228,20 +237,31 @@ def unit_option(source) -> bool:
     return not str(source or "").lower().endswith(UNIT_STATED_SUFFIXES)
 
 
+def heading_span(log, used=None) -> float:
+    """Degrees of heading the ``DriveLog`` ``log`` turns through over its epochs ``used`` (N,) bool (None: all):
+    360 deg minus the largest gap between neighbouring headings (as ``magkf check`` reports it); NaN without a
+    heading."""
+    t = getattr(log, "table", None)
+    if t is None or "yaw" not in t:
+        return float("nan")
+    keep = np.ones(len(t), bool) if used is None or len(used) != len(t) else np.asarray(used, bool)
+    yaw = t["yaw"].to_numpy(float)[keep]
+    yaw = np.sort(yaw[np.isfinite(yaw)] % 360.0)
+    if not len(yaw):
+        return float("nan")
+    return 0.0 if len(yaw) < 2 else float(360.0 - np.diff(np.concatenate([yaw, [yaw[0] + 360.0]])).max())
+
+
 def turning_text(log, used=None) -> str:
     """How far the ``DriveLog`` ``log`` turns over its epochs ``used`` (N,) bool (None: all), in words (``"the
     167 epochs used turn through 1 deg of heading, pitch -2 to 3 deg, roll ..."``); "" without attitude. The
     heading's span is 360 deg minus the largest gap between neighbouring headings (as ``magkf check`` reports
     it); pitch and roll from their 1st to 99th percentile."""
-    t = getattr(log, "table", None)
-    if t is None or "yaw" not in t:
+    span = heading_span(log, used)
+    if not np.isfinite(span):
         return ""
+    t = log.table
     keep = np.ones(len(t), bool) if used is None or len(used) != len(t) else np.asarray(used, bool)
-    yaw = t["yaw"].to_numpy(float)[keep]
-    yaw = np.sort(yaw[np.isfinite(yaw)] % 360.0)
-    if not len(yaw):
-        return ""
-    span = 0.0 if len(yaw) < 2 else float(360.0 - np.diff(np.concatenate([yaw, [yaw[0] + 360.0]])).max())
     who = "the log turns" if used is None else f"the {int(keep.sum())} epochs used turn"
     text = f"{who} through {span:.0f} deg of heading"
     for angle in ("pitch", "roll"):
@@ -256,11 +276,7 @@ def _lacks(run, log=None) -> str:
     """What the data of ``run`` (over ``log``, if given) lack and what would make them determine the calibration,
     in words: how far the log turns, what the filter's information left at the prior (``observability``), and
     the turning (or the run) that determines it."""
-    states = getattr(run, "states", None)
-    used = None
-    if states is not None and "status" in states and log is not None and len(states) == len(log.table):
-        used = (states["status"] == "used").to_numpy()
-    parts = [turning_text(log, used)] if log is not None else []
+    parts = [turning_text(log, _used(run, log))] if log is not None else []
     observed = (run.summary.observability or {}).get("text", "")
     if observed and observed != "all parameters are determined by the data":
         parts.append(observed)
@@ -268,6 +284,14 @@ def _lacks(run, log=None) -> str:
     if run.summary.filter == "batch":
         parts.append("or drop --batch: the default run holds what the log does not determine at the prior")
     return "; ".join(p for p in parts if p)
+
+
+def _used(run, log):
+    """The epochs (N,) bool of ``log`` that ``run`` used, or None when its states do not say."""
+    states = getattr(run, "states", None)
+    if states is None or "status" not in states or log is None or len(states) != len(log.table):
+        return None
+    return (states["status"] == "used").to_numpy()
 
 
 def _offsets_at_prior(run) -> bool:
@@ -363,6 +387,29 @@ def _radius(cal, readings) -> float:
     return radius if radius > 0 else float("inf")
 
 
+def _refuse_undetermined(run, source: str, init, log, lacks: str) -> None:
+    """InputError when the data of ``run`` do not determine what it estimates: all 12 parameters (no ``init``, no
+    whole-log family) over epochs turning through fewer than ``BATCH_HEADING_DEG``, offsets left at their prior,
+    or (no ``init``, no family) an estimate beyond ``MOVED_REFUSED`` of the start's standard deviations from it."""
+    s = run.summary
+    span = heading_span(log, _used(run, log)) if log is not None else float("nan")
+    if init is None and s.model is None and span < BATCH_HEADING_DEG:
+        raise InputError(
+            f"all 12 parameters solved over epochs that turn through fewer than {BATCH_HEADING_DEG:g} deg of heading, "
+            f"which do not determine R: {lacks} (nothing written)",
+            source,
+        )
+    at_prior = _offsets_at_prior(run)
+    if at_prior:
+        raise InputError(f"the data do not determine the offsets; {lacks} (nothing written)", source)
+    if init is None and s.model is None and _moved(run, run.start) > MOVED_REFUSED:
+        raise InputError(
+            f"the estimate left the log's own starting fit by {_moved(run, run.start):.3g} of its standard "
+            f"deviations (more than {MOVED_REFUSED:g}): the data do not hold it there; {lacks} (nothing written)",
+            source,
+        )
+
+
 def check_run(run, source: str, field_nt: float, init=None, log=None) -> list[str]:
     """Judge a filter or batch ``CalibrationRun`` over a field of ``field_nt`` (and the calibration ``init``
     it started from, if any; the ``DriveLog`` ``log``, if given, for how far it turns): ``check_start`` on
@@ -390,15 +437,7 @@ def check_run(run, source: str, field_nt: float, init=None, log=None) -> list[st
     lacks = _lacks(run, log)
     scale = field_nt if known else np.mean(np.abs(np.linalg.svd(R)[1]))
     warnings = check_calibration(R, b / scale, source, known, lacks=lacks, unit_option=unit_option(source))
-    at_prior = _offsets_at_prior(run)
-    if at_prior:
-        raise InputError(f"the data do not determine the offsets; {lacks} (nothing written)", source)
-    if init is None and s.model is None and _moved(run, run.start) > MOVED_REFUSED:
-        raise InputError(
-            f"the estimate left the log's own starting fit by {_moved(run, run.start):.3g} of its standard "
-            f"deviations (more than {MOVED_REFUSED:g}): the data do not hold it there; {lacks} (nothing written)",
-            source,
-        )
+    _refuse_undetermined(run, source, init, log, lacks)
     warnings += check_offset_std(_offset_std(run), scale, source, lacks)
     if used < FEW_EPOCHS:
         warnings.append(f"only {used} epochs used: the estimate rests on little data")

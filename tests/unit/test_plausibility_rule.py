@@ -124,3 +124,15 @@ def test_the_turning_is_said_over_the_epochs_used():
     used = np.array([True, True, True, False])
     assert turning_text(log, used).startswith("the 3 epochs used turn through 1 deg of heading, pitch 1 to 3 deg")
     assert turning_text(SimpleNamespace(table=table[["pitch"]])) == ""
+
+
+def test_a_batch_estimate_over_a_log_that_hardly_turns_is_refused():
+    """All 12 parameters over 6 degrees of heading: refused; over a full circle, or as a whole-log family's
+    estimate (which holds what the log does not determine), written."""
+    turning = np.linspace(0.0, 6.0, 50)
+    narrow = SimpleNamespace(table=pd.DataFrame({"yaw": turning, "pitch": 0.0, "roll": 0.0}))
+    with pytest.raises(InputError, match=r"fewer than 90 deg of heading, which do not determine R: the log turns"):
+        check_run(_run(method="batch"), "log.csv", FIELD, log=narrow)
+    circle = SimpleNamespace(table=narrow.table.assign(yaw=turning * 60.0))
+    assert check_run(_run(method="batch"), "log.csv", FIELD, log=circle) == []
+    assert check_run(_run(model={"family": "offsets"}), "log.csv", FIELD, log=narrow) == []
