@@ -166,7 +166,9 @@ def _message(error, path: list) -> str:
         return _unknown_key(value, error.schema, where)
     if rule == "required":
         missing = next(k for k in expected if k not in value)
-        return f"required key {key_path([*path, missing])!r} is missing"
+        needs = [repr(k) for k in expected]
+        listed = f" ({key_path(path) or 'the document'} needs {', '.join(needs[:-1])} and {needs[-1]})"
+        return f"required key {key_path([*path, missing])!r} is missing{listed if len(needs) > 1 else ''}"
     subject = f"key {where!r}" if where else "the document"
     if rule == "type":
         return f"{subject} must be {_type_words(expected)}, not {_shown(value)}"
