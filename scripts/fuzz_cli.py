@@ -2123,6 +2123,8 @@ INTERRUPTED = [
     ("report", ["report", BIG_LOG, "-o", "report.html"], True, (0.5, 5.5)),
 ]
 SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
+#: Interrupted runs also signalled the moment their first new file appears (the commit's window).
+AT_WRITE = ("calibrate-old-targets", "calibrate-new-targets", "convert")
 
 
 def interrupt_cases(base: Base, rng) -> list[Case]:
@@ -2131,8 +2133,10 @@ def interrupt_cases(base: Base, rng) -> list[Case]:
     new one, and the outputs of one run not a mix of old and new."""
     cases = []
     for label, argv, old, (lo, hi) in INTERRUPTED:
-        for sig in SIGNALS:
-            delay = round(float(rng.uniform(lo, hi)), 2)
+        for sig, when in [(sig, "random") for sig in SIGNALS] + [(sig, "at-write") for sig in SIGNALS]:
+            if when == "at-write" and label not in AT_WRITE:
+                continue
+            delay = round(float(rng.uniform(lo, hi)), 2) if when == "random" else "at-write"
             files = {**base.files(), BIG_LOG: base.big}
             outputs = sorted(_output_paths(argv))
             if "out.parquet" in outputs:
@@ -2142,7 +2146,7 @@ def interrupt_cases(base: Base, rng) -> list[Case]:
                     files[path] = b"old content\n"
             cases.append(
                 Case(
-                    f"interrupt/{label}/{sig}-after-{delay:g}s",
+                    f"interrupt/{label}/{sig}-" + (f"after-{delay:g}s" if when == "random" else "at-first-new-file"),
                     "interrupt",
                     files,
                     [(argv[0], argv)],
@@ -2432,6 +2436,9 @@ def _interrupted(job: dict, folder: Path, before: dict) -> dict:
         env=env,
     )
     try:
+        if delay == "at-write":  # the moment the first new file appears beside the inputs (a temporary)
+            _wait_for_new_file(p, folder, set(os.listdir(folder)), job["timeout"])
+            raise subprocess.TimeoutExpired(p.args, 0)
         out, err = p.communicate(timeout=delay)
     except subprocess.TimeoutExpired:
         p.send_signal(getattr(signal, sig_name))
@@ -2455,6 +2462,15 @@ def _interrupted(job: dict, folder: Path, before: dict) -> dict:
     result["targets_bad"] = _targets_judged(folder, targets, before, after)
     _remove(folder, job["keep"])
     return result
+
+
+def _wait_for_new_file(p, folder: Path, names: set, timeout: float) -> None:
+    """Return once a name not in ``names`` appears in ``folder``, the process ``p`` ends, or ``timeout`` s pass."""
+    end = time.perf_counter() + timeout
+    while p.poll() is None and time.perf_counter() < end:
+        if set(os.listdir(folder)) - names:
+            return
+        time.sleep(0.002)
 
 
 def _targets_judged(folder: Path, targets: list, before: dict, after: dict) -> str | None:
