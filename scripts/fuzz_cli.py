@@ -52,7 +52,9 @@ Beyond corrupted cells and files, whole classes of inputs are generated, each a 
   refused, the line naming the effect file or the calibration file.
 
 Every calibration an exit-0 run writes (old classes too) must also have ``det R > 0`` and offsets' standard
-deviations (the file's ``standard_errors`` or covariance) within 10 % of the field.
+deviations (the file's ``standard_errors`` or covariance) within 10 % of the field; every CSV an exit-0 ``apply``
+writes must give the epochs it marks ``ok`` finite magnitudes whose median lies within the plausibility rule's
+sensitivities times the log's field.
 
 The counts by class (and by command and group) are printed, then the failures grouped into distinct problems,
 then every failing run: tracebacks, internal errors, timeouts, workers that died, bad input accepted,
@@ -2581,11 +2583,12 @@ def execute(job: dict) -> dict:
     created = sorted(k for k in after if k not in before)
     result["stray"] = [k for k in created if Path(k).name.startswith(".")]
     result["left_on_error"] = created if result["code"] not in (0, None) else []
-    result["implausible"] = result["geometry"] = None
+    result["implausible"] = result["geometry"] = result["applied"] = None
     if result["code"] == 0:
         os.chdir(folder)
         try:
             result["implausible"], result["geometry"] = _plausibility(job["argv"], job["stdin"])
+            result["applied"] = _applied(job["argv"])
         except Exception as exc:  # noqa: BLE001
             result["implausible"] = f"the plausibility check itself failed: {type(exc).__name__}: {exc}"
         finally:
@@ -2764,6 +2767,45 @@ def _plausibility(argv, stdin) -> tuple[str | None, str | None]:
     return None, geometry
 
 
+def _applied(argv) -> str | None:
+    """For an exit-0 ``apply`` that wrote a CSV: why its epochs marked ``ok`` are not a calibrated field (a
+    magnitude that is not finite, or a median magnitude outside the plausibility rule's sensitivities times the
+    log's field). None when it is one, or when the log's field is not known."""
+    import numpy as np
+    import pandas as pd
+
+    from magkf.cli import _values_joined, build_parser
+    from magkf.io.readers import read_log
+    from magkf.plausibility import SENSITIVITY_REFUSED, log_field_nt
+
+    if not argv or argv[0] != "apply" or any(a in ("-h", "--help") for a in argv):
+        return None
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):
+            args = build_parser().parse_args(_values_joined(argv))
+    except SystemExit:
+        return None
+    if not args.output or args.output == "-" or args.file == "-" or not Path(args.output).is_file():
+        return None
+    table = pd.read_csv(args.output)
+    if "magnitude_nt" not in table or "status" not in table:
+        return None
+    ok = table.loc[table["status"] == "ok", "magnitude_nt"].to_numpy(float)
+    if not len(ok):
+        return None
+    if not np.isfinite(ok).all():
+        return f"{int((~np.isfinite(ok)).sum())} epochs 'ok' with a magnitude that is not finite"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        log = read_log(args.file, args.format, map=args.map, mag_unit=args.mag_unit or "nT")
+        field_nt = log_field_nt(log)
+    lo, hi = SENSITIVITY_REFUSED
+    median = float(np.median(ok))
+    if np.isfinite(field_nt) and not lo * field_nt <= median <= hi * field_nt:
+        return f"median magnitude of the epochs 'ok' {median:.4g} nT against a field of {field_nt:.6g} nT"
+    return None
+
+
 #: Offsets whose standard deviation exceeds this share of the field do not calibrate anything (issue's rule).
 STD_SHARE = 0.10
 
@@ -2819,6 +2861,7 @@ FLAGS = (
     "output left by a failed run",
     "temporary file left",
     "det <= 0 or offsets' std > 10 %",
+    "apply's epochs 'ok' implausible",
     "target not left untouched",
     "refused after the work",
     "interrupted: old and new mixed",
@@ -2828,6 +2871,7 @@ FLAGS = (
 FLAG_DETAIL = {
     "implausible exit-0 result": lambda r: r["implausible"],
     "det <= 0 or offsets' std > 10 %": lambda r: r.get("geometry"),
+    "apply's epochs 'ok' implausible": lambda r: r.get("applied"),
     "target not left untouched": lambda r: "; ".join(r.get("touched") or []),
     "refused after the work": lambda r: r.get("after_work"),
     "interrupted: old and new mixed": lambda r: r.get("targets_bad"),
@@ -3353,6 +3397,7 @@ def main(argv=None) -> int:
                         "left_on_error",
                         "stray",
                         "geometry",
+                        "applied",
                         "touched",
                         "after_work",
                         "targets_bad",
