@@ -113,6 +113,9 @@ def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
     return rate
 
 
+#: Largest value (nT, or nT per unit of a parameter) a user's effect may give on a log, as on its test epochs.
+VALUE_MAX, VALUE_MAX_TEXT = 1e9, "1e9"
+
 #: The per-epoch methods of an effect, each taking the epochs ``rows`` of its ``data``.
 ROW_METHODS = ("contribution", "jacobian", "regressors")
 
@@ -150,9 +153,9 @@ def _guarded(method):
             return method(self, *args, rows=rows, **kwargs)
         try:
             out = method(self, *args, rows=rows, **kwargs)
-        except InputError:
+        except (InputError, KeyboardInterrupt):
             raise
-        except Exception as exc:  # the user's code: reported on one line, naming its file
+        except BaseException as exc:  # the user's code (sys.exit included): reported on one line, naming its file
             what = " ".join(str(exc).split())
             raise InputError(
                 f"effect {self.name!r} fails on the log in {method.__name__}(): {type(exc).__name__}: {what}",
@@ -189,12 +192,14 @@ def _check_finite(effect, name: str, out, data: EpochData, rows, args) -> None:
         ) from None
     for column in effect.columns:
         known &= np.isfinite(at_rows(np.asarray(data.columns[column], float), rows))
-    bad = np.isinf(per_epoch).any(axis=1) | (np.isnan(per_epoch).any(axis=1) & known)
+    with np.errstate(invalid="ignore"):
+        absurd = (np.abs(per_epoch) > VALUE_MAX).any(axis=1)
+    bad = absurd | np.isinf(per_epoch).any(axis=1) | (np.isnan(per_epoch).any(axis=1) & known)
     if bad.any():
         raise InputError(
-            f"effect {effect.name!r}: {name}() gives values that are not finite at {int(bad.sum())} of "
-            f"{len(bad)} epochs of the log whose inputs are finite (first at epoch {int(np.argmax(bad))}); "
-            "the effect must give finite values wherever its inputs are",
+            f"effect {effect.name!r}: {name}() gives values that are not finite or beyond {VALUE_MAX_TEXT} at "
+            f"{int(bad.sum())} of {len(bad)} epochs of the log whose inputs are finite (first at epoch "
+            f"{int(np.argmax(bad))}); the effect must give finite values wherever its inputs are",
             effect_file(type(effect)),
         )
 

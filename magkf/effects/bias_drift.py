@@ -24,8 +24,8 @@ class BiasDrift(LinearEffect):
     prior_std = 1.0
     simulation_sizes = (1, 3)  # one walk for every axis, or one each
     wanders = True
-    #: the random walk, nT per sqrt(s)
-    settings_schema = {"walk": {"type": "number", "minimum": 0}}
+    #: the random walk, nT per sqrt(s) (the range of ``calibrate --b-walk``)
+    settings_schema = {"walk": {"type": "number", "minimum": 0, "maximum": 1e5}}
 
     def __init__(self, walk: float = 2.0):
         self.walk = walk

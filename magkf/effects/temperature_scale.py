@@ -18,8 +18,11 @@ class TemperatureScale(LinearEffect):
     units = ("1/degC",) * 3
     channels = ("temperature",)
     prior_std = 1e-2
-    #: the channel, and the reference temperature in degC
-    settings_schema = {"column": {"type": "string", "minLength": 1}, "T0": {"type": "number"}}
+    #: the channel, and the reference temperature in degC (from absolute zero to beyond any sensor's range)
+    settings_schema = {
+        "column": {"type": "string", "minLength": 1},
+        "T0": {"type": "number", "minimum": -273.15, "maximum": 1000.0},
+    }
 
     def __init__(self, column: str = "temp_c", T0: float = 20.0):
         self.columns = (column,)

@@ -62,6 +62,8 @@ def test_an_unknown_key_is_refused_with_the_nearest_known_one():
         (None, "key 'effects[0].settings.T0' must be a number, not null"),
         (True, "key 'effects[0].settings.T0' must be a number, not true"),
         (float("nan"), "key 'effects[0].settings.T0' must be a finite number"),
+        (1e308, "key 'effects[0].settings.T0' must be at most 1000, not 1e+308"),
+        (-300.0, "key 'effects[0].settings.T0' must be at least -273.15, not -300.0"),
     ],
 )
 def test_effect_settings_are_checked_by_the_effects_schema(value, words):
@@ -83,6 +85,9 @@ def test_a_builtin_effect_stores_its_own_settings_parameters_and_column():
     data = _calibration()
     data["effects"][0]["settings"] = {"column": "temp_c", "walk": 1.0}
     assert "unknown key 'effects[0].settings.walk'" in _refusal(data)
+    drift = StoredEffect("bias_drift", {"walk": -1.0}, ("d_x", "d_y", "d_z"), (0.0,) * 3, (1.0,) * 3, ("nT",) * 3)
+    data = _calibration(effects=[drift.to_dict()])
+    assert "key 'effects[0].settings.walk' must be at least 0, not -1.0" in _refusal(data)
 
 
 @pytest.mark.parametrize("index, words", [(1.7, "a whole number or null, not 1.7"), (-1, "at least 0, not -1")])
@@ -156,13 +161,19 @@ class Spiky(LinearEffect):
 def test_a_user_effect_that_fails_on_the_log_names_its_file():
     field = np.tile([20000.0, 0.0, 43000.0], (4, 1))
     data = EpochData(np.arange(4.0), field, field, {"speed_mps": np.array([1.0, 2.0, 30.0, 3.0])}, mag=field)
-    with pytest.raises(InputError, match=r"jacobian\(\) gives values that are not finite at 1 of 4") as err:
+    with pytest.raises(
+        InputError, match=r"jacobian\(\) gives values that are not finite or beyond 1e9 at 1 of 4"
+    ) as err:
         Spiky().contribution(np.ones(3), data)
     assert err.value.source == __file__
     data = EpochData(np.arange(2.0), field[:2], field[:2], {"speed_mps": np.array([-1.0, 1.0])}, mag=field[:2])
     with pytest.raises(InputError, match="fails on the log in jacobian.*ZeroDivisionError: negative speed") as err:
         Spiky().jacobian(np.ones(3), data)
     assert err.value.source == __file__
+    with pytest.raises(InputError, match="beyond 1e9 at 1 of 1") as err:
+        Spiky(limit=1e300).contribution(
+            np.ones(3), EpochData(np.arange(1.0), field[:1], field[:1], {"speed_mps": np.array([1e300])}, mag=field[:1])
+        )
     data = EpochData(np.arange(2.0), field[:2], field[:2], {"speed_mps": np.array([np.nan, 1.0])}, mag=field[:2])
     assert np.isnan(Spiky().contribution(np.ones(3), data)[0]).all()  # NaN where its input is missing: fine
 
