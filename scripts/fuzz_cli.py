@@ -2656,24 +2656,47 @@ def _stdio_check(job: dict, code, stdout: str, folder: Path) -> str | None:
     if not text:
         return "nothing on standard output"
     try:
-        if kind in ("calibration", "json"):
-            data = json.loads(text)
-            if kind == "calibration" and not (isinstance(data, dict) and "R" in data and "b" in data):
-                return "standard output is JSON but not a calibration"
-        elif kind == "html":
-            if not text.lower().startswith(("<!doctype", "<html")) or not text.lower().endswith("</html>"):
-                return "standard output is not one whole HTML page"
-        elif kind == "csv":
-            lines = text.split("\n")
-            width = lines[0].count(",")
-            if width < 2 or any(line.count(",") != width for line in lines[1:]) or len(lines) < 2:
-                return "standard output is not one table (lines of another width, or messages)"
-        elif kind == "param":
-            if not all(line.startswith("#") or len(line.replace(",", " ").split()) >= 2 for line in text.split("\n")):
-                return "standard output holds lines that are not parameters"
+        return STDOUT_CHECKS[kind](text)
     except ValueError as exc:
         return f"standard output does not parse: {str(exc)[:120]}"
+
+
+def _json_out(text: str) -> None:
+    json.loads(text)
+
+
+def _calibration_out(text: str) -> str | None:
+    data = json.loads(text)
+    return None if isinstance(data, dict) and "R" in data and "b" in data else "standard output is not a calibration"
+
+
+def _html_out(text: str) -> str | None:
+    whole = text.lower().startswith(("<!doctype", "<html")) and text.lower().endswith("</html>")
+    return None if whole else "standard output is not one whole HTML page"
+
+
+def _csv_out(text: str) -> str | None:
+    lines = text.split("\n")
+    width = lines[0].count(",")
+    if width < 2 or len(lines) < 2 or any(line.count(",") != width for line in lines[1:]):
+        return "standard output is not one table (lines of another width, or messages)"
     return None
+
+
+def _param_out(text: str) -> str | None:
+    if all(line.startswith("#") or len(line.replace(",", " ").split()) >= 2 for line in text.split("\n")):
+        return None
+    return "standard output holds lines that are not parameters"
+
+
+#: What standard output must hold, by kind: a function of its text giving why it does not (None: it does).
+STDOUT_CHECKS = {
+    "json": _json_out,
+    "calibration": _calibration_out,
+    "html": _html_out,
+    "csv": _csv_out,
+    "param": _param_out,
+}
 
 
 def _norm(path: str) -> str:
@@ -2973,21 +2996,8 @@ def report(cases, jobs, results, seconds, spot_results) -> int:
         r["class"], r["why"] = cls, why
         by_class[cls].append(job)
         matrix[job["command"]][cls] += 1
-        if r["implausible"]:
-            flags["implausible exit-0 result"].append(job)
-        if r["code"] == 0 and case.invalid and not any(a in ("-h", "--help") for a in job["argv"]):
-            flags["bad input accepted (exit 0)"].append(job)
-        if r["modified"]:
-            flags["input modified"].append(job)
-        if r["over_input"]:
-            flags["output over an input"].append(job)
-        if r["left_on_error"]:
-            flags["output left by a failed run"].append(job)
-        if r["stray"]:
-            flags["temporary file left"].append(job)
-        for flag, detail in FLAG_DETAIL.items():
-            if flag != "implausible exit-0 result" and detail(r):
-                flags[flag].append(job)
+        for flag in _flags_of(case, job, r):
+            flags[flag].append(job)
     n_cases = len({j["case"] for j in jobs})
     print(f"\nmagkf CLI fuzz: {n_cases} corrupted inputs, {len(jobs)} runs, {seconds:.1f} s")
     print(f"\n  {'class':34s} {'runs':>6s}")
@@ -3007,16 +3017,7 @@ def report(cases, jobs, results, seconds, spot_results) -> int:
         counts = {k: sum(cases[j["case"]].group == g for j in by_class[k]) for k in CLASSES}
         print(f"  {g:11s} " + " ".join(f"{counts[k]:9d}" for k in CLASSES))
 
-    failing_runs = {job["id"] for k in FAILING for job in by_class[k]} | {j["id"] for k in FLAGS for j in flags[k]}
-    for job in jobs:
-        r = results[job["id"]]
-        r["flags"] = (
-            [k for k in FLAGS if any(j["id"] == job["id"] for j in flags[k])] if job["id"] in failing_runs else []
-        )
-    print(f"\n  failing runs by group (a run counted once):\n  {'group':16s} {'runs':>6s} {'failing':>8s}")
-    for g in groups:
-        ids = [j["id"] for j in jobs if cases[j["case"]].group == g]
-        print(f"  {g:16s} {len(ids):6d} {sum(i in failing_runs for i in ids):8d}")
+    _failing_by_group(cases, jobs, results, by_class, flags, groups)
 
     summarise(cases, jobs, results, by_class, flags)
 
@@ -3089,6 +3090,33 @@ def report(cases, jobs, results, seconds, spot_results) -> int:
     )
     print(f"\n{failing} failing run(s) or finding(s); total time {seconds:.1f} s")
     return 1 if failing else 0
+
+
+def _flags_of(case: Case, job: dict, r: dict) -> list:
+    """The flags (``FLAGS``) a run raises."""
+    accepted = r["code"] == 0 and case.invalid and not any(a in ("-h", "--help") for a in job["argv"])
+    raised = {
+        "bad input accepted (exit 0)": accepted,
+        "input modified": r["modified"],
+        "output over an input": r["over_input"],
+        "output left by a failed run": r["left_on_error"],
+        "temporary file left": r["stray"],
+    }
+    raised.update({flag: detail(r) for flag, detail in FLAG_DETAIL.items()})
+    return [flag for flag in FLAGS if raised.get(flag)]
+
+
+def _failing_by_group(cases, jobs, results, by_class, flags, groups) -> None:
+    """Print the runs and the failing runs (each once, whatever its classes and flags) of every group, and keep
+    each run's flags in its result."""
+    failing = {job["id"] for k in FAILING for job in by_class[k]} | {j["id"] for k in FLAGS for j in flags[k]}
+    flagged = {k: {j["id"] for j in flags[k]} for k in FLAGS}
+    for job in jobs:
+        results[job["id"]]["flags"] = [k for k in FLAGS if job["id"] in flagged[k]]
+    print(f"\n  failing runs by group (a run counted once):\n  {'group':16s} {'runs':>6s} {'failing':>8s}")
+    for g in groups:
+        ids = [j["id"] for j in jobs if cases[j["case"]].group == g]
+        print(f"  {g:16s} {len(ids):6d} {sum(i in failing for i in ids):8d}")
 
 
 def _after_work(cases, jobs, results) -> None:
