@@ -99,6 +99,19 @@ def test_a_run_whose_offsets_remain_at_their_prior_is_refused():
     assert check_run(_run(undetermined=[partly]), "flight.bin", FIELD) == []
 
 
+def test_a_whole_log_estimate_whose_offsets_are_known_no_better_than_its_start_is_refused():
+    """R held by the family: the offsets' standard deviations given R (the whole-log fit's) against the start's
+    300 nT; 330 nT (as over ``ardupilot_box_center_0003.bin --init logged``) refused, 10 nT written."""
+    start = Calibration(R=np.eye(3), b=np.zeros(3), covariance=np.diag([1e-4] * 9 + [300.0**2] * 3))
+
+    def held(std):
+        return {"family": "offsets", "std_given_held": {k: std for k in ("b_x", "b_y", "b_z")}}
+
+    with pytest.raises(InputError, match="the data do not determine the offsets"):
+        check_run(_run(model=held(330.0), start=start), "flight.bin", FIELD, init=start)
+    assert check_run(_run(model=held(10.0), start=start), "flight.bin", FIELD, init=start) == []
+
+
 def test_a_batch_estimate_far_from_the_logs_own_start_is_refused():
     """No --init and no whole-log family: 10 of the start's standard deviations away is refused; a whole-log
     family's estimate (which may hold R at another calibration) is not judged so."""
