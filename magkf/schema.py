@@ -105,18 +105,11 @@ def check(document, schema: dict, source: str | None, root: str = "", finite: bo
 
     error = best_match(Draft202012Validator(schema).iter_errors(document), key=_relevance)
     if error is not None:
-        path = ([root] if root else []) + list(error.absolute_path)
+        prefix = [root] if root else []
         shaped = _shaped(schema, list(error.absolute_path))
         if shaped is not None:  # an array of numbers: its shape named, whichever element is wrong
-            depth, shape = shaped
-            whole = ([root] if root else []) + list(error.absolute_path)[:depth]
-            value = error.instance
-            found = f"{len(value)} items" if error.validator in ("minItems", "maxItems") else _shown(value)
-            where = key_path(path)
-            raise InputError(
-                f"key {key_path(whole)!r} must hold numbers, shape {tuple(shape)}; {where} holds {found}", source
-            )
-        raise InputError(_message(error, path), source)
+            raise InputError(_shape_message(error, prefix, *shaped), source)
+        raise InputError(_message(error, prefix + list(error.absolute_path)), source)
     if finite:
         _check_finite(document, [root] if root else [], source)
 
@@ -151,8 +144,18 @@ def _shaped(schema: dict, path: list) -> tuple[int, list] | None:
     return None
 
 
+def _shape_message(error, prefix: list, depth: int, shape: list) -> str:
+    """The message for an ``error`` within an array of numbers of ``shape`` that lies ``depth`` keys down the
+    error's path (below ``prefix``, the document's own path in its file)."""
+    path = list(error.absolute_path)
+    found = f"{len(error.instance)} items" if error.validator in ("minItems", "maxItems") else _shown(error.instance)
+    whole = key_path(prefix + path[:depth])
+    return f"key {whole!r} must hold numbers, shape {tuple(shape)}; {key_path(prefix + path)} holds {found}"
+
+
 def _relevance(error):
-    """Errors in document order, an unknown key before what is wrong inside the object that holds it."""
+    """The error to report is the shallowest (an unknown key before what is wrong inside the objects it holds),
+    then the most relevant by jsonschema's own order."""
     from jsonschema.exceptions import relevance
 
     return (-len(error.absolute_path), relevance(error))
