@@ -130,9 +130,10 @@ def missing_column(effect, column: str, columns, log: str | None = None) -> Inpu
     calibration file the effect was restored from (``Effect.stored_in``), else the ``log``."""
     where = "the log" if log is None or effect.stored_in is None else log
     listed = ", ".join(columns) or "none"
+    instead = "a calibration without the effect" if effect.stored_in else "leave the effect out"
     return InputError(
         f"effect {effect.label!r} needs column {column!r}, which {where} lacks (its auxiliary columns: {listed}); "
-        "give a log that records it, or leave the effect out",
+        f"give a log that records it, or {instead}",
         effect.stored_in or log,
     )
 
