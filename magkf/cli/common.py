@@ -538,10 +538,15 @@ LOGGED = "logged"
 def load_calibration(path):
     """The calibration file ``path`` (``-``: standard input), or None (also for ``LOGGED``, which
     ``logged_start`` reads from the log)."""
-    from ..calibration import Calibration
-    from ..files import read_input
+    from dataclasses import replace
 
-    return read_input(Calibration.load, path, ".json") if path and path != LOGGED else None
+    from ..calibration import Calibration
+    from ..files import STDIN_NAME, STDIO, read_input
+
+    if not path or path == LOGGED:
+        return None
+    cal = read_input(Calibration.load, path, ".json")
+    return replace(cal, file=STDIN_NAME) if path == STDIO else cal  # its effects' errors name <stdin>
 
 
 def logged_start(args, log, init):
