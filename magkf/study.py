@@ -35,7 +35,12 @@ A study is a TOML file (``load_spec``) or the same as a dict (``StudySpec.from_d
     paths = ["flights/*.ulg"]
 
 A setting's keys are ``FilterConfig`` fields (the measurement model is ``measure``) and ``effects``, a list of
-``NAME[:COLUMN]`` effects estimated with R and b. Runs are numbered setting by setting, log by log; the log
+``NAME[:COLUMN]`` effects estimated with R and b. The spec is checked against its JSON Schema (``spec_schema``,
+``magkf.schema``) before anything runs: a key it does not list is refused naming the nearest known one (a
+``replicate`` is not silently one replicate), and so is a value of another type than its field's; every log of
+``[logs]`` must be a log a reader reads (its content is never quoted in an error, nor copied into a table).
+
+Runs are numbered setting by setting, log by log; the log
 of recipe ``j``, replicate ``r`` is simulated with the seed ``SeedSequence([seed, j, r])`` and the random
 sample is drawn from ``SeedSequence([seed, "sample"])``: every figure follows from the spec and the run's
 number, whatever the cluster, the number of workers or the order in which runs finish.
