@@ -2772,8 +2772,8 @@ def _plausibility(argv, stdin) -> tuple[str | None, str | None]:
         else:
             axes = args.axes
             R, b = R[:axes, :axes], b[:axes]
-            if args.field is None:
-                known, field_nt = False, 1.0
+            if args.field is None:  # R in the readings' own units (determinant 1): the field is the data's radius
+                known, field_nt = False, _radius(args, R, b)
             elif args.field == "igrf":
                 from magkf.cli.common import igrf_field
 
@@ -2782,7 +2782,8 @@ def _plausibility(argv, stdin) -> tuple[str | None, str | None]:
                 field_nt = f["magnitude_nt"] * (math.cos(math.radians(f["inclination_deg"])) if axes == 2 else 1)
             else:
                 field_nt = float(args.field)
-    geometry = _geometry(cal, field_nt if known else float(np.mean(np.linalg.svd(R, compute_uv=False))))
+    # a calibrate log with no field (no reference, no position): R is judged, the offsets' spread cannot be
+    geometry = _geometry(cal, field_nt if known or args.command == "ellipsoid" else None)
     try:
         check_calibration(R, b / field_nt, output, field_known=known)
     except InputError as exc:
@@ -2829,14 +2830,30 @@ def _applied(argv) -> str | None:
     return None
 
 
+def _radius(args, R, b) -> float:
+    """The field, in the readings' units, of an ellipsoid fitted without one: the median of ``|R^-1 (m - b)|``
+    over the rows of its CSV (1 when the file cannot be read as one)."""
+    import numpy as np
+    import pandas as pd
+
+    columns = (args.columns or "mag_x,mag_y,mag_z").split(",")[: len(b)]
+    try:
+        m = pd.read_csv(args.file)[columns].to_numpy(float)
+        radius = float(np.nanmedian(np.linalg.norm(np.linalg.solve(R, (m - b).T), axis=0)))
+    except (OSError, KeyError, ValueError, np.linalg.LinAlgError):
+        return 1.0
+    return radius if np.isfinite(radius) and radius > 0 else 1.0
+
+
 #: Offsets whose standard deviation exceeds this share of the field do not calibrate anything (issue's rule).
 STD_SHARE = 0.10
 
 
-def _geometry(cal: dict, field: float) -> str | None:
+def _geometry(cal: dict, field: float | None) -> str | None:
     """Why a written calibration is absurd whatever its fit: ``det R`` not positive (a mirrored sensor), or an
-    offset's standard deviation (the file's ``standard_errors`` b_x..b_z, else the covariance's last three
-    diagonal entries of the 12 core ones) above ``STD_SHARE`` of ``field`` (the field in the readings' unit)."""
+    offset's standard deviation (the file's ``standard_errors`` b_x..b_z or S0_x..S0_z, else the square roots of
+    the covariance's diagonal entries of b, the last three of the 12 core ones) above ``STD_SHARE`` of ``field``
+    (the field in the readings' unit; None: not known, the offsets not judged)."""
     import numpy as np
 
     R = np.asarray(cal["R"], float)
@@ -2846,14 +2863,14 @@ def _geometry(cal: dict, field: float) -> str | None:
         why.append(f"det R = {det:.3g}")
     n = R.shape[0]
     errors = cal.get("standard_errors") or {}
-    stds = [errors.get(f"b_{a}") for a in "xyz"[:n]]
+    stds = [errors.get(f"b_{a}", errors.get(f"S0_{a}")) for a in "xyz"[:n]]  # S0_*: the ellipsoid's offsets
     if any(v is None for v in stds) and isinstance(cal.get("covariance"), list):
         cov = np.asarray(cal["covariance"], float)
         k = n * n + n
         if cov.ndim == 2 and cov.shape[0] >= k:
             stds = list(np.sqrt(np.clip(np.diag(cov)[n * n : k], 0, None)))
     stds = [float(v) for v in stds if v is not None]
-    if stds and not max(stds) <= STD_SHARE * field:
+    if field is not None and stds and not max(stds) <= STD_SHARE * field:
         why.append(
             f"offsets' standard deviations {', '.join(f'{v:.4g}' for v in stds)} against a field of {field:.6g} "
             f"(more than {100 * STD_SHARE:g} %)"
