@@ -91,6 +91,7 @@ def _schema() -> dict:
         ["effect", "parameters"],
     )
     square = {"type": "array", "items": {"type": "array", "items": NUMBER}}
+    records = _records()
     return strict(
         {
             "format": {"const": FORMAT},
@@ -100,18 +101,67 @@ def _schema() -> dict:
             "b": numbers((3,)),
             "covariance": numbers((12, 12)),
             "parameters": OBJECT,
-            "standard_errors": OBJECT,
-            "quality": OBJECT,
+            "standard_errors": records["standard_errors"],
+            "quality": records["quality"],
             "source": STRING,
             "magnetometer": magnetometer,
             "site": site,
             "effects": {"type": "array", "items": effect},
             "state_covariance": square,
             "field_unit": {"enum": list(FIELD_UNITS)},
-            "model": OBJECT,
+            "model": records["model"],
         },
         ["R", "b"],
     )
+
+
+#: Names of the parameters whose standard errors a calibration may hold: the core's (``calibrate``), the sine
+#: fit's and the ellipsoid or ellipse fit's (``docs/data-contract.md``, named parameters).
+STANDARD_ERROR_NAMES = (
+    PARAMETER_NAMES
+    + ("alpha_deg", "beta_deg", "gamma_deg", "phi_deg", "kx", "ky", "kz")
+    + tuple(f"S0_{a}" for a in "xyz")
+)
+
+
+def _records() -> dict:
+    """The schemas of a calibration file's records: ``standard_errors`` (strict: the known parameters' names,
+    each a number or null), ``quality`` (the figures ``calibrate`` writes typed, its ``status_counts`` and
+    ``residual_rms_axis_nt`` strict; other methods' figures kept) and ``model`` (strict: the keys of the data
+    contract's model table and what the whole-log estimate adds)."""
+    from .schema import BOOLEAN, INTEGER, NUMBER, OBJECT, STRING, nullable, numbers, strict
+    from .status import STATUS_NAMES
+
+    rms = nullable(NUMBER)
+    count = INTEGER | {"minimum": 0}
+    quality = {
+        "type": "object",
+        "properties": {
+            **dict.fromkeys(("residual_rms_nt", "residual_rms_magnitude_nt", "residual_rms_all_nt", "nis_mean"), rms),
+            "used_share": nullable(NUMBER | {"minimum": 0, "maximum": 1}),
+            "n_epochs": count,
+            "status_counts": strict(dict.fromkeys(STATUS_NAMES, count)),
+            "residual_rms_axis_nt": strict(dict.fromkeys(("north", "east", "down"), rms)),
+            "verdict": STRING,
+            "undetermined": STRING,
+        },
+    }
+    candidate = strict({"worst_std_nt": rms, "determined": BOOLEAN, "held_out_rms_nt": rms, "free": count})
+    model = strict(
+        {
+            **dict.fromkeys(("family", "asked", "estimated", "held", "text", "misfit", "effects_held"), STRING),
+            "held_at": nullable(STRING),
+            "held_core": numbers((12,)),
+            "candidates": {"type": "object", "additionalProperties": candidate},
+            "std_given_held": strict(dict.fromkeys(PARAMETER_NAMES, NUMBER)),
+            "wandering": OBJECT,
+        }
+    )
+    return {
+        "standard_errors": strict(dict.fromkeys(STANDARD_ERROR_NAMES, nullable(NUMBER))),
+        "quality": quality,
+        "model": model,
+    }
 
 
 @dataclass(frozen=True)
