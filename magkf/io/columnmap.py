@@ -193,7 +193,7 @@ def _single_character(value) -> bool:
 
 def _delimiter(value) -> bool:
     """True for an unset value, one character other than a line end, or a name of ``NAMED_DELIMITERS``."""
-    return value in NAMED_DELIMITERS or _single_character(value)
+    return (isinstance(value, str) and value in NAMED_DELIMITERS) or _single_character(value)
 
 
 def _delimited_format(separator: str) -> str:
