@@ -9,6 +9,7 @@ milliseconds); a time-out fails the test rather than passing for a refusal.
 """
 
 import json
+import os
 import socket
 import ssl
 import subprocess
@@ -20,6 +21,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+
+from ..conftest import ROOT
 
 TIMEOUT_S = 5.0
 
@@ -113,17 +116,15 @@ def test_tls_options_refused_without_a_tls_scheduler(tmp_path):
     assert "--tls-ca-file, --tls-cert, --tls-key" in proc.stderr
 
 
-def _openssl_certificates(folder) -> None:
-    """The certificate authority and the scheduler's, worker's and client's certificates, made by the
-    ``openssl`` commands of docs/fleet.md ("Certificates")."""
-    script = """
-    openssl req -x509 -newkey rsa:3072 -nodes -days 365 -subj "/CN=magkf-dask-ca" -keyout ca.key -out ca.pem
-    for role in scheduler worker client; do
-      openssl req -newkey rsa:3072 -nodes -subj "/CN=magkf-dask-$role" -keyout $role.key -out $role.csr
-      openssl x509 -req -in $role.csr -CA ca.pem -CAkey ca.key -CAcreateserial -days 365 -out $role.pem
-    done
-    """
-    subprocess.run(["bash", "-e", "-c", script], cwd=folder, check=True, capture_output=True, timeout=120)
+def _documented_certificates(home: Path) -> Path:
+    """Run the ``bash`` block of docs/fleet.md's "Certificates" paragraph as it is printed, with ``home`` as
+    the home folder; returns the folder it makes (``~/dask-tls``)."""
+    text = (ROOT / "docs" / "fleet.md").read_text()
+    after = text[text.index("**Certificates.**") :]
+    block = after[after.index("```bash\n") + len("```bash\n") : after.index("\n```", after.index("```bash"))]
+    env = {**os.environ, "HOME": str(home)}
+    subprocess.run(["bash", "-e", "-c", block], cwd=home, env=env, check=True, capture_output=True, timeout=120)
+    return home / "dask-tls"
 
 
 def _start(command: list, log) -> subprocess.Popen:
@@ -150,10 +151,10 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
 
     from ..conftest import run_cli
 
-    _openssl_certificates(tmp_path)
+    certificates = _documented_certificates(tmp_path)
     simulate_drive(DriveConfig(duration_s=120, rate_hz=10, seed=3)).write(tmp_path / "flight.csv")
     dask = str(Path(sys.executable).with_name("dask"))
-    tls = ["--tls-ca-file", "ca.pem"]
+    tls = ["--tls-ca-file", str(certificates / "ca.pem")]
     info = tmp_path / "scheduler.json"
     started = [
         _start(
@@ -170,9 +171,9 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
                 str(info),
                 *tls,
                 "--tls-cert",
-                "scheduler.pem",
+                str(certificates / "scheduler.pem"),
                 "--tls-key",
-                "scheduler.key",
+                str(certificates / "scheduler.key"),
                 "--dashboard-address",
                 "127.0.0.1:0",
             ],
@@ -194,9 +195,9 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
                     address,
                     *tls,
                     "--tls-cert",
-                    "worker.pem",
+                    str(certificates / "worker.pem"),
                     "--tls-key",
-                    "worker.key",
+                    str(certificates / "worker.key"),
                     "--nworkers",
                     "1",
                     "--nthreads",
@@ -212,7 +213,13 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
                 tmp_path / "worker.log",
             )
         )
-        client_tls = [*tls, "--tls-cert", "client.pem", "--tls-key", "client.key"]
+        client_tls = [
+            *tls,
+            "--tls-cert",
+            str(certificates / "client.pem"),
+            "--tls-key",
+            str(certificates / "client.key"),
+        ]
         proc = run_cli("fleet", "flight.csv", "-o", "out", "--scheduler", address, *client_tls, "--quiet", cwd=tmp_path)
         assert proc.returncode == 0, proc.stderr
         assert "1 calibrated" in proc.stdout and "0 failed" in proc.stdout
