@@ -90,6 +90,19 @@ def test_a_builtin_effect_stores_its_own_settings_parameters_and_column():
     assert "key 'effects[0].settings.walk' must be at least 0, not -1.0" in _refusal(data)
 
 
+def test_the_records_magkf_reads_are_strict_where_it_writes_them():
+    errors = {"R11": 0.01, "b_xx": 0.1}
+    assert "unknown key 'standard_errors.b_xx' (did you mean 'b_x'?)" in _refusal(_calibration(standard_errors=errors))
+    assert "must be a number or null, not 'x'" in _refusal(_calibration(standard_errors={"b_x": "x"}))
+    quality = {"status_counts": {"used": 10, "gated_magnitud": 1}}
+    assert "unknown key 'quality.status_counts.gated_magnitud'" in _refusal(_calibration(quality=quality))
+    model = {"family": "full", "hled": "nothing"}
+    assert "unknown key 'model.hled' (did you mean 'held'?)" in _refusal(_calibration(model=model))
+    assert "key 'model.held_core' must hold numbers, shape (12,)" in _refusal(_calibration(model={"held_core": [1]}))
+    kept = _calibration(standard_errors={"b_x": None}, quality={"coverage": 0.9}, parameters={"anything": [1, "a"]})
+    assert Calibration.from_dict(kept, "cal.json").quality == {"coverage": 0.9}  # null: none computed
+
+
 @pytest.mark.parametrize("index, words", [(1.7, "a whole number or null, not 1.7"), (-1, "at least 0, not -1")])
 def test_the_magnetometer_entry_export_reads_is_checked(index, words):
     mag = {"format": "px4-ulog", "instance": 0, "device_id": 7, "calibration_index": index}
