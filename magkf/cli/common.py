@@ -405,7 +405,8 @@ def add_reading_options(p, mag_all: bool = False, many: bool = False) -> None:
         g.add_argument(
             "--mag",
             metavar="N|all" if mag_all else "N",
-            help="magnetometer instance of a log that holds several (default: the autopilot's first)"
+            help="magnetometer instance of a log that holds several (default: the one the autopilot uses, PX4's "
+            "CAL_MAG_PRIME or highest CAL_MAGn_PRIO, ArduPilot's first by priority)"
             + ("; 'all' calibrates each and compares them" if mag_all else ""),
         )
     g.add_argument(
