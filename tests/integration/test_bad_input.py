@@ -377,6 +377,19 @@ def test_the_small_items_a_new_user_hits(files, capsys, tmp_path):
     assert status == 0 and "poorly determined" not in err and json.loads(out)["field"] > 900
     # --mag-unit converts to nT; --axes 2 on tilted data is warned
     status, out, err = run(capsys, "ellipsoid", DATA / "example_drive.csv", "--axes", "2", "--mag-unit", "uT", "--json")
+    assert status == 2 and "--columns mag_x,mag_y" in err  # a third column is not dropped silently
+    status, out, err = run(
+        capsys,
+        "ellipsoid",
+        DATA / "example_drive.csv",
+        "--axes",
+        "2",
+        "--columns",
+        "mag_x,mag_y",
+        "--mag-unit",
+        "uT",
+        "--json",
+    )
     assert status == 0 and "takes the sensor as level, but roll and pitch reach" in err
     assert json.loads(out)["field"] > 1e6  # uT columns converted to nT (1 000 times the numbers)
     # --curves implies the paper's method; the IGRF date, when not given, is said

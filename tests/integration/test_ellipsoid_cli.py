@@ -29,7 +29,7 @@ def test_planar_data_refused_for_three_axes(tmp):
     pd.DataFrame(X, columns=["mag_x", "mag_y", "mag_z"]).to_csv(tmp / "planar.csv", index=False)
     proc = run_cli("ellipsoid", tmp / "planar.csv")
     assert proc.returncode == 2 and "degenerate geometry" in proc.stderr and proc.stderr.count("\n") == 1
-    r = cli_json("ellipsoid", tmp / "planar.csv", "--axes", "2")
+    r = cli_json("ellipsoid", tmp / "planar.csv", "--axes", "2", "--columns", "mag_x,mag_y")
     assert r["axes"] == 2 and r["coverage"] > 0.9
 
 
@@ -95,14 +95,19 @@ def test_without_a_field_the_file_says_its_unit_and_apply_uses_it(tmp):
 
 
 def test_readings_in_gauss_give_a_calibration_in_nt(tmp):
-    """--mag-unit G without --field: the readings are converted to nT and R scaled to determinant 1, so the file
-    is in nT (no ``field_unit`` key) with the offsets of the same readings given in nT; the same readings without
-    --mag-unit give a file in ``counts`` whose offsets are in gauss. The fits of scaled readings agree to the
-    solver's tolerance (measured 2.6e-7 relative); the bound 1e-5 is 1e-3 of an offset's standard error."""
+    """--mag-unit G with --field: the readings are converted to nT, so the file is in nT (no ``field_unit`` key)
+    and equals the fit of the same readings given in nT; without --field it is refused (R scaled to determinant 1
+    would not map the readings to the field, and apply and export would refuse the file); the same readings
+    without --mag-unit give a file in ``counts`` whose offsets are in gauss. The fits of scaled readings agree to
+    the solver's tolerance (measured 2.6e-7 relative); the bound 1e-5 is 1e-3 of an offset's standard error."""
     table = pd.read_csv(DATA / "example_drive.csv")[["mag_x", "mag_y", "mag_z"]]
     (table / 1e5).to_csv(tmp / "gauss.csv", index=False)
-    cli_json("ellipsoid", tmp / "gauss.csv", "--mag-unit", "G", "-o", tmp / "g.json")
-    cli_json("ellipsoid", DATA / "example_drive.csv", "--mag-unit", "nT", "-o", tmp / "n.json")
+    refused = run_cli("ellipsoid", tmp / "gauss.csv", "--mag-unit", "G", "-o", tmp / "g.json")
+    assert refused.returncode == 2 and "--field" in refused.stderr and refused.stderr.count("\n") == 1
+    assert not (tmp / "g.json").exists()
+    field = ("--field", "48000")
+    cli_json("ellipsoid", tmp / "gauss.csv", "--mag-unit", "G", *field, "-o", tmp / "g.json")
+    cli_json("ellipsoid", DATA / "example_drive.csv", "--mag-unit", "nT", *field, "-o", tmp / "n.json")
     cli_json("ellipsoid", tmp / "gauss.csv", "-o", tmp / "raw.json")
     in_gauss, in_nt, raw = (Calibration.load(tmp / f"{n}.json") for n in ("g", "n", "raw"))
     assert "field_unit" not in json.loads((tmp / "g.json").read_text()) and in_gauss.field_unit == "nT"

@@ -451,16 +451,6 @@ def test_every_documented_layout_reads_the_same_field(tmp_path):
         np.testing.assert_allclose(table["time"], start + step * np.arange(n), rtol=0, atol=1e-6, err_msg=heading)
 
 
-def test_the_documented_refusal_is_the_one_given(tmp_path):
-    doc = DOCS.read_text(encoding="utf-8")
-    printed = re.findall(r"```\n(set\.txt: .*?)\n```", doc)[0]
-    lines = ["Published set 3", "x y z (nT)", "21034.5 -1220.3 43012.8", "21031.9 -1218.7 43015.1"]
-    path = write(tmp_path / "set.txt", "\n".join(lines) + "\n")
-    assert refusal(lambda: read_offline_table(path, ["mag_x", "mag_y", "mag_z"])) == printed.replace(
-        "set.txt", str(path), 1
-    )
-
-
 @pytest.mark.parametrize(
     "suffix, file_keys, sep",
     [
