@@ -103,6 +103,10 @@ def check(document, schema: dict, source: str | None, root: str = "", finite: bo
     from jsonschema import Draft202012Validator
     from jsonschema.exceptions import best_match
 
+    if _depth(document) > MAX_DEPTH:  # the validator recurses into every level
+        raise InputError(
+            f"{key_path([root]) if root else 'the file'} nests lists or tables more than {MAX_DEPTH} deep", source
+        )
     error = best_match(Draft202012Validator(schema).iter_errors(document), key=_relevance)
     if error is not None:
         prefix = [root] if root else []
@@ -112,6 +116,25 @@ def check(document, schema: dict, source: str | None, root: str = "", finite: bo
         raise InputError(_message(error, prefix + list(error.absolute_path)), source)
     if finite:
         _check_finite(document, [root] if root else [], source)
+
+
+#: Deepest nesting of lists and tables a document may have (magkf's own files nest four deep at most).
+MAX_DEPTH = 32
+
+
+def _depth(document) -> int:
+    """How deep lists and tables nest in ``document`` (0 for a number or a string), found without recursion."""
+    deepest, stack = 0, [(document, 0)]
+    while stack:
+        value, level = stack.pop()
+        deepest = max(deepest, level)
+        if level > MAX_DEPTH:
+            break
+        if isinstance(value, dict):
+            stack.extend((item, level + 1) for item in value.values())
+        elif isinstance(value, (list, tuple)):
+            stack.extend((item, level + 1) for item in value)
+    return deepest
 
 
 def _check_finite(value, path: list, source: str | None) -> None:

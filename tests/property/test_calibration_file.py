@@ -21,7 +21,7 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from magkf.calibration import FORMAT, VERSION, Calibration, StoredEffect
+from magkf.calibration import FORMAT, STANDARD_ERROR_NAMES, VERSION, Calibration, StoredEffect
 from magkf.errors import InputError
 
 FOLDER = Path(tempfile.mkdtemp(prefix="magkf-property-"))
@@ -49,11 +49,22 @@ def covariances(n: int) -> st.SearchStrategy[np.ndarray]:
 
 @st.composite
 def stored_effects(draw) -> StoredEffect:
-    k = draw(st.integers(1, 3))
-    names = draw(st.lists(st.text(min_size=1, max_size=5), min_size=k, max_size=k, unique=True))
+    """A stored effect: one of magkf's own with its own parameters and default settings (their schema is strict),
+    or a plug-in's (any label, settings and names: checked when the plug-in rebuilds it)."""
+    from magkf.plugins import EFFECTS
+
+    label = draw(LABELS | st.text(min_size=1, max_size=8))
+    name = label.partition(":")[0]
+    if EFFECTS.is_builtin(name):
+        names, settings = list(EFFECTS[name].parameter_names), {}
+    else:
+        k = draw(st.integers(1, 3))
+        names = draw(st.lists(st.text(min_size=1, max_size=5), min_size=k, max_size=k, unique=True))
+        settings = draw(st.dictionaries(st.text(max_size=5), JSON, max_size=2))
+    k = len(names)
     return StoredEffect(
-        draw(LABELS | st.text(min_size=1, max_size=8)),
-        draw(st.dictionaries(st.text(max_size=5), JSON, max_size=2)),
+        label,
+        settings,
         tuple(names),
         tuple(draw(st.lists(FINITE, min_size=k, max_size=k))),
         tuple(draw(st.lists(FINITE | st.just(math.nan), min_size=k, max_size=k))),  # NaN: not known
@@ -78,7 +89,7 @@ def calibrations(draw) -> Calibration:
         method=draw(st.text(max_size=8)),
         covariance=draw(st.none() | covariances(12)),
         parameters=draw(st.dictionaries(st.text(max_size=6), JSON, max_size=3)),
-        standard_errors=draw(st.dictionaries(st.text(max_size=6), FINITE, max_size=2)),
+        standard_errors=draw(st.dictionaries(st.sampled_from(STANDARD_ERROR_NAMES), FINITE, max_size=2)),
         quality=draw(st.dictionaries(st.text(max_size=6), JSON, max_size=2)),
         source=draw(st.none() | st.text(max_size=8)),
         effects=effects,
