@@ -8,13 +8,11 @@ made on plain sockets with ``TIMEOUT_S`` seconds each (a TLS handshake refused o
 milliseconds); a time-out fails the test rather than passing for a refusal.
 """
 
-import json
 import os
 import socket
 import ssl
 import subprocess
 import sys
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -23,6 +21,7 @@ import pandas as pd
 import pytest
 
 from ..conftest import ROOT
+from .dask_processes import scheduler_address, start
 
 TIMEOUT_S = 5.0
 
@@ -127,11 +126,6 @@ def _documented_certificates(home: Path) -> Path:
     return home / "dask-tls"
 
 
-def _start(command: list, log) -> subprocess.Popen:
-    with open(log, "w") as out:
-        return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=log.parent)
-
-
 def _stop(processes) -> None:
     for p in processes:
         p.terminate()
@@ -157,7 +151,7 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
     tls = ["--tls-ca-file", str(certificates / "ca.pem")]
     info = tmp_path / "scheduler.json"
     started = [
-        _start(
+        start(
             [
                 dask,
                 "scheduler",
@@ -181,14 +175,10 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
         )
     ]
     try:
-        deadline = time.monotonic() + 60
-        while not info.is_file() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert info.is_file(), (tmp_path / "scheduler.log").read_text()
-        address = json.loads(info.read_text())["address"]
+        address = scheduler_address(info, tmp_path / "scheduler.log")
         assert address.startswith("tls://127.0.0.1:")
         started.append(
-            _start(
+            start(
                 [
                     dask,
                     "worker",

@@ -2,11 +2,8 @@
 a scheduler and worker started here on 127.0.0.1; a corrupt log in a fleet; reruns that skip unchanged logs;
 a flight whose offset jumped flagged against the rest of its vehicle."""
 
-import json
-import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +16,7 @@ from magkf.study import StudySpec, runs
 from magkf.study import run as run_study
 
 from ..conftest import ROOT, run_cli
+from .dask_processes import scheduler_address, start
 
 R_TRUE = np.array([[1.05, 0.03, -0.02], [0.01, 0.97, 0.04], [-0.03, 0.02, 1.02]])
 B_TRUE = np.array([350.0, -220.0, 480.0])
@@ -148,29 +146,24 @@ def test_rerun_skips_unchanged_logs(fleet, tmp_path):
     assert not any(flags.values())
 
 
-def _start(command: list, log: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    with open(log, "w") as out:
-        return subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=log.parent)
+#: The workers import magkf from this checkout.
+PATH_TO_MAGKF = {"PYTHONPATH": str(ROOT)}
 
 
 @pytest.mark.slow
 def test_scheduler_option_against_a_scheduler_and_worker_on_localhost(fleet, serial, tmp_path):
     dask = str(Path(sys.executable).with_name("dask"))
     info = tmp_path / "scheduler.json"
-    scheduler = _start(
+    scheduler = start(
         [dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(info)],
         tmp_path / "scheduler.log",
+        PATH_TO_MAGKF,
     )
     worker = None
     try:
-        deadline = time.monotonic() + 60
-        while not info.is_file() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert info.is_file(), (tmp_path / "scheduler.log").read_text()
-        address = json.loads(info.read_text())["address"]
+        address = scheduler_address(info, tmp_path / "scheduler.log")
         assert address.startswith("tcp://127.0.0.1:")
-        worker = _start(
+        worker = start(
             [
                 dask,
                 "worker",
@@ -187,6 +180,7 @@ def test_scheduler_option_against_a_scheduler_and_worker_on_localhost(fleet, ser
                 "2GB",
             ],
             tmp_path / "worker.log",
+            PATH_TO_MAGKF,
         )
         from distributed import Client
 
