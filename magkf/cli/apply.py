@@ -19,16 +19,12 @@ def add_parsers(sub) -> None:
 def run_apply(args) -> int:
     """Apply a calibration file to a drive log; every epoch is written with a status. The calibration is judged
     against the log's field first (``magkf.plausibility.check_loaded``): an absurd one is refused, naming its file."""
-    import sys
-
     from ..apply import apply_calibration
     from ..io.drivelog import write_drive_log
-    from ..plausibility import check_loaded, log_field_nt
 
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    for warning in check_loaded(cal, args.cal, log_field_nt(log), log.mag):
-        print(f"magkf: warning: {args.cal}: {warning}", file=sys.stderr)
+    common.judge_calibration(args, cal, log)
     common.effects(args, cal)  # user code runs once the inputs are read
     out = apply_calibration(log, cal)
     if args.output:

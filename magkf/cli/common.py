@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from datetime import UTC, datetime
 
 from ..conventions import NT_PER_UNIT
@@ -548,6 +549,17 @@ def load_calibration(path):
         return None
     cal = read_input(Calibration.load, path, ".json")
     return replace(cal, file=STDIN_NAME) if path == STDIO else cal  # its effects' errors name <stdin>
+
+
+def judge_calibration(args, cal, log) -> None:
+    """The calibration ``cal`` of ``--cal`` judged against the field of ``log`` before a command uses it
+    (``magkf.plausibility.check_loaded``): warnings printed, an absurd calibration refused naming its file."""
+    if cal is None:
+        return
+    from ..plausibility import check_loaded, log_field_nt
+
+    for warning in check_loaded(cal, args.cal, log_field_nt(log), log.mag):
+        print(f"magkf: warning: {args.cal}: {warning}", file=sys.stderr)
 
 
 def logged_start(args, log, init):

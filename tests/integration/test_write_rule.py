@@ -132,3 +132,20 @@ def test_ellipsoid_with_a_unit_but_no_field_writes_nothing(tmp):
     proc = run_cli("ellipsoid", DATA / "example_drive.csv", "--mag-unit", "nT", "-o", out)
     assert proc.returncode == 2 and not out.exists()
     assert "give --field with the field's magnitude in nT, or --field igrf" in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["validate", "diagnose", "report"])
+def test_every_command_that_uses_a_calibration_refuses_a_mirrored_one(tmp, capsys, command):
+    """A calibration with one axis flipped (det R = -1), given to validate, diagnose and report --cal: refused in
+    one line naming the calibration file (not the log), before any work, and no report written."""
+    from magkf.cli import main
+
+    cal = tmp / "mirrored.json"
+    Calibration(R=np.diag([-1.0, 1.0, 1.0]), b=np.zeros(3)).save(cal)
+    out = tmp / "report.html"
+    status = main(
+        [command, str(DATA / "example_drive.csv"), "--cal", str(cal), *(["-o", str(out)] * (command == "report"))]
+    )
+    err = capsys.readouterr().err
+    assert status == 2 and err.startswith(f"magkf: error: {cal}: the calibration is not used: R is mirrored")
+    assert err.count("\n") == 1 and not out.exists()
