@@ -479,7 +479,14 @@ class EllipsoidCalibrator(Calibrator):
                 source,
             )
         self._check_geometry(X, source)
-        x_alg, weights = robust_algebraic_fit(X, F, bool(self.robust))
+        try:
+            x_alg, weights = robust_algebraic_fit(X, F, bool(self.robust))
+        except InputError as exc:  # the fit's own refusal names no file
+            raise InputError(
+                f"{exc.message}: the readings do not turn through enough orientations (a level, straight run "
+                "turns through none); turn the sensor through many",
+                source,
+            ) from None
         names = parameter_names(d)
         algebraic = dict(zip(names, _readable(x_alg, d)))
         warnings = []

@@ -180,3 +180,14 @@ def test_robust_standard_errors_are_honest():
     lo, hi = stats.chi2.ppf(alpha / 2, len(z)), stats.chi2.ppf(1 - alpha / 2, len(z))
     rms = np.sqrt(np.mean(z**2, axis=0))
     assert np.all((len(z) * rms**2 > lo) & (len(z) * rms**2 < hi)), rms
+
+
+def test_readings_of_a_straight_run_are_refused_naming_the_file():
+    """A straight, level minute (the readings barely move): the algebraic fit finds no ellipsoid, and the refusal
+    names the file and what the readings lack."""
+    from magkf.sim import DriveConfig, simulate_drive
+
+    sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=10, motion="straight", seed=3))
+    with pytest.raises(InputError, match="turn through enough orientations") as err:
+        EllipsoidCalibrator(3, 48_000.0).fit(sim.table[["mag_x", "mag_y", "mag_z"]].to_numpy(), "straight.csv")
+    assert err.value.source == "straight.csv"
