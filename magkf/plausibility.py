@@ -68,6 +68,7 @@ __all__ = [
     "RESIDUAL_REFUSED",
     "RESIDUAL_WARNED",
     "check_residual",
+    "check_applied",
 ]
 
 SENSITIVITY_REFUSED = (0.2, 5.0)
@@ -386,6 +387,28 @@ def check_loaded(cal, source: str, field_nt: float = float("nan"), readings=None
             "the calibration is not used: " + exc.message.replace("(nothing written)", "(nothing used)"), source
         ) from None
     return warnings
+
+
+def check_applied(magnitude_nt, field_nt: float, source: str) -> list[str]:
+    """Judge the calibrated magnitudes (N,) nT of a log against its field ``field_nt`` once a calibration is
+    applied: their median outside ``SENSITIVITY_REFUSED`` times the field is refused (InputError naming
+    ``source``, the log), outside ``SENSITIVITY_WARNED`` warned. A calibration that passed ``check_loaded`` gives
+    such magnitudes only on readings in another unit, or of another sensor, than it was fitted to."""
+    magnitude = np.asarray(magnitude_nt, float)
+    magnitude = magnitude[np.isfinite(magnitude)]
+    if not (len(magnitude) and np.isfinite(field_nt) and field_nt > 0):
+        return []
+    median = float(np.median(magnitude))
+    share = median / field_nt
+    text = (
+        f"the calibrated magnitudes' median is {median:.4g} nT, {share:.3g} times the field {field_nt:.0f} nT: the "
+        "log's readings are in another unit than the calibration's, or of another magnetometer"
+    )
+    lo, hi = SENSITIVITY_REFUSED
+    if not lo <= share <= hi:
+        raise InputError(f"{text} (nothing written)", source)
+    lo, hi = SENSITIVITY_WARNED
+    return [text] if not lo <= share <= hi else []
 
 
 def _radius(cal, readings) -> float:
