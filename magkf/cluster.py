@@ -114,9 +114,9 @@ def local_security():
 def _broken_pipes_raise():
     """SIGPIPE ignored while a cluster is open, its previous handler restored after (in the main thread only).
 
-    ``magkf``'s command line restores the system's SIGPIPE handler so that a closed pipe ends it quietly; but
-    then a TLS connection that Dask writes to after its peer closed it (which it does as it starts and stops)
-    would kill the process. Ignored, the write raises an exception that Dask handles."""
+    A program that restored the system's SIGPIPE handler (so that a closed pipe ends it quietly) would have
+    a TLS connection that Dask writes to after its peer closed it (which it does as it starts and stops)
+    kill it. Ignored, the write raises an exception that Dask handles."""
     import signal
     import threading
 

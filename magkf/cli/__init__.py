@@ -86,14 +86,47 @@ def main(argv=None) -> int:
     from ..interruption import restore, stop_on_signals
 
     previous = stop_on_signals()
-    if hasattr(signal, "SIGPIPE"):  # output piped into head and the like: stop quietly when it closes
-        signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    stdout, sys.stdout = sys.stdout, _ReaderMayLeave(sys.stdout)
     try:
         return _main(argv)
     except KeyboardInterrupt as exc:  # before or after the command (while parsing, printing the warnings)
         return _interrupted(exc)
     finally:
+        sys.stdout = stdout
         restore(previous)  # main called from Python: its caller's handlers again
+
+
+class _ReaderMayLeave:
+    """Standard output whose reader may leave before the command ends (``magkf calibrate ... | head``): what is
+    printed after it left is dropped, and the command goes on to write its files. (Stopped by SIGPIPE instead, as
+    a filter would be, it lost the calibration it had computed.)"""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._left()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._left()
+
+    def _left(self) -> None:
+        """Standard output's descriptor pointed at the null device, so that no later write or flush fails."""
+        import os
+
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, self._stream.fileno())
+        os.close(null)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

@@ -95,3 +95,19 @@ def test_outputs_that_are_not_files_refused(tmp_path, capsys):
     assert main(["simulate", "drive", "--duration", "5", "-o", str(long), "--truth", str(tmp_path / "t.json")]) == 0
     assert long.stat().st_size > 0
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["fifo", long.name, "t.json"])
+
+
+@pytest.mark.slow
+def test_a_reader_that_leaves_early_does_not_cost_the_files(tmp_path):
+    """``magkf calibrate ... | head``: standard output's reader gone before the first line (its end of the pipe
+    closed at once), the command still writes its calibration and states, exits 0 and leaves no temporary."""
+    import subprocess
+
+    out, states = tmp_path / "cal.json", tmp_path / "states.csv"
+    command = [sys.executable, "-m", "magkf", "calibrate", str(DATA / "example_drive.csv"), "-o", str(out)]
+    proc = subprocess.Popen([*command, "--states", str(states)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 0, err
+    assert Calibration.load(out).R.shape == (3, 3) and states.stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.json", "states.csv"]
