@@ -69,6 +69,8 @@ __all__ = [
     "RESIDUAL_WARNED",
     "check_residual",
     "check_applied",
+    "WORSE_REFUSED",
+    "check_against_start",
 ]
 
 SENSITIVITY_REFUSED = (0.2, 5.0)
@@ -409,6 +411,33 @@ def check_applied(magnitude_nt, field_nt: float, source: str) -> list[str]:
         raise InputError(f"{text} (nothing written)", source)
     lo, hi = SENSITIVITY_WARNED
     return [text] if not lo <= share <= hi else []
+
+
+#: A calibration whose residual over the epochs its run used exceeds this many times the residual of the
+#: calibration the run started from is refused: fitted to those epochs, it should fit them at least as well.
+WORSE_REFUSED = 1.5
+
+
+def check_against_start(figures: dict, source: str, log=None, used=None, family: str | None = None) -> None:
+    """Refuse (InputError naming ``source``) a calibration whose residual over the epochs its run used exceeds
+    ``WORSE_REFUSED`` times its start's; ``figures`` is ``diagnostics.baseline.written_figures``' dict (nothing
+    judged without a start). ``log`` and ``used`` (N,) bool say how far those epochs turn. Judged only for an
+    estimate as free as its start (``family`` None or ``"full"``): a whole-log family that holds what the log does
+    not determine (``R`` on a straight flight) may fit worse than a start that fitted those directions to noise."""
+    start, written = figures.get("start"), figures.get("written")
+    if not start or not written or family not in (None, "full"):
+        return
+    key = "vector_rms_nt" if figures.get("n_used") else "magnitude_rms_nt"
+    ours, theirs = written[key], start[key]
+    if np.isfinite(ours) and np.isfinite(theirs) and ours > WORSE_REFUSED * theirs:
+        turning = turning_text(log, used) if log is not None else ""
+        raise InputError(
+            f"the estimate fits the epochs it used worse than the calibration it started from ({ours:.1f} nT against "
+            f"{theirs:.1f} nT, more than {WORSE_REFUSED:g} times): the data do not determine it"
+            + (f" ({turning})" if turning else "")
+            + "; a log that turns through every heading with some pitch and roll determines R and b (nothing written)",
+            source,
+        )
 
 
 def _radius(cal, readings) -> float:

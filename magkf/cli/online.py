@@ -319,7 +319,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
     from ..io.drivelog import write_drive_log
     from ..online.prepare import prepare
     from ..online.run import calibrate_log, terminal_progress
-    from ..plausibility import check_run, log_field_nt
+    from ..plausibility import check_against_start, check_run, log_field_nt
 
     prep = names_the_log(prepare)(log, config)  # the reference field and attitude, once for runs and comparisons
 
@@ -353,6 +353,8 @@ def _calibrate_one(args, log, config, init, added, output, states):
     # judged as the file holds it (its JSON read back)
     written = Calibration.from_dict(run.calibration.to_dict(), str(output or log.source))
     summary["written"], summary["vehicle"] = _comparisons(log, run, written, prep)
+    used = (run.states["status"] == "used").to_numpy() if run.states is not None else None
+    check_against_start(summary["written"], log.source, log, used, (run.summary.model or {}).get("family"))
     if summary["written"].get("worse_than_start"):
         warning = f"the calibration written fits this log worse than its start ({summary['written']['text']})"
         summary["warnings"].append(warning)

@@ -165,3 +165,20 @@ def test_magnitudes_of_readings_in_another_unit_are_refused_once_applied():
     with pytest.raises(InputError, match="10 times the field") as err:
         check_applied(10 * around, field, "log.csv")
     assert err.value.source == "log.csv"
+
+
+def test_an_estimate_worse_than_its_start_on_its_own_epochs_is_refused():
+    """Written figures as ``baseline.written_figures`` gives them: 1.4 times the start's residual passes (the
+    warning is the run's), 2.3 times is refused naming the log; without a start, or for a family that holds what its start fitted,
+    nothing is judged."""
+    from magkf.plausibility import WORSE_REFUSED, check_against_start
+
+    def figures(ours, theirs):
+        return {"written": {"vector_rms_nt": ours}, "start": {"vector_rms_nt": theirs}, "n_used": 200}
+
+    check_against_start(figures(0.95 * WORSE_REFUSED * 390.0, 390.0), "log.bin")
+    check_against_start({"written": {"vector_rms_nt": 886.9}, "start": None, "n_used": 200}, "log.bin")
+    check_against_start(figures(886.9, 390.0), "log.bin", family="offsets")  # R held: not as free as its start
+    with pytest.raises(InputError, match=r"886.9 nT against 390.0 nT") as err:
+        check_against_start(figures(886.9, 390.0), "log.bin")
+    assert err.value.source == "log.bin"
