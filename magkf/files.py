@@ -157,7 +157,7 @@ def _check_target(opt: str, p: Path) -> None:
 PREFIX = ".magkf-"
 #: This host, in temporaries' names: a run removes only its own host's leftovers (a folder may be shared).
 HOST = hashlib.sha256(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:6]
-_NAME = re.compile(r"^\.magkf-([0-9a-f]{6})-(\d+)-[0-9a-f]+\.(tmp|commit)")
+_NAME = re.compile(r"^\.magkf-([0-9a-f]{6})-(\d+)-[0-9a-f]{8}\.(tmp|commit)(\.[^./]{1,16})*$")
 _SUFFIX_MAX = 16  # a target's suffix kept on its temporary (writers that choose the format by it) up to this
 _swept: set = set()  # folders cleaned by this process
 
@@ -319,7 +319,7 @@ def _write_moves(moves: list, written_lists: list) -> None:
     folders = list(dict.fromkeys(target.parent for target, _ in moves))
     paths = [folder / name for folder in folders]
     record = {
-        "moves": [[str(tmp), str(target), os.stat(tmp).st_ino] for target, tmp in moves],
+        "moves": [[str(tmp), str(target), os.stat(tmp).st_ino, _state(target)] for target, tmp in moves],
         "lists": [str(p) for p in paths],
     }
     text = json.dumps(record)
@@ -331,13 +331,23 @@ def _write_moves(moves: list, written_lists: list) -> None:
         written_lists[-1] = path
 
 
+def _state(target: Path) -> list | None:
+    """``[inode, modification time in ns]`` of ``target`` before a commit moves onto it; None when absent."""
+    try:
+        st = os.stat(target)
+    except OSError:
+        return None
+    return [st.st_ino, st.st_mtime_ns]
+
+
 def _complete_moves(journal: Path) -> int:
     """Complete the moves a killed run listed in ``journal``; when a temporary it lists is gone unmoved, the
     moves had not begun (the lists are all written before the first): their temporaries are removed instead.
-    Removes every copy of the list; returns 1 when done, 0 when the list could not be read."""
+    A target changed since the list was written (written again by the user or another run) is not moved onto:
+    its temporary is removed. Removes every copy of the list; returns 1 when done, 0 when it could not be read."""
     try:
         record = json.loads(journal.read_text(encoding="utf-8"))
-        moves = [(Path(tmp), Path(target), int(inode)) for tmp, target, inode in record["moves"]]
+        moves = [(Path(tmp), Path(target), int(inode), before) for tmp, target, inode, before in record["moves"]]
         lists = [Path(p) for p in record["lists"]]
     except (OSError, ValueError, KeyError, TypeError):
         _remove(journal)
@@ -349,9 +359,9 @@ def _complete_moves(journal: Path) -> int:
         except OSError:
             return False
 
-    complete = all(tmp.exists() or moved(target, inode) for tmp, target, inode in moves)
-    for tmp, target, _inode in moves:
-        if complete and tmp.exists():
+    complete = all(tmp.exists() or moved(target, inode) for tmp, target, inode, _ in moves)
+    for tmp, target, _inode, before in moves:
+        if complete and tmp.exists() and _state(target) == before:
             try:
                 os.replace(tmp, target)
             except OSError:

@@ -116,6 +116,17 @@ def test_next_run_completes_a_killed_commit(tmp_path, fresh, monkeypatch, moved)
     assert _leftovers(tmp_path) == [] and _leftovers(states.parent) == []
 
 
+def test_a_target_written_again_since_the_kill_is_not_overwritten(tmp_path, fresh, monkeypatch):
+    """Killed after moving the states, before the calibration; the user then writes the calibration again: the
+    next run writing beside it removes the killed run's temporary instead of moving it onto the newer file."""
+    cal, states = _killed_commit(tmp_path, monkeypatch, 1)
+    os.unlink(cal)
+    cal.write_text("the user's")  # a new file: another inode and modification time than the list recorded
+    files.output_text(tmp_path / "unrelated.txt", "x")
+    assert cal.read_text() == "the user's" and states.read_text() == "new"
+    assert _leftovers(tmp_path) == [] and _leftovers(states.parent) == []
+
+
 def test_next_run_removes_temporaries_of_a_killed_run(tmp_path, fresh, monkeypatch):
     """Killed before the lists of moves were written: the temporaries go, the targets keep their old content."""
     cal, states = _killed_commit(tmp_path, monkeypatch, 0, lists=False)
