@@ -355,7 +355,9 @@ def check_start(init, source: str) -> None:
             "in a column), or calibrate without --init",
             source,
         )
-    field = EARTH_FIELD_NT[1] if getattr(init, "field_unit", "nT") == "nT" else 1.0
+    # the offset against the largest field in nT, or the unit sphere's radius; a calibration in ``counts`` (R scaled
+    # to determinant 1) has the readings' radius, which the log gives: its offset is judged with the run
+    field = {"nT": EARTH_FIELD_NT[1], "unit-sphere": 1.0}.get(getattr(init, "field_unit", "nT"), np.inf)
     check_calibration(R, np.asarray(init.b, float) / field, source, field_known=False, lacks=_START_LACKS)
 
 

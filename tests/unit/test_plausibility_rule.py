@@ -182,3 +182,14 @@ def test_an_estimate_worse_than_its_start_on_its_own_epochs_is_refused():
     with pytest.raises(InputError, match=r"886.9 nT against 390.0 nT") as err:
         check_against_start(figures(886.9, 390.0), "log.bin")
     assert err.value.source == "log.bin"
+
+
+def test_a_start_in_the_readings_own_units_is_not_judged_by_a_field_it_does_not_have():
+    """An ellipsoid fitted without --field (``counts``: R scaled to determinant 1, b in the readings' units, here
+    thousands of counts) is a valid --init; the same offsets in nT against a unit sphere are refused."""
+    from magkf.plausibility import check_start
+
+    counts = Calibration(R=np.eye(3), b=np.array([350.0, -220.0, 480.0]) * 30, field_unit="counts")
+    check_start(counts, "e.json")
+    with pytest.raises(InputError, match="times the field"):
+        check_start(Calibration(R=np.eye(3), b=counts.b, field_unit="unit-sphere"), "e.json")
