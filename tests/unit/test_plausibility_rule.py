@@ -169,8 +169,8 @@ def test_magnitudes_of_readings_in_another_unit_are_refused_once_applied():
 
 def test_an_estimate_worse_than_its_start_on_its_own_epochs_is_refused():
     """Written figures as ``baseline.written_figures`` gives them: 1.4 times the start's residual passes (the
-    warning is the run's), 2.3 times is refused naming the log; without a start, or for a family that holds what its start fitted,
-    nothing is judged."""
+    warning is the run's), 2.3 times is refused naming the log; without a start, or for a family that holds what
+    its start fitted, nothing is judged."""
     from magkf.plausibility import WORSE_REFUSED, check_against_start
 
     def figures(ours, theirs):
