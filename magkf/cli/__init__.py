@@ -86,20 +86,21 @@ def main(argv=None) -> int:
     from ..interruption import restore, stop_on_signals
 
     previous = stop_on_signals()
-    stdout, sys.stdout = sys.stdout, _ReaderMayLeave(sys.stdout)
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _ReaderMayLeave(sys.stdout), _ReaderMayLeave(sys.stderr)
     try:
         return _main(argv)
     except KeyboardInterrupt as exc:  # before or after the command (while parsing, printing the warnings)
         return _interrupted(exc)
     finally:
-        sys.stdout = stdout
+        sys.stdout, sys.stderr = streams
         restore(previous)  # main called from Python: its caller's handlers again
 
 
 class _ReaderMayLeave:
-    """Standard output whose reader may leave before the command ends (``magkf calibrate ... | head``): what is
-    printed after it left is dropped, and the command goes on to write its files. (Stopped by SIGPIPE instead, as
-    a filter would be, it lost the calibration it had computed.)"""
+    """Standard output (or error) whose reader may leave before the command ends (``magkf calibrate ... 2>&1 |
+    head``): what is printed after it left is dropped, and the command goes on to write its files. (Stopped by
+    SIGPIPE instead, as a filter would be, it lost the calibration it had computed.)"""
 
     def __init__(self, stream):
         self._stream = stream
@@ -118,7 +119,7 @@ class _ReaderMayLeave:
             self._left()
 
     def _left(self) -> None:
-        """Standard output's descriptor pointed at the null device, so that no later write or flush fails."""
+        """The stream's descriptor pointed at the null device, so that no later write or flush fails."""
         import os
 
         null = os.open(os.devnull, os.O_WRONLY)
