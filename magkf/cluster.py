@@ -192,14 +192,18 @@ def _client_of(address: str, timeout_s: float, security):
     """``distributed.Client(address)``, its failures to connect as one-line ``OSError``s."""
     from distributed import Client
 
+    if security is not None and getattr(security, "require_encryption", False) and not address.startswith("tls://"):
+        raise OSError(f"{address}: the TLS files were given, but the address is not tls://: give the tls:// address")
     try:
         return Client(address, timeout=timeout_s, security=security)
     except TypeError:  # Dask's way of saying that a tls:// address came without certificates
+        if not address.startswith("tls://"):
+            raise
         raise OSError(
             f"{address}: a TLS scheduler needs the certificate authority's certificate and this client's "
             "certificate and key (--tls-ca-file, --tls-cert, --tls-key, or Dask's distributed.comm.tls settings)"
         ) from None
-    except (OSError, TimeoutError, ValueError) as exc:
+    except (OSError, TimeoutError, ValueError, RuntimeError) as exc:  # RuntimeError: refused by Dask's security
         raise OSError(f"no Dask scheduler answered at {address} within {timeout_s:g} s ({exc})") from None
 
 

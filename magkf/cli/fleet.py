@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
@@ -89,7 +90,9 @@ def _client(args):
         for path in tls:
             if path is not None and not Path(path).is_file():
                 raise InputError("no such file", path)
-        if args.scheduler.startswith("tcp://"):
+        if not args.scheduler.startswith("tls://") and any(path is not None for path in tls):
+            raise InputError(f"{args.scheduler}: --tls-ca-file, --tls-cert and --tls-key need a tls:// address")
+        if not args.scheduler.startswith("tls://"):
             print(
                 f"magkf: warning: {args.scheduler}: no encryption nor authentication: whoever reaches that address "
                 "can run code as the workers' user; use tls:// (docs/fleet.md, 'On a multi-node cluster')",
@@ -138,14 +141,34 @@ def run_fleet(args) -> int:
     fails does not stop the others (exit status 2 only when every log failed). A log whose input and settings are
     unchanged since an earlier run into DIR (same content hash) and whose outputs are complete is not calibrated
     again."""
+    from ..fleet import check_out_dir
+
+    made = not Path(args.out_dir).exists()
+    out_dir = check_out_dir(args.out_dir)
+    with _removed_if_empty(out_dir if made else None):
+        return _fleet(args, out_dir)
+
+
+@contextlib.contextmanager
+def _removed_if_empty(folder):
+    """The ``folder`` this run made removed when the run fails before writing anything into it."""
+    try:
+        yield
+    except BaseException:
+        if folder is not None and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
+
+
+def _fleet(args, out_dir) -> int:
+    """``run_fleet`` into the checked output folder ``out_dir``."""
     from pathlib import Path
 
     from ..effects import make_effect
     from ..errors import InputError
-    from ..fleet import FleetSettings, check_out_dir, find_logs, improvement_lines, pooled_lines
+    from ..fleet import FleetSettings, find_logs, improvement_lines, pooled_lines
     from ..fleet import run_fleet as run
 
-    out_dir = check_out_dir(args.out_dir)
     logs = find_logs(args.logs, exclude=out_dir)
     for path in (args.map, *args.effect_file):
         if path is not None and not Path(path).is_file():

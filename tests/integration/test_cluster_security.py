@@ -217,3 +217,21 @@ def test_documented_tls_recipe_runs_a_fleet(tmp_path):
         assert summary["worker"].str.startswith("tls://127.0.0.1:").all()
     finally:
         _stop(started)
+
+
+def test_tls_files_with_a_plain_address_are_refused_before_anything_is_made(tmp_path, capsys):
+    """--tls-* given with a tcp:// scheduler: one line saying the address must be tls://, exit 2, and the output
+    folder the run would have made is not left behind."""
+    from magkf.cli import main
+
+    for name in ("ca.pem", "client.pem", "client.key"):
+        (tmp_path / name).write_text("x")
+    tls = ["--tls-ca-file", "ca.pem", "--tls-cert", "client.pem", "--tls-key", "client.key"]
+    tls = [str(tmp_path / a) if a.endswith((".pem", ".key")) else a for a in tls]
+    out = tmp_path / "fleet"
+    status = main(
+        ["fleet", str(ROOT / "data" / "example_drive.csv"), "-o", str(out), "--scheduler", "tcp://127.0.0.1:9", *tls]
+    )
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and "need a tls:// address" in err
+    assert not out.exists()
