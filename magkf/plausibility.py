@@ -396,8 +396,9 @@ def check_loaded(cal, source: str, field_nt: float = float("nan"), readings=None
 def check_applied(magnitude_nt, field_nt: float, source: str) -> list[str]:
     """Judge the calibrated magnitudes (N,) nT of a log against its field ``field_nt`` once a calibration is
     applied: their median outside ``SENSITIVITY_REFUSED`` times the field is refused (InputError naming
-    ``source``, the log), outside ``SENSITIVITY_WARNED`` warned. A calibration that passed ``check_loaded`` gives
-    such magnitudes only on readings in another unit, or of another sensor, than it was fitted to."""
+    ``source``, the log), more than ``RESIDUAL_REFUSED`` from it warned. A calibration that passed
+    ``check_loaded`` is refused so only on readings in another unit, or of another sensor, than it was fitted
+    to; warned, it may also have an offset or a scale off (edited by hand, or of another flight)."""
     magnitude = np.asarray(magnitude_nt, float)
     magnitude = magnitude[np.isfinite(magnitude)]
     if not (len(magnitude) and np.isfinite(field_nt) and field_nt > 0):
@@ -406,13 +407,13 @@ def check_applied(magnitude_nt, field_nt: float, source: str) -> list[str]:
     share = median / field_nt
     text = (
         f"the calibrated magnitudes' median is {median:.4g} nT, {share:.3g} times the field {field_nt:.0f} nT: the "
-        "log's readings are in another unit than the calibration's, or of another magnetometer"
+        "calibration does not fit this log (an offset or a scale off), or the log's readings are in another unit "
+        "than the calibration's, or of another magnetometer"
     )
     lo, hi = SENSITIVITY_REFUSED
     if not lo <= share <= hi:
         raise InputError(f"{text} (nothing written)", source)
-    lo, hi = SENSITIVITY_WARNED
-    return [text] if not lo <= share <= hi else []
+    return [text] if abs(share - 1) > RESIDUAL_REFUSED else []
 
 
 #: A calibration whose residual over the epochs its run used exceeds this many times the residual of the

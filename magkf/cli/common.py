@@ -558,8 +558,9 @@ def judge_calibration(args, cal, log) -> None:
         return
     from ..plausibility import check_loaded, log_field_nt
 
-    for warning in check_loaded(cal, args.cal, log_field_nt(log), log.mag):
-        print(f"magkf: warning: {args.cal}: {warning}", file=sys.stderr)
+    name = cal.file or args.cal  # <stdin> for a calibration read from standard input
+    for warning in check_loaded(cal, name, log_field_nt(log), log.mag):
+        print(f"magkf: warning: {name}: {warning}", file=sys.stderr)
 
 
 def logged_start(args, log, init):
