@@ -519,12 +519,37 @@ def load_column_map(path) -> ColumnMap:
     columns = dict(data.get("columns", {}))
     if "keep_unmapped" in columns:
         kwargs["keep_unmapped"] = columns.pop("keep_unmapped")
+    _warn_near_misses(columns, source)
     if "missing" in kwargs and isinstance(kwargs["missing"], list):
         kwargs["missing"] = tuple(kwargs["missing"])
     description = data.get("description", "")
     if not isinstance(description, str):
         raise InputError("description: must be a string", source)
     return ColumnMap(columns=columns, source=source, description=description, **kwargs)
+
+
+#: Column names a map's [columns] key is most likely meant to be: the canonical ones and the channels of magkf's
+#: built-in effects (``temp_c``, ``current_a``) and the log's speed.
+WELL_KNOWN = (*CORE_COLUMNS, "temp_c", "current_a", "speed_mps")
+
+
+def _warn_near_misses(columns: dict, source: str) -> None:
+    """Warn (not refuse: any other name is an auxiliary channel) for a [columns] key one slip away from a column
+    with a meaning, such as ``hop`` for ``hdop``: taken as auxiliary, it would quietly lose what that column does."""
+    import difflib
+    import warnings
+
+    unmapped = [name for name in WELL_KNOWN if name not in columns]  # a second channel beside its first is meant
+    for key in columns:
+        if key in WELL_KNOWN:
+            continue
+        near = difflib.get_close_matches(key, unmapped, n=1, cutoff=0.85)
+        if near:
+            warnings.warn(
+                f"{source}: [columns] {key} is not one of magkf's columns and is read as an auxiliary channel; did "
+                f"you mean {near[0]}?",
+                stacklevel=3,
+            )
 
 
 # ---------------------------------------------------------------- reading the table

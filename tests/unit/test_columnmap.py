@@ -609,3 +609,28 @@ def test_missing_that_is_not_a_list_of_strings_is_refused_naming_it(tmp_path, va
     )
     with pytest.raises(InputError, match=r"\[file\] missing: .* is not a list of strings"):
         load_column_map(tmp_path / "map.toml")
+
+
+@pytest.mark.parametrize(
+    "extra, warned", [("hop", "hdop"), ("currnt_a", "current_a"), ("T_board", None), ("temp_k", None)]
+)
+def test_a_column_one_slip_from_a_known_one_is_warned(tmp_path, extra, warned):
+    """A [columns] key one slip away from a column with a meaning (that the map does not map) is warned with the
+    nearest name; other names, and a second channel beside its first (mag_x2 beside mag_x), are taken silently."""
+    import warnings
+
+    from magkf.io.columnmap import load_column_map
+
+    path = tmp_path / "map.toml"
+    path.write_text(f'[columns]\ntime = "t"\nmag_x = "x"\nmag_x2 = "x2"\n{extra} = "e"\n')
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_column_map(path)
+    said = [str(w.message) for w in caught]
+    if warned is None:
+        assert said == []
+    else:
+        assert said == [
+            f"{path}: [columns] {extra} is not one of magkf's columns and is read as an auxiliary "
+            f"channel; did you mean {warned}?"
+        ]
