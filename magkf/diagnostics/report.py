@@ -420,7 +420,7 @@ def _field_views(log: DriveLog, run, comparison: Comparison) -> list[str]:
     ok = (after["status"] == "ok").to_numpy()
     head = [
         "<h2>Field before and after calibration</h2>",
-        f"<p>Before: the {names[0]}; after: {names[1]}.</p>",
+        f"<p>Before: {names[0]}; after: {names[1]}.</p>",
         *_baseline_part(comparison),
         f"<h3>The field: {names[0]} and {names[1]}</h3>",
     ]
@@ -615,8 +615,9 @@ def _baseline_part(comparison: Comparison) -> list[str]:
     ]
     if comparison.as_read:
         parts.append(
-            "<p>The log was read with the autopilot's calibration kept (--logged-calibration): its raw reading is "
-            "not known here, and the vehicle's calibration is the field as read.</p>"
+            "<p>The log's field was read as the autopilot calibrated it (--logged-calibration was given, or the log "
+            "records no calibration parameters to undo): its raw reading is not known here, and the vehicle's "
+            "calibration is the field as read.</p>"
         )
     if comparison.declination:
         parts.append(f"<p><b>Note:</b> {html.escape(comparison.declination)}.</p>")

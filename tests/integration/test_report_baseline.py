@@ -48,7 +48,7 @@ def test_report_compares_raw_the_vehicle_s_calibration_and_magkf_s(fleet, tmp_pa
     assert "<h3>Raw, the vehicle's own calibration and magkf's</h3>" in html.unescape(page)
     overview = html.unescape(page[: page.index("<h2>")])
     assert "magkf's calibration improves on the calibration the vehicle flies by" in overview
-    assert "Before: the raw reading (no calibration); after: magkf's calibration." in html.unescape(page)
+    assert "Before: raw reading (no calibration); after: magkf's calibration." in html.unescape(page)
     # the table's raw and vehicle rows are the baseline's, to the digits shown
     log = read_log(log_path)
     vehicle, _ = vehicle_calibration(log)
