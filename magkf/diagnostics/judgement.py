@@ -83,11 +83,12 @@ def _withheld(reason: str | None) -> str | None:
     )
 
 
-def next_step(recommended: list, judgement: Judgement | None = None, undetermined: str = "") -> str:
+def next_step(recommended: list, judgement: Judgement | None = None, undetermined: str = "", fitting=False) -> str:
     """The next step a diagnosis advises, from inside ``diagnose`` or ``report``: add the effects its rule took
     (``recommended``, ``Candidate``s) with ``magkf calibrate``; with none, what is left to look at: the refusal
     when the calibration is refused, the turning the log lacks when it leaves part of the core at its prior
-    (``undetermined``, ``magkf.online.verdict.undetermined_core``), else the signals and the stated noise."""
+    (``undetermined``, ``magkf.online.verdict.undetermined_core``), nothing when the run's verdict finds the model
+    fitting at the level of the noise (``fitting``), else the signals and the stated noise."""
     if recommended:
         options = " ".join(c.option for c in recommended)
         return f"add what the diagnosis takes: magkf calibrate {options}, then check it on another log (magkf validate)"
@@ -98,6 +99,8 @@ def next_step(recommended: list, judgement: Judgement | None = None, undetermine
             f"no candidate effect is needed; the log does not determine {undetermined}: a log that turns through "
             "more headings and attitudes is what the calibration needs"
         )
+    if fitting:
+        return "nothing to add: the model fits the data at the level of the noise and no candidate effect is needed"
     return (
         "no candidate effect explains it beyond chance: the residual follows the signals the diagnosis names (an "
         "effect magkf does not test can be added with --effect-file), or the sensor is noisier than --sensor-noise "

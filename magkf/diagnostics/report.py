@@ -26,7 +26,7 @@ from ..effects.channels import channel_unit
 from ..errors import names_the_log
 from ..io.drivelog import DriveLog
 from ..online.run import calibrate_log
-from ..online.verdict import band_text, retold, undetermined_core
+from ..online.verdict import band_text, fits, retold, undetermined_core
 from .diagnose import compare_runs, diagnose
 from .fitting import WANDER_BLOCK_S
 from .judgement import Judgement, judge, next_step
@@ -787,12 +787,13 @@ EFFECT_SIGNAL = {
 }
 
 
-def _advice(diag, judged: Judgement, lacks: str = "") -> list[str]:
+def _advice(diag, judged: Judgement, lacks: str = "", fitting: bool = False) -> list[str]:
     """What to do: the option that adds the recommended effect, its held-out before and after, and (for a
     calibration that would be written) the residual against the effect's channel; with none, ``next_step``
-    (``lacks``: the core the log leaves at its prior)."""
+    (``lacks``: the core the log leaves at its prior; ``fitting``: the run's verdict finds the model fitting)."""
     if not diag.recommended:
-        return [f"<p><b>What to do:</b> {html.escape(next_step([], judged, lacks))}. {html.escape(diag.text)}.</p>"]
+        step = next_step([], judged, lacks, fitting)
+        return [f"<p><b>What to do:</b> {html.escape(step)}. {html.escape(diag.text)}.</p>"]
     best = diag.recommended[0]
     name, _, column = best.effect.partition(":")
     signal = column or EFFECT_SIGNAL.get(name, diag.signals[0]["signal"] if diag.signals else "time_s")
@@ -880,7 +881,7 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
         parts += _noise_section(run, t0, verdict, judged.refusal is None)
     if judged.refusal is None:
         parts += [*_gates_and_estimate(run, t0), *_field_views(log, run, comparison), *_residuals_section(diag, t0)]
-        parts += _candidates_section(diag, judged, _lacks(run))
+        parts += _candidates_section(diag, judged, _lacks(run), fitting=fits(run.summary.verdict))
         if effects:
             parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)
     else:
@@ -980,9 +981,12 @@ def _residuals_section(diag, t0: float) -> list[str]:
     ]
 
 
-def _candidates_section(diag, judged: Judgement, lacks: str, title: str = "Which effect is missing") -> list[str]:
+def _candidates_section(
+    diag, judged: Judgement, lacks: str, title: str = "Which effect is missing", fitting: bool = False
+) -> list[str]:
     """The "Which effect is missing" section (headed ``title``): how the candidates were tested, their ranking,
-    what to do (``_advice``), and every signal the residual follows."""
+    what to do (``_advice``; ``fitting``: the run's verdict finds the model fitting), and every signal the residual
+    follows."""
     wander = (
         f", after the heading's slow error was taken out over {diag.heading_wander_s:g} s stretches"
         if diag.heading_wander_s
@@ -997,7 +1001,7 @@ def _candidates_section(diag, judged: Judgement, lacks: str, title: str = "Which
         f"{diag.correlation_s:.2g} s. Held-out RMS: the NED residual on blocks of the log left out of the fit "
         f"(the model's own: {_fixed(diag.residual_rms_held_out_nt)} nT).</p>",
         _candidate_table(diag.candidates),
-        *_advice(diag, judged, lacks),
+        *_advice(diag, judged, lacks, fitting),
         _table(
             [
                 (_signal_label(x["signal"]), x["component"], _p(x["p_value"]), f"{x['binned_range_nt']:.1f}")

@@ -152,3 +152,13 @@ def test_the_report_of_a_calibration_refused_by_its_own_r_shows_no_figure_of_it(
     page = report.build_report(log)
     assert "Refused: <code>magkf calibrate</code> would not write this calibration" in page and reason in page
     assert "<img" not in page and "residual RMS" not in page and "Which effect is missing" not in page
+
+
+def test_nothing_to_add_when_the_model_fits():
+    """No candidate taken and a verdict that finds the model fitting at the noise's level: the next step says there
+    is nothing to add, not that the residual follows signals or the sensor is noisier than stated."""
+    from magkf.diagnostics.judgement import next_step
+
+    step = next_step([], None, "", fitting=True)
+    assert step.startswith("nothing to add") and "noisier" not in step
+    assert "noisier" in next_step([], None, "")
