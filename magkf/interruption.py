@@ -4,8 +4,9 @@ way out runs and removes what the command had begun to write (``magkf.files``).
 
 A signal that arrives while ``held()`` is active (moving outputs into place, removing temporaries) waits
 for the block to end; one that arrives while the command is already stopping is ignored, so that a second
-Ctrl-C or a SIGTERM after a SIGHUP cannot cut the clean-up short. SIGKILL cannot be caught: what it leaves
-is removed by the next run (``magkf.files``).
+Ctrl-C or a SIGTERM after a SIGHUP cannot cut the clean-up short; the ``FORCE``-th raises ``Interrupted`` again
+(a clean-up that hangs, or a stop that something swallowed, can still be cut). SIGKILL cannot be caught: what it
+leaves is removed by the next run (``magkf.files``).
 """
 
 from __future__ import annotations
@@ -30,11 +31,18 @@ class Interrupted(KeyboardInterrupt):
 _holding = 0  # depth of held() blocks
 _pending: int | None = None  # a signal that arrived within held()
 _stopping = False  # an Interrupted has been raised
+_ignored = 0  # signals ignored while stopping
+#: The signal, counting the first, that stops a command even while it is stopping (the third Ctrl-C).
+FORCE = 3
 
 
 def _handler(signum, frame) -> None:
-    global _pending, _stopping
+    global _pending, _stopping, _ignored
     if _stopping:
+        _ignored += 1
+        if _ignored + 1 >= FORCE:
+            _ignored = 0
+            raise Interrupted(signum)
         return
     if _holding:
         _pending = _pending or signum
@@ -46,8 +54,8 @@ def _handler(signum, frame) -> None:
 def stop_on_signals() -> dict:
     """Make SIGINT, SIGTERM and SIGHUP raise ``Interrupted`` (call from the main thread); returns the
     handlers they had, for ``restore``."""
-    global _pending, _stopping
-    _pending, _stopping = None, False
+    global _pending, _stopping, _ignored
+    _pending, _stopping, _ignored = None, False, 0
     return {signum: signal.signal(signum, _handler) for signum in SIGNALS}
 
 

@@ -219,3 +219,14 @@ def test_signal_waits_for_held_block(signals):
 def test_sighup_interrupts(signals):
     with pytest.raises(KeyboardInterrupt):
         signal.raise_signal(signal.SIGHUP)
+
+
+def test_the_third_signal_stops_even_a_stopping_command(signals):
+    """Once stopping, the second signal is ignored (the clean-up runs) and the third raises again (a clean-up that
+    hangs, or a stop that was swallowed, can still be cut)."""
+    with pytest.raises(interruption.Interrupted):
+        signal.raise_signal(signal.SIGINT)
+    signal.raise_signal(signal.SIGINT)  # the second: ignored
+    with pytest.raises(interruption.Interrupted) as err:
+        signal.raise_signal(signal.SIGTERM)
+    assert err.value.signum == signal.SIGTERM
