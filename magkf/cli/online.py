@@ -337,8 +337,6 @@ def _calibrate_one(args, log, config, init, added, output, states):
     summary = run.summary.as_dict()
     # the rule of magkf.plausibility: refused before anything is written, or warned
     summary["warnings"] = check_run(run, log.source, log_field_nt(log), init, log)
-    for warning in summary["warnings"]:
-        print(f"magkf: warning: {log.source}: {warning}", file=sys.stderr)
     if added:
         from ..diagnostics.diagnose import compare_runs
 
@@ -356,8 +354,10 @@ def _calibrate_one(args, log, config, init, added, output, states):
     used = (run.states["status"] == "used").to_numpy() if run.states is not None else None
     check_against_start(summary["written"], log.source, log, used, (run.summary.model or {}).get("family"))
     if summary["written"].get("worse_than_start"):
-        warning = f"the calibration written fits this log worse than its start ({summary['written']['text']})"
-        summary["warnings"].append(warning)
+        summary["warnings"].append(
+            f"the calibration written fits this log worse than its start ({summary['written']['text']})"
+        )
+    for warning in summary["warnings"]:  # once nothing can refuse the run: an error stays one line
         print(f"magkf: warning: {log.source}: {warning}", file=sys.stderr)
     if args.json:
         common.print_json(summary)
