@@ -104,7 +104,8 @@ worker details; Dask's defaults add Prometheus metrics, scheduler and worker pag
 def local_security():
     """A ``distributed.security.Security`` for one local cluster: a self-signed certificate and key made
     now for this run (Dask writes it to a temporary folder of the user's to load it, and the cluster's
-    processes are the user's own), used by the scheduler, workers and client alike, TLS required both ways. Needs ``cryptography`` (a dependency of magkf for this)."""
+    processes are the user's own), used by the scheduler, workers and client alike, TLS required both ways.
+    Needs ``cryptography`` (a dependency of magkf for this)."""
     from distributed.security import Security
 
     return Security.temporary()
