@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-__all__ = ["InputError", "names_the_log"]
+__all__ = ["InputError", "Note", "names_the_log"]
+
+
+class Note(UserWarning):
+    """Something the user should know that is not a suspicion (the command line prints it as ``magkf: note:``)."""
 
 
 class InputError(ValueError):

@@ -9,7 +9,7 @@ import sys
 from datetime import UTC, datetime
 
 from ..conventions import NT_PER_UNIT
-from ..errors import InputError
+from ..errors import InputError, Note
 from ..plugins import EFFECTS, FILTERS, MEASUREMENTS, READERS
 
 __all__ = [
@@ -217,10 +217,6 @@ FILTER_OPTIONS = {
     "block_s": "--block-s",
     "model": "--model",
 }
-
-
-class Note(UserWarning):
-    """Something the user should know that is not a suspicion (printed as ``magkf: note:``)."""
 
 
 def probability(text: str) -> float:

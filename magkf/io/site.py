@@ -175,13 +175,24 @@ def place_at_site(table: pd.DataFrame, provenance: dict, site: Site | None, sour
             provenance["time_base"] = f"given: --date {given.as_dict()['start_utc']} plus the log's time since boot"
             notes.append("UTC is the --date given (the log's clock at zero) plus the log's time, not measured")
         else:
-            notes.append("--date not used: the log's own time is UTC")
+            _unused(notes, "--date not used: the log's own time is UTC", source)
     if given.has_place and unplaced:
         n = len(table)
         columns |= {LAT: np.full(n, given.lat), LON: np.full(n, given.lon), ALT: np.full(n, given.alt)}
         notes.append(f"position: the --site given ({given.lat:g}, {given.lon:g}, {given.alt:g} m), not measured")
     elif given.has_place:
-        notes.append("--site not used: the log has its own GNSS position")
+        _unused(notes, "--site not used: the log has its own GNSS position", source)
     if columns:
         provenance["site"] = given.as_dict()
     return table.assign(**columns) if columns else table
+
+
+def _unused(notes: list, text: str, source: str) -> None:
+    """An option given but not used, added to the reader's ``notes`` and said (``Note``): the log's own measurement
+    is kept, which the user who gave the option may not expect."""
+    import warnings
+
+    from ..errors import Note
+
+    notes.append(text)
+    warnings.warn(Note(f"{source}: {text}"), stacklevel=3)

@@ -122,7 +122,10 @@ def test_a_placed_log_calibrates_as_one_logged_at_the_site(drive, tmp_path):
 def test_a_utc_log_keeps_its_time_and_notes_the_date(drive, tmp_path):
     table = drive.drop(columns=["lat", "lon", "alt"])
     write_drive_log(table, tmp_path / "nogps.csv")
-    log = read_drive_log(tmp_path / "nogps.csv", site=Site(48.1, 11.6, 0.0, START))
+    from magkf.errors import Note
+
+    with pytest.warns(Note, match="nogps.csv: --date not used: the log's own time is UTC"):  # said, not only noted
+        log = read_drive_log(tmp_path / "nogps.csv", site=Site(48.1, 11.6, 0.0, START))
     np.testing.assert_array_equal(log.time, table["time"].to_numpy())
     assert "--date not used: the log's own time is UTC" in log.provenance["notes"]
 
