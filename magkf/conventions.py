@@ -59,6 +59,7 @@ __all__ = [
     "inclination_deg",
     "magnetic_heading_deg",
     "wrap_deg",
+    "heading_span_deg",
 ]
 
 # ---------------------------------------------------------------- column names (data contract)
@@ -294,6 +295,15 @@ def _heading1(x: float, y: float, z: float, roll_deg: float, pitch_deg: float) -
     cr, sr = math.cos(r), math.sin(r)
     north = x * math.cos(p) + (y * sr + z * cr) * math.sin(p)
     return math.degrees(math.atan2(-(y * cr - z * sr), north)) % 360.0
+
+
+def heading_span_deg(yaw_deg) -> float:
+    """Degrees of the circle spanned by headings ``yaw_deg`` (N,): 360 minus the largest gap between
+    neighbouring headings (0 for fewer than two)."""
+    a = np.sort(np.asarray(yaw_deg, float) % 360.0)
+    if len(a) < 2:
+        return 0.0
+    return float(360.0 - np.diff(np.concatenate([a, [a[0] + 360.0]])).max())
 
 
 def wrap_deg(angle_deg) -> np.ndarray:

@@ -245,15 +245,20 @@ def heading_span(log, used=None) -> float:
     """Degrees of heading the ``DriveLog`` ``log`` turns through over its epochs ``used`` (N,) bool (None: all):
     360 deg minus the largest gap between neighbouring headings (as ``magkf check`` reports it); NaN without a
     heading."""
+    from .conventions import heading_span_deg
+
     t = getattr(log, "table", None)
     if t is None or "yaw" not in t:
         return float("nan")
-    keep = np.ones(len(t), bool) if used is None or len(used) != len(t) else np.asarray(used, bool)
-    yaw = t["yaw"].to_numpy(float)[keep]
-    yaw = np.sort(yaw[np.isfinite(yaw)] % 360.0)
-    if not len(yaw):
-        return float("nan")
-    return 0.0 if len(yaw) < 2 else float(360.0 - np.diff(np.concatenate([yaw, [yaw[0] + 360.0]])).max())
+    yaw = t["yaw"].to_numpy(float)[_kept(t, used)]
+    yaw = yaw[np.isfinite(yaw)]
+    return heading_span_deg(yaw) if len(yaw) else float("nan")
+
+
+def _kept(table, used) -> np.ndarray:
+    """The epochs (N,) bool of ``table`` that ``used`` marks; all of them when ``used`` is None or of another
+    length."""
+    return np.ones(len(table), bool) if used is None or len(used) != len(table) else np.asarray(used, bool)
 
 
 def turning_text(log, used=None) -> str:
@@ -265,7 +270,7 @@ def turning_text(log, used=None) -> str:
     if not np.isfinite(span):
         return ""
     t = log.table
-    keep = np.ones(len(t), bool) if used is None or len(used) != len(t) else np.asarray(used, bool)
+    keep = _kept(t, used)
     who = "the log turns" if used is None else f"the {int(keep.sum())} epochs used turn"
     text = f"{who} through {span:.0f} deg of heading"
     for angle in ("pitch", "roll"):
@@ -310,7 +315,7 @@ def _offsets_at_prior(run) -> bool:
         start = getattr(run, "start", None)
         if not all(k in given for k in ("b_x", "b_y", "b_z")) or start is None or start.covariance is None:
             return False
-        prior = np.sqrt(np.clip(np.diag(np.asarray(start.covariance, float))[9:12], 0, None))
+        prior = _stds(start.covariance)[9:12]
         std = np.array([given[k] for k in ("b_x", "b_y", "b_z")], float)
         return bool(np.all(std >= np.sqrt(1.0 / (1.0 + _AT_PRIOR)) * prior))
     for found in (run.summary.observability or {}).get("undetermined", []):
@@ -326,7 +331,7 @@ def _moved(run, start) -> float:
         return 0.0
     before = np.concatenate([np.asarray(start.R, float).ravel(), np.asarray(start.b, float)])
     now = np.concatenate([np.asarray(run.summary.R, float).ravel(), np.asarray(run.summary.b, float)])
-    std = np.sqrt(np.clip(np.diag(np.asarray(start.covariance, float)), 0, None))
+    std = _stds(start.covariance)
     with np.errstate(divide="ignore", invalid="ignore"):
         moved = np.where(std > 0, np.abs(now - before) / std, 0.0)
     return float(np.nanmax(moved))
@@ -336,8 +341,13 @@ def _offset_std(run) -> np.ndarray:
     """The offsets' standard deviations (3,) nT the file written from ``run`` holds (its covariance)."""
     cov = getattr(run.calibration, "covariance", None)
     if cov is not None:
-        return np.sqrt(np.clip(np.diag(np.asarray(cov, float))[9:12], 0, None))
+        return _stds(cov)[9:12]
     return np.array([run.summary.std.get(k, np.nan) for k in ("b_x", "b_y", "b_z")], float)
+
+
+def _stds(covariance) -> np.ndarray:
+    """The standard deviations (n,) of a ``covariance`` (n, n); a negative variance from rounding counts as 0."""
+    return np.sqrt(np.clip(np.diag(np.asarray(covariance, float)), 0, None))
 
 
 def check_start(init, source: str) -> None:
@@ -385,7 +395,7 @@ def check_loaded(cal, source: str, field_nt: float = float("nan"), readings=None
     try:
         warnings = check_calibration(R, b / scale, source, field_known=nt, lacks=fix, unit_option=False)
         if nt and cal.covariance is not None:
-            warnings += check_offset_std(np.sqrt(np.clip(np.diag(cal.covariance)[9:12], 0, None)), field, source, fix)
+            warnings += check_offset_std(_stds(cal.covariance)[9:12], field, source, fix)
     except InputError as exc:
         raise InputError(
             "the calibration is not used: " + exc.message.replace("(nothing written)", "(nothing used)"), source
@@ -470,9 +480,10 @@ def _refuse_undetermined(run, source: str, init, log, lacks: str) -> None:
     at_prior = _offsets_at_prior(run)
     if at_prior:
         raise InputError(f"the data do not determine the offsets; {lacks} (nothing written)", source)
-    if init is None and s.model is None and _moved(run, run.start) > MOVED_REFUSED:
+    moved = _moved(run, run.start) if init is None and s.model is None else 0.0
+    if moved > MOVED_REFUSED:
         raise InputError(
-            f"the estimate left the log's own starting fit by {_moved(run, run.start):.3g} of its standard "
+            f"the estimate left the log's own starting fit by {moved:.3g} of its standard "
             f"deviations (more than {MOVED_REFUSED:g}): the data do not hold it there; {lacks} (nothing written)",
             source,
         )
@@ -509,9 +520,10 @@ def check_run(run, source: str, field_nt: float, init=None, log=None) -> list[st
     warnings += check_offset_std(_offset_std(run), scale, source, lacks)
     if used < FEW_EPOCHS:
         warnings.append(f"only {used} epochs used: the estimate rests on little data")
-    if init is not None and init.covariance is not None and _moved(run, init) > MOVED_SIGMA:
+    moved = _moved(run, init) if init is not None else 0.0
+    if moved > MOVED_SIGMA:
         warnings.append(
-            f"the estimate moved {_moved(run, init):.3g} standard deviations from --init: the start or this log "
+            f"the estimate moved {moved:.3g} standard deviations from --init: the start or this log "
             "is wrong, or the start's uncertainty too small"
         )
     return warnings

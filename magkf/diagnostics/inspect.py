@@ -48,7 +48,7 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from ..conventions import ALT, DOP, HDOP, LAT, LON, PDOP, declination_deg, inclination_deg
+from ..conventions import ALT, DOP, HDOP, LAT, LON, PDOP, declination_deg, heading_span_deg, inclination_deg
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
 from ..online.bootstrap import MIN_EPOCHS as BOOTSTRAP_MIN_EPOCHS
@@ -117,15 +117,6 @@ def sphere_cell(directions) -> np.ndarray:
     of the regular icosahedron, projected onto the sphere, that the direction points through. The 20
     cells have equal area, ``4 pi / 20`` sr each."""
     return np.argmax(np.asarray(directions, float) @ _CELL_CENTRES.T, axis=1)
-
-
-def heading_span_deg(yaw_deg) -> float:
-    """Degrees of the circle spanned by headings ``yaw_deg`` (N,): 360 minus the largest gap between
-    neighbouring headings (0 for fewer than two)."""
-    a = np.sort(np.asarray(yaw_deg, float) % 360.0)
-    if len(a) < 2:
-        return 0.0
-    return float(360.0 - np.diff(np.concatenate([a, [a[0] + 360.0]])).max())
 
 
 def _num(x, digits: int = 4):
