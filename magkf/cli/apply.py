@@ -19,19 +19,16 @@ def add_parsers(sub) -> None:
 def run_apply(args) -> int:
     """Apply a calibration file to a drive log; every epoch is written with a status. The calibration is judged
     against the log's field first (``magkf.plausibility.check_loaded``): an absurd one is refused, naming its file."""
-    import sys
-
     from ..apply import apply_calibration
     from ..io.drivelog import write_drive_log
     from ..plausibility import check_applied, log_field_nt
 
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    common.judge_calibration(args, cal, log)
+    common.judge_calibration(cal, log)
     common.effects(args, cal)  # user code runs once the inputs are read
     out = apply_calibration(log, cal)
-    for warning in check_applied(out["magnitude_nt"].to_numpy(), log_field_nt(log), args.file):
-        print(f"magkf: warning: {args.file}: {warning}", file=sys.stderr)
+    common.print_warnings(args.file, check_applied(out["magnitude_nt"].to_numpy(), log_field_nt(log), args.file))
     if args.output:
         write_drive_log(out, args.output)
     counts = out["status"].value_counts().to_dict()

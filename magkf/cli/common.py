@@ -547,16 +547,23 @@ def load_calibration(path):
     return replace(cal, file=STDIN_NAME) if path == STDIO else cal  # its effects' errors name <stdin>
 
 
-def judge_calibration(args, cal, log) -> None:
-    """The calibration ``cal`` of ``--cal`` judged against the field of ``log`` before a command uses it
-    (``magkf.plausibility.check_loaded``): warnings printed, an absurd calibration refused naming its file."""
+def judge_calibration(cal, log=None) -> None:
+    """The calibration ``cal`` (read by ``load_calibration``) judged before a command uses it
+    (``magkf.plausibility.check_loaded``) against the field of the ``DriveLog`` ``log`` (None: the Earth's
+    largest, for ``export``): warnings printed, an absurd calibration refused naming its file (``<stdin>`` for
+    one read from standard input)."""
     if cal is None:
         return
     from ..plausibility import check_loaded, log_field_nt
 
-    name = cal.file or args.cal  # <stdin> for a calibration read from standard input
-    for warning in check_loaded(cal, name, log_field_nt(log), log.mag):
-        print(f"magkf: warning: {name}: {warning}", file=sys.stderr)
+    field, readings = (log_field_nt(log), log.mag) if log is not None else (float("nan"), None)
+    print_warnings(cal.file, check_loaded(cal, cal.file, field, readings))
+
+
+def print_warnings(source, warnings) -> None:
+    """Each of ``warnings`` (sentences) on standard error as ``magkf: warning: SOURCE: ...``."""
+    for warning in warnings:
+        print(f"magkf: warning: {source}: {warning}", file=sys.stderr)
 
 
 def logged_start(args, log, init):

@@ -62,7 +62,7 @@ def run_diagnose(args) -> int:
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    common.judge_calibration(args, cal, log)
+    common.judge_calibration(cal, log)
     added = common.effects(args, cal)  # user code runs once the inputs are read
     result, summary = _diagnosed(args, args.file, log, config, cal, added)
     if common.write_json_result(args, summary):
@@ -189,7 +189,7 @@ def _diagnose_flights(args) -> int:
     read = common.log_reader(args)
     logs = {name: read(name) for name in names}  # every log read before any work
     for log in logs.values():
-        common.judge_calibration(args, cal, log)
+        common.judge_calibration(cal, log)
     added = common.effects(args, cal)  # user code runs once the inputs are read
     results, summaries = {}, {}
     for name, log in logs.items():
@@ -268,7 +268,7 @@ def run_validate(args) -> int:
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    common.judge_calibration(args, cal, log)
+    common.judge_calibration(cal, log)
     common.effects(args, cal)  # user code runs once the inputs are read
     result = validate(log, cal, config, alpha=args.alpha, wander_s=args.heading_wander)
     summary = result.summary()
@@ -327,7 +327,7 @@ def run_report(args) -> int:
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
     log = common.open_log(args)
-    common.judge_calibration(args, cal, log)
+    common.judge_calibration(cal, log)
     added = common.effects(args, cal)  # user code runs once the inputs are read
     page = build_report(
         log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)

@@ -149,7 +149,7 @@ def run_export(args) -> int:
     cals = [(input_name(path), common.load_calibration(path)) for path in args.cal]  # - : standard input
     for path, cal in cals:
         _check_field_unit(path, cal)
-        _check_plausible(path, cal)
+        common.judge_calibration(cal)  # no log: against the Earth's largest field
     chosen = _export_instances(args, cals)
     sets = []
     for (path, cal), (instance, _why), slot in zip(cals, chosen, _custom_slots(len(cals))):
@@ -183,17 +183,6 @@ def _check_field_unit(path, cal) -> None:
     }
     if cal.field_unit != "nT":
         raise InputError(f"the calibration's field is {fixes.get(cal.field_unit, cal.field_unit)}", path)
-
-
-def _check_plausible(path, cal) -> None:
-    """InputError naming ``path`` for a calibration no autopilot should load (``magkf.plausibility.check_loaded``,
-    against the Earth's largest field: no log says the field here); its warnings printed."""
-    import sys
-
-    from ..plausibility import check_loaded
-
-    for warning in check_loaded(cal, path):
-        print(f"magkf: warning: {path}: {warning}", file=sys.stderr)
 
 
 def _export_instances(args, cals) -> list:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 from ..conventions import MAG, NT_PER_UNIT, to_nanotesla
 from ..errors import InputError
 from . import common
@@ -100,8 +98,7 @@ def run_sinefit(args) -> int:
     warnings = check_calibration(cal.R, np.asarray(cal.b) / field, source, lacks=SINEFIT_LACKS)
     warnings += check_residual(result.residual_rms_nt, field, source, refuse=result.method == "exact")
     warnings += check_offset_std(_offset_std(result.standard_errors, ("b_x", "b_y", "b_z")), field, source)
-    for warning in warnings:
-        print(f"magkf: warning: {source}: {warning}", file=sys.stderr)
+    common.print_warnings(source, warnings)
     if args.output:
         cal.save(args.output)
     if args.json:
@@ -187,8 +184,7 @@ def run_ellipsoid(args) -> int:
         )
     if args.output:
         result.to_calibration(source=args.file, field_unit=field_unit).save(args.output)
-    for w in result.warnings:
-        print(f"magkf: warning: {args.file}: {w}", file=sys.stderr)
+    common.print_warnings(args.file, result.warnings)
     if args.json:
         common.print_json({**result.summary(), "columns": columns, "field_unit": field_unit})
     else:

@@ -282,8 +282,7 @@ def _calibrate_chunked(args, config, init) -> None:
         )
         summary = run.summary.as_dict()
         summary["warnings"] = check_run(run, args.file, log_field_nt(first), init)
-    for warning in summary["warnings"]:
-        print(f"magkf: warning: {args.file}: {warning}", file=sys.stderr)
+    common.print_warnings(args.file, summary["warnings"])
     if args.output:  # moved into place after the states (magkf.files.committed)
         main_output(args.output)
         run.calibration.save(args.output)
@@ -311,7 +310,6 @@ def _print_side_by_side(rows) -> None:
 
 def _calibrate_one(args, log, config, init, added, output, states):
     """Calibrate one log (one magnetometer), write and print what the options ask; returns the run."""
-    import sys
 
     from ..calibration import Calibration
     from ..errors import names_the_log
@@ -357,8 +355,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
         summary["warnings"].append(
             f"the calibration written fits this log worse than its start ({summary['written']['text']})"
         )
-    for warning in summary["warnings"]:  # once nothing can refuse the run: an error stays one line
-        print(f"magkf: warning: {log.source}: {warning}", file=sys.stderr)
+    common.print_warnings(log.source, summary["warnings"])  # once nothing can refuse the run: one-line errors
     if args.json:
         common.print_json(summary)
         return run
