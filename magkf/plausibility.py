@@ -71,6 +71,8 @@ __all__ = [
     "check_applied",
     "WORSE_REFUSED",
     "check_against_start",
+    "field_scale",
+    "reason",
 ]
 
 SENSITIVITY_REFUSED = (0.2, 5.0)
@@ -512,9 +514,8 @@ def check_run(run, source: str, field_nt: float, init=None, log=None) -> list[st
             misfit = misfit.replace(" (--mag-unit)", "")
         raise InputError(f"{misfit}; nothing written", source)
     R, b = np.asarray(s.R, float), np.asarray(s.b, float)
-    known = bool(np.isfinite(field_nt) and field_nt > 0)
+    scale, known = field_scale(R, field_nt)
     lacks = _lacks(run, log)
-    scale = field_nt if known else np.mean(np.abs(np.linalg.svd(R)[1]))
     warnings = check_calibration(R, b / scale, source, known, lacks=lacks, unit_option=unit_option(source))
     _refuse_undetermined(run, source, init, log, lacks)
     warnings += check_offset_std(_offset_std(run), scale, source, lacks)
@@ -535,4 +536,17 @@ def judge_run(run, log, init=None) -> tuple[str | None, list[str]]:
     try:
         return None, check_run(run, log.source, log_field_nt(log), init, log)
     except InputError as exc:
-        return exc.message.replace(" (nothing written)", ""), []
+        return reason(exc), []
+
+
+def field_scale(R, field_nt: float) -> tuple[float, bool]:
+    """``(scale, known)``: what a calibration's offsets are divided by before ``check_calibration``, the field
+    ``field_nt`` when it is known (finite and positive), else the mean sensitivity of ``R`` (the field as the
+    sensor reads it)."""
+    known = bool(np.isfinite(field_nt) and field_nt > 0)
+    return (float(field_nt) if known else float(np.mean(np.linalg.svd(R, compute_uv=False)))), known
+
+
+def reason(exc: InputError) -> str:
+    """The refusal ``exc`` as the reason a command that writes nothing gives (without "nothing written")."""
+    return exc.message.replace(" (nothing written)", "").replace(": nothing written", "")

@@ -60,16 +60,16 @@ def judge(run, log, init=None, cal=None) -> Judgement:
 def _own_refusal(R, b, log) -> str | None:
     """Why the plausibility rule refuses ``R`` (3, 3) and ``b`` (3,) nT themselves against the field of ``log``
     (``check_calibration``), or None."""
-    from ..plausibility import check_calibration, log_field_nt
+    from ..plausibility import check_calibration, field_scale, log_field_nt, reason
 
     R, b = np.asarray(R, float), np.asarray(b, float)
-    field = log_field_nt(log)
-    known = bool(np.isfinite(field) and field > 0)
     try:
-        scale = field if known else float(np.mean(np.linalg.svd(R, compute_uv=False)))
+        scale, known = field_scale(R, log_field_nt(log))
         check_calibration(R, b / scale, log.source, known)
-    except (InputError, np.linalg.LinAlgError, ValueError) as exc:
-        return getattr(exc, "message", str(exc)).replace(" (nothing written)", "").replace(": nothing written", "")
+    except InputError as exc:
+        return reason(exc)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        return str(exc)
     return None
 
 
