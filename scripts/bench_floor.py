@@ -10,21 +10,25 @@ Printed:
 * **phases, in this process**: the floor's phases and ``magkf calibrate``'s (read and validate, reference
   field and attitude, start, filter loop, per-epoch table, writing), run alternately, each with its ratio
   to the floor's total; the EKF, the UKF, ``--smooth`` and ``--batch``;
-* **end to end, fresh processes** (imports included): the floor, ``magkf calibrate`` (EKF, UKF), with
-  ``--states`` as Parquet, ``diagnose`` and ``report``, and ``--smooth`` through the chunked path that
-  ``calibrate`` takes for long logs (``magkf.online.chunked``), wall time and ratio to the floor; and the
-  EKF's end-to-end time less its filter loop, the ratio to the floor a loop that cost nothing would give;
-* **memory per epoch**: the peak resident set of each command (``VmHWM`` of its own process, so nothing of
-  this benchmark is carried into it) above that of a process that imports the same modules and reads the
-  log, divided by the epochs.
+* **end to end, fresh processes** (imports included), every command: the floor, ``magkf calibrate`` (EKF,
+  UKF, ``--smooth``, ``--states`` as Parquet, ``--batch``, and ``--smooth`` through the chunked path that
+  ``calibrate`` takes for long logs, ``magkf.online.chunked``), ``apply``, ``convert``, ``diagnose``,
+  ``validate`` and ``report``: wall time, its ratio to the floor, peak memory and the **bytes per epoch above
+  the input**: the peak resident set of the command (``VmHWM`` of its own process, so nothing of this
+  benchmark is carried into it) above that of a process that imports the same modules and reads the log,
+  divided by the epochs; and the EKF's end-to-end time less its filter loop, the ratio to the floor a loop
+  that cost nothing would give. With ``--baseline DIR`` (a checkout of an earlier magkf, e.g. ``git worktree
+  add DIR REV``) every command is also run with magkf imported from there, alternately, and its figures are
+  printed beside this checkout's: before and after, in one run.
 
-    python scripts/bench_floor.py [--repeat 3] [--hours 1] [--rate 100] [--skip-slow]
+    python scripts/bench_floor.py [--repeat 3] [--hours 1] [--rate 100] [--skip-slow] [--baseline DIR]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -106,22 +110,90 @@ def magkf_phases(path: Path, out: Path, filter_name: str, smooth: bool = False, 
     return phases.seconds
 
 
-def child(args: list[str], code: str | None = None) -> dict:
-    """Run ``magkf ARGS`` (or ``code``) in a fresh process; its wall time from the first import and peak
-    memory (kB)."""
+def child(args: list[str], code: str | None = None, checkout: Path | None = None) -> dict:
+    """Run ``magkf ARGS`` (or ``code``) in a fresh process, with magkf imported from ``checkout`` (a folder
+    holding the package; None: the installed one); its wall time from the first import and peak memory (kB)."""
     body = code or f"from magkf.cli import main; main({args!r}); "
+    env = dict(os.environ, PYTHONPATH=str(checkout)) if checkout else None
     proc = subprocess.run(
-        [sys.executable, "-c", _PRELUDE + body + _EPILOGUE], capture_output=True, text=True, check=False
+        [sys.executable, "-c", _PRELUDE + body + _EPILOGUE], capture_output=True, text=True, check=False, env=env
     )
     if proc.returncode != 0:
         raise RuntimeError(f"{args or code} failed: {proc.stderr.strip().splitlines()[-1:]}")
     return json.loads(proc.stderr.strip().splitlines()[-1])
 
 
-def fresh_floor(path: Path) -> dict:
+def fresh_floor(path: Path, checkout: Path | None = None) -> dict:
     """The floor in a fresh process, imports included (they are the prelude's)."""
     code = f"sys.path.insert(0, {str(Path(__file__).parent)!r}); from bench_floor import floor; floor({str(path)!r}); "
-    return child([], code)
+    return child([], code, checkout)
+
+
+def commands(path: Path, out: Path, tmp: Path, skip_slow: bool) -> dict:
+    """Every command measured end to end, by name: ``magkf`` arguments (a list) or Python code (a string)."""
+    log, quiet = str(path), "--quiet"
+    found = {
+        "calibrate (EKF)": ["calibrate", log, "-o", str(out), quiet],
+        "calibrate --filter ukf": ["calibrate", log, "--filter", "ukf", "-o", str(out), quiet],
+        "calibrate --smooth": ["calibrate", log, "--smooth", "-o", str(out), quiet],
+        "calibrate --states S.parquet": ["calibrate", log, "-o", str(out), "--states", str(tmp / "s.parquet"), quiet],
+        # the chunked path (``magkf.online.chunked``), which calibrate takes for logs of CHUNKED_EPOCHS or more
+        "calibrate --smooth, chunked": (
+            "from magkf.online.chunked import calibrate_file; "
+            f"calibrate_file({log!r}, smooth=True).calibration.save({str(out)!r}); "
+        ),
+        "apply --cal CAL -o A.parquet": ["apply", log, "--cal", str(out), "-o", str(tmp / "a.parquet")],
+        "convert -o C.parquet": ["convert", log, "-o", str(tmp / "c.parquet")],
+    }
+    if not skip_slow:
+        found |= {
+            "calibrate --batch": ["calibrate", log, "--batch", "-o", str(tmp / "batch.json"), quiet],
+            "diagnose": ["diagnose", log, quiet],
+            "validate --cal CAL": ["validate", log, "--cal", str(out), quiet],
+            "report": ["report", log, "-o", str(tmp / "report.html"), quiet],
+        }
+    return found
+
+
+def end_to_end(path: Path, out: Path, tmp: Path, n: int, args, ekf_phases: list) -> None:
+    """Every command in fresh processes, imports included, medians of ``args.repeat``; with ``args.baseline``, each
+    also with magkf imported from that checkout (before) beside this one (after), run alternately."""
+    checkouts = {"after": None} if not args.baseline else {"before": Path(args.baseline), "after": None}
+    child(["calibrate", str(path), "-o", str(out), "--quiet"])  # the calibration apply and validate read
+    todo = commands(path, out, tmp, args.skip_slow)
+    read_only = f"from magkf.io.readers import read_log; log = read_log({str(path)!r}); "
+    results = {(k, c): [] for c in checkouts for k in ["floor", "read only", *todo]}
+    for _ in range(args.repeat):
+        for c, where in checkouts.items():
+            results[("floor", c)].append(fresh_floor(path, where))
+            results[("read only", c)].append(child([], read_only, where))
+            for name, argv in todo.items():
+                is_code = isinstance(argv, str)
+                results[(name, c)].append(child([] if is_code else argv, argv if is_code else None, where))
+    wall = {k: statistics.median(r["wall_s"] for r in v) for k, v in results.items()}
+    peak = {k: statistics.median(r["peak_kb"] for r in v) for k, v in results.items()}
+    print(f"\nEnd to end in fresh processes, imports included (medians of {args.repeat}; {n} epochs):")
+    head = "".join(f"{'wall s':>9s}{'x floor':>8s}{'peak MB':>8s}{'B/epoch':>8s}" for _ in checkouts)
+    print(f"  {'':30s}{head}")
+    if len(checkouts) > 1:
+        print(f"  {'':30s}" + "".join(f"{c:>33s}" for c in checkouts))
+    for name in ["floor", "read only", *todo]:
+        cells = []
+        for c in checkouts:
+            above = (peak[(name, c)] - peak[("read only", c)]) * 1024.0 / n
+            cells.append(
+                f"{wall[(name, c)]:9.2f}{wall[(name, c)] / wall[('floor', c)]:8.2f}{peak[(name, c)] / 1024:8.0f}"
+                f"{above:8.0f}"
+            )
+        print(f"  {name:30s}" + "".join(cells))
+    print("  (B/epoch: peak resident memory above a process that imports the same modules and reads the log)")
+    # What the filter loop's speed alone can gain: the EKF's end-to-end time less its loop (in the process).
+    loop = median_phases(ekf_phases)["filter loop"]
+    rest = wall[("calibrate (EKF)", "after")] - loop
+    print(
+        f"\n  calibrate (EKF) less its filter loop ({loop:.2f} s): {rest:.2f} s, "
+        f"{rest / wall[('floor', 'after')]:.2f} x the floor: the least a loop that cost nothing would give"
+    )
 
 
 def median_phases(runs: list[dict]) -> dict:
@@ -140,7 +212,13 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--hours", type=float, default=1.0)
     parser.add_argument("--rate", type=float, default=100.0)
-    parser.add_argument("--skip-slow", action="store_true", help="leave out --batch, diagnose and report")
+    parser.add_argument("--skip-slow", action="store_true", help="leave out --batch, diagnose, validate and report")
+    parser.add_argument(
+        "--baseline",
+        metavar="DIR",
+        help="a checkout of an earlier magkf (e.g. made by git worktree add): every command end to end is run with "
+        "it too (before) and printed beside this one (after)",
+    )
     args = parser.parse_args()
     from magkf.sim import DriveConfig, simulate_drive
 
@@ -171,55 +249,7 @@ def main() -> int:
             if r:
                 print_phases(f"magkf calibrate {title}", median_phases(r), floor_total)
 
-        print(f"\nEnd to end in fresh processes, imports included (medians of {args.repeat}):")
-        read_only = f"from magkf.io.readers import read_log; log = read_log({str(path)!r}); "
-        commands = {
-            "calibrate (EKF)": ["calibrate", str(path), "-o", str(out), "--quiet"],
-            "calibrate --filter ukf": ["calibrate", str(path), "--filter", "ukf", "-o", str(out), "--quiet"],
-            "calibrate --smooth": ["calibrate", str(path), "--smooth", "-o", str(out), "--quiet"],
-            "calibrate --states S.parquet": [
-                "calibrate",
-                str(path),
-                "-o",
-                str(out),
-                "--states",
-                str(tmp / "s.parquet"),
-                "--quiet",
-            ],
-        }
-        if not args.skip_slow:
-            commands["calibrate --batch"] = ["calibrate", str(path), "--batch", "-o", str(out), "--quiet"]
-            commands["diagnose"] = ["diagnose", str(path), "--quiet"]
-            commands["report"] = ["report", str(path), "-o", str(tmp / "report.html"), "--quiet"]
-        # the chunked path (``magkf.online.chunked``), which calibrate takes for logs of CHUNKED_EPOCHS or more
-        chunked = (
-            "from magkf.online.chunked import calibrate_file; "
-            f"calibrate_file({str(path)!r}, smooth=True).calibration.save({str(out)!r}); "
-        )
-        results = {"floor": [], "read only": [], **{k: [] for k in commands}, "calibrate --smooth, chunked": []}
-        for _ in range(args.repeat):
-            results["floor"].append(fresh_floor(path))
-            results["read only"].append(child([], read_only))
-            for name, argv in commands.items():
-                results[name].append(child(argv))
-            results["calibrate --smooth, chunked"].append(child([], chunked))
-        wall = {k: statistics.median(r["wall_s"] for r in v) for k, v in results.items()}
-        peak = {k: statistics.median(r["peak_kb"] for r in v) for k, v in results.items()}
-        base = peak["read only"]
-        print(f"  {'':30s} {'wall s':>8s} {'x floor':>8s} {'peak MB':>8s} {'B/epoch above the read log':>28s}")
-        for name in results:
-            above = (peak[name] - base) * 1024.0 / n
-            print(
-                f"  {name:30s} {wall[name]:8.2f} {wall[name] / wall['floor']:8.2f} {peak[name] / 1024:8.0f} "
-                f"{above:28.0f}"
-            )
-        # What the filter loop's speed alone can gain: the EKF's end-to-end time less its loop (in the process).
-        loop = median_phases(runs["ekf"])["filter loop"]
-        rest = wall["calibrate (EKF)"] - loop
-        print(
-            f"\n  calibrate (EKF) less its filter loop ({loop:.2f} s): {rest:.2f} s, {rest / wall['floor']:.2f} x the "
-            "floor: the least a loop that cost nothing would give"
-        )
+        end_to_end(path, out, tmp, n, args, runs["ekf"])
     return 0
 
 
