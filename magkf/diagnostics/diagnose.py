@@ -561,13 +561,16 @@ class _InNanotesla:
     another is in neither's nanotesla)."""
 
     def __init__(self, fit: Linearised):
-        self.L = fit.unwhitening
+        self.fit = fit
         self.Rinv = np.linalg.inv(fit.layout.R(fit.x_fit))
 
     def rms(self, residual_w: np.ndarray) -> float:
-        # the rotation to NED keeps the norm
-        raw = np.einsum("nij,nj->ni", self.L, residual_w.reshape(-1, 3))
-        return float(np.sqrt(np.mean(np.sum((raw @ self.Rinv.T) ** 2, axis=1))))
+        # the rotation to NED keeps the norm; un-whitened a chunk at a time
+        residual_w, total = residual_w.reshape(-1, 3), 0.0
+        for a, b in self.fit.chunks:
+            raw = np.einsum("nij,nj->ni", np.linalg.inv(self.fit.W[a:b]), residual_w[a:b])
+            total += float(np.sum((raw @ self.Rinv.T) ** 2))
+        return float(np.sqrt(total / len(residual_w)))
 
 
 @dataclass
@@ -796,16 +799,14 @@ class _Selection:
 
     def refit(self, effect, fit: Linearised) -> tuple[_Trial, Linearised]:
         """``effect`` at its own best fit: the model refitted with it (iterated; a nonlinear effect such as the
-        exact time lag linearised at its estimate), and its test there. Returns the trial and that model, which
-        keeps the whitened Jacobian of ``fit``'s columns and, for an effect of more than ``KEEP_COLUMNS``
-        columns, makes the effect's again when they are read."""
+        exact time lag linearised at its estimate), and its test there. Returns the trial and that model, whose
+        whitened Jacobian is made again a chunk at a time when it is read."""
         block = effect
         if type(effect).regressors is not Effect.regressors:
             block = _AsTested(effect, effect.regressors(fit.data, rows=slice(0, 1)).shape[2])
         layout = StateLayout((*fit.layout.effects, block))
         p = fit.layout.size
-        keep = None if block.size <= KEEP_COLUMNS else p  # a small block's columns kept too, as in ``trial``
-        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]), keep=keep)
+        with_it = self.problem.fit(layout, np.concatenate([fit.x_fit, block.prior()[0]]))
 
         # a wandering effect's test is made at the model without it (a score test): it is fitted here only
         # for its held-out residual

@@ -151,11 +151,12 @@ def inliers(residual: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class Linearised:
     """A model linearised and whitened at state ``x`` on the diagnosed epochs: ``data`` with ``R0`` of ``x``;
-    ``W`` (n, 3, 3) the whitening; ``kept`` (3n, k) the first k columns of the whitened Jacobian (``rows`` gives
-    all p of them a chunk at a time, making the others again) and ``span`` (p, k) the coefficients of an
-    orthonormal basis ``A @ span`` of the directions the data determine (``A`` the whitened Jacobian); ``y``
-    (3n,) the whitened reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares
-    estimate (kept at ``x`` in directions the data do not determine)."""
+    ``W`` (n, 3, 3) the whitening; ``kept`` (3n, k) the first k columns of the whitened Jacobian kept whole
+    (``EpochSet.at`` keeps none: ``rows`` makes all p of them again a chunk at a time, so that nothing of three
+    rows an epoch and p columns is held) and ``span`` (p, k) the coefficients of an orthonormal basis
+    ``A @ span`` of the directions the data determine (``A`` the whitened Jacobian); ``y`` (3n,) the whitened
+    reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares estimate (kept at ``x``
+    in directions the data do not determine)."""
 
     layout: StateLayout
     x: np.ndarray
@@ -168,10 +169,13 @@ class Linearised:
     x_fit: np.ndarray
     wander: HeadingWander | None = None
 
-    @cached_property
-    def unwhitening(self) -> np.ndarray:
-        """``W^-1`` (n, 3, 3): takes whitened residuals back to nT in the sensor axes (computed once per model)."""
-        return np.linalg.inv(self.W)
+    def unwhitened(self, residual_w: np.ndarray) -> np.ndarray:
+        """Whitened residuals (n, 3) taken back to nT in the sensor axes (n, 3): ``W^-1`` applied epoch by epoch,
+        inverted a chunk at a time (never held for the whole set)."""
+        out = np.empty(residual_w.shape)
+        for a, b in self.chunks:
+            out[a:b] = np.einsum("nij,nj->ni", np.linalg.inv(self.W[a:b]), residual_w[a:b])
+        return out
 
     @cached_property
     def chunks(self) -> list:
@@ -202,7 +206,8 @@ class Linearised:
         if k == self.layout.size:
             return kept
         H, _ = _jacobian(self.layout, self.x, self.data, slice(start, stop), first=k)
-        return np.hstack([kept, self.whitened(H, start, stop)])
+        made = self.whitened(H, start, stop)
+        return made if k == 0 else np.hstack([kept, made])
 
     def residual(self, x) -> np.ndarray:
         """``y - A x`` (3n,): the whitened residual of the state ``x`` (p,) (exact at ``self.x`` for nonlinear
@@ -253,14 +258,14 @@ class EpochSet:
         ``at``; ``determined.whitened_gram``)."""
         return whitened_gram(self.data, self.heading, self.config, self.noise, self.wander_s, layout, x)
 
-    def at(self, layout: StateLayout, x, keep: int | None = None) -> Linearised:
+    def at(self, layout: StateLayout, x, keep: int = 0) -> Linearised:
         """The model ``layout`` linearised and whitened at ``x``, and its least-squares fit. The first ``keep``
-        columns of the whitened Jacobian (where a block starts; default all) are kept for the whole set, the
-        others made again a chunk at a time when they are read (``Linearised.rows``)."""
+        columns of the whitened Jacobian (where a block starts; default none) are kept for the whole set, the
+        others made again a chunk at a time when they are read (``Linearised.rows``): the fit's normal equations
+        are summed a chunk at a time, and only vectors of three values an epoch are held."""
         x = np.asarray(x, float)
         data, W, wander = self._whitening(layout, x)
         n, p = len(self.m), layout.size
-        keep = p if keep is None else keep
         chunks = _chunks(n, wander)
         y, kept = np.empty(3 * n), np.empty((3 * n, keep))
         gram, moment = 0.0, 0.0
@@ -287,7 +292,7 @@ class EpochSet:
         step = spread * (vt[:rank].T @ ((along - span.T @ (gram @ x)) / sv[:rank]))
         return replace(fitted, span=span, r=r, x_fit=x + step)
 
-    def fit(self, layout: StateLayout, x, keep: int | None = None) -> Linearised:
+    def fit(self, layout: StateLayout, x, keep: int = 0) -> Linearised:
         """``at`` iterated until the estimate stops moving: the model at its own best fit (``keep`` as ``at``)."""
         prior_std = np.sqrt(np.diag(layout.prior()[1]))
         f = self.at(layout, x, keep)

@@ -407,7 +407,7 @@ def _stretch_means(fit, heading: np.ndarray, stretch_s: float, drop_heading: boo
     s and epochs (K,), and (``drop_heading``) the heading's direction in sensor axes in each (K, 3), which is
     left out (the logged heading's error moves the reading along it; None: not). Stretches cut to less than
     half the usual by gaps are left out."""
-    raw = np.einsum("nij,nj->ni", fit.unwhitening, fit.r.reshape(-1, 3))
+    raw = fit.unwhitened(fit.r.reshape(-1, 3))
     t = fit.data.time
     stretch = np.floor((t - t[0]) / stretch_s).astype(int)
     starts = np.flatnonzero(np.r_[True, np.diff(stretch) != 0])
@@ -424,7 +424,7 @@ def _stretch_means(fit, heading: np.ndarray, stretch_s: float, drop_heading: boo
 
 def _ned(fit, residual_w, x=None) -> np.ndarray:
     """Whitened residuals (n, 3) as NED residuals (n, 3) nT at the fit's (or ``x``'s) calibration ``R``."""
-    raw = np.einsum("nij,nj->ni", fit.unwhitening, residual_w)
+    raw = fit.unwhitened(residual_w)
     R = fit.layout.R(fit.x_fit if x is None else x)
     return body_to_ned(fit.data.c_nb, raw @ np.linalg.inv(R).T)
 
