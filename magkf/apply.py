@@ -34,7 +34,7 @@ def effect_terms(log: DriveLog, cal: Calibration) -> np.ndarray:
     return _terms(log, cal)[0]
 
 
-def drift_terms(time, cal: Calibration, wandering=None, mag=None) -> tuple[np.ndarray, np.ndarray | None]:
+def drift_terms(time, cal: Calibration, wandering=None, mag=None, own_log=None) -> tuple[np.ndarray, np.ndarray | None]:
     """The departure (N, 3) nT from ``b`` of the wandering effects ``cal`` stores at ``time`` (N,) UNIX s, and its
     standard deviation (N,) nT (None when ``cal`` stores no wandering effect): on the log a stored path was learned
     on (``time`` within its span), the path; elsewhere the offset's mean, zero departure, with an uncertainty
@@ -42,7 +42,9 @@ def drift_terms(time, cal: Calibration, wandering=None, mag=None) -> tuple[np.nd
     were stored holds the drift's last value: it is not applied (zero departure) and the uncertainty is unknown
     (NaN). ``wandering`` (k,) bool: which of ``cal.effects`` wander (None: rebuilt from the file); ``mag`` (N, 3) nT
     the log's raw readings, by which the log a path was learned on is told from another of the same times (None:
-    by the times alone)."""
+    by the times alone). ``own_log`` (k,) bool or None: for epochs that are part of a longer log (a chunk), whether
+    that whole log is the one each wandering effect's path was learned on (``magkf.apply_chunked.OwnLog``),
+    which then decides instead of ``mag``."""
     from .online.drift_path import path_terms
 
     if wandering is None:
@@ -51,15 +53,25 @@ def drift_terms(time, cal: Calibration, wandering=None, mag=None) -> tuple[np.nd
         wandering = [e.wanders for e in restore_effects(cal)]
     time = np.asarray(time, float)
     total, variance, any_wander = np.zeros((len(time), 3)), np.zeros(len(time)), False
-    for stored, wanders in zip(cal.effects, wandering):
+    for k, (stored, wanders) in enumerate(zip(cal.effects, wandering)):
         if wanders:
-            departure, std = path_terms(stored.wander, time, mag)
+            departure, std = path_terms(stored.wander, time, _readings_deciding(mag, time, own_log, k))
             total, variance, any_wander = total + departure, variance + std**2, True
     return total, (np.sqrt(variance) if any_wander else None)
 
 
-def _terms(log: DriveLog, cal: Calibration) -> tuple[np.ndarray, np.ndarray | None]:
-    """``effect_terms`` (N, 3) nT and the wandering effects' standard deviation (N,) nT or None (``drift_terms``)."""
+def _readings_deciding(mag, time, own_log, k: int):
+    """The readings to give ``path_terms`` for the ``k``-th stored effect so that it decides as ``own_log`` says:
+    ``mag`` itself without a decision; None (taken as the path's own log) for its own log; NaN readings, which no
+    fingerprint epoch matches, for another log."""
+    if own_log is None or own_log[k] is None:
+        return mag
+    return None if own_log[k] else np.full((len(time), 3), np.nan)
+
+
+def _terms(log: DriveLog, cal: Calibration, own_log=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """``effect_terms`` (N, 3) nT and the wandering effects' standard deviation (N,) nT or None (``drift_terms``;
+    ``own_log`` as there)."""
     if not cal.effects:
         return np.zeros((len(log.table), 3)), None
     from .config import FilterConfig
@@ -75,12 +87,12 @@ def _terms(log: DriveLog, cal: Calibration) -> tuple[np.ndarray, np.ndarray | No
             x[sl] = 0.0
     prep = with_initial_R(prepare(log, FilterConfig()), x)
     terms = layout.extra_terms(x, layout.linear_jacobian(prep.data), prep.data)
-    departure, std = drift_terms(log.time, cal, [e.wanders for e in effects], log.mag)
+    departure, std = drift_terms(log.time, cal, [e.wanders for e in effects], log.mag, own_log)
     return terms + departure, std
 
 
 @names_the_log
-def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
+def apply_calibration(log: DriveLog, cal: Calibration, own_log=None) -> pd.DataFrame:
     """Every epoch of ``log`` corrected with ``cal`` and the effects it stores.
 
     Parameters
@@ -89,6 +101,9 @@ def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
         The drive or flight log.
     cal : Calibration
         The calibration, with the effects it stores at their stored values.
+    own_log : sequence of bool or None, optional
+        For ``log`` a chunk of a longer log: whether that log is the one each stored wandering effect's path
+        was learned on (``drift_terms``); None: told from ``log`` itself.
 
     Returns
     -------
@@ -111,7 +126,7 @@ def apply_calibration(log: DriveLog, cal: Calibration) -> pd.DataFrame:
         An IGRF date out of range, or an effect ``cal`` stores whose class is not registered
         (``magkf.plugins.EFFECTS``); it names the log.
     """
-    terms, drift_std = _terms(log, cal)
+    terms, drift_std = _terms(log, cal, own_log)
     field = cal.correct(log.mag - terms)
     att = log.attitude
     heading = magnetic_heading_deg(field, att[:, 0], att[:, 1])

@@ -60,6 +60,7 @@ __all__ = [
     "read_drive_log",
     "write_drive_log",
     "write_frames",
+    "FrameWriter",
     "table_to_write",
 ]
 
@@ -628,6 +629,59 @@ def write_frames(frames, path, types: dict | None = None, quoted: bool = False, 
     with written(path) as tmp:
         with pa.OSFile(str(tmp), "wb") as sink:
             write(sink)
+
+
+class FrameWriter:
+    """Consecutive pieces of one table written to the file ``path`` as ``write_frames`` writes them, each when
+    the caller has it (``write``), so that a table computed piece by piece is never held: CSV, or Parquet (one
+    row group per piece) with ``parquet``. ``types`` and ``quoted`` as for ``write_frames``; ``floats``: every
+    numeric column written as float64 (pieces read from a CSV file one at a time may hold a column as integers
+    in one piece and as decimals in the next; a Parquet file has one schema). ``path`` is written as it is
+    (wrap it in ``magkf.files.written`` to have it replaced only once complete); ``close`` ends it, and a file
+    given no piece holds no rows (an empty CSV file, or no file for Parquet)."""
+
+    def __init__(self, path, types: dict | None = None, quoted: bool = False, parquet: bool = False, floats=False):
+        self.path, self.types, self.quoted, self.parquet, self.floats = str(path), types or {}, quoted, parquet, floats
+        self.writer = self.sink = self.schema = None
+
+    def write(self, frame: pd.DataFrame) -> None:
+        """Append the rows ``frame`` (time-indexed, or with a ``time`` column; the columns of the first piece)."""
+        if self.floats:
+            numeric = [c for c in frame.columns if pd.api.types.is_numeric_dtype(frame[c]) and c not in self.types]
+            frame = frame.astype(dict.fromkeys(numeric, float))
+        piece = _arrow_piece(frame, time_as_text=not self.parquet, types=self.types)
+        if self.writer is None:
+            self.schema = piece.schema
+            self.writer = self._open(piece.schema)
+        elif piece.schema != self.schema:
+            piece = piece.cast(self.schema)
+        self.writer.write_table(piece)
+
+    def _open(self, schema):
+        if self.parquet:
+            import pyarrow.parquet as pq
+
+            return pq.ParquetWriter(self.path, schema)
+        import pyarrow as pa
+        from pyarrow import csv
+
+        options = csv.WriteOptions() if self.quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")
+        self.sink = pa.OSFile(self.path, "wb")
+        return csv.CSVWriter(self.sink, schema, write_options=options)
+
+    def close(self) -> None:
+        """End the file (its footer, for Parquet)."""
+        if self.writer is not None:
+            self.writer.close()
+        if self.sink is not None:
+            self.sink.close()
+        self.writer = self.sink = None
+
+    def __enter__(self) -> FrameWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 #: Rows converted and written at a time by ``write_drive_log``.
