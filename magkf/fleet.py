@@ -1,8 +1,9 @@
 """Every log of a fleet: each calibrated (and diagnosed), one summary row per log, and the logs that disagree
 with the rest of their vehicle.
 
-``run_fleet(logs, out_dir, settings, client)`` processes the logs as independent tasks (``magkf.cluster``:
-serially here, or on a Dask cluster). Each task opens its own log, so only its path travels to the worker,
+``run_fleet(logs, out_dir, settings, client)`` processes the logs in batches of consecutive logs, each batch
+one task (``magkf.cluster``: serially here, or on a Dask cluster; a batch pays the cluster's cost of a task
+once for several logs). Each log is opened where its task runs, so only its path travels to the worker,
 and writes under ``out_dir/<vehicle>/<log file name>/``:
 
 * ``calibration.json`` (``magkf.calibration``), ``states.parquet`` (the per-epoch estimates), with
@@ -13,9 +14,15 @@ and writes under ``out_dir/<vehicle>/<log file name>/``:
   again (``reused`` in the summary).
 
 A log that cannot be read or calibrated gives a row with ``error`` (one line naming the file, and where
-known the row and column) and no estimates; the other logs go on. The summary (``summary.parquet`` and
-``summary.csv`` in ``out_dir``) has one row per log, sorted by vehicle, start time and path; ``vehicles.png``
-plots each vehicle's estimates over its flights.
+known the row and column) and no estimates; the other logs go on. The worker writes each batch's rows into
+the journal ``out_dir/rows/`` and returns only a few figures; the summary (``summary.parquet``, a Parquet
+dataset of one or more files, and ``summary.csv``, in ``out_dir``) is made from the journal a group of
+vehicles at a time (``magkf.fleet_table``), one row per log, sorted by vehicle, start time and path, so that
+neither the client nor a worker holds every row of a large fleet. ``read_summary`` reads it back.
+``vehicles.png`` plots each vehicle's estimates over its flights.
+
+A run stopped part way (a signal, SIGKILL, a machine that went down) leaves each finished log's outputs and
+``row.json``: run again, it reuses them by their content key and calibrates only the rest.
 
 With ``settings.diagnose``, each vehicle's diagnoses are also pooled over its flights
 (``magkf.diagnostics.pooled``: a combined test per candidate, the coefficient's consistency across flights, the
@@ -34,9 +41,11 @@ import hashlib
 import json
 import os
 import re
+import shutil
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -44,11 +53,13 @@ import pandas as pd
 
 from .config import FilterConfig
 from .errors import InputError
+from .fleet_table import JOURNAL, part_name, read_summary, write_rows, write_summary
 from .io.site import Site
 
 __all__ = [
     "FleetSettings",
     "LogTask",
+    "LogBatch",
     "FleetResult",
     "LOG_SUFFIXES",
     "log_suffixes",
@@ -59,7 +70,10 @@ __all__ = [
     "check_out_dir",
     "content_key",
     "process_log",
+    "process_batch",
+    "batch_size",
     "run_fleet",
+    "read_summary",
     "disagreements",
     "plot_vehicles",
     "BASELINE_COLUMNS",
@@ -146,27 +160,65 @@ class LogTask:
 
 
 @dataclass(frozen=True)
-class FleetResult:
-    """Outcome of ``run_fleet``: ``summary`` (one row per log, see ``run_fleet``), the files written by name
-    (``summary_parquet``, ``summary_csv``, ``plot``, ``pooled_diagnosis``), each worker's memory limit in bytes
-    (0: none), and with ``settings.diagnose`` each vehicle's ``PooledDiagnosis`` by vehicle (``pooled``)."""
+class LogBatch:
+    """Consecutive logs of a fleet run as one task: their ``tasks`` and the journal file ``part`` their rows go
+    to."""
 
-    summary: pd.DataFrame
+    tasks: tuple
+    part: str
+
+
+@dataclass(frozen=True)
+class FleetResult:
+    """Outcome of ``run_fleet``: the output folder ``out_dir``, the files written by name (``summary_parquet``,
+    ``summary_csv``, ``plot``, ``pooled_diagnosis``), each worker's memory limit in bytes (0: none), and with
+    ``settings.diagnose`` each vehicle's ``PooledDiagnosis`` by vehicle (``pooled``).
+
+    The summary stays on disk: ``summary`` reads all of it (one row per log, see ``run_fleet``), ``columns``
+    only the columns named, and ``failed``, ``flagged``, ``counts`` and ``peak_memory_mb`` only the few
+    columns they need, so that a fleet of any size can be reported on."""
+
+    out_dir: str
     files: dict
     memory_limits: dict = field(default_factory=dict)
     pooled: dict = field(default_factory=dict)
 
+    def columns(self, names) -> pd.DataFrame:
+        """The summary's columns ``names`` (those it has), every row."""
+        return read_summary(self.out_dir, list(names))
+
+    @cached_property
+    def summary(self) -> pd.DataFrame:
+        """The whole summary (every column of every row: for a fleet that fits in memory)."""
+        return read_summary(self.out_dir)
+
     @property
     def failed(self) -> pd.DataFrame:
-        return self.summary[self.summary["error"] != ""]
+        """``log``, ``vehicle`` and ``error`` of the logs that failed."""
+        s = self.columns(["log", "vehicle", "error"])
+        return s[s["error"] != ""]
 
     @property
     def flagged(self) -> pd.DataFrame:
-        return self.summary[self.summary["disagrees"]]
+        """``log``, ``vehicle`` and ``disagreement`` of the logs that disagree with the rest of their vehicle."""
+        s = self.columns(["log", "vehicle", "disagrees", "disagreement"])
+        return s[s["disagrees"].astype(bool)]
+
+    def counts(self) -> dict:
+        """``logs``, ``vehicles``, ``failed``, ``reused`` and ``flagged``: how many."""
+        s = self.columns(["vehicle", "error", "reused", "disagrees"])
+        return {
+            "logs": len(s),
+            "vehicles": int(s["vehicle"].nunique()),
+            "failed": int((s["error"] != "").sum()),
+            "reused": int(s["reused"].astype(bool).sum()),
+            "flagged": int(s["disagrees"].astype(bool).sum()),
+        }
 
     def peak_memory_mb(self) -> dict:
         """The peak resident memory (MB) each worker reported, by worker, over the logs processed now."""
-        done = self.summary[~self.summary["reused"].astype(bool)]
+        s = self.columns(["worker", "peak_rss_mb", "reused"])
+        done = s[~s["reused"].astype(bool)]
         return done.groupby("worker")["peak_rss_mb"].max().to_dict()
 
 
@@ -342,6 +394,29 @@ def process_log(task: LogTask) -> dict:
     return {**row, "run_time_s": time.perf_counter() - started, **task_resources()}
 
 
+def process_batch(batch: LogBatch) -> dict:
+    """Process the logs of ``batch`` one after the other (``process_log``) and write their rows into its journal
+    file; returns only how many logs, where it ran and that process's peak memory (the rows stay on disk).
+    Runs on a worker."""
+    from .cluster import task_resources
+
+    rows = [process_log(task) for task in batch.tasks]
+    write_rows(rows, batch.part)
+    return {"logs": len(rows), **task_resources()}
+
+
+#: The most logs of one batch, and the fewest batches a worker gets when there are logs enough: a batch
+#: shares the cluster's cost of a task (scheduling, messages, results) among its logs, and several batches a
+#: worker keep the workers busy to the end (the last batch's wait is at most one batch).
+BATCH_MAX = 8
+BATCHES_PER_WORKER = 8
+
+
+def batch_size(logs: int, workers: int) -> int:
+    """The logs per batch for ``logs`` logs on ``workers`` workers (see ``BATCH_MAX``)."""
+    return max(1, min(BATCH_MAX, logs // max(1, workers * BATCHES_PER_WORKER)))
+
+
 def _calibrate(task: LogTask, folder: Path) -> dict:
     """Read, calibrate, check, optionally diagnose, and write one log's outputs; its row's figures. The task's
     effect files are registered for this task only (``EFFECTS.restoring``)."""
@@ -498,10 +573,12 @@ def run_fleet(
     alpha: float = 0.01,
     progress=None,
     plot: bool = True,
+    size: int | None = None,
 ) -> FleetResult:
     """Process every log of ``logs`` (paths; see ``find_logs``) into ``out_dir`` (made if missing).
 
-    ``client``: a Dask ``Client`` whose workers run the logs (None: one after the other in this process).
+    ``client``: a Dask ``Client`` whose workers run the logs (None: one after the other in this process), in
+    batches of ``size`` consecutive logs (None: ``batch_size``, at most ``BATCH_MAX``).
     ``vehicle_from``: the vehicle rule; ``alpha``: the level of the disagreement test of each vehicle
     (``disagreements``). ``progress(fraction)`` is called as logs finish.
 
@@ -514,37 +591,77 @@ def run_fleet(
     (``R11`` ... ``b_z``, effects' parameters) and its ``std_`` standard deviation, ``warnings``,
     ``run_time_s``, ``worker`` and ``peak_rss_mb`` (where it ran, and that process's peak memory),
     ``reused`` (taken from an earlier run), and the columns of ``disagreements``. Results do not depend on
-    the workers or on the order in which logs finish."""
-    from .cluster import TaskFailed, map_tasks, memory_limits
+    the workers, the batches or the order in which logs finish. The summary is written to ``out_dir``
+    (``magkf.fleet_table``) and read from there by the result (``FleetResult``)."""
+    from .cluster import memory_limits
 
     out = check_out_dir(out_dir)
     paths = [str(p) for p in logs]
     vehicles = [vehicle_of(p, vehicle_from) for p in paths]
     folders = _folders(paths, vehicles, out)
     tasks = [LogTask(p, v, f, settings) for p, v, f in zip(paths, vehicles, folders)]
-    results = map_tasks(process_log, tasks, client, progress)
-    rows = [
-        {"log": t.path, "vehicle": t.vehicle, "output": t.folder, "error": f"{t.path}: {r.error}", "reused": False}
-        if isinstance(r, TaskFailed)
-        else r
-        for t, r in zip(tasks, results)
-    ]
-    summary = _table(rows)
-    summary = disagreements(summary, alpha)
+    parts = _run_batches(tasks, out / JOURNAL, client, progress, size)
+    write_summary(out, parts, lambda rows: disagreements(_table(rows), alpha), _views())
+    shutil.rmtree(out / JOURNAL, ignore_errors=True)
     files = {"summary_parquet": out / "summary.parquet", "summary_csv": out / "summary.csv"}
-    from .io.drivelog import write_drive_log
-
-    write_drive_log(summary, files["summary_parquet"])
-    write_drive_log(summary, files["summary_csv"])
     if plot:
         files["plot"] = out / "vehicles.png"
-        plot_vehicles(summary, files["plot"])
+        plot_vehicles(read_summary(out, PLOTTED), files["plot"])
     pooled = {}
     if settings.diagnose:
-        pooled = pooled_diagnoses(summary, settings.alpha)
+        flights = read_summary(out, ["log", "vehicle", "error", "output"])
+        pooled = pooled_diagnoses(flights, settings.alpha)
         files["pooled_diagnosis"] = out / POOLED
-        _write_pooled(pooled, summary, files["pooled_diagnosis"])
-    return FleetResult(summary, {k: str(v) for k, v in files.items()}, memory_limits(client), pooled)
+        _write_pooled(pooled, flights, files["pooled_diagnosis"])
+    return FleetResult(str(out), {k: str(v) for k, v in files.items()}, memory_limits(client), pooled)
+
+
+def _workers(client) -> int:
+    """The workers of ``client`` (1 without one)."""
+    return 1 if client is None else max(1, len(client.scheduler_info()["workers"]))
+
+
+def _run_batches(tasks: list, journal: Path, client, progress, size: int | None) -> list[str]:
+    """Run ``tasks`` in batches of ``size`` logs (None: ``batch_size``) whose rows go to files in ``journal``;
+    returns those files. A batch the cluster lost (its worker died) is run again a log at a time, so that only
+    a log that kills its worker fails (the logs finished before are reused by their content key)."""
+    from .cluster import TaskFailed, map_tasks
+
+    journal.mkdir(exist_ok=True)
+    size = size or batch_size(len(tasks), _workers(client))
+    numbers = iter(range(1 << 62))
+
+    def batches(group: list, n: int) -> list:
+        return [
+            LogBatch(tuple(group[i : i + n]), str(journal / part_name(next(numbers)))) for i in range(0, len(group), n)
+        ]
+
+    first = batches(tasks, size)
+    results = map_tasks(process_batch, first, client, progress)
+    lost = [task for batch, r in zip(first, results) if isinstance(r, TaskFailed) for task in batch.tasks]
+    parts = [batch.part for batch, r in zip(first, results) if not isinstance(r, TaskFailed)]
+    if not lost:
+        return parts
+    again = batches(lost, 1)
+    for batch, r in zip(again, map_tasks(process_batch, again, client)):
+        if isinstance(r, TaskFailed):
+            task = batch.tasks[0]
+            row = {"log": task.path, "vehicle": task.vehicle, "output": task.folder, "reused": False}
+            write_rows([{**row, "error": f"{task.path}: {r.error}"}], batch.part)
+        parts.append(batch.part)
+    return parts
+
+
+def _views() -> dict:
+    """The columns the summary's views add (``disagreements``), with their Arrow types."""
+    import pyarrow as pa
+
+    return {
+        "disagreement_z": pa.float64(),
+        "disagrees": pa.bool_(),
+        "disagreement": pa.string(),
+        "vehicle_scatter": pa.float64(),
+    }
 
 
 def _flights(summary: pd.DataFrame) -> dict:
@@ -782,7 +899,13 @@ def _scatter(x, s2) -> float:
     return float(np.sqrt(np.max(q) / (len(x) - 1)))
 
 
-def plot_vehicles(summary: pd.DataFrame, path, columns=("b_x", "b_y", "b_z", "R11", "R22", "R33")) -> None:
+#: The estimates ``plot_vehicles`` draws.
+PLOTTED_ESTIMATES = ("b_x", "b_y", "b_z", "R11", "R22", "R33")
+#: The summary's columns ``plot_vehicles`` reads.
+PLOTTED = ("vehicle", "error", "start_time", "disagrees", *PLOTTED_ESTIMATES, *(f"std_{c}" for c in PLOTTED_ESTIMATES))
+
+
+def plot_vehicles(summary: pd.DataFrame, path, columns=PLOTTED_ESTIMATES) -> None:
     """Each vehicle's estimates over its flights (in start-time order) with 95 % bars (1.96 standard
     deviations); logs that disagree with the rest are drawn in red. One row of panels per vehicle."""
     import matplotlib

@@ -191,19 +191,18 @@ def _fleet(args, out_dir) -> int:
         result = run(
             logs, out_dir, settings, client, vehicle_from=args.vehicle_from, alpha=args.alpha, progress=_progress(args)
         )
-    s = result.summary
-    failed, flagged = result.failed, result.flagged
-    reused = int(s["reused"].sum())
+    n = result.counts()
     print(
-        f"{len(s)} logs of {s['vehicle'].nunique()} vehicle(s): {len(s) - len(failed)} calibrated"
-        f" ({reused} unchanged since an earlier run, not calibrated again), {len(failed)} failed; "
-        f"{len(flagged)} disagree with the rest of their vehicle"
+        f"{n['logs']} logs of {n['vehicles']} vehicle(s): {n['logs'] - n['failed']} calibrated"
+        f" ({n['reused']} unchanged since an earlier run, not calibrated again), {n['failed']} failed; "
+        f"{n['flagged']} disagree with the rest of their vehicle"
     )
+    failed = result.failed
     for row in failed.itertuples():
         print(f"  failed: {row.error}")
-    for row in flagged.itertuples():
+    for row in result.flagged.itertuples():
         print(f"  disagrees: {row.log}: {row.disagreement}")
-    for line in improvement_lines(s):
+    for line in improvement_lines(result.columns(["vehicle", "error", "improvement_nt", "improvement_deg"])):
         print(f"  {line}")
     for line in pooled_lines(result.pooled):
         print(f"  diagnosis pooled over the flights of {line}")
@@ -212,7 +211,7 @@ def _fleet(args, out_dir) -> int:
         f"  summary: {result.files['summary_parquet']} and {result.files['summary_csv']}; plot: {result.files['plot']}"
         + (f"; pooled diagnosis: {result.files['pooled_diagnosis']}" if "pooled_diagnosis" in result.files else "")
     )
-    if len(failed) == len(s):
+    if n["failed"] == n["logs"]:
         raise InputError(f"every log failed; the first: {failed['error'].iloc[0]}")
     return 0
 

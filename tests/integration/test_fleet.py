@@ -84,7 +84,9 @@ def test_fleet_rows_corrupt_log_and_jumped_flight(fleet, serial):
     # flights in time order within each vehicle, the failed log last
     assert (good["start_time"].diff()[good["vehicle"] == good["vehicle"].shift()] > 0).all()
     assert s.index[s["error"] != ""].tolist() == [FLIGHTS]
-    assert Path(serial.files["summary_csv"]).is_file() and Path(serial.files["summary_parquet"]).is_file()
+    assert Path(serial.files["summary_csv"]).is_file() and Path(serial.files["summary_parquet"]).is_dir()
+    assert not (Path(serial.files["summary_parquet"]).parent / "rows").exists()  # the journal, removed once done
+    pd.testing.assert_frame_equal(pd.read_parquet(serial.files["summary_parquet"]), s)  # the dataset, read whole
 
 
 @pytest.mark.slow
