@@ -325,7 +325,7 @@ def _calibrate_one(args, log, config, init, added, output, states):
         if args.batch:
             from ..online.batch import solve_batch
 
-            return solve_batch(log, config, init, effect_list)
+            return solve_batch(log, config, init, effect_list, prepared=prep)
         progress = None if args.quiet else terminal_progress()
         return calibrate_log(
             log, config, init, effects=effect_list, smooth=args.smooth, progress=progress, prepared=prep
@@ -402,13 +402,13 @@ def _comparisons(log, run, written, prep) -> tuple[dict | None, dict | None]:
     calibrations = {RAW: None, WRITTEN: written} | ({START: run.start} if run.start is not None else {})
     if vehicle is not None:
         calibrations[VEHICLE] = vehicle
-    try:
-        base = compare_calibrations(log, calibrations, prep)
+    used = (run.states["status"] == "used").to_numpy() if run.states is not None else None
+    try:  # the figures only: nothing of the log's length is kept
+        base = compare_calibrations(log, calibrations, prep, used=used, per_epoch=used is None)
     except InputError as exc:  # the comparison is an addition: say why it is missing, keep the run
         why = {"rms": None, "text": f"not compared ({exc.message})"}
         return why, (None if vehicle is None else {"description": description, **why})
-    used = (run.states["status"] == "used").to_numpy() if run.states is not None else base.compared
-    judged = written_figures(base, used, run.summary.innovation_rms_nt)
+    judged = written_figures(base, base.compared if used is None else used, run.summary.innovation_rms_nt)
     if vehicle is None:
         return judged, None
     rows = base.summary.rename(index={WRITTEN: MAGKF})[["magnitude_rms_nt", "heading_rms_deg"]]

@@ -72,8 +72,8 @@ class Baseline:
         Name -> (N,) compass heading less the logged heading, deg in (-180, 180]; NaN where the magnitude
         error is, and without attitude.
     status : dict
-        Name -> (N,) str, one of ``STATUSES`` (the first that applies of missing_mag, missing_effect_input,
-        missing_position, missing_attitude; else ok).
+        Name -> (N,) ``pandas.Categorical`` of ``STATUSES`` (the first that applies of missing_mag,
+        missing_effect_input, missing_position, missing_attitude; else ok): one byte an epoch.
     compared : numpy.ndarray
         (N,) bool, the epochs the summary is taken over: every calibration has both errors there.
     summary : pandas.DataFrame
@@ -82,6 +82,11 @@ class Baseline:
         ``n_heading`` (epochs where that calibration has each error).
     vector_error_nt : dict
         Name -> (N,) ``|C_nb corrected - reference|``, nT; NaN where the heading error is.
+    used_figures : dict or None
+        Name -> ``{"vector_rms_nt", "magnitude_rms_nt"}`` over the epochs a run used, and ``n_used``
+        (``compare_calibrations`` with ``used``; else None).
+    n_compared : int
+        The epochs of ``compared``.
     """
 
     time: np.ndarray
@@ -92,15 +97,20 @@ class Baseline:
     compared: np.ndarray
     summary: pd.DataFrame
     vector_error_nt: dict = field(default_factory=dict)
+    used_figures: dict | None = None
+    n_compared: int = 0
 
     @property
     def names(self) -> list:
         """The calibrations compared, in the order given."""
-        return list(self.magnitude_error_nt)
+        return list(self.summary.index)
 
 
-def compare_calibrations(log: DriveLog, calibrations: dict, prep=None) -> Baseline:
+def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None, per_epoch: bool = True) -> Baseline:
     """Every epoch's magnitude and heading error with each calibration of ``calibrations``.
+
+    The log is gone through ``CHUNK`` epochs at a time: besides what is returned, nothing of the log's length is
+    held but the terms of a calibration's stored effects.
 
     Parameters
     ----------
@@ -112,6 +122,13 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None) -> Baseli
     prep : PreparedLog or None, optional
         ``magkf.online.prepare.prepare(log, FilterConfig())`` when already computed (its reference field and
         attitude matrices are used); None: computed here.
+    used : array_like or None, optional
+        (N,) bool, the epochs a run updated with: ``Baseline.used_figures`` gets each calibration's RMS vector and
+        magnitude residual over them (``written_figures``).
+    per_epoch : bool, optional
+        False: only the figures (``summary``, ``used_figures``, ``n_compared``) are kept, not the per-epoch errors
+        (their dicts are empty, ``time``, ``heading_deg`` and ``compared`` None): a command that prints figures
+        holds nothing of the log's length.
 
     Returns
     -------
@@ -131,32 +148,138 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None) -> Baseli
         from ..online.prepare import prepare
 
         prep = prepare(log, FilterConfig())
-    has_ref = np.all(np.isfinite(prep.ref), axis=1)
-    has_mag = np.all(np.isfinite(log.mag), axis=1)
-    magnitude, heading, vector, status = {}, {}, {}, {}
-    for name, cal in calibrations.items():
-        corrected, has_terms = _corrected(log, cal)
-        magnitude[name] = np.linalg.norm(corrected, axis=1) - prep.ref_mag
-        heading[name] = heading_error_deg(corrected, prep.c_nb, prep.ref)
-        vector[name] = np.linalg.norm(body_to_ned(prep.c_nb, corrected) - prep.ref, axis=1)
-        vector[name][~np.isfinite(heading[name])] = np.nan
-        status[name] = _status(has_mag, has_terms, has_ref, prep.has_attitude)
-    compared = np.all([np.isfinite(h) for h in heading.values()], axis=0)
-    att = log.attitude
-    logged_heading = np.where(prep.has_attitude, att[:, 2] % 360.0, np.nan)
+    terms = {name: _terms(log, cal) for name, cal in calibrations.items()}
+    sums = _Sums(list(calibrations), used is not None)
+    n = len(log.mag)
+    errors = {name: {kind: np.empty(n) for kind in _KINDS} for name in calibrations} if per_epoch else None
+    compared = np.empty(n, bool) if per_epoch else None
+    for a in range(0, n, CHUNK):
+        at = slice(a, min(a + CHUNK, n))
+        chunk = {name: _errors(log, cal, prep, at, terms[name]) for name, cal in calibrations.items()}
+        on = np.all([np.isfinite(e["heading"]) for e in chunk.values()], axis=0)
+        sums.add(chunk, on, None if used is None else np.asarray(used[at], bool))
+        if per_epoch:
+            compared[at] = on
+            for name, e in chunk.items():
+                for kind in _KINDS:
+                    errors[name][kind][at] = e[kind]
+    if not per_epoch:
+        return Baseline(None, None, {}, {}, {}, None, sums.summary(), {}, sums.used_figures(), sums.n_compared)
+    has_ref, has_mag = np.all(np.isfinite(prep.ref), axis=1), np.all(np.isfinite(log.mag), axis=1)
+    status = {
+        name: _status(has_mag, np.all(np.isfinite(terms[name]), axis=1), has_ref, prep.has_attitude)
+        for name in calibrations
+    }
+    magnitude, heading, vector = ({name: errors[name][kind] for name in calibrations} for kind in _KINDS)
+    logged_heading = np.where(prep.has_attitude, log.attitude[:, 2] % 360.0, np.nan)
     summary = _summary(magnitude, heading, vector, compared)
-    return Baseline(prep.time, logged_heading, magnitude, heading, status, compared, summary, vector)
+    return Baseline(
+        prep.time,
+        logged_heading,
+        magnitude,
+        heading,
+        status,
+        compared,
+        summary,
+        vector,
+        sums.used_figures(),
+        int(compared.sum()),
+    )
 
 
-def _corrected(log: DriveLog, cal) -> tuple[np.ndarray, np.ndarray]:
-    """The field (N, 3) nT of ``log`` corrected with ``cal`` and its stored effects (None: the raw reading), and
-    (N,) whether the effects' terms are known (their inputs present)."""
+#: Epochs taken at once by ``compare_calibrations``.
+CHUNK = 65_536
+#: The per-epoch errors ``compare_calibrations`` computes: ``|B| - |B_ref|``, the heading error, ``|C_nb B - B_ref|``.
+_KINDS = ("magnitude", "heading", "vector")
+
+
+def _terms(log: DriveLog, cal) -> np.ndarray:
+    """The terms (N, 3) nT of ``cal``'s stored effects over the whole log (a nonlinear one looks at neighbouring
+    epochs), zeros for the raw reading (None)."""
     if cal is None:
-        return log.mag, np.ones(len(log.mag), bool)
+        return np.zeros((len(log.mag), 3))
     from ..apply import effect_terms
 
-    terms = effect_terms(log, cal)
-    return cal.correct(log.mag - terms), np.all(np.isfinite(terms), axis=1)
+    return effect_terms(log, cal)
+
+
+def _errors(log: DriveLog, cal, prep, at: slice, terms) -> dict:
+    """The errors (``_KINDS``, (k,) each) of the epochs ``at`` corrected with ``cal`` (None: the raw reading)."""
+    mag = log.mag[at]
+    corrected = mag if cal is None else cal.correct(mag - terms[at])
+    c_nb, ref = prep.c_nb[at], prep.ref[at]
+    heading = heading_error_deg(corrected, c_nb, ref)
+    vector = np.linalg.norm(body_to_ned(c_nb, corrected) - ref, axis=1)
+    vector[~np.isfinite(heading)] = np.nan
+    return {"magnitude": np.linalg.norm(corrected, axis=1) - prep.ref_mag[at], "heading": heading, "vector": vector}
+
+
+class _Sums:
+    """Sums of the errors over the chunks of a log, for ``Baseline.summary`` and ``Baseline.used_figures``
+    without the per-epoch errors."""
+
+    _FIGURES = ("m2", "h2", "v2", "m", "h", "n_magnitude", "n_heading", "used_v2", "used_m2")
+
+    def __init__(self, names: list, with_used: bool):
+        self.names, self.with_used = names, with_used
+        self.sums = {name: dict.fromkeys(self._FIGURES, 0.0) for name in names}
+        self.n_compared = self.n_used = self.n_used_magnitude = 0
+
+    def add(self, chunk: dict, on, used) -> None:
+        """Add a chunk's errors (name -> ``_errors``), its compared epochs ``on`` (k,) bool and the run's ``used``
+        (k,) bool (None)."""
+        self.n_compared += int(on.sum())
+        if used is not None:
+            used_on = used & on
+            used_magnitude = used & np.all([np.isfinite(e["magnitude"]) for e in chunk.values()], axis=0)
+            self.n_used += int(used_on.sum())
+            self.n_used_magnitude += int(used_magnitude.sum())
+        for name, e in chunk.items():
+            s, m, h, v = self.sums[name], e["magnitude"][on], e["heading"][on], e["vector"][on]
+            s["m2"], s["h2"], s["v2"] = s["m2"] + np.sum(m**2), s["h2"] + np.sum(h**2), s["v2"] + np.sum(v**2)
+            s["m"], s["h"] = s["m"] + np.sum(m), s["h"] + np.sum(h)
+            s["n_magnitude"] += int(np.sum(np.isfinite(e["magnitude"])))
+            s["n_heading"] += int(np.sum(np.isfinite(e["heading"])))
+            if used is not None:
+                s["used_v2"] += np.sum(e["vector"][used_on] ** 2)
+                s["used_m2"] += np.sum(e["magnitude"][used_magnitude] ** 2)
+
+    def summary(self) -> pd.DataFrame:
+        """As ``_summary`` gives it from the per-epoch errors."""
+        n = self.n_compared
+        rows = {
+            name: {
+                "magnitude_rms_nt": _root_mean(s["m2"], n),
+                "heading_rms_deg": _root_mean(s["h2"], n),
+                "vector_rms_nt": _root_mean(s["v2"], n),
+                "magnitude_mean_nt": s["m"] / n if n else float("nan"),
+                "heading_mean_deg": s["h"] / n if n else float("nan"),
+                "n_compared": n,
+                "n_magnitude": int(s["n_magnitude"]),
+                "n_heading": int(s["n_heading"]),
+            }
+            for name, s in self.sums.items()
+        }
+        return pd.DataFrame.from_dict(rows, orient="index")
+
+    def used_figures(self) -> dict | None:
+        """Name -> ``{"vector_rms_nt", "magnitude_rms_nt"}`` over the used epochs (the vector over those compared,
+        the magnitude over those where every calibration has it), with ``n_used``; None without ``used``."""
+        if not self.with_used:
+            return None
+        figures = {
+            name: {
+                "vector_rms_nt": _root_mean(s["used_v2"], self.n_used),
+                "magnitude_rms_nt": _root_mean(s["used_m2"], self.n_used_magnitude),
+            }
+            for name, s in self.sums.items()
+        }
+        return figures | {"n_used": self.n_used}
+
+
+def _root_mean(total: float, count: int) -> float:
+    """``sqrt(total / count)``, NaN for no epoch."""
+    return float(np.sqrt(total / count)) if count else float("nan")
 
 
 def heading_error_deg(field_body, c_nb, ref_ned) -> np.ndarray:
@@ -184,13 +307,12 @@ def heading_error_deg(field_body, c_nb, ref_ned) -> np.ndarray:
 
 
 def _status(has_mag, has_terms, has_ref, has_attitude) -> np.ndarray:
-    """Each epoch's status (``STATUSES``) from what it has: a reading, the effects' terms, a reference and
-    attitude, (N,) bool each."""
-    return np.select(
-        [~has_mag, ~has_terms, ~has_ref, ~np.asarray(has_attitude, bool)],
-        ["missing_mag", "missing_effect_input", "missing_position", "missing_attitude"],
-        "ok",
-    ).astype(object)
+    """Each epoch's status (``STATUSES``, a ``pandas.Categorical``) from what it has: a reading, the effects' terms,
+    a reference and attitude, (N,) bool each."""
+    missing = [~has_mag, ~has_terms, ~has_ref, ~np.asarray(has_attitude, bool)]
+    codes = [STATUSES.index(name) for name in ("missing_mag", "missing_effect_input", "missing_position")]
+    codes.append(STATUSES.index("missing_attitude"))
+    return pd.Categorical.from_codes(np.select(missing, codes, 0).astype(np.int8), STATUSES)
 
 
 def _rms(values) -> float:
@@ -234,29 +356,24 @@ def written_figures(base: Baseline, used, innovation_rms_nt: float) -> dict:
         over the used epochs (its magnitude residual on a log without attitude) exceeds ``WORSE_SHARE`` times the
         start's; ``text``: the figures in words.
     """
-    used = np.asarray(used, bool)
-    on = used & base.compared
-    magnitude_on = used & np.all([np.isfinite(m) for m in base.magnitude_error_nt.values()], axis=0)
+    on_used = _used_figures(base, used)
+    n_used = on_used["n_used"]
     figures = {
-        name: {
-            "vector_rms_nt": _rms(base.vector_error_nt[name][on]),
-            "magnitude_rms_nt": _rms(base.magnitude_error_nt[name][magnitude_on]),
-            "vector_rms_all_nt": float(base.summary.loc[name, "vector_rms_nt"]),
-        }
+        name: on_used[name] | {"vector_rms_all_nt": float(base.summary.loc[name, "vector_rms_nt"])}
         for name in (START, WRITTEN)
         if name in base.names
     }
-    key = "vector_rms_nt" if on.any() else "magnitude_rms_nt"
+    key = "vector_rms_nt" if n_used else "magnitude_rms_nt"
     start = figures.get(START)
     worse = bool(start is not None and figures[WRITTEN][key] > WORSE_SHARE * start[key])
     ours = figures[WRITTEN]
     text = (
         f"the file written, applied as 'magkf apply' does: RMS vector residual {_nt_text(ours['vector_rms_nt'])}, "
-        f"magnitude {_nt_text(ours['magnitude_rms_nt'])} over the {int(on.sum())} epochs used"
+        f"magnitude {_nt_text(ours['magnitude_rms_nt'])} over the {n_used} epochs used"
     )
     if start is not None:
         text += f" (the start's: {_nt_text(start['vector_rms_nt'])} and {_nt_text(start['magnitude_rms_nt'])})"
-    text += f", {_nt_text(ours['vector_rms_all_nt'])} over the whole log ({int(base.compared.sum())} epochs)"
+    text += f", {_nt_text(ours['vector_rms_all_nt'])} over the whole log ({base.n_compared} epochs)"
     if np.isfinite(innovation_rms_nt):
         text += f"; the filter's innovations {_nt_text(innovation_rms_nt)}"
     if worse:
@@ -264,12 +381,30 @@ def written_figures(base: Baseline, used, innovation_rms_nt: float) -> dict:
     return {
         WRITTEN: ours,
         START: start,
-        "n_used": int(on.sum()),
-        "n_compared": int(base.compared.sum()),
+        "n_used": n_used,
+        "n_compared": base.n_compared,
         "innovation_rms_nt": float(innovation_rms_nt),
         "worse_than_start": worse,
         "text": text,
     }
+
+
+def _used_figures(base: Baseline, used) -> dict:
+    """``Baseline.used_figures`` when ``base`` was made with the run's epochs, else the same from its per-epoch
+    errors over ``used`` (N,) bool."""
+    if base.used_figures is not None:
+        return base.used_figures
+    used = np.asarray(used, bool)
+    on = used & base.compared
+    magnitude_on = used & np.all([np.isfinite(m) for m in base.magnitude_error_nt.values()], axis=0)
+    figures = {
+        name: {
+            "vector_rms_nt": _rms(base.vector_error_nt[name][on]),
+            "magnitude_rms_nt": _rms(base.magnitude_error_nt[name][magnitude_on]),
+        }
+        for name in base.names
+    }
+    return figures | {"n_used": int(on.sum())}
 
 
 def _nt_text(value: float) -> str:

@@ -264,11 +264,17 @@ class BatchProblem:
 
 
 def batch_problem(
-    log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()
+    log: DriveLog,
+    config: FilterConfig = FilterConfig(),
+    init: Calibration | None = None,
+    effects=(),
+    prepared: PreparedLog | None = None,
 ) -> BatchProblem:
     """The batch objective of ``log``: its start (``prepare.prepare_run``, as the filter's, with the model
-    ``config.measure`` names), the epochs it uses and the models that take them."""
-    setup = prepare_run(prepare(log, config), config, init, effects, log.source, batch=True)
+    ``config.measure`` names), the epochs it uses and the models that take them. ``prepared`` is ``prepare(log,
+    config)`` when the caller has it already (None: made here)."""
+    prep = prepare(log, config) if prepared is None else prepared
+    setup = prepare_run(prep, config, init, effects, log.source, batch=True)
     prep, layout, model, status = setup.prep, setup.layout, setup.model, setup.base.copy()
     if setup.noise is not None:  # the noise of the log, as the filter starts from it
         model.set_noise(setup.noise)
@@ -325,7 +331,13 @@ def _magnitude_gated(problem: BatchProblem, idx, gate: float) -> np.ndarray:
 
 @one_thread
 @names_the_log
-def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Calibration | None = None, effects=()):
+def solve_batch(
+    log: DriveLog,
+    config: FilterConfig = FilterConfig(),
+    init: Calibration | None = None,
+    effects=(),
+    prepared: PreparedLog | None = None,
+):
     """Batch calibration of ``log``: the online calibration's model solved by robust least squares.
 
     A robust pass (soft L1) finds the outlying epochs, then a least-squares fit without them gives the
@@ -341,6 +353,9 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         An offline calibration to start from; else a bootstrap from the log.
     effects : sequence of Effect, optional
         Extra ``Effect`` blocks, estimated with ``R, b``.
+    prepared : PreparedLog or None, optional
+        ``prepare(log, config)`` when the caller has it already (a command that also compares the result with
+        the vehicle's calibration): the log's reference field and attitude are then held once, not twice.
 
     Returns
     -------
@@ -358,7 +373,7 @@ def solve_batch(log: DriveLog, config: FilterConfig = FilterConfig(), init: Cali
         A pass of the solver that does not converge says so, with the size of its last step.
     """
     started = _time.perf_counter()
-    problem = batch_problem(log, config, init, effects)
+    problem = batch_problem(log, config, init, effects, prepared)
     # Robust pass (soft L1) to find the outlying epochs, then least squares without them.
     robust = problem.minimise(problem.x_start, scale=LOSS_SCALE)
     fit = problem.minimise(robust.x, keep=~problem.outliers(robust.x))

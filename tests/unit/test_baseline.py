@@ -6,6 +6,8 @@ attitude and their reference field (``ref_*``), so every error has a closed form
 The RMS found is checked against that expectation within ``SIGMAS`` standard deviations of the mean of squares.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -291,3 +293,29 @@ def test_written_figures_say_when_the_file_written_is_worse_than_the_start(drive
     assert judged["n_used"] == int(on.sum())
     better = written_figures(compare_calibrations(log, {START: off, WRITTEN: sim.calibration}), used, 50.0)
     assert not better["worse_than_start"] and "WORSE" not in better["text"]
+
+
+def test_figures_without_the_per_epoch_errors_are_the_same(drive):
+    """``per_epoch=False`` (what ``calibrate`` asks for) sums the errors chunk by chunk instead of keeping them: the
+    summary and the figures over the used epochs are those of the per-epoch errors to 1e-12 relative (only the
+    order of the sums differs, about ``sqrt(N) eps``), and chunks of 97 epochs (edges everywhere) change nothing."""
+    from magkf.diagnostics import baseline
+    from magkf.diagnostics.baseline import START, WRITTEN
+
+    sim, log = drive
+    off = replace(sim.calibration, b=sim.calibration.b + 200.0)
+    cals = {RAW: None, START: off, WRITTEN: sim.calibration}
+    used = np.random.default_rng(3).random(len(log.mag)) < 0.8
+    whole = baseline.compare_calibrations(log, cals)
+    expected = baseline.written_figures(whole, used, 50.0)
+    for chunk in (baseline.CHUNK, 97):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(baseline, "CHUNK", chunk)
+            lean = baseline.compare_calibrations(log, cals, used=used, per_epoch=False)
+        assert lean.magnitude_error_nt == {} and lean.compared is None
+        pd.testing.assert_frame_equal(lean.summary, whole.summary, rtol=1e-12)
+        got = baseline.written_figures(lean, used, 50.0)
+        for name in (START, WRITTEN):
+            for key, value in expected[name].items():
+                assert got[name][key] == pytest.approx(value, rel=1e-12)
+        assert (got["n_used"], got["n_compared"]) == (expected["n_used"], expected["n_compared"])
