@@ -25,7 +25,13 @@ def add_parsers(sub) -> None:
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON on standard output")
 
-    p = common.command(sub, "convert", run_convert, "any supported log to the canonical drive log (CSV or Parquet)")
+    p = common.command(
+        sub,
+        "convert",
+        run_convert,
+        "any supported log to the canonical drive log (CSV or Parquet); a long canonical log is converted chunk "
+        "by chunk, an autopilot log or a bag is read whole",
+    )
     common.add_log_options(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv|OUT.parquet", help="canonical log to write")
     p.add_argument("--json", action="store_true", help="print a JSON summary")
@@ -100,7 +106,13 @@ def _check_many(args) -> int:
 def run_convert(args) -> int:
     """Read a log of any supported format and write the canonical drive log; the provenance (where each column
     came from, what was converted or undone) is written beside it, as OUT.csv.provenance.json for OUT.csv
-    (with -o -, the CSV goes to standard output and the provenance is not written)."""
+    (with -o -, the CSV goes to standard output and the provenance is not written).
+
+    A canonical CSV or Parquet log of at least ``magkf.online.chunked.CHUNKED_EPOCHS`` epochs is read, validated
+    and written chunk by chunk (``_convert_in_chunks``), in memory that does not grow with the log. The readers of
+    the binary formats (ULog, DataFlash, tlog, ROS bags) build the whole table, interpolating attitude and
+    position to the magnetometer's epochs: converting one holds the log's table (about 8 bytes per column and
+    epoch) and the reader's working copies."""
     import json
     import warnings
     from pathlib import Path
@@ -108,6 +120,7 @@ def run_convert(args) -> int:
     from ..calibration import jsonable
     from ..files import STDIO, check_outputs, output_text
     from ..io.drivelog import write_drive_log
+    from .long_logs import read_in_chunks
 
     out = Path(args.output)
     beside = None if args.output == STDIO else out.with_name(out.name + ".provenance.json")
@@ -116,15 +129,19 @@ def run_convert(args) -> int:
         warnings.warn(note, common.Note, stacklevel=1)
     else:
         check_outputs({"provenance": str(beside)}, [args.file, args.map])
-    log = common.open_log(args)
-    write_drive_log(log.table, args.output)
+    if read_in_chunks(args):
+        provenance, n_epochs, columns = _convert_in_chunks(args)
+    else:
+        log = common.open_log(args)
+        write_drive_log(log.table, args.output)
+        provenance, n_epochs, columns = log.provenance, len(log), list(log.table.columns)
     if beside is not None:
-        output_text(beside, json.dumps(jsonable(log.provenance), indent=2) + "\n")
+        output_text(beside, json.dumps(jsonable(provenance), indent=2) + "\n")
     summary = {
         "input": args.file,
-        "format": log.provenance.get("format"),
-        "epochs": len(log),
-        "columns": ["time", *log.table.columns],
+        "format": provenance.get("format"),
+        "epochs": n_epochs,
+        "columns": ["time", *columns],
         "output": str(out),
         "provenance": None if beside is None else str(beside),
     }
@@ -132,8 +149,27 @@ def run_convert(args) -> int:
         common.print_json(summary)
     else:
         where = "" if beside is None else f"; provenance in {beside}"
-        print(f"converted {args.file} ({summary['format']}, {len(log)} epochs) to {out}{where}")
+        print(f"converted {args.file} ({summary['format']}, {n_epochs} epochs) to {out}{where}")
     return 0
+
+
+def _convert_in_chunks(args) -> tuple[dict, int, list]:
+    """``convert`` of a long canonical log (``magkf.online.chunked.ChunkedLog``: each chunk validated as the
+    whole reader validates a log), each chunk written as read; the provenance, the epochs and the columns.
+    Numeric columns are written as float64 (a CSV read in chunks may hold a column as integers in one of them):
+    the same values, and the same CSV text, as the whole path writes."""
+    from ..online.chunked import ChunkedLog
+    from .long_logs import streamed_output
+
+    log = ChunkedLog(args.file, args.mag_unit)
+    provenance, n_epochs, columns = {}, 0, []
+    with streamed_output(args.output, floats=True, quoted=None) as write:
+        for _, chunk in log:
+            if not n_epochs:
+                provenance, columns = chunk.provenance, list(chunk.table.columns)
+            write(chunk.table)
+            n_epochs += len(chunk)
+    return provenance, n_epochs, columns
 
 
 def run_export(args) -> int:

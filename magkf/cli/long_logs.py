@@ -30,7 +30,7 @@ def read_in_chunks(args) -> bool:
 
 
 @contextmanager
-def streamed_output(path, types: dict | None = None, quoted: bool = False, floats: bool = False):
+def streamed_output(path, types: dict | None = None, quoted: bool | None = False, floats: bool = False):
     """``write(frame)`` for the pieces of one table written to ``path`` as ``io.drivelog.write_drive_log`` writes a
     table (Parquet for ``.parquet``, else CSV; ``types``, ``quoted`` and ``floats`` as ``FrameWriter`` takes
     them), or None for no ``path``. The file is a temporary until the block ends without an error (and, within

@@ -636,11 +636,15 @@ class FrameWriter:
     the caller has it (``write``), so that a table computed piece by piece is never held: CSV, or Parquet (one
     row group per piece) with ``parquet``. ``types`` and ``quoted`` as for ``write_frames``; ``floats``: every
     numeric column written as float64 (pieces read from a CSV file one at a time may hold a column as integers
-    in one piece and as decimals in the next; a Parquet file has one schema). ``path`` is written as it is
-    (wrap it in ``magkf.files.written`` to have it replaced only once complete); ``close`` ends it, and a file
-    given no piece holds no rows (an empty CSV file, or no file for Parquet)."""
+    in one piece and as decimals in the next; a Parquet file has one schema); ``quoted`` None: CSV cells quoted
+    when a column's name holds a comma, a quote or a line end (a table of numbers, as ``write_drive_log``
+    decides). ``path`` is written as it is (wrap it in ``magkf.files.written`` to have it replaced only once
+    complete); ``close`` ends it, and a file given no piece holds no rows (an empty CSV file, or no file for
+    Parquet)."""
 
-    def __init__(self, path, types: dict | None = None, quoted: bool = False, parquet: bool = False, floats=False):
+    def __init__(
+        self, path, types: dict | None = None, quoted: bool | None = False, parquet: bool = False, floats=False
+    ):
         self.path, self.types, self.quoted, self.parquet, self.floats = str(path), types or {}, quoted, parquet, floats
         self.writer = self.sink = self.schema = None
 
@@ -665,7 +669,10 @@ class FrameWriter:
         import pyarrow as pa
         from pyarrow import csv
 
-        options = csv.WriteOptions() if self.quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")
+        quoted = self.quoted
+        if quoted is None:
+            quoted = any(any(c in name for c in ',"\r\n') for name in schema.names)
+        options = csv.WriteOptions() if quoted else csv.WriteOptions(quoting_style="none", quoting_header="none")
         self.sink = pa.OSFile(self.path, "wb")
         return csv.CSVWriter(self.sink, schema, write_options=options)
 
