@@ -1,15 +1,18 @@
-"""Logs of any length: ``magkf calibrate --smooth`` on long simulated logs, wall time and peak memory.
+"""Logs of any length: every command on long simulated logs, wall time and peak memory.
 
 The log (default 24 hours at 100 Hz: 8.64 million epochs) is simulated an hour at a time
 (``magkf.sim.simulate_drive``, 3-D motion, disturbances, bad DOP; hour ``i`` with seed ``i``, its times
 following the previous hour's) and appended to one canonical CSV file, so that the generator never holds
-more than an hour. Each length in ``--hours`` is the first hours of that file (one simulation serves all);
-``magkf calibrate --smooth --states S.parquet`` runs on it in a fresh process, and its wall time and peak
-resident memory (``VmHWM`` of the child's own process) are printed with the peak per epoch. Memory that does
-not grow with the log's length is the chunked path's (``magkf.online.chunked``), which ``calibrate`` takes
-from ``CHUNKED_EPOCHS`` epochs on; ``--whole`` adds the whole-log path (``calibrate_log``) for comparison.
+more than an hour. Each length in ``--hours`` is the first hours of that file (one simulation serves all).
+On each, in fresh processes: ``calibrate --smooth --states S.parquet`` through the chunked path
+(``magkf.online.chunked``, which ``calibrate`` takes from ``CHUNKED_EPOCHS`` epochs on), ``calibrate --batch``,
+``apply`` and ``convert`` to Parquet, ``diagnose``, ``validate`` and ``report``; ``--whole`` adds the whole-log
+calibration. Printed: wall time, peak resident memory (``VmHWM`` of the child's own process) and the peak per
+epoch; memory that does not grow with the log's length is a command's that goes through it in chunks. A command
+whose resident set passes ``--cap-mb`` is stopped and shown as "> CAP".
 
     python scripts/bench_long.py [--hours 1 2 4 24] [--rate 100] [--repeat 1] [--whole] [--keep DIR]
+                                 [--only WORD ...] [--cap-mb MB]
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 _CHILD = (
@@ -67,11 +71,63 @@ def head(path: Path, rows: int, target: Path) -> Path:
     return target
 
 
-def child(body: str) -> dict:
-    proc = subprocess.run([sys.executable, "-c", _CHILD.format(body=body)], capture_output=True, text=True)
+def child(body: str, cap_mb: float) -> dict:
+    """Run ``body`` in a fresh process; its wall time and peak memory (kB). A process whose resident set passes
+    ``cap_mb`` is stopped (polled every 0.2 s) and given as ``{"over_mb": cap_mb}``: the machine is not run out of
+    memory by a command that does not bound its own."""
+    with tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen([sys.executable, "-c", _CHILD.format(body=body)], stdout=subprocess.DEVNULL, stderr=err)
+        while proc.poll() is None:
+            if _resident_mb(proc.pid) > cap_mb:
+                proc.kill()
+                proc.wait()
+                return {"over_mb": cap_mb}
+            time.sleep(0.2)
+        err.seek(0)
+        lines = err.read().strip().splitlines()
     if proc.returncode != 0:
-        raise RuntimeError(proc.stderr.strip().splitlines()[-3:])
-    return json.loads(proc.stderr.strip().splitlines()[-1])
+        raise RuntimeError(lines[-3:])
+    return json.loads(lines[-1])
+
+
+def _resident_mb(pid: int) -> float:
+    """The resident set (MB) of process ``pid`` now (0 once it has ended)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return next((int(line.split()[1]) / 1024 for line in f if line.startswith("VmRSS")), 0.0)
+    except OSError:
+        return 0.0
+
+
+def commands(path: Path, folder: Path, whole: bool) -> dict:
+    """Every command measured on the log ``path``, as Python code run in a fresh process: the chunked calibration
+    (with smoothing and its states), ``--batch``, ``apply`` and ``convert`` to Parquet, ``diagnose``, ``validate``
+    and ``report`` (each as its command, through ``magkf.cli.main``); ``whole`` adds the whole-log calibration."""
+    log, cal = str(path), str(folder / "cal.json")
+
+    def cli(*argv) -> str:
+        return f"from magkf.cli import main; main({[*argv]!r})"
+
+    bodies = {
+        "calibrate --smooth --states (chunked)": (
+            "from magkf.online.chunked import calibrate_file; "
+            f"calibrate_file({log!r}, smooth=True, states={str(folder / 'states.parquet')!r}).calibration.save({cal!r})"
+        ),
+        "calibrate --batch": cli("calibrate", log, "--batch", "-o", str(folder / "batch.json"), "--quiet"),
+        "apply --cal CAL -o A.parquet": cli("apply", log, "--cal", cal, "-o", str(folder / "applied.parquet")),
+        "convert -o C.parquet": cli("convert", log, "-o", str(folder / "converted.parquet")),
+        "diagnose": cli("diagnose", log, "--quiet"),
+        "validate --cal CAL": cli("validate", log, "--cal", cal, "--quiet"),
+        "report": cli("report", log, "-o", str(folder / "report.html"), "--quiet"),
+    }
+    if whole:
+        bodies["calibrate --smooth (whole log)"] = (
+            "from magkf.io.readers import read_log; from magkf.online.run import calibrate_log; "
+            "from magkf.io.drivelog import write_drive_log; "
+            f"run = calibrate_log(read_log({log!r}), smooth=True); "
+            f"write_drive_log(run.states, {str(folder / 'states.parquet')!r})"
+        )
+    return bodies
 
 
 def main() -> int:
@@ -81,6 +137,13 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--whole", action="store_true", help="also the whole-log path (its memory grows)")
     parser.add_argument("--keep", help="folder to simulate into and keep (default: a temporary one)")
+    parser.add_argument("--only", nargs="+", help="only the commands whose name holds one of these words")
+    parser.add_argument(
+        "--cap-mb",
+        type=float,
+        default=6000.0,
+        help="a command whose resident set passes this is stopped (default 6000)",
+    )
     args = parser.parse_args()
     folder = Path(args.keep or tempfile.mkdtemp(prefix="magkf-long-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -90,30 +153,24 @@ def main() -> int:
         print(f"simulating {longest:g} h at {args.rate:g} Hz into {log}")
         ends = simulate(log, longest, args.rate)
         rows_per_hour = round(args.rate * 3600.0)
-        print(f"\n{'hours':>6s} {'epochs':>10s} {'path':>8s} {'wall s':>8s} {'peak MB':>8s} {'B/epoch':>8s}")
+        print(f"\n{'hours':>6s} {'epochs':>10s} {'command':>40s} {'wall s':>8s} {'peak MB':>8s} {'B/epoch':>8s}")
         for hours in sorted(args.hours):
             rows = min(int(round(hours * rows_per_hour)), ends[-1])
             path = log if rows == ends[-1] else head(log, rows, folder / f"long_{hours:g}h.csv")
-            states, cal = folder / "states.parquet", folder / "cal.json"
-            bodies = {
-                "chunked": (
-                    "from magkf.online.chunked import calibrate_file; "
-                    f"calibrate_file({str(path)!r}, smooth=True, states={str(states)!r}).calibration.save({str(cal)!r})"
-                )
-            }
-            if args.whole:
-                bodies["whole"] = (
-                    "from magkf.io.readers import read_log; from magkf.online.run import calibrate_log; "
-                    "from magkf.io.drivelog import write_drive_log; "
-                    f"run = calibrate_log(read_log({str(path)!r}), smooth=True); "
-                    f"write_drive_log(run.states, {str(states)!r})"
-                )
-            for name, body in bodies.items():
-                runs = [child(body) for _ in range(args.repeat)]
+            for name, body in commands(path, folder, args.whole).items():
+                if args.only and not any(word in name for word in args.only):
+                    continue
+                runs = [child(body, args.cap_mb) for _ in range(args.repeat)]
+                if any("over_mb" in r for r in runs):
+                    print(
+                        f"{hours:6g} {rows:10d} {name:>40s} {'':>8s} {'> ' + format(args.cap_mb, '.0f'):>8s}",
+                        flush=True,
+                    )
+                    continue
                 wall = statistics.median(r["wall_s"] for r in runs)
                 peak = statistics.median(r["peak_kb"] for r in runs)
                 print(
-                    f"{hours:6g} {rows:10d} {name:>8s} {wall:8.1f} {peak / 1024:8.0f} {peak * 1024 / rows:8.0f}",
+                    f"{hours:6g} {rows:10d} {name:>40s} {wall:8.1f} {peak / 1024:8.0f} {peak * 1024 / rows:8.0f}",
                     flush=True,
                 )
             if path != log:
