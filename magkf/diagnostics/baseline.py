@@ -126,9 +126,9 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
         (N,) bool, the epochs a run updated with: ``Baseline.used_figures`` gets each calibration's RMS vector and
         magnitude residual over them (``written_figures``).
     per_epoch : bool, optional
-        False: only the figures (``summary``, ``used_figures``, ``n_compared``) are kept, not the per-epoch errors
-        (their dicts are empty, ``time``, ``heading_deg`` and ``compared`` None): a command that prints figures
-        holds nothing of the log's length.
+        False: only the figures (``summary``, ``used_figures``, ``n_compared``) and the epochs compared (one byte
+        an epoch) are kept, not the per-epoch errors (their dicts are empty, ``time`` and ``heading_deg`` None): a
+        command that prints figures holds little of the log's length.
 
     Returns
     -------
@@ -152,19 +152,19 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
     sums = _Sums(list(calibrations), used is not None)
     n = len(log.mag)
     errors = {name: {kind: np.empty(n) for kind in _KINDS} for name in calibrations} if per_epoch else None
-    compared = np.empty(n, bool) if per_epoch else None
+    compared = np.empty(n, bool)
     for a in range(0, n, CHUNK):
         at = slice(a, min(a + CHUNK, n))
         chunk = {name: _errors(log, cal, prep, at, terms[name]) for name, cal in calibrations.items()}
         on = np.all([np.isfinite(e["heading"]) for e in chunk.values()], axis=0)
         sums.add(chunk, on, None if used is None else np.asarray(used[at], bool))
+        compared[at] = on
         if per_epoch:
-            compared[at] = on
             for name, e in chunk.items():
                 for kind in _KINDS:
                     errors[name][kind][at] = e[kind]
     if not per_epoch:
-        return Baseline(None, None, {}, {}, {}, None, sums.summary(), {}, sums.used_figures(), sums.n_compared)
+        return Baseline(None, None, {}, {}, {}, compared, sums.summary(), {}, sums.used_figures(), sums.n_compared)
     has_ref, has_mag = np.all(np.isfinite(prep.ref), axis=1), np.all(np.isfinite(log.mag), axis=1)
     status = {
         name: _status(has_mag, np.all(np.isfinite(terms[name]), axis=1), has_ref, prep.has_attitude)
