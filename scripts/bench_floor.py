@@ -187,6 +187,7 @@ def end_to_end(path: Path, out: Path, tmp: Path, n: int, args, ekf_phases: list)
             )
         print(f"  {name:30s}" + "".join(cells))
     print("  (B/epoch: peak resident memory above a process that imports the same modules and reads the log)")
+    print_markdown(["floor", "read only", *todo], checkouts, wall, peak, n, args.repeat)
     # What the filter loop's speed alone can gain: the EKF's end-to-end time less its loop (in the process).
     loop = median_phases(ekf_phases)["filter loop"]
     rest = wall[("calibrate (EKF)", "after")] - loop
@@ -194,6 +195,31 @@ def end_to_end(path: Path, out: Path, tmp: Path, n: int, args, ekf_phases: list)
         f"\n  calibrate (EKF) less its filter loop ({loop:.2f} s): {rest:.2f} s, "
         f"{rest / wall[('floor', 'after')]:.2f} x the floor: the least a loop that cost nothing would give"
     )
+
+
+def print_markdown(names: list, checkouts: dict, wall: dict, peak: dict, n: int, repeat: int) -> None:
+    """The end-to-end table again as Markdown, for the README, headed by the date and the commit measured."""
+    commit = subprocess.run(
+        ["git", "-C", str(Path(__file__).parent), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
+    when = time.strftime("%Y-%m-%d", time.gmtime())
+    both = len(checkouts) > 1
+    print(f"\nAs Markdown ({when}, commit {commit or 'unknown'}, {n} epochs, medians of {repeat}):\n")
+    if both:
+        print(
+            "| command | before | after | after / floor | peak MB before / after "
+            "| B/epoch above the read log, before / after |"
+        )
+    else:
+        print("| command | time | / floor | peak MB | B/epoch above the read log |")
+    print("|---|" + "---|" * (5 if both else 4))
+    for name in names:
+        above = {c: (peak[(name, c)] - peak[("read only", c)]) * 1024.0 / n for c in checkouts}
+        cells = [f"{wall[(name, c)]:.2f} s" for c in checkouts]
+        cells.append(f"{wall[(name, 'after')] / wall[('floor', 'after')]:.1f}")
+        cells.append(" / ".join(f"{peak[(name, c)] / 1024:.0f}" for c in checkouts))
+        cells.append("" if name == "floor" else " / ".join(f"{above[c]:,.0f}".replace(",", " ") for c in checkouts))
+        print(f"| {name} | " + " | ".join(cells) + " |")
 
 
 def median_phases(runs: list[dict]) -> dict:
