@@ -237,7 +237,8 @@ class Estimator:
         status[gated] = GATED_INNOVATION
         if np.count_nonzero(accept):
             H = kf.update(lin, accept_parts)
-            self.information += H.T @ H
+            last = getattr(kf, "last_information", None)  # (H, H^T H) of the filter's latest fold, if any
+            self.information += last[1] if last is not None and last[0] is H else H.T @ H
             updated[accept] = True
 
     def _part_block(self, model, blk: Block, mask) -> Block:

@@ -174,6 +174,9 @@ class _RandomWalkFilter(Filter):
         self.P = np.array(P0, float)
         self.q_rate = np.asarray(q_rate, float)
         self._stride = len(self.x) + 1
+        #: ``(H, H^T H)`` of the latest rows folded in by their information (``correct``): a caller summing the
+        #: information of the updates (``Estimator.information``) takes it rather than computing it again.
+        self.last_information = None
 
     def predict(self, dt: float) -> None:
         """Random-walk prediction over ``dt`` seconds: ``P += Q dt`` (``x`` unchanged, exact)."""
@@ -206,7 +209,8 @@ class _RandomWalkFilter(Filter):
         """``model``'s rows of ``blk`` linearised at the estimate, with per-epoch NIS ``y^T (H P H^T + N)^-1 y``
         (``N`` the block's whitened noise, ``Block.N``)."""
         y, H = model.linearise(self.x, blk)
-        S = H @ self.P @ H.transpose(0, 2, 1)
+        k, r, n = H.shape
+        S = (H.reshape(k * r, n) @ self.P).reshape(k, r, n) @ H.transpose(0, 2, 1)  # one product for P
         _add_noise(S, blk)
         return Rows(y, H, _nis(y, S), linear=linear)
 
@@ -216,16 +220,20 @@ class _RandomWalkFilter(Filter):
 
         With ``P = L L^T``: ``P+ = L (I + L^T J L)^-1 L^T`` and ``x+ = x + P+ g``, the Kalman update of those
         rows exactly (the information filter's ``P+^-1 = P^-1 + J`` without ever inverting ``P``); the
-        matrix inverted has eigenvalues of at least 1.
+        matrix inverted has eigenvalues of at least 1. LAPACK's Cholesky factor and triangular solve are
+        called directly (``scipy.linalg.lapack``): numpy's wrappers cost several times the 12 x 12 work.
         """
-        try:
-            L = np.linalg.cholesky(self.P)
-            C = L.T @ J @ L
-            C.ravel()[:: len(J) + 1] += 1.0
-            C = np.linalg.cholesky(C)
-        except np.linalg.LinAlgError:
+        from scipy.linalg import lapack
+
+        L, info = lapack.dpotrf(self.P, lower=1, clean=1)
+        if info != 0 or not np.isfinite(L).all():
             return False
-        M = np.linalg.solve(C, L.T)  # C^-1 L^T, so that P+ = M^T M
+        C = L.T @ J @ L
+        C.ravel()[:: len(J) + 1] += 1.0
+        C, info = lapack.dpotrf(C, lower=1, clean=1)
+        if info != 0 or not np.isfinite(C).all():
+            return False
+        M, _ = lapack.dtrtrs(C, L.T, lower=1)  # C^-1 L^T, so that P+ = M^T M
         P = M.T @ M
         self.x = self.x + P @ g
         self.P = 0.5 * (P + P.T)
@@ -241,8 +249,11 @@ class _RandomWalkFilter(Filter):
         ``M = K S K^T / 2 - K (P H^T)^T``: the same expression, valid for any gain, in two products
         instead of four and exactly symmetric by construction.
         """
-        if R is None and H.shape[0] > H.shape[1] and self._fold_information(H.T @ H, H.T @ y):
-            return
+        if R is None and H.shape[0] > H.shape[1]:
+            J = H.T @ H
+            if self._fold_information(J, H.T @ y):
+                self.last_information = (H, J)  # the rows' information, for a caller that sums it
+                return
         PHt = self.P @ H.T
         S = H @ PHt
         if R is None:
