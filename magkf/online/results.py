@@ -11,10 +11,11 @@ from ..calibration import Calibration
 from ..conventions import body_to_ned
 from ..effects import stored_effect
 from ..errors import InputError
-from ..status import STATUS_NAMES, Status, status_names
+from ..status import STATUS_NAMES, Status
 from . import observability
 from .prepare import CHUNK
 from .state import StateLayout
+from .states_table import NOISE_COLUMNS, StatesTable, states_frame
 from .verdict import verdict
 
 __all__ = [
@@ -27,7 +28,10 @@ __all__ = [
     "FitSums",
     "repeated_median",
     "epoch_columns",
+    "epoch_residuals",
     "states_frame",
+    "StatesTable",
+    "NOISE_COLUMNS",
     "summarise",
 ]
 
@@ -166,10 +170,12 @@ class CalibrationRun:
         (n, n) its covariance.
     names : list of str
         State names.
-    states : pandas.DataFrame
-        Indexed by time, with ``status``, ``updated``, ``nis``, every state and its ``std_`` column, and the
-        residuals ``residual_n, residual_e, residual_d`` (NED, nT) and ``residual_mag`` (nT) computed with the
-        estimate before each epoch.
+    states : StatesTable or None
+        The per-epoch table, indexed by time, with ``status``, ``updated``, ``nis``, every state and its ``std_``
+        column, and the residuals ``residual_n, residual_e, residual_d`` (NED, nT) and ``residual_mag`` (nT)
+        computed with the estimate before each epoch (and the learned noise, when learned). A column or a stretch
+        of rows is built when read (``states["status"]``, ``states.iloc[a:b]``), the whole DataFrame by
+        ``states.frame()``: the states are kept once a filter block (``magkf.online.states_table``).
     summary : RunSummary
         The run's figures.
     effects : dict, optional
@@ -189,7 +195,7 @@ class CalibrationRun:
     x: np.ndarray
     P: np.ndarray
     names: list
-    states: pd.DataFrame
+    states: StatesTable | None
     summary: RunSummary
     effects: dict = field(default_factory=dict)
     fit: pd.DataFrame | None = None
@@ -365,55 +371,34 @@ def _root_mean(acc: list) -> float:
 
 def epoch_columns(part, block, layout: StateLayout, trace: RunTrace, x0, own: bool, last=(None, None)) -> tuple:
     """The per-epoch columns of the epochs ``part`` (a ``PreparedLog``) of blocks ``block`` (k,): states (k, n)
-    and standard deviations (k, n) after each epoch's block, the residuals before each epoch (NED (k, 3), magnitude
-    (k,)) with the estimate before its block (``own``: its own, when smoothed or a batch solution), and the
-    residuals with the final estimate (with the per-epoch estimate when smoothed). ``last``: the states (n,) at
-    which nonlinear effects are evaluated for the residuals before each epoch and for the per-epoch estimate
+    and standard deviations (k, n) after each epoch's block, and the residuals of ``epoch_residuals``."""
+    return trace.xs[block], trace.stds[block], *epoch_residuals(part, block, layout, trace, x0, own, last)
+
+
+def epoch_residuals(part, block, layout: StateLayout, trace: RunTrace, x0, own: bool, last=(None, None)) -> tuple:
+    """The residuals of the epochs ``part`` (a ``PreparedLog``) of blocks ``block`` (k,): before each epoch (NED
+    (k, 3), magnitude (k,), nT) with the estimate before its block (``own``: its own, when smoothed or a batch
+    solution), and with the final estimate (with the per-epoch estimate when smoothed). ``last``: the states (n,)
+    at which nonlinear effects are evaluated for the residuals before each epoch and for the per-epoch estimate
     (``StateLayout.effect_terms``; None: the part's last)."""
     xs = trace.xs[block]
     prior = xs if own else np.where((block == 0)[:, None], x0, trace.xs[np.maximum(block - 1, 0)])
     ned_i, mag_i = residuals(part, layout, prior, last[0])
     ned_f, mag_f = residuals(part, layout, xs if trace.smoothed else trace.x, last[1])
-    return xs, trace.stds[block], ned_i, mag_i, ned_f, mag_f
-
-
-#: Names of the learned-noise columns of the per-epoch table.
-NOISE_COLUMNS = ("noise_sensor_nt", "noise_attitude_deg", "noise_heading_deg", "noise_inflation")
-
-
-def states_frame(index, names, status, updated, nis, xs, stds, residuals, noise=None) -> pd.DataFrame:
-    """The per-epoch table (see ``CalibrationRun.states``) of the epochs ``index``: ``residuals`` (k, 4) before each
-    epoch (north, east, down, magnitude; nT); ``noise`` (k, 4) the learned noise after each epoch's block (None: no
-    such columns). Float32 arrays are taken as they are, without a copy."""
-    frames = [
-        pd.DataFrame({"status": status_names(status), "updated": updated, "nis": nis.astype(np.float32)}, index=index),
-        pd.DataFrame(xs, columns=names, index=index, copy=False),
-        pd.DataFrame(stds, columns=[f"std_{name}" for name in names], index=index, copy=False),
-        pd.DataFrame(
-            residuals.astype(np.float32, copy=False),
-            columns=["residual_n", "residual_e", "residual_d", "residual_mag"],
-            index=index,
-            copy=False,
-        ),
-    ]
-    if noise is not None:
-        frames.append(
-            pd.DataFrame(noise.astype(np.float32, copy=False), columns=NOISE_COLUMNS, index=index, copy=False)
-        )
-    return pd.concat(frames, axis=1)
+    return ned_i, mag_i, ned_f, mag_f
 
 
 def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -> CalibrationRun:
     """Assemble a ``CalibrationRun`` from the start ``x0`` (n,), ``P0`` (n, n) and what the run went through.
 
-    The per-epoch table is filled ``CHUNK`` epochs at a time, so that nothing of the size of a long log is
-    held twice. The states, their standard deviations, the residuals, the NIS and the learned noise are float32:
-    7 significant digits, 0.01 nT of a 100 000 nT residual, and a rounding of a state below a hundredth of its
-    standard deviation unless the standard deviation is below 6e-6 of the value. The calibration, ``x`` and
-    ``P`` keep float64."""
+    The residuals are computed ``CHUNK`` epochs at a time, so that nothing of the size of a long log is held
+    twice. The per-epoch table (``StatesTable``) keeps the states and standard deviations once a block and is
+    built when read. The states, their standard deviations, the residuals, the NIS and the learned noise are
+    float32: 7 significant digits, 0.01 nT of a 100 000 nT residual, and a rounding of a state below a
+    hundredth of its standard deviation unless the standard deviation is below 6e-6 of the value. The
+    calibration, ``x`` and ``P`` keep float64."""
     status, updated, nis = trace.status, trace.updated, trace.nis
-    names = layout.names
-    n_ep, n = len(status), len(names)
+    n_ep = len(status)
     block_of = trace.block_of()
     # The residuals before each epoch use the estimate before its block (the start's for the first block),
     # which its reading has not updated; with smoothing or a batch solution, the epoch's own. With smoothing
@@ -422,15 +407,13 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     # the whole log at once.
     own = trace.smoothed or (trace.method or config.filter) == "batch"
     chunk = max(n_ep, 1) if layout.nonlinear else CHUNK
-    x_cols = np.empty((n_ep, n), np.float32)
-    std_cols = np.empty((n_ep, n), np.float32)
     # residuals before each epoch and with the final estimate: north, east, down, magnitude
     before, final = np.empty((n_ep, 4), np.float32), np.empty((n_ep, 4), np.float32)
     sums = FitSums(rows=trace.nis_rows)
     for start in range(0, n_ep, chunk):
         epochs = slice(start, min(start + chunk, n_ep))
-        x_cols[epochs], std_cols[epochs], before[epochs, :3], before[epochs, 3], final[epochs, :3], final[epochs, 3] = (
-            epoch_columns(prep.take(epochs), block_of[epochs], layout, trace, x0, own)
+        before[epochs, :3], before[epochs, 3], final[epochs, :3], final[epochs, 3] = epoch_residuals(
+            prep.take(epochs), block_of[epochs], layout, trace, x0, own
         )
         sums.add(
             status[epochs],
@@ -441,9 +424,11 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             final[epochs, 3],
             before[epochs, :3],
         )
+    del block_of
     index = log.table.index
-    noise = None if trace.noise is None else trace.noise.astype(np.float32)[block_of]
-    states = states_frame(index, names, status, updated, nis, x_cols, std_cols, before, noise)
+    states = StatesTable(
+        index, layout.names, status, updated, nis, trace.xs, trace.stds, trace.stops, before, trace.noise
+    )
     counts = np.diff(trace.stops, prepend=0) if trace.stops is not None else np.ones(n_ep, np.int64)
     summary, cal, effects = summarise(log.source, config, layout, P0, trace, sums, counts)
     cal = replace(cal, magnetometer=log.magnetometer, site=log.site)
@@ -452,7 +437,7 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
         calibration=cal,
         x=trace.x,
         P=trace.P,
-        names=names,
+        names=layout.names,
         states=states,
         summary=summary,
         effects=effects,
