@@ -302,8 +302,8 @@ def diagnose(
     present = {e.label for e in layout.extra()}
     pool = _pool(candidates, problem, present)
     problem = _without_outliers(problem, layout, x, pool, log)
-    residuals = _model_residuals(problem, layout, x, run)
     tests = _tested(problem, layout, x, pool, alpha, say)
+    residuals = _model_residuals(problem, layout, x, run)  # made after the tests: not held while they run
     from ..effects import untried_columns
 
     untried = untried_columns(channels) if candidates is None else []
@@ -478,6 +478,7 @@ def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float,
     unwandered = None
     if problem.wander_s and any(c.significant for c in results):
         unwandered = _without_wander(problem, null, selection.final, edges)
+    selection.final = None  # its whitening and residuals are not held beyond the tests
     return _Tests(selection, results, tau, dt, baseline, unwandered)
 
 
@@ -564,13 +565,17 @@ class _InNanotesla:
         self.fit = fit
         self.Rinv = np.linalg.inv(fit.layout.R(fit.x_fit))
 
+    def squares(self, residual_w: np.ndarray, a: int, b: int) -> float:
+        """The sum of squares (nT^2) of the NED residual of epochs ``a`` to ``b`` whose whitened residual is
+        ``residual_w`` (3 (b - a),) (the rotation to NED keeps the norm)."""
+        raw = np.einsum("nij,nj->ni", np.linalg.inv(self.fit.W[a:b]), residual_w.reshape(b - a, 3))
+        return float(np.sum((raw @ self.Rinv.T) ** 2))
+
     def rms(self, residual_w: np.ndarray) -> float:
-        # the rotation to NED keeps the norm; un-whitened a chunk at a time
-        residual_w, total = residual_w.reshape(-1, 3), 0.0
-        for a, b in self.fit.chunks:
-            raw = np.einsum("nij,nj->ni", np.linalg.inv(self.fit.W[a:b]), residual_w[a:b])
-            total += float(np.sum((raw @ self.Rinv.T) ** 2))
-        return float(np.sqrt(total / len(residual_w)))
+        """The RMS (nT) of the NED residual of every epoch, whitened ``residual_w`` (3n,): un-whitened a chunk at
+        a time."""
+        total = sum(self.squares(residual_w[3 * a : 3 * b], a, b) for a, b in self.fit.chunks)
+        return float(np.sqrt(total / (len(residual_w) // 3)))
 
 
 @dataclass
@@ -690,23 +695,24 @@ class _Split:
 
     def residuals(self, effect, to_u, theta, model: Linearised):
         """The second pass over the rows, with the regressors' orthonormal directions ``part @ to_u`` (q, rank) at
-        coefficients ``theta`` (rank,): the whitened residual (3n,) in sample and on held-out blocks, and the
-        per-epoch scores (n, rank) of the test (None for a wandering effect, which is tested on scores of its
-        own)."""
+        coefficients ``theta`` (rank,): the NED residual RMS (nT) in sample and on held-out blocks (each chunk's
+        residual reduced to its sum of squares as it is made), and the per-epoch scores (n, rank) of the test
+        (None for a wandering effect, which is tested on scores of its own)."""
         y, rank = model.y, to_u.shape[1]
         D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
         beta = self.held.coefficients(None if D is None else np.hstack([np.zeros((len(D), self.p)), D]))
-        in_sample, held_out = np.empty_like(y), np.empty_like(y)
+        nT, in_sample, held_out = _InNanotesla(model), 0.0, 0.0
         scores = None if effect.wanders else np.empty((len(y) // 3, rank))
         for a, b in model.chunks:
             X = self.rows(a, b)
             U = self.part(a, b, X) @ to_u
             e = y[3 * a : 3 * b] - X[0] @ self.fitted - U @ theta
-            in_sample[3 * a : 3 * b] = e
+            in_sample += nT.squares(e, a, b)
             if scores is not None:
                 scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
-            held_out[3 * a : 3 * b] = self.held.residual(X, a, b, beta)
-        return in_sample, held_out, scores
+            held_out += nT.squares(self.held.residual(X, a, b, beta), a, b)
+        n = len(y) // 3
+        return float(np.sqrt(in_sample / n)), float(np.sqrt(held_out / n)), scores
 
 
 def _constancy_scores(effect, null: Linearised) -> np.ndarray:
@@ -841,8 +847,7 @@ class _Selection:
         test = constancy_test(_constancy_scores(effect, null)) if effect.wanders else score_test(scores, theta)
         del scores
         estimate, note = _estimate(effect, test, split, to_u, names, model)
-        nT = _InNanotesla(model)
-        return _Trial(effect, test, nT.rms(held_out), nT.rms(in_sample), estimate, rank, note)
+        return _Trial(effect, test, held_out, in_sample, estimate, rank, note)
 
     def significant(self, trial: _Trial) -> bool:
         return trial.test is not None and trial.test.p_value < self.level

@@ -232,7 +232,9 @@ class EpochSet:
         """The epochs ``used`` (mask) of a ``PreparedLog``, weighed with ``noise`` (a ``NoiseLevels``; None:
         the configured noise), with the heading's error a nuisance over stretches of ``wander_s`` seconds
         (None: the logged heading taken as it is)."""
-        return cls(prep.data.take(used), prep.m[used], prep.heading[used], config, noise, wander_s)
+        data = prep.data.take(used)
+        m = data.mag if data.mag is not None else prep.m[used]  # the reading, held once
+        return cls(data, m, prep.heading[used], config, noise, wander_s)
 
     def with_wander(self, wander_s) -> EpochSet:
         """The same epochs with the heading wander modelled over ``wander_s`` s (None: not modelled)."""
@@ -240,7 +242,9 @@ class EpochSet:
 
     def take(self, keep) -> EpochSet:
         """The epochs ``keep`` (mask or index) of this set."""
-        return EpochSet(self.data.take(keep), self.m[keep], self.heading[keep], self.config, self.noise, self.wander_s)
+        data = self.data.take(keep)
+        m = data.mag if self.m is self.data.mag else self.m[keep]  # the reading, held once
+        return EpochSet(data, m, self.heading[keep], self.config, self.noise, self.wander_s)
 
     def less(self, terms) -> EpochSet:
         """The same epochs with ``terms`` (n, 3) nT taken off the readings (effects held fixed)."""
