@@ -70,7 +70,7 @@ def _residual_plot(t0, diag, title):
     for k, name in enumerate(("north", "east", "down")):
         ax.plot(t, r["ned"][pick, k], ".", ms=1, color=COMPONENT_COLOURS[name], label=name)
     ax.plot(t, r["magnitude"][pick], ".", ms=1, color=COMPONENT_COLOURS["magnitude"], label="magnitude")
-    lim = np.nanpercentile(np.abs(r["ned"]), 99.5) * 1.5
+    lim = np.nanpercentile(np.abs(r["ned"]), 99.5, overwrite_input=True) * 1.5  # partitions its own copy
     ax.set(ylim=(-lim, lim), xlabel="time since start, s", ylabel="residual, nT", title=title)
     ax.legend(markerscale=8, ncol=4)
     return _png(fig, f"{title}: north, east, down and magnitude residuals in nT against time since start in s")
@@ -138,7 +138,10 @@ def _states_plot(run, t0):
 
     s = run.states
     shown = _thinned(len(s))
-    t = s.index.to_numpy()[shown] - t0
+    drawn = s.iloc[shown]  # only the epochs drawn are built (the per-epoch table is kept by blocks)
+    t = drawn.index.to_numpy() - t0
+    # the axis: the final estimates (the last epoch is drawn) and the standard deviations at epoch len(t) // 10
+    at = s.iloc[[len(t) // 10]]
     groups = [("offset b, nT", ["b_x", "b_y", "b_z"]), ("diagonal of R (no unit)", ["R11", "R22", "R33"])]
     for effect, parameters in run.effects.items():  # one panel per added effect, in its own unit
         units = {p["unit"] for p in parameters.values()}
@@ -147,11 +150,11 @@ def _states_plot(run, t0):
     fig, axes = plt.subplots(len(groups), 1, figsize=(10, 2.6 * len(groups)), constrained_layout=True, squeeze=False)
     for ax, (title, names) in zip(axes[:, 0], groups):
         for name in names:
-            v, sd = s[name].to_numpy()[shown], s[f"std_{name}"].to_numpy()[shown]
+            v, sd = drawn[name].to_numpy(), drawn[f"std_{name}"].to_numpy()
             (line,) = ax.plot(t, v, lw=1, label=name)
             ax.fill_between(t, v - sd, v + sd, color=line.get_color(), alpha=0.2)
-        final = np.array([s[n].to_numpy()[-1] for n in names])
-        spread = np.max([3 * s[f"std_{n}"].to_numpy()[len(t) // 10] for n in names]) + 1e-12
+        final = np.array([drawn[n].to_numpy()[-1] for n in names])
+        spread = np.max([3 * at[f"std_{n}"].to_numpy()[0] for n in names]) + 1e-12
         pad = max(spread, 0.15 * np.ptp(final), 1e-9)
         ax.set(ylim=(final.min() - pad, final.max() + pad), ylabel=title)
         ax.legend(ncol=len(names))
@@ -166,7 +169,7 @@ def _states_plot(run, t0):
 def _status_plot(run, t0):
     import matplotlib.pyplot as plt
 
-    status = run.states.status
+    status = run.states["status"]
     counts = status.value_counts()
     fig, (ax1, ax2) = plt.subplots(
         1, 2, figsize=(10, 2.8), constrained_layout=True, gridspec_kw={"width_ratios": [1, 2]}
@@ -177,7 +180,7 @@ def _status_plot(run, t0):
     ax1.set(xlabel="epochs", title="epoch statuses")
     t = run.states.index.to_numpy() - t0
     # each stretch of one status as a bar (every epoch shown, however long the log)
-    codes = pd.Categorical(status.to_numpy(), categories=names).codes
+    codes = pd.Categorical(status, categories=names).codes  # from the column itself: no Python string an epoch
     change = np.flatnonzero(codes[1:] != codes[:-1]) + 1
     first, last = np.r_[0, change], np.r_[change, len(codes)] - 1
     step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
@@ -329,8 +332,8 @@ def _noise_plot(run, t0: float) -> str:
     if "noise_sensor_nt" not in s:
         return "<p>The noise was not learned (no per-epoch noise to plot).</p>"
     conf = run.summary.noise["configured"]
-    shown = _thinned(len(s))
-    t = s.index.to_numpy()[shown] - t0
+    drawn = s.iloc[_thinned(len(s))]  # only the epochs drawn are built
+    t = drawn.index.to_numpy() - t0
     panels = (
         (("noise_sensor_nt",), "sensor_nt", "sensor noise, nT"),
         (("noise_attitude_deg", "noise_heading_deg"), "attitude_deg", "attitude noise, deg"),
@@ -341,7 +344,7 @@ def _noise_plot(run, t0: float) -> str:
         for ax, (columns, key, label) in zip(axes, panels):
             top = conf[key]
             for column in columns:
-                values = s[column].to_numpy()[shown]
+                values = drawn[column].to_numpy()
                 name, colour = styles.get(column, ("learned", "tab:blue"))
                 ax.plot(t, values, lw=1.5, color=colour, label=name)
                 top = max(np.nanmax(values, initial=0.0), top)
