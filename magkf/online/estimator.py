@@ -31,12 +31,16 @@ import numpy as np
 
 from ..config import FilterConfig
 from ..status import GATED_INNOVATION, GATED_MAGNITUDE, MISSING_ATTITUDE, USED
-from .filters import make_filter
+from . import kernel
+from .filters import EKF, UKF, make_filter
 from .measurements import Block, Magnitude, MeasurementModel, magnitude_jacobian, measurement_model
 from .noise import NoiseLearner, NoiseLevels
 from .state import StateLayout
 
 __all__ = ["Estimator", "run_model"]
+
+#: The kernel's stand-in for a block without whitened noise (``Block.N`` None: the identity), never read.
+_NO_NOISE = np.zeros((1, 1, 1))
 
 
 def _scale_rows(rows, factor) -> None:
@@ -113,6 +117,10 @@ class Estimator:
         self.reacquisitions = 0
         self._gated_since = None
         self._chi2 = {}
+        # The compiled kernel (``magkf.online.kernel``): None until the run has filtered enough epochs in blocks
+        # to pay for loading it (``kernel.WORTH_AFTER_EPOCHS``), False where it is not to be used.
+        self._kernel = None if kernel.available() else False
+        self._blocked_epochs = 0
 
     @property
     def noise(self) -> NoiseLevels:
@@ -213,6 +221,8 @@ class Estimator:
         if blk.whitened_with is not self.noise:
             self.whiten(blk)
         part_blocks = [self._part_block(model, blk, mask) for model, mask in parts]
+        if self._kernel_worth(parts, k) and self._kernel_update(t, parts[0], part_blocks[0], status, updated, nis):
+            return
         lin = kf.linearise([(model, b) for (model, _), b in zip(parts, part_blocks)])
         gated = np.zeros(k, bool)
         accept_parts = []
@@ -240,6 +250,54 @@ class Estimator:
             last = getattr(kf, "last_information", None)  # (H, H^T H) of the filter's latest fold, if any
             self.information += last[1] if last is not None and last[0] is H else H.T @ H
             updated[accept] = True
+
+    def _kernel_worth(self, parts, k: int) -> bool:
+        """Whether this block is gated and updated by the compiled kernel: one model's rows at the estimate (the
+        EKF's, or the UKF's of a model linear in the state, which are the same) in a block of several epochs, once
+        the run has filtered ``kernel.WORTH_AFTER_EPOCHS`` epochs in such blocks (the kernel loaded then)."""
+        if self._kernel is False or len(parts) != 1 or k == 1:
+            return False
+        kf = self.filter
+        if not (type(kf) is EKF or (type(kf) is UKF and getattr(parts[0][0], "linear", False))):
+            return False
+        if self._kernel is None:
+            self._blocked_epochs += k
+            if self._blocked_epochs < kernel.WORTH_AFTER_EPOCHS:
+                return False
+            self._kernel = kernel.load() or False
+        return self._kernel is not False
+
+    def _kernel_update(self, t, part, part_block: Block, status, updated, nis) -> bool:
+        """``_gate_and_update`` of one model's epochs by the compiled kernel (``kernel.gate_and_fold``); False
+        (nothing done) for a block the numpy path must take."""
+        (model, mask), kf = part, self.filter
+        y, H = model.linearise(kf.x, part_block)
+        noise = part_block.N
+        outcome, nis_k, refused, x, P, J = self._kernel(
+            np.ascontiguousarray(y, float),
+            np.ascontiguousarray(H, float),
+            _NO_NOISE if noise is None else np.ascontiguousarray(noise, float),
+            noise is not None,
+            np.ascontiguousarray(kf.x, float),
+            np.ascontiguousarray(kf.P, float),
+            self._bound(self.config.innovation_prob, model.rows),
+            self._bound(self.config.huber_prob, model.rows),
+            float(self.noise.inflation_along),
+        )
+        if outcome == kernel.USE_NUMPY:
+            return False
+        idx = mask.nonzero()[0]
+        nis[idx] = nis_k
+        gated = np.zeros(len(status), bool)
+        gated[idx[refused]] = True
+        accept = mask & ~gated
+        self._reacquire(t, gated, accept)
+        status[gated] = GATED_INNOVATION
+        if outcome == kernel.UPDATED:
+            kf.x, kf.P = x, P
+            self.information += J
+            updated[accept] = True
+        return True
 
     def _part_block(self, model, blk: Block, mask) -> Block:
         """The epochs ``mask`` (k,) of ``blk`` for ``model``: the run's model takes the block as it was whitened
