@@ -63,6 +63,21 @@ def simulate(path: Path, hours: float, rate: float) -> list[int]:
     return ends
 
 
+def _simulated(log: Path, hours: float, rate: float) -> list[int]:
+    """``simulate`` into ``log``, or the simulation already there (a ``--keep`` folder's, recorded in
+    ``log``.json with its rate and hours) when it is at this rate and at least this long."""
+    record = log.with_suffix(".json")
+    if log.exists() and record.exists():
+        kept = json.loads(record.read_text())
+        if kept["rate"] == rate and kept["hours"] >= hours:
+            print(f"reusing the {kept['hours']:g} h at {rate:g} Hz simulated in {log}")
+            return kept["ends"]
+    print(f"simulating {hours:g} h at {rate:g} Hz into {log}")
+    ends = simulate(log, hours, rate)
+    record.write_text(json.dumps({"rate": rate, "hours": hours, "ends": ends}))
+    return ends
+
+
 def head(path: Path, rows: int, target: Path) -> Path:
     """The first ``rows`` records of the CSV ``path`` (with its header) in ``target``."""
     with open(path, "rb") as f, open(target, "wb") as out:
@@ -150,8 +165,7 @@ def main() -> int:
     try:
         log = folder / "long.csv"
         longest = max(args.hours)
-        print(f"simulating {longest:g} h at {args.rate:g} Hz into {log}")
-        ends = simulate(log, longest, args.rate)
+        ends = _simulated(log, longest, args.rate)
         rows_per_hour = round(args.rate * 3600.0)
         print(f"\n{'hours':>6s} {'epochs':>10s} {'command':>40s} {'wall s':>8s} {'peak MB':>8s} {'B/epoch':>8s}")
         for hours in sorted(args.hours):
