@@ -174,7 +174,11 @@ def main() -> int:
             for name, body in commands(path, folder, args.whole).items():
                 if args.only and not any(word in name for word in args.only):
                     continue
-                runs = [child(body, args.cap_mb) for _ in range(args.repeat)]
+                try:
+                    runs = [child(body, args.cap_mb) for _ in range(args.repeat)]
+                except RuntimeError as exc:  # one command that fails does not stop the others
+                    print(f"{hours:6g} {rows:10d} {name:>40s} failed: {exc}", flush=True)
+                    continue
                 if any("over_mb" in r for r in runs):
                     print(
                         f"{hours:6g} {rows:10d} {name:>40s} {'':>8s} {'> ' + format(args.cap_mb, '.0f'):>8s}",
