@@ -159,9 +159,10 @@ def _convert_in_chunks(args) -> tuple[dict, int, list]:
     Numeric columns are written as float64 (a CSV read in chunks may hold a column as integers in one of them):
     the same values, and the same CSV text, as the whole path writes."""
     from ..io.streamed_log import StreamedLog
+    from ..online import chunked
     from .long_logs import streamed_output
 
-    log = StreamedLog(args.file, args.mag_unit)
+    log = StreamedLog(args.file, args.mag_unit, chunked.CHUNK_ROWS)
     provenance, n_epochs, columns = {}, 0, []
     with streamed_output(args.output, floats=True, quoted=None) as write:
         for _, chunk in log:

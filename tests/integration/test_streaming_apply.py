@@ -183,3 +183,30 @@ def test_convert_a_parquet_log_to_standard_output(files, tmp_path, monkeypatch, 
     pd.read_csv(files["ref"]).to_parquet(parquet, index=False)
     outs = [_run(monkeypatch, capsys, chunks, "convert", parquet, "-o", "-") for chunks in (False, True)]
     assert outs[0][0] == outs[1][0] == 0 and outs[1][1] == outs[0][1]
+
+
+@pytest.mark.parametrize("command", ["apply", "convert"])
+def test_stopped_midway_leaves_the_old_output(files, tmp_path, monkeypatch, capsys, command):
+    """A SIGTERM while the second chunk is written: exit status 143, the old output as it was, no temporary left
+    (the chunks written so far were a temporary's)."""
+    import signal
+
+    from magkf import files as outputs
+    from magkf.io.drivelog import FrameWriter
+
+    output = tmp_path / "out.parquet"
+    output.write_bytes(b"old output")
+    write, calls = FrameWriter.write, []
+
+    def stopping(self, frame):
+        calls.append(len(frame))
+        if len(calls) == 2:
+            signal.raise_signal(signal.SIGTERM)
+        return write(self, frame)
+
+    monkeypatch.setattr(FrameWriter, "write", stopping)
+    extra = ("--cal", files["cal"]) if command == "apply" else ()
+    code, _, _ = _run(monkeypatch, capsys, True, command, files["ref"], *extra, "-o", output)
+    assert code == 128 + signal.SIGTERM and len(calls) == 2
+    assert output.read_bytes() == b"old output"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(outputs.PREFIX)] == []
