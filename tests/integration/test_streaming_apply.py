@@ -210,3 +210,18 @@ def test_stopped_midway_leaves_the_old_output(files, tmp_path, monkeypatch, caps
     assert code == 128 + signal.SIGTERM and len(calls) == 2
     assert output.read_bytes() == b"old output"
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(outputs.PREFIX)] == []
+
+
+def test_a_calibration_in_counts_is_judged_alike(files, tmp_path, monkeypatch, capsys):
+    """A calibration in the readings' own units (``counts``: its offset judged against the median radius of the
+    calibrated readings, gathered on disk in chunks) with its offset sixty times too large: the same warnings
+    and the same summary line as the whole path."""
+    stored = json.loads(files["cal"].read_text())
+    stored.update(field_unit="counts", effects=[], b=(60 * np.asarray(stored["b"])).tolist())
+    stored.pop("covariance", None)
+    stored.pop("state_covariance", None)
+    cal = tmp_path / "counts.json"
+    cal.write_text(json.dumps(stored))
+    runs = [_run(monkeypatch, capsys, chunks, "apply", files["ref"], "--cal", cal) for chunks in (False, True)]
+    assert runs[0][0] == runs[1][0] == 0
+    assert runs[1][1:] == runs[0][1:] and "warning" in runs[1][2]
