@@ -10,9 +10,10 @@ those of the numpy path in another order, so its results agree with it to roundi
 test_kernel.py`` measures how closely).
 
 The kernel is written for numba, which is imported only by ``load`` (a run that never calls it never pays
-numba's import, a third of a second): the estimator loads it once it has filtered ``WORTH_AFTER_EPOCHS``
-epochs in blocks, i.e. only for logs long enough to pay for it (see ``Estimator``). Compiled once and cached
-on disk (``cache=True``): the first run of a checkout compiles it (a few seconds), later runs load it.
+numba's import and the cached code's loading, about a second): the estimator loads it once it has filtered
+``WORTH_AFTER_EPOCHS`` epochs in blocks, i.e. only for logs long enough to pay for it (see ``Estimator``).
+Compiled once and cached on disk (``cache=True``, beside this module or in ``NUMBA_CACHE_DIR``): the first run
+of an installation compiles it (about 15 s), later runs load it.
 """
 
 from __future__ import annotations
@@ -21,11 +22,12 @@ import numpy as np
 
 __all__ = ["available", "load", "gate_and_fold", "WORTH_AFTER_EPOCHS", "UPDATED", "NOTHING_ACCEPTED", "USE_NUMPY"]
 
-#: The kernel is loaded once a run has filtered this many epochs in blocks (30 minutes at 100 Hz). Loading it
-#: (numba's import and the cached kernel) costs about what the numpy path spends on this many epochs over what
-#: the kernel would, so a run that stops sooner pays nothing for it, and one that goes on at most twice what the
-#: best choice made knowing its length would have cost (the ski-rental argument).
-WORTH_AFTER_EPOCHS = 180_000
+#: The kernel is loaded once a run has filtered this many epochs in blocks (5.5 hours at 100 Hz). Loading it
+#: (numba's import and the cached kernel's first call) took 1.1 s, and it saved 0.55 us of the filter loop's
+#: 5.9 us per epoch (``scripts/bench_kernel.py``, a 1-hour log, 2026-11-28): the load is repaid after this many
+#: epochs. Loading it only then, a run that stops sooner pays nothing for it, and one that goes on pays at most
+#: twice what the best choice made knowing the log's length would have cost (the ski-rental argument).
+WORTH_AFTER_EPOCHS = 2_000_000
 
 #: ``gate_and_fold``'s outcomes: the state was updated; no epoch was accepted (nothing changed); the block is one
 #: the numpy path must take (too few rows to fold by their information, or ``P`` or the folded matrix not
