@@ -85,11 +85,13 @@ def test_holds_the_blocks_not_the_epochs():
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet"])
 def test_written_as_the_frame_is(tmp_path, suffix):
-    """``write_drive_log`` of the table (a stretch of rows at a time) writes the file the DataFrame gives."""
+    """``write_drive_log`` of the table (a stretch of rows at a time, the whole DataFrame never built) writes the
+    file the DataFrame gives."""
     table, frame = _parts()
     a, b = tmp_path / f"table{suffix}", tmp_path / f"frame{suffix}"
     write_drive_log(table, a)
     write_drive_log(frame, b)
+    assert table._whole is None
     if suffix == ".csv":
         assert a.read_bytes() == b.read_bytes()
     else:
