@@ -45,11 +45,14 @@ def available() -> bool:
 
 
 def load():
-    """``gate_and_fold`` compiled by numba (imported now; the compiled code cached on disk), or None without
-    numba."""
+    """``gate_and_fold`` compiled by numba (imported now; the compiled code cached on disk), or None where numba
+    is not installed or cannot be imported."""
     global _kernel, _cholesky, _inverse_quadratic
     if _kernel is None and available():
-        from numba import njit
+        try:
+            from numba import njit
+        except ImportError:  # installed but not importable (e.g. built for another numpy): the numpy path
+            return None
 
         # compiled in place, so that the kernel's calls to them are compiled calls
         _cholesky = njit(cache=True)(_cholesky)

@@ -106,3 +106,16 @@ def test_blocks_without_attitude_are_left_to_numpy_and_the_run_is_the_same(sim, 
     without, _ = _run(log, FilterConfig(), (), False, monkeypatch)
     assert 400 < taken < 560  # the 60 s without attitude (and their edges) went to numpy
     _assert_same(with_kernel, without)
+
+
+def test_the_kernel_is_loaded_only_once_a_run_has_filtered_enough_epochs(monkeypatch):
+    """A short log never loads it (nor numba); past ``WORTH_AFTER_EPOCHS`` it is loaded once, and the blocks after
+    that are its."""
+    sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=20, seed=2, dop_bad_stretches=0))
+    loads = []
+    monkeypatch.setattr(kernel, "load", lambda: loads.append(1) or kernel.gate_and_fold)  # the plain-Python kernel
+    calibrate_log(DriveLog(sim.table, "short"), FilterConfig())
+    assert loads == []
+    monkeypatch.setattr(kernel, "WORTH_AFTER_EPOCHS", 600)  # 30 s of the 60
+    calibrate_log(DriveLog(sim.table, "short"), FilterConfig())
+    assert loads == [1]
