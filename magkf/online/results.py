@@ -277,9 +277,12 @@ class RunTrace:
     filter_x: np.ndarray | None = None
     filter_P: np.ndarray | None = None
 
-    def block_of(self) -> np.ndarray:
-        """The block (N,) of every epoch."""
+    def block_of(self, epochs: slice | None = None) -> np.ndarray:
+        """The block (N,) of every epoch, or (k,) of the epochs ``epochs`` (a slice) only."""
         n = len(self.status)
+        if epochs is not None:
+            positions = np.arange(*epochs.indices(n))
+            return positions if self.stops is None else np.searchsorted(self.stops, positions, side="right")
         if self.stops is None:
             return np.arange(n)
         return np.repeat(np.arange(len(self.stops)), np.diff(self.stops, prepend=0))
@@ -399,7 +402,6 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     calibration, ``x`` and ``P`` keep float64."""
     status, updated, nis = trace.status, trace.updated, trace.nis
     n_ep = len(status)
-    block_of = trace.block_of()
     # The residuals before each epoch use the estimate before its block (the start's for the first block),
     # which its reading has not updated; with smoothing or a batch solution, the epoch's own. With smoothing
     # the per-epoch states are the estimate at every epoch (a drift is followed); otherwise the final
@@ -413,7 +415,7 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     for start in range(0, n_ep, chunk):
         epochs = slice(start, min(start + chunk, n_ep))
         before[epochs, :3], before[epochs, 3], final[epochs, :3], final[epochs, 3] = epoch_residuals(
-            prep.take(epochs), block_of[epochs], layout, trace, x0, own
+            prep.take(epochs), trace.block_of(epochs), layout, trace, x0, own
         )
         sums.add(
             status[epochs],
@@ -424,7 +426,6 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             final[epochs, 3],
             before[epochs, :3],
         )
-    del block_of
     index = log.table.index
     states = StatesTable(
         index, layout.names, status, updated, nis, trace.xs, trace.stds, trace.stops, before, trace.noise

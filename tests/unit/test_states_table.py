@@ -7,6 +7,7 @@ uneven lengths, with a block of one epoch, so that a read that took the wrong bl
 """
 
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -14,6 +15,7 @@ import pytest
 
 from magkf.config import FilterConfig
 from magkf.io.drivelog import DriveLog, write_drive_log
+from magkf.online.results import RunTrace
 from magkf.online.run import calibrate_log
 from magkf.online.states_table import NOISE_COLUMNS, StatesTable, states_frame
 from magkf.sim import DriveConfig, simulate_drive
@@ -113,3 +115,14 @@ def test_a_runs_table():
     b_x = table["b_x"].to_numpy().reshape(120, 50)
     assert np.all(b_x == b_x[:, :1])
     assert list(frame.columns[-4:]) == list(NOISE_COLUMNS)
+
+
+@pytest.mark.parametrize("stops", [np.array([9, 10, 31, N]), None])
+def test_block_of_a_stretch(stops):
+    """``RunTrace.block_of`` of a stretch of epochs is that stretch of every epoch's blocks."""
+    empty = np.zeros(0)
+    trace = RunTrace(empty, empty, np.zeros(N, np.int8), np.zeros(N, bool), empty, empty, empty, empty, "", 0.0)
+    trace = replace(trace, stops=stops)
+    every = trace.block_of()
+    for epochs in (slice(0, N), slice(8, 11), slice(30, 45), slice(45, 60)):
+        np.testing.assert_array_equal(trace.block_of(epochs), every[epochs])
