@@ -96,7 +96,10 @@ def calibrate_log(
     prep, t = setup.prep, setup.prep.time
     forward = ForwardPass(est, setup.model, setup.R0, config, t[0] if len(t) else 0.0)
     loop_started = _time.perf_counter()
-    status, updated, nis, xs_b, Ps_b, noise_b, stops, block_dt = forward.run(prep, setup.base, progress)
+    # without smoothing only each block's standard deviations are kept, not its n x n covariance
+    status, updated, nis, xs_b, Ps_b, noise_b, stops, block_dt = forward.run(
+        prep, setup.base, progress, covariances=smooth
+    )
     loop_s = _time.perf_counter() - loop_started
     phases.add("filter loop", loop_s)
     if progress is not None:
@@ -104,6 +107,8 @@ def calibrate_log(
     if smooth:
         with phases("smoother"):
             xs_b, Ps_b = rts_smooth(xs_b, Ps_b, block_dt, setup.layout.q_rate())
+    stds_b = np.sqrt(np.einsum("bii->bi", Ps_b)) if smooth else Ps_b
+    del Ps_b
     step_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     with phases("whole-log estimate"):
         whole = whole_log_estimate(log, prep, setup, est, status, updated, config, init, reference, step_s)
@@ -113,7 +118,7 @@ def calibrate_log(
         step_s,
         whole=whole,
         xs=xs_b,
-        stds=np.sqrt(np.einsum("bii->bi", Ps_b)),
+        stds=stds_b,
         status=status,
         updated=updated,
         nis=nis,
@@ -231,12 +236,13 @@ class ForwardPass:
         self.origin = self.last_end = float(origin)
         self.with_data = bool(est.layout.nonlinear) or model.needs_data
 
-    def run(self, prep, base, progress=None) -> tuple:
+    def run(self, prep, base, progress=None, covariances: bool = True) -> tuple:
         """Filter the epochs of ``prep`` (a ``PreparedLog``) with statuses before filtering ``base`` (k,).
 
         Returns ``(status (k,) int8, updated (k,) bool, nis (k,), xs (K, n) and Ps (K, n, n) after each of its
         K blocks, noise (K, 4) the learned sensor nT, tilt and heading deg and inflation after each block,
-        stops (K,) one past each block's last epoch, dt (K,) s each block's prediction covered)``.
+        stops (K,) one past each block's last epoch, dt (K,) s each block's prediction covered)``; with
+        ``covariances`` False, each block's standard deviations (K, n) in place of ``Ps``.
         ``progress(fraction)`` is told the share done now and then."""
         est, config = self.est, self.config
         n_ep, n = len(prep), est.layout.size
@@ -244,7 +250,7 @@ class ForwardPass:
         starts, stops = blocks(t, config.block_s, self.origin)
         block_dt = np.diff(np.concatenate([[self.last_end], t[stops - 1]]))
         xs_b = np.empty((len(starts), n))
-        Ps_b = np.empty((len(starts), n, n))
+        Ps_b = np.empty((len(starts), n, n) if covariances else (len(starts), n))
         status = np.empty(n_ep, np.int8)
         updated = np.zeros(n_ep, bool)
         nis = np.full(n_ep, np.nan)
@@ -265,7 +271,7 @@ class ForwardPass:
                 t[epochs], block_dt[j], span.take(slice(i0 - s0, i1 - s0)), base[epochs]
             )
             xs_b[j] = est.x
-            Ps_b[j] = est.P
+            Ps_b[j] = est.P if covariances else np.sqrt(np.diagonal(est.P))
             noise_b[j] = est.noise.sensor_nt, est.noise.attitude_deg, est.noise.heading_deg, est.noise.inflation
             if progress is not None and j % every == 0:
                 progress(j / len(starts))
