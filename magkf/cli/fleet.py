@@ -128,19 +128,19 @@ def _memory_line(peaks: dict, limits: dict) -> str:
 
 
 def run_fleet(args) -> int:
-    """Calibrate every log (files, folders or glob patterns; any format the readers know), each as one task on a
-    Dask cluster (local by default), and with --diagnose diagnose it. Per log, under DIR/<vehicle>/<log file>/:
-    calibration.json, states.parquet, diagnosis.json and row.json. DIR/summary.parquet and summary.csv hold one
-    row per log (residuals, used share, verdict, estimates and standard deviations, undetermined directions,
-    run time, the error of a log that failed, whether it disagrees with the rest of its vehicle, and the RMS magnitude
-    and heading error of magkf's calibration and of the one the vehicle flew, read from the log);
-    DIR/vehicles.png plots each vehicle's estimates over its flights. With --diagnose, DIR/pooled_diagnosis.json pools
-    each vehicle's diagnoses over its flights (magkf.diagnostics.pooled): each candidate's combined test over the
-    flights, its coefficient's consistency across them, and the effect recommended for the vehicle even when no single
-    flight reaches significance, or the flights whose coefficient differs; one line per vehicle says it. A log that
-    fails does not stop the others (exit status 2 only when every log failed). A log whose input and settings are
-    unchanged since an earlier run into DIR (same content hash) and whose outputs are complete is not calibrated
-    again."""
+    """Calibrate every log (files, folders or glob patterns; any format the readers know), in batches of logs as tasks
+    on a Dask cluster (local by default), and with --diagnose diagnose it. Per log, under DIR/<vehicle>/<log file>/:
+    calibration.json, states.parquet, diagnosis.json and row.json. DIR/summary.parquet (a Parquet dataset: a folder of
+    part files) and summary.csv hold one row per log (residuals, used share, verdict, estimates and standard deviations,
+    undetermined directions, run time, the error of a log that failed, whether it disagrees with the rest of its
+    vehicle, and the RMS magnitude and heading error of magkf's calibration and of the one the vehicle flew, read from
+    the log); DIR/vehicles.png plots each vehicle's estimates over its flights. With --diagnose,
+    DIR/pooled_diagnosis.json pools each vehicle's diagnoses over its flights (magkf.diagnostics.pooled): each
+    candidate's combined test over the flights, its coefficient's consistency across them, and the effect recommended
+    for the vehicle even when no single flight reaches significance, or the flights whose coefficient differs; one line
+    per vehicle says it. A log that fails does not stop the others (exit status 2 only when every log failed). A log
+    whose input and settings are unchanged since an earlier run into DIR (same content hash) and whose outputs are
+    complete is not calibrated again: a run stopped part way resumes where it stopped."""
     from ..fleet import check_out_dir
 
     made = not Path(args.out_dir).exists()
