@@ -54,7 +54,6 @@ from ..status import Status
 from .fitting import (
     CHUNK,
     OUTLIER_SIGMA,
-    SPARSE_COLUMNS,
     WANDER_BLOCK_S,
     EpochSet,
     Linearised,
@@ -97,9 +96,6 @@ TESTS = {
     "F": "correlation-robust F (equal-weighted cosine long-run variance, Sun 2013)",
     "L": "constancy against a random walk, correlation-robust (Nyblom 1989, Hansen 1992)",
 }
-#: A candidate of at most this many regressor columns has them whitened once for the whole log while it is
-#: tested (three rows an epoch: 72 bytes for three columns), instead of made again at each pass.
-KEEP_COLUMNS = 3
 #: Singular values of a candidate's (column-normalised) regressors below this, once the model's span is
 #: removed, are directions the model already has: a candidate with none left is contained in it.
 RANK_TOLERANCE = 1e-4
@@ -628,28 +624,6 @@ def _determined_part(effect, gram, rows, n_rows, value, cov):
     return mean + keep @ (value - mean), keep @ cov @ keep.T, len(spread) - k
 
 
-def _kept_sparse(whitened, chunks, q: int):
-    """Whitened regressors ``whitened(a, b)`` (3 (b - a), q) of each chunk ``(a, b)`` of ``chunks`` made once and
-    kept as their columns that are not zero over the chunk, when there are at most ``KEEP_COLUMNS`` times three
-    of those in every chunk (a slow drift's hat functions in time: up to three knots on three axes): the same
-    function, reading them back; else None (they are made again at each pass)."""
-    kept = {}
-    for a, b in chunks:
-        X = whitened(a, b)
-        used = np.flatnonzero(np.any(X != 0.0, axis=0))
-        if len(used) > 3 * KEEP_COLUMNS:
-            return None
-        kept[a] = (used, X[:, used])
-
-    def read(a, b):
-        used, values = kept[a]
-        out = np.zeros((3 * (b - a), q))
-        out[:, used] = values
-        return out
-
-    return read
-
-
 @dataclass(frozen=True)
 class _Split:
     """A candidate's whitened regressors ``G`` against a model's whitened Jacobian ``A``, from a first pass over
@@ -790,15 +764,7 @@ class _Selection:
         def whitened(a, b):
             return fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b)
 
-        if q <= KEEP_COLUMNS:
-            kept = np.empty((len(fit.y), q))
-            for a, b in fit.chunks:
-                kept[3 * a : 3 * b] = whitened(a, b)
-            whitened = lambda a, b: kept[3 * a : 3 * b]  # noqa: E731
-        elif q >= SPARSE_COLUMNS:
-            whitened = _kept_sparse(whitened, fit.chunks, q) or whitened
-
-        def rows(a, b):
+        def rows(a, b):  # made again at each pass (nothing of three rows an epoch held for the whole log)
             return fit.rows(a, b), whitened(a, b)
 
         return self._evaluate(effect, rows, fit.layout.size, fit.span, names, fit, fit)

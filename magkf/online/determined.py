@@ -26,6 +26,7 @@ __all__ = [
     "CHUNK",
     "DETERMINED",
     "HeadingWander",
+    "ChunkWhitening",
     "wander_chunks",
     "model_jacobian",
     "whitening",
@@ -58,26 +59,39 @@ class HeadingWander:
     What is lost: the part of an effect that looks like a heading change within a stretch, notably a
     constant field anomaly across the horizontal field (the same thing as a heading offset).
 
-    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing.
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing. Held: ``Z``,
+    each epoch's time within its stretch and the stretch's index (32 bytes an epoch); the two regressors of each
+    stretch, ``Z`` and ``Z`` times that time, are made for the rows asked (``regressors``).
     """
 
     def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):
         t = np.asarray(time, float)
         block = np.floor((t - t[0]) / block_s).astype(int)
         self.starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
-        self.block = np.cumsum(np.r_[False, np.diff(block) != 0])  # index of each epoch's stretch
+        # index of each epoch's stretch (int32: a stretch a second, 68 years of them)
+        self.block = np.cumsum(np.r_[False, np.diff(block) != 0], dtype=np.int32)
         centre = (np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)]))[self.block]
-        s = 2.0 * (t - centre) / block_s
-        self.Z = np.stack([Z, Z * s[:, None]], axis=2)  # (n, 3, 2)
-        normal = np.add.reduceat(np.swapaxes(self.Z, 1, 2) @ self.Z, self.starts, axis=0)
+        self.Z, self.s = np.asarray(Z, float), 2.0 * (t - centre) / block_s
+        normal = np.zeros((len(self.starts), 2, 2))
+        for a, b in wander_chunks(len(t), None):  # whole stretches summed over consecutive chunks
+            Zab = self.regressors(a, b)
+            first = np.searchsorted(self.starts, a, side="right") - 1
+            cuts = np.unique(np.r_[0, self.starts[(self.starts > a) & (self.starts < b)] - a])
+            normal[first : first + len(cuts)] += np.add.reduceat(np.swapaxes(Zab, 1, 2) @ Zab, cuts, axis=0)
         self.inverse = np.linalg.pinv(normal, rcond=1e-9)  # (blocks, 2, 2)
+
+    def regressors(self, start: int, stop: int) -> np.ndarray:
+        """The wander's two regressors (stop - start, 3, 2) of epochs ``start`` to ``stop``: ``Z`` and ``Z`` times
+        the time within the stretch (-1 at its start, 1 at its end)."""
+        Z = self.Z[start:stop]
+        return np.stack([Z, Z * self.s[start:stop, None]], axis=2)
 
     def remove(self, X: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
         """``X`` (3m,) or (3m, k), epoch-major, the rows of epochs ``start`` to ``stop`` (default: all; both at
         the start of a stretch, or the end), less its least-squares fit by the wander of each stretch."""
         stop = len(self.block) if stop is None else stop
         Xr = X.reshape(stop - start, 3, -1)
-        Z, block = self.Z[start:stop], self.block[start:stop] - self.block[start]
+        Z, block = self.regressors(start, stop), self.block[start:stop] - self.block[start]
         first, last = np.searchsorted(self.starts, [start, stop])
         # batched matrix products: about twice as fast as the same einsums on long logs
         c = np.add.reduceat(np.swapaxes(Z, 1, 2) @ Xr, self.starts[first:last] - start, axis=0)
@@ -89,6 +103,28 @@ class HeadingWander:
         n = len(self.block)
         at = self.starts[np.searchsorted(self.starts, np.arange(size, n, size), side="right") - 1]
         return np.unique(np.r_[0, at, n])
+
+
+class ChunkWhitening:
+    """The whitening (n, 3, 3) of a set's vector measurement at calibration ``R``, made for the epochs asked
+    (``W[a:b]``, a slice of consecutive epochs) instead of held for the whole set: ``model.whitening`` of the
+    epochs' ``field_body`` (n, 3) nT and ``heading`` (n, 3) axes, epoch by epoch, so that each chunk's values
+    are those of the whole set's. The last chunk made is kept for the next reads of the same epochs."""
+
+    def __init__(self, model, field_body: np.ndarray, R: np.ndarray, heading: np.ndarray):
+        self.model, self.field_body, self.R, self.heading = model, field_body, R, heading
+        self._last = (None, None)
+
+    def __len__(self) -> int:
+        return len(self.field_body)
+
+    def __getitem__(self, index: slice) -> np.ndarray:
+        a, b, step = index.indices(len(self))
+        if step != 1:
+            raise IndexError("ChunkWhitening is read a slice of consecutive epochs at a time")
+        if self._last[0] != (a, b):
+            self._last = ((a, b), self.model.whitening(self.field_body[a:b], self.R, self.heading[a:b]))
+        return self._last[1]
 
 
 def wander_chunks(n: int, wander: HeadingWander | None) -> list:
@@ -119,16 +155,19 @@ def model_jacobian(layout: StateLayout, x, data, rows, first: int = 0):
 
 def whitening(data, heading, config, noise, wander_s, layout: StateLayout, x):
     """``(data, W, wander)`` at state ``x``: the data with ``R0`` of ``x``, the whitening (n, 3, 3) of the vector
-    measurement in the set's noise, and the heading's wander (None: not modelled)."""
+    measurement in the set's noise (a ``ChunkWhitening``, made a chunk at a time when read), and the heading's
+    wander (None: not modelled)."""
     R = layout.R(x)
     data = replace(data, R0=R)
     model = measurement_model(config, layout, x)
     if noise is not None:
         model.set_noise(noise)
-    W = model.whitening(data.field_body, R, heading)
+    W = ChunkWhitening(model, data.field_body, R, heading)
     wander = None
     if wander_s:
-        wander = HeadingWander(np.einsum("nij,nj->ni", W, heading @ R.T), data.time, wander_s)
+        chunks = wander_chunks(len(W), None)
+        Z = np.concatenate([np.einsum("nij,nj->ni", W[a:b], heading[a:b] @ R.T) for a, b in chunks])
+        wander = HeadingWander(Z, data.time, wander_s)
     return data, W, wander
 
 
