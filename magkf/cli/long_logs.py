@@ -16,11 +16,12 @@ __all__ = ["STREAMED_EPOCHS", "read_in_chunks", "streamed_output"]
 STREAMED_EPOCHS = 100_000
 
 
-def read_in_chunks(args) -> bool:
+def read_in_chunks(args, rows: int | None = None) -> bool:
     """Whether the log of the command line ``args`` is read in chunks (``magkf.online.chunked.ChunkedLog``), as
     ``calibrate`` decides it but from ``STREAMED_EPOCHS`` rows on: a canonical CSV or Parquet file (not standard
     input, no column map, no ``--mag``, ``--site`` or ``--date``) of at least that many rows (or
-    ``CHUNKED_EPOCHS``, where a test lowers it)."""
+    ``CHUNKED_EPOCHS``, where a test lowers it); ``rows`` another least number of rows (``calibrate``'s
+    ``CHUNKED_EPOCHS``)."""
     from ..files import STDIO
     from ..io.readers import detect_format
     from ..online import chunked
@@ -33,7 +34,8 @@ def read_in_chunks(args) -> bool:
         return False
     if (args.format or detect_format(args.file)) not in ("csv", "parquet"):
         return False
-    return chunked.estimated_rows(args.file) >= min(STREAMED_EPOCHS, chunked.CHUNKED_EPOCHS)
+    least = min(STREAMED_EPOCHS, chunked.CHUNKED_EPOCHS) if rows is None else rows
+    return chunked.estimated_rows(args.file) >= least
 
 
 @contextmanager

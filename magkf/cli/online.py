@@ -231,24 +231,15 @@ def _per_instance(path, instance):
 
 
 def _chunked(args) -> bool:
-    """Whether ``calibrate`` goes through the chunked path: a canonical CSV or Parquet file (not standard input,
-    no column map) of at least ``CHUNKED_EPOCHS`` rows, calibrated by the filter, states (if any) to a file."""
-    from pathlib import Path
+    """Whether ``calibrate`` goes through the chunked path: a log ``long_logs.read_in_chunks`` reads in chunks, of at
+    least ``CHUNKED_EPOCHS`` rows, calibrated by the filter, states (if any) to a file, the start not read from the
+    log's parameters (an autopilot log, read whole)."""
+    from ..online import chunked
+    from .long_logs import read_in_chunks
 
-    from ..io.readers import detect_format
-    from ..online.chunked import CHUNKED_EPOCHS, estimated_rows
-
-    if args.file == "-" or args.batch or args.map is not None or args.states == "-" or args.mag is not None:
+    if args.batch or args.states == "-" or args.init == common.LOGGED:
         return False
-    if args.init == common.LOGGED:  # read from the log's parameters: an autopilot log, read whole
-        return False
-    if args.site is not None or args.date is not None:  # a log placed by the user is read whole
-        return False
-    if not Path(args.file).is_file():
-        return False
-    if (args.format or detect_format(args.file)) not in ("csv", "parquet"):
-        return False
-    return estimated_rows(args.file) >= CHUNKED_EPOCHS
+    return read_in_chunks(args, chunked.CHUNKED_EPOCHS)
 
 
 def _calibrate_chunked(args, config, init) -> None:
