@@ -2,7 +2,7 @@
 
 ``apply_file(path, cal, write)`` gives every epoch of the canonical CSV or Parquet log ``path`` what
 ``apply.apply_calibration`` gives it over the whole log, read ``rows`` rows at a time
-(``magkf.io.streamed_log.StreamedLog``: each chunk validated as the whole reader validates a log, errors naming
+(``magkf.online.chunked.ChunkedLog``: each chunk validated as the whole reader validates a log, errors naming
 the file, the row and the column), each chunk's rows handed to ``write`` (a ``FrameWriter``'s ``write``) as
 soon as they are computed. What the command judges and prints is gathered on the way: the statuses' counts,
 the calibrated magnitudes' mean and standard deviation (combined chunk by chunk), and, kept on disk for exact
@@ -38,7 +38,6 @@ from .calibration import Calibration
 from .conventions import ALT, LAT, LON, REF
 from .files import temporary_folder
 from .io.drivelog import DriveLog
-from .io.streamed_log import StreamedLog
 from .online import chunked
 from .online.chunked import OVERLAP_S, ChunkedLog
 from .spilled_median import SpilledMedian
@@ -251,7 +250,7 @@ def apply_file(
     rows = chunked.CHUNK_ROWS if rows is None else int(rows)
     with temporary_folder() as folder:
         own = OwnLog(cal)
-        log = StreamedLog(path, mag_unit, rows, cache=folder if own.needed else None)
+        log = ChunkedLog(path, mag_unit, rows, cache=folder if own.needed else None)
         if own.needed:  # decided over the whole log before any drift is subtracted
             for _, chunk in log:
                 own.add(chunk.time, chunk.mag)

@@ -154,15 +154,15 @@ def run_convert(args) -> int:
 
 
 def _convert_in_chunks(args) -> tuple[dict, int, list]:
-    """``convert`` of a long canonical log (``magkf.io.streamed_log.StreamedLog``: each chunk validated as the
+    """``convert`` of a long canonical log (``magkf.online.chunked.ChunkedLog``: each chunk validated as the
     whole reader validates a log), each chunk written as read; the provenance, the epochs and the columns.
     Numeric columns are written as float64 (a CSV read in chunks may hold a column as integers in one of them):
     the same values, and the same CSV text, as the whole path writes."""
-    from ..io.streamed_log import StreamedLog
     from ..online import chunked
+    from ..online.chunked import ChunkedLog
     from .long_logs import streamed_output
 
-    log = StreamedLog(args.file, args.mag_unit, chunked.CHUNK_ROWS)
+    log = ChunkedLog(args.file, args.mag_unit, chunked.CHUNK_ROWS)
     provenance, n_epochs, columns = {}, 0, []
     with streamed_output(args.output, floats=True, quoted=None) as write:
         for _, chunk in log:

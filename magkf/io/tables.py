@@ -22,6 +22,8 @@ __all__ = [
     "read_csv",
     "read_parquet",
     "check_layout",
+    "record_lines",
+    "RecordLines",
     "checked_table",
     "numeric_column",
     "require_complete",
@@ -109,16 +111,21 @@ def check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
     or more fields than the header (pandas would fill a short row with empty cells, or take a long row's
     first field as an index). Files with quoted fields are left to the parser (None is returned); otherwise
     the line numbers of the records (the lines after the header that are not blank)."""
-    fields = _check_header(path, name, required)
-    scan = _FieldScan(name, fields)
+    scan = _FieldScan(name, _check_header(path, name, required))
+    return scan.records() if _scanned(path, scan) else None
+
+
+def _scanned(path: Path, scan) -> bool:
+    """Feed the bytes of the file ``path`` to ``scan`` (``_FieldScan``) in pieces of ``SCAN_BYTES``; False (the scan
+    stopped) at a quoted field, which is left to the parser."""
     with open(path, "rb") as f:
         while chunk := f.read(SCAN_BYTES):
             while chunk.endswith(b"\r") and (more := f.read(1)):  # a CR LF pair stays in one chunk
                 chunk += more
             if b'"' in chunk:
-                return None
+                return False
             scan.add(chunk)
-    return scan.records()
+    return True
 
 
 def _check_header(path: Path, name: str, required) -> int:
@@ -278,3 +285,62 @@ def require_rows(table: pd.DataFrame, minimum: int, source: str, what: str) -> N
     """Raise InputError when ``table`` has fewer than ``minimum`` rows."""
     if len(table) < minimum:
         raise InputError(f"too few samples: {len(table)} rows, {what} needs at least {minimum}", source)
+
+
+class RecordLines:
+    """The file lines (1-based) of a CSV file's records as ``runs`` (k, 2): the first line and the number of lines
+    of each stretch of consecutive record lines."""
+
+    def __init__(self, runs: np.ndarray):
+        self.runs = np.asarray(runs, np.int64).reshape(-1, 2)
+        self.before = np.concatenate([[0], np.cumsum(self.runs[:, 1])])  # records before each run
+
+    def at(self, index: np.ndarray) -> np.ndarray:
+        """The lines of the records ``index`` (n,) (0-based, in the order of the file)."""
+        run = np.searchsorted(self.before, index, side="right") - 1
+        return self.runs[run, 0] + (index - self.before[run])
+
+    @property
+    def plain(self) -> bool:
+        """Whether the records are every line after the header (no blank line): a record's line is its number."""
+        return len(self.runs) == 0 or (len(self.runs) == 1 and self.runs[0, 0] == HEADER_ROWS + 1)
+
+
+class _RunScan(_FieldScan):
+    """``io.tables``' scan of a CSV file's fields, keeping the record lines as runs (``RecordLines``)."""
+
+    def __init__(self, name: str, fields: int):
+        super().__init__(name, fields)
+        self.runs: list[list[int]] = []
+
+    def add(self, chunk: bytes) -> None:
+        super().add(chunk)
+        self._keep(self.lines.pop())
+
+    def _keep(self, lines: np.ndarray) -> None:
+        lines = lines[lines > HEADER_ROWS]
+        if not len(lines):
+            return
+        breaks = np.flatnonzero(np.diff(lines) != 1) + 1
+        for first, last in zip(np.r_[0, breaks], np.r_[breaks, len(lines)]):
+            start, count = int(lines[first]), int(last - first)
+            if self.runs and sum(self.runs[-1]) == start:
+                self.runs[-1][1] += count
+            else:
+                self.runs.append([start, count])
+
+    def record_lines(self) -> RecordLines:
+        """The runs, once the file's last line (without a line end) is checked (``_FieldScan.records``)."""
+        self._keep(self.records())
+        return RecordLines(np.array(self.runs, np.int64))
+
+
+def record_lines(path, name: str, required=()) -> RecordLines | None:
+    """``io.tables.check_layout`` of the CSV file ``path`` (InputError naming ``name``, the row and the column for
+    a header or a row out of shape) with its records' lines as runs; None for a file with quoted fields (left to
+    the parser) or whose records are every line after the header."""
+    scan = _RunScan(name, _check_header(path, name, required))
+    if not _scanned(path, scan):
+        return None
+    lines = scan.record_lines()
+    return None if lines.plain else lines

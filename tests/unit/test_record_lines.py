@@ -1,12 +1,13 @@
-"""``StreamedLog``: ``ChunkedLog``'s chunks and errors, with a CSV file's record lines kept as runs."""
+"""``ChunkedLog`` keeps a CSV file's record lines as runs (``io.tables.record_lines``): the same lines as
+``check_layout``, the same chunks and errors."""
 
 import numpy as np
 import pytest
 
 from magkf.errors import InputError
 from magkf.io.readers import read_log
-from magkf.io.streamed_log import StreamedLog, record_lines
-from magkf.io.tables import check_layout
+from magkf.io.tables import check_layout, record_lines
+from magkf.online.chunked import ChunkedLog
 from magkf.sim import DriveConfig, simulate_drive
 
 HEADER = "time,mag_x,mag_y,mag_z,lat,lon"
@@ -50,7 +51,7 @@ def test_a_bad_cell_after_blank_lines_names_its_line(tmp_path):
     with pytest.raises(InputError) as whole:
         read_log(path)
     with pytest.raises(InputError) as chunked:
-        list(StreamedLog(path, rows=16))
+        list(ChunkedLog(path, rows=16))
     assert str(chunked.value) == str(whole.value) and f"row {bad}" in str(chunked.value)
 
 
@@ -63,6 +64,6 @@ def test_the_chunks_are_the_whole_log(tmp_path, suffix):
     path = tmp_path / f"log{suffix}"
     sim.write(path)
     whole = read_log(path).table
-    chunks = [log.table for _, log in StreamedLog(path, rows=333)]
+    chunks = [log.table for _, log in ChunkedLog(path, rows=333)]
     assert len(chunks) == 4
     pd.testing.assert_frame_equal(pd.concat(chunks), whole, check_dtype=False)
