@@ -398,7 +398,7 @@ def _without_outliers(problem: EpochSet, layout: StateLayout, x, pool: list, log
     # A wandering effect's flexible basis would absorb the bursts, so it is left out of the screening.
     keep = inliers(_screening_residual(problem.with_wander(None).at(layout, x), [e for e in pool if not e.wanders]))
     if not keep.all():
-        problem = problem.take(keep)
+        problem = problem.keep_only(keep)  # cut in place: the epochs not held twice
     n = len(problem)
     if n < 10:
         raise InputError(f"too few usable epochs ({n}) to diagnose once outliers are left out", log.source)

@@ -10,7 +10,7 @@ effect has pulled off.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from functools import cached_property
 
 import numpy as np
@@ -245,6 +245,25 @@ class EpochSet:
         data = self.data.take(keep)
         m = data.mag if self.m is self.data.mag else self.m[keep]  # the reading, held once
         return EpochSet(data, m, self.heading[keep], self.config, self.noise, self.wander_s)
+
+    def keep_only(self, keep) -> EpochSet:
+        """This set cut to its epochs ``keep`` (mask or index) in place, and returned: each array replaced by its
+        kept epochs before the next is cut, so that the set is not held twice (as ``take`` holds it while the
+        original lives)."""
+        kind = type(self.data)
+        arrays = {f.name: getattr(self.data, f.name) for f in fields(self.data)}
+        shared = self.m is self.data.mag
+        self.data = None
+        columns = arrays.pop("columns")
+        for name, values in list(columns.items()):
+            columns[name] = values[keep]
+        for name, values in arrays.items():
+            if isinstance(values, np.ndarray) and values.ndim and name != "R0":
+                arrays[name] = values = values[keep]
+        self.data = kind(**arrays, columns=columns)
+        self.m = self.data.mag if shared else self.m[keep]
+        self.heading = self.heading[keep]
+        return self
 
     def less(self, terms) -> EpochSet:
         """The same epochs with ``terms`` (n, 3) nT taken off the readings (effects held fixed)."""

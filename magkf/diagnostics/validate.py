@@ -232,7 +232,9 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
     raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
-    return epochs.take(inliers(raw.residual(x).reshape(-1, 3)))
+    keep = inliers(raw.residual(x).reshape(-1, 3))
+    del raw  # its data would hold the epochs' arrays while they are cut
+    return epochs.keep_only(keep)
 
 
 class _Comparison:
