@@ -47,7 +47,7 @@ def available() -> bool:
 def load():
     """``gate_and_fold`` compiled by numba (imported now; the compiled code cached on disk), or None where numba
     is not installed or cannot be imported."""
-    global _kernel, _cholesky, _inverse_quadratic
+    global _kernel, _cholesky, _inverse_quadratic, _gate, _information, _folded_factor
     if _kernel is None and available():
         try:
             from numba import njit
@@ -57,6 +57,9 @@ def load():
         # compiled in place, so that the kernel's calls to them are compiled calls
         _cholesky = njit(cache=True)(_cholesky)
         _inverse_quadratic = njit(cache=True)(_inverse_quadratic)
+        _gate = njit(cache=True)(_gate)
+        _information = njit(cache=True)(_information)
+        _folded_factor = njit(cache=True)(_folded_factor)
         _kernel = njit(cache=True)(gate_and_fold)
     return _kernel
 
@@ -142,6 +145,25 @@ def gate_and_fold(y, H, N, has_noise, x, P, bound, huber_q, inflation):
     L = np.zeros((n, n))
     if not _cholesky(P, L):
         return USE_NUMPY, nis, refused, x, P, J
+    accepted = _gate(y, H, N, has_noise, L, bound, nis, refused)
+    if accepted == 0:
+        return NOTHING_ACCEPTED, nis, refused, x, P, J
+    if accepted * r <= n:
+        return USE_NUMPY, nis, refused, x, P, J
+    g = _information(y, H, has_noise, nis, refused, huber_q, inflation, J)
+    M = _folded_factor(L, J)
+    if M.shape[0] == 0:
+        return USE_NUMPY, nis, refused, x, P, np.zeros((n, n))
+    P_new = M.T @ M
+    P_new = 0.5 * (P_new + P_new.T)
+    x_new = x + P_new @ g
+    return UPDATED, nis, refused, x_new, P_new, J
+
+
+def _gate(y, H, N, has_noise, L, bound, nis, refused) -> int:
+    """Each epoch's normalised innovation squared into ``nis`` (k,) with ``P = L L^T``, and the gate's refusals
+    into ``refused`` (k,); returns the epochs accepted."""
+    k, r, n = H.shape
     G = np.empty((r, n))
     S = np.empty((r, r))
     accepted = 0
@@ -166,12 +188,15 @@ def gate_and_fold(y, H, N, has_noise, x, P, bound, huber_q, inflation):
         nis[e] = _inverse_quadratic(S, y[e])
         if nis[e] > bound:
             refused[e] = True
-            continue
-        accepted += 1
-    if accepted == 0:
-        return NOTHING_ACCEPTED, nis, refused, x, P, J
-    if accepted * r <= n:
-        return USE_NUMPY, nis, refused, x, P, J
+        else:
+            accepted += 1
+    return accepted
+
+
+def _information(y, H, has_noise, nis, refused, huber_q, inflation, J):
+    """The information of the accepted rows, each epoch weighted by its Huber weight (and ``1 / inflation``
+    without ``N``): ``J = sum w H^T H`` (n, n) summed into ``J``, and ``g = sum w H^T y`` (n,) returned."""
+    k, r, n = H.shape
     g = np.zeros(n)
     for e in range(k):
         if refused[e]:
@@ -188,20 +213,24 @@ def gate_and_fold(y, H, N, has_noise, x, P, bound, huber_q, inflation):
     for a in range(n):
         for b in range(a + 1, n):
             J[b, a] = J[a, b]
+    return g
+
+
+def _folded_factor(L, J):
+    """``M = C^-1 L^T`` (n, n) with ``C`` the Cholesky factor of ``I + L^T J L``, so that ``P+ = M^T M``; an
+    empty (0, n) array when that matrix is not positive definite."""
+    n = L.shape[0]
     C = L.T @ J @ L
     for a in range(n):
         C[a, a] += 1.0
     Lc = np.zeros((n, n))
     if not _cholesky(C, Lc):
-        return USE_NUMPY, nis, refused, x, P, np.zeros((n, n))
-    M = np.empty((n, n))  # Lc^-1 L^T by forward substitution, so that P+ = M^T M
+        return np.empty((0, n))
+    M = np.empty((n, n))  # by forward substitution
     for col in range(n):
         for i in range(n):
             s = L[col, i]
             for p in range(i):
                 s -= Lc[i, p] * M[p, col]
             M[i, col] = s / Lc[i, i]
-    P_new = M.T @ M
-    P_new = 0.5 * (P_new + P_new.T)
-    x_new = x + P_new @ g
-    return UPDATED, nis, refused, x_new, P_new, J
+    return M
