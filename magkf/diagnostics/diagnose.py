@@ -564,7 +564,7 @@ class _InNanotesla:
     def squares(self, residual_w: np.ndarray, a: int, b: int) -> float:
         """The sum of squares (nT^2) of the NED residual of epochs ``a`` to ``b`` whose whitened residual is
         ``residual_w`` (3 (b - a),) (the rotation to NED keeps the norm)."""
-        raw = np.einsum("nij,nj->ni", np.linalg.inv(self.fit.W[a:b]), residual_w.reshape(b - a, 3))
+        raw = self.fit.unwhitened(residual_w.reshape(b - a, 3), a, b)
         return float(np.sum((raw @ self.Rinv.T) ** 2))
 
     def rms(self, residual_w: np.ndarray) -> float:

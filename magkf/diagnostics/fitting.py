@@ -35,6 +35,7 @@ __all__ = [
     "gram_svd",
     "CHUNK",
     "finite_regressors",
+    "inverse_stack",
 ]
 
 #: Iterations of the refit (whitening and linearisation at the estimate), and its tolerance on the change
@@ -118,6 +119,24 @@ def gram_svd(gram: np.ndarray, rows, n_rows: int) -> tuple[np.ndarray, np.ndarra
     return s, vt
 
 
+def inverse_stack(A: np.ndarray) -> np.ndarray:
+    """Inverses (m, 3, 3) of a stack of 3x3 matrices ``A`` (m, 3, 3), by cofactors over the stack (LAPACK's
+    stacked ``inv`` costs a call per matrix; the two agree to rounding for the well-conditioned whitenings)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    cof = np.stack(
+        [
+            np.stack([e * i - f * h, c * h - b * i, b * f - c * e], axis=1),
+            np.stack([f * g - d * i, a * i - c * g, c * d - a * f], axis=1),
+            np.stack([d * h - e * g, b * g - a * h, a * e - b * d], axis=1),
+        ],
+        axis=1,
+    )
+    det = a * cof[:, 0, 0] + b * cof[:, 1, 0] + c * cof[:, 2, 0]
+    return cof / det[:, None, None]
+
+
 def _rank(sv: np.ndarray) -> int:
     """Numerical rank from singular values in descending order."""
     return int(np.sum(sv > 1e-9 * sv[0])) if sv.size and sv[0] > 0 else 0
@@ -169,12 +188,14 @@ class Linearised:
     x_fit: np.ndarray
     wander: HeadingWander | None = None
 
-    def unwhitened(self, residual_w: np.ndarray) -> np.ndarray:
-        """Whitened residuals (n, 3) taken back to nT in the sensor axes (n, 3): ``W^-1`` applied epoch by epoch,
-        inverted a chunk at a time (never held for the whole set)."""
+    def unwhitened(self, residual_w: np.ndarray, start: int | None = None, stop: int | None = None) -> np.ndarray:
+        """Whitened residuals (m, 3) of the epochs ``start`` to ``stop`` (default: all, a chunk at a time) taken
+        back to nT in the sensor axes (m, 3): ``W^-1`` applied epoch by epoch, never held for the whole set."""
+        if start is not None:
+            return np.einsum("nij,nj->ni", inverse_stack(self.W[start:stop]), residual_w)
         out = np.empty(residual_w.shape)
         for a, b in self.chunks:
-            out[a:b] = np.einsum("nij,nj->ni", np.linalg.inv(self.W[a:b]), residual_w[a:b])
+            out[a:b] = self.unwhitened(residual_w[a:b], a, b)
         return out
 
     @cached_property
