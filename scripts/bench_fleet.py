@@ -156,7 +156,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             tmp = Path(tmp)
             run_fleet(paths[:workers], tmp / "warm", client=client, plot=False)  # imports in every worker
-            serial, cluster = [], []
+            serial, cluster, efficiency = [], [], []
             for r in range(args.repeats):
                 before = load()
                 s = run_serial(sample, tmp / f"serial{r}")
@@ -164,6 +164,9 @@ def main() -> None:
                 assert s["failed"] == 0 and c["failed"] == 0, (s, c)
                 serial.append(len(sample) / s["wall_s"])
                 cluster.append(len(paths) / c["wall_s"])
+                # CPU a log in one process over CPU a log in the cluster (workers and client): what the cluster
+                # adds, less sensitive than wall time to other work on the machine
+                efficiency.append((s["cpu_s"] / len(sample)) / ((c["workers_cpu_s"] + c["client_cpu_s"]) / len(paths)))
                 print(
                     f"  run {r + 1}: one process {serial[-1]:.2f} logs/s ({len(sample)} logs in {s['wall_s']:.1f} s, "
                     f"CPU {s['cpu_s']:.1f} s, peak {s['peak_mb']:.0f} MB); {workers} workers {cluster[-1]:.2f} logs/s "
@@ -175,6 +178,10 @@ def main() -> None:
                 f"median of {args.repeats}: one process {one:.2f} logs/s, {workers} workers {many:.2f} logs/s; "
                 f"ideal {workers} x {one:.2f} = {workers * one:.2f} logs/s; "
                 f"ratio to the ideal {many / (workers * one):.2f}"
+            )
+            print(
+                "CPU a log, one process over the cluster's (workers and client), median: "
+                f"{statistics.median(efficiency):.2f}"
             )
             peaks = client.run(vm_peak_mb)
             limits = {a: w.get("memory_limit", 0) for a, w in client.scheduler_info()["workers"].items()}
