@@ -45,6 +45,7 @@ from ..effects import Effect, LinearEffect, check_columns, restore_effects
 from ..effects import candidates as default_candidates
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
+from ..online.determined import ChunkCache
 from ..online.noise import NoiseLevels
 from ..online.prepare import prepare
 from ..online.results import CalibrationRun
@@ -526,9 +527,13 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     block (``HeldOut`` over a single block of the whole log) without being copied side by side, except for
     the pass that ``gram_svd`` may make."""
 
+    cache = ChunkCache()  # the candidates' whitened regressors, made once if the budget allows
+
+    def whitened(j, effect, a, b):
+        return cache.get((j, a, b), lambda: fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b))
+
     def rows(a, b):
-        regressors = (finite_regressors(effect, fit.data, slice(a, b)) for effect in pool)
-        return (fit.rows(a, b), *(fit.whitened(G, a, b) for G in regressors))
+        return (fit.rows(a, b), *(whitened(j, effect, a, b) for j, effect in enumerate(pool)))
 
     whole = HeldOut(fit.y, np.array([0, len(fit.y) // 3]))
     for a, b in fit.chunks:
@@ -761,10 +766,12 @@ class _Selection:
         q = finite_regressors(effect, fit.data, slice(0, 1)).shape[2]
         names = effect.parameter_names if q == effect.size else [f"g{j + 1}" for j in range(q)]
 
-        def whitened(a, b):
-            return fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b)
+        cache = ChunkCache()  # kept for the trial's passes within ``CACHE_BYTES``, made again beyond
 
-        def rows(a, b):  # made again at each pass (nothing of three rows an epoch held for the whole log)
+        def whitened(a, b):
+            return cache.get((a, b), lambda: fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b))
+
+        def rows(a, b):
             return fit.rows(a, b), whitened(a, b)
 
         return self._evaluate(effect, rows, fit.layout.size, fit.span, names, fit, fit)

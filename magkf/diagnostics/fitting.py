@@ -10,12 +10,12 @@ effect has pulled off.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 
 import numpy as np
 
-from ..online.determined import CHUNK, DETERMINED, WANDER_BLOCK_S, HeadingWander, whitened_gram, whitening
+from ..online.determined import CHUNK, DETERMINED, WANDER_BLOCK_S, ChunkCache, HeadingWander, whitened_gram, whitening
 from ..online.determined import model_jacobian as _jacobian
 from ..online.determined import wander_chunks as _chunks
 from ..online.state import StateLayout
@@ -175,7 +175,9 @@ class Linearised:
     rows an epoch and p columns is held) and ``span`` (p, k) the coefficients of an orthonormal basis
     ``A @ span`` of the directions the data determine (``A`` the whitened Jacobian); ``y`` (3n,) the whitened
     reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares estimate (kept at ``x``
-    in directions the data do not determine)."""
+    in directions the data do not determine). ``cache`` keeps the rows made, a chunk at a time, within
+    ``determined.CACHE_BYTES`` (``ChunkCache``): a short log's are made once, a long log's beyond the budget
+    made again at each pass."""
 
     layout: StateLayout
     x: np.ndarray
@@ -187,6 +189,7 @@ class Linearised:
     r: np.ndarray
     x_fit: np.ndarray
     wander: HeadingWander | None = None
+    cache: ChunkCache = field(default_factory=ChunkCache, compare=False, repr=False)
 
     def unwhitened(self, residual_w: np.ndarray, start: int | None = None, stop: int | None = None) -> np.ndarray:
         """Whitened residuals (m, 3) of the epochs ``start`` to ``stop`` (default: all, a chunk at a time) taken
@@ -221,7 +224,11 @@ class Linearised:
 
     def rows(self, start: int, stop: int) -> np.ndarray:
         """The whitened Jacobian's rows (3 (stop - start), p) of the epochs ``start`` to ``stop`` (the edges of
-        ``chunks``): the kept columns as kept, the others made again."""
+        ``chunks``): as cached, or the kept columns as kept and the others made again (read-only)."""
+        return self.cache.get(("rows", start, stop), lambda: self._made_rows(start, stop))
+
+    def _made_rows(self, start: int, stop: int) -> np.ndarray:
+        """``rows`` made: the kept columns as kept, the others made again."""
         k = self.kept.shape[1]
         kept = self.kept[3 * start : 3 * stop]
         if k == self.layout.size:
@@ -312,7 +319,7 @@ class EpochSet:
         n, p = len(self.m), layout.size
         chunks = _chunks(n, wander)
         y, kept = np.empty(3 * n), np.empty((3 * n, keep))
-        gram, moment = 0.0, 0.0
+        gram, moment, cache = 0.0, 0.0, ChunkCache()
         for a, b in chunks:  # whitened a chunk at a time, with the wander taken out stretch by stretch
             H, offset = _jacobian(layout, x, data, slice(a, b))
             ya = np.einsum("nij,nj->ni", W[a:b], self.m[a:b] - offset).ravel()
@@ -321,7 +328,8 @@ class EpochSet:
                 ya, X = wander.remove(ya, a, b), wander.remove(X, a, b)
             y[3 * a : 3 * b], kept[3 * a : 3 * b] = ya, X[:, :keep]
             gram, moment = gram + X.T @ X, moment + X.T @ ya
-        fitted = Linearised(layout, x, data, W, kept, None, y, None, None, wander)
+            cache.put(("rows", a, b), X)  # ``Linearised.rows``, kept if the budget allows
+        fitted = Linearised(layout, x, data, W, kept, None, y, None, None, wander, cache)
         # Directions in units of the parameters' prior spread (``determined``). A weaker one (the part of a field
         # anomaly that a heading offset mimics, once the heading's wander is taken out) is held where it is:
         # fitted, it would take noise as values of hundreds of thousands of nT.

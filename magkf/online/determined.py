@@ -13,6 +13,8 @@ directions of an added effect held at its prior, ``held_directions``) and the di
 
 from __future__ import annotations
 
+import threading
+import weakref
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -26,6 +28,8 @@ __all__ = [
     "CHUNK",
     "DETERMINED",
     "HeadingWander",
+    "CACHE_BYTES",
+    "ChunkCache",
     "ChunkWhitening",
     "wander_chunks",
     "model_jacobian",
@@ -43,6 +47,71 @@ CHUNK = 8192
 #: A direction of the parameters counts as determined by the data when its standard error (noise as whitened)
 #: is below this share of its prior spread: the data then say more about it than the prior does.
 DETERMINED = 1.0
+#: Bytes of chunks made for a pass (whitenings, a linearised model's whitened Jacobian, a candidate's whitened
+#: regressors) that may be kept for the next passes, over all the ``ChunkCache``s of a process alive together.
+#: A diagnosis reads each of them on several passes (a candidate's test: two to four; the model's Jacobian: on
+#: every candidate's), and made again they cost about half its time; kept whole they are 300 to 1 000 bytes an
+#: epoch. 256 MB keeps all of them for a log of up to about 15 to 30 minutes at 100 Hz (as fast as holding
+#: them), the first chunks of a longer one, and bounds what a log of any length holds beyond its vectors of a
+#: few values an epoch (a fleet's worker: 256 MB per process, whatever the logs' length).
+CACHE_BYTES = 256 * 2**20
+
+
+class _Budget:
+    """The bytes held by every ``ChunkCache`` of the process (``CACHE_BYTES`` at most)."""
+
+    lock = threading.Lock()
+    used = 0
+
+    @classmethod
+    def take(cls, nbytes: int) -> bool:
+        """Whether ``nbytes`` more fit in ``CACHE_BYTES``; if so, they are counted held."""
+        with cls.lock:
+            if cls.used + nbytes > CACHE_BYTES:
+                return False
+            cls.used += nbytes
+            return True
+
+    @classmethod
+    def give_back(cls, held: list) -> None:
+        """``held[0]`` bytes no longer held (a cache let go)."""
+        with cls.lock:
+            cls.used -= held[0]
+            held[0] = 0
+
+
+class ChunkCache:
+    """Arrays made a chunk at a time for a pass over a set of epochs, kept (read-only) for the next passes as
+    long as every cache of the process holds at most ``CACHE_BYTES`` together; beyond, made again each time
+    they are asked for (the last one made kept still, outside the budget, for the next read of the same chunk).
+    What a cache holds is given back to the budget when the cache is let go."""
+
+    def __init__(self):
+        self._store: dict = {}
+        self._last = (None, None)
+        self._held = [0]
+        weakref.finalize(self, _Budget.give_back, self._held)
+
+    def get(self, key, make) -> np.ndarray:
+        """The array of ``key`` (a chunk's edges, and what is made of it): kept, or ``make()`` (and kept if the
+        budget allows)."""
+        found = self._store.get(key)
+        if found is not None:
+            return found
+        if self._last[0] == key:
+            return self._last[1]
+        value = make()
+        value.flags.writeable = False
+        if _Budget.take(value.nbytes):
+            self._held[0] += value.nbytes
+            self._store[key] = value
+        else:
+            self._last = (key, value)
+        return value
+
+    def put(self, key, value: np.ndarray) -> None:
+        """``value`` kept for ``key`` if the budget allows (made by a pass that needed it anyway)."""
+        self.get(key, lambda: value)
 
 
 class HeadingWander:
@@ -109,11 +178,12 @@ class ChunkWhitening:
     """The whitening (n, 3, 3) of a set's vector measurement at calibration ``R``, made for the epochs asked
     (``W[a:b]``, a slice of consecutive epochs) instead of held for the whole set: ``model.whitening`` of the
     epochs' ``field_body`` (n, 3) nT and ``heading`` (n, 3) axes, epoch by epoch, so that each chunk's values
-    are those of the whole set's. The last chunk made is kept for the next reads of the same epochs."""
+    are those of the whole set's. The chunks made are kept for the next reads of the same epochs within
+    ``CACHE_BYTES`` (``ChunkCache``; 72 bytes an epoch)."""
 
     def __init__(self, model, field_body: np.ndarray, R: np.ndarray, heading: np.ndarray):
         self.model, self.field_body, self.R, self.heading = model, field_body, R, heading
-        self._last = (None, None)
+        self._cache = ChunkCache()
 
     def __len__(self) -> int:
         return len(self.field_body)
@@ -122,9 +192,7 @@ class ChunkWhitening:
         a, b, step = index.indices(len(self))
         if step != 1:
             raise IndexError("ChunkWhitening is read a slice of consecutive epochs at a time")
-        if self._last[0] != (a, b):
-            self._last = ((a, b), self.model.whitening(self.field_body[a:b], self.R, self.heading[a:b]))
-        return self._last[1]
+        return self._cache.get((a, b), lambda: self.model.whitening(self.field_body[a:b], self.R, self.heading[a:b]))
 
 
 def wander_chunks(n: int, wander: HeadingWander | None) -> list:
