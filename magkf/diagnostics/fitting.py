@@ -193,9 +193,11 @@ class Linearised:
 
     def unwhitened(self, residual_w: np.ndarray, start: int | None = None, stop: int | None = None) -> np.ndarray:
         """Whitened residuals (m, 3) of the epochs ``start`` to ``stop`` (default: all, a chunk at a time) taken
-        back to nT in the sensor axes (m, 3): ``W^-1`` applied epoch by epoch, never held for the whole set."""
+        back to nT in the sensor axes (m, 3): ``W^-1`` applied epoch by epoch, made a chunk at a time (kept within
+        the cache's budget, as the rows)."""
         if start is not None:
-            return np.einsum("nij,nj->ni", inverse_stack(self.W[start:stop]), residual_w)
+            inverse = self.cache.get(("W^-1", start, stop), lambda: inverse_stack(self.W[start:stop]))
+            return np.einsum("nij,nj->ni", inverse, residual_w)
         out = np.empty(residual_w.shape)
         for a, b in self.chunks:
             out[a:b] = self.unwhitened(residual_w[a:b], a, b)
