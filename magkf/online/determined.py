@@ -50,10 +50,11 @@ DETERMINED = 1.0
 #: Bytes of chunks made for a pass (whitenings, a linearised model's whitened Jacobian, a candidate's whitened
 #: regressors) that may be kept for the next passes, over all the ``ChunkCache``s of a process alive together.
 #: A diagnosis reads each of them on several passes (a candidate's test: two to four; the model's Jacobian: on
-#: every candidate's), and made again they cost about half its time; kept whole they are 300 to 1 000 bytes an
-#: epoch. 256 MB keeps all of them for a log of up to about 15 to 30 minutes at 100 Hz (as fast as holding
-#: them), the first chunks of a longer one, and bounds what a log of any length holds beyond its vectors of a
-#: few values an epoch (a fleet's worker: 256 MB per process, whatever the logs' length).
+#: every candidate's), and made again they cost about half its time; kept whole they are about 1.1 kB an epoch
+#: (98 MB on a 15-minute 100 Hz drive). 256 MB keeps all of them for a log of up to about 40 minutes at 100 Hz
+#: (as fast as holding them), the first chunks of a longer one (a 1-hour log's diagnosis in half the time of
+#: none kept), and bounds what a log of any length holds beyond its vectors of a few values an epoch (a fleet's
+#: worker: 256 MB more per process at most, whatever the logs' length). Set it to 0 to keep nothing.
 CACHE_BYTES = 256 * 2**20
 
 
