@@ -15,7 +15,7 @@ and writes under ``out_dir/<vehicle>/<log file name>/``:
 
 A log that cannot be read or calibrated gives a row with ``error`` (one line naming the file, and where
 known the row and column) and no estimates; the other logs go on. The worker writes each batch's rows into
-the journal ``out_dir/rows/`` and returns only a few figures; the summary (``summary.parquet``, a Parquet
+the journal ``out_dir/.journal/`` and returns only a few figures; the summary (``summary.parquet``, a Parquet
 dataset of one or more files, and ``summary.csv``, in ``out_dir``) is made from the journal a group of
 vehicles at a time (``magkf.fleet_table``), one row per log, sorted by vehicle, start time and path, so that
 neither the client nor a worker holds every row of a large fleet. ``read_summary`` reads it back.
@@ -375,6 +375,9 @@ def process_log(task: LogTask) -> dict:
         stored = _reusable(folder, key, task.settings)
         if stored is not None:
             return {**stored, **row, "reused": True, **task_resources()}
+        # The manifest is written last and names what the outputs beside it were made with: an earlier run's goes
+        # before any output is replaced, so that a run stopped part way is never reused with newer outputs.
+        (folder / MANIFEST).unlink(missing_ok=True)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             warnings.simplefilter("ignore", RuntimeWarning)  # numpy's, on degenerate stretches

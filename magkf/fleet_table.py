@@ -19,14 +19,16 @@ from __future__ import annotations
 import os
 import secrets
 import shutil
+import socket
 from pathlib import Path
 
 import pandas as pd
 
 __all__ = ["JOURNAL", "SUMMARY", "SUMMARY_CSV", "PART_ROWS", "part_name", "write_rows", "read_summary", "write_summary"]
 
-#: The folder of the journal (each batch's rows), under the output folder.
-JOURNAL = "rows"
+#: The folder of the journal (each batch's rows), under the output folder: a name with a leading dot, which no
+#: vehicle's folder has (``fleet._safe`` strips them), so that removing it never removes a vehicle's outputs.
+JOURNAL = ".journal"
 #: The summary's Parquet dataset (a folder) and its CSV file, under the output folder.
 SUMMARY = "summary.parquet"
 SUMMARY_CSV = "summary.csv"
@@ -177,39 +179,43 @@ def write_summary(out_dir, parts: list, arrange, views: dict, limit: int = PART_
     names = list(arrange(pd.DataFrame(columns=list(types))).columns)
     kinds = {**types, **views}
     schema = pa.schema([(name, pa.string() if name in TEXT else kinds.get(name, pa.float64())) for name in names])
-    tag = f"{os.getpid()}-{secrets.token_hex(4)}"
+    tag = f"{_HOST}-{os.getpid()}-{secrets.token_hex(4)}"
     staging = out / f".{SUMMARY}.{tag}.tmp"
     staging.mkdir()
+    csv_tmp = out / f".{SUMMARY_CSV}.{tag}.tmp"
     try:
-        _write_groups(out, staging, tag, schema, (_rows_of(g, index, parts) for g in _groups(index, limit)), arrange)
+        _write_groups(staging, csv_tmp, schema, (_rows_of(g, index, parts) for g in _groups(index, limit)), arrange)
+        # the dataset first, then the CSV: a run stopped between the two leaves the new dataset beside the old CSV,
+        # which the next run replaces, never a new CSV beside an old dataset that readers take as the summary
         _swap(staging, out / SUMMARY)
+        os.replace(csv_tmp, out / SUMMARY_CSV)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        csv_tmp.unlink(missing_ok=True)
     return out / SUMMARY
 
 
-def _write_groups(out: Path, staging: Path, tag: str, schema, groups, arrange) -> None:
+def _write_groups(staging: Path, csv_tmp: Path, schema, groups, arrange) -> None:
     """Each group's rows arranged and written as the next file of the dataset in ``staging`` and appended to the
-    CSV (written beside ``SUMMARY_CSV`` and moved onto it once complete)."""
+    CSV ``csv_tmp`` (by pandas: a cell is quoted only where it holds a comma, a quote or a line end, as a
+    spreadsheet writes it)."""
     import pyarrow.parquet as pq
-    from pyarrow import csv
 
-    csv_tmp = out / f".{SUMMARY_CSV}.{tag}.tmp"
-    try:
-        with csv.CSVWriter(str(csv_tmp), schema) as writer:
-            written_any = False
-            for k, rows in enumerate(groups):
-                table = _arrow(arrange(rows), schema)
-                pq.write_table(table, staging / part_name(k))
-                writer.write_table(table)
-                written_any = True
-            if not written_any:  # no log: one empty file keeps the dataset's columns
-                empty = _arrow(pd.DataFrame(columns=schema.names), schema)
-                pq.write_table(empty, staging / part_name(0))
-        os.replace(csv_tmp, out / SUMMARY_CSV)
-    finally:
-        if csv_tmp.exists():
-            csv_tmp.unlink()
+    with open(csv_tmp, "w", encoding="utf-8", newline="") as csv_file:
+        written_any = False
+        for k, rows in enumerate(groups):
+            table = _arrow(arrange(rows), schema)
+            pq.write_table(table, staging / part_name(k))
+            table.to_pandas().to_csv(csv_file, header=not written_any, index=False, lineterminator="\n")
+            written_any = True
+        if not written_any:  # no log: one empty file keeps the dataset's columns
+            empty = _arrow(pd.DataFrame(columns=schema.names), schema)
+            pq.write_table(empty, staging / part_name(0))
+            empty.to_pandas().to_csv(csv_file, index=False, lineterminator="\n")
+
+
+#: This machine's name as it goes into a staging name (dots and dashes out of it: the name's fields are split on them).
+_HOST = "".join(c for c in socket.gethostname() if c.isalnum()) or "host"
 
 
 def _swap(new: Path, target: Path) -> None:
@@ -217,7 +223,7 @@ def _swap(new: Path, target: Path) -> None:
     if not target.exists():
         os.replace(new, target)
         return
-    old = target.with_name(f".{target.name}.{os.getpid()}-{secrets.token_hex(4)}.old")
+    old = target.with_name(f".{target.name}.{_HOST}-{os.getpid()}-{secrets.token_hex(4)}.old")
     os.replace(target, old)
     os.replace(new, target)
     if old.is_dir():
@@ -237,11 +243,11 @@ def _alive(pid: int) -> bool:
 
 
 def _remove_dead_leftovers(out: Path) -> None:
-    """The staging folders and files that a killed run of this host left in ``out`` (its process gone)."""
+    """The staging folders and files that a killed run of this host left in ``out`` (its process gone); another
+    host's, on a shared folder, are left alone."""
     for path in out.glob(".summary.*"):
-        fields = path.name.split(".")
-        pid = next((f.split("-")[0] for f in fields if "-" in f and f.split("-")[0].isdigit()), None)
-        if pid is None or _alive(int(pid)):
+        fields = path.name.split(".")[-2].split("-")  # .summary.<kind>.<host>-<pid>-<hex>.<tmp or old>
+        if len(fields) != 3 or fields[0] != _HOST or not fields[1].isdigit() or _alive(int(fields[1])):
             continue
         if path.is_dir():
             shutil.rmtree(path, ignore_errors=True)

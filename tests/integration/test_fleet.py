@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from magkf.fleet import RUN_COLUMNS, FleetSettings, find_logs, run_fleet
+from magkf.fleet_table import JOURNAL
 from magkf.sim import DriveConfig, simulate_drive
 from magkf.study import StudySpec, runs
 from magkf.study import run as run_study
@@ -85,7 +86,7 @@ def test_fleet_rows_corrupt_log_and_jumped_flight(fleet, serial):
     assert (good["start_time"].diff()[good["vehicle"] == good["vehicle"].shift()] > 0).all()
     assert s.index[s["error"] != ""].tolist() == [FLIGHTS]
     assert Path(serial.files["summary_csv"]).is_file() and Path(serial.files["summary_parquet"]).is_dir()
-    assert not (Path(serial.files["summary_parquet"]).parent / "rows").exists()  # the journal, removed once done
+    assert not (Path(serial.files["summary_parquet"]).parent / JOURNAL).exists()  # the journal, removed once done
     pd.testing.assert_frame_equal(pd.read_parquet(serial.files["summary_parquet"]), s)  # the dataset, read whole
 
 

@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 
 from magkf.fleet import RUN_COLUMNS, find_logs, run_fleet
+from magkf.fleet_table import JOURNAL
 from magkf.sim import DriveConfig, simulate_drive
 
 from ..conftest import run_cli
@@ -81,5 +82,33 @@ def test_a_stopped_run_resumes_where_it_stopped(fleet, tmp_path, signum, workers
     assert reused == set(done)  # exactly the logs finished before the stop are reused ...
     assert all(path.stat().st_mtime_ns == mtime for path, mtime in done.items())  # ... and not written again
     pd.testing.assert_frame_equal(outcome(summary), outcome(whole), check_dtype=False)
-    assert not (out / "rows").exists()  # the journal is removed once the summary is made
+    assert not (out / JOURNAL).exists()  # the journal is removed once the summary is made
     assert not [p for p in out.rglob(".*") if p.name.startswith((".magkf-", ".summary"))]  # no temporaries left
+
+
+@pytest.mark.slow
+def test_a_run_stopped_after_its_outputs_is_not_reused_with_them(fleet, tmp_path, monkeypatch):
+    """Settings A, then settings B stopped after a log's outputs are written but before its ``row.json``, then A
+    again: the log is calibrated again (not reused with B's outputs beside A's row), and its summary row names the
+    calibration file's own offsets. A vehicle folder named as the journal would be cannot exist (the journal's
+    name starts with a dot, which vehicle folders never do)."""
+    import json
+
+    from magkf import fleet as fleet_module
+    from magkf.fleet import FleetSettings
+
+    root, _ = fleet
+    logs = find_logs([root / "V2"])[:1]
+    run_fleet(logs, tmp_path, FleetSettings(), plot=False)
+
+    def stopped(*args, **kwargs):
+        raise RuntimeError("stopped once the outputs were written")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(fleet_module, "baseline_row", stopped)
+        run_fleet(logs, tmp_path, FleetSettings(effects=("time_lag",)), plot=False)
+    again = run_fleet(logs, tmp_path, FleetSettings(), plot=False).summary
+    assert not again["reused"].any()
+    written = json.loads((Path(again["output"][0]) / "calibration.json").read_text())
+    assert again["b_x"][0] == pytest.approx(written["b"][0], rel=1e-12)
+    assert JOURNAL.startswith(".") and fleet_module._safe(JOURNAL) != JOURNAL

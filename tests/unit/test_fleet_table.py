@@ -72,4 +72,38 @@ def test_columns_read_alone_and_an_earlier_single_file_replaced(tmp_path):
     few = read_summary(out, ["vehicle", "error", "no_such_column"])
     assert list(few.columns) == ["vehicle", "error"] and len(few) == len(all_rows)
     assert few["vehicle"].is_monotonic_increasing
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no staging folder or file left
+    # no staging folder or file left (the journal is the caller's to remove)
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != JOURNAL]
+
+
+def test_csv_cells_quoted_only_where_needed(tmp_path):
+    """The CSV as a spreadsheet writes it: the header and plain cells bare, only a cell holding a comma quoted."""
+    out = tmp_path / "out"
+    all_rows = rows(seed=7)
+    all_rows[-1]["error"] = "/f/V1/bad.csv: row 2: 3 cells, 4 expected"
+    write_summary(out, journal(out, all_rows, 4, 2), arrange, _views(), limit=6)
+    lines = (out / SUMMARY_CSV).read_text(encoding="utf-8").splitlines()
+    assert not lines[0].startswith('"') and lines[1].split(",")[1] == "V0"
+    assert sum('"/f/V1/bad.csv: row 2: 3 cells, 4 expected"' in line for line in lines) == 1
+    assert pd.read_csv(out / SUMMARY_CSV, keep_default_na=False)["error"].str.len().gt(0).sum() == 1
+
+
+def test_only_this_hosts_dead_leftovers_are_removed(tmp_path):
+    """A staging folder of a process of this host that is gone is removed; one of a live process, or of another
+    host's process of any number (a shared folder), is left."""
+    import os
+
+    from magkf import fleet_table
+
+    out = tmp_path / "out"
+    out.mkdir()
+    dead = 2**22 + 12345  # above the kernel's default pid_max (4 194 304): no such process
+    names = {
+        f".{SUMMARY}.{fleet_table._HOST}-{dead}-00000000.tmp": False,
+        f".{SUMMARY}.{fleet_table._HOST}-{os.getpid()}-00000000.tmp": True,
+        f".{SUMMARY}.otherhost{fleet_table._HOST}-{dead}-00000000.tmp": True,
+    }
+    for name in names:
+        (out / name).mkdir()
+    fleet_table._remove_dead_leftovers(out)
+    assert {name: (out / name).exists() for name in names} == names
