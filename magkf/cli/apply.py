@@ -19,7 +19,7 @@ def add_parsers(sub) -> None:
 def run_apply(args) -> int:
     """Apply a calibration file to a drive log; every epoch is written with a status. The calibration is judged
     against the log's field first (``magkf.plausibility.check_loaded``): an absurd one is refused, naming its file.
-    A canonical CSV or Parquet log of at least ``magkf.online.chunked.CHUNKED_EPOCHS`` epochs is read, calibrated
+    A canonical CSV or Parquet log of at least ``magkf.cli.long_logs.STREAMED_EPOCHS`` epochs is read, calibrated
     and written chunk by chunk (``magkf.apply_chunked``), and judged once it has been read through: the same
     table, in memory that does not grow with the log."""
     from .long_logs import read_in_chunks

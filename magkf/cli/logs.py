@@ -108,7 +108,7 @@ def run_convert(args) -> int:
     came from, what was converted or undone) is written beside it, as OUT.csv.provenance.json for OUT.csv
     (with -o -, the CSV goes to standard output and the provenance is not written).
 
-    A canonical CSV or Parquet log of at least ``magkf.online.chunked.CHUNKED_EPOCHS`` epochs is read, validated
+    A canonical CSV or Parquet log of at least ``magkf.cli.long_logs.STREAMED_EPOCHS`` epochs is read, validated
     and written chunk by chunk (``_convert_in_chunks``), in memory that does not grow with the log. The readers of
     the binary formats (ULog, DataFlash, tlog, ROS bags) build the whole table, interpolating attitude and
     position to the magnetometer's epochs: converting one holds the log's table (about 8 bytes per column and
