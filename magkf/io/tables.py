@@ -311,28 +311,31 @@ class _RunScan(_FieldScan):
 
     def __init__(self, name: str, fields: int):
         super().__init__(name, fields)
-        self.runs: list[list[int]] = []
+        self.runs: list[np.ndarray] = []  # (k, 2) arrays: first line and number of lines of each run
 
     def add(self, chunk: bytes) -> None:
         super().add(chunk)
         self._keep(self.lines.pop())
 
     def _keep(self, lines: np.ndarray) -> None:
+        """Add the record lines ``lines`` (ascending) as runs, the first joined to the last run kept when it
+        continues it (16 bytes a run: a file with a blank line after every record has a run a record)."""
         lines = lines[lines > HEADER_ROWS]
         if not len(lines):
             return
-        breaks = np.flatnonzero(np.diff(lines) != 1) + 1
-        for first, last in zip(np.r_[0, breaks], np.r_[breaks, len(lines)]):
-            start, count = int(lines[first]), int(last - first)
-            if self.runs and sum(self.runs[-1]) == start:
-                self.runs[-1][1] += count
-            else:
-                self.runs.append([start, count])
+        firsts = np.r_[0, np.flatnonzero(np.diff(lines) != 1) + 1]
+        runs = np.column_stack([lines[firsts], np.diff(np.r_[firsts, len(lines)])]).astype(np.int64)
+        if self.runs and self.runs[-1][-1].sum() == runs[0, 0]:
+            last = self.runs[-1]
+            last[-1, 1] += runs[0, 1]
+            runs = runs[1:]
+        if len(runs):
+            self.runs.append(runs)
 
     def record_lines(self) -> RecordLines:
         """The runs, once the file's last line (without a line end) is checked (``_FieldScan.records``)."""
         self._keep(self.records())
-        return RecordLines(np.array(self.runs, np.int64))
+        return RecordLines(np.concatenate(self.runs) if self.runs else np.zeros((0, 2), np.int64))
 
 
 def record_lines(path, name: str, required=()) -> RecordLines | None:
