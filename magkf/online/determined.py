@@ -51,11 +51,12 @@ DETERMINED = 1.0
 #: regressors) that may be kept for the next passes, over all the ``ChunkCache``s of a process alive together.
 #: A diagnosis reads each of them on several passes (a candidate's test: two to four; the model's Jacobian: on
 #: every candidate's), and made again they cost about half its time; kept whole they are about 1.1 kB an epoch
-#: (98 MB on a 15-minute 100 Hz drive). 256 MB keeps all of them for a log of up to about 40 minutes at 100 Hz
-#: (as fast as holding them), the first chunks of a longer one (a 1-hour log's diagnosis in half the time of
-#: none kept), and bounds what a log of any length holds beyond its vectors of a few values an epoch (a fleet's
-#: worker: 256 MB more per process at most, whatever the logs' length). Set it to 0 to keep nothing.
-CACHE_BYTES = 256 * 2**20
+#: (98 MB on a 15-minute 100 Hz drive). 128 MB keeps all of them for a log of up to about 20 minutes at 100 Hz
+#: (on the 15-minute drive, 64, 128 and 256 MB each gave 0.51 to 0.52 of the time with none kept), the first
+#: chunks of a longer one, and bounds what a log of any length holds beyond its vectors of a few values an epoch
+#: (a fleet's worker: 128 MB more per process at most, whatever the logs' length); 256 MB took a 1-hour log's
+#: diagnosis to half the time of none kept, for 740 bytes an epoch more at its peak. Set it to 0 to keep nothing.
+CACHE_BYTES = 128 * 2**20
 
 
 class _Budget:
