@@ -139,7 +139,7 @@ class StatesTable:
             return np.repeat(values, np.diff(self._stops, prepend=0), axis=0)
         return values[self.blocks(rows)]
 
-    def values(self, name: str, rows=None) -> np.ndarray:
+    def column_values(self, name: str, rows=None) -> np.ndarray:
         """The values (k,) of the column ``name`` at the epochs ``rows`` (None: every epoch): the status as a string
         array of names (as the DataFrame's column holds it), the others as the table holds them (bool, float32)."""
         if name not in self._sources:
@@ -159,7 +159,7 @@ class StatesTable:
         column, or with the columns ``columns`` (a list of names) in that order."""
         index = self.index if rows is None else self.index[rows]
         if columns is not None:
-            return pd.DataFrame({name: self.values(name, rows) for name in columns}, index=index)
+            return pd.DataFrame({name: self.column_values(name, rows) for name in columns}, index=index)
         pick = slice(None) if rows is None else rows
         blocks = None if rows is None and self._stops is None else self.blocks(rows)
         xs, stds, noise = self._xs, self._stds, self._noise
@@ -179,7 +179,7 @@ class StatesTable:
         """A column as a Series (``table["b_x"]``), columns as a DataFrame (``table[["b_x", "b_y"]]``); any other
         key as the whole DataFrame takes it."""
         if isinstance(key, str):
-            return pd.Series(self.values(key), index=self.index, name=key, copy=False)
+            return pd.Series(self.column_values(key), index=self.index, name=key, copy=False)
         if isinstance(key, (list, pd.Index)) and all(isinstance(k, str) for k in key):
             return self.frame(columns=list(key))
         return self.whole()[key]
@@ -194,6 +194,20 @@ class StatesTable:
         if self._whole is None:
             self._whole = self.frame()
         return self._whole
+
+    @property
+    def values(self) -> np.ndarray:
+        """The whole table's values, as ``DataFrame.values`` (builds the whole table)."""
+        return self.whole().values
+
+    def to_numpy(self, *args, **kwargs) -> np.ndarray:
+        """As ``DataFrame.to_numpy`` (builds the whole table)."""
+        return self.whole().to_numpy(*args, **kwargs)
+
+    def __array__(self, dtype=None, copy=None):
+        """``numpy.asarray(table)``: the whole table's values, as for a DataFrame."""
+        values = self.whole().to_numpy()
+        return values if dtype is None else values.astype(dtype)
 
     def __getattr__(self, name: str):
         if name.startswith("_"):  # not built for private names (copies and pickles look for them)

@@ -8,6 +8,7 @@ uneven lengths, with a block of one epoch, so that a read that took the wrong bl
 
 import pickle
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -126,3 +127,17 @@ def test_block_of_a_stretch(stops):
     every = trace.block_of()
     for epochs in (slice(0, N), slice(8, 11), slice(30, 45), slice(45, 60)):
         np.testing.assert_array_equal(trace.block_of(epochs), every[epochs])
+
+
+def test_numpy_and_pandas_take_the_whole_table():
+    """``numpy.asarray``, ``.values``, ``.to_numpy()`` and ``pandas.DataFrame(table)`` give the whole table's values,
+    as for the DataFrame (they had given the column names, a bound method and a one-column frame)."""
+    from magkf.io.readers import read_log
+
+    log = read_log(Path(__file__).parents[2] / "data" / "example_drive.csv")
+    table = calibrate_log(log).states
+    whole = table.frame()
+    for got in (np.asarray(table), table.values, table.to_numpy(), pd.DataFrame(table).to_numpy()):
+        assert got.shape == whole.shape
+        as_frame = pd.DataFrame(got, index=whole.index, columns=whole.columns)
+        pd.testing.assert_frame_equal(as_frame, whole, check_dtype=False)
