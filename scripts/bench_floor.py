@@ -115,8 +115,14 @@ def child(args: list[str], code: str | None = None, checkout: Path | None = None
     holding the package; None: the installed one); its wall time from the first import and peak memory (kB)."""
     body = code or f"from magkf.cli import main; main({args!r}); "
     env = dict(os.environ, PYTHONPATH=str(checkout)) if checkout else None
+    # run outside any checkout: ``python -c`` puts its working folder first on the path, ahead of PYTHONPATH
     proc = subprocess.run(
-        [sys.executable, "-c", _PRELUDE + body + _EPILOGUE], capture_output=True, text=True, check=False, env=env
+        [sys.executable, "-c", _PRELUDE + body + _EPILOGUE],
+        capture_output=True,
+        text=True,
+        check=False,
+        env=env,
+        cwd=tempfile.gettempdir(),
     )
     if proc.returncode != 0:
         raise RuntimeError(f"{args or code} failed: {proc.stderr.strip().splitlines()[-1:]}")
