@@ -172,7 +172,6 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
     }
     magnitude, heading, vector = ({name: errors[name][kind] for name in calibrations} for kind in _KINDS)
     logged_heading = np.where(prep.has_attitude, log.attitude[:, 2] % 360.0, np.nan)
-    summary = _summary(magnitude, heading, vector, compared)
     return Baseline(
         prep.time,
         logged_heading,
@@ -180,7 +179,7 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
         heading,
         status,
         compared,
-        summary,
+        sums.summary(),
         vector,
         sums.used_figures(),
         int(compared.sum()),
@@ -245,7 +244,8 @@ class _Sums:
                 s["used_m2"] += np.sum(e["magnitude"][used_magnitude] ** 2)
 
     def summary(self) -> pd.DataFrame:
-        """As ``_summary`` gives it from the per-epoch errors."""
+        """``Baseline.summary``: one row per calibration, the RMS and mean of its errors over the epochs compared,
+        and the epoch counts."""
         n = self.n_compared
         rows = {
             name: {
@@ -318,24 +318,6 @@ def _status(has_mag, has_terms, has_ref, has_attitude) -> np.ndarray:
 def _rms(values) -> float:
     values = np.asarray(values, float)
     return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
-
-
-def _summary(magnitude: dict, heading: dict, vector: dict, compared) -> pd.DataFrame:
-    """One row per calibration: RMS and mean of the errors over ``compared`` (N,) bool, and the epoch counts."""
-    rows = {}
-    for name in magnitude:
-        m, h = magnitude[name][compared], heading[name][compared]
-        rows[name] = {
-            "magnitude_rms_nt": _rms(m),
-            "heading_rms_deg": _rms(h),
-            "vector_rms_nt": _rms(vector[name][compared]),
-            "magnitude_mean_nt": float(np.mean(m)) if m.size else float("nan"),
-            "heading_mean_deg": float(np.mean(h)) if h.size else float("nan"),
-            "n_compared": int(np.sum(compared)),
-            "n_magnitude": int(np.sum(np.isfinite(magnitude[name]))),
-            "n_heading": int(np.sum(np.isfinite(heading[name]))),
-        }
-    return pd.DataFrame.from_dict(rows, orient="index")
 
 
 def written_figures(base: Baseline, used, innovation_rms_nt: float) -> dict:

@@ -308,6 +308,24 @@ def test_figures_without_the_per_epoch_errors_are_the_same(drive):
     used = np.random.default_rng(3).random(len(log.mag)) < 0.8
     whole = baseline.compare_calibrations(log, cals)
     expected = baseline.written_figures(whole, used, 50.0)
+    on = whole.compared
+    for name in cals:  # the summary's sums against numpy's over the per-epoch errors
+        row = whole.summary.loc[name]
+        for column, errors in (
+            ("magnitude_rms_nt", whole.magnitude_error_nt),
+            ("heading_rms_deg", whole.heading_error_deg),
+            ("vector_rms_nt", whole.vector_error_nt),
+        ):
+            assert row[column] == pytest.approx(np.sqrt(np.mean(errors[name][on] ** 2)), rel=1e-12)
+        # a mean may lie near zero: the order of the sums then shows against the errors' own size (eps sqrt(N)
+        # of about 1 deg or 100 nT: 1e-14), far within 1e-12 of their RMS
+        for column, errors, rms in (
+            ("magnitude_mean_nt", whole.magnitude_error_nt, row["magnitude_rms_nt"]),
+            ("heading_mean_deg", whole.heading_error_deg, row["heading_rms_deg"]),
+        ):
+            assert row[column] == pytest.approx(np.mean(errors[name][on]), abs=1e-12 * rms)
+        assert row["n_compared"] == on.sum()
+        assert row["n_heading"] == np.isfinite(whole.heading_error_deg[name]).sum()
     for chunk in (baseline.CHUNK, 97):
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(baseline, "CHUNK", chunk)
