@@ -379,34 +379,6 @@ def states_format(path) -> bool:
     return Path(path).suffix.lower() != ".csv"
 
 
-def _median(spill: Spill, rows: int = CHUNK_ROWS) -> float:
-    """The median of the positive numbers (k,) in ``spill``, exactly as ``np.median`` of them all, read ``rows``
-    at a time: each order statistic by bisection over the numbers' bit patterns (which order positive floats
-    as their values), one reading per bit."""
-    n = spill.rows
-    if n == 0:
-        return 0.0
-
-    def at_most(bits: int) -> int:
-        return sum(
-            int(np.count_nonzero(spill.read(a, min(a + rows, n)).view(np.int64) <= bits)) for a in range(0, n, rows)
-        )
-
-    def kth(k: int) -> float:  # the k-th smallest (0-based)
-        lo, hi = 0, int(np.array(np.inf).view(np.int64))
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if at_most(mid) > k:
-                hi = mid
-            else:
-                lo = mid + 1
-        return float(np.array(lo).view(np.float64))
-
-    if n <= rows:
-        return float(np.median(spill.read(0, n)))
-    return kth(n // 2) if n % 2 else 0.5 * (kth(n // 2 - 1) + kth(n // 2))
-
-
 def _scale_positions(n_usable: int) -> np.ndarray:
     """Positions among ``n_usable`` usable epochs whose residuals make the starting noise's scale: all of them up
     to ``SCALE_EPOCHS``, else ``SCALE_RUNS`` evenly spaced runs of consecutive ones, ``SCALE_EPOCHS`` in all."""
@@ -593,7 +565,9 @@ class _Scan:
 
 def _scan(log: ChunkedLog, config: FilterConfig, effects, init, folder) -> _Scan:
     """Pass 1: validate, prepare and keep the statuses, the counts and the bootstrap's stretch."""
-    base_file, steps = Spill(folder, "base", np.int8), Spill(folder, "steps", float)
+    from ..spilled_median import SpilledMedian  # it reads its numbers from a Spill of this module
+
+    base_file, steps = Spill(folder, "base", np.int8), SpilledMedian(folder, "steps")
     n_epochs = n_used = n_magnitude = 0
     any_attitude, origin, last_t = False, None, None
     head = _Head(config, effects, init is not None)
@@ -604,14 +578,14 @@ def _scan(log: ChunkedLog, config: FilterConfig, effects, init, folder) -> _Scan
         base_file.append(base)
         t = own.time
         origin = t[0] if origin is None else origin
-        steps.append(np.diff(t) if last_t is None else np.diff(np.concatenate([[last_t], t])))
+        steps.add(np.diff(t) if last_t is None else np.diff(np.concatenate([[last_t], t])))
         last_t = t[-1]
         n_epochs += len(own)
         n_used += int(np.count_nonzero(base == Status.USED))
         n_magnitude += int(np.count_nonzero((base == Status.USED) | (base == Status.MISSING_ATTITUDE)))
         any_attitude |= bool(own.has_attitude.any())
         head.add(own)
-    median_step = _median(steps)
+    median_step = steps.value() if steps.count else 0.0
     return _Scan(base_file, n_epochs, n_used, n_magnitude, head.prepared(), any_attitude, float(origin), median_step)
 
 

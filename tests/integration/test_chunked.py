@@ -153,14 +153,15 @@ def test_cli_takes_the_chunked_path_for_long_logs(logs, tmp_path, monkeypatch, c
 
 @pytest.mark.parametrize("n", [5, 1000, 1001, 7777])
 def test_median_read_in_pieces_is_numpys(tmp_path, n):
-    """The median time step of a long log, read from disk in pieces: np.median's, bit for bit, with ties."""
-    from magkf.online.chunked import Spill, _median
+    """The median time step of a long log, read from disk in pieces (``SpilledMedian``, as the chunked scan keeps
+    it): np.median's, bit for bit, with ties."""
+    from magkf.spilled_median import SpilledMedian
 
     values = 0.01 + np.random.default_rng(n).random(n) * 1e-3
     values[::7] = 0.01
-    spill = Spill(tmp_path, "steps", float)
-    spill.append(values)
-    assert _median(spill, rows=100) == np.median(values)
+    steps = SpilledMedian(tmp_path, "steps", rows=100)
+    steps.add(values)
+    assert steps.value() == np.median(values)
 
 
 def test_without_attitude_and_from_a_calibration(logs, tmp_path):
