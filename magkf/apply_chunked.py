@@ -42,7 +42,7 @@ from .online import chunked
 from .online.chunked import OVERLAP_S, ChunkedLog
 from .spilled_median import SpilledMedian
 
-__all__ = ["MARGIN_ROWS", "AppliedFile", "OwnLog", "apply_file", "overlapping", "overlap_s"]
+__all__ = ["MARGIN_ROWS", "AppliedFile", "OwnLog", "apply_file", "overlap_s"]
 
 #: Least epochs each chunk shares with each neighbour: the rate of the field's rate reaches two epochs away, a
 #: time lag's spline two usable epochs beyond its delayed time.
@@ -54,29 +54,6 @@ def overlap_s(cal: Calibration) -> float:
     stored parameter in seconds (a time lag interpolates the field that far away)."""
     lags = [abs(float(v)) for e in cal.effects for v, u in zip(e.values, e.units) if u == "s" and np.isfinite(v)]
     return OVERLAP_S + max(lags, default=0.0)
-
-
-def overlapping(log: ChunkedLog, seconds: float, margin: int = MARGIN_ROWS):
-    """The chunks of ``log`` each with ``seconds`` (at least ``margin`` epochs) of its neighbours on either side:
-    ``(DriveLog, lo, hi)``, the chunk's own epochs ``lo`` to ``hi`` of it. Every epoch of the log is own to
-    exactly one, in order."""
-    carry, context = None, 0
-    chunks = iter(log)
-    current = next(chunks, None)
-    while current is not None:
-        following = next(chunks, None)
-        chunk = current[1]
-        table = chunk.table if carry is None else pd.concat([carry, chunk.table])
-        t = table.index.to_numpy(float)
-        lo, hi = context, len(t)
-        if following is not None:
-            hi = max(min(len(t) - margin, int(np.searchsorted(t, t[-1] - seconds))), lo)
-        if hi > lo:
-            yield DriveLog(table, log.source, chunk.provenance), lo, hi
-        if following is not None:
-            keep = max(min(hi - margin, int(np.searchsorted(t, t[hi] - seconds))), 0)
-            carry, context = table.iloc[keep:], hi - keep
-        current = following
 
 
 class OwnLog:
@@ -256,7 +233,8 @@ def apply_file(
                 own.add(chunk.time, chunk.mag)
         flags = own.flags if own.needed else None
         gather = _Gather(folder, rows, cal)
-        for piece, lo, hi in overlapping(log, overlap_s(cal)):
+        for _, chunk, table, lo, hi in chunked.overlapping(log, overlap_s(cal), MARGIN_ROWS):
+            piece = DriveLog(table, log.source, chunk.provenance)
             if ready is not None:
                 ready()
                 ready = None

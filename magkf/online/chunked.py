@@ -86,6 +86,7 @@ __all__ = [
     "SMOOTH_BLOCKS",
     "ChunkedLog",
     "Piece",
+    "overlapping",
     "pieces",
     "Spill",
     "calibrate_file",
@@ -288,44 +289,60 @@ class Piece:
         return slice(self.start + self.lo, self.start + self.hi)
 
 
-def pieces(log: ChunkedLog, config: FilterConfig, R0=None, reference: Spill | None = None) -> Iterator[Piece]:
-    """The log in pieces of whole blocks (``config.block_s``, counted from the log's first time), each prepared
-    with the ``OVERLAP_S`` seconds (at least ``MARGIN_ROWS`` epochs) around it; ``R0`` (3, 3) the calibration
-    the effects' data carry (``prepare.with_initial_R``). The same file gives the same pieces every time.
-    ``reference`` (a ``Spill`` of (3,) rows): the reference field of the pieces' own epochs is appended to it,
-    and the log's later readings carry it (``ChunkedLog.reference``): IGRF is evaluated once."""
-    carry, emitted, origin = None, 0, None
+def overlapping(log: ChunkedLog, seconds: float, margin: int, cut=None) -> Iterator[tuple]:
+    """The chunks of ``log`` each with ``seconds`` (at least ``margin`` epochs) of its neighbours on either side:
+    ``(start, chunk, table, lo, hi)``, ``table`` the rows of the chunk read (``chunk``, a ``DriveLog``) with those
+    carried from the one before, its first the log's ``start``-th, and its own epochs ``lo`` to ``hi``. Every epoch
+    of the log is own to exactly one, in order. ``cut(t, hi, origin)`` may move a chunk's end ``hi`` back (to
+    where a filter block starts; ``t`` the table's times, ``origin`` the log's first time)."""
+    carry, context, origin = None, 0, None
     chunks = iter(log)
     current = next(chunks, None)
     while current is not None:
         following = next(chunks, None)
         offset, chunk = current
-        if reference is not None and chunk.has_reference:
-            reference = None  # the log's own: nothing to keep
-        if reference is not None:
-            log.reference = reference  # read back by the later readings only
         table = chunk.table if carry is None else pd.concat([carry, chunk.table])
         start = offset - (0 if carry is None else len(carry))
         t = table.index.to_numpy(float)
         origin = t[0] if origin is None else origin
-        lo, hi = emitted, len(t)
+        lo, hi = context, len(t)
         if following is not None:
-            hi = min(len(t) - MARGIN_ROWS, int(np.searchsorted(t, t[-1] - OVERLAP_S)))
-            if config.block_s > 0 and hi > 0:
-                block_id = np.floor((t - origin) / config.block_s)
-                hi = int(np.searchsorted(block_id, block_id[hi]))  # where the block of epoch hi starts
+            hi = min(len(t) - margin, int(np.searchsorted(t, t[-1] - seconds)))
+            if cut is not None and hi > 0:
+                hi = cut(t, hi, origin)
             hi = max(hi, lo)
         if hi > lo:
-            prep = prepare(DriveLog(table, log.source), config)
-            if R0 is not None:
-                prep = replace(prep, data=replace(prep.data, R0=R0))
-            if reference is not None:
-                reference.append(prep.ref[lo:hi])
-            yield Piece(start, prep, lo, hi, table.index)
+            yield start, chunk, table, lo, hi
         if following is not None:
-            keep = max(min(hi - MARGIN_ROWS, int(np.searchsorted(t, t[hi] - OVERLAP_S))), 0)
-            carry, emitted = table.iloc[keep:], hi - keep
+            keep = max(min(hi - margin, int(np.searchsorted(t, t[hi] - seconds))), 0)
+            carry, context = table.iloc[keep:], hi - keep
         current = following
+
+
+def pieces(log: ChunkedLog, config: FilterConfig, R0=None, reference: Spill | None = None) -> Iterator[Piece]:
+    """The log in pieces of whole blocks (``config.block_s``, counted from the log's first time), each prepared
+    with the ``OVERLAP_S`` seconds (at least ``MARGIN_ROWS`` epochs) around it (``overlapping``); ``R0`` (3, 3) the
+    calibration the effects' data carry (``prepare.with_initial_R``). The same file gives the same pieces every
+    time. ``reference`` (a ``Spill`` of (3,) rows): the reference field of the pieces' own epochs is appended to
+    it, and the log's later readings carry it (``ChunkedLog.reference``): IGRF is evaluated once."""
+
+    def at_block(t, hi, origin):  # where the block of epoch hi starts
+        if config.block_s <= 0:
+            return hi
+        block_id = np.floor((t - origin) / config.block_s)
+        return int(np.searchsorted(block_id, block_id[hi]))
+
+    for start, chunk, table, lo, hi in overlapping(log, OVERLAP_S, MARGIN_ROWS, at_block):
+        if reference is not None and chunk.has_reference:
+            reference = None  # the log's own: nothing to keep
+        if reference is not None:
+            log.reference = reference  # read back by the later readings only
+        prep = prepare(DriveLog(table, log.source), config)
+        if R0 is not None:
+            prep = replace(prep, data=replace(prep.data, R0=R0))
+        if reference is not None:
+            reference.append(prep.ref[lo:hi])
+        yield Piece(start, prep, lo, hi, table.index)
 
 
 class Spill:
