@@ -83,7 +83,8 @@ Streams (interpolated onto the magnetometer's epochs with ``magkf.io.streams``)
 
 Writing
     ``write_tlog`` turns a canonical table (a simulation) into a telemetry log as an ArduPilot or PX4
-    vehicle would stream it, for tests: see its docstring.
+    vehicle would stream it, for tests: see its docstring. The packets are ``magkf.io.mavlink_packets``'s, which
+    ``magkf.live.replay`` also sends over a link.
 """
 
 from __future__ import annotations
@@ -115,24 +116,30 @@ from .dataflash import (
     _CAL_PARAMS,
     NT_PER_MILLIGAUSS,
     _effective_scale,
-    _firmware_compass,
     _motor_first,
     _param_at,
     _param_name,
     _state_index,
     _untruncate,
     _version,
-    compass_correct,
     compass_uncorrect,
     unmatched_priority,
 )
-from .drivelog import AutopilotLog, table_to_write
+from .drivelog import AutopilotLog
 from .streams import bracket, interpolate_linear, interpolate_quaternions, slow_gap, time_order
 
 if TYPE_CHECKING:
     import pandas as pd
 
-__all__ = ["STORAGE_SIGMA_NT", "TelemetryLogReader", "magnetometer_instances", "read_tlog", "write_tlog"]
+__all__ = [
+    "STORAGE_SIGMA_NT",
+    "TelemetryLogReader",
+    "correction_model",
+    "magnetometer_instances",
+    "mavlink_dialect",
+    "read_tlog",
+    "write_tlog",
+]
 
 MAGIC_V1, MAGIC_V2 = 0xFE, 0xFD
 STAMP_BYTES = 8
@@ -208,10 +215,15 @@ STORAGE_SIGMA_NT = float(np.hypot(100.0 / np.sqrt(12.0), 2.0**-22 / np.sqrt(12.0
 
 
 # ------------------------------------------------------------------ records and packets
-def _dialect():
+def mavlink_dialect():
+    """pymavlink's ArduPilot dialect (``ardupilotmega``: the common message set and ArduPilot's own), imported on
+    first use."""
     from pymavlink.dialects.v20 import ardupilotmega
 
     return ardupilotmega
+
+
+_dialect = mavlink_dialect
 
 
 def _packet_length(data: bytes, at: int) -> int:
@@ -702,7 +714,7 @@ def _ardupilot_firmware(vehicle: _Vehicle) -> str | None:
     return f"Ardu{kind} V{'.'.join(map(str, version))}"
 
 
-def _correction_model(firmware: str | None) -> tuple[bool, bool]:
+def correction_model(firmware: str | None) -> tuple[bool, bool]:
     """``(motor_first, scale_applies)`` of ArduPilot's ``correct_field`` in ``firmware`` (the banner's
     words, or None): motor compensation before the soft-iron matrix in the releases of
     ``magkf.io.dataflash._MOTOR_FIRST`` (Copter 3.3 to 3.5); ``COMPASS_SCALE`` only from 4.0; the 4.x model
@@ -711,6 +723,9 @@ def _correction_model(firmware: str | None) -> tuple[bool, bool]:
     if version is None:
         return False, True
     return _motor_first(firmware), version >= (4, 0)
+
+
+_correction_model = correction_model
 
 
 def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None:
@@ -1231,203 +1246,23 @@ def write_tlog(
     ``firmware`` (``"4.5.0"``) adds an ``AUTOPILOT_VERSION`` with that flight software version (release type
     255, official). ``mavlink1`` packs MAVLink 1 packets (``alt_ellipsoid``, an extension field, then 0).
     """
-    if autopilot not in ("ardupilot", "px4"):
-        raise InputError(f"unknown autopilot {autopilot!r}; use ardupilot or px4", str(path))
-    name = str(path)
-    frame, t = table_to_write(table, name)
-    writer = _TlogWriter(t, latency_s, mavlink1, autopilot, sysid)
-    params = dict(params or {})
-    writer.heartbeats()
-    if firmware is not None:
-        writer.version(firmware)
-    writer.parameters(params)
-    writer.magnetometer(frame, params, name, firmware)
-    writer.attitude(frame, attitude_per_row)
-    writer.gnss(frame, gps_period_s)
-    if system_time:
-        writer.system_time()
-    writer.auxiliary(frame, aux_period_s)
-    writer.save(path)
+    from .mavlink_packets import VehiclePackets
 
-
-#: Boot time (us) of a written table's first row.
-_START_US = 10_000_000
-
-
-class _TlogWriter:
-    """Packets of one vehicle and its ground station, each with its receipt stamp, written in stamp order."""
-
-    def __init__(self, t, latency_s: float, mavlink1: bool, autopilot: str, sysid: int = 1):
-        dialect = _dialect()
-        self.dialect = dialect
-        self.vehicle = dialect.MAVLink(None, srcSystem=sysid, srcComponent=AUTOPILOT_COMPONENT)
-        self.gcs = dialect.MAVLink(None, srcSystem=255, srcComponent=190)
-        self.mavlink1 = mavlink1
-        self.autopilot = autopilot
-        self.t0 = float(t[0])
-        self.unix0_us = int(round(self.t0 * 1e6))
-        self.boot_us = _START_US + np.rint((t - t[0]) * 1e6).astype(np.int64)
-        self.latency_us = int(round(latency_s * 1e6))
-        self.records: list[tuple[int, int, bytes]] = []
-
-    def _send(self, boot_us: int, message, mav=None) -> None:
-        mav = mav or self.vehicle
-        packet = message.pack(mav, force_mavlink1=self.mavlink1)
-        mav.seq = (mav.seq + 1) % 256  # as MAVLink.send does after packing
-        stamp = self.unix0_us + int(boot_us) - _START_US + self.latency_us
-        self.records.append((stamp, len(self.records), packet))
-
-    def _every(self, period_s: float) -> np.ndarray:
-        """Indices of the rows at which a stream of period ``period_s`` sends (the first row of each period)."""
-        slot = (self.boot_us - self.boot_us[0]) // int(round(period_s * 1e6))
-        return np.flatnonzero(np.concatenate(([True], np.diff(slot) > 0)))
-
-    def heartbeats(self) -> None:
-        code = {"ardupilot": 3, "px4": 12}[self.autopilot]
-        for i in self._every(1.0):
-            b = int(self.boot_us[i])
-            self._send(b, self.dialect.MAVLink_heartbeat_message(2, code, 81, 0, 4, 3))
-            self._send(
-                b, self.dialect.MAVLink_heartbeat_message(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0, 3), self.gcs
-            )
-
-    def version(self, firmware: str) -> None:
-        major, minor, patch = (int(v) for v in firmware.split("."))
-        flight_sw = major << 24 | minor << 16 | patch << 8 | 255
-        zeros = [0] * 8
-        message = self.dialect.MAVLink_autopilot_version_message(0, flight_sw, 0, 0, 0, zeros, zeros, zeros, 0, 0, 0)
-        self._send(int(self.boot_us[0]) - 600_000, message)
-
-    def parameters(self, params: dict) -> None:
-        at = int(self.boot_us[0]) - 500_000
-        for index, (key, value) in enumerate(params.items()):
-            integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-            kind = 6 if integer else 9
-            number = float(value)
-            if integer and self.autopilot == "px4":
-                number = struct.unpack("<f", struct.pack("<i", int(value)))[0]
-            message = self.dialect.MAVLink_param_value_message(key.encode(), number, kind, len(params), index)
-            self._send(at, message)
-
-    def magnetometer(self, frame, params: dict, name: str, firmware: str | None = None) -> None:
-        mag_mg = np.column_stack([_column(frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
-        rows = np.all(np.isfinite(mag_mg), axis=1)
-        if self.autopilot == "ardupilot":
-            offsets, diagonals, offdiagonals, scale = _firmware_compass(params)
-            motor = _motor_sent(params, frame)[rows]
-            first, scale_applies = _correction_model(f"ArduCopter V{firmware}" if firmware else None)
-            mag_mg[rows] = compass_correct(
-                mag_mg[rows],
-                offsets,
-                diagonals,
-                offdiagonals,
-                scale if scale_applies else 1.0,
-                motor,
-                motor_first=first,
-            )
-        sent = np.trunc(mag_mg)
-        too_large = np.argwhere(rows[:, None] & (np.abs(sent) > np.iinfo(np.int16).max))
-        if too_large.size:
-            i, axis = too_large[0]
-            raise InputError(
-                f"field {sent[i, axis]:g} mG does not fit the int16 xmag field", name, int(i) + 1, MAG[axis]
-            )
-        temp = _column(frame, "temp_c")
-        temp = np.where(np.isfinite(temp), np.rint(temp * 100.0), 0).astype(int)
-        for i in np.flatnonzero(rows):
-            b, (x, y, z) = int(self.boot_us[i]), (int(v) for v in sent[i])
-            if self.autopilot == "ardupilot":
-                message = self.dialect.MAVLink_raw_imu_message(b, 0, 0, -1000, 0, 0, 0, x, y, z, 0, int(temp[i]))
-            else:
-                message = self.dialect.MAVLink_scaled_imu_message(
-                    b // 1000, 0, 0, -1000, 0, 0, 0, x, y, z, int(temp[i])
-                )
-            self._send(b, message)
-
-    def attitude(self, frame, per_row: int) -> None:
-        angles = [_column(frame, c) for c in (YAW, PITCH, ROLL)]
-        rows = np.flatnonzero(np.all(np.isfinite(angles), axis=0))
-        if not len(rows):
-            return
-        q = euler_to_quaternion(*(a[rows] for a in angles))
-        t_rows = self.boot_us[rows].astype(float)
-        steps = np.arange(per_row) / per_row
-        t_send = (t_rows[:-1, None] + np.diff(t_rows)[:, None] * steps).ravel()
-        t_send = np.rint(np.append(t_send, t_rows[-1]))
-        q_send, valid = interpolate_quaternions(t_send, t_rows, q)
-        yaw, pitch, roll = quaternion_to_euler(q_send[valid])
-        yaw = (yaw + 180.0) % 360.0 - 180.0
-        for b, r, p, y in zip(t_send[valid].astype(np.int64), np.radians(roll), np.radians(pitch), np.radians(yaw)):
-            self._send(int(b), self.dialect.MAVLink_attitude_message(int(b) // 1000, r, p, y, 0.0, 0.0, 0.0))
-
-    def gnss(self, frame, period_s: float) -> None:
-        lat, lon, alt = _column(frame, LAT), _column(frame, LON), _column(frame, ALT)
-        if not np.isfinite(lat).any() and "fix_type" not in frame:
-            return
-        hdop, vdop, fix_col = _column(frame, HDOP), _column(frame, VDOP), _column(frame, "fix_type")
-        for i in self._every(period_s):
-            b = int(self.boot_us[i])
-            has = bool(np.isfinite(lat[i]) and np.isfinite(lon[i]))
-            fix = int(fix_col[i]) if np.isfinite(fix_col[i]) else (3 if has else 1)
-            time_usec = self.unix0_us + b - _START_US if self.autopilot == "ardupilot" else b
-            alt_mm = int(round(alt[i] * 1000.0)) if has and np.isfinite(alt[i]) else 0
-            ellipsoid_mm = 0 if self.mavlink1 else alt_mm  # a MAVLink 1 sender drops the extension fields
-            message = self.dialect.MAVLink_gps_raw_int_message(
-                time_usec,
-                fix,
-                int(round(lat[i] * 1e7)) if has else 0,
-                int(round(lon[i] * 1e7)) if has else 0,
-                alt_mm,
-                _dop_counts(hdop[i]),
-                _dop_counts(vdop[i]),
-                0,
-                0,
-                12,
-                ellipsoid_mm,
-            )
-            self._send(b, message)
-
-    def system_time(self) -> None:
-        for i in self._every(1.0):
-            b = int(self.boot_us[i])
-            self._send(b, self.dialect.MAVLink_system_time_message(self.unix0_us + b - _START_US, b // 1000))
-
-    def auxiliary(self, frame, period_s: float) -> None:
-        current, throttle = _column(frame, "current_a"), _column(frame, "throttle")
-        for i in self._every(period_s):
-            b = int(self.boot_us[i])
-            if np.isfinite(current).any():
-                centi = int(round(current[i] * 100.0)) if np.isfinite(current[i]) else -1
-                cells = [UNKNOWN_U16] * 10
-                self._send(b, self.dialect.MAVLink_battery_status_message(0, 0, 0, 32767, cells, centi, -1, -1, -1))
-            if np.isfinite(throttle).any() and np.isfinite(throttle[i]):
-                self._send(
-                    b, self.dialect.MAVLink_vfr_hud_message(0.0, 0.0, 0, int(round(throttle[i] * 100.0)), 0.0, 0.0)
-                )
-
-    def save(self, path) -> None:
-        self.records.sort(key=lambda r: (r[0], r[1]))
-        with open(path, "wb") as f:
-            for stamp, _, packet in self.records:
-                f.write(stamp.to_bytes(STAMP_BYTES, "big"))
-                f.write(packet)
-
-
-def _motor_sent(params: dict, frame) -> np.ndarray:
-    """ArduPilot's motor compensation (N, 3) mG at the rows of ``frame``: ``COMPASS_MOT`` (of the parameter set
-    of priority 0, as float32) times ``throttle`` (``COMPASS_MOTCT`` 1) or ``current_a`` (2), else zero."""
-    channel = {1: "throttle", 2: "current_a"}.get(int(params.get("COMPASS_MOTCT", 0)))
-    if channel is None:
-        return np.zeros((len(frame), 3))
-    k = _state_index({key: (np.zeros(1), np.array([float(v)])) for key, v in params.items()}, 0)
-    suffix = ("", "2", "3")[k] if k < 3 else ""
-    mot = np.array([float(np.float32(params.get(f"COMPASS_MOT{suffix}_{a}", 0.0))) for a in "XYZ"])
-    return np.nan_to_num(_column(frame, channel))[:, None] * mot
-
-
-def _column(frame, column: str) -> np.ndarray:
-    return frame[column].to_numpy(float) if column in frame else np.full(len(frame), np.nan)
-
-
-def _dop_counts(dop: float) -> int:
-    return int(min(round(dop * 100.0), UNKNOWN_U16 - 1)) if np.isfinite(dop) else UNKNOWN_U16
+    packets = VehiclePackets(
+        table,
+        autopilot,
+        params,
+        firmware=firmware,
+        attitude_per_row=attitude_per_row,
+        gps_period_s=gps_period_s,
+        aux_period_s=aux_period_s,
+        system_time=system_time,
+        latency_s=latency_s,
+        mavlink1=mavlink1,
+        sysid=sysid,
+        source=str(path),
+    )
+    with open(path, "wb") as f:
+        for packet in packets:
+            f.write(packet.stamp_us.to_bytes(STAMP_BYTES, "big"))
+            f.write(packet.data)
