@@ -44,6 +44,8 @@ class LiveStatus:
         Whether every parameter's standard deviation is below the target (``--until-converged``).
     events : list of str
         The link's and the session's recent events, newest last.
+    step_ms : dict
+        The filter step's time over the recent samples, ms: ``median`` and ``p99``.
     """
 
     elapsed_s: float = 0.0
@@ -61,6 +63,7 @@ class LiveStatus:
     diagnosis: dict | None = None
     converged: bool = False
     events: list = field(default_factory=list)
+    step_ms: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """The snapshot as plain JSON-ready values."""

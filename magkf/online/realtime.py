@@ -91,6 +91,9 @@ class EpochResult:
         Tilt noise the estimator uses after this step, deg (1 sigma, learned likewise).
     noise_heading_deg : float
         Heading noise the estimator uses after this step, deg (1 sigma, learned likewise).
+    reference_body_nt : numpy.ndarray
+        (3,) the reference field in the body frame, nT (NaN without attitude or reference): ``field_body`` less
+        it is the vector residual.
     """
 
     time: float
@@ -108,6 +111,7 @@ class EpochResult:
     noise_sensor_nt: float
     noise_attitude_deg: float
     noise_heading_deg: float
+    reference_body_nt: np.ndarray
 
 
 class OnlineCalibrator:
@@ -274,6 +278,7 @@ class OnlineCalibrator:
             noise_sensor_nt=float(est.noise.sensor_nt),
             noise_attitude_deg=float(est.noise.attitude_deg),
             noise_heading_deg=float(est.noise.heading_deg),
+            reference_body_nt=epoch.field_body.copy(),
         )
 
     def _reference(self, t, v) -> np.ndarray:

@@ -1,0 +1,424 @@
+"""A live calibration: a vehicle's samples fed one at a time to ``magkf.online.realtime.OnlineCalibrator``, and
+what an operator is shown of it.
+
+``LiveSession.add(sample)`` takes one sample of the canonical columns (``source.MavlinkSource.poll`` makes them;
+``time`` UNIX s, nT, degrees). Without a start (``init`` None) the samples are held until the first stretch
+bootstraps a calibration as ``calibrate`` bootstraps one (``prepare.prepare_run`` over the samples held: at least
+``config.bootstrap_s`` seconds that turn enough), then the held samples are filtered and the session goes on a
+sample at a time. ``status(link, events)`` is the ``LiveStatus`` of the moment:
+
+* epochs by status; the vector residual's RMS over the last ``RECENT_S`` seconds of used epochs (nT); the learned
+  noise; ``b`` and the diagonal of ``R`` with their standard deviations;
+* what the data do not determine yet (``observability.analyse`` on the information the filter gathered,
+  ``inv(P) - inv(P0)``, which is exact for a linear filter without random walks), with the heading the used
+  epochs still lack to close the circle;
+* the verdict in words (``online.verdict.verdict``: the learned noise and the mean NIS per degree of freedom
+  against its 95 % band, over the whole session);
+* the running diagnosis: every ``diagnose_every_s`` seconds, ``diagnostics.diagnose.diagnose`` of the current
+  calibration over the last ``window_s`` seconds of samples, the same decision rule as ``magkf diagnose``.
+
+The session holds a constant amount: the window's samples, a few sums, a 0.5-degree occupancy of the headings
+used. ``save(path)`` writes a checkpoint (the filter's state and covariance, its learned noise, the counts) that
+``LiveSession.load`` continues from.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pickle
+import time
+from collections import Counter, deque
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import __version__
+from ..calibration import Calibration
+from ..config import FilterConfig
+from ..conventions import YAW
+from ..errors import InputError
+from ..status import STATUS_NAMES, Status
+from .status import LiveStatus
+
+__all__ = ["RECENT_S", "HEADING_BINS", "LiveSession", "state_columns"]
+
+#: Seconds of used epochs the residual RMS shown is taken over.
+RECENT_S = 60.0
+#: Bins of the circle of headings whose occupancy by used epochs gives the heading still to turn through.
+HEADING_BINS = 720
+#: Seconds between attempts at the bootstrap while samples are held for it.
+BOOTSTRAP_RETRY_S = 10.0
+#: Filter steps whose times give the median and 99th percentile shown.
+STEP_TIMES = 2000
+#: The checkpoint file's kind, checked on loading.
+CHECKPOINT_KIND = "magkf live checkpoint"
+
+
+class LiveSession:
+    """Samples fed to the online filter one at a time, and the figures an operator watches.
+
+    Parameters
+    ----------
+    config : FilterConfig
+        The filter's settings.
+    init : Calibration or None
+        The start (its covariance, else ``config``'s); None: bootstrapped from the first samples.
+    effects : sequence of Effect or None, optional
+        Effects to estimate with the core (None: those ``init`` stores).
+    target : float or None, optional
+        ``converged`` when every standard deviation of ``R`` is below ``target`` and every one of ``b`` below
+        ``target`` times the reference field's magnitude; None: never.
+    window_s, diagnose_every_s : float, optional
+        The running diagnosis: over the last ``window_s`` s of samples, every ``diagnose_every_s`` s of the
+        vehicle's clock (0: none).
+    alpha : float, optional
+        Its significance level over all candidates.
+    recording : Recording or None, optional
+        Where every sample taken is kept (``recording.Recording``), for the calibration written at the end.
+    """
+
+    def __init__(
+        self,
+        config: FilterConfig = FilterConfig(),
+        init: Calibration | None = None,
+        effects=None,
+        *,
+        target: float | None = None,
+        window_s: float = 120.0,
+        diagnose_every_s: float = 60.0,
+        alpha: float = 0.01,
+        recording=None,
+    ):
+        self.recording = recording
+        self.config, self.effects, self.target = config, effects, target
+        self.window_s, self.diagnose_every_s, self.alpha = window_s, diagnose_every_s, alpha
+        self.calibrator = None
+        self.start_how = "from the calibration given" if init is not None else ""
+        self._held: list[dict] = []  # samples waiting for the bootstrap
+        self._next_bootstrap = -math.inf
+        self.counts: Counter = Counter()
+        self.first_time = self.last_time = math.nan
+        self._recent: deque = deque()  # (time, squared vector residual) of used epochs
+        self._recent_sum = 0.0
+        self._nis = [0.0, 0]  # sum of NIS, degrees of freedom, of the updated epochs
+        self._headings = np.zeros(HEADING_BINS, bool)
+        self._window: deque = deque()  # samples of the running diagnosis's window
+        self._next_diagnosis = math.nan
+        self.diagnosis: dict | None = None
+        self.events: deque = deque(maxlen=8)
+        self._step_s: deque = deque(maxlen=STEP_TIMES)
+        self.field_nt = math.nan
+        if init is not None:
+            self._start(init)
+
+    # ------------------------------------------------------------------ samples
+    def add(self, sample: dict):
+        """Take one sample (a dict of canonical columns, ``time`` UNIX s); returns its ``EpochResult``, or None
+        while it is held for the bootstrap, and for a sample not after the previous one (counted ``late``, left
+        out: a resumed session's link may repeat what it had sent)."""
+        t = float(sample["time"])
+        if not t > self.last_time and not math.isnan(self.last_time):
+            self.counts["late"] += 1
+            return None
+        if self.recording is not None:
+            self.recording.add(sample)
+        if math.isnan(self.first_time):
+            self.first_time = t
+        self.last_time = t
+        self._keep_in_window(sample, t)
+        if self.calibrator is None:
+            self._held.append(sample)
+            if t >= self._next_bootstrap:
+                self._try_bootstrap(t)
+            return None
+        result = self._step(sample)
+        self._diagnose_when_due(t)
+        return result
+
+    def _step(self, sample: dict):
+        start = time.perf_counter()
+        result = self.calibrator.step(sample)
+        self._step_s.append(time.perf_counter() - start)
+        self.counts[result.status] += 1
+        if result.status == STATUS_NAMES[Status.USED]:
+            self._add_used(sample, result)
+        return result
+
+    def _add_used(self, sample: dict, result) -> None:
+        """The used epoch's residual, NIS and heading taken into the running figures."""
+        t = result.time
+        residual = result.field_body - result.reference_body_nt
+        vector = bool(np.all(np.isfinite(residual)))
+        if vector:
+            squared = float(residual @ residual)
+            self._recent.append((t, squared))
+            self._recent_sum += squared
+        while self._recent and self._recent[0][0] < t - RECENT_S:
+            self._recent_sum -= self._recent.popleft()[1]
+        if result.updated and math.isfinite(result.nis):
+            self._nis[0] += result.nis
+            self._nis[1] += 3 if vector else 1
+        yaw = sample.get(YAW)
+        if yaw is not None and math.isfinite(yaw):
+            self._headings[int((yaw % 360.0) / 360.0 * HEADING_BINS) % HEADING_BINS] = True
+        magnitude = float(np.linalg.norm(result.reference_body_nt)) if vector else math.nan
+        if math.isfinite(magnitude):
+            self.field_nt = magnitude
+
+    def _keep_in_window(self, sample: dict, t: float) -> None:
+        if self.diagnose_every_s <= 0:
+            return
+        self._window.append(sample)
+        while self._window and self._window[0]["time"] < t - self.window_s:
+            self._window.popleft()
+
+    # ------------------------------------------------------------------ the start
+    def _start(self, init: Calibration) -> None:
+        from ..online.realtime import OnlineCalibrator
+
+        self.calibrator = OnlineCalibrator(init, self.config, self.effects)
+        self._P0 = self.calibrator.estimator.P.copy()
+
+    def _try_bootstrap(self, t: float) -> None:
+        """The start bootstrapped from the samples held, as ``calibrate`` bootstraps one; tried again
+        ``BOOTSTRAP_RETRY_S`` later when they do not make one yet (too short, or not turning enough)."""
+        self._next_bootstrap = t + BOOTSTRAP_RETRY_S
+        if t - self.first_time < self.config.bootstrap_s:
+            return
+        from ..online.prepare import prepare, prepare_run
+
+        log = samples_log(self._held, "the samples held for the start")
+        try:
+            setup = prepare_run(prepare(log, self.config), self.config, None, tuple(self.effects or ()))
+        except InputError as exc:
+            self.event(f"no start yet ({exc.message}); waiting for more turning")
+            return
+        R, b = setup.layout.R_b(setup.x0)
+        self.start_how = setup.how
+        self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
+        self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")
+        held, self._held = self._held, []
+        for sample in held:
+            self._step(sample)
+        self._next_diagnosis = t + self.diagnose_every_s
+
+    # ------------------------------------------------------------------ the running diagnosis
+    def _diagnose_when_due(self, t: float) -> None:
+        if self.diagnose_every_s <= 0:
+            return
+        if math.isnan(self._next_diagnosis):
+            self._next_diagnosis = t + self.diagnose_every_s
+        if t < self._next_diagnosis:
+            return
+        self._next_diagnosis = t + self.diagnose_every_s
+        self.diagnosis = self.diagnose_window()
+
+    def diagnose_window(self) -> dict:
+        """``diagnose`` of the current calibration over the window's samples: ``{"window_s", "epochs",
+        "candidates", "text"}`` (``candidates`` the tested effects with their p-values, taken ones first)."""
+        from ..diagnostics.diagnose import diagnose
+
+        span = self._window[-1]["time"] - self._window[0]["time"] if self._window else 0.0
+        figures = {"window_s": float(span), "epochs": len(self._window), "candidates": []}
+        try:
+            result, _ = diagnose(
+                samples_log(list(self._window), "the window"), self.config, self.calibration, (), alpha=self.alpha
+            )
+        except InputError as exc:
+            return {**figures, "text": f"not diagnosed: {exc.message}"}
+        candidates = [
+            {"effect": c.effect, "p_value": float(c.p_value), "significant": bool(c.significant)}
+            for c in result.candidates
+        ]
+        return {**figures, "candidates": candidates, "text": result.text}
+
+    # ------------------------------------------------------------------ what is shown
+    def event(self, text: str) -> None:
+        """Note ``text`` (one line) among the recent events shown."""
+        self.events.append(text)
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """The current estimate (None before the start)."""
+        return None if self.calibrator is None else self.calibrator.calibration
+
+    @property
+    def converged(self) -> bool:
+        """Whether every standard deviation of ``R`` is below ``target`` and every one of ``b`` below ``target``
+        times the field's magnitude (False without a target or a field seen)."""
+        if self.target is None or self.calibrator is None or not math.isfinite(self.field_nt):
+            return False
+        std = np.sqrt(np.diag(self.calibrator.estimator.P))[:12]
+        return bool(np.all(std[:9] < self.target) and np.all(std[9:12] < self.target * self.field_nt))
+
+    def status(self, link: dict | None = None, events=()) -> LiveStatus:
+        """The ``LiveStatus`` of the moment; ``link`` the source's figures, ``events`` its new events (kept among
+        the recent ones)."""
+        for text in events:
+            self.event(text)
+        counts = dict(self.counts)
+        if self._held:
+            counts["waiting"] = len(self._held)
+        figures = LiveStatus(
+            elapsed_s=0.0 if math.isnan(self.first_time) else self.last_time - self.first_time,
+            utc=self.last_time,
+            counts=counts,
+            link=dict(link or {}),
+            residual_rms_nt=math.sqrt(self._recent_sum / len(self._recent)) if self._recent else math.nan,
+            diagnosis=self.diagnosis,
+            converged=self.converged,
+            events=list(self.events),
+            step_ms=self._step_times(),
+        )
+        if self.calibrator is None:
+            figures.verdict = f"holding {len(self._held)} samples for the start (a bootstrap as calibrate makes)"
+            return figures
+        self._estimate_figures(figures)
+        return figures
+
+    def _step_times(self) -> dict:
+        if not self._step_s:
+            return {}
+        median, p99 = np.percentile(np.asarray(self._step_s) * 1e3, [50, 99])
+        return {"median": float(median), "p99": float(p99)}
+
+    def _estimate_figures(self, figures: LiveStatus) -> None:
+        from ..online.verdict import verdict
+
+        est = self.calibrator.estimator
+        x, P = est.x, est.P
+        std = np.sqrt(np.diag(P))
+        figures.b_nt, figures.b_std_nt = x[9:12].tolist(), std[9:12].tolist()
+        figures.r_diag, figures.r_diag_std = x[[0, 4, 8]].tolist(), std[[0, 4, 8]].tolist()
+        noise = {
+            "sensor_nt": float(est.noise.sensor_nt),
+            "attitude_deg": float(est.noise.attitude_deg),
+            "heading_deg": float(est.noise.heading_deg),
+        }
+        figures.noise = noise
+        obs = self.observability()
+        figures.undetermined = self.undetermined_words(obs)
+        figures.verdict = verdict(self._noise_summary(noise), self._nis_summary(), self._used_share(), obs)
+
+    def observability(self) -> dict:
+        """``observability.analyse`` of the core on the information gathered, ``inv(P) - inv(P0)``."""
+        from ..online.observability import analyse
+
+        est = self.calibrator.estimator
+        core = slice(0, 12)
+        P0, P = self._P0[core, core], est.P[core, core]
+        information = np.linalg.inv(P) - np.linalg.inv(P0)
+        names = self.calibrator.layout.names[:12]
+        return analyse(P0, 0.5 * (information + information.T), names, self.calibrator.layout.R(est.x))
+
+    def heading_span_deg(self) -> float:
+        """Degrees of heading the used epochs cover: 360 less the largest run of empty 0.5-degree bins."""
+        occupied = np.flatnonzero(self._headings)
+        if len(occupied) == 0:
+            return 0.0
+        gaps = np.diff(np.r_[occupied, occupied[0] + HEADING_BINS]) - 1
+        return 360.0 - float(gaps.max()) * 360.0 / HEADING_BINS
+
+    def undetermined_words(self, obs: dict) -> list:
+        """What the data do not determine yet, in words: the heading still to turn through, then the directions
+        ``obs`` finds at their prior."""
+        found = obs.get("undetermined", [])
+        if not found:
+            return []
+        words = []
+        span = self.heading_span_deg()
+        if span < 350.0:
+            words.append(f"turn through {360.0 - span:.0f} more degrees of heading")
+        words += [f["text"] for f in found]
+        return words
+
+    def _noise_summary(self, noise: dict) -> dict:
+        """The learned noise as ``verdict`` reads it (a run's ``noise_summary``): the residuals' correlation is not
+        followed live, so each epoch counts as one."""
+        return {
+            "configured": {"sensor_nt": self.config.sensor_noise_nt, "attitude_deg": self.config.attitude_deg},
+            "learned": {
+                "sensor_median_nt": noise["sensor_nt"],
+                "attitude_median_deg": noise["attitude_deg"],
+                "heading_median_deg": noise["heading_deg"],
+            },
+            "adapted": self.config.adapt_noise,
+            "inflation": 1.0,
+            "correlation_s": math.nan,
+        }
+
+    def _nis_summary(self) -> dict:
+        from scipy.special import gammaincinv
+
+        total, dof = self._nis
+        if dof == 0:
+            return {"mean": math.nan, "band": [math.nan, math.nan]}
+        return {"mean": total / dof, "band": [float(2.0 * gammaincinv(dof / 2.0, q) / dof) for q in (0.025, 0.975)]}
+
+    def _used_share(self) -> float:
+        n = sum(self.counts.values())
+        return self.counts[STATUS_NAMES[Status.USED]] / n if n else 0.0
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, path) -> None:
+        """Write a checkpoint to ``path`` (replaced whole: a stop while writing leaves the previous one), the
+        recording's samples held written first."""
+        if self.recording is not None:
+            self.recording.flush()
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            pickle.dump({"kind": CHECKPOINT_KIND, "version": __version__, "session": self}, f)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path) -> LiveSession:
+        """The session a checkpoint written by ``save`` holds, to continue; InputError naming the file when it is
+        not one, or was written by another version of magkf."""
+        try:
+            with open(path, "rb") as f:
+                saved = pickle.load(f)
+        except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:
+            raise InputError(f"not a magkf live checkpoint ({exc}); start without --resume", str(path)) from None
+        if not isinstance(saved, dict) or saved.get("kind") != CHECKPOINT_KIND:
+            raise InputError("not a magkf live checkpoint; start without --resume", str(path))
+        if saved["version"] != __version__:
+            raise InputError(
+                f"written by magkf {saved['version']}, this is {__version__}: start without --resume", str(path)
+            )
+        return saved["session"]
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_window"] = deque()  # the diagnosis's window is filled again
+        return state
+
+
+def state_columns(result, names) -> dict:
+    """The per-epoch row of the states table (``--states``) of the ``EpochResult`` ``result``: time, status, NIS,
+    the calibrated field (nT) and headings (deg), the learned sensor noise (nT), and the estimate after the epoch
+    with its standard deviations (``names`` the state's, ``std_`` before each)."""
+    return {
+        "time": result.time,
+        "status": result.status,
+        "updated": result.updated,
+        "nis": result.nis,
+        "cal_x": result.field_body[0],
+        "cal_y": result.field_body[1],
+        "cal_z": result.field_body[2],
+        "magnitude_nt": result.magnitude_nt,
+        "heading_mag_deg": result.heading_mag_deg,
+        "heading_true_deg": result.heading_true_deg,
+        "noise_sensor_nt": result.noise_sensor_nt,
+        **dict(zip(names, result.x.tolist())),
+        **{f"std_{n}": v for n, v in zip(names, result.std.tolist())},
+    }
+
+
+def samples_log(samples: list, name: str):
+    """The samples (dicts of canonical columns) as a ``DriveLog`` named ``name``."""
+    from ..io.drivelog import from_table
+
+    return from_table(pd.DataFrame.from_records(samples), source=name)
