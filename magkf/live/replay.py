@@ -66,7 +66,7 @@ class ReplayStats:
     packets_sent, packets_dropped : int
         Packets of the log sent and dropped on purpose (``loss``); the answers are counted apart.
     elapsed_s : float
-        Wall-clock seconds from the first packet to the end.
+        Wall-clock seconds from sending the first packet to sending the last (``linger_s`` not counted).
     log_s : float
         Seconds of the log sent (the last packet's time less the first's).
     requests : dict of str to int
@@ -311,7 +311,6 @@ class _Vehicle:
         else:
             self.stats.completed = True
             self._serve_until(time.monotonic() + linger_s, stop)
-        self.stats.elapsed_s = time.monotonic() - start
 
     def _send_packet(self, packet, dropped: bool) -> None:
         if packet.boot != self.boot:  # the vehicle rebooted: its sequence numbers start again
