@@ -240,3 +240,30 @@ def test_json_lines_round_trip_at_most_once_per_interval():
     assert rows[-1]["diagnosis"]["candidates"][0] == expected["diagnosis"]["candidates"][0]
     assert rows[-1]["events"] == expected["events"] and rows[-1]["converged"] is False
     assert not any(isinstance(v, float) and math.isnan(v) for v in rows[-1]["b_std_nt"])
+
+
+def test_a_live_sessions_status_renders_and_round_trips():
+    """The status a real session gives (held for the start, then filtering) fits the width, has no NaN shown, and
+    its JSON line reads back with the session's figures."""
+    from magkf.config import FilterConfig
+    from magkf.live.session import LiveSession
+    from magkf.sim import DriveConfig, simulate_drive
+
+    sim = simulate_drive(DriveConfig(duration_s=75, rate_hz=10, noise_nt=30.0, seed=5, disturbances=0))
+    session = LiveSession(FilterConfig(bootstrap_s=60.0), None, diagnose_every_s=0)
+    rows = sim.table.reset_index().to_dict("records")
+    for row in rows[:150]:
+        session.add(row)
+    held = session.status({}, ["connected"])
+    for row in rows[150:]:
+        session.add(row)
+    running = session.status({}, [])
+    assert session.calibrator is not None  # started after a minute
+    for status in (held, running):
+        lines = render(status, 80)
+        assert all(len(line) <= 80 for line in lines)
+        assert not re.search(r"\bnan\b", "\n".join(lines), re.IGNORECASE)
+    assert "150 held for the start" in _words(render(held))
+    assert f"{running.b_nt[0]:.1f} +/- {running.b_std_nt[0]:.1f}" in _words(render(running))
+    data = json.loads(json_line(running))
+    assert data["b_nt"] == pytest.approx(running.b_nt) and data["counts"] == running.counts
