@@ -1,11 +1,11 @@
 """A live calibration's ``status.LiveStatus`` as its operator sees it: a screen of text redrawn in place on a
 terminal, a block of plain text a second elsewhere, or one JSON object a line for other tools.
 
-``render(status, width)`` makes the screen's lines (about 15 to 20): the time, the epochs used and refused by
+``render(status, width)`` makes the screen's lines (about 15 to 21): the time, the epochs used and refused by
 reason, the link and each stream's rate against the rate asked, the residual and the learned noise, ``b`` and the
 diagonal of ``R`` with their standard deviations, what is still undetermined, the verdict, the running
-diagnosis, convergence and the last events. Every number carries its unit; a number not known yet (NaN) is shown
-as ``-``; no line is longer than ``width`` characters.
+diagnosis, convergence and the last events. Every number carries its unit (the diagonal of ``R`` has none); a
+number not known yet (NaN) is shown as ``-``; no line is longer than ``width`` characters.
 
 ``Screen.show`` redraws it at most once per ``interval_s``: on a terminal in place (the cursor sent home,
 each line cleared to its end, the rest of the screen cleared below the last, so that a shorter frame leaves
@@ -246,7 +246,7 @@ def render(status, width: int = WIDTH) -> list[str]:
     Returns
     -------
     list of str
-        About 15 to 20 lines without line ends: time, epochs, link and stream rates, residual and learned noise,
+        About 15 to 21 lines without line ends: time, epochs, link and stream rates, residual and learned noise,
         the table of ``b`` (nT) and the diagonal of ``R`` (no unit) with their standard deviations,
         what is undetermined, the verdict, the running diagnosis, convergence, the last events.
     """
@@ -258,7 +258,7 @@ def render(status, width: int = WIDTH) -> list[str]:
         _noise(status),
         *_table(status),
         *_undetermined(status, width),
-        *_wrapped("verdict", status.verdict or NOT_KNOWN, width, 2),
+        *_wrapped("verdict", status.verdict or NOT_KNOWN, width, 3),
         *_diagnosis(status.diagnosis, width),
         _convergence(status),
         *_events(status.events or [], width),
