@@ -240,6 +240,11 @@ def log_parameters(log, autopilot: str, params: dict | None, notes: list) -> tup
             f"the log's magnetometer is compass {compass}: it is sent as RAW_IMU, whose parameters are those of the "
             "compass of priority 1 (COMPASS_PRIO1_ID), which may not be its own"
         )
+    if autopilot == "px4":
+        notes.append(
+            f"the log's {len(own)} compass parameters announced; SCALED_IMU carries its raw field, as PX4 sends it"
+        )
+        return own, False
     notes.append(f"the log's {len(own)} compass parameters announced and applied to its raw field")
     return own, True
 
@@ -289,12 +294,22 @@ class _Vehicle:
         self.packer = mavlink_dialect().MAVLink(None, srcSystem=sysid, srcComponent=AUTOPILOT_COMPONENT)
         self.seq = 0
         self.boot = 0
+        self.closed = False
+        if hasattr(link, "handle_eof"):  # tcp: the receiver closed the connection; pymavlink would only print it
+            link.handle_eof = link.handle_disconnect = self._closed
+
+    def _closed(self) -> None:
+        if not self.closed:
+            self.stats.notes.append("the receiver closed the connection: the replay stopped")
+        self.closed = True
 
     def stream(self, speed: float, dropped: np.ndarray, stop, linger_s: float) -> None:
         """Send every packet at its time (divided by ``speed``) but those ``dropped``, then answer for
         ``linger_s``; returns early when ``stop`` is set."""
         packets = self.packets.packets
         if not packets:
+            return
+        if not self._wait_for_receiver(stop):
             return
         paced = np.isfinite(speed) and speed > 0
         first_us, start = packets[0].time_us, time.monotonic()
@@ -311,6 +326,26 @@ class _Vehicle:
         else:
             self.stats.completed = True
             self._serve_until(time.monotonic() + linger_s, stop)
+
+    def _wait_for_receiver(self, stop) -> bool:
+        """On a link that listens (``tcpin:``, ``udpin:``), wait until a receiver has connected or sent a packet,
+        as a vehicle on such a port only reaches a ground station that has; False when ``stop`` is set first."""
+        from pymavlink import mavutil
+
+        def known() -> bool:
+            if isinstance(self.link, mavutil.mavtcpin):
+                return self.link.port is not None
+            if isinstance(self.link, mavutil.mavudp) and self.link.udp_server:
+                return bool(self.link.clients)
+            return True
+
+        waited = time.monotonic()
+        while not known():
+            if not self._serve_until(time.monotonic() + POLL_S, stop):
+                return False
+        if time.monotonic() - waited > POLL_S:
+            self.stats.notes.append(f"waited {time.monotonic() - waited:.1f} s for a receiver on the listening link")
+        return True
 
     def _send_packet(self, packet, dropped: bool) -> None:
         if packet.boot != self.boot:  # the vehicle rebooted: its sequence numbers start again
@@ -332,7 +367,7 @@ class _Vehicle:
         """Answer what arrives until the monotonic time ``due``; False when ``stop`` is set."""
         while True:
             self._drain()
-            if stop is not None and stop.is_set():
+            if self.closed or stop is not None and stop.is_set():
                 return False
             remaining = due - time.monotonic()
             if remaining <= 0:
@@ -341,8 +376,12 @@ class _Vehicle:
 
     def _drain(self) -> None:
         """Handle every message waiting on the link."""
-        while True:
-            message = self.link.recv_msg()
+        while not self.closed:
+            try:
+                message = self.link.recv_msg()
+            except OSError:  # a TCP connection reset by the receiver
+                self._closed()
+                return
             if message is None:
                 return
             self._handle(message)

@@ -233,3 +233,32 @@ def test_a_telemetry_log_is_sent_again_as_its_vehicle_sent_it(flight, tmp_path, 
         )
     )
     assert np.max(np.abs(sent - again)) <= 1
+
+
+def test_over_tcp_the_replay_stops_when_the_receiver_closes(flight):
+    rx = mavutil.mavlink_connection("tcpin:127.0.0.1:0", source_system=255, source_component=190)
+    connection = f"tcp:127.0.0.1:{rx.listen.getsockname()[1]}"
+    thread, out = in_thread(replay, log_or_table=flight, connection=connection, speed=SPEED)
+    first = rx.recv_match(type="RAW_IMU", blocking=True, timeout=TIMEOUT_S)
+    rx.close()
+    thread.join(TIMEOUT_S)
+    stats = finished(out)
+    assert first is not None and not stats.completed
+    assert "the receiver closed the connection: the replay stopped" in stats.notes
+
+
+def test_listening_on_tcp_the_replay_waits_for_its_receiver(flight):
+    import socket
+
+    with socket.socket() as probe:  # a port free a moment ago; the replay listens on it
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    thread, out = in_thread(replay, log_or_table=flight, connection=f"tcpin:127.0.0.1:{port}", speed=float("inf"))
+    time.sleep(0.1)
+    rx = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255, retries=20, reconnect_delay=0.05)
+    got = receive(rx, thread)
+    stats = finished(out)
+    rx.close()
+    # nothing is sent before the receiver connects, and TCP loses nothing after
+    assert stats.completed and len(got) == stats.packets_sent
+    assert any(n.startswith("waited ") for n in stats.notes)
