@@ -226,7 +226,7 @@ def _convergence(status) -> str:
     )
 
 
-def _events(events: list, width: int) -> list[str]:
+def _events(events: list) -> list[str]:
     recent = [str(e) for e in events][-EVENTS:]
     if not recent:
         return [_line("events", "none")]
@@ -241,7 +241,7 @@ def render(status, width: int = WIDTH) -> list[str]:
     status : LiveStatus
         The snapshot shown.
     width : int, optional
-        Characters a line may hold (at least 40); longer lines are cut.
+        Characters a line may hold; longer lines are cut (laid out for at least 40).
 
     Returns
     -------
@@ -250,7 +250,7 @@ def render(status, width: int = WIDTH) -> list[str]:
         the table of ``b`` (nT) and the diagonal of ``R`` (no unit) with their standard deviations,
         what is undetermined, the verdict, the running diagnosis, convergence, the last events.
     """
-    width = max(int(width), 40)
+    cut, width = int(width), max(int(width), 40)
     lines = [
         _header(status),
         *_epochs(status.counts or {}, width),
@@ -261,9 +261,9 @@ def render(status, width: int = WIDTH) -> list[str]:
         *_wrapped("verdict", status.verdict or NOT_KNOWN, width, 3),
         *_diagnosis(status.diagnosis, width),
         _convergence(status),
-        *_events(status.events or [], width),
+        *_events(status.events or []),
     ]
-    return [line[:width].rstrip() for line in lines]
+    return [line[:cut].rstrip() for line in lines]
 
 
 # ---------------------------------------------------------------------- JSON
@@ -271,9 +271,10 @@ def _plain(value):
     """``value`` with NaN and infinities as None and numpy's numbers and arrays as Python's."""
     if isinstance(value, dict):
         return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
-        value = value.tolist() if hasattr(value, "tolist") else value
-        return [_plain(v) for v in value] if isinstance(value, list) else _plain(value)
+    if hasattr(value, "tolist"):  # a numpy array or number
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return value
     if isinstance(value, numbers.Integral):

@@ -70,7 +70,7 @@ def _empty() -> LiveStatus:
     )
 
 
-@pytest.mark.parametrize("width", [100, 72, 40])
+@pytest.mark.parametrize("width", [100, 72, 40, 20])
 def test_full_status_lines_within_width(width):
     lines = render(_full(), width)
     assert 12 <= len(lines) <= 24
@@ -225,6 +225,7 @@ def test_json_lines_round_trip_at_most_once_per_interval():
     status = _full()
     status.b_nt = list(np.array([1.5, np.nan, -2.0]))  # numpy numbers as a session may give them
     status.counts = {"used": np.int64(7)}
+    status.r_diag = (np.float64(1.0), np.inf, 1.0)  # a tuple, an infinity
     for t in (0.0, 0.4, 1.0, 1.9, 2.0):
         clock.now = t
         writer.show(status)
@@ -234,6 +235,7 @@ def test_json_lines_round_trip_at_most_once_per_interval():
     assert len(rows) == 4  # at 0, 1 and 2 s, and the final one
     assert rows[0]["b_nt"] == [1.5, None, -2.0]
     assert rows[0]["counts"] == {"used": 7}
+    assert rows[0]["r_diag"] == [1.0, None, 1.0]
     expected = _full().as_dict()
     assert rows[-1]["link"] == expected["link"]
     assert rows[-1]["diagnosis"]["candidates"][2]["p_value"] is None
