@@ -87,6 +87,8 @@ class VehiclePacket:
         The message's name (``RAW_IMU``).
     data : bytes
         The whole packet, its sequence number that of its source counted in time order.
+    row : int
+        The table's row a magnetometer message carries (``VehiclePackets.magnetometer_message``), else -1.
     """
 
     time_us: int
@@ -96,6 +98,7 @@ class VehiclePacket:
     source: int
     name: str
     data: bytes
+    row: int = -1
 
 
 def with_sequence(packet: bytes, seq: int) -> bytes:
@@ -216,10 +219,13 @@ class VehiclePackets:
         self.latency_us = int(round(latency_s * 1e6))
         self._packer = self.dialect.MAVLink(None, srcSystem=sysid, srcComponent=AUTOPILOT_COMPONENT)
         self._gcs_packer = self.dialect.MAVLink(None, srcSystem=GCS_SYSID, srcComponent=GCS_COMPID)
-        self._records: list[tuple[int, int, int, str, bytes]] = []
+        self._records: list[tuple[int, int, int, str, bytes, int]] = []
+        self._frame = frame
+        #: Whether the magnetometer carries the ``COMPASS_*`` calibration of the parameters (ArduPilot, applied).
+        self.applies_params = autopilot == "ardupilot" and apply_params
         self._heartbeats(ground_station)
         self._announce(self._start_rows())
-        self._magnetometer(frame, apply_params)
+        self._magnetometer(frame)
         self._attitude(frame, attitude_per_row)
         self._gnss(frame, gps_period_s)
         if system_time:
@@ -279,17 +285,17 @@ class VehiclePackets:
         return np.flatnonzero(np.concatenate(([True], np.diff(slot) > 0)))
 
     # -------------------------------------------------------------- packets
-    def _send(self, log_us: int, message, source: int = VEHICLE) -> None:
+    def _send(self, log_us: int, message, source: int = VEHICLE, row: int = -1) -> None:
         packer = self._packer if source == VEHICLE else self._gcs_packer
         packet = message.pack(packer, force_mavlink1=self.mavlink1)
-        self._records.append((int(log_us), len(self._records), source, message.get_type(), packet))
+        self._records.append((int(log_us), len(self._records), source, message.get_type(), packet, row))
 
     def _sequenced(self) -> list[VehiclePacket]:
         """The packets in time order (the order of sending at equal times), each source's sequence numbers
         counted in that order, the vehicle's from 0 again at the reboot."""
         self._records.sort(key=lambda r: (r[0], r[1]))
         seq, boot_of_seq, out = [0, 0], -1, []
-        for log_us, _, source, name, packet in self._records:
+        for log_us, _, source, name, packet, row in self._records:
             boot = self._boot_index(log_us)
             if source == VEHICLE and boot != boot_of_seq:
                 seq[VEHICLE], boot_of_seq = 0, boot
@@ -297,7 +303,7 @@ class VehiclePackets:
             seq[source] = (seq[source] + 1) % 256
             time_us = self._unix_us(log_us)
             boot_us = int(self.boot_of(log_us))
-            out.append(VehiclePacket(time_us, boot_us, time_us + self.latency_us, boot, source, name, data))
+            out.append(VehiclePacket(time_us, boot_us, time_us + self.latency_us, boot, source, name, data, row))
         self._records = []
         return out
 
@@ -334,12 +340,9 @@ class VehiclePackets:
         zeros = [0] * 8
         return self.dialect.MAVLink_autopilot_version_message(0, flight_sw, 0, 0, 0, zeros, zeros, zeros, 0, 0, 0)
 
-    def _magnetometer(self, frame, apply_params: bool) -> None:
-        mag_mg = np.column_stack([_column(frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
-        rows = np.all(np.isfinite(mag_mg), axis=1)
-        if self.autopilot == "ardupilot" and apply_params:
-            mag_mg[rows] = self._corrected(mag_mg[rows], frame, rows)
-        sent = np.trunc(mag_mg)
+    def _magnetometer(self, frame) -> None:
+        sent = self.sent_field()
+        rows = np.all(np.isfinite(sent), axis=1)
         too_large = np.argwhere(rows[:, None] & (np.abs(sent) > np.iinfo(np.int16).max))
         if too_large.size:
             i, axis = too_large[0]
@@ -347,22 +350,34 @@ class VehiclePackets:
                 f"field {sent[i, axis]:g} mG does not fit the int16 xmag field", self.source, int(i) + 1, MAG[axis]
             )
         temp = _column(frame, "temp_c")
-        temp = np.where(np.isfinite(temp), np.rint(temp * 100.0), 0).astype(int)
-        boot = self.boot_of(self.log_us)
+        self._temp_cdeg = np.where(np.isfinite(temp), np.rint(temp * 100.0), 0).astype(int)
         for i in np.flatnonzero(rows):
-            b, (x, y, z) = int(boot[i]), (int(v) for v in sent[i])
-            if self.autopilot == "ardupilot":
-                message = self.dialect.MAVLink_raw_imu_message(b, 0, 0, -1000, 0, 0, 0, x, y, z, 0, int(temp[i]))
-            else:
-                message = self.dialect.MAVLink_scaled_imu_message(
-                    b // 1000, 0, 0, -1000, 0, 0, 0, x, y, z, int(temp[i])
-                )
-            self._send(int(self.log_us[i]), message)
+            self._send(int(self.log_us[i]), self.magnetometer_message(i, sent[i]), row=int(i))
 
-    def _corrected(self, raw_mg: np.ndarray, frame, rows: np.ndarray) -> np.ndarray:
+    def sent_field(self, params: dict | None = None) -> np.ndarray:
+        """(N, 3) the field the magnetometer message carries at each row (mG, truncated towards zero as the int16
+        field is filled; NaN at rows without a reading): the table's, with the ``COMPASS_*`` calibration of
+        ``params`` (default the vehicle's) applied where ``applies_params``."""
+        mag_mg = np.column_stack([_column(self._frame, c) for c in MAG]) / NT_PER_MILLIGAUSS
+        rows = np.all(np.isfinite(mag_mg), axis=1)
+        if self.applies_params:
+            mag_mg[rows] = self._corrected(mag_mg[rows], self.params if params is None else params, rows)
+        return np.trunc(mag_mg)
+
+    def magnetometer_message(self, row: int, field_mg):
+        """The magnetometer message of table row ``row`` carrying ``field_mg`` (3,) (int16 mG): ArduPilot
+        ``RAW_IMU`` (``time_usec`` boot us), PX4 ``SCALED_IMU`` (``time_boot_ms``); ``temperature`` from
+        ``temp_c``."""
+        b, (x, y, z) = int(self.boot_of(self.log_us[row])), (int(v) for v in field_mg)
+        temp = int(self._temp_cdeg[row])
+        if self.autopilot == "ardupilot":
+            return self.dialect.MAVLink_raw_imu_message(b, 0, 0, -1000, 0, 0, 0, x, y, z, 0, temp)
+        return self.dialect.MAVLink_scaled_imu_message(b // 1000, 0, 0, -1000, 0, 0, 0, x, y, z, temp)
+
+    def _corrected(self, raw_mg: np.ndarray, params: dict, rows: np.ndarray) -> np.ndarray:
         """ArduPilot's ``correct_field`` of ``params`` on ``raw_mg`` (M, 3) mG at ``rows``."""
-        offsets, diagonals, offdiagonals, scale = _firmware_compass(self.params)
-        motor = _motor_sent(self.params, frame)[rows]
+        offsets, diagonals, offdiagonals, scale = _firmware_compass(params)
+        motor = _motor_sent(params, self._frame)[rows]
         version = ".".join(map(str, self._version)) if self._version is not None else None
         first, scale_applies = correction_model(f"ArduCopter V{version}" if version else None)
         return compass_correct(

@@ -18,9 +18,10 @@ The parameters: those given (``params``, autopilot names -> values, e.g. from
 ``magkf.io.autopilot.read_param_file``), which an ArduPilot vehicle applies to its field as ``correct_field``
 does; else the log's own compass parameters where its reader gives them (``DriveLog.provenance["parameters"]``:
 ``COMPASS_*`` of DataFlash and telemetry logs, ``CAL_MAG*`` of ULogs), applied to a field read raw and only
-announced for a field read as the autopilot calibrated it; else none, and the reading is sent as it is. A
-``PARAM_SET`` changes what the vehicle answers, not the readings it sends (those are encoded before the replay
-starts with the parameters in force then).
+announced for a field read as the autopilot calibrated it; else none, and the reading is sent as it is. Where
+the parameters are applied, a ``PARAM_SET`` of a ``COMPASS_*`` parameter changes the readings sent from then on,
+as the firmware's ``correct_field`` would (the int16 field then saturates rather than overflow); elsewhere it
+changes what the vehicle answers, not its readings.
 """
 
 from __future__ import annotations
@@ -295,6 +296,8 @@ class _Vehicle:
         self.seq = 0
         self.boot = 0
         self.closed = False
+        #: (N, 3) the magnetometer readings (int16 mG) with the parameters as set, once a PARAM_SET changed them.
+        self.fields = None
         if hasattr(link, "handle_eof"):  # tcp: the receiver closed the connection; pymavlink would only print it
             link.handle_eof = link.handle_disconnect = self._closed
 
@@ -354,7 +357,12 @@ class _Vehicle:
         if dropped:
             self.stats.packets_dropped += 1
             return
-        self.link.write(with_sequence(packet.data, seq))
+        if self.fields is not None and packet.row >= 0:  # a reading of the calibration as set
+            self.packer.seq = seq
+            data = self.packets.magnetometer_message(packet.row, self.fields[packet.row]).pack(self.packer)
+        else:
+            data = with_sequence(packet.data, seq)
+        self.link.write(data)
         self.stats.packets_sent += 1
 
     def _answer(self, message) -> None:
@@ -427,6 +435,9 @@ class _Vehicle:
         if name not in self.params:
             return
         self.params[name] = _set_value(self.params[name], message, self.autopilot)
+        if self.packets.applies_params and name.startswith("COMPASS_"):
+            limit = np.iinfo(np.int16)
+            self.fields = np.clip(self.packets.sent_field(self.params), limit.min, limit.max)
         self._answer(self._value(name))
 
     def _command(self, message) -> None:

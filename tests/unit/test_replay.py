@@ -11,7 +11,7 @@ import pytest
 from pymavlink import mavutil
 
 from magkf.cli import replay as replay_cli
-from magkf.io.mavlink_packets import REBOOT_START_US, VehiclePackets
+from magkf.io.mavlink_packets import REBOOT_START_US, START_US, VehiclePackets
 from magkf.live import replay as replay_module
 from magkf.live.replay import replay
 from magkf.sim import DriveConfig, simulate_drive
@@ -107,6 +107,20 @@ def test_every_message_arrives_paced_and_requests_are_answered(flight):
     answers = [m for t, m in got if t > asked["at"] and m.get_type() in ("PARAM_VALUE", "COMMAND_ACK")]
     values = {(m.param_id, m.param_index): m.param_value for m in answers if m.get_type() == "PARAM_VALUE"}
     assert values == {("COMPASS_OFS_Y", 1): -3.0, ("COMPASS_OFS_Z", 2): 4.0, ("COMPASS_OFS_X", 0): 33.0}
+    # the readings carry the offset as set from its echo on, as ArduPilot's correct_field applies it
+    echoes = [t for t, m in got if m.get_type() == "PARAM_VALUE" and m.param_id == "COMPASS_OFS_X"]
+    echo = max(echoes)  # the announcement came first, the echo after the request
+    old, new = (
+        VehiclePackets(flight, params=p, firmware="4.5.1").sent_field()
+        for p in (PARAMS, PARAMS | {"COMPASS_OFS_X": 33.0})
+    )
+    checked = []
+    for t, m in got:
+        if m.get_type() == "RAW_IMU" and (t < asked["at"] or t > echo):
+            row = round((m.time_usec - START_US) * 1e-6 * RATE_HZ)
+            assert [m.xmag, m.ymag, m.zmag] == list((old if t < asked["at"] else new)[row])
+            checked.append(t > echo)
+    assert 0 < sum(checked) < len(checked) and np.any(old[:, 0] != new[:, 0])
     acks = [m for m in answers if m.get_type() == "COMMAND_ACK"]
     assert [(m.command, m.result) for m in acks] == [(511, 0)]
     assert stats.requests_answered == 4 and stats.requests["PARAM_REQUEST_READ"] == 2
