@@ -222,8 +222,10 @@ def log_parameters(log, autopilot: str, params: dict | None, notes: list) -> tup
     """``(parameters, apply)``: the vehicle's parameters and whether an ArduPilot vehicle applies them to the
     table's field (see the module docstring); ``notes`` say which were taken."""
     if params is not None:
-        notes.append(f"{len(params)} parameters given, applied to the field as {autopilot} does")
-        return dict(params), True
+        ardupilot = autopilot == "ardupilot"
+        done = "applied to the field as ArduPilot does" if ardupilot else "SCALED_IMU sent raw, as PX4 does"
+        notes.append(f"{len(params)} parameters given: {done}")
+        return dict(params), ardupilot
     provenance = getattr(log, "provenance", None) or {}
     logged = provenance.get("parameters") if isinstance(provenance.get("parameters"), dict) else {}
     own = {k: float(v) for k, v in logged.items() if k.startswith(PARAM_PREFIXES[autopilot])}
