@@ -37,9 +37,11 @@ Time
 Samples
     One per magnetometer message of the chosen stream: the field, attitude interpolated to its time (slerp between
     the attitude messages around it, across gaps up to ``ATTITUDE_GAP_INTERVALS`` of their median interval and at
-    least ``ATTITUDE_GAP_S``), the latest GNSS fix and the latest current, throttle and temperature when the
-    magnetometer message arrived. A sample waits until an attitude message at or after its time has come, or until
-    the vehicle's clock is ``wait_s`` past it (then it goes without attitude where no bracket exists).
+    least ``ATTITUDE_GAP_S``), and each slow stream's value (GNSS fix, current, throttle, temperature) latest at or
+    before its time, NaN when older than ``STALE_INTERVALS`` of that stream's interval (a GNSS position only with
+    a 3-D fix). A sample waits until an attitude message after its time has come (by then the slow streams' values
+    of its time, sent before it, have come too), until the vehicle's clock is ``wait_s`` past it, or until the link
+    is lost (then it goes without attitude where no bracket exists).
 
 Faults (each an event, none fatal)
     * packets lost: gaps in the sequence numbers of the vehicle's component (``seq`` counts the sender's packets
@@ -143,6 +145,8 @@ ATTITUDE_GAP_INTERVALS, ATTITUDE_GAP_S = 2.5, 0.5
 #: A GNSS fix, current, throttle or temperature older than this many intervals of its stream (at least
 #: ``STALE_MIN_S``) is not given to a sample.
 STALE_INTERVALS, STALE_MIN_S = 3.0, 1.0
+#: Values kept of each slow stream (GNSS, current, throttle, temperature) for the samples waiting.
+SLOW_KEPT = 16
 #: Seconds between the ground station's ``HEARTBEAT``s, and between attempts to open a TCP connection again.
 HEARTBEAT_S, RECONNECT_S = 1.0, 1.0
 #: Packets kept for redoing the sequence counting at a reboot; receive buffer asked for a UDP socket (bytes).
@@ -407,6 +411,9 @@ class MavlinkSource:
             self._link_down = True
             self.counters["link_drops"] += 1
             self._event(f"link lost: no packet for {now - self._last_packet:.1f} s; still listening")
+            if self._pending and self._time_base_ready():  # no more attitude is coming for them
+                self._finish(self._pending)
+                self._pending = []
         if self._link_down and self.connection.startswith("tcp:") and now - self._last_reconnect >= RECONNECT_S:
             self._last_reconnect = now
             self.close()
@@ -562,8 +569,7 @@ class MavlinkSource:
         elif t <= 0:
             t = self._vehicle_us()
         ellipsoid = getattr(msg, "alt_ellipsoid", 0)
-        self._gnss = {
-            "t": t,
+        fix = {
             "fix": int(msg.fix_type),
             "lat": msg.lat / 1e7,
             "lon": msg.lon / 1e7,
@@ -571,20 +577,25 @@ class MavlinkSource:
             "hdop": msg.eph / 100.0 if msg.eph != UNKNOWN_U16 else math.nan,
             "vdop": msg.epv / 100.0 if msg.epv != UNKNOWN_U16 else math.nan,
         }
+        self._keep("gnss", t, fix, "GPS_RAW_INT")
+
+    def _keep(self, key: str, t: float, value, message: str) -> None:
+        """A slow stream's value at the vehicle's time ``t`` (us), kept for the samples around it."""
+        self._slow.setdefault(key, deque(maxlen=SLOW_KEPT)).append((t, value, message))
 
     def _on_battery_status(self, msg, boot_us) -> None:
         if msg.id == 0 and msg.current_battery != -1:
-            self._aux["current_a"] = (self._vehicle_us(), msg.current_battery * 0.01, "BATTERY_STATUS")
+            self._keep("current_a", self._vehicle_us(), msg.current_battery * 0.01, "BATTERY_STATUS")
 
     def _on_sys_status(self, msg, boot_us) -> None:
         if msg.current_battery != -1 and "BATTERY_STATUS" not in self._arrivals:
-            self._aux["current_a"] = (self._vehicle_us(), msg.current_battery * 0.01, "SYS_STATUS")
+            self._keep("current_a", self._vehicle_us(), msg.current_battery * 0.01, "SYS_STATUS")
 
     def _on_vfr_hud(self, msg, boot_us) -> None:
-        self._aux["throttle"] = (self._vehicle_us(), msg.throttle * 0.01, "VFR_HUD")
+        self._keep("throttle", self._vehicle_us(), msg.throttle * 0.01, "VFR_HUD")
 
     def _on_scaled_pressure(self, msg, boot_us) -> None:
-        self._aux["pressure_temp_c"] = (self._vehicle_us(), msg.temperature * 0.01, "SCALED_PRESSURE")
+        self._keep("pressure_temp_c", self._vehicle_us(), msg.temperature * 0.01, "SCALED_PRESSURE")
 
     def _on_magnetometer(self, msg, boot_us) -> None:
         name = msg.get_type()
@@ -599,7 +610,8 @@ class MavlinkSource:
         field = np.array([msg.xmag, msg.ymag, msg.zmag], float)
         sample = {"boot_us": boot_us, "field": field, "message": name}
         temperature = getattr(msg, "temperature", 0) if name != "HIGHRES_IMU" else 0  # HIGHRES_IMU's is degC
-        sample |= self._slow_values(boot_us, temperature)
+        if temperature:
+            sample["temp_c"] = temperature * 0.01
         self._pending.insert(at, sample)
 
     def _is_chosen(self, msg, name: str) -> bool:
@@ -616,22 +628,32 @@ class MavlinkSource:
         self._event(f"magnetometer: {name} (instance {instance})")
         return True
 
-    def _slow_values(self, boot_us: float, temperature) -> dict:
-        """The latest GNSS fix and auxiliary values at a magnetometer message (NaN where stale or absent)."""
+    def _slow_values(self, sample: dict) -> dict:
+        """The GNSS fix and auxiliary values at a sample: each stream's latest at or before its time (NaN where
+        stale or absent; a column the vehicle never sent is left out)."""
+        boot_us = sample["boot_us"]
         out = dict.fromkeys(("lat", "lon", "alt", "hdop", "vdop"), math.nan)
-        g = self._gnss
-        if g is not None and g["fix"] >= 3 and abs(boot_us - g["t"]) <= self._stale_us("GPS_RAW_INT"):
-            out |= {k: g[k] for k in out}
-        for column, (t, value, message) in self._aux.items():
-            if column == "pressure_temp_c":
-                continue
-            out[column] = value if abs(self._vehicle_us() - t) <= self._stale_us(message) else math.nan
-        if temperature:
-            out["temp_c"] = temperature * 0.01
-        elif "pressure_temp_c" in self._aux:
-            t, value, message = self._aux["pressure_temp_c"]
-            out["temp_c"] = value if abs(self._vehicle_us() - t) <= self._stale_us(message) else math.nan
+        fix = self._latest("gnss", boot_us)
+        if fix is not None and fix["fix"] >= 3:
+            out |= {k: fix[k] for k in out}
+        for column in ("current_a", "throttle"):
+            if column in self._slow:
+                value = self._latest(column, boot_us)
+                out[column] = value if value is not None else math.nan
+        if "temp_c" not in sample and "pressure_temp_c" in self._slow:
+            value = self._latest("pressure_temp_c", boot_us)
+            out["temp_c"] = value if value is not None else math.nan
         return out
+
+    def _latest(self, key: str, boot_us: float):
+        """The value of slow stream ``key`` at ``boot_us``: the latest at or before it, else the first after it;
+        None where there is none within ``STALE_INTERVALS`` of its interval."""
+        kept = self._slow.get(key)
+        if not kept:
+            return None
+        before = [entry for entry in kept if entry[0] <= boot_us]
+        t, value, message = before[-1] if before else min(kept, key=lambda e: e[0])
+        return value if abs(boot_us - t) <= self._stale_us(message) else None
 
     def _stale_us(self, name: str) -> float:
         times = self._arrivals.get(name, ())
@@ -668,7 +690,7 @@ class MavlinkSource:
         now = self._vehicle_us()
         done = 0
         for sample in self._pending:
-            if latest_attitude >= sample["boot_us"] or now >= sample["boot_us"] + self.wait_s * 1e6:
+            if latest_attitude > sample["boot_us"] or now >= sample["boot_us"] + self.wait_s * 1e6:
                 done += 1
             else:
                 break
@@ -688,7 +710,9 @@ class MavlinkSource:
                 self.counters["late"] += 1
                 continue
             self._last_out = t
-            self._ready.append(sample | {"time": t, "roll": roll, "pitch": pitch, "yaw": yaw})
+            self._ready.append(
+                sample | self._slow_values(sample) | {"time": t, "roll": roll, "pitch": pitch, "yaw": yaw}
+            )
         self._prune_attitude(boot[-1])
 
     def _attitude_at(self, boot_us: np.ndarray) -> np.ndarray:
@@ -768,7 +792,7 @@ class MavlinkSource:
         params = {k: (np.zeros(1, np.int64), np.array([v], float)) for k, v in self.params.items()}
         aux: dict = {INTERVALS: {}, MAX_GAP: math.inf}
         for column in ("throttle", "current_a"):
-            if column in self._aux:
+            if column in self._slow:
                 aux[column] = np.array([s.get(column, math.nan) for s in samples], float)
         instance = next(i for i, m, _ in MAG_MESSAGES if m == message)
         if self.firmware is None or _version(self.firmware) is None:
@@ -924,8 +948,7 @@ class MavlinkSource:
         self._att_t: list = []
         self._att_q: list = []
         self._att_source = "ATTITUDE"
-        self._gnss: dict | None = None
-        self._aux: dict = {}
+        self._slow: dict[str, deque] = {}
         self._arrivals: dict[str, deque] = {}
         self._last_out_boot = -math.inf
         self._rates_since_us = math.inf

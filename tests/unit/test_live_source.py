@@ -1,0 +1,380 @@
+"""``MavlinkSource`` against a small vehicle in the test: a thread with a pymavlink ``udpin`` connection on the
+loopback address that waits for the ground station's first packet, then streams a seeded simulated flight as an
+ArduPilot vehicle would (``magkf.io.mavlink_packets.VehiclePackets``: ``RAW_IMU`` with the ``COMPASS_*``
+calibration applied, ``ATTITUDE`` twice a row, ``GPS_RAW_INT``, ``SYSTEM_TIME``, ``BATTERY_STATUS``, ``VFR_HUD``)
+faster than real time, numbering its packets with one sequence counter as a vehicle does, and answers
+``PARAM_REQUEST_READ`` and ``PARAM_SET`` from a dict. One run drops a seeded share of packets, delays one, pauses
+(a link that drops and comes back) and reboots; each test checks a part of what came out of it.
+
+Precision of what the messages carry (the bounds below):
+
+* ``xmag, ymag, zmag``: int16 mG truncated towards zero by the vehicle, centred by the reader: at most 0.5 mG off
+  (1 mG where the field truncated to 0), i.e. at most 1 mG through the firmware's correction; undoing it maps that
+  through the inverse model, at most ``sum_j |M^-1|_ij x 1 mG / SCALE`` per axis (as ``test_tlog`` derives).
+* ``ATTITUDE``: float32 radians (half a spacing, 2**-23 rad, below 4 rad); the rows' magnetometer times have an
+  attitude message at the same time, where the interpolation returns it.
+* ``GPS_RAW_INT``: 1e-7 deg, mm, DOP in hundredths (half a count each); ``current_battery`` cA, ``throttle`` percent.
+* Time: ``time_usec`` in us, ``SYSTEM_TIME`` exact for whole-ms rows: the table's times to float64 rounding.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from magkf.errors import InputError
+from magkf.io.mavlink_packets import VEHICLE, VehiclePackets, param_value_message, with_sequence
+from magkf.io.tlog import mavlink_dialect
+from magkf.live.source import ARDUPILOT_PARAMETERS, MavlinkSource
+from magkf.sim import DriveConfig, simulate_drive
+
+RATE_HZ = 20.0
+DURATION_S = 12.0
+#: Vehicle seconds per wall second.
+SPEED = 10.0
+#: Seconds of the flight after its first row at which the link pauses, and at which the vehicle reboots.
+PAUSE_AT_S, REBOOT_AT_S = 1.5, 8.0
+#: Wall seconds of the pause, and the link timeout of the source (a pause is three timeouts long).
+PAUSE_S, LINK_TIMEOUT_S = 0.45, 0.15
+#: Share of the magnetometer and between-rows attitude packets dropped.
+DROP_SHARE = 0.03
+HALF_FLOAT32_RAD = 2.0**-23
+CALIBRATION = {
+    "COMPASS_OFS_X": 120.0,
+    "COMPASS_OFS_Y": -80.0,
+    "COMPASS_OFS_Z": 35.0,
+    "COMPASS_DIA_X": 1.05,
+    "COMPASS_DIA_Y": 0.97,
+    "COMPASS_DIA_Z": 1.01,
+    "COMPASS_ODI_X": 0.02,
+    "COMPASS_ODI_Y": -0.01,
+    "COMPASS_ODI_Z": 0.03,
+    "COMPASS_SCALE": 1.1,
+}
+#: Every other compass parameter the source asks for, at the firmware's defaults.
+DEFAULTS = {
+    name: 1.0 if "_DIA" in name or name.startswith("COMPASS_SCALE") else 0
+    for name in ARDUPILOT_PARAMETERS
+    if name not in CALIBRATION
+}
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Vehicle(threading.Thread):
+    """The vehicle's side of the link (see the module docstring); ``sent_seq`` are the packets' indices sent,
+    ``requests`` the names of the messages received from the ground station, ``done`` set after the last packet.
+
+    Parameters
+    ----------
+    port : int
+        Its ``udpin`` port on 127.0.0.1.
+    packets : list of VehiclePacket
+        What it streams (the vehicle's only), paced by ``time_us`` at ``SPEED``.
+    params : dict
+        Its parameters, answered on request and changed by ``PARAM_SET`` except those of ``read_only``.
+    drop, delay : set of int
+        Packets (indices) numbered but not sent; packets sent three packets later than their turn.
+    pause_at_us : int or None
+        The first packet at or after this ``time_us`` waits ``PAUSE_S`` wall seconds (nothing is sent meanwhile).
+    """
+
+    def __init__(self, port, packets, params, *, drop=(), delay=(), pause_at_us=None, read_only=()):
+        super().__init__(daemon=True)
+        from pymavlink import mavutil
+
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
+        self.packets, self.params, self.read_only = packets, dict(params), set(read_only)
+        self.drop, self.delay, self.pause_at_us = set(drop), set(delay), pause_at_us
+        self.packer = mavlink_dialect().MAVLink(None, srcSystem=1, srcComponent=1)
+        self.seq, self.boot = 0, 0
+        self.requests: list[str] = []
+        self.done, self.stop = threading.Event(), threading.Event()
+        self.deadline = time.monotonic() + 30.0
+
+    def run(self) -> None:
+        try:
+            while not self.requests and not self._over():
+                self._serve()
+                time.sleep(0.002)
+            self._stream()
+            self.done.set()
+            while not self._over():
+                self._serve()
+                time.sleep(0.005)
+        finally:
+            self.conn.close()
+
+    def _over(self) -> bool:
+        return self.stop.is_set() or time.monotonic() > self.deadline
+
+    def _stream(self) -> None:
+        if not self.packets:
+            return
+        first, start, held = self.packets[0].time_us, time.monotonic(), []
+        for i, packet in enumerate(self.packets):
+            if self.pause_at_us is not None and packet.time_us >= self.pause_at_us:
+                self.pause_at_us = None
+                self._wait_until(time.monotonic() + PAUSE_S)
+                start += PAUSE_S
+            self._wait_until(start + (packet.time_us - first) * 1e-6 / SPEED)
+            if packet.boot != self.boot:
+                self.boot, self.seq = packet.boot, 0  # the counter starts again at a reboot
+            data = with_sequence(packet.data, self._next_seq())
+            if i in self.delay:
+                held.append([3, data])
+            elif i not in self.drop:
+                self.conn.write(data)
+            for item in held:
+                item[0] -= 1
+                if item[0] < 0:
+                    self.conn.write(item[1])
+            held = [item for item in held if item[0] >= 0]
+            if self._over():
+                return
+
+    def _wait_until(self, when: float) -> None:
+        while time.monotonic() < when and not self._over():
+            self._serve()
+            time.sleep(min(max(when - time.monotonic(), 0.0), 0.002))
+
+    def _next_seq(self) -> int:
+        seq, self.seq = self.seq, (self.seq + 1) % 256
+        return seq
+
+    def _serve(self) -> None:
+        while (msg := self.conn.recv_msg()) is not None:
+            name = msg.get_type()
+            self.requests.append(name)
+            if name == "PARAM_REQUEST_READ" and msg.param_id in self.params:
+                self._answer(msg.param_id)
+            elif name == "PARAM_SET" and msg.param_id in self.params:
+                if msg.param_id not in self.read_only:
+                    value = msg.param_value
+                    self.params[msg.param_id] = int(value) if msg.param_type == 6 else value
+                self._answer(msg.param_id)
+
+    def _answer(self, name: str) -> None:
+        names = list(self.params)
+        message = param_value_message(name, self.params[name], len(names), names.index(name), "ardupilot")
+        self.conn.write(with_sequence(message.pack(self.packer), self._next_seq()))
+
+
+def vehicle_packets(table, **kwargs) -> list:
+    return [p for p in VehiclePackets(table, "ardupilot", ground_station=False, **kwargs) if p.source == VEHICLE]
+
+
+@pytest.fixture(scope="module")
+def flight():
+    """A seeded 12 s 3-D flight at 20 Hz with a throttle, HDOP and VDOP."""
+    sim = simulate_drive(DriveConfig(duration_s=DURATION_S, rate_hz=RATE_HZ, motion="3d", seed=11))
+    t = sim.table.index.to_numpy()
+    throttle = 0.5 + 0.3 * np.sin(2 * np.pi * (t - t[0]) / 7.0)
+    return sim.table.assign(hdop=sim.table["dop"], vdop=1.5 * sim.table["dop"], throttle=throttle)
+
+
+def faults(packets, flight) -> tuple[set, set]:
+    """Seeded drops of magnetometer and between-rows attitude packets, away from the start, the pause, the reboot
+    and the end (where a loss cannot be seen by the sequence numbers); one magnetometer packet delayed."""
+    rows_us = set(np.rint(flight.index.to_numpy() * 1e6).astype(np.int64).tolist())
+    t0 = packets[0].time_us
+    at = np.array([(p.time_us - t0) * 1e-6 for p in packets])
+    away = (at > 1.0) & (np.abs(at - PAUSE_AT_S) > 0.5) & (np.abs(at - REBOOT_AT_S - 0.5) > 1.0) & (at < at[-1] - 1)
+    candidates = [
+        i
+        for i, p in enumerate(packets)
+        if away[i] and (p.name == "RAW_IMU" or (p.name == "ATTITUDE" and p.time_us not in rows_us))
+    ]
+    rng = np.random.default_rng(2032)
+    drop = {i for i in candidates if rng.random() < DROP_SHARE}
+    delayed = next(i for i in candidates if at[i] > 2.0 and i not in drop and not drop & set(range(i, i + 5)))
+    return drop, {delayed}
+
+
+@pytest.fixture(scope="module")
+def run(flight):
+    """The flight streamed with drops, a delayed packet, a pause and a reboot; what the source made of it."""
+    packets = vehicle_packets(flight, params=CALIBRATION, firmware="4.5.7", reboot_at_s=REBOOT_AT_S)
+    drop, delay = faults(packets, flight)
+    port = free_udp_port()
+    pause_at = packets[0].time_us + int(PAUSE_AT_S * 1e6)
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS, drop=drop, delay=delay, pause_at_us=pause_at)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    samples, events = [], []
+    try:
+        source.open(timeout_s=5.0)
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:
+            got = source.poll(0.05)
+            samples += got
+            events += source.take_events()
+            if vehicle.done.is_set() and source.counters["link_drops"] == 2:
+                break  # the stream's end seen as a link lost: every sample is out
+        counters, provenance = dict(source.counters), dict(source.provenance)
+        params, firmware, asked = dict(source.params), source.firmware, dict(source.asked_hz)
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    return {
+        "samples": samples,
+        "events": events,
+        "counters": counters,
+        "provenance": provenance,
+        "params": params,
+        "firmware": firmware,
+        "asked": asked,
+        "drop": drop,
+        "packets": packets,
+        "requests": vehicle.requests,
+    }
+
+
+def rows_of(samples, flight) -> np.ndarray:
+    """Index of each sample's row in the flight (its time equal to 1e-6 s: the module docstring)."""
+    t = flight.index.to_numpy()
+    times = np.array([s["time"] for s in samples])
+    rows = np.clip(np.searchsorted(t, times - 5e-7), 0, len(t) - 1)
+    assert np.all(np.abs(t[rows] - times) <= 1e-6)
+    return rows
+
+
+def wrapped(d):
+    return (d + 180.0) % 360.0 - 180.0
+
+
+# ------------------------------------------------------------------ the samples
+def test_every_magnetometer_packet_sent_is_one_sample_at_its_time(run, flight):
+    sent_mag = [i for i, p in enumerate(run["packets"]) if p.name == "RAW_IMU" and i not in run["drop"]]
+    samples = run["samples"]
+    rows = rows_of(samples, flight)
+    assert len(samples) == len(sent_mag) == run["counters"]["samples"]
+    assert np.all(np.diff([s["time"] for s in samples]) > 0)
+    expected = {int(np.rint((run["packets"][i].time_us * 1e-6 - flight.index[0]) * RATE_HZ)) for i in sent_mag}
+    assert set(rows.tolist()) == expected
+    assert run["counters"]["late"] == 0  # the delayed packet came while its neighbours waited: still useful
+
+
+def test_fields_match_the_flight_with_the_compass_calibration_undone(run, flight):
+    samples = run["samples"]
+    rows = rows_of(samples, flight)
+    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
+    m = np.array(
+        [
+            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
+        ]
+    )
+    bound = np.abs(np.linalg.inv(m)).sum(axis=1) * 100.0 / p["COMPASS_SCALE"]
+    got = np.array([[s["mag_x"], s["mag_y"], s["mag_z"]] for s in samples])
+    error = np.abs(got - flight[["mag_x", "mag_y", "mag_z"]].to_numpy()[rows])
+    assert np.all(error <= bound + 1e-6)
+    assert error.max() > 1.0  # the truncation is there: not a copy
+    provenance = run["provenance"]
+    assert provenance["magnetometer"]["calibrated"] is False
+    assert provenance["raw_reconstruction"].startswith("AP_Compass_Backend::correct_field of ArduCopter V4.5.7")
+    assert run["firmware"] == "ArduCopter V4.5.7"
+    assert all(run["params"][k] == pytest.approx(v, rel=1e-7) for k, v in CALIBRATION.items())
+
+
+def test_attitude_position_and_auxiliary_match_the_flight(run, flight):
+    samples = run["samples"]
+    rows = rows_of(samples, flight)
+    for column in ("roll", "pitch", "yaw"):
+        got = np.array([s[column] for s in samples])
+        difference = wrapped(got - flight[column].to_numpy()[rows])
+        assert np.max(np.abs(difference)) <= np.degrees(HALF_FLOAT32_RAD) + 1e-9, column
+    # The slow streams are compared at the rows where they were sent (there the latest value is the row's own).
+    sent_at = {name: {p.time_us for p in run["packets"] if p.name == name} for name in ("GPS_RAW_INT", "VFR_HUD")}
+    row_us = np.rint(flight.index.to_numpy()[rows] * 1e6).astype(np.int64)
+    gps = np.array([u in sent_at["GPS_RAW_INT"] for u in row_us])
+    hud = np.array([u in sent_at["VFR_HUD"] for u in row_us])
+    assert gps.sum() > 20 and hud.sum() > 10
+    for column, half, where in (
+        ("lat", 5e-8, gps),
+        ("lon", 5e-8, gps),
+        ("alt", 0.5e-3, gps),
+        ("hdop", 0.005, gps),
+        ("vdop", 0.005, gps),
+        ("throttle", 0.005, hud),
+        ("current_a", 0.005, hud),
+    ):
+        got = np.array([s[column] for s in samples])[where]
+        assert np.max(np.abs(got - flight[column].to_numpy()[rows][where])) <= half + 1e-9, column
+    got_temp = np.array([s["temp_c"] for s in samples])
+    assert np.max(np.abs(got_temp - flight["temp_c"].to_numpy()[rows])) <= 0.005 + 1e-9
+
+
+# ------------------------------------------------------------------ the faults
+def test_sequence_gaps_are_the_packets_dropped_and_the_delayed_one_is_reordered(run):
+    counters = run["counters"]
+    assert run["drop"]
+    assert counters["lost"] == len(run["drop"])
+    assert counters["reordered"] == 1
+    assert counters["packets"] > len(run["packets"]) - len(run["drop"])  # and the parameters answered
+
+
+def test_a_reboot_is_reported_and_survived(run, flight):
+    assert run["counters"]["reboots"] == 1
+    assert any(e.startswith("the vehicle rebooted") for e in run["events"])
+    t = np.array([s["time"] for s in run["samples"]]) - flight.index[0]
+    after = t > REBOOT_AT_S
+    assert after.sum() > 0.9 * (DURATION_S - REBOOT_AT_S) * RATE_HZ  # the streams go on after it
+    assert run["requests"].count("REQUEST_DATA_STREAM") >= 2 * 5  # asked again (five groups each time)
+
+
+def test_a_link_that_pauses_is_reported_lost_and_back(run):
+    """The pause, then the end of the stream (after which the last sample, whose attitude after it never comes, is
+    handed out)."""
+    assert run["counters"]["link_drops"] == 2
+    link = [e.split(" after")[0].split(":")[0] for e in run["events"] if e.startswith("link ")]
+    assert link == ["link lost", "link back", "link lost"]
+
+
+def test_a_stream_at_another_rate_than_asked_is_reported_once(run):
+    """ATTITUDE comes twice a row (40 Hz) against the 20 Hz asked; RAW_IMU at 20 Hz less 3 % dropped."""
+    assert run["asked"]["ATTITUDE"] == RATE_HZ and run["asked"]["RAW_IMU"] == RATE_HZ
+    rates = [e for e in run["events"] if " Hz, asked " in e]
+    assert [e.split()[0] for e in rates] == ["ATTITUDE"]
+    assert float(rates[0].split()[3]) == pytest.approx(2 * RATE_HZ, rel=0.05)
+
+
+# ------------------------------------------------------------------ parameters and refusals
+def test_set_parameters_is_confirmed_by_the_echo_and_a_refusal_reported(flight):
+    packets = vehicle_packets(flight.iloc[:10], params=CALIBRATION)
+    port = free_udp_port()
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS, read_only={"COMPASS_DEV_ID"})
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
+    try:
+        source.open(timeout_s=5.0)
+        assert source.params["COMPASS_OFS_X"] == 120.0 and source.params["COMPASS_DEV_ID"] == 0
+        confirmed = source.set_parameters({"COMPASS_OFS_X": 12.5, "COMPASS_DEV_ID": 97539}, timeout_s=1.0)
+        events = source.take_events()
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert confirmed == {"COMPASS_OFS_X": True, "COMPASS_DEV_ID": False}
+    assert vehicle.params["COMPASS_OFS_X"] == 12.5
+    assert any(e.startswith("PARAM_SET COMPASS_DEV_ID = 97539 refused") for e in events)
+
+
+def test_no_heartbeat_is_an_input_error_naming_the_connection():
+    connection = f"udpin:127.0.0.1:{free_udp_port()}"
+    source = MavlinkSource(connection)
+    start = time.monotonic()
+    with pytest.raises(InputError, match="no HEARTBEAT") as error:
+        source.open(timeout_s=0.3)
+    assert connection in str(error.value)
+    assert time.monotonic() - start < 2.0
