@@ -134,10 +134,16 @@ if TYPE_CHECKING:
 __all__ = [
     "STORAGE_SIGMA_NT",
     "TelemetryLogReader",
+    "boot_time_us",
     "correction_model",
+    "is_calibrated",
     "magnetometer_instances",
     "mavlink_dialect",
+    "not_calibrated",
+    "param_value",
     "read_tlog",
+    "uncorrect_ardupilot",
+    "why_not_undone",
     "write_tlog",
 ]
 
@@ -388,7 +394,7 @@ def _note_other_sources(messages: list, chosen: tuple, notes: list) -> None:
         )
 
 
-def _boot_time_us(msg) -> int | None:
+def boot_time_us(msg) -> int | None:
     """Boot time (us) a message carries (``time_boot_ms`` or a boot-time ``time_usec``), else None."""
     if hasattr(msg, "time_boot_ms"):
         return int(msg.time_boot_ms) * 1000
@@ -396,6 +402,9 @@ def _boot_time_us(msg) -> int | None:
     if t is not None and 0 < t < UNIX_MIN_US:
         return int(t)
     return None
+
+
+_boot_time_us = boot_time_us
 
 
 def _boot_segments(records: list) -> np.ndarray:
@@ -498,14 +507,18 @@ class _Vehicle:
         return params
 
     def _param_value(self, m) -> float:
-        """A ``PARAM_VALUE``'s value: PX4 sends integer parameters as their bytes in the float field
-        (``MAV_PARAM_TYPE`` 1..8), ArduPilot as the float of the integer."""
-        kind = int(m.param_type)
-        if self.autopilot != "px4" or not 1 <= kind <= 8:
-            return float(m.param_value)
-        code = "BbHhIiQq"[kind - 1] if kind <= 6 else "i"
-        raw = struct.pack("<f", m.param_value)
-        return float(struct.unpack("<" + code, raw[: struct.calcsize(code)].ljust(struct.calcsize(code), b"\0"))[0])
+        return param_value(m, self.autopilot)
+
+
+def param_value(m, autopilot: str | None) -> float:
+    """A ``PARAM_VALUE``'s value: PX4 sends integer parameters as their bytes in the float field
+    (``MAV_PARAM_TYPE`` 1..8), ArduPilot as the float of the integer."""
+    kind = int(m.param_type)
+    if autopilot != "px4" or not 1 <= kind <= 8:
+        return float(m.param_value)
+    code = "BbHhIiQq"[kind - 1] if kind <= 6 else "i"
+    raw = struct.pack("<f", m.param_value)
+    return float(struct.unpack("<" + code, raw[: struct.calcsize(code)].ljust(struct.calcsize(code), b"\0"))[0])
 
 
 def _table(rows: list) -> dict[str, np.ndarray]:
@@ -728,7 +741,7 @@ def correction_model(firmware: str | None) -> tuple[bool, bool]:
 _correction_model = correction_model
 
 
-def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None:
+def is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None:
     """Whether ``message`` carries the autopilot's calibrated field (None: autopilot unknown); PX4 up to v1.11
     calibrated ``sensor_mag`` in the driver."""
     if message == "HIGHRES_IMU":
@@ -738,7 +751,10 @@ def _is_calibrated(message: str, autopilot: str | None, firmware) -> bool | None
     return {"ardupilot": True}.get(autopilot)
 
 
-def _uncorrect_ardupilot(
+_is_calibrated = is_calibrated
+
+
+def uncorrect_ardupilot(
     field_mg, boot_us, params: dict, instance: int, aux: dict, firmware: str | None, notes: list
 ) -> tuple[np.ndarray, str, int]:
     """Undo ArduPilot's ``correct_field`` of ``firmware`` (``_correction_model``) on ``field_mg`` (N, 3) with the
@@ -755,6 +771,9 @@ def _uncorrect_ardupilot(
     scale = p["SCALE"] if scale_applies else 1.0
     raw = compass_uncorrect(field_mg, stack("OFS"), stack("DIA"), stack("ODI"), scale, motor, motor_first=first)
     return raw, _model_text(firmware, suffix, first, scale_applies, scale, motor_text), k + 1
+
+
+_uncorrect_ardupilot = uncorrect_ardupilot
 
 
 def _model_text(firmware, suffix, motor_first, scale_applies, scale, motor_text) -> str:
@@ -1019,7 +1038,7 @@ def _undo(vehicle, nt, boot, stream, raw, calibrated, aux, info, notes) -> tuple
     return text, raw_mg * NT_PER_MILLIGAUSS
 
 
-def _not_calibrated(message: str, calibrated: bool | None, firmware, notes: list) -> str:
+def not_calibrated(message: str, calibrated: bool | None, firmware, notes: list) -> str:
     """What is done to a field that is not known to be calibrated (``calibrated`` None: autopilot unknown;
     False: PX4's ``sensor_mag``), noted."""
     if calibrated is None:
@@ -1037,7 +1056,10 @@ def _not_calibrated(message: str, calibrated: bool | None, firmware, notes: list
     return f"nothing to undo: PX4 {'.'.join(map(str, firmware))} sends sensor_mag uncalibrated"
 
 
-def _why_not_undone(message: str, autopilot: str | None, has_compass: bool) -> str | None:
+_not_calibrated = not_calibrated
+
+
+def why_not_undone(message: str, autopilot: str | None, has_compass: bool) -> str | None:
     """Why a calibrated field cannot be undone, in words; None where it can (ArduPilot with its parameters)."""
     if message == "HIGHRES_IMU":
         return (
@@ -1052,6 +1074,9 @@ def _why_not_undone(message: str, autopilot: str | None, has_compass: bool) -> s
     if not has_compass:
         return "no COMPASS_* PARAM_VALUE in the log"
     return None
+
+
+_why_not_undone = why_not_undone
 
 
 def _attitude(vehicle, clock, boot, max_gap_s, frame, columns, notes) -> None:
