@@ -11,6 +11,7 @@ import pytest
 from pymavlink import mavutil
 
 from magkf.cli import replay as replay_cli
+from magkf.errors import Note
 from magkf.io.mavlink_packets import REBOOT_START_US, START_US, VehiclePackets
 from magkf.live import replay as replay_module
 from magkf.live.replay import replay
@@ -196,8 +197,9 @@ def test_the_command_replays_a_log_file_with_a_reboot(flight, tmp_path, capsys):
     args = parser.parse_args(
         ["replay", str(log), connection, "--speed", "40", "--params", str(params), "--reboot-at", "5", "--seed", "1"]
     )
-    thread, out = in_thread(replay_cli.run_replay, args=args)
-    got = receive(rx, thread)
+    with pytest.warns(Note, match="2 parameters given: applied to the field as ArduPilot does"):
+        thread, out = in_thread(replay_cli.run_replay, args=args)
+        got = receive(rx, thread)
     assert finished(out) == 0
     rx.close()
     line = capsys.readouterr().out.strip()
