@@ -31,8 +31,10 @@ Time
     The vehicle's boot clock (``time_boot_ms``, boot-time ``time_usec``) is mapped to UNIX time by the median over
     the last ``SYSTEM_TIME_KEPT`` ``SYSTEM_TIME`` messages of ``time_unix_usec - time_boot_ms``, as
     ``magkf.io.tlog`` maps it. Samples are held until the first ``SYSTEM_TIME``, for up to ``HOLD_S`` of the
-    vehicle's clock; after that this computer's clock on receipt stands in (the median of receipt less boot time),
-    which is late by the link's latency, and an event says so.
+    vehicle's clock; after that this computer's clock on receipt stands in (the median of receipt less boot time
+    over the last ``RECEIPT_KEPT`` clock messages then, kept fixed so that the times keep their order), which is
+    late by the link's latency, and an event says so. A ``SYSTEM_TIME`` that comes later takes over (the times
+    may step there; a sample not after the last handed out is then ``late``).
 
 Samples
     One per magnetometer message of the chosen stream: the field, attitude interpolated to its time (slerp between
@@ -56,9 +58,10 @@ Faults (each an event, none fatal)
       waiting are handed out with what they have, the buffers and time base start again, the streams and the
       parameters are asked for again; the sequence counting is redone over the packets since the last clock message
       so that the new boot's counter starting at 0 is not counted as loss;
-    * a link that drops: no packet for ``link_timeout_s`` (this computer's clock): "link lost"; reading goes on (a
-      TCP connection is opened again every ``RECONNECT_S``); "link back" when packets come again, and the streams
-      are asked for again.
+    * a link that drops: no packet for ``link_timeout_s`` (this computer's clock), or a TCP connection closed by
+      its other end: "link lost", and the samples waiting are handed out; reading goes on (a TCP connection is
+      opened again every ``RECONNECT_S``: one attempt, which can block for the system's connect timeout where the
+      host does not answer); "link back" when packets come again, and the streams are asked for again.
 """
 
 from __future__ import annotations
@@ -286,7 +289,8 @@ class MavlinkSource:
         self._since_clock = 0
         self._early: list = []  # messages before the vehicle's HEARTBEAT
         self._last_packet = self._last_heartbeat = self._last_reconnect = -math.inf
-        self._link_down = False
+        self._link_down = self._peer_closed = False
+        self._is_tcp = self.connection.startswith("tcp:")
         self._stream: str | None = None
         self._highres_per_count: float | None = None
         self._ready: list[dict] = []
@@ -335,6 +339,8 @@ class MavlinkSource:
                 )
         except (OSError, ValueError) as exc:
             raise InputError(f"cannot open the connection ({exc})", self.connection) from None
+        if hasattr(conn, "handle_eof"):  # TCP: know when the other end closes, instead of pymavlink's print
+            conn.handle_eof = conn.handle_disconnect = self._peer_closed_connection
         port = getattr(conn, "port", None)
         if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
             with contextlib.suppress(OSError):
@@ -384,7 +390,7 @@ class MavlinkSource:
             remaining = end - time.monotonic()
             if remaining <= 0:
                 break
-            if self._conn is not None:
+            if self._conn is not None and not self._peer_closed:
                 with contextlib.suppress(Exception):
                     self._conn.select(min(remaining, 0.02))
             else:
@@ -393,7 +399,7 @@ class MavlinkSource:
         self._check_rates()
 
     def _receive(self):
-        if self._conn is None:
+        if self._conn is None or self._peer_closed:
             return None
         try:
             with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints on a closed TCP socket
@@ -408,19 +414,35 @@ class MavlinkSource:
             self._last_heartbeat = now
             self._send("heartbeat_send", MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0)
         if not self._link_down and self._vehicle is not None and now - self._last_packet > self.link_timeout_s:
-            self._link_down = True
-            self.counters["link_drops"] += 1
-            self._event(f"link lost: no packet for {now - self._last_packet:.1f} s; still listening")
-            if self._pending and self._time_base_ready():  # no more attitude is coming for them
-                self._finish(self._pending)
-                self._pending = []
-        if self._link_down and self.connection.startswith("tcp:") and now - self._last_reconnect >= RECONNECT_S:
-            self._last_reconnect = now
-            self.close()
-            with contextlib.suppress(InputError):
-                self._conn = self._connect()
+            self._link_lost(f"no packet for {now - self._last_packet:.1f} s; still listening")
+        if (self._link_down or self._peer_closed) and self._is_tcp and now - self._last_reconnect >= RECONNECT_S:
+            self._reconnect(now)
         if self._param_reading and now >= self._param_next:
             self._parameter_round(now)
+
+    def _link_lost(self, why: str) -> None:
+        """Report the link lost and hand out the samples waiting (no more attitude is coming for them)."""
+        self._link_down = True
+        self.counters["link_drops"] += 1
+        self._event(f"link lost: {why}")
+        if self._pending and self._time_base_ready():
+            self._finish(self._pending)
+            self._pending = []
+
+    def _peer_closed_connection(self) -> None:
+        """pymavlink's TCP connection saw its other end close it (end of file, reset)."""
+        self._peer_closed = True
+        if not self._link_down and self._vehicle is not None:
+            self._link_lost("the TCP connection was closed by the other end; opening it again")
+
+    def _reconnect(self, now: float) -> None:
+        """Open the TCP connection again (one attempt every ``RECONNECT_S``)."""
+        self._last_reconnect = now
+        self.close()
+        with contextlib.suppress(InputError):
+            self._conn = self._connect()
+            self._peer_closed = False
+            self._last_heartbeat = -math.inf  # announce this ground station at once
 
     def _send(self, method: str, *args) -> None:
         if self._conn is None:
@@ -665,8 +687,8 @@ class MavlinkSource:
         """UNIX us less boot us: ``SYSTEM_TIME``'s median, else the receipt clock's once it stands in."""
         if self._utc:
             return statistics.median(self._utc)
-        if self._fallback and self._receipt:
-            return statistics.median(self._receipt)
+        if self._fallback:
+            return self._fallback_offset
         return None
 
     def _time_base_ready(self) -> bool:
@@ -674,6 +696,7 @@ class MavlinkSource:
             return True
         if self._pending and self._vehicle_us() - self._pending[0]["boot_us"] > HOLD_S * 1e6 and self._receipt:
             self._fallback = True
+            self._fallback_offset = statistics.median(self._receipt)
             self._event(
                 f"no SYSTEM_TIME within {HOLD_S:g} s: times are this computer's clock on receipt (late by the "
                 "link's latency) until one comes"
@@ -944,6 +967,7 @@ class MavlinkSource:
         self._utc: deque = deque(maxlen=SYSTEM_TIME_KEPT)
         self._receipt: deque = deque(maxlen=RECEIPT_KEPT)
         self._fallback = False
+        self._fallback_offset = math.nan
         self._pending: list[dict] = []
         self._att_t: list = []
         self._att_q: list = []
