@@ -244,9 +244,9 @@ class VehiclePackets:
         """Log time (us) of the first row at or after ``reboot_at_s``; None without a reboot."""
         if reboot_at_s is None:
             return None
-        at = START_US + int(round(float(reboot_at_s) * 1e6))
-        after = np.flatnonzero(self.log_us >= at)
-        if not np.isfinite(reboot_at_s) or reboot_at_s <= 0 or not len(after) or after[0] == 0:
+        finite = bool(np.isfinite(reboot_at_s))
+        after = np.flatnonzero(self.log_us >= START_US + int(round(float(reboot_at_s) * 1e6))) if finite else []
+        if not finite or reboot_at_s <= 0 or not len(after) or after[0] == 0:
             span = (self.log_us[-1] - START_US) * 1e-6
             raise InputError(
                 f"reboot at {reboot_at_s:g} s is not inside the table (0 to {span:.6g} s after its first row): give a "

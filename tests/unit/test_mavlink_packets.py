@@ -118,6 +118,8 @@ def test_a_reboot_restarts_the_boot_clock_and_the_sequence(flight, tmp_path):
 def test_a_reboot_outside_the_table_and_a_bad_firmware_are_refused(flight):
     with pytest.raises(InputError, match="reboot at 11 s is not inside the table"):
         VehiclePackets(flight, reboot_at_s=11.0)
+    with pytest.raises(InputError, match="reboot at nan s is not inside the table"):
+        VehiclePackets(flight, reboot_at_s=float("nan"))
     with pytest.raises(InputError, match="firmware 'four' is not a version"):
         VehiclePackets(flight, firmware="four")
     with pytest.raises(InputError, match="unknown autopilot 'inav'"):
