@@ -175,6 +175,10 @@ def replay(
         raise InputError(f"loss {loss:g} is not a share of packets in [0, 1)", connection)
     if autopilot not in AUTOPILOT_CODES:
         raise InputError(f"unknown autopilot {autopilot!r}; use ardupilot or px4", connection)
+    if np.isnan(speed):
+        raise InputError("speed is not a number: give a factor >= 0 (0 or inf: as fast as possible)", connection)
+    if not 1 <= sysid <= 255:
+        raise InputError(f"system id {sysid} is not in 1 to 255", connection)
     log = _as_log(log_or_table)
     stats = ReplayStats()
     vehicle_params, apply = log_parameters(log, autopilot, params, stats.notes)
