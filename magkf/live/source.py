@@ -515,6 +515,8 @@ class MavlinkSource:
         return float(self._clock_us) if self._clock_us is not None else time.time() * 1e6
 
     def _arrived(self, name: str) -> None:
+        if self._clock_us is None:
+            return  # no time of the vehicle's to count it by yet
         times = self._arrivals.setdefault(name, deque())
         times.append(self._vehicle_us())
         while times and times[0] < times[-1] - RATE_WINDOW_S * 1e6:
@@ -602,7 +604,10 @@ class MavlinkSource:
         self._keep("gnss", t, fix, "GPS_RAW_INT")
 
     def _keep(self, key: str, t: float, value, message: str) -> None:
-        """A slow stream's value at the vehicle's time ``t`` (us), kept for the samples around it."""
+        """A slow stream's value at the vehicle's time ``t`` (us), kept for the samples around it (none before the
+        vehicle's first clock message: there is no time to place it at)."""
+        if self._clock_us is None:
+            return
         self._slow.setdefault(key, deque(maxlen=SLOW_KEPT)).append((t, value, message))
 
     def _on_battery_status(self, msg, boot_us) -> None:
@@ -846,6 +851,8 @@ class MavlinkSource:
     @property
     def rates_hz(self) -> dict[str, float]:
         """Measured rate (Hz) per message name over the last ``RATE_WINDOW_S`` of the vehicle's clock."""
+        if self._clock_us is None:
+            return {}
         now = self._vehicle_us()
         out = {}
         for name, times in self._arrivals.items():

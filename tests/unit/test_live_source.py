@@ -29,17 +29,17 @@ import pytest
 from magkf.errors import InputError
 from magkf.io.mavlink_packets import VEHICLE, VehiclePackets, param_value_message, with_sequence
 from magkf.io.tlog import mavlink_dialect
-from magkf.live.source import ARDUPILOT_PARAMETERS, MavlinkSource
+from magkf.live.source import ARDUPILOT_PARAMETERS, PX4_PARAMETERS, MavlinkSource
 from magkf.sim import DriveConfig, simulate_drive
 
 RATE_HZ = 20.0
-DURATION_S = 12.0
+DURATION_S = 10.0
 #: Vehicle seconds per wall second.
-SPEED = 10.0
+SPEED = 15.0
 #: Seconds of the flight after its first row at which the link pauses, and at which the vehicle reboots.
-PAUSE_AT_S, REBOOT_AT_S = 1.5, 8.0
-#: Wall seconds of the pause, and the link timeout of the source (a pause is three timeouts long).
-PAUSE_S, LINK_TIMEOUT_S = 0.45, 0.15
+PAUSE_AT_S, REBOOT_AT_S = 1.5, 7.0
+#: Wall seconds of the pause, and the link timeout of the source (a pause is two timeouts long).
+PAUSE_S, LINK_TIMEOUT_S = 0.5, 0.25
 #: Share of the magnetometer and between-rows attitude packets dropped.
 DROP_SHARE = 0.03
 HALF_FLOAT32_RAD = 2.0**-23
@@ -85,15 +85,36 @@ class Vehicle(threading.Thread):
         Packets (indices) numbered but not sent; packets sent three packets later than their turn.
     pause_at_us : int or None
         The first packet at or after this ``time_us`` waits ``PAUSE_S`` wall seconds (nothing is sent meanwhile).
+    transport : {"udpin", "tcpin"}
+        Its end of the link.
+    close_at_us : int or None
+        ``tcpin``: before the first packet at or after this ``time_us`` it closes the ground station's connection,
+        then waits for it to connect again.
+    autopilot : str
+        How its parameters are encoded (PX4 sends an integer's bytes).
     """
 
-    def __init__(self, port, packets, params, *, drop=(), delay=(), pause_at_us=None, read_only=()):
+    def __init__(
+        self,
+        port,
+        packets,
+        params,
+        *,
+        drop=(),
+        delay=(),
+        pause_at_us=None,
+        read_only=(),
+        transport="udpin",
+        close_at_us=None,
+        autopilot="ardupilot",
+    ):
         super().__init__(daemon=True)
         from pymavlink import mavutil
 
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
+        self.conn = mavutil.mavlink_connection(f"{transport}:127.0.0.1:{port}", source_system=1, source_component=1)
         self.packets, self.params, self.read_only = packets, dict(params), set(read_only)
         self.drop, self.delay, self.pause_at_us = set(drop), set(delay), pause_at_us
+        self.close_at_us, self.autopilot = close_at_us, autopilot
         self.packer = mavlink_dialect().MAVLink(None, srcSystem=1, srcComponent=1)
         self.seq, self.boot = 0, 0
         self.requests: list[str] = []
@@ -125,6 +146,9 @@ class Vehicle(threading.Thread):
                 self.pause_at_us = None
                 self._wait_until(time.monotonic() + PAUSE_S)
                 start += PAUSE_S
+            if self.close_at_us is not None and packet.time_us >= self.close_at_us:
+                self.close_at_us = None
+                start += self._close_and_wait()
             self._wait_until(start + (packet.time_us - first) * 1e-6 / SPEED)
             if packet.boot != self.boot:
                 self.boot, self.seq = packet.boot, 0  # the counter starts again at a reboot
@@ -140,6 +164,17 @@ class Vehicle(threading.Thread):
             held = [item for item in held if item[0] >= 0]
             if self._over():
                 return
+
+    def _close_and_wait(self) -> float:
+        """Close the ground station's TCP connection; wait (bounded) for it to connect and send again. Returns the
+        wall seconds this took."""
+        began, asked = time.monotonic(), len(self.requests)
+        self.conn.port.close()
+        self.conn.port, self.conn.fd = None, self.conn.listen.fileno()  # pymavlink's tcpin accepts again
+        while len(self.requests) == asked and not self._over():
+            self._serve()
+            time.sleep(0.002)
+        return time.monotonic() - began
 
     def _wait_until(self, when: float) -> None:
         while time.monotonic() < when and not self._over():
@@ -164,17 +199,30 @@ class Vehicle(threading.Thread):
 
     def _answer(self, name: str) -> None:
         names = list(self.params)
-        message = param_value_message(name, self.params[name], len(names), names.index(name), "ardupilot")
+        message = param_value_message(name, self.params[name], len(names), names.index(name), self.autopilot)
         self.conn.write(with_sequence(message.pack(self.packer), self._next_seq()))
 
 
 def vehicle_packets(table, **kwargs) -> list:
-    return [p for p in VehiclePackets(table, "ardupilot", ground_station=False, **kwargs) if p.source == VEHICLE]
+    return [p for p in VehiclePackets(table, ground_station=False, **kwargs) if p.source == VEHICLE]
+
+
+def stream(source, vehicle, link_drops: int, limit_s: float = 15.0) -> tuple[list, list]:
+    """Poll ``source`` until the vehicle has sent everything and ``link_drops`` links were lost (the stream's end
+    is the last: the last sample waits for it), at most ``limit_s`` s; the samples and events."""
+    samples, events = [], []
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        samples += source.poll(0.05)
+        events += source.take_events()
+        if vehicle.done.is_set() and source.counters["link_drops"] >= link_drops:
+            break
+    return samples, events
 
 
 @pytest.fixture(scope="module")
 def flight():
-    """A seeded 12 s 3-D flight at 20 Hz with a throttle, HDOP and VDOP."""
+    """A seeded 10 s 3-D flight at 20 Hz with a throttle, HDOP and VDOP."""
     sim = simulate_drive(DriveConfig(duration_s=DURATION_S, rate_hz=RATE_HZ, motion="3d", seed=11))
     t = sim.table.index.to_numpy()
     throttle = 0.5 + 0.3 * np.sin(2 * np.pi * (t - t[0]) / 7.0)
@@ -209,16 +257,9 @@ def run(flight):
     vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS, drop=drop, delay=delay, pause_at_us=pause_at)
     vehicle.start()
     source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
-    samples, events = [], []
     try:
         source.open(timeout_s=5.0)
-        deadline = time.monotonic() + 20.0
-        while time.monotonic() < deadline:
-            got = source.poll(0.05)
-            samples += got
-            events += source.take_events()
-            if vehicle.done.is_set() and source.counters["link_drops"] == 2:
-                break  # the stream's end seen as a link lost: every sample is out
+        samples, events = stream(source, vehicle, link_drops=2)
         counters, provenance = dict(source.counters), dict(source.provenance)
         params, firmware, asked = dict(source.params), source.firmware, dict(source.asked_hz)
     finally:
@@ -378,3 +419,94 @@ def test_no_heartbeat_is_an_input_error_naming_the_connection():
         source.open(timeout_s=0.3)
     assert connection in str(error.value)
     assert time.monotonic() - start < 2.0
+
+
+# ------------------------------------------------------------------ other vehicles and links
+def sent_field_bound_nt(field_mg: np.ndarray) -> np.ndarray:
+    """Largest storage error (nT) of a field sent as it is: 50 nT, 100 nT where it truncated to 0."""
+    return np.where(np.abs(field_mg) < 1.0, 100.0, 50.0) + 1e-9
+
+
+def test_px4_field_is_read_as_sent_with_its_cal_mag_parameters(flight):
+    """PX4's SCALED_IMU is sensor_mag before its calibration: nothing to undo; CAL_MAGn_* read (the integer id
+    decoded from its bytes)."""
+    params = {name: 1.0 if "SCALE" in name else 0 for name in PX4_PARAMETERS} | {
+        "CAL_MAG0_ID": 396825,
+        "CAL_MAG0_XOFF": 0.25,
+    }
+    table = flight.iloc[:60]
+    port = free_udp_port()
+    vehicle = Vehicle(port, vehicle_packets(table, autopilot="px4", params=params), params, autopilot="px4")
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, _ = stream(source, vehicle, link_drops=1)
+        provenance, read = dict(source.provenance), dict(source.params)
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert source.autopilot == "px4" and len(samples) == len(table)
+    rows = rows_of(samples, table)
+    truth = table[["mag_x", "mag_y", "mag_z"]].to_numpy()[rows]
+    got = np.array([[s["mag_x"], s["mag_y"], s["mag_z"]] for s in samples])
+    assert np.all(np.abs(got - truth) <= sent_field_bound_nt(truth / 100.0))
+    assert read["CAL_MAG0_ID"] == 396825 and read["CAL_MAG0_XOFF"] == 0.25
+    assert provenance["magnetometer"]["message"] == "SCALED_IMU"
+    assert provenance["magnetometer"]["message_calibrated"] is False
+    assert provenance["raw_reconstruction"].startswith("nothing to undo")
+
+
+def test_without_system_time_the_receipt_clock_stands_in_and_keeps_the_order(flight):
+    """Samples are held for the first SYSTEM_TIME for 2 s of the vehicle's clock, then timed by this computer's
+    clock on receipt with one offset: the table's steps kept exactly (float64 rounding of UNIX s)."""
+    table = flight.iloc[:60]
+    port = free_udp_port()
+    vehicle = Vehicle(port, vehicle_packets(table, params=CALIBRATION, system_time=False), CALIBRATION | DEFAULTS)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    began = time.time()
+    try:
+        source.open(timeout_s=5.0)
+        samples, events = stream(source, vehicle, link_drops=1)
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert any(e.startswith("no SYSTEM_TIME within 2 s") for e in events)
+    times = np.array([s["time"] for s in samples])
+    assert len(times) == len(table)
+    np.testing.assert_allclose(np.diff(times), np.diff(table.index.to_numpy()), rtol=0, atol=1e-6)
+    assert abs(times[0] - began) < 5.0  # this computer's clock, not the table's (2026)
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_tcp_connection_closed_by_the_vehicle_is_opened_again(flight):
+    table = flight.iloc[:80]
+    packets = vehicle_packets(table, params=CALIBRATION)
+    port = free_tcp_port()
+    close_at = packets[0].time_us + 2_000_000
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS, transport="tcpin", close_at_us=close_at)
+    vehicle.start()
+    source = MavlinkSource(f"tcp:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, events = stream(source, vehicle, link_drops=2)
+        rates = source.rates_hz
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    # Nothing dropped: each stream's measured rate is its sending rate, to float64 rounding.
+    sending = {"RAW_IMU": RATE_HZ, "ATTITUDE": 2 * RATE_HZ, "GPS_RAW_INT": 5.0, "SYSTEM_TIME": 1.0, "VFR_HUD": 2.0}
+    assert {name: rates[name] for name in sending} == pytest.approx(sending, rel=1e-9)
+    link = [e.split(":")[0].split(" after")[0] for e in events if e.startswith("link ")]
+    assert link == ["link lost", "link back", "link lost"]
+    assert "closed by the other end" in next(e for e in events if e.startswith("link lost"))
+    assert len(samples) == len(table)  # nothing was lost: the vehicle waited for the new connection
