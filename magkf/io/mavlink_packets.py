@@ -40,8 +40,10 @@ from .tlog import (
 
 __all__ = [
     "AUTOPILOT_CODES",
+    "GROUND_STATION",
     "REBOOT_START_US",
     "START_US",
+    "VEHICLE",
     "VehiclePacket",
     "VehiclePackets",
     "param_value_message",
