@@ -22,18 +22,18 @@ import warnings
 from .. import __version__
 from ..errors import InputError
 from ..plugins import REGISTRIES
-from . import apply, diagnostics, fleet, live, logs, offline, online, plugins, simulate
+from . import apply, diagnostics, fleet, live, logs, offline, online, plugins, replay, simulate
 from .common import Note
 
 __all__ = ["main", "build_parser"]
 
 #: The modules that add the commands, in the order ``--help`` lists them.
-COMMANDS = (online, diagnostics, apply, logs, offline, simulate, fleet, live, plugins)
+COMMANDS = (online, diagnostics, apply, logs, offline, simulate, fleet, live, replay, plugins)
 
 
 #: Options that name files a command writes, and files it reads (argparse ``dest`` -> the option's name).
 OUTPUTS = {"output": "-o", "states": "--states", "truth": "--truth", "params": "--params", "log": "--log"}
-INPUTS = ("file", "cal", "init", "map", "curves", "truth_cal", "effect_file")
+INPUTS = ("file", "cal", "init", "map", "curves", "truth_cal", "effect_file", "param_file")
 
 
 class _Parser(argparse.ArgumentParser):

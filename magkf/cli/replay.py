@@ -45,6 +45,7 @@ def add_parsers(sub) -> None:
     )
     p.add_argument(
         "--params",
+        dest="param_file",
         metavar="FILE",
         help="the vehicle's parameters (.param/.parm or QGroundControl .params), answered on request; ArduPilot's "
         "COMPASS_* are applied to the field as the firmware does (default: the log's own compass parameters)",
@@ -97,7 +98,7 @@ def run_replay(args) -> int:
     from ..live.replay import replay
 
     log = common.open_log(args)
-    params = read_param_file(args.params) if args.params else None
+    params = read_param_file(args.param_file) if args.param_file else None
     stats = replay(
         log,
         args.connection,
