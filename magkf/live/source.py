@@ -57,7 +57,8 @@ Faults (each an event, none fatal)
     * a reboot: a clock message's boot time more than ``REBOOT_BACK_S`` behind the vehicle's clock; the samples
       waiting are handed out with what they have, the buffers and time base start again, the streams and the
       parameters are asked for again; the sequence counting is redone over the packets since the last clock message
-      so that the new boot's counter starting at 0 is not counted as loss;
+      so that the new boot's counter starting at 0 is not counted as loss; for ``REBOOT_STALE_S`` after it, a clock
+      message of the old boot delayed past the reboot is dropped (a magnetometer one counted ``late``);
     * a link that drops: no packet for ``link_timeout_s`` (this computer's clock), or a TCP connection closed by
       its other end: "link lost", and the samples waiting are handed out; reading goes on (a TCP connection is
       opened again every ``RECONNECT_S``: one attempt, which can block for the system's connect timeout where the
@@ -139,8 +140,11 @@ SLOW_RATES_HZ = {"GPS_RAW_INT": 5.0, "SYSTEM_TIME": 1.0, "BATTERY_STATUS": 2.0, 
 #: Seconds of the vehicle's clock to hold samples for the first ``SYSTEM_TIME``; ``SYSTEM_TIME`` messages whose
 #: offsets make the median; receipt offsets kept for the fallback.
 HOLD_S, SYSTEM_TIME_KEPT, RECEIPT_KEPT = 2.0, 20, 50
-#: A clock message this far (s) behind the vehicle's clock is a reboot.
-REBOOT_BACK_S = 1.0
+#: A clock message this far (s) behind the vehicle's clock is a reboot; for this long (s, this computer's clock)
+#: after one, a clock message of the boot before (delayed past it) is told apart and dropped.
+REBOOT_BACK_S, REBOOT_STALE_S = 1.0, 2.0
+#: Messages kept from before the vehicle's HEARTBEAT, handled once it has come.
+EARLY_KEPT = 1000
 #: Rates are measured over this many seconds of the vehicle's clock; a rate this far off (relative) is reported.
 RATE_WINDOW_S, RATE_TOLERANCE = 5.0, 0.2
 #: Attitude is interpolated across gaps up to this many of its median intervals, and at least this many seconds.
@@ -287,7 +291,7 @@ class MavlinkSource:
         self._collect_echoes = False
         self._sequence = _SequenceCount()
         self._since_clock = 0
-        self._early: list = []  # messages before the vehicle's HEARTBEAT
+        self._early: deque = deque(maxlen=EARLY_KEPT)  # messages before the vehicle's HEARTBEAT
         self._last_packet = self._last_heartbeat = self._last_reconnect = -math.inf
         self._link_down = self._peer_closed = False
         self._is_tcp = self.connection.startswith("tcp:")
@@ -297,6 +301,8 @@ class MavlinkSource:
         self._last_out = -math.inf
         self._undo_notes: set[str] = set()
         self._echoes: list = []
+        self._old_boot_end_us: float | None = None
+        self._reboot_wall = -math.inf
         self._reset_boot()
 
     # ------------------------------------------------------------------ opening and closing
@@ -461,8 +467,12 @@ class MavlinkSource:
             return
         if source != self._vehicle:
             return
-        self._packet(msg)
         boot_us = _boot_time_us(msg)
+        stale = name in CLOCK_MESSAGES and boot_us is not None and self._before_reboot(boot_us)
+        self._packet(msg, sequence=not stale)  # the old boot's counter is not the new one's
+        if stale:
+            self.counters["late"] += name == self._stream
+            return
         if name in CLOCK_MESSAGES and boot_us is not None:
             if self._clock_us is not None and boot_us < self._clock_us - REBOOT_BACK_S * 1e6:
                 self._reboot(boot_us)
@@ -480,7 +490,7 @@ class MavlinkSource:
 
     def _choose(self, msg, name: str, source: tuple[int, int]) -> None:
         """Keep the messages before the vehicle's HEARTBEAT; on it, take that vehicle and handle them."""
-        self._early = (self._early + [msg])[-1000:]
+        self._early.append(msg)
         if (
             name == "HEARTBEAT"
             and source[1] == AUTOPILOT_COMPONENT
@@ -494,11 +504,11 @@ class MavlinkSource:
                 f"vehicle: system {source[0]} component {source[1]}, "
                 f"{self.autopilot or f'autopilot MAV_AUTOPILOT {int(msg.autopilot)}'}"
             )
-            early, self._early = self._early, []
+            early, self._early = list(self._early), deque(maxlen=EARLY_KEPT)
             for m in early:
                 self._handle(m)
 
-    def _packet(self, msg) -> None:
+    def _packet(self, msg, sequence: bool = True) -> None:
         now = time.monotonic()
         if self._link_down:
             self._link_down = False
@@ -506,6 +516,8 @@ class MavlinkSource:
             self._ask_streams()
         self._last_packet = now
         self.counters["packets"] += 1
+        if not sequence:
+            return
         self._sequence.add(msg.get_seq())
         self._since_clock += 1
         self.counters["lost"], self.counters["reordered"] = self._sequence.lost, self._sequence.reordered
@@ -951,6 +963,15 @@ class MavlinkSource:
         self._param_wanted = set()
 
     # ------------------------------------------------------------------ reboot
+    def _before_reboot(self, boot_us: float) -> bool:
+        """Whether a clock message is of the boot before a reboot, delayed past it: within ``REBOOT_STALE_S`` of
+        the reboot (this computer's clock), a time ahead of the new boot's clock by more than ``REBOOT_BACK_S``
+        and not before the old boot's last time less that."""
+        if self._old_boot_end_us is None or time.monotonic() - self._reboot_wall > REBOOT_STALE_S:
+            return False
+        back = REBOOT_BACK_S * 1e6
+        return boot_us > self._clock_us + back and boot_us >= self._old_boot_end_us - back
+
     def _reboot(self, boot_us: int) -> None:
         """The vehicle restarted: hand out what waits, start the buffers and the time base again, ask again."""
         self.counters["reboots"] += 1
@@ -962,6 +983,7 @@ class MavlinkSource:
             self._finish(self._pending)
         self._sequence.restart(self._since_clock)
         self.counters["lost"], self.counters["reordered"] = self._sequence.lost, self._sequence.reordered
+        self._old_boot_end_us, self._reboot_wall = self._clock_us, time.monotonic()
         self._reset_boot()
         self._ask_streams()
         self._ask_parameters()

@@ -81,8 +81,10 @@ class Vehicle(threading.Thread):
         What it streams (the vehicle's only), paced by ``time_us`` at ``SPEED``.
     params : dict
         Its parameters, answered on request and changed by ``PARAM_SET`` except those of ``read_only``.
-    drop, delay : set of int
-        Packets (indices) numbered but not sent; packets sent three packets later than their turn.
+    drop : set of int
+        Packets (indices) numbered but not sent.
+    delay : dict of int to int
+        Packets (indices) sent that many packets later than their turn.
     pause_at_us : int or None
         The first packet at or after this ``time_us`` waits ``PAUSE_S`` wall seconds (nothing is sent meanwhile).
     transport : {"udpin", "tcpin"}
@@ -101,7 +103,7 @@ class Vehicle(threading.Thread):
         params,
         *,
         drop=(),
-        delay=(),
+        delay=None,
         pause_at_us=None,
         read_only=(),
         transport="udpin",
@@ -113,7 +115,7 @@ class Vehicle(threading.Thread):
 
         self.conn = mavutil.mavlink_connection(f"{transport}:127.0.0.1:{port}", source_system=1, source_component=1)
         self.packets, self.params, self.read_only = packets, dict(params), set(read_only)
-        self.drop, self.delay, self.pause_at_us = set(drop), set(delay), pause_at_us
+        self.drop, self.delay, self.pause_at_us = set(drop), dict(delay or {}), pause_at_us
         self.close_at_us, self.autopilot = close_at_us, autopilot
         self.packer = mavlink_dialect().MAVLink(None, srcSystem=1, srcComponent=1)
         self.seq, self.boot = 0, 0
@@ -154,7 +156,7 @@ class Vehicle(threading.Thread):
                 self.boot, self.seq = packet.boot, 0  # the counter starts again at a reboot
             data = with_sequence(packet.data, self._next_seq())
             if i in self.delay:
-                held.append([3, data])
+                held.append([self.delay[i], data])
             elif i not in self.drop:
                 self.conn.write(data)
             for item in held:
@@ -229,9 +231,10 @@ def flight():
     return sim.table.assign(hdop=sim.table["dop"], vdop=1.5 * sim.table["dop"], throttle=throttle)
 
 
-def faults(packets, flight) -> tuple[set, set]:
+def faults(packets, flight) -> tuple[set, dict]:
     """Seeded drops of magnetometer and between-rows attitude packets, away from the start, the pause, the reboot
-    and the end (where a loss cannot be seen by the sequence numbers); one magnetometer packet delayed."""
+    and the end (where a loss cannot be seen by the sequence numbers); one magnetometer packet delayed by three
+    packets, and the old boot's last packet (an attitude) delayed past the first clock message of the new boot."""
     rows_us = set(np.rint(flight.index.to_numpy() * 1e6).astype(np.int64).tolist())
     t0 = packets[0].time_us
     at = np.array([(p.time_us - t0) * 1e-6 for p in packets])
@@ -244,7 +247,10 @@ def faults(packets, flight) -> tuple[set, set]:
     rng = np.random.default_rng(2032)
     drop = {i for i in candidates if rng.random() < DROP_SHARE}
     delayed = next(i for i in candidates if at[i] > 2.0 and i not in drop and not drop & set(range(i, i + 5)))
-    return drop, {delayed}
+    last_old = max(i for i, p in enumerate(packets) if p.boot == 0)
+    new_clock = next(i for i, p in enumerate(packets) if p.boot == 1 and p.name == "RAW_IMU")
+    assert packets[last_old].name == "ATTITUDE"
+    return drop, {delayed: 3, last_old: new_clock - last_old + 3}
 
 
 @pytest.fixture(scope="module")
@@ -358,6 +364,8 @@ def test_attitude_position_and_auxiliary_match_the_flight(run, flight):
 
 # ------------------------------------------------------------------ the faults
 def test_sequence_gaps_are_the_packets_dropped_and_the_delayed_one_is_reordered(run):
+    """The old boot's attitude delayed past the reboot is neither a loss nor reordered: its counter is not the new
+    boot's."""
     counters = run["counters"]
     assert run["drop"]
     assert counters["lost"] == len(run["drop"])
@@ -366,6 +374,7 @@ def test_sequence_gaps_are_the_packets_dropped_and_the_delayed_one_is_reordered(
 
 
 def test_a_reboot_is_reported_and_survived(run, flight):
+    """Once: the old boot's attitude that comes after the new boot's first clock message is not a second one."""
     assert run["counters"]["reboots"] == 1
     assert any(e.startswith("the vehicle rebooted") for e in run["events"])
     t = np.array([s["time"] for s in run["samples"]]) - flight.index[0]
