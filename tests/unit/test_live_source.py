@@ -43,6 +43,8 @@ PAUSE_S, LINK_TIMEOUT_S = 0.5, 0.25
 #: Share of the magnetometer and between-rows attitude packets dropped.
 DROP_SHARE = 0.03
 HALF_FLOAT32_RAD = 2.0**-23
+#: Seconds a poll reads for.
+POLL_S = 0.05
 CALIBRATION = {
     "COMPASS_OFS_X": 120.0,
     "COMPASS_OFS_Y": -80.0,
@@ -211,11 +213,15 @@ def vehicle_packets(table, **kwargs) -> list:
 
 def stream(source, vehicle, link_drops: int, limit_s: float = 15.0) -> tuple[list, list]:
     """Poll ``source`` until the vehicle has sent everything and ``link_drops`` links were lost (the stream's end
-    is the last: the last sample waits for it), at most ``limit_s`` s; the samples and events."""
+    is the last: the last sample waits for it), at most ``limit_s`` s; the samples and events. ``source.out_at_end``
+    is how many samples it had handed out when the vehicle had sent its last packet."""
     samples, events = [], []
     deadline = time.monotonic() + limit_s
+    source.out_at_end = None
     while time.monotonic() < deadline:
-        samples += source.poll(0.05)
+        if vehicle.done.is_set() and source.out_at_end is None:
+            source.out_at_end = len(samples)
+        samples += source.poll(POLL_S)
         events += source.take_events()
         if vehicle.done.is_set() and source.counters["link_drops"] >= link_drops:
             break
@@ -519,3 +525,29 @@ def test_a_tcp_connection_closed_by_the_vehicle_is_opened_again(flight):
     assert link == ["link lost", "link back", "link lost"]
     assert "closed by the other end" in next(e for e in events if e.startswith("link lost"))
     assert len(samples) == len(table)  # nothing was lost: the vehicle waited for the new connection
+
+
+def test_without_attitude_samples_go_after_wait_s_and_the_missing_stream_is_reported(flight):
+    table = flight.iloc[:120]
+    packets = [p for p in vehicle_packets(table, params=CALIBRATION) if p.name != "ATTITUDE"]
+    port = free_udp_port()
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, events = stream(source, vehicle, link_drops=1)
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert len(samples) == len(table)
+    rows_of(samples, table)
+    # Each sample went once the vehicle's clock was wait_s past it, not at the link's loss after the end: when the
+    # last packet was sent, at most wait_s of samples waited, plus those of the poll under way and the one before
+    # it (2 x POLL_S wall seconds, SPEED times as many of the vehicle's).
+    waiting = len(table) - source.out_at_end
+    assert waiting <= (source.wait_s + 2 * POLL_S * SPEED) * RATE_HZ + 1
+    assert all(np.isnan([s["roll"], s["pitch"], s["yaw"]]).all() for s in samples)
+    assert np.isfinite([s["mag_x"] for s in samples]).all()
+    assert f"ATTITUDE does not arrive (asked {RATE_HZ:g} Hz)" in events
