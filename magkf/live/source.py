@@ -343,8 +343,18 @@ class MavlinkSource:
                     dialect="ardupilotmega",
                     retries=0,
                 )
+        except ModuleNotFoundError as exc:  # pymavlink imports pyserial only for a serial device
+            raise InputError(
+                f"cannot open a serial device without the {exc.name} module (pip install pyserial); a network link is "
+                "udpin:HOST:PORT, udpout:HOST:PORT or tcp:HOST:PORT",
+                self.connection,
+            ) from None
         except (OSError, ValueError) as exc:
-            raise InputError(f"cannot open the connection ({exc})", self.connection) from None
+            raise InputError(
+                f"cannot open the connection ({exc}); a connection is udpin:HOST:PORT, udpout:HOST:PORT, "
+                "tcp:HOST:PORT or a serial device with its baud rate",
+                self.connection,
+            ) from None
         if hasattr(conn, "handle_eof"):  # TCP: know when the other end closes, instead of pymavlink's print
             conn.handle_eof = conn.handle_disconnect = self._peer_closed_connection
         port = getattr(conn, "port", None)

@@ -551,3 +551,10 @@ def test_without_attitude_samples_go_after_wait_s_and_the_missing_stream_is_repo
     assert all(np.isnan([s["roll"], s["pitch"], s["yaw"]]).all() for s in samples)
     assert np.isfinite([s["mag_x"] for s in samples]).all()
     assert f"ATTITUDE does not arrive (asked {RATE_HZ:g} Hz)" in events
+
+
+def test_a_connection_that_cannot_be_opened_is_an_input_error_naming_it():
+    connection = f"tcp:127.0.0.1:{free_tcp_port()}"  # nothing listens there
+    with pytest.raises(InputError, match="cannot open the connection") as error:
+        MavlinkSource(connection).open(timeout_s=1.0)
+    assert str(error.value).startswith(connection)
