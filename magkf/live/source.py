@@ -278,6 +278,7 @@ class MavlinkSource:
         self.firmware: str | None = None
         self.provenance: dict = {"format": "mavlink-live", "connection": self.connection, "notes": []}
         self._conn = None
+        self._opened = False
         self._events: list[str] = []
         self._vehicle: tuple[int, int] | None = None
         self._type: int | None = None
@@ -316,6 +317,7 @@ class MavlinkSource:
         """
         deadline = time.monotonic() + timeout_s
         self._conn = self._connect()
+        self._opened = True
         while self._vehicle is None:
             if time.monotonic() > deadline:
                 self.close()
@@ -355,7 +357,8 @@ class MavlinkSource:
                 "tcp:HOST:PORT or a serial device with its baud rate",
                 self.connection,
             ) from None
-        if hasattr(conn, "handle_eof"):  # TCP: know when the other end closes, instead of pymavlink's print
+        if hasattr(conn, "handle_eof"):  # TCP: know when the other end closes (instead of pymavlink's print and
+            # reconnection inside its read)
             conn.handle_eof = conn.handle_disconnect = self._peer_closed_connection
         port = getattr(conn, "port", None)
         if isinstance(port, socket.socket) and port.type == socket.SOCK_DGRAM:
@@ -365,6 +368,10 @@ class MavlinkSource:
 
     def close(self) -> None:
         """Close the connection (the samples not handed out are dropped)."""
+        self._opened = False
+        self._drop_connection()
+
+    def _drop_connection(self) -> None:
         if self._conn is not None:
             with contextlib.suppress(Exception):
                 self._conn.close()
@@ -381,7 +388,7 @@ class MavlinkSource:
             attitude), ``lat, lon`` (deg), ``alt`` (m), ``hdop``, ``vdop`` (NaN without a recent 3-D fix), and
             ``current_a`` (A), ``throttle`` (0..1), ``temp_c`` (degC) where the vehicle sends them.
         """
-        if self._conn is None:
+        if not self._opened:
             raise InputError("the connection is not open: call open() first", self.connection)
         self._read_for(timeout_s)
         return self._hand_out()
@@ -418,8 +425,7 @@ class MavlinkSource:
         if self._conn is None or self._peer_closed:
             return None
         try:
-            with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints on a closed TCP socket
-                return self._conn.recv_msg()
+            return self._conn.recv_msg()
         except (OSError, struct.error, ValueError):
             return None
 
@@ -454,7 +460,7 @@ class MavlinkSource:
     def _reconnect(self, now: float) -> None:
         """Open the TCP connection again (one attempt every ``RECONNECT_S``)."""
         self._last_reconnect = now
-        self.close()
+        self._drop_connection()
         with contextlib.suppress(InputError):
             self._conn = self._connect()
             self._peer_closed = False
@@ -463,7 +469,7 @@ class MavlinkSource:
     def _send(self, method: str, *args) -> None:
         if self._conn is None:
             return
-        with contextlib.suppress(OSError), contextlib.redirect_stdout(io.StringIO()):
+        with contextlib.suppress(OSError):
             getattr(self._conn.mav, method)(*args)
 
     # ------------------------------------------------------------------ messages
@@ -1037,7 +1043,7 @@ class MavlinkSource:
             True where the echo carries the value sent (compared as float32, the field's type); False where it
             carries another (the vehicle refused it: an event says so) or never came.
         """
-        if self._conn is None:
+        if not self._opened:
             raise InputError("the connection is not open: call open() first", self.connection)
         result: dict[str, bool] = {}
         waiting = {str(k): float(v) for k, v in values.items()}
