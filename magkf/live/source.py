@@ -131,6 +131,12 @@ PX4_PARAMETERS = tuple(
 PARAM_ROUND_S, PARAM_ROUNDS = 1.0, 3
 #: ``MAV_CMD``s and the ``MAV_DATA_STREAM`` groups of ArduPilot asked for, with the messages magkf reads in each.
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE = 511, 512
+COMMAND_NAMES = {
+    511: ("MAV_CMD_SET_MESSAGE_INTERVAL", ": the streams come at the rates of their groups"),
+    512: ("MAV_CMD_REQUEST_MESSAGE", ": the firmware is named by its banner, if it sends one"),
+}
+#: ``MAV_RESULT`` of a command that is not refused.
+MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS = 0, 5
 ARDUPILOT_GROUPS = {1: ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"), 2: ("GPS_RAW_INT",), 10: ("ATTITUDE",)} | {
     11: ("VFR_HUD",),
     12: ("SYSTEM_TIME", "BATTERY_STATUS"),
@@ -147,8 +153,9 @@ REBOOT_BACK_S, REBOOT_STALE_S = 1.0, 2.0
 EARLY_KEPT = 1000
 #: Rates are measured over this many seconds of the vehicle's clock; a rate this far off (relative) is reported.
 RATE_WINDOW_S, RATE_TOLERANCE = 5.0, 0.2
-#: Attitude is interpolated across gaps up to this many of its median intervals, and at least this many seconds.
-ATTITUDE_GAP_INTERVALS, ATTITUDE_GAP_S = 2.5, 0.5
+#: Attitude is interpolated across gaps up to this many of its median intervals, and at least this many seconds;
+#: attitude messages kept at most (samples wait for them at most ``HOLD_S``: 2.5 s at 400 Hz).
+ATTITUDE_GAP_INTERVALS, ATTITUDE_GAP_S, ATTITUDE_KEPT = 2.5, 0.5, 1000
 #: A GNSS fix, current, throttle or temperature older than this many intervals of its stream (at least
 #: ``STALE_MIN_S``) is not given to a sample.
 STALE_INTERVALS, STALE_MIN_S = 3.0, 1.0
@@ -590,9 +597,11 @@ class MavlinkSource:
             self._event(f"firmware: {self.firmware} (AUTOPILOT_VERSION)")
 
     def _on_command_ack(self, msg, boot_us) -> None:
-        if int(msg.result) not in (0, 5) and int(msg.command) not in self._refused:
-            self._refused.add(int(msg.command))
-            self._event(f"the vehicle refused MAV_CMD {int(msg.command)} (MAV_RESULT {int(msg.result)})")
+        command, result = int(msg.command), int(msg.result)
+        if result not in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS) and command not in self._refused:
+            self._refused.add(command)
+            what, meaning = COMMAND_NAMES.get(command, (f"MAV_CMD {command}", ""))
+            self._event(f"the vehicle refused {what} (MAV_RESULT {result}){meaning}")
 
     def _on_attitude(self, msg, boot_us) -> None:
         q = euler_to_quaternion(*np.degrees([[msg.yaw], [msg.pitch], [msg.roll]]))[0]
@@ -612,6 +621,8 @@ class MavlinkSource:
         self._att_t.insert(at, boot_us)
         self._att_q.insert(at, q)
         self._att_source = name
+        if len(self._att_t) > ATTITUDE_KEPT:  # no samples to use them (no magnetometer stream): keep the latest
+            del self._att_t[0], self._att_q[0]
 
     def _on_gps_raw_int(self, msg, boot_us) -> None:
         t = float(msg.time_usec)
