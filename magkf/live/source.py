@@ -19,8 +19,10 @@ What is asked for
 
 Compass parameters
     Read one by one with ``PARAM_REQUEST_READ`` (``param_index`` -1, by name; the vehicle answers with
-    ``PARAM_VALUE``; https://mavlink.io/en/services/parameter.html), the names not answered asked again every
-    ``PARAM_ROUND_S`` up to ``PARAM_ROUNDS`` times (a firmware without a parameter does not answer): ArduPilot's
+    ``PARAM_VALUE``; https://mavlink.io/en/services/parameter.html), in up to ``PARAM_ROUNDS`` rounds that ask again
+    for the names not answered (a request or its answer may be lost; a firmware without a parameter does not
+    answer). A round ends ``PARAM_ROUND_S`` after its requests, or, once an answer has shown the link's round trip,
+    ``PARAM_ROUND_TRIPS`` round trips (at least ``PARAM_MIN_S``) after its requests or its last answer. ArduPilot's
     ``ARDUPILOT_PARAMETERS`` (the ``COMPASS_*`` set that ``magkf.io.tlog`` undoes), PX4's ``PX4_PARAMETERS``
     (``CAL_MAGn_*``). ``open`` returns once they are answered or their rounds are over; a reboot asks for them
     again. ArduPilot's field is then uncorrected exactly as ``magkf.io.tlog`` uncorrects it (the same functions,
@@ -129,6 +131,9 @@ PX4_PARAMETERS = tuple(
 ) + ("SENS_BOARD_ROT",)
 #: Seconds (this computer's clock) between rounds of parameter requests, and rounds at most.
 PARAM_ROUND_S, PARAM_ROUNDS = 1.0, 3
+#: Once an answer has shown the link's round trip, a round ends this many round trips (at least ``PARAM_MIN_S``)
+#: after its requests or its last answer, whichever is later.
+PARAM_ROUND_TRIPS, PARAM_MIN_S = 4.0, 0.2
 #: ``MAV_CMD``s and the ``MAV_DATA_STREAM`` groups of ArduPilot asked for, with the messages magkf reads in each.
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE = 511, 512
 COMMAND_NAMES = {
@@ -293,6 +298,8 @@ class MavlinkSource:
         self._param_types: dict[str, int] = {}
         self._param_wanted: set[str] = set()
         self._param_next = 0.0
+        self._param_sent = -math.inf
+        self._param_round_trip: float | None = None
         self._param_asked = 0
         self._param_reading = False
         self._params_read = False  # the first read is over: samples are handed out from then on
@@ -573,6 +580,11 @@ class MavlinkSource:
         name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else str(msg.param_id)
         self.params[name] = _Vehicle._param_value(self, msg)
         self._param_types[name] = int(msg.param_type)
+        if self._param_reading and name in self._param_wanted:
+            now = time.monotonic()
+            if self._param_round_trip is None and math.isfinite(self._param_sent):
+                self._param_round_trip = now - self._param_sent
+            self._param_next = now + self._round_wait()  # the round goes on while answers come
         self._param_wanted.discard(name)
         if self._collect_echoes:
             self._echoes.append((name, self.params[name]))
@@ -983,7 +995,14 @@ class MavlinkSource:
         for name in sorted(self._param_wanted):
             self._send("param_request_read_send", system, component, name.encode(), -1)
         self._param_asked += 1
-        self._param_next = now + PARAM_ROUND_S
+        self._param_sent = now
+        self._param_next = now + self._round_wait()
+
+    def _round_wait(self) -> float:
+        """Seconds a round of parameter requests waits after its requests or its last answer."""
+        if self._param_round_trip is None:
+            return PARAM_ROUND_S
+        return max(PARAM_ROUND_TRIPS * self._param_round_trip, PARAM_MIN_S)
 
     def _end_parameter_read(self) -> None:
         self._param_reading, self._params_read = False, True

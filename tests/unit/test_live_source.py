@@ -29,7 +29,7 @@ import pytest
 from magkf.errors import InputError
 from magkf.io.mavlink_packets import VEHICLE, VehiclePackets, param_value_message, with_sequence
 from magkf.io.tlog import mavlink_dialect
-from magkf.live.source import ARDUPILOT_PARAMETERS, PX4_PARAMETERS, MavlinkSource
+from magkf.live.source import ARDUPILOT_PARAMETERS, PARAM_ROUND_S, PARAM_ROUNDS, PX4_PARAMETERS, MavlinkSource
 from magkf.sim import DriveConfig, simulate_drive
 
 RATE_HZ = 20.0
@@ -558,3 +558,26 @@ def test_a_connection_that_cannot_be_opened_is_an_input_error_naming_it():
     with pytest.raises(InputError, match="cannot open the connection") as error:
         MavlinkSource(connection).open(timeout_s=1.0)
     assert str(error.value).startswith(connection)
+
+
+def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(flight):
+    """The vehicle has only the CALIBRATION set: the others are asked for in PARAM_ROUNDS rounds, each ending a
+    few round trips after its last answer (on loopback, PARAM_MIN_S), not PARAM_ROUND_S; then reported."""
+    port = free_udp_port()
+    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), CALIBRATION)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
+    try:
+        began = time.monotonic()
+        source.open(timeout_s=5.0)
+        took = time.monotonic() - began
+        events = source.take_events()
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    missing = len(ARDUPILOT_PARAMETERS) - len(CALIBRATION)
+    assert any(e.startswith(f"{missing} parameters not answered after {PARAM_ROUNDS} requests") for e in events)
+    assert vehicle.requests.count("PARAM_REQUEST_READ") == len(ARDUPILOT_PARAMETERS) + (PARAM_ROUNDS - 1) * missing
+    assert {k: source.params[k] for k in CALIBRATION} == pytest.approx(CALIBRATION, rel=1e-7)
+    assert took < PARAM_ROUNDS * PARAM_ROUND_S
