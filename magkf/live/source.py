@@ -27,7 +27,9 @@ Compass parameters
     (``CAL_MAGn_*``). ``open`` returns once they are answered or their rounds are over; a reboot asks for them
     again. ArduPilot's field is then uncorrected exactly as ``magkf.io.tlog`` uncorrects it (the same functions,
     with the values in force when the sample is handed out); where it cannot be undone it is passed as sent and
-    ``provenance`` says so.
+    ``provenance`` says so. Motor compensation (``COMPASS_MOTCT`` 1 or 2) is undone with the throttle
+    (``VFR_HUD``) or current (``BATTERY_STATUS``) latest at or before the sample, which lags by up to their interval
+    (1 to 2 Hz in telemetry), where ``magkf.io.tlog`` interpolates between the values around it.
 
 Time
     The vehicle's boot clock (``time_boot_ms``, boot-time ``time_usec``) is mapped to UNIX time by the median over

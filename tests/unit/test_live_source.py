@@ -581,3 +581,48 @@ def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(fl
     assert vehicle.requests.count("PARAM_REQUEST_READ") == len(ARDUPILOT_PARAMETERS) + (PARAM_ROUNDS - 1) * missing
     assert {k: source.params[k] for k in CALIBRATION} == pytest.approx(CALIBRATION, rel=1e-7)
     assert took < PARAM_ROUNDS * PARAM_ROUND_S
+
+
+def test_motor_compensation_is_undone_with_the_latest_throttle(flight):
+    """COMPASS_MOTCT 1: the firmware adds COMPASS_MOT x throttle (the throttle of the moment) to the corrected
+    field; live undoes it with the latest VFR_HUD throttle at or before the sample (sent every 0.5 s, in percent),
+    which lags the throttle by under 0.5 s. The throttle 0.5 + 0.3 sin(2 pi t / 7 s) moves at most
+    0.3 x 2 pi / 7 per second, so the throttle used is off by at most that x 0.5 s + 0.005 (rounding); through the
+    inverse model that adds sum_j |M^-1|_ij |MOT_j| x that / SCALE to the truncation's bound per axis."""
+    mot = {"COMPASS_MOT_X": 20.0, "COMPASS_MOT_Y": -15.0, "COMPASS_MOT_Z": 30.0}
+    params = CALIBRATION | mot | {"COMPASS_MOTCT": 1}
+    table = flight.iloc[:100]
+    port = free_udp_port()
+    vehicle = Vehicle(port, vehicle_packets(table, params=params, firmware="4.5.7"), DEFAULTS | params)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, _ = stream(source, vehicle, link_drops=1)
+        text = source.provenance["raw_reconstruction"]
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert "motor compensation COMPASS_MOT x throttle" in text
+    p = {k: float(np.float32(v)) for k, v in params.items()}
+    m = np.array(
+        [
+            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
+        ]
+    )
+    inverse = np.abs(np.linalg.inv(m))
+    throttle_error = 0.3 * 2 * np.pi / 7.0 * 0.5 + 0.005
+    motor_mg = np.abs([p[k] for k in mot]) * throttle_error
+    bound = (inverse.sum(axis=1) * 1.0 + inverse @ motor_mg) * 100.0 / p["COMPASS_SCALE"]
+    rows = rows_of(samples, table)
+    got = np.array([[s["mag_x"], s["mag_y"], s["mag_z"]] for s in samples])
+    error = np.abs(got - table[["mag_x", "mag_y", "mag_z"]].to_numpy()[rows])
+    assert len(samples) == len(table)
+    assert np.all(error <= bound + 1e-6)
+    # Left in, the motor term would be M^-1 MOT x throttle / SCALE: the error is well under it (RMS, z-axis).
+    left_in = np.abs(np.linalg.inv(m) @ np.array([p[k] for k in mot]))[2] * table["throttle"].to_numpy()[rows]
+    left_in_nt = left_in * 100.0 / p["COMPASS_SCALE"]
+    assert np.sqrt(np.mean(error[:, 2] ** 2)) < 0.5 * np.sqrt(np.mean(left_in_nt**2))
