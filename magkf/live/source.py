@@ -85,7 +85,7 @@ import numpy as np
 
 from ..conventions import MAG, NT_PER_UNIT, euler_to_quaternion, quaternion_to_euler
 from ..errors import InputError
-from ..io.dataflash import NT_PER_MILLIGAUSS, _untruncate, _version
+from ..io.dataflash import NT_PER_MILLIGAUSS, _state_index, _untruncate, _version
 from ..io.streams import interpolate_quaternions
 from ..io.tlog import (
     AUTOPILOT_COMPONENT,
@@ -266,7 +266,9 @@ class MavlinkSource:
         The firmware's ``STATUSTEXT`` banner, else ``"ArduCopter V4.5.7"`` / ``"PX4 1.15.0"`` from
         ``AUTOPILOT_VERSION``; None until one comes.
     provenance : dict
-        JSON-ready: the connection, vehicle, magnetometer message, what was undone, time base, parameters, notes.
+        JSON-ready, with the keys of ``magkf.io.tlog``'s (``format`` ``mavlink-tlog``: the messages a telemetry log
+        holds) and ``live`` True, ``connection``: the vehicle, magnetometer message, what was undone
+        (``raw_reconstruction``), time base, compass parameters, notes.
     """
 
     def __init__(
@@ -290,7 +292,7 @@ class MavlinkSource:
         self.params: dict[str, float] = {}
         self.autopilot: str | None = None
         self.firmware: str | None = None
-        self.provenance: dict = {"format": "mavlink-live", "connection": self.connection, "notes": []}
+        self.provenance: dict = {"format": "mavlink-tlog", "live": True, "connection": self.connection, "notes": []}
         self._conn = None
         self._opened = False
         self._events: list[str] = []
@@ -888,12 +890,29 @@ class MavlinkSource:
         return raw_mg * NT_PER_MILLIGAUSS, text + " Parameters: the values read when each sample was handed out.", notes
 
     def _magnetometer_provenance(self, message: str, undone: bool) -> None:
+        """The provenance as ``magkf.io.tlog`` gives a telemetry log's (the same messages; ``live`` True, the
+        ``connection`` instead of a ``file``), so that what reads a log's provenance reads this one alike."""
         calibrated = _is_calibrated(message, self.autopilot, self._version)
         info = self.provenance.setdefault("magnetometer", {"message": message})
-        info |= {"message_calibrated": calibrated, "calibrated": bool(calibrated) and not undone}
+        info |= {
+            "message_calibrated": calibrated,
+            "calibrated": (bool(calibrated) and not undone) if calibrated is not None else None,
+        }
+        instance = info.get("instance", 0)
+        if self.autopilot == "ardupilot" and message != "HIGHRES_IMU":
+            params = {k: (np.zeros(1), np.array([v], float)) for k, v in self.params.items()}
+            k = _state_index(params, instance) if any(n.startswith("COMPASS_") for n in self.params) else instance
+            info["compass"] = k + 1
+            info["parameter_set"] = "COMPASS_OFS{0}, COMPASS_DIA{0}, COMPASS_ODI{0}, COMPASS_SCALE{0}".format(
+                ("", "2", "3")[min(k, 2)]
+            )
         wanted = ("COMPASS_", "CAL_MAG", "AHRS_ORIENTATION", "SENS_BOARD")
         self.provenance["parameters"] = {k: v for k, v in sorted(self.params.items()) if k.startswith(wanted)}
         self.provenance["firmware"] = self.firmware
+        self.provenance["ardupilot_firmware"] = self.firmware if self.autopilot == "ardupilot" else None
+        self.provenance.setdefault("vehicle", {})["firmware"] = (
+            ".".join(map(str, self._version)) if self._version else None
+        )
         self.provenance["time_base"] = (
             "utc: boot time + the median over the last SYSTEM_TIME messages of time_unix_usec - time_boot_ms"
             if not self._fallback

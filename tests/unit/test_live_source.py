@@ -24,11 +24,14 @@ import threading
 import time
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from magkf.errors import InputError
+from magkf.io.drivelog import from_table
 from magkf.io.mavlink_packets import VEHICLE, VehiclePackets, param_value_message, with_sequence
 from magkf.io.tlog import mavlink_dialect
+from magkf.io.vehicle_calibration import logged_calibration
 from magkf.live.source import ARDUPILOT_PARAMETERS, PARAM_ROUND_S, PARAM_ROUNDS, PX4_PARAMETERS, MavlinkSource
 from magkf.sim import DriveConfig, simulate_drive
 
@@ -338,6 +341,38 @@ def test_fields_match_the_flight_with_the_compass_calibration_undone(run, flight
     assert provenance["raw_reconstruction"].startswith("AP_Compass_Backend::correct_field of ArduCopter V4.5.7")
     assert run["firmware"] == "ArduCopter V4.5.7"
     assert all(run["params"][k] == pytest.approx(v, rel=1e-7) for k, v in CALIBRATION.items())
+
+
+def test_provenance_reads_as_a_telemetry_logs(run, flight):
+    """What reads a telemetry log's provenance reads the live one alike: the vehicle's own calibration, rebuilt
+    from it, corrects the raw samples to the field the firmware computed, M ((raw + OFS) x SCALE)."""
+    provenance = run["provenance"]
+    assert provenance["format"] == "mavlink-tlog" and provenance["live"] is True
+    assert provenance["magnetometer"] | {"instance": 0} == {
+        "message": "RAW_IMU",
+        "instance": 0,
+        "autopilot": "ardupilot",
+        "message_calibrated": True,
+        "calibrated": False,
+        "compass": 1,
+        "parameter_set": "COMPASS_OFS, COMPASS_DIA, COMPASS_ODI, COMPASS_SCALE",
+    }
+    assert provenance["vehicle"]["firmware"] == "4.5.7"
+    table = pd.DataFrame(run["samples"])
+    log = from_table(table, source=provenance["connection"], provenance=provenance)
+    vehicle_cal = logged_calibration(log)
+    raw = table[["mag_x", "mag_y", "mag_z"]].to_numpy()
+    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
+    m = np.array(
+        [
+            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
+        ]
+    )
+    offsets = np.array([p[f"COMPASS_OFS_{a}"] for a in "XYZ"]) * 100.0
+    firmware_field = (raw + offsets) * p["COMPASS_SCALE"] @ m.T
+    np.testing.assert_allclose(vehicle_cal.correct(raw), firmware_field, rtol=0, atol=1e-6)
 
 
 def test_attitude_position_and_auxiliary_match_the_flight(run, flight):
