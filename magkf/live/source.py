@@ -47,7 +47,8 @@ Samples
     before its time, NaN when older than ``STALE_INTERVALS`` of that stream's interval (a GNSS position only with
     a 3-D fix). A sample waits until an attitude message after its time has come (by then the slow streams' values
     of its time, sent before it, have come too), until the vehicle's clock is ``wait_s`` past it, or until the link
-    is lost (then it goes without attitude where no bracket exists).
+    is lost (then it goes without attitude where no bracket exists). No sample is handed out before the first
+    parameter read is over (its field could not be undone); they wait for it, in order.
 
 Faults (each an event, none fatal)
     * packets lost: gaps in the sequence numbers of the vehicle's component (``seq`` counts the sender's packets
