@@ -19,6 +19,7 @@ Precision of what the messages carry (the bounds below):
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import threading
 import time
@@ -27,6 +28,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from magkf.conventions import euler_to_quaternion
 from magkf.errors import InputError
 from magkf.io.drivelog import from_table
 from magkf.io.mavlink_packets import VEHICLE, VehiclePackets, param_value_message, with_sequence
@@ -661,3 +663,43 @@ def test_motor_compensation_is_undone_with_the_latest_throttle(flight):
     left_in = np.abs(np.linalg.inv(m) @ np.array([p[k] for k in mot]))[2] * table["throttle"].to_numpy()[rows]
     left_in_nt = left_in * 100.0 / p["COMPASS_SCALE"]
     assert np.sqrt(np.mean(error[:, 2] ** 2)) < 0.5 * np.sqrt(np.mean(left_in_nt**2))
+
+
+def as_quaternion_packets(packets) -> list:
+    """``packets`` with every ATTITUDE sent as ATTITUDE_QUATERNION (the same time and attitude, float32)."""
+    dialect = mavlink_dialect()
+    parser, packer = dialect.MAVLink(None), dialect.MAVLink(None, srcSystem=1, srcComponent=1)
+    out = []
+    for p in packets:
+        if p.name == "ATTITUDE":
+            a = parser.decode(bytearray(p.data))
+            q = euler_to_quaternion(*np.degrees([a.yaw, a.pitch, a.roll]))
+            message = dialect.MAVLink_attitude_quaternion_message(a.time_boot_ms, *q, 0.0, 0.0, 0.0)
+            p = dataclasses.replace(p, name="ATTITUDE_QUATERNION", data=bytes(message.pack(packer)))
+        out.append(p)
+    return out
+
+
+def test_attitude_quaternion_is_used_where_it_is_what_comes(flight):
+    """q1..q4 as float32 (each off by at most 2**-25 below 1): the rotation between the sample's attitude and the
+    table's is at most 2 |dq| <= 2 x 2 x 2**-25 = 2**-23 rad, plus the float32 radians of the ATTITUDE they were
+    made from (2**-23 each of three angles, 3 x 2**-23 at most)."""
+    table = flight.iloc[:60]
+    packets = as_quaternion_packets(vehicle_packets(table, params=CALIBRATION))
+    port = free_udp_port()
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, _ = stream(source, vehicle, link_drops=1)
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert len(samples) == len(table)
+    rows = rows_of(samples, table)
+    got = euler_to_quaternion(*np.array([[s["yaw"], s["pitch"], s["roll"]] for s in samples]).T)
+    truth = euler_to_quaternion(*(table[c].to_numpy()[rows] for c in ("yaw", "pitch", "roll")))
+    angle = 2 * np.arccos(np.clip(np.abs(np.sum(got * truth, axis=1)), 0.0, 1.0))
+    assert np.max(angle) <= 4 * 2.0**-23 + 1e-12
