@@ -83,6 +83,8 @@ def run_live(args) -> int:
     added = common.effects(args, init)
     checkpoint = _checkpoint_path(args)
     session = _session(args, config, init, added, checkpoint)
+    if args.resume:  # the session's own settings and start, for the calibration written too
+        config, init, added = session.config, session.init, list(session.effects or [])
     source = _open_source(args)
     try:
         why = _run(args, session, source, checkpoint)
@@ -117,6 +119,8 @@ def _session(args, config, init, added, checkpoint: Path):
     from ..live.session import LiveSession
 
     if args.resume:
+        if args.init or getattr(args, "effect", None):
+            raise InputError("--resume continues a session with its own start and effects: drop --init and --effect")
         if not checkpoint.exists():
             raise InputError("no checkpoint to resume from; start without --resume", str(checkpoint))
         session = LiveSession.load(checkpoint)
@@ -140,6 +144,7 @@ def _session(args, config, init, added, checkpoint: Path):
         diagnose_every_s=args.diagnose_every,
         alpha=args.alpha,
         recording=Recording(folder),
+        background=True,
     )
 
 
@@ -186,6 +191,8 @@ def _run(args, session, source, checkpoint: Path) -> str:
                 break
     except KeyboardInterrupt as exc:
         why = f"stopped ({exc or 'SIGINT'})"
+    for sample in source.drain():  # the samples still waiting for their attitude
+        session.add(sample)
     session.save(checkpoint)
     if display is not None and status is not None:
         display.close(session.status(_link(source), source.take_events()))

@@ -28,6 +28,7 @@ import math
 import os
 import pickle
 import time
+import warnings
 from collections import Counter, deque
 from pathlib import Path
 
@@ -77,6 +78,9 @@ class LiveSession:
         Its significance level over all candidates.
     recording : Recording or None, optional
         Where every sample taken is kept (``recording.Recording``), for the calibration written at the end.
+    background : bool, optional
+        The running diagnosis in a thread of its own (a live loop keeps reading its link meanwhile; the result is
+        shown once it is done), else in the caller's, at the sample that makes it due.
     """
 
     def __init__(
@@ -90,9 +94,10 @@ class LiveSession:
         diagnose_every_s: float = 60.0,
         alpha: float = 0.01,
         recording=None,
+        background: bool = False,
     ):
-        self.recording = recording
-        self.config, self.effects, self.target = config, effects, target
+        self.recording, self.background, self._running = recording, background, None
+        self.config, self.init, self.effects, self.target = config, init, effects, target
         self.window_s, self.diagnose_every_s, self.alpha = window_s, diagnose_every_s, alpha
         self.calibrator = None
         self.start_how = "from the calibration given" if init is not None else ""
@@ -210,29 +215,46 @@ class LiveSession:
             return
         if math.isnan(self._next_diagnosis):
             self._next_diagnosis = t + self.diagnose_every_s
-        if t < self._next_diagnosis:
+        self._collect_diagnosis()
+        if t < self._next_diagnosis or self._running is not None:  # one at a time: a late one is not queued
             return
         self._next_diagnosis = t + self.diagnose_every_s
-        self.diagnosis = self.diagnose_window()
+        samples, cal = list(self._window), self.calibration
+        if self.background:
+            self._running = _diagnosis_thread().submit(self._diagnosed, samples, cal)
+        else:
+            self.diagnosis = self._diagnosed(samples, cal)
+
+    def _collect_diagnosis(self) -> None:
+        """The background diagnosis's result taken once it is done."""
+        if self._running is not None and self._running.done():
+            self.diagnosis, self._running = self._running.result(), None
 
     def diagnose_window(self) -> dict:
-        """``diagnose`` of the current calibration over the window's samples: ``{"window_s", "epochs",
-        "candidates", "text"}`` (``candidates`` the tested effects with their p-values, taken ones first)."""
+        """``diagnose`` of the current calibration over the window's samples, now: ``{"window_s", "epochs",
+        "candidates", "text", "notes"}`` (``candidates`` the tested effects with their p-values, taken ones first;
+        ``notes`` the diagnosis's warnings)."""
+        return self._diagnosed(list(self._window), self.calibration)
+
+    def _diagnosed(self, samples: list, cal: Calibration) -> dict:
+        """``diagnose`` of ``cal`` over ``samples``, its warnings kept as notes (the window's own, not the
+        session's: a window cut from a log has the log's gaps)."""
         from ..diagnostics.diagnose import diagnose
 
-        span = self._window[-1]["time"] - self._window[0]["time"] if self._window else 0.0
-        figures = {"window_s": float(span), "epochs": len(self._window), "candidates": []}
-        try:
-            result, _ = diagnose(
-                samples_log(list(self._window), "the window"), self.config, self.calibration, (), alpha=self.alpha
-            )
-        except InputError as exc:
-            return {**figures, "text": f"not diagnosed: {exc.message}"}
+        span = samples[-1]["time"] - samples[0]["time"] if samples else 0.0
+        figures = {"window_s": float(span), "epochs": len(samples), "candidates": [], "notes": []}
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                result, _ = diagnose(samples_log(samples, "the window"), self.config, cal, (), alpha=self.alpha)
+            except InputError as exc:
+                return {**figures, "text": f"not diagnosed: {exc.message}"}
         candidates = [
             {"effect": c.effect, "p_value": float(c.p_value), "significant": bool(c.significant)}
             for c in result.candidates
         ]
-        return {**figures, "candidates": candidates, "text": result.text}
+        notes = [" ".join(str(w.message).split()) for w in caught]
+        return {**figures, "candidates": candidates, "text": result.text, "notes": notes}
 
     # ------------------------------------------------------------------ what is shown
     def event(self, text: str) -> None:
@@ -258,6 +280,7 @@ class LiveSession:
         the recent ones)."""
         for text in events:
             self.event(text)
+        self._collect_diagnosis()
         counts = dict(self.counts)
         if self._held:
             counts["waiting"] = len(self._held)
@@ -393,7 +416,21 @@ class LiveSession:
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
         state["_window"] = deque()  # the diagnosis's window is filled again
+        state["_running"] = None
         return state
+
+
+_THREAD = None
+
+
+def _diagnosis_thread():
+    """The one worker thread of the background diagnoses (made on first use)."""
+    global _THREAD
+    if _THREAD is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="magkf-diagnosis")
+    return _THREAD
 
 
 def state_columns(result, names) -> dict:

@@ -102,15 +102,18 @@ from ..io.tlog import (
     UNIX_MIN_US,
     UNKNOWN_U16,
     VEHICLE_OF_TYPE,
-    _boot_time_us,
-    _is_calibrated,
-    _not_calibrated,
-    _uncorrect_ardupilot,
-    _Vehicle,
-    _why_not_undone,
+    boot_time_us,
+    is_calibrated,
+    not_calibrated,
+    param_value,
+    uncorrect_ardupilot,
+    why_not_undone,
 )
 
 __all__ = ["ARDUPILOT_PARAMETERS", "PX4_PARAMETERS", "MavlinkSource"]
+
+#: The messages whose arrival may complete the samples waiting for attitude.
+ATTITUDE_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION")
 
 #: ArduPilot's compass parameters read (``magkf.io.tlog`` and ``magkf.io.dataflash`` undo with these): each
 #: compass's offsets, soft-iron diagonal and off-diagonal, scale, motor compensation, device id and orientation,
@@ -412,6 +415,14 @@ class MavlinkSource:
         self._read_for(timeout_s)
         return self._hand_out()
 
+    def drain(self) -> list[dict]:
+        """The samples still waiting for attitude, handed out now (attitude where it brackets them, else NaN), with
+        those ready: at the end of a session, so that none is left unaccounted for."""
+        if self._pending and self._time_base_ready():
+            self._finish(self._pending)
+            self._pending = []
+        return self._hand_out()
+
     def take_events(self) -> list[str]:
         """What happened since the last call, in words, one line each."""
         events, self._events = self._events, []
@@ -428,6 +439,10 @@ class MavlinkSource:
             msg = self._receive()
             if msg is not None:
                 self._handle(msg)
+                if self._pending and msg.get_type() in ATTITUDE_MESSAGES:
+                    # samples completed as their attitude comes, not after a backlog is read through: a slow
+                    # stream's kept values (SLOW_KEPT) still cover them
+                    self._complete()
                 continue
             remaining = end - time.monotonic()
             if remaining <= 0:
@@ -502,7 +517,7 @@ class MavlinkSource:
             return
         if source != self._vehicle:
             return
-        boot_us = _boot_time_us(msg)
+        boot_us = boot_time_us(msg)
         stale = name in CLOCK_MESSAGES and boot_us is not None and self._before_reboot(boot_us)
         self._packet(msg, sequence=not stale)  # the old boot's counter is not the new one's
         if stale:
@@ -583,7 +598,7 @@ class MavlinkSource:
 
     def _on_param_value(self, msg, boot_us) -> None:
         name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else str(msg.param_id)
-        self.params[name] = _Vehicle._param_value(self, msg)
+        self.params[name] = param_value(msg, self.autopilot)
         self._param_types[name] = int(msg.param_type)
         if self._param_reading and name in self._param_wanted:
             now = time.monotonic()
@@ -859,13 +874,13 @@ class MavlinkSource:
     def _undo(self, nt: np.ndarray, samples: list[dict], message: str) -> tuple[np.ndarray | None, str, list]:
         """The raw field (nT) where ArduPilot's calibration can be undone (else None), what was done, notes."""
         notes: list[str] = []
-        calibrated = _is_calibrated(message, self.autopilot, self._version)
+        calibrated = is_calibrated(message, self.autopilot, self._version)
         if not calibrated:
-            return None, _not_calibrated(message, calibrated, self._version, notes), notes
+            return None, not_calibrated(message, calibrated, self._version, notes), notes
         if not self.raw:
             return None, "not done (raw=False): the field as the autopilot corrected it", notes
         has_compass = any(k.startswith("COMPASS_") for k in self.params)
-        why = _why_not_undone(message, self.autopilot, has_compass)
+        why = why_not_undone(message, self.autopilot, has_compass)
         if why is not None:
             notes.append(
                 f"{message} carries the autopilot's calibrated field and its calibration cannot be undone ({why}): "
@@ -885,15 +900,13 @@ class MavlinkSource:
                 "version): the 4.x correction model was assumed; before 4.0 there was no COMPASS_SCALE, and Copter "
                 "3.3 to 3.5 added the motor compensation before the soft-iron matrix"
             )
-        raw_mg, text, _ = _uncorrect_ardupilot(
-            nt / NT_PER_MILLIGAUSS, boot, params, instance, aux, self.firmware, notes
-        )
+        raw_mg, text, _ = uncorrect_ardupilot(nt / NT_PER_MILLIGAUSS, boot, params, instance, aux, self.firmware, notes)
         return raw_mg * NT_PER_MILLIGAUSS, text + " Parameters: the values read when each sample was handed out.", notes
 
     def _magnetometer_provenance(self, message: str, undone: bool) -> None:
         """The provenance as ``magkf.io.tlog`` gives a telemetry log's (the same messages; ``live`` True, the
         ``connection`` instead of a ``file``), so that what reads a log's provenance reads this one alike."""
-        calibrated = _is_calibrated(message, self.autopilot, self._version)
+        calibrated = is_calibrated(message, self.autopilot, self._version)
         info = self.provenance.setdefault("magnetometer", {"message": message})
         info |= {
             "message_calibrated": calibrated,
