@@ -229,7 +229,7 @@ def log_parameters(log, autopilot: str, params: dict | None, notes: list) -> tup
         ardupilot = autopilot == "ardupilot"
         done = "applied to the field as ArduPilot does" if ardupilot else "SCALED_IMU sent raw, as PX4 does"
         notes.append(f"{len(params)} parameters given: {done}")
-        return dict(params), ardupilot
+        return (ardupilot_typed(params) if ardupilot else dict(params)), ardupilot
     provenance = getattr(log, "provenance", None) or {}
     logged = provenance.get("parameters") if isinstance(provenance.get("parameters"), dict) else {}
     own = {k: float(v) for k, v in logged.items() if k.startswith(PARAM_PREFIXES[autopilot])}
@@ -253,7 +253,28 @@ def log_parameters(log, autopilot: str, params: dict | None, notes: list) -> tup
         )
         return own, False
     notes.append(f"the log's {len(own)} compass parameters announced and applied to its raw field")
-    return own, True
+    return ardupilot_typed(own), True
+
+
+#: ArduPilot's integer compass settings (AP_Int8/16/32 in ``libraries/AP_Compass/AP_Compass.cpp``), by the part of the
+#: name after ``COMPASS_``; the other compass parameters (offsets, scales, matrices, motor factors, declination) are
+#: floats, whatever their value looks like in a parameter file.
+ARDUPILOT_INTEGER_STEMS = (
+    "ORIENT", "EXTERN", "USE", "MOTCT", "DEV_ID", "PRIO", "AUTODEC", "LEARN", "TYPEMASK", "OPTIONS", "AUTO_ROT",
+    "ENABLE", "DISBLMSK",
+)  # fmt: skip
+
+
+def ardupilot_typed(params: dict) -> dict:
+    """ArduPilot's parameters with the type the firmware gives each (a parameter file does not say): the compass's
+    integer settings and ``AHRS_ORIENTATION`` as integers, every other as a float (so that a ``COMPASS_OFS_X`` of
+    0 in a file is announced, and set, as the float it is)."""
+
+    def integer(name: str) -> bool:
+        stem = name.removeprefix("COMPASS_")
+        return name == "AHRS_ORIENTATION" or (stem != name and stem.startswith(ARDUPILOT_INTEGER_STEMS))
+
+    return {k: (int(round(float(v))) if integer(k) else float(v)) for k, v in params.items()}
 
 
 def _log_firmware(log, autopilot: str, notes: list) -> str | None:

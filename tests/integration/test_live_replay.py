@@ -63,7 +63,8 @@ def flight(tmp_path_factory):
 
 def live_run(flight, name: str, *replay_options, live_options=(), stop_after_s=None):
     """``live`` fed by ``replay`` at 20 times real time, stopped by SIGINT once the replay has ended (or after
-    ``stop_after_s`` of wall time, SIGKILL: a session that dies); returns (live's process, replay's, the output
+    ``stop_after_s`` of wall time, SIGKILL: a session that dies; with ``--duration`` among ``live_options``, by
+    itself while the replay still answers); returns (live's process, replay's, the output
     folder). The replay listens and starts once live has spoken (as SITL does), so no packet goes before live
     listens."""
     out = flight["folder"] / name
@@ -80,9 +81,10 @@ def live_run(flight, name: str, *replay_options, live_options=(), stop_after_s=N
             live.kill()
             live.communicate(timeout=TIMEOUT_S)
             return live, replay, out
-        replay.communicate(timeout=TIMEOUT_S)
-        time.sleep(1.0)
-        live.send_signal(signal.SIGINT)
+        if "--duration" not in live_options:
+            replay.communicate(timeout=TIMEOUT_S)
+            time.sleep(1.0)
+            live.send_signal(signal.SIGINT)
         live.stdout_text, live.stderr_text = live.communicate(timeout=TIMEOUT_S)
     finally:
         for p in (live, replay):
@@ -140,16 +142,30 @@ def test_reboot_and_a_killed_session_resumed(flight):
     lines = [json.loads(line) for line in stdout.splitlines() if line.startswith("{")]
     last = lines[-1]
     assert last["counts"].get("late", 0) > 0  # what the first session had taken came again
-    assert any("resumed" in e for e in last["events"])
-    assert any(line["link"].get("reboots", 0) >= 1 for line in lines)
+    assert any("resumed" in e for line in lines for e in line["events"]), [line["events"] for line in lines[:3]]
+    assert any(line["link"].get("reboots", 0) >= 1 for line in lines), last["link"]
     z = deviations(flight, out / "cal.json")
     assert np.all(z < 1.0), z
 
 
 @pytest.mark.slow
 def test_upload_has_each_parameter_confirmed(flight):
+    """The replayed vehicle has ArduPilot's compass parameters at their defaults (so it echoes a PARAM_SET of
+    them, as a vehicle does); live sends the calibration's and reads each echo back."""
+    defaults = flight["folder"] / "defaults.param"
+    names = [f"COMPASS_{k}_{a}" for k in ("OFS", "DIA", "ODI") for a in "XYZ"] + ["COMPASS_SCALE", "COMPASS_ORIENT"]
+    values = {n: (1.0 if n.startswith(("COMPASS_DIA", "COMPASS_SCALE")) else 0.0) for n in names}
+    defaults.write_text("".join(f"{n},{v:g}\n" for n, v in values.items()))
     params = flight["folder"] / "upload.param"
-    live, _, out = live_run(flight, "upload", "--linger", "60", live_options=("--params", params, "--upload"))
+    live, _, out = live_run(
+        flight,
+        "upload",
+        "--params",
+        defaults,
+        "--linger",
+        "60",
+        live_options=("--params", params, "--upload", "--duration", "290"),
+    )
     assert live.returncode == 0, live.stderr_text
     line = next(s for s in live.stdout_text.splitlines() if "parameters sent and confirmed" in s)
     sent, of = line.split()[0], line.split()[2]

@@ -278,3 +278,15 @@ def test_listening_on_tcp_the_replay_waits_for_its_receiver(flight):
     # nothing is sent before the receiver connects, and TCP loses nothing after
     assert stats.completed and len(got) == stats.packets_sent
     assert any(n.startswith("waited ") for n in stats.notes)
+
+
+def test_ardupilot_parameters_take_the_firmware_types():
+    """A parameter file's 0 for an offset is ArduPilot's float (announced and set as REAL32, so that 12.5 is kept);
+    the compass's settings are its integers."""
+    from magkf.live.replay import ardupilot_typed
+
+    typed = ardupilot_typed({"COMPASS_OFS_X": 0, "COMPASS_DIA2_Y": 1, "COMPASS_ORIENT": 4.0, "COMPASS_MOTCT": 2,
+                             "COMPASS_DEV_ID": 97539.0, "AHRS_ORIENTATION": 0.0, "COMPASS_DEC": 0})  # fmt: skip
+    assert typed == {"COMPASS_OFS_X": 0.0, "COMPASS_DIA2_Y": 1.0, "COMPASS_ORIENT": 4, "COMPASS_MOTCT": 2,
+                     "COMPASS_DEV_ID": 97539, "AHRS_ORIENTATION": 0, "COMPASS_DEC": 0.0}  # fmt: skip
+    assert [type(v) for v in typed.values()] == [float, float, int, int, int, int, float]
