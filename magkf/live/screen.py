@@ -94,9 +94,14 @@ def _line(label: str, text: str) -> str:
 
 
 def _wrapped(label: str, text: str, width: int, lines: int) -> list[str]:
-    """``text`` after ``label`` wrapped onto at most ``lines`` lines of ``width``, the rest indented."""
-    body = textwrap.wrap(text, max(width - LABEL, 20), break_long_words=True) or [""]
-    return [_line(label if i == 0 else "", part) for i, part in enumerate(body[:lines])]
+    """``text`` after ``label`` wrapped onto at most ``lines`` lines of ``width``, the rest indented; a text
+    longer than that ends in ``...``."""
+    room = max(width - LABEL, 20)
+    body = textwrap.wrap(text, room, break_long_words=True) or [""]
+    if len(body) > lines:
+        body = body[:lines]
+        body[-1] = body[-1][: room - 4].rstrip(" ,;") + " ..."
+    return [_line(label if i == 0 else "", part) for i, part in enumerate(body)]
 
 
 def _packed(label: str, items: list[str], width: int, lines: int) -> list[str]:
@@ -110,7 +115,10 @@ def _packed(label: str, items: list[str], width: int, lines: int) -> list[str]:
         else:
             current = candidate
     rows.append(current)
-    return [_line(label if i == 0 else "", row) for i, row in enumerate(rows[:lines])]
+    if len(rows) > lines:  # the last row shown says that more follow
+        rows = rows[:lines]
+        rows[-1] = rows[-1].rstrip(",") + ", ..."
+    return [_line(label if i == 0 else "", row) for i, row in enumerate(rows)]
 
 
 def _header(status) -> str:
@@ -205,7 +213,7 @@ def _diagnosis(diagnosis: dict | None, width: int) -> list[str]:
     candidates = [_candidate(c) for c in diagnosis.get("candidates") or []]
     items = [f"{head}: {candidates[0]}", *candidates[1:]] if candidates else [head + ": no candidate tested"]
     text = " ".join(part.strip() for part in str(diagnosis.get("text") or "").splitlines() if part.strip())
-    return _packed("diagnosis", items, width, 2) + (_wrapped("", text, width, 1) if text else [])
+    return _packed("diagnosis", items, width, 2) + (_wrapped("", text, width, 2) if text else [])
 
 
 def _candidate(candidate: dict) -> str:
@@ -220,17 +228,20 @@ def _convergence(status) -> str:
         return _line("converged", "yes: every standard deviation below the target")
     worst_b = max((s for s in status.b_std_nt if _finite(s)), default=math.nan)
     worst_r = max((s for s in status.r_diag_std if _finite(s)), default=math.nan)
+    target = getattr(status, "target", None)
+    head = f"no (target {target:g})" if target is not None else "no target set"
     return _line(
         "converged",
-        f"no: largest standard deviation {_num(worst_b, '.1f', 'nT')} in b, {_num(worst_r, '.5f')} in diag R",
+        f"{head}: largest standard deviation {_num(worst_b, '.1f', 'nT')} in b, {_num(worst_r, '.5f')} in diag R",
     )
 
 
-def _events(events: list) -> list[str]:
+def _events(events: list, width: int) -> list[str]:
+    """The last ``EVENTS`` events, each on at most two lines."""
     recent = [str(e) for e in events][-EVENTS:]
     if not recent:
         return [_line("events", "none")]
-    return [_line("events" if i == 0 else "", text) for i, text in enumerate(recent)]
+    return [line for i, text in enumerate(recent) for line in _wrapped("events" if i == 0 else "", text, width, 2)]
 
 
 def render(status, width: int = WIDTH) -> list[str]:
@@ -261,7 +272,7 @@ def render(status, width: int = WIDTH) -> list[str]:
         *_wrapped("verdict", status.verdict or NOT_KNOWN, width, 3),
         *_diagnosis(status.diagnosis, width),
         _convergence(status),
-        *_events(status.events or []),
+        *_events(status.events or [], width),
     ]
     return [line[:cut].rstrip() for line in lines]
 
@@ -347,6 +358,7 @@ class Screen(_Paced):
         self.terminal = _is_terminal(self.stream)
         self.width = width
         self._drawn = False
+        self._previous: list[str] | None = None
 
     def _size(self) -> tuple[int, int | None]:
         """Columns and rows to draw in: ``width`` (or the terminal's less one, so the cursor never wraps) and
@@ -369,8 +381,10 @@ class Screen(_Paced):
             start = HOME if self._drawn else CLEAR_ALL + HOME
             text = start + "".join(line + CLEAR_LINE + "\n" for line in lines) + CLEAR_BELOW
         else:
+            if final and lines == self._previous:  # the final frame is the one just written
+                return
             text = ("\n" if self._drawn else "") + "".join(line + "\n" for line in lines)
-        self._drawn = True
+        self._drawn, self._previous = True, lines
         self.stream.write(text)
         self.stream.flush()
 

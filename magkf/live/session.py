@@ -292,6 +292,7 @@ class LiveSession:
             residual_rms_nt=math.sqrt(self._recent_sum / len(self._recent)) if self._recent else math.nan,
             diagnosis=self.diagnosis,
             converged=self.converged,
+            target=self.target,
             events=list(self.events),
             step_ms=self._step_times(),
         )

@@ -42,6 +42,8 @@ class LiveStatus:
         "significant"}``), ``text``; None before the first.
     converged : bool
         Whether every parameter's standard deviation is below the target (``--until-converged``).
+    target : float or None
+        That target (a fraction: of 1 for ``R``, of the field for ``b``); None: none set.
     events : list of str
         The link's and the session's recent events, newest last.
     step_ms : dict
@@ -62,6 +64,7 @@ class LiveStatus:
     verdict: str = "waiting for the first samples"
     diagnosis: dict | None = None
     converged: bool = False
+    target: float | None = None
     events: list = field(default_factory=list)
     step_ms: dict = field(default_factory=dict)
 

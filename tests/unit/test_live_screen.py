@@ -121,7 +121,7 @@ def test_empty_status_shows_dashes_not_nan():
         assert shown in text, shown
     assert "undetermined -" in text  # not started: nothing known, rather than "every direction determined"
     assert "time_lag not testable" in text
-    assert "converged no: largest standard deviation - nT in b" in text
+    assert "converged no target set: largest standard deviation - nT in b" in text
 
 
 def test_default_status_renders():
