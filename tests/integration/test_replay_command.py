@@ -11,16 +11,11 @@ from pymavlink import mavutil
 
 from magkf.sim import DriveConfig, simulate_drive
 
-#: ``python -m magkf`` with ``replay`` among its commands (added where the command line does not list it yet).
-SCRIPT = (
-    "import sys; import magkf.cli as c; from magkf.cli import replay; "
-    "c.COMMANDS = c.COMMANDS if replay in c.COMMANDS else (*c.COMMANDS, replay); sys.exit(c.main(sys.argv[1:]))"
-)
 TIMEOUT_S = 20.0
 
 
 def start(log, connection: str, *options: str) -> subprocess.Popen:
-    command = [sys.executable, "-c", SCRIPT, "replay", str(log), connection, *options]
+    command = [sys.executable, "-m", "magkf", "replay", str(log), connection, *options]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
