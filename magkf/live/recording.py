@@ -24,12 +24,11 @@ class Recording:
     Parameters
     ----------
     folder : str or path-like
-        Where the parts go (made if missing; parts already there are part of the recording).
+        Where the parts go (made with the first part; parts already there are part of the recording).
     """
 
     def __init__(self, folder):
         self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
         self._rows: list[dict] = []
         self.samples = sum(_rows_in(p) for p in self.parts())
 
@@ -48,6 +47,7 @@ class Recording:
         """Write the samples held as a part (nothing when none are held)."""
         if not self._rows:
             return
+        self.folder.mkdir(parents=True, exist_ok=True)
         part = self.folder / f"part-{len(self.parts()):06d}.parquet"
         tmp = part.with_suffix(".tmp")
         pd.DataFrame.from_records(self._rows).to_parquet(tmp, index=False)

@@ -115,3 +115,18 @@ def test_running_diagnosis_finds_a_hidden_load_current():
     assert diagnosis is not None and diagnosis["window_s"] == pytest.approx(120.0, abs=0.2)
     taken = [c["effect"] for c in diagnosis["candidates"] if c["significant"]]
     assert taken and taken[0].startswith("current_field")
+
+
+def test_converged_once_every_standard_deviation_is_below_the_target(drive):
+    """A target of 0.005 (R's standard deviations, and b's against 0.005 of the field: about 240 nT) is met on this
+    well-turning flight; 1e-7 (b to 5 pT) never is."""
+    init = Calibration(R=drive.R + 0.01, b=drive.b + 100.0)
+    loose = LiveSession(CONFIG, init, target=0.005, diagnose_every_s=0)
+    tight = LiveSession(CONFIG, init, target=1e-7, diagnose_every_s=0)
+    assert not loose.converged  # before any sample: no field seen
+    rows = _rows(drive)
+    for r in rows:
+        loose.add(r)
+        tight.add(r)
+    assert loose.converged and loose.status().converged and loose.status().target == 0.005
+    assert not tight.converged
