@@ -12,6 +12,9 @@ from . import common
 
 __all__ = ["add_parsers", "run_live"]
 
+#: Seconds between two statuses shown (the screen, --json-lines).
+SHOWN_EVERY_S = 1.0
+
 
 def add_parsers(sub) -> None:
     """Register ``live``."""
@@ -88,11 +91,12 @@ def run_live(args) -> int:
     source = _open_source(args)
     try:
         why = _run(args, session, source, checkpoint)
-        _finish(args, session, source, config, init, added, why)
+        upload = _finish(args, session, source, config, init, added, why, checkpoint)
+        status = _upload(args, source, upload) if upload is not None else 0
     finally:
         source.close()
     _remove_checkpoint(checkpoint, session)
-    return 0
+    return status
 
 
 def _remove_checkpoint(checkpoint: Path, session) -> None:
@@ -165,27 +169,34 @@ def _display(args):
     from ..live.screen import JsonLines, Screen
 
     if args.json_lines:
-        return JsonLines(sys.stdout)
+        return JsonLines(sys.stdout, interval_s=0.0)  # paced by the loop (SHOWN_EVERY_S)
     if args.quiet:
         return None
-    return Screen(sys.stdout)
+    return Screen(sys.stdout, interval_s=0.0)
 
 
 def _run(args, session, source, checkpoint: Path) -> str:
-    """Feed the samples until a stop; returns why it stopped, in words."""
+    """Feed the samples until a stop; returns why it stopped, in words. The status is made only when it is shown
+    (once a second): its figures (the observability's eigen-decomposition, the verdict) cost more than a
+    second of samples."""
+    from ..interruption import held
+
     display = _display(args)
-    last_checkpoint = time.monotonic()
-    status = None
+    last_checkpoint = last_shown = time.monotonic()
     try:
         while True:
-            for sample in source.poll(0.1):
-                session.add(sample)
-            status = session.status(_link(source), source.take_events())
-            if display is not None:
-                display.show(status)
-            if time.monotonic() - last_checkpoint >= args.checkpoint_every:
-                session.save(checkpoint)
-                last_checkpoint = time.monotonic()
+            with held():  # a Ctrl-C waits for the samples read to be filtered and counted, not half of one
+                for sample in source.poll(0.1):
+                    session.add(sample)
+                for text in source.take_events():
+                    session.event(text)
+                now = time.monotonic()
+                if now - last_checkpoint >= args.checkpoint_every:
+                    session.save(checkpoint)
+                    last_checkpoint = now
+            if display is not None and now - last_shown >= SHOWN_EVERY_S:
+                display.show(session.status(_link(source)))
+                last_shown = now
             why = _stop(args, session)
             if why:
                 break
@@ -193,8 +204,9 @@ def _run(args, session, source, checkpoint: Path) -> str:
         why = f"stopped ({exc or 'SIGINT'})"
     for sample in source.drain():  # the samples still waiting for their attitude
         session.add(sample)
+    session.wait_for_diagnosis()
     session.save(checkpoint)
-    if display is not None and status is not None:
+    if display is not None:
         display.close(session.status(_link(source), source.take_events()))
     return why
 
@@ -217,15 +229,16 @@ def _link(source) -> dict:
     return counters | {"rates_hz": dict(source.rates_hz), "asked_hz": dict(source.asked_hz)}
 
 
-def _finish(args, session, source, config, init, added, why: str) -> None:
+def _finish(args, session, source, config, init, added, why: str, checkpoint: Path):
     """The samples received calibrated as ``calibrate`` calibrates a log, and the outputs written; the real-time
-    estimate compared with it."""
+    estimate compared with it. Returns the parameter set to send with --upload (None without it)."""
     from ..errors import InputError
     from ..io.drivelog import from_table
     from .online import _calibrate_one
 
     table = session.recording.table()
     if len(table) == 0:
+        _remove_checkpoint(checkpoint, session)  # nothing to resume
         raise InputError("no sample was received from the vehicle: nothing to calibrate", args.connection)
     log = from_table(table, source=args.connection, provenance=dict(source.provenance))
     if args.log:
@@ -238,7 +251,8 @@ def _finish(args, session, source, config, init, added, why: str) -> None:
         run = _calibrate_one(args, log, config, init, added, args.output, args.states)
         _compare_realtime(session, run)
         if args.params or args.upload:
-            _parameters(args, source, run.calibration)
+            return _parameters(args, source, run.calibration)
+    return None
 
 
 def _compare_realtime(session, run) -> None:
@@ -255,29 +269,64 @@ def _compare_realtime(session, run) -> None:
     print(f"  the real-time filter's last estimate lies within {worst:.2f} standard deviations of the calibration")
 
 
-def _parameters(args, source, cal) -> None:
-    """The autopilot's parameters of ``cal``: written to --params, sent with --upload (confirmed on a terminal)."""
+def _parameters(args, source, cal):
+    """The autopilot's parameter set of ``cal`` for the compass the samples came from (``export_instance``, which
+    reads it from the samples' provenance), written to --params; returned for --upload (None without it)."""
+    from ..errors import InputError
     from ..io.autopilot import export_instance, to_ardupilot, to_px4, write_param_file
 
-    instance = args.mag if args.mag is not None else export_instance(cal, source.autopilot)[0]
-    params = to_ardupilot(cal, instance) if source.autopilot == "ardupilot" else to_px4(cal, instance)
+    if source.autopilot not in ("ardupilot", "px4"):
+        raise InputError(
+            f"the vehicle's autopilot is {source.autopilot or 'not known'}: magkf writes ArduPilot and PX4 "
+            "parameters; drop --params and --upload (the calibration file is written)",
+            args.connection,
+        )
+    instance, why = export_instance(cal, source.autopilot)
+    make = to_ardupilot if source.autopilot == "ardupilot" else to_px4
+    params = make(cal, instance)
+    print(f"  {source.autopilot} parameters of {why}")
     if args.params:
         write_param_file([params], args.params)
-        print(f"  {source.autopilot} parameters written to {args.params}")
-    if args.upload:
-        _upload(source, params.values)
+        print(f"  written to {args.params}")
+    return params if args.upload else None
 
 
-def _upload(source, values: dict) -> None:
+def _upload(args, source, params) -> int:
+    """Send ``params`` (asked first on a terminal); 0 when every one is confirmed, else 2 with one line (the outputs
+    are written either way, and say what was meant to be sent)."""
+    values = params.values
+    refusal = _upload_refused(source)
+    if refusal:
+        print(f"magkf: error: {args.connection}: parameters not sent: {refusal}", file=sys.stderr)
+        return 2
     if sys.stdin.isatty():
-        answer = input(f"send {len(values)} parameters to the vehicle ({', '.join(values)})? [y/N] ")
+        try:
+            answer = input(f"send {len(values)} parameters to the vehicle ({', '.join(values)})? [y/N] ")
+        except (EOFError, KeyboardInterrupt):
+            answer = ""
         if answer.strip().lower() not in ("y", "yes"):
             print("  parameters not sent")
-            return
+            return 0
     confirmed = source.set_parameters(values)
     refused = [name for name, ok in confirmed.items() if not ok]
     print(f"  {len(confirmed) - len(refused)} of {len(confirmed)} parameters sent and confirmed by the vehicle")
     if refused:
-        from ..errors import InputError
+        print(
+            f"magkf: error: {args.connection}: the vehicle did not confirm {', '.join(refused)}: check them before "
+            "flying",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
 
-        raise InputError(f"the vehicle did not confirm {', '.join(refused)}: check them before flying")
+
+def _upload_refused(source) -> str | None:
+    """Why the parameters may not be sent now, or None: an armed vehicle (its compass's calibration would change
+    under its estimator), or one whose own compass parameters were not all read (the calibration is then relative
+    to a field the parameters sent would not undo)."""
+    if getattr(source, "armed", False):
+        return "the vehicle is armed: land and disarm, then send the parameter file written"
+    missing = getattr(source, "missing_compass_parameters", ())
+    if missing:
+        return f"its compass parameters {', '.join(missing)} were not read, so the calibration is not of its raw field"
+    return None

@@ -28,7 +28,7 @@ class Recording:
     """
 
     def __init__(self, folder):
-        self.folder = Path(folder)
+        self.folder = Path(folder).resolve()  # a checkpoint is resumed from any working folder
         self._rows: list[dict] = []
         self.samples = sum(_rows_in(p) for p in self.parts())
 
@@ -53,6 +53,26 @@ class Recording:
         pd.DataFrame.from_records(self._rows).to_parquet(tmp, index=False)
         tmp.replace(part)
         self._rows = []
+
+    def truncate_after(self, t: float) -> int:
+        """Drop the samples after ``t`` (UNIX s): those a session killed after its last checkpoint had written,
+        which the resumed session will take again; returns how many."""
+        self._rows = [r for r in self._rows if r["time"] <= t]
+        dropped = 0
+        for part in self.parts():
+            table = pd.read_parquet(part)
+            after = table["time"].to_numpy() > t
+            if not after.any():
+                continue
+            dropped += int(after.sum())
+            if after.all():
+                part.unlink()
+            else:
+                tmp = part.with_suffix(".tmp")
+                table[~after].to_parquet(tmp, index=False)
+                tmp.replace(part)
+        self.samples -= dropped
+        return dropped
 
     def table(self) -> pd.DataFrame:
         """Every sample recorded (N rows, ``time`` a column), the parts' columns joined (NaN where a part lacks

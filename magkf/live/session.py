@@ -17,9 +17,9 @@ sample at a time. ``status(link, events)`` is the ``LiveStatus`` of the moment:
 * the running diagnosis: every ``diagnose_every_s`` seconds, ``diagnostics.diagnose.diagnose`` of the current
   calibration over the last ``window_s`` seconds of samples, the same decision rule as ``magkf diagnose``.
 
-The session holds a constant amount: the window's samples, a few sums, a 0.5-degree occupancy of the headings
-used. ``save(path)`` writes a checkpoint (the filter's state and covariance, its learned noise, the counts) that
-``LiveSession.load`` continues from.
+The session holds a bounded amount: the window's samples, at most ``HELD_S`` seconds of samples held for the
+start, a few sums, a 0.5-degree occupancy of the headings used. ``save(path)`` writes a checkpoint (the
+filter's state and covariance, its learned noise, the counts) that ``LiveSession.load`` continues from.
 """
 
 from __future__ import annotations
@@ -27,9 +27,11 @@ from __future__ import annotations
 import math
 import os
 import pickle
+import threading
 import time
 import warnings
 from collections import Counter, deque
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +51,9 @@ __all__ = ["RECENT_S", "HEADING_BINS", "LiveSession", "state_columns"]
 RECENT_S = 60.0
 #: Bins of the circle of headings whose occupancy by used epochs gives the heading still to turn through.
 HEADING_BINS = 720
-#: Seconds between attempts at the bootstrap while samples are held for it.
+#: Seconds between attempts at the bootstrap while samples are held for it, and the most seconds of samples held.
 BOOTSTRAP_RETRY_S = 10.0
+HELD_S = 600.0
 #: Filter steps whose times give the median and 99th percentile shown.
 STEP_TIMES = 2000
 #: The checkpoint file's kind, checked on loading.
@@ -97,6 +100,7 @@ class LiveSession:
         background: bool = False,
     ):
         self.recording, self.background, self._running = recording, background, None
+        self._unsaved = False
         self.config, self.init, self.effects, self.target = config, init, effects, target
         self.window_s, self.diagnose_every_s, self.alpha = window_s, diagnose_every_s, alpha
         self.calibrator = None
@@ -164,7 +168,7 @@ class LiveSession:
             self._recent_sum -= self._recent.popleft()[1]
         if result.updated and math.isfinite(result.nis):
             self._nis[0] += result.nis
-            self._nis[1] += 3 if vector else 1
+            self._nis[1] += 3 if vector and self.config.measure != "magnitude" else 1
         yaw = sample.get(YAW)
         if yaw is not None and math.isfinite(yaw):
             self._headings[int((yaw % 360.0) / 360.0 * HEADING_BINS) % HEADING_BINS] = True
@@ -197,8 +201,9 @@ class LiveSession:
         log = samples_log(self._held, "the samples held for the start")
         try:
             setup = prepare_run(prepare(log, self.config), self.config, None, tuple(self.effects or ()))
-        except InputError as exc:
-            self.event(f"no start yet ({exc.message}); waiting for more turning")
+        except (InputError, ValueError, np.linalg.LinAlgError) as exc:  # too short, turning too little, degenerate
+            self.event(f"no start yet ({getattr(exc, 'message', exc)}); waiting for more turning")
+            self._drop_oldest_held(t)
             return
         R, b = setup.layout.R_b(setup.x0)
         self.start_how = setup.how
@@ -208,6 +213,14 @@ class LiveSession:
         for sample in held:
             self._step(sample)
         self._next_diagnosis = t + self.diagnose_every_s
+
+    def _drop_oldest_held(self, t: float) -> None:
+        """Samples held beyond the last ``HELD_S`` s leave the bootstrap's stretch (counted ``before_start``; the
+        recording keeps them for the calibration written): a vehicle waiting on the ground does not make each
+        attempt longer than the last."""
+        keep = [s for s in self._held if s["time"] >= t - HELD_S]
+        self.counts["before_start"] += len(self._held) - len(keep)
+        self._held = keep
 
     # ------------------------------------------------------------------ the running diagnosis
     def _diagnose_when_due(self, t: float) -> None:
@@ -224,6 +237,17 @@ class LiveSession:
             self._running = _diagnosis_thread().submit(self._diagnosed, samples, cal)
         else:
             self.diagnosis = self._diagnosed(samples, cal)
+
+    def wait_for_diagnosis(self, timeout_s: float = 60.0) -> None:
+        """Let a background diagnosis still running finish (its result taken), at most ``timeout_s`` s."""
+        if self._running is not None:
+            from concurrent.futures import TimeoutError as Late
+
+            try:
+                self._running.result(timeout=timeout_s)
+            except Late:
+                return
+            self._collect_diagnosis()
 
     def _collect_diagnosis(self) -> None:
         """The background diagnosis's result taken once it is done."""
@@ -243,17 +267,15 @@ class LiveSession:
 
         span = samples[-1]["time"] - samples[0]["time"] if samples else 0.0
         figures = {"window_s": float(span), "epochs": len(samples), "candidates": [], "notes": []}
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+        with _notes_of_this_thread() as notes:
             try:
                 result, _ = diagnose(samples_log(samples, "the window"), self.config, cal, (), alpha=self.alpha)
             except InputError as exc:
-                return {**figures, "text": f"not diagnosed: {exc.message}"}
+                return {**figures, "text": f"not diagnosed: {exc.message}", "notes": notes}
         candidates = [
             {"effect": c.effect, "p_value": float(c.p_value), "significant": bool(c.significant)}
             for c in result.candidates
         ]
-        notes = [" ".join(str(w.message).split()) for w in caught]
         return {**figures, "candidates": candidates, "text": result.text, "notes": notes}
 
     # ------------------------------------------------------------------ what is shown
@@ -393,8 +415,15 @@ class LiveSession:
             self.recording.flush()
         path = Path(path)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as f:
-            pickle.dump({"kind": CHECKPOINT_KIND, "version": __version__, "session": self}, f)
+        try:
+            with open(tmp, "wb") as f:
+                pickle.dump({"kind": CHECKPOINT_KIND, "version": __version__, "session": self}, f)
+        except (pickle.PicklingError, AttributeError, TypeError) as exc:  # an effect class of a file not importable
+            tmp.unlink(missing_ok=True)
+            if not self._unsaved:
+                self.event(f"no checkpoint can be written ({exc}): a session stopped now cannot be resumed")
+            self._unsaved = True
+            return
         os.replace(tmp, path)
 
     @classmethod
@@ -412,7 +441,10 @@ class LiveSession:
             raise InputError(
                 f"written by magkf {saved['version']}, this is {__version__}: start without --resume", str(path)
             )
-        return saved["session"]
+        session = saved["session"]
+        if session.recording is not None and not math.isnan(session.last_time):
+            session.recording.truncate_after(session.last_time)  # taken again once the link repeats them
+        return session
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -422,6 +454,38 @@ class LiveSession:
 
 
 _THREAD = None
+_NOTES = threading.local()  # the warnings of a diagnosis, in the thread that runs it
+
+
+@contextmanager
+def _notes_of_this_thread():
+    """The warnings issued in this thread within the block, as one-line texts in the list yielded; those of other
+    threads go where they went before. (``warnings.catch_warnings`` changes the process's filters, which another
+    thread may be changing too.)"""
+    _show_through_notes()
+    _NOTES.texts = notes = []
+    try:
+        yield notes
+    finally:
+        _NOTES.texts = None
+
+
+def _show_through_notes() -> None:
+    """``warnings.showwarning`` wrapped once: a warning of a thread collecting notes is kept as one, any other
+    shown as before."""
+    if getattr(warnings.showwarning, "_magkf_notes", False):
+        return
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        texts = getattr(_NOTES, "texts", None)
+        if texts is not None:
+            texts.append(" ".join(str(message).split()))
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    show._magkf_notes = True
+    warnings.showwarning = show
 
 
 def _diagnosis_thread():

@@ -112,8 +112,16 @@ from ..io.tlog import (
 
 __all__ = ["ARDUPILOT_PARAMETERS", "PX4_PARAMETERS", "MavlinkSource"]
 
-#: The messages whose arrival may complete the samples waiting for attitude.
+#: ``HEARTBEAT.base_mode`` bit of an armed vehicle (MAV_MODE_FLAG, https://mavlink.io/en/messages/common.html).
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+#: ArduPilot's compass parameters whose value the reading depends on: one not read leaves the field partly
+#: calibrated, and parameters computed from it would not undo what the vehicle applies.
+ESSENTIAL = ("COMPASS_OFS", "COMPASS_DIA", "COMPASS_ODI")
+
+#: The messages whose arrival may complete the samples waiting for attitude, and the samples waiting beyond which
+#: they do so at once rather than at the end of the poll.
 ATTITUDE_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION")
+BACKLOG = 16
 
 #: ArduPilot's compass parameters read (``magkf.io.tlog`` and ``magkf.io.dataflash`` undo with these): each
 #: compass's offsets, soft-iron diagonal and off-diagonal, scale, motor compensation, device id and orientation,
@@ -253,7 +261,9 @@ class MavlinkSource:
     wait_s : float
         Seconds of the vehicle's clock a sample waits for an attitude message at or after its time.
     source_system, source_component : int
-        This ground station's MAVLink ids (255, 190: ``MAV_COMP_ID_MISSIONPLANNER``).
+        This ground station's MAVLink ids (250, 190): not 255, the ground stations' usual system id, which
+        ArduPilot's ground-station failsafe follows (``SYSID_MYGCS``): a session that ends must not look like the
+        pilot's ground station going silent.
 
     Attributes
     ----------
@@ -285,7 +295,7 @@ class MavlinkSource:
         rate_hz: float = 50.0,
         link_timeout_s: float = 3.0,
         wait_s: float = 0.5,
-        source_system: int = 255,
+        source_system: int = 250,
         source_component: int = 190,
     ):
         self.connection, self.baud, self.mag, self.raw = str(connection), baud, mag, raw
@@ -302,6 +312,8 @@ class MavlinkSource:
         self._events: list[str] = []
         self._vehicle: tuple[int, int] | None = None
         self._type: int | None = None
+        self.missing_compass_parameters: tuple = ()
+        self.armed = False  # HEARTBEAT.base_mode's MAV_MODE_FLAG_SAFETY_ARMED, the vehicle's last
         self._version: tuple[int, int, int] | None = None
         self._param_types: dict[str, int] = {}
         self._param_wanted: set[str] = set()
@@ -439,9 +451,10 @@ class MavlinkSource:
             msg = self._receive()
             if msg is not None:
                 self._handle(msg)
-                if self._pending and msg.get_type() in ATTITUDE_MESSAGES:
-                    # samples completed as their attitude comes, not after a backlog is read through: a slow
-                    # stream's kept values (SLOW_KEPT) still cover them
+                if len(self._pending) >= BACKLOG and msg.get_type() in ATTITUDE_MESSAGES:
+                    # a backlog (the link read through after a stall) completed as its attitude comes, while a
+                    # slow stream's kept values (SLOW_KEPT) still cover it; else once a poll (each completion
+                    # interpolates the attitude: 10 a second, not one a sample)
                     self._complete()
                 continue
             remaining = end - time.monotonic()
@@ -563,6 +576,7 @@ class MavlinkSource:
         if self._link_down:
             self._link_down = False
             self._event(f"link back after {now - self._last_packet:.1f} s")
+            self._sequence.last = None  # a counter that went on through the outage: its gap is not a count of losses
             self._ask_streams()
         self._last_packet = now
         self.counters["packets"] += 1
@@ -586,6 +600,7 @@ class MavlinkSource:
 
     def _on_heartbeat(self, msg, boot_us) -> None:
         self._type = int(msg.type)
+        self.armed = bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
 
     def _on_system_time(self, msg, boot_us) -> None:
         if msg.time_unix_usec <= UNIX_MIN_US:
@@ -754,9 +769,17 @@ class MavlinkSource:
         return value if abs(boot_us - t) <= self._stale_us(message) else None
 
     def _stale_us(self, name: str) -> float:
+        """How far (us) a slow stream's value may lie from a sample: ``STALE_INTERVALS`` of its median interval
+        (at least ``STALE_MIN_S``), the median taken again once a second of the vehicle's clock."""
+        now = self._vehicle_us()
+        cached = self._stale.get(name)
+        if cached is not None and now - cached[0] < 1e6:
+            return cached[1]
         times = self._arrivals.get(name, ())
         interval = float(np.median(np.diff(times))) if len(times) > 2 else 0.0
-        return max(STALE_INTERVALS * interval, STALE_MIN_S * 1e6)
+        stale = max(STALE_INTERVALS * interval, STALE_MIN_S * 1e6)
+        self._stale[name] = (now, stale)
+        return stale
 
     # ------------------------------------------------------------------ time
     def _utc_offset(self) -> float | None:
@@ -1017,17 +1040,29 @@ class MavlinkSource:
             self._params_read = True
 
     def _parameter_round(self, now: float) -> None:
-        """Ask for the parameters not answered yet; after the last round's wait, say which never were."""
-        if self._param_asked >= PARAM_ROUNDS:
+        """Ask for the parameters not answered yet (ArduPilot queues at most 20 requests for all its links,
+        ``param_requests`` in ``libraries/GCS_MAVLink/GCS_Param.cpp``, and drops those that do not fit: the
+        ``PARAM_ROUNDS`` rounds read its 51 where nothing else asks at the same time); after the last round's wait,
+        say which never were answered (its offsets and matrices among them: ``missing_compass_parameters``, and
+        ``--upload`` is refused)."""
+        due = sorted(self._param_wanted) if self._param_asked < PARAM_ROUNDS else []
+        if not due:
             missing = sorted(self._param_wanted)
-            self._event(
-                f"{len(missing)} parameters not answered after {PARAM_ROUNDS} requests (the firmware's defaults "
-                f"taken): {', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}"
-            )
+            if missing:
+                self._event(
+                    f"{len(missing)} parameters not answered after {PARAM_ROUNDS} requests (the firmware's defaults "
+                    f"taken): {', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}"
+                )
+            self.missing_compass_parameters = tuple(n for n in missing if n.startswith(ESSENTIAL))
+            if self.missing_compass_parameters:
+                self.provenance.setdefault("notes", []).append(
+                    f"compass parameters not read: {', '.join(self.missing_compass_parameters)}: the field is "
+                    "partly the vehicle's calibration"
+                )
             self._end_parameter_read()
             return
         system, component = self._target()
-        for name in sorted(self._param_wanted):
+        for name in due:
             self._send("param_request_read_send", system, component, name.encode(), -1)
         self._param_asked += 1
         self._param_sent = now
@@ -1084,6 +1119,7 @@ class MavlinkSource:
         self._att_source = "ATTITUDE"
         self._slow: dict[str, deque] = {}
         self._arrivals: dict[str, deque] = {}
+        self._stale: dict[str, tuple[float, float]] = {}
         self._last_out_boot = -math.inf
         self._rates_since_us = math.inf
         self._rate_reported: set = set()

@@ -130,3 +130,25 @@ def test_converged_once_every_standard_deviation_is_below_the_target(drive):
         tight.add(r)
     assert loose.converged and loose.status().converged and loose.status().target == 0.005
     assert not tight.converged
+
+
+def test_samples_recorded_after_the_last_checkpoint_are_not_kept_twice(drive, tmp_path, monkeypatch):
+    """A session killed after its recording wrote parts, before its next checkpoint: resumed, those samples are
+    taken again from the link, and the recording holds each once."""
+    from magkf.live import recording
+
+    monkeypatch.setattr(recording, "PART_ROWS", 300)  # parts written between checkpoints
+    rows = _rows(drive)
+    start = Calibration(R=drive.R, b=drive.b)
+    session = LiveSession(CONFIG, start, diagnose_every_s=0, recording=Recording(tmp_path / "s"))
+    for r in rows[:1000]:
+        session.add(r)
+    session.save(tmp_path / "s.live")
+    for r in rows[1000:1700]:  # two parts written after the checkpoint, 100 samples held
+        session.add(r)
+    assert len(session.recording.parts()) == 6
+    resumed = LiveSession.load(tmp_path / "s.live")
+    for r in rows[1000:]:
+        resumed.add(r)
+    times = resumed.recording.table()["time"].to_numpy()
+    np.testing.assert_array_equal(times, [r["time"] for r in rows])
