@@ -312,7 +312,7 @@ class MavlinkSource:
         self._events: list[str] = []
         self._vehicle: tuple[int, int] | None = None
         self._type: int | None = None
-        self.missing_compass_parameters: tuple = ()
+        self._never_answered: tuple = ()
         self.armed = False  # HEARTBEAT.base_mode's MAV_MODE_FLAG_SAFETY_ARMED, the vehicle's last
         self._version: tuple[int, int, int] | None = None
         self._param_types: dict[str, int] = {}
@@ -426,6 +426,16 @@ class MavlinkSource:
             raise InputError("the connection is not open: call open() first", self.connection)
         self._read_for(timeout_s)
         return self._hand_out()
+
+    @property
+    def missing_compass_parameters(self) -> tuple:
+        """ArduPilot's offsets and matrices of the compass the samples come from that the vehicle never answered
+        for (the field is then partly its calibration, and parameters computed from it would not undo what it
+        applies)."""
+        compass = (self.provenance.get("magnetometer") or {}).get("compass", 1)
+        suffix = "" if compass in (None, 1) else str(compass)
+        own = tuple(f"{stem}{suffix}_" for stem in ESSENTIAL)
+        return tuple(n for n in self._never_answered if n.startswith(own))
 
     def drain(self) -> list[dict]:
         """The samples still waiting for attitude, handed out now (attitude where it brackets them, else NaN), with
@@ -1053,12 +1063,7 @@ class MavlinkSource:
                     f"{len(missing)} parameters not answered after {PARAM_ROUNDS} requests (the firmware's defaults "
                     f"taken): {', '.join(missing[:8])}{' ...' if len(missing) > 8 else ''}"
                 )
-            self.missing_compass_parameters = tuple(n for n in missing if n.startswith(ESSENTIAL))
-            if self.missing_compass_parameters:
-                self.provenance.setdefault("notes", []).append(
-                    f"compass parameters not read: {', '.join(self.missing_compass_parameters)}: the field is "
-                    "partly the vehicle's calibration"
-                )
+            self._never_answered = tuple(missing)
             self._end_parameter_read()
             return
         system, component = self._target()

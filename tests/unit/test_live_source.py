@@ -703,3 +703,14 @@ def test_attitude_quaternion_is_used_where_it_is_what_comes(flight):
     truth = euler_to_quaternion(*(table[c].to_numpy()[rows] for c in ("yaw", "pitch", "roll")))
     angle = 2 * np.arccos(np.clip(np.abs(np.sum(got * truth, axis=1)), 0.0, 1.0))
     assert np.max(angle) <= 4 * 2.0**-23 + 1e-12
+
+
+def test_missing_compass_parameters_are_those_of_the_compass_read():
+    """Only the offsets and matrices of the compass whose field is read keep --upload from sending: another
+    compass's never answered do not matter to this calibration."""
+    source = MavlinkSource("udpin:127.0.0.1:0")
+    source._never_answered = ("COMPASS_OFS2_X", "COMPASS_DIA_Y", "COMPASS_MOT_X", "COMPASS_ODI3_Z")
+    source.provenance["magnetometer"] = {"compass": 1}
+    assert source.missing_compass_parameters == ("COMPASS_DIA_Y",)
+    source.provenance["magnetometer"] = {"compass": 2}
+    assert source.missing_compass_parameters == ("COMPASS_OFS2_X",)
