@@ -714,3 +714,23 @@ def test_missing_compass_parameters_are_those_of_the_compass_read():
     assert source.missing_compass_parameters == ("COMPASS_DIA_Y",)
     source.provenance["magnetometer"] = {"compass": 2}
     assert source.missing_compass_parameters == ("COMPASS_OFS2_X",)
+
+
+def test_slerp_is_scipys_along_the_shorter_arc():
+    """The live path's slerp of bracketed pairs gives the rotation of io.streams.interpolate_quaternions (scipy's
+    Slerp) to rounding, for random pairs, either sign of the second quaternion, and a pair of equal rotations."""
+    from scipy.spatial.transform import Rotation
+
+    from magkf.io.streams import interpolate_quaternions
+    from magkf.live.source import slerp
+
+    rng = np.random.default_rng(71)
+    q0 = Rotation.random(200, random_state=rng).as_quat()[:, [3, 0, 1, 2]]
+    q1 = Rotation.random(200, random_state=rng).as_quat()[:, [3, 0, 1, 2]]
+    q1[::2] *= -1.0
+    q1[-1] = q0[-1]
+    fraction = rng.uniform(0.0, 1.0, 200)
+    got = slerp(q0, q1, fraction)
+    for k in range(200):
+        want, _ = interpolate_quaternions([fraction[k]], [0.0, 1.0], np.vstack([q0[k], q1[k]]))
+        assert min(np.abs(got[k] - want[0]).max(), np.abs(got[k] + want[0]).max()) < 1e-12
