@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..blas import one_thread
 from . import common
 
 __all__ = ["add_parsers", "run_live"]
@@ -68,6 +69,7 @@ def add_parsers(sub) -> None:
     p.set_defaults(batch=False, smooth=False, json=False)
 
 
+@one_thread  # OpenBLAS's idle threads spin between the filter's small products: a few % of a core at any rate
 def run_live(args) -> int:
     """Calibrate a vehicle while it flies, from its MAVLink stream (magkf.live; docs/live.md).
 
