@@ -27,7 +27,12 @@ def add_parsers(sub) -> None:
         "HOST:PORT, or a serial device (/dev/ttyUSB0) with --baud",
     )
     p.add_argument("--baud", type=int, default=57600, help="serial link speed, bit/s (default 57600)")
-    p.add_argument("--mag", type=int, help="the compass instance (0, 1, 2; default: the first the vehicle sends)")
+    p.add_argument(
+        "--mag",
+        type=common.count_in(0, 3),
+        help="the magnetometer message read: 0 RAW_IMU, 1 SCALED_IMU2, 2 SCALED_IMU3, 3 HIGHRES_IMU (default: the "
+        "first the vehicle sends with a field)",
+    )
     p.add_argument("--init", help="calibration JSON to start from (default: bootstrapped from the first samples)")
     p.add_argument("--connect-timeout", type=float, default=30.0, metavar="S", help="seconds to wait for the vehicle")
     stop = p.add_argument_group("when to stop (and Ctrl-C, at any time)")
@@ -63,7 +68,7 @@ def add_parsers(sub) -> None:
     diag.add_argument("--window", type=float, default=120.0, metavar="S", help="seconds of samples diagnosed")
     diag.add_argument("--alpha", type=float, default=0.01, help="significance level over all candidates")
     common.add_model_options(p)
-    common.add_quiet_option(p)
+    p.add_argument("--quiet", action="store_true", help="no screen (the summary at the stop is still printed)")
     common.add_filter_options(p)
     common.add_effect_options(p, "effects to estimate with R and b (repeat the option)")
     p.set_defaults(batch=False, smooth=False, json=False)

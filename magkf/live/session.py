@@ -45,7 +45,7 @@ from ..errors import InputError
 from ..status import STATUS_NAMES, Status
 from .status import LiveStatus
 
-__all__ = ["RECENT_S", "HEADING_BINS", "LiveSession", "state_columns"]
+__all__ = ["RECENT_S", "HEADING_BINS", "LiveSession"]
 
 #: Seconds of used epochs the residual RMS shown is taken over.
 RECENT_S = 60.0
@@ -496,27 +496,6 @@ def _diagnosis_thread():
 
         _THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="magkf-diagnosis")
     return _THREAD
-
-
-def state_columns(result, names) -> dict:
-    """The per-epoch row of the states table (``--states``) of the ``EpochResult`` ``result``: time, status, NIS,
-    the calibrated field (nT) and headings (deg), the learned sensor noise (nT), and the estimate after the epoch
-    with its standard deviations (``names`` the state's, ``std_`` before each)."""
-    return {
-        "time": result.time,
-        "status": result.status,
-        "updated": result.updated,
-        "nis": result.nis,
-        "cal_x": result.field_body[0],
-        "cal_y": result.field_body[1],
-        "cal_z": result.field_body[2],
-        "magnitude_nt": result.magnitude_nt,
-        "heading_mag_deg": result.heading_mag_deg,
-        "heading_true_deg": result.heading_true_deg,
-        "noise_sensor_nt": result.noise_sensor_nt,
-        **dict(zip(names, result.x.tolist())),
-        **{f"std_{n}": v for n, v in zip(names, result.std.tolist())},
-    }
 
 
 def samples_log(samples: list, name: str):
