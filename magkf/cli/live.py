@@ -331,9 +331,9 @@ def _upload_refused(source) -> str | None:
     """Why the parameters may not be sent now, or None: an armed vehicle (its compass's calibration would change
     under its estimator), or one whose own compass parameters were not all read (the calibration is then relative
     to a field the parameters sent would not undo)."""
-    if getattr(source, "armed", False):
+    if source.armed:
         return "the vehicle is armed: land and disarm, then send the parameter file written"
-    missing = getattr(source, "missing_compass_parameters", ())
+    missing = source.missing_compass_parameters
     if missing:
         return f"its compass parameters {', '.join(missing)} were not read, so the calibration is not of its raw field"
     return None

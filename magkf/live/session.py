@@ -40,7 +40,7 @@ import pandas as pd
 from .. import __version__
 from ..calibration import Calibration
 from ..config import FilterConfig
-from ..conventions import YAW
+from ..conventions import YAW, heading_span_deg
 from ..errors import InputError
 from ..status import STATUS_NAMES, Status
 from .status import LiveStatus
@@ -104,7 +104,6 @@ class LiveSession:
         self.config, self.init, self.effects, self.target = config, init, effects, target
         self.window_s, self.diagnose_every_s, self.alpha = window_s, diagnose_every_s, alpha
         self.calibrator = None
-        self.start_how = "from the calibration given" if init is not None else ""
         self._held: list[dict] = []  # samples waiting for the bootstrap
         self._next_bootstrap = -math.inf
         self.counts: Counter = Counter()
@@ -206,7 +205,6 @@ class LiveSession:
             self._drop_oldest_held(t)
             return
         R, b = setup.layout.R_b(setup.x0)
-        self.start_how = setup.how
         self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
         self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")
         held, self._held = self._held, []
@@ -331,6 +329,7 @@ class LiveSession:
         return {"median": float(median), "p99": float(p99)}
 
     def _estimate_figures(self, figures: LiveStatus) -> None:
+        from ..online.results import nis_summary
         from ..online.verdict import verdict
 
         est = self.calibrator.estimator
@@ -346,7 +345,7 @@ class LiveSession:
         figures.noise = noise
         obs = self.observability()
         figures.undetermined = self.undetermined_words(obs)
-        figures.verdict = verdict(self._noise_summary(noise), self._nis_summary(), self._used_share(), obs)
+        figures.verdict = verdict(self._noise_summary(noise), nis_summary(*self._nis), self._used_share(), obs)
 
     def observability(self) -> dict:
         """``observability.analyse`` of the core on the information gathered, ``inv(P) - inv(P0)``."""
@@ -360,12 +359,9 @@ class LiveSession:
         return analyse(P0, 0.5 * (information + information.T), names, self.calibrator.layout.R(est.x))
 
     def heading_span_deg(self) -> float:
-        """Degrees of heading the used epochs cover: 360 less the largest run of empty 0.5-degree bins."""
-        occupied = np.flatnonzero(self._headings)
-        if len(occupied) == 0:
-            return 0.0
-        gaps = np.diff(np.r_[occupied, occupied[0] + HEADING_BINS]) - 1
-        return 360.0 - float(gaps.max()) * 360.0 / HEADING_BINS
+        """Degrees of heading the used epochs cover (``conventions.heading_span_deg`` of the occupied 0.5-degree
+        bins' centres: 360 less the largest gap between them)."""
+        return heading_span_deg((np.flatnonzero(self._headings) + 0.5) * 360.0 / HEADING_BINS)
 
     def undetermined_words(self, obs: dict) -> list:
         """What the data do not determine yet, in words: the heading still to turn through, then the directions
@@ -394,14 +390,6 @@ class LiveSession:
             "inflation": 1.0,
             "correlation_s": math.nan,
         }
-
-    def _nis_summary(self) -> dict:
-        from scipy.special import gammaincinv
-
-        total, dof = self._nis
-        if dof == 0:
-            return {"mean": math.nan, "band": [math.nan, math.nan]}
-        return {"mean": total / dof, "band": [float(2.0 * gammaincinv(dof / 2.0, q) / dof) for q in (0.025, 0.975)]}
 
     def _used_share(self) -> float:
         n = sum(self.counts.values())

@@ -26,6 +26,7 @@ __all__ = [
     "build_run",
     "noise_summary",
     "FitSums",
+    "nis_summary",
     "repeated_median",
     "epoch_columns",
     "epoch_residuals",
@@ -346,19 +347,24 @@ class FitSums:
 
     def nis_summary(self, inflation: float) -> dict:
         """Mean NIS per degree of freedom of the updated epochs and its two-sided 95 % chi-square band for the
-        effective number of independent epochs (``n / inflation``)."""
-        from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
-
-        total, dof = self.nis
-        if dof == 0:
-            return {"mean": float("nan"), "band": [float("nan"), float("nan")]}
-        total_dof = max(dof / max(inflation, 1.0), 1.0)
-        band = [float(2.0 * gammaincinv(total_dof / 2.0, q) / total_dof) for q in (0.025, 0.975)]
-        return {"mean": total / dof, "band": band}
+        effective number of independent epochs (``n / inflation``; ``nis_summary``)."""
+        return nis_summary(*self.nis, inflation)
 
     @property
     def used_share(self) -> float:
         return self.n_updated_any / self.n_epochs if self.n_epochs else 0.0
+
+
+def nis_summary(total: float, dof: int, inflation: float = 1.0) -> dict:
+    """``{"mean", "band"}``: the mean NIS per degree of freedom of a sum ``total`` over ``dof`` degrees of freedom,
+    and its two-sided 95 % chi-square band for ``dof / inflation`` independent ones (NaN for none)."""
+    from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
+
+    if dof == 0:
+        return {"mean": float("nan"), "band": [float("nan"), float("nan")]}
+    total_dof = max(dof / max(inflation, 1.0), 1.0)
+    band = [float(2.0 * gammaincinv(total_dof / 2.0, q) / total_dof) for q in (0.025, 0.975)]
+    return {"mean": total / dof, "band": band}
 
 
 def _add_squares(acc: list, values) -> None:
