@@ -348,19 +348,23 @@ class _Records:
 
 
 # ------------------------------------------------------------------ the vehicle's streams
+def is_autopilot_heartbeat(msg) -> bool:
+    """Whether ``msg`` is a vehicle's autopilot's ``HEARTBEAT``: of component 1, neither a ground station's
+    (``MAV_TYPE_GCS``) nor one of no autopilot (``MAV_AUTOPILOT_INVALID``)."""
+    return (
+        msg.get_type() == "HEARTBEAT"
+        and msg.get_srcComponent() == AUTOPILOT_COMPONENT
+        and msg.type != MAV_TYPE_GCS
+        and msg.autopilot != MAV_AUTOPILOT_INVALID
+    )
+
+
 def _choose_vehicle(messages: list, notes: list) -> tuple[int, int, int | None]:
     """``(sysid, compid, MAV_AUTOPILOT code or None)`` of the first vehicle's autopilot: the first
     ``HEARTBEAT`` of component 1 that is not a ground station, else the source of the first magnetometer
     message; other sources but ground stations are noted."""
     chosen = next(
-        (
-            (m.get_srcSystem(), AUTOPILOT_COMPONENT, int(m.autopilot))
-            for _, m in messages
-            if m.get_type() == "HEARTBEAT"
-            and m.get_srcComponent() == AUTOPILOT_COMPONENT
-            and m.type != MAV_TYPE_GCS
-            and m.autopilot != MAV_AUTOPILOT_INVALID
-        ),
+        ((m.get_srcSystem(), AUTOPILOT_COMPONENT, int(m.autopilot)) for _, m in messages if is_autopilot_heartbeat(m)),
         None,
     )
     if chosen is None:

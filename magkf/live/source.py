@@ -103,6 +103,7 @@ from ..io.tlog import (
     UNKNOWN_U16,
     VEHICLE_OF_TYPE,
     boot_time_us,
+    is_autopilot_heartbeat,
     is_calibrated,
     not_calibrated,
     param_value,
@@ -581,12 +582,7 @@ class MavlinkSource:
     def _choose(self, msg, name: str, source: tuple[int, int]) -> None:
         """Keep the messages before the vehicle's HEARTBEAT; on it, take that vehicle and handle them."""
         self._early.append(msg)
-        if (
-            name == "HEARTBEAT"
-            and source[1] == AUTOPILOT_COMPONENT
-            and msg.type != MAV_TYPE_GCS
-            and msg.autopilot != MAV_AUTOPILOT_INVALID
-        ):
+        if is_autopilot_heartbeat(msg):
             self._vehicle, self._type = source, int(msg.type)
             self.autopilot = AUTOPILOTS.get(int(msg.autopilot))
             self.provenance["vehicle"] = {"sysid": source[0], "compid": source[1], "autopilot": self.autopilot}
