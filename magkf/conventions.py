@@ -191,17 +191,22 @@ def quaternion_to_euler(q_wxyz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def euler_to_quaternion(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
     """Unit quaternions ``(..., 4)``, scalar first, of ZYX Euler angles in degrees: ``q = qz(yaw) qy(pitch)
     qx(roll)``, rotating body (FRD) vectors into NED (the inverse of ``quaternion_to_euler``)."""
+    if all(isinstance(a, float) for a in (yaw_deg, pitch_deg, roll_deg)):  # one attitude (real time): floats
+        y, p, r = (math.radians(a) / 2 for a in (yaw_deg, pitch_deg, roll_deg))
+        return np.array(_quaternion(math.cos(y), math.sin(y), math.cos(p), math.sin(p), math.cos(r), math.sin(r)))
     y, p, r = (np.radians(np.asarray(a, float)) / 2 for a in (yaw_deg, pitch_deg, roll_deg))
-    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
-    return np.stack(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ],
-        axis=-1,
-    )
+    return np.stack(_quaternion(np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)), axis=-1)
+
+
+def _quaternion(cy, sy, cp, sp, cr, sr) -> list:
+    """The components ``w, x, y, z`` of ``qz(yaw) qy(pitch) qx(roll)`` from the cosines and sines of the half
+    angles (floats or arrays)."""
+    return [
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ]
 
 
 def ned_to_body(c_nb, v_ned) -> np.ndarray:

@@ -199,6 +199,26 @@ class ReferenceFieldCache:
         d = np.array([lat - p0[0], (lon - p0[1] + 180.0) % 360.0 - 180.0, alt_m - p0[2]])
         return f0 + grad @ d
 
+    def ned_many(self, time_s, lat, lon, alt_m) -> np.ndarray:
+        """``ned`` of consecutive epochs (each (N,): UNIX s, deg, deg, m), in turn: (N, 3) nT. Where none of
+        them needs a new evaluation (the first's taken by ``ned``), the rest are corrected from the cache at
+        once."""
+        time_s, lat, lon, alt_m = (np.asarray(a, float) for a in (time_s, lat, lon, alt_m))
+        if not len(time_s):
+            return np.empty((0, 3))
+        first = self.ned(float(time_s[0]), float(lat[0]), float(lon[0]), float(alt_m[0]))
+        day, p0, f0, grad = self._key
+        d = np.column_stack([lat - p0[0], (lon - p0[1] + 180.0) % 360.0 - 180.0, alt_m - p0[2]])
+        dn = np.radians(d[:, 0]) * EARTH_RADIUS_M
+        de = np.radians(d[:, 1]) * EARTH_RADIUS_M * np.cos(np.radians(lat))
+        near = np.sqrt(dn * dn + de * de + d[:, 2] ** 2) <= self.max_distance_m
+        if np.all(near & (np.floor_divide(time_s, 86400) == day)):
+            out = f0 + d @ grad.T
+            out[0] = first
+            return out
+        rest = [self.ned(*map(float, v)) for v in zip(time_s[1:], lat[1:], lon[1:], alt_m[1:])]
+        return np.array([first, *rest])
+
     def _distance(self, lat: float, lon: float, alt_m: float) -> float:
         lat0, lon0, alt0 = self._key[1].tolist()
         dn = math.radians(lat - lat0) * EARTH_RADIUS_M

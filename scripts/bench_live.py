@@ -14,6 +14,11 @@ The runs are shorter than the running diagnosis's period (60 s), so its cost is 
 ``LiveSession.diagnose_window`` over a 120 s window at the rate (median of ``--repeat``), divided by 60 s, is the
 share it adds; the total is the sum.
 
+``live`` filters the samples of each poll of the link (a tenth of a second) as one block, one step
+(``OnlineCalibrator.step_block``); the step's figures are per step, with the median samples per step. How much of
+a step's time is the machine waking from idle rather than the work is measured apart, in this process: the same
+steps of 10 samples back to back, and each after 0.1 s asleep (as ``live`` sleeps between polls).
+
     python scripts/bench_live.py [--rates 10,50,100] [--seconds 40] [--repeat 3]
 
 Linux only (``/proc``).
@@ -153,6 +158,35 @@ def diagnosis_share(rate: float, repeat: int, seed: int) -> float:
     return statistics.median(times) / 60.0
 
 
+def wake_cost(blocks: int = 150, samples: int = 10, idle_s: float = 0.1) -> dict:
+    """Step times (ms, median and p99) of ``blocks`` steps of ``samples`` samples at 100 Hz, back to back and each
+    after ``idle_s`` asleep; and of single samples (``OnlineCalibrator.step``, as a user's loop calls it) each
+    after 10 ms asleep, as they would arrive at 100 Hz."""
+    from magkf.blas import one_thread
+    from magkf.config import FilterConfig
+    from magkf.online.realtime import OnlineCalibrator
+
+    sim = simulate_drive(DriveConfig(duration_s=blocks * samples / 100.0 + 1.0, rate_hz=100.0, seed=70))
+    rows = sim.table.reset_index().to_dict("records")
+
+    @one_thread
+    def run(pause: float, size: int = samples) -> list:
+        calibrator = OnlineCalibrator(Calibration(R=sim.R + 0.005, b=sim.b + 80.0), FilterConfig())
+        times = []
+        for i in range(0, blocks * samples, size):
+            time.sleep(pause)
+            start = time.perf_counter()
+            calibrator.step_block(rows[i : i + size])
+            times.append(time.perf_counter() - start)
+        return np.percentile(np.array(times[10:]) * 1e3, [50, 99]).tolist()
+
+    return {
+        "back to back": run(0.0),
+        f"after {idle_s:g} s idle": run(idle_s),
+        "one sample after 0.01 s idle": run(0.01, 1),
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rates", default="10,50,100", help="magnetometer rates, Hz")
@@ -163,7 +197,7 @@ def main() -> int:
     print(f"magkf live, {args.seconds:g} s runs, medians of {args.repeat}; load {os.getloadavg()[0]:.2f}")
     print(
         f"{'rate':>6s} {'live loop':>10s} {'diagnosis':>10s} {'total':>8s} {'bare receiver':>14s} "
-        f"{'step median':>12s} {'step p99':>9s}   (shares of one core)"
+        f"{'step median':>12s} {'step p99':>9s} {'samples/step':>13s}   (shares of one core)"
     )
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -175,11 +209,15 @@ def main() -> int:
             diagnosis = diagnosis_share(rate, args.repeat, seed=50 + k)
             median = statistics.median(r["step_ms"].get("median", np.nan) for r in lives)
             p99 = statistics.median(r["step_ms"].get("p99", np.nan) for r in lives)
+            samples = statistics.median(r["step_ms"].get("samples", np.nan) for r in lives)
             print(
                 f"{rate:4.0f} Hz {100 * share:8.2f} % {100 * diagnosis:8.2f} % {100 * (share + diagnosis):6.2f} % "
-                f"{100 * statistics.median(bares):12.2f} % {median:9.3f} ms {p99:6.3f} ms",
+                f"{100 * statistics.median(bares):12.2f} % {median:9.3f} ms {p99:6.3f} ms {samples:13.0f}",
                 flush=True,
             )
+    print("steps of 10 samples at 100 Hz, in this process (median / p99):")
+    for how, (median, p99) in wake_cost().items():
+        print(f"  {how:>28s}: {median:.3f} / {p99:.3f} ms", flush=True)
     return 0
 
 

@@ -15,6 +15,8 @@ __all__ = ["add_parsers", "run_live"]
 
 #: Seconds between two statuses shown (the screen, --json-lines).
 SHOWN_EVERY_S = 1.0
+#: Seconds each poll of the link reads for; its samples are filtered as one step (see ``LiveSession.add_many``).
+POLL_S = 0.1
 
 
 def add_parsers(sub) -> None:
@@ -193,8 +195,7 @@ def _run(args, session, source, checkpoint: Path) -> str:
     try:
         while True:
             with held():  # a Ctrl-C waits for the samples read to be filtered and counted, not half of one
-                for sample in source.poll(0.1):
-                    session.add(sample)
+                session.add_many(source.poll(POLL_S))
                 for text in source.take_events():
                     session.event(text)
                 now = time.monotonic()
@@ -209,8 +210,7 @@ def _run(args, session, source, checkpoint: Path) -> str:
                 break
     except KeyboardInterrupt as exc:
         why = f"stopped ({exc or 'SIGINT'})"
-    for sample in source.drain():  # the samples still waiting for their attitude
-        session.add(sample)
+    session.add_many(source.drain())  # the samples still waiting for their attitude
     session.wait_for_diagnosis()
     session.save(checkpoint)
     if display is not None:

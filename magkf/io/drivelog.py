@@ -58,6 +58,7 @@ __all__ = [
     "from_table",
     "whole_log_checks",
     "read_drive_log",
+    "read_samples",
     "write_drive_log",
     "write_frames",
     "FrameWriter",
@@ -76,29 +77,59 @@ def read_sample(sample, names, time=None) -> dict[str, float]:
     Raises InputError for a sample that is not such a mapping (a bare array names no columns), and for a
     number beyond the range a log may hold (``RANGES``; time: ``TIME_RANGE_S``).
     """
-    if not hasattr(sample, "keys"):
-        raise InputError(
-            f"a sample maps column names to values (a dict or a pandas row), not a {type(sample).__name__}"
-        )
-
-    out = {}
-    for name in (*names, TIME) if time is None else names:
-        try:
-            out[name] = float(sample[name])
-        except (KeyError, IndexError, TypeError, ValueError, OverflowError):  # OverflowError: 10**400
-            out[name] = math.nan
-    if time is None:
-        time = out[TIME]
-        if not math.isfinite(time):
-            time = getattr(sample, "name", None)
-    try:
-        out[TIME] = float(time)
-    except (TypeError, ValueError, OverflowError):
-        out[TIME] = float("nan")
+    out = dict(zip((*names, TIME), _sample_values(sample, names, time)))
     for name, (lo, hi, _) in ((TIME, (*TIME_RANGE_S, "s")), *RANGES.items()):  # a log would be refused
         v = out.get(name, math.nan)
         if math.isfinite(v) and not lo <= v <= hi:
             raise InputError(f"value {v!r} outside [{lo:g}, {hi:g}] (UNIX s, degrees, m, nT)", column=name)
+    return out
+
+
+def read_samples(samples, names) -> np.ndarray:
+    """The values of ``names`` and the time in consecutive samples, as ``read_sample`` reads each: (k, len(names)
+    + 1) floats, the time last (UNIX s).
+
+    Raises InputError as ``read_sample`` does, naming the sample (counted from 0) of the first value refused.
+    """
+    values = np.array([_sample_values(sample, names, None) for sample in samples], float).reshape(-1, len(names) + 1)
+    checked = [(len(names), TIME, (*TIME_RANGE_S, "s"))]
+    checked += [(i, name, RANGES[name]) for i, name in enumerate(names) if name in RANGES]
+    index = [i for i, _, _ in checked]
+    lo, hi = (np.array([r[j] for _, _, r in checked]) for j in (0, 1))
+    checked_values = values[:, index]
+    with np.errstate(invalid="ignore"):
+        bad = np.isfinite(checked_values) & ((checked_values < lo) | (checked_values > hi))
+    if bad.any():
+        row, col = (int(a[0]) for a in np.nonzero(bad))
+        _, name, (low, high, _) = checked[col]
+        v = float(values[row, index[col]])
+        raise InputError(f"sample {row}: value {v!r} outside [{low:g}, {high:g}] (UNIX s, degrees, m, nT)", column=name)
+    return values
+
+
+def _sample_values(sample, names, time) -> list[float]:
+    """The floats of ``names`` in ``sample`` and its time last (see ``read_sample``)."""
+    if not hasattr(sample, "keys"):
+        raise InputError(
+            f"a sample maps column names to values (a dict or a pandas row), not a {type(sample).__name__}"
+        )
+    out = []
+    for name in names:
+        try:
+            out.append(float(sample[name]))
+        except (KeyError, IndexError, TypeError, ValueError, OverflowError):  # OverflowError: 10**400
+            out.append(math.nan)
+    if time is None:
+        try:
+            time = float(sample[TIME])
+        except (KeyError, IndexError, TypeError, ValueError, OverflowError):
+            time = math.nan
+        if not math.isfinite(time):
+            time = getattr(sample, "name", None)
+    try:
+        out.append(float(time))
+    except (TypeError, ValueError, OverflowError):
+        out.append(math.nan)
     return out
 
 

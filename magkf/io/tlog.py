@@ -136,6 +136,7 @@ __all__ = [
     "TelemetryLogReader",
     "boot_time_us",
     "correction_model",
+    "highres_unit",
     "is_calibrated",
     "magnetometer_instances",
     "mavlink_dialect",
@@ -656,7 +657,7 @@ def _no_magnetometer(vehicle: _Vehicle) -> str:
     )
 
 
-def _highres_unit(field: np.ndarray, autopilot: str | None, notes: list) -> tuple[float, str]:
+def highres_unit(field: np.ndarray, autopilot: str | None, notes: list) -> tuple[float, str]:
     """nT per count of a ``HIGHRES_IMU`` field (M, 3) and its description: gauss where the magnitudes are
     those of the Earth's field in gauss, else ArduPilot's ``get_field() * 1000`` (1e-3 mG = 0.1 nT)."""
     median = float(np.median(np.linalg.norm(field, axis=1))) if len(field) else 0.0
@@ -993,7 +994,7 @@ def _magnetometer_columns(
     calibrated = _is_calibrated(message, vehicle.autopilot, firmware)
     info = {"autopilot": vehicle.autopilot, "message_calibrated": calibrated}
     if message == "HIGHRES_IMU":
-        per_count, unit_text = _highres_unit(field, vehicle.autopilot, notes)
+        per_count, unit_text = highres_unit(field, vehicle.autopilot, notes)
         nt = field * per_count
     else:
         nt, unit_text = _untruncate(field) * NT_PER_MILLIGAUSS, "mG, int16 truncation centred, x100 -> nT"

@@ -122,10 +122,14 @@ def _packed(label: str, items: list[str], width: int, lines: int) -> list[str]:
 
 
 def _header(status) -> str:
+    """The session's time, the last sample's, and the filter step's (median and p99; one step a poll, its samples
+    filtered as one block)."""
+    text = f"{_num(status.elapsed_s, '.1f', 's')} ({_clock(status.elapsed_s)}) at {_utc(status.utc)}"
     step = getattr(status, "step_ms", None) or {}
-    text = f"{_num(status.elapsed_s, '.1f', 's')} ({_clock(status.elapsed_s)}), last sample {_utc(status.utc)}"
     if step:
-        text += f", step {_num(step.get('median'), '.2f')}/{_num(step.get('p99'), '.2f', 'ms')} median/p99"
+        text += f"; step {_num(step.get('median'), '.2f', 'ms')}, p99 {_num(step.get('p99'), '.2f', 'ms')}"
+        if step.get("samples"):
+            text += f", {step['samples']:.0f} samples"
     return _line("time", text)
 
 
@@ -257,8 +261,8 @@ def render(status, width: int = WIDTH) -> list[str]:
     Returns
     -------
     list of str
-        About 15 to 21 lines without line ends: time, epochs, link and stream rates, residual and learned noise,
-        the table of ``b`` (nT) and the diagonal of ``R`` (no unit) with their standard deviations,
+        About 15 to 21 lines without line ends: time and the filter step, epochs, link and stream rates, residual
+        and learned noise, the table of ``b`` (nT) and the diagonal of ``R`` (no unit) with their standard deviations,
         what is undetermined, the verdict, the running diagnosis, convergence, the last events.
     """
     cut, width = int(width), max(int(width), 40)

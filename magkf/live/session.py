@@ -1,11 +1,13 @@
-"""A live calibration: a vehicle's samples fed one at a time to ``magkf.online.realtime.OnlineCalibrator``, and
+"""A live calibration: a vehicle's samples fed to ``magkf.online.realtime.OnlineCalibrator`` as they arrive, and
 what an operator is shown of it.
 
-``LiveSession.add(sample)`` takes one sample of the canonical columns (``source.MavlinkSource.poll`` makes them;
-``time`` UNIX s, nT, degrees). Without a start (``init`` None) the samples are held until the first stretch
-bootstraps a calibration as ``calibrate`` bootstraps one (``prepare.prepare_run`` over the samples held: at least
-``config.bootstrap_s`` seconds that turn enough), then the held samples are filtered and the session goes on a
-sample at a time. ``status(link, events)`` is the ``LiveStatus`` of the moment:
+``LiveSession.add_many(samples)`` takes the samples of one poll of the link, in the canonical columns
+(``source.MavlinkSource.poll`` makes them; ``time`` UNIX s, nT, degrees), and filters them as one block
+(``OnlineCalibrator.step_block``: the filter's fixed cost per update paid once a poll, not once a sample).
+Without a start (``init`` None) the samples are held until the first stretch bootstraps a calibration as
+``calibrate`` bootstraps one (``prepare.prepare_run`` over the samples held: at least ``config.bootstrap_s``
+seconds that turn enough), then the held samples are filtered in blocks of ``config.block_s`` and the session goes
+on a poll at a time. ``status(link, events)`` is the ``LiveStatus`` of the moment:
 
 * epochs by status; the vector residual's RMS over the last ``RECENT_S`` seconds of used epochs (nT); the learned
   noise; ``b`` and the diagonal of ``R`` with their standard deviations;
@@ -116,43 +118,62 @@ class LiveSession:
         self._next_diagnosis = math.nan
         self.diagnosis: dict | None = None
         self.events: deque = deque(maxlen=8)
-        self._step_s: deque = deque(maxlen=STEP_TIMES)
+        self._step_s: deque = deque(maxlen=STEP_TIMES)  # seconds of each block's step, and its samples
+        self._step_sizes: deque = deque(maxlen=STEP_TIMES)
         self.field_nt = math.nan
         if init is not None:
             self._start(init)
 
     # ------------------------------------------------------------------ samples
     def add(self, sample: dict):
-        """Take one sample (a dict of canonical columns, ``time`` UNIX s); returns its ``EpochResult``, or None
-        while it is held for the bootstrap, and for a sample not after the previous one (counted ``late``, left
-        out: a resumed session's link may repeat what it had sent)."""
-        t = float(sample["time"])
-        if not t > self.last_time and not math.isnan(self.last_time):
-            self.counts["late"] += 1
-            return None
-        if self.recording is not None:
-            self.recording.add(sample)
-        if math.isnan(self.first_time):
-            self.first_time = t
-        self.last_time = t
-        self._keep_in_window(sample, t)
-        if self.calibrator is None:
-            self._held.append(sample)
-            if t >= self._next_bootstrap:
-                self._try_bootstrap(t)
-            return None
-        result = self._step(sample)
-        self._diagnose_when_due(t)
-        return result
+        """Take one sample (a dict of canonical columns, ``time`` UNIX s): ``add_many`` of one. Returns its
+        ``EpochResult``, or None while it is held for the bootstrap or when it is late."""
+        return self.add_many([sample])[0]
 
-    def _step(self, sample: dict):
+    def add_many(self, samples: list[dict]) -> list:
+        """Take the samples of one poll (dicts of canonical columns, ``time`` UNIX s, in time order), filtered as
+        one block (``OnlineCalibrator.step_block``, as post-processing filters a block of epochs: a poll of a
+        tenth of a second is shorter than its ``block_s``). Returns each sample's ``EpochResult``, or None while
+        it is held for the bootstrap, and for a sample not after the previous one (counted ``late``, left out:
+        a resumed session's link may repeat what it had sent)."""
+        results: list = [None] * len(samples)
+        taken = []
+        for i, sample in enumerate(samples):
+            t = float(sample["time"])
+            if not t > self.last_time and not math.isnan(self.last_time):
+                self.counts["late"] += 1
+                continue
+            if self.recording is not None:
+                self.recording.add(sample)
+            if math.isnan(self.first_time):
+                self.first_time = t
+            self.last_time = t
+            self._keep_in_window(sample, t)
+            taken.append(i)
+        if not taken:
+            return results
+        if self.calibrator is None:
+            self._held.extend(samples[i] for i in taken)
+            if self.last_time >= self._next_bootstrap:
+                self._try_bootstrap(self.last_time)
+            return results
+        for i, result in zip(taken, self._step([samples[i] for i in taken])):
+            results[i] = result
+        self._diagnose_when_due(self.last_time)
+        return results
+
+    def _step(self, samples: list[dict]) -> list:
+        """Filter ``samples`` as one block; their results, counted."""
         start = time.perf_counter()
-        result = self.calibrator.step(sample)
+        results = self.calibrator.step_block(samples)
         self._step_s.append(time.perf_counter() - start)
-        self.counts[result.status] += 1
-        if result.status == STATUS_NAMES[Status.USED]:
-            self._add_used(sample, result)
-        return result
+        self._step_sizes.append(len(samples))
+        used = STATUS_NAMES[Status.USED]
+        for sample, result in zip(samples, results):
+            self.counts[result.status] += 1
+            if result.status == used:
+                self._add_used(sample, result)
+        return results
 
     def _add_used(self, sample: dict, result) -> None:
         """The used epoch's residual, NIS and heading taken into the running figures."""
@@ -196,6 +217,7 @@ class LiveSession:
         if t - self.first_time < self.config.bootstrap_s:
             return
         from ..online.prepare import prepare, prepare_run
+        from ..online.run import blocks
 
         log = samples_log(self._held, "the samples held for the start")
         try:
@@ -208,8 +230,9 @@ class LiveSession:
         self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
         self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")
         held, self._held = self._held, []
-        for sample in held:
-            self._step(sample)
+        times = np.array([sample["time"] for sample in held])
+        for i0, i1 in zip(*blocks(times, self.config.block_s)):  # in blocks, as post-processing filters a log
+            self._step(held[i0:i1])
         self._next_diagnosis = t + self.diagnose_every_s
 
     def _drop_oldest_held(self, t: float) -> None:
@@ -326,7 +349,7 @@ class LiveSession:
         if not self._step_s:
             return {}
         median, p99 = np.percentile(np.asarray(self._step_s) * 1e3, [50, 99])
-        return {"median": float(median), "p99": float(p99)}
+        return {"median": float(median), "p99": float(p99), "samples": float(np.median(self._step_sizes))}
 
     def _estimate_figures(self, figures: LiveStatus) -> None:
         from ..online.results import nis_summary

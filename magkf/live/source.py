@@ -21,8 +21,10 @@ Compass parameters
     Read one by one with ``PARAM_REQUEST_READ`` (``param_index`` -1, by name; the vehicle answers with
     ``PARAM_VALUE``; https://mavlink.io/en/services/parameter.html), in up to ``PARAM_ROUNDS`` rounds that ask again
     for the names not answered (a request or its answer may be lost; a firmware without a parameter does not
-    answer). A round ends ``PARAM_ROUND_S`` after its requests, or, once an answer has shown the link's round trip,
-    ``PARAM_ROUND_TRIPS`` round trips (at least ``PARAM_MIN_S``) after its requests or its last answer. ArduPilot's
+    answer), ``PARAM_WINDOW`` requests in flight at a time (ArduPilot drops what its queue of 20 cannot hold; a
+    vehicle that answers none of the first window is asked the rest at once). The next requests go as soon as those
+    in flight are answered, else ``PARAM_ROUND_S`` after them or, once an answer has shown the link's round trip,
+    ``PARAM_ROUND_TRIPS`` round trips (at least ``PARAM_MIN_S``) after them or their last answer. ArduPilot's
     ``ARDUPILOT_PARAMETERS`` (the ``COMPASS_*`` set that ``magkf.io.tlog`` undoes), PX4's ``PX4_PARAMETERS``
     (``CAL_MAGn_*``). ``open`` returns once they are answered or their rounds are over; a reboot asks for them
     again. ArduPilot's field is then uncorrected exactly as ``magkf.io.tlog`` uncorrects it (the same functions,
@@ -84,7 +86,7 @@ from collections import deque
 
 import numpy as np
 
-from ..conventions import MAG, NT_PER_UNIT, euler_to_quaternion, quaternion_to_euler
+from ..conventions import MAG, euler_to_quaternion, quaternion_to_euler
 from ..errors import InputError
 from ..io.dataflash import NT_PER_MILLIGAUSS, _state_index, _untruncate, _version
 from ..io.streams import bracket
@@ -103,6 +105,7 @@ from ..io.tlog import (
     UNKNOWN_U16,
     VEHICLE_OF_TYPE,
     boot_time_us,
+    highres_unit,
     is_autopilot_heartbeat,
     is_calibrated,
     not_calibrated,
@@ -149,6 +152,12 @@ PARAM_ROUND_S, PARAM_ROUNDS = 1.0, 3
 #: Once an answer has shown the link's round trip, a round ends this many round trips (at least ``PARAM_MIN_S``)
 #: after its requests or its last answer, whichever is later.
 PARAM_ROUND_TRIPS, PARAM_MIN_S = 4.0, 0.2
+#: Requests in flight at most: a round asks its names this many at a time, the next ones once these are answered
+#: or their wait is over. ArduPilot queues 20 requests for all its links together and drops what does not fit
+#: (``param_requests`` in ``libraries/GCS_MAVLink/GCS_Param.cpp``); this leaves room for another ground station.
+#: A vehicle that has answered none of the first window in its wait (one that does not answer parameters: a
+#: one-way forwarded port) is asked the rest of each round at once, so that it is not waited for window by window.
+PARAM_WINDOW = 16
 #: ``MAV_CMD``s and the ``MAV_DATA_STREAM`` groups of ArduPilot asked for, with the messages magkf reads in each.
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE = 511, 512
 COMMAND_NAMES = {
@@ -185,6 +194,11 @@ SLOW_KEPT = 16
 HEARTBEAT_S, RECONNECT_S = 1.0, 1.0
 #: Packets kept for redoing the sequence counting at a reboot; receive buffer asked for a UDP socket (bytes).
 SEQUENCE_HISTORY, UDP_BUFFER_BYTES = 256, 1 << 21
+#: The link is read in bursts: once what has arrived is handled, the reader sleeps this long (s) before reading
+#: again, rather than waking at each packet (a vehicle streaming 300 packets a second would wake it 300 times);
+#: after a burst of ``BURST_PACKETS`` or more it reads on at once (a fast replay, a backlog), so that what waits
+#: in the receive buffer stays far below its size.
+BURST_S, BURST_PACKETS = 0.02, 64
 #: ``MAV_PARAM_TYPE_REAL32``.
 PARAM_REAL32 = 9
 
@@ -335,6 +349,9 @@ class MavlinkSource:
         self._version: tuple[int, int, int] | None = None
         self._param_types: dict[str, int] = {}
         self._param_wanted: set[str] = set()
+        self._param_queue: list[str] = []  # the round's names not asked yet, and those asked last, not answered
+        self._param_window: set[str] = set()
+        self._param_window_sent = False
         self._param_next = 0.0
         self._param_sent = -math.inf
         self._param_round_trip: float | None = None
@@ -350,6 +367,7 @@ class MavlinkSource:
         self._is_tcp = self.connection.startswith("tcp:")
         self._stream: str | None = None
         self._highres_per_count: float | None = None
+        self._highres_notes: list[str] = []
         self._ready: list[dict] = []
         self._last_out = -math.inf
         self._undo_notes: set[str] = set()
@@ -474,10 +492,12 @@ class MavlinkSource:
     def _read_for(self, timeout_s: float) -> None:
         """Handle the messages that arrive within ``timeout_s`` s, and the link's housekeeping."""
         end = time.monotonic() + max(timeout_s, 0.0)
+        burst = 0
         while True:
             self._housekeeping()
             msg = self._receive()
             if msg is not None:
+                burst += 1
                 self._handle(msg)
                 if len(self._pending) >= BACKLOG and msg.get_type() in ATTITUDE_MESSAGES:
                     # a backlog (the link read through after a stall) completed as its attitude comes, while a
@@ -488,11 +508,12 @@ class MavlinkSource:
             remaining = end - time.monotonic()
             if remaining <= 0:
                 break
-            if self._conn is not None and not self._peer_closed:
+            if burst >= BURST_PACKETS and self._conn is not None and not self._peer_closed:
                 with contextlib.suppress(Exception):
-                    self._conn.select(min(remaining, 0.02))
+                    self._conn.select(min(remaining, BURST_S))
             else:
-                time.sleep(min(remaining, 0.02))
+                time.sleep(min(remaining, BURST_S))
+            burst = 0
         self._complete()
         self._check_rates()
 
@@ -642,7 +663,9 @@ class MavlinkSource:
             now = time.monotonic()
             if self._param_round_trip is None and math.isfinite(self._param_sent):
                 self._param_round_trip = now - self._param_sent
-            self._param_next = now + self._round_wait()  # the round goes on while answers come
+            self._param_window.discard(name)
+            # the next requests go once these are answered; else the round goes on while answers come
+            self._param_next = now if not self._param_window else now + self._round_wait()
         self._param_wanted.discard(name)
         if self._collect_echoes:
             self._echoes.append((name, self.params[name]))
@@ -674,7 +697,7 @@ class MavlinkSource:
             self._event(f"the vehicle refused {what} (MAV_RESULT {result}){meaning}")
 
     def _on_attitude(self, msg, boot_us) -> None:
-        q = euler_to_quaternion(*np.degrees([[msg.yaw], [msg.pitch], [msg.roll]]))[0]
+        q = euler_to_quaternion(math.degrees(msg.yaw), math.degrees(msg.pitch), math.degrees(msg.roll))
         self._attitude_in(boot_us, q, "ATTITUDE")
 
     def _on_attitude_quaternion(self, msg, boot_us) -> None:
@@ -740,9 +763,13 @@ class MavlinkSource:
         if boot_us <= self._last_out_boot:
             self.counters["late"] += 1
             return
-        at = bisect.bisect_left([s["boot_us"] for s in self._pending], boot_us)
-        if at < len(self._pending) and self._pending[at]["boot_us"] == boot_us:
-            return  # the same message twice
+        pending = self._pending
+        if not pending or boot_us > pending[-1]["boot_us"]:
+            at = len(pending)  # in order, as nearly always
+        else:
+            at = bisect.bisect_left([s["boot_us"] for s in pending], boot_us)
+            if pending[at]["boot_us"] == boot_us:
+                return  # the same message twice
         field = np.array([msg.xmag, msg.ymag, msg.zmag], float)
         sample = {"boot_us": boot_us, "field": field, "message": name}
         temperature = getattr(msg, "temperature", 0) if name != "HIGHRES_IMU" else 0  # HIGHRES_IMU's is degC
@@ -787,8 +814,12 @@ class MavlinkSource:
         kept = self._slow.get(key)
         if not kept:
             return None
-        before = [entry for entry in kept if entry[0] <= boot_us]
-        t, value, message = before[-1] if before else min(kept, key=lambda e: e[0])
+        for entry in reversed(kept):  # the latest received at or before it
+            if entry[0] <= boot_us:
+                break
+        else:
+            entry = min(kept, key=lambda e: e[0])
+        t, value, message = entry
         return value if abs(boot_us - t) <= self._stale_us(message) else None
 
     def _stale_us(self, name: str) -> float:
@@ -902,14 +933,14 @@ class MavlinkSource:
         message = samples[0]["message"]
         counts = np.array([s["field"] for s in samples])
         if message == "HIGHRES_IMU":
-            if self._highres_per_count is None:
-                median = float(np.median(np.linalg.norm(counts, axis=1)))
-                self._highres_per_count = NT_PER_MILLIGAUSS / 1000.0 if median > 1e3 else NT_PER_UNIT["G"]
+            if self._highres_per_count is None:  # the unit judged once, on the first samples, as the log reader does
+                self._highres_per_count, _ = highres_unit(counts, self.autopilot, self._highres_notes)
             nt = counts * self._highres_per_count
         else:
             nt = _untruncate(counts) * NT_PER_MILLIGAUSS
         nt[np.all(counts == 0, axis=1)] = np.nan
         undone, text, notes = self._undo(nt, samples, message)
+        notes += self._highres_notes
         self.provenance["raw_reconstruction"] = text
         self._magnetometer_provenance(message, undone is not None)
         for note in notes:
@@ -1000,6 +1031,9 @@ class MavlinkSource:
         now = self._vehicle_us()
         if self._clock_us is None or now - self._rates_since_us < RATE_WINDOW_S * 1e6:
             return
+        if 0.0 <= now - self._rates_checked_us < 1e6:  # once a second of the vehicle's clock
+            return
+        self._rates_checked_us = now
         rates = self.rates_hz
         for name, asked in self.asked_hz.items():
             if name in self._rate_reported or (name in MAG_NAMES and self._stream not in (None, name)):
@@ -1058,6 +1092,7 @@ class MavlinkSource:
     def _ask_parameters(self) -> None:
         names = {"ardupilot": ARDUPILOT_PARAMETERS, "px4": PX4_PARAMETERS}.get(self.autopilot or "", ())
         self._param_wanted = set(names)
+        self._param_queue, self._param_window, self._param_window_sent = [], set(), False
         self._param_asked = 0
         self._param_reading = bool(names)
         self._param_next = time.monotonic()
@@ -1065,13 +1100,15 @@ class MavlinkSource:
             self._params_read = True
 
     def _parameter_round(self, now: float) -> None:
-        """Ask for the parameters not answered yet (ArduPilot queues at most 20 requests for all its links,
-        ``param_requests`` in ``libraries/GCS_MAVLink/GCS_Param.cpp``, and drops those that do not fit: the
-        ``PARAM_ROUNDS`` rounds read its 51 where nothing else asks at the same time); after the last round's wait,
-        say which never were answered (its offsets and matrices among them: ``missing_compass_parameters``, and
-        ``--upload`` is refused)."""
-        due = sorted(self._param_wanted) if self._param_asked < PARAM_ROUNDS else []
-        if not due:
+        """Ask for the next ``PARAM_WINDOW`` parameters of the round not answered yet, or start the next round
+        (``PARAM_ROUNDS`` rounds: a request or its answer may be lost); after the last round's wait, say which never
+        were answered (its offsets and matrices among them: ``missing_compass_parameters``, and ``--upload`` is
+        refused)."""
+        self._param_queue = [name for name in self._param_queue if name in self._param_wanted]
+        if not self._param_queue and self._param_asked < PARAM_ROUNDS:
+            self._param_queue = sorted(self._param_wanted)
+            self._param_asked += 1
+        if not self._param_queue:
             missing = sorted(self._param_wanted)
             if missing:
                 self._event(
@@ -1081,10 +1118,14 @@ class MavlinkSource:
             self._never_answered = tuple(missing)
             self._end_parameter_read()
             return
+        paced = self._param_round_trip is not None or not self._param_window_sent
+        size = PARAM_WINDOW if paced else len(self._param_queue)
+        window, self._param_queue = self._param_queue[:size], self._param_queue[size:]
+        self._param_window_sent = True
+        self._param_window = set(window)
         system, component = self._target()
-        for name in due:
+        for name in window:
             self._send("param_request_read_send", system, component, name.encode(), -1)
-        self._param_asked += 1
         self._param_sent = now
         self._param_next = now + self._round_wait()
 
@@ -1142,6 +1183,7 @@ class MavlinkSource:
         self._stale: dict[str, tuple[float, float]] = {}
         self._last_out_boot = -math.inf
         self._rates_since_us = math.inf
+        self._rates_checked_us = -math.inf
         self._rate_reported: set = set()
         self._refused: set = set()
 

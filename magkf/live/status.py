@@ -47,7 +47,8 @@ class LiveStatus:
     events : list of str
         The link's and the session's recent events, newest last.
     step_ms : dict
-        The filter step's time over the recent samples, ms: ``median`` and ``p99``.
+        The filter step's time over the recent steps, ms: ``median`` and ``p99``; and ``samples``, the median
+        number of samples a step filtered (one step a poll: its samples filtered as one block).
     """
 
     elapsed_s: float = 0.0

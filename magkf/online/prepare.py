@@ -24,7 +24,7 @@ from ..effects.base import EpochData, rate_of_change
 from ..effects.core import SoftHardIron
 from ..errors import InputError
 from ..io.drivelog import DriveLog
-from ..status import MISSING_ATTITUDE, MISSING_COLUMN, USED, Status, epoch_status, first_dop
+from ..status import MISSING_ATTITUDE, MISSING_COLUMN, USED, Status, epoch_status, first_dop, select_dop
 from .bootstrap import PRIOR_B_STD, PRIOR_R_STD, bootstrap_magnitude, bootstrap_vector
 from .determined import WANDER_BLOCK_S, held_directions, whitened_gram
 from .estimator import Estimator, run_model
@@ -35,6 +35,8 @@ from .state import CORE_SIZE, StateLayout
 __all__ = [
     "PreparedLog",
     "prepare",
+    "prepare_arrays",
+    "prepare_samples",
     "PreparedEpoch",
     "prepare_epoch",
     "concat_prepared",
@@ -147,23 +149,116 @@ def concat_prepared(parts) -> PreparedLog:
 
 def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     """Reference field, attitude and the statuses known before filtering, for every epoch."""
-    t = log.time
-    m = log.mag
     ref = log.reference_ned(knot_spacing_m=config.reference_refresh_m)
-    att = log.attitude
-    has_att = np.all(np.isfinite(att), axis=1)
-    c_nb = euler_to_dcm(att[:, 2], att[:, 1], att[:, 0])
-    field_body = ned_to_body(c_nb, ref)
-    dop = log.dop
-    base = epoch_status(m, ref, has_att, dop, config.dop_max)
     columns = {c: log.column(c) for c in log.auxiliary}
+    return prepare_arrays(log.time, log.mag, ref, log.attitude, log.dop, columns, config)
+
+
+def prepare_arrays(
+    t, m, ref, attitude, dop, columns: dict, config: FilterConfig, previous=None, R0=None
+) -> PreparedLog:
+    """The epochs given as arrays, prepared by the epoch rules (``prepare`` of a log, ``prepare_samples`` of a
+    stream's samples).
+
+    Parameters
+    ----------
+    t : ndarray
+        (N,) UNIX s.
+    m : ndarray
+        (N, 3) raw magnetometer, nT.
+    ref : ndarray
+        (N, 3) the reference field, NED nT (NaN where unknown).
+    attitude : ndarray
+        (N, 3) roll, pitch, yaw, deg (NaN where missing).
+    dop : ndarray
+        (N,) the dilution of precision gated (NaN where not logged).
+    columns : dict
+        The auxiliary channels by name, (N,) each.
+    config : FilterConfig
+        Gives ``dop_max``.
+    previous : tuple or None
+        None: a whole log, the body-frame field's rate and acceleration by central differences
+        (``rate_of_change``). ``(time, field_body)`` of a stream's epoch before these (UNIX s, (3,) nT, or None
+        for the stream's first): the rate by backward differences from it, as a stream knows it (no
+        acceleration), zero where it cannot be taken.
+    R0 : ndarray or None
+        (3, 3) the calibration the effects' data carry (``EpochData.R0``; None: the identity).
+
+    Returns
+    -------
+    PreparedLog
+    """
+    has_att = np.all(np.isfinite(attitude), axis=1)
+    c_nb = euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
+    field_body = ned_to_body(c_nb, ref)
+    base = epoch_status(m, ref, has_att, dop, config.dop_max)
     ref_mag = np.linalg.norm(ref, axis=1)
-    rate = rate_of_change(t, field_body)
+    if previous is None:
+        rate = rate_of_change(t, field_body)
+        accel = rate_of_change(t, rate)
+    else:
+        rate, accel = _backward_rates(t, field_body, previous), None
     data = EpochData(
-        t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate, field_body_accel=rate_of_change(t, rate)
-    )
+        t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate, field_body_accel=accel,
+        R0=np.eye(3) if R0 is None else R0,
+    )  # fmt: skip
     heading = np.nan_to_num(heading_axis(c_nb, ref))
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
+
+
+def prepare_samples(columns: dict, refs, config: FilterConfig, channels=(), previous=None, R0=None) -> PreparedLog:
+    """A stream's consecutive samples prepared together, by the rules ``prepare_epoch`` applies to each (and
+    ``missing_column`` where an effect's channel is empty).
+
+    Parameters
+    ----------
+    columns : dict
+        The samples' values by column name, (N,) each (``io.drivelog.read_samples``): ``time`` (UNIX s, in
+        order), ``mag_*`` (nT), ``roll, pitch, yaw`` (deg), ``dop``, ``pdop``, ``hdop`` and ``channels``.
+    refs : ndarray
+        (N, 3) NED nT the reference field at the samples (NaN where unknown).
+    config : FilterConfig
+        Gives ``dop_max``.
+    channels : tuple of str
+        The auxiliary channels the effects need.
+    previous : tuple or None
+        ``(time, field_body)`` of the stream's epoch before these (see ``prepare_arrays``), or None for the
+        stream's first.
+    R0 : ndarray or None
+        (3, 3) the calibration the effects' data carry.
+
+    Returns
+    -------
+    PreparedLog
+    """
+    m = np.column_stack([columns[c] for c in MAG])
+    attitude = np.column_stack([columns[c] for c in ATTITUDE])
+    aux = {c: columns[c] for c in channels}
+    dop = select_dop(columns)
+    prep = prepare_arrays(
+        columns[TIME], m, np.asarray(refs, float), attitude, np.full(len(m), np.nan) if dop is None else dop, aux,
+        config, previous or (math.nan, None), R0,
+    )  # fmt: skip
+    if aux:
+        updating = (prep.base == USED) | (prep.base == MISSING_ATTITUDE)
+        missing = ~np.all([np.isfinite(a) for a in aux.values()], axis=0)
+        prep.base[updating & missing] = MISSING_COLUMN
+    return prep
+
+
+def _backward_rates(t, field_body, previous) -> np.ndarray:
+    """(N, 3) nT/s the rate of ``field_body`` (N, 3) at ``t`` (N,) s by backward differences, the first from
+    ``previous`` (``(time, field_body)``; its field None for none): zero where it cannot be taken."""
+    before_t, before = previous
+    t0 = np.concatenate([[before_t], t[:-1]])
+    f0 = np.concatenate(
+        [np.full((1, 3), np.nan) if before is None else np.asarray(before, float)[None], field_body[:-1]]
+    )
+    dt = (t - t0)[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(dt > 0, (field_body - f0) / np.where(dt > 0, dt, 1.0), 0.0)
+    rate[~np.isfinite(rate).all(axis=1)] = 0.0
+    return rate
 
 
 _NAN33 = np.full((3, 3), np.nan)

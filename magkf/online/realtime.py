@@ -36,16 +36,17 @@ from ..conventions import (
     PITCH,
     REF,
     ROLL,
+    TIME,
     declination_deg,
     magnetic_heading_deg,
 )
 from ..effects import restore_effects, stored_effect
 from ..errors import InputError
-from ..io.drivelog import read_sample
+from ..io.drivelog import read_sample, read_samples
 from ..reference import ReferenceFieldCache
 from ..status import STATUS_NAMES
 from .estimator import Estimator
-from .prepare import PreparedEpoch, calibration_start, prepare_epoch
+from .prepare import PreparedEpoch, PreparedLog, calibration_start, prepare_epoch, prepare_samples
 
 __all__ = ["OnlineCalibrator", "EpochResult"]
 
@@ -233,7 +234,7 @@ class OnlineCalibrator:
             time is not after the previous sample's.
         """
         v = read_sample(sample, self._columns, time)
-        t = self._checked_time(v["time"])
+        t = _checked_time(v["time"], self._last_time)
         est, layout = self.estimator, self.layout
         R = layout.R(est.x)
         previous = None if self._last_time is None else (self._last_time, self._last_field_body)
@@ -244,13 +245,48 @@ class OnlineCalibrator:
         status, updated, nis = est.process_block(np.array([t]), dt, block, epoch.base)
         return self._result(epoch, v, block.H, int(status[0]), bool(updated[0]), float(nis[0]))
 
-    def _checked_time(self, t: float) -> float:
-        """The sample's time ``t`` (UNIX s), or InputError when it is missing or not after the previous sample's."""
-        if not math.isfinite(t):
-            raise InputError("the sample has no time (give a 'time' entry, a row named by its time, or time=...)")
-        if self._last_time is not None and not t > self._last_time:
-            raise InputError(f"time {t!r} s is not after the previous sample's {self._last_time!r} s", column="time")
-        return t
+    def step_block(self, samples) -> list[EpochResult]:
+        """Process consecutive samples as one block.
+
+        Each sample is prepared by the rules of ``step``; the block is then gated and the filter updated once
+        with its accepted epochs, as post-processing filters a block of ``FilterConfig.block_s`` seconds
+        (``Estimator.process_block``, the prediction over the time since the previous sample). For a stream
+        read in bursts (a telemetry link polled ten times a second) this costs a fraction of a ``step`` per
+        sample: the update's fixed cost is paid once a block. A block of one sample is a ``step``.
+
+        Parameters
+        ----------
+        samples : sequence of mapping or pandas.Series
+            The samples, in time order, each as ``step`` takes one.
+
+        Returns
+        -------
+        list of EpochResult
+            One per sample, in order; the estimate in each (``R``, ``b``, ``std``, ``x``, the noise and the
+            calibrated field) is the one after the block.
+
+        Raises
+        ------
+        InputError
+            As ``step``, for the first sample that is not valid (nothing is processed then).
+        """
+        if len(samples) <= 1:  # a block of one is a step, whose scalar path costs half
+            return [self.step(sample) for sample in samples]
+        values = read_samples(samples, self._columns)
+        columns = dict(zip((*self._columns, TIME), values.T))
+        last = self._last_time
+        for t in columns[TIME].tolist():
+            last = _checked_time(t, last)
+        est, layout = self.estimator, self.layout
+        R = layout.R(est.x)
+        previous = None if self._last_time is None else (self._last_time, self._last_field_body)
+        prep = prepare_samples(columns, self._references(columns), self.config, self._effect_columns, previous, R)
+        t = prep.time
+        dt = 0.0 if self._last_time is None else float(t[-1] - self._last_time)
+        self._last_time, self._last_field_body = float(t[-1]), prep.data.field_body[-1]
+        block = prep.block(slice(None), layout, est.model, R, with_data=True)
+        status, updated, nis = est.process_block(t, dt, block, prep.base)
+        return self._results(prep, columns, block.H, status, updated, nis)
 
     def _result(self, epoch: PreparedEpoch, v, H, status: int, updated: bool, nis: float) -> EpochResult:
         """The ``EpochResult`` of the sample ``epoch`` (its values ``v`` by column name, its linear Jacobian ``H``
@@ -281,6 +317,57 @@ class OnlineCalibrator:
             reference_body_nt=epoch.field_body.copy(),
         )
 
+    def _results(self, prep: PreparedLog, columns, H, status, updated, nis) -> list[EpochResult]:
+        """The ``EpochResult`` s of a block's samples ``prep`` (their ``columns`` (k,) by name, their linear
+        Jacobian ``H`` (k, 3, n)), with the estimate after the block's update, which gave them ``status`` (codes of
+        ``magkf.status``), ``updated`` and ``nis`` (k,)."""
+        est, layout = self.estimator, self.layout
+        x = est.x
+        R, b = layout.R_b(x)
+        e = layout.extra_terms(x, H, prep.data) if layout.has_extra else 0.0
+        field = layout.calibrated(x, prep.m, e)
+        with np.errstate(invalid="ignore"):
+            heading = np.where(prep.has_attitude, magnetic_heading_deg(field, columns[ROLL], columns[PITCH]), np.nan)
+            true = (heading + declination_deg(prep.ref)) % 360.0
+        magnitude = np.linalg.norm(field, axis=1)
+        shared = {
+            "R": _frozen(R),
+            "b": _frozen(b),
+            "std": _frozen(np.sqrt(est.P.diagonal())),
+            "x": _frozen(x),
+            "noise_sensor_nt": float(est.noise.sensor_nt),
+            "noise_attitude_deg": float(est.noise.attitude_deg),
+            "noise_heading_deg": float(est.noise.heading_deg),
+        }
+        return [
+            EpochResult(
+                time=float(prep.time[i]),
+                field_body=field[i],
+                magnitude_nt=float(magnitude[i]),
+                heading_mag_deg=float(heading[i]),
+                heading_true_deg=float(true[i]),
+                status=STATUS_NAMES[int(status[i])],
+                updated=bool(updated[i]),
+                nis=float(nis[i]),
+                reference_body_nt=prep.data.field_body[i],
+                **shared,
+            )
+            for i in range(len(prep))
+        ]
+
+    def _references(self, columns: dict) -> np.ndarray:
+        """(k, 3) NED nT the reference field of a block's samples (``columns`` (k,) by name): their ``ref_*`` where
+        given, else the cached IGRF at their position, else NaN (``_reference`` of each)."""
+        given = np.column_stack([columns[c] for c in REF])
+        out = np.where(np.isfinite(given).all(axis=1, keepdims=True), given, np.nan)
+        placed = np.isnan(out[:, 0]) & np.isfinite(columns[LAT]) & np.isfinite(columns[LON])
+        if placed.any():
+            alt = np.nan_to_num(columns[ALT][placed], nan=0.0, posinf=0.0, neginf=0.0)
+            out[placed] = self.reference.ned_many(
+                columns[TIME][placed], columns[LAT][placed], columns[LON][placed], alt
+            )
+        return out
+
     def _reference(self, t, v) -> np.ndarray:
         ref = [v[c] for c in REF]
         if all(map(math.isfinite, ref)):
@@ -289,3 +376,20 @@ class OnlineCalibrator:
         if not (math.isfinite(lat) and math.isfinite(lon)):
             return np.full(3, np.nan)
         return self.reference.ned(t, lat, lon, alt if math.isfinite(alt) else 0.0)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``a`` (shared by the results of one block)."""
+    out = np.array(a)
+    out.setflags(write=False)
+    return out
+
+
+def _checked_time(t: float, last: float | None) -> float:
+    """The sample's time ``t`` (UNIX s), or InputError when it is missing or not after ``last`` (the previous
+    sample's, None for the first)."""
+    if not math.isfinite(t):
+        raise InputError("the sample has no time (give a 'time' entry, a row named by its time, or time=...)")
+    if last is not None and not t > last:
+        raise InputError(f"time {t!r} s is not after the previous sample's {last!r} s", column="time")
+    return t

@@ -12,12 +12,13 @@ from magkf.conventions import wrap_deg
 from magkf.diagnostics.diagnose import compare_runs
 from magkf.effects.base import Effect, EpochData
 from magkf.effects.core import SoftHardIron, core_jacobian
+from magkf.errors import InputError
 from magkf.io.drivelog import DriveLog
 from magkf.offline.sinefit import SineFitCalibrator, SineFitParameters
 from magkf.online.batch import solve_batch
 from magkf.online.measurements import magnitude_jacobian
 from magkf.online.realtime import OnlineCalibrator
-from magkf.online.run import calibrate_log
+from magkf.online.run import blocks, calibrate_log
 from magkf.sim import DriveConfig, simulate_drive, simulate_turntable
 
 from ..conftest import DATA, cli_json, run_cli
@@ -281,6 +282,32 @@ def test_realtime_matches_post_processing_epoch_by_epoch():
     assert online.reference.evaluations <= 2
     last = results[-1]
     assert np.isfinite(last.heading_true_deg) and last.R.shape == (3, 3) and last.std.shape == (12,)
+
+
+def test_realtime_blocks_match_post_processing_blocks():
+    """``step_block`` over the blocks post-processing cuts (``run.blocks``) filters as post-processing does: the
+    same statuses, the same last state to a tenth of its standard deviation (the cached IGRF, and the block's
+    noise structure at the current rather than the starting ``R``, are the differences)."""
+    sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=20, noise_nt=NOISE, seed=14))
+    init = Calibration(R=sim.R + 0.003, b=sim.b + 50.0)
+    config = MATCHED.replace(block_s=0.5)
+    post = calibrate_log(DriveLog(sim.table), config, init=init)
+    online = OnlineCalibrator(init, config)
+    rows = sim.table.reset_index().to_dict("records")
+    starts, stops = blocks(np.array([r["time"] for r in rows]), config.block_s)
+    results = [r for i0, i1 in zip(starts, stops) for r in online.step_block(rows[i0:i1])]
+    assert [r.status for r in results] == list(post.states["status"])
+    filter_std = np.sqrt(np.diag(post.filter_P))
+    assert np.all(np.abs(results[-1].x - post.filter_x) < 0.1 * filter_std)
+
+
+def test_realtime_block_refuses_times_out_of_order():
+    sim = simulate_drive(DriveConfig(duration_s=5, rate_hz=20, noise_nt=NOISE, seed=16))
+    online = OnlineCalibrator(Calibration(R=sim.R, b=sim.b), MATCHED)
+    rows = sim.table.reset_index().to_dict("records")
+    with pytest.raises(InputError, match="not after the previous"):
+        online.step_block([rows[1], rows[0]])
+    assert len(online.step_block(rows[:3])) == 3  # nothing was taken from the refused block
 
 
 def test_realtime_ukf_makes_its_sigma_points_at_the_start():

@@ -56,7 +56,7 @@ def _full() -> LiveStatus:
         },
         converged=False,
         events=["link dropped", "link back after 2.1 s", "vehicle rebooted (boot time went back)", "resumed"],
-        step_ms={"median": 0.16, "p99": 0.45},
+        step_ms={"median": 0.16, "p99": 0.45, "samples": 10.0},
     )
 
 
@@ -82,7 +82,7 @@ def test_full_status_shows_each_figure_with_its_unit():
     for shown in (
         "754.2 s (0:12:34)",  # elapsed
         "2026-11-18 11:06:40 UTC",  # the last sample's time
-        "0.16/0.45 ms",  # the filter step
+        "step 0.16 ms, p99 0.45 ms, 10 samples",  # the filter step
         "12 345 used of 12 579 (98.1 %)",  # 12345 + 120 + 100 + 14 epochs; the 2 late samples are not epochs
         "120 DOP above the limit",
         "100 field magnitude gate",
@@ -117,7 +117,7 @@ def test_empty_status_shows_dashes_not_nan():
         assert all(len(line) <= width for line in lines)
         assert not re.search(r"\bnan\b", "\n".join(lines), re.IGNORECASE)
     text = _words(render(_empty(), 100))
-    for shown in ("last sample -", "RMS - nT", "sensor - nT, tilt - deg, heading - deg", "- +/- -", "- % lost"):
+    for shown in ("at -;", "RMS - nT", "sensor - nT, tilt - deg, heading - deg", "- +/- -", "- % lost"):
         assert shown in text, shown
     assert "undetermined -" in text  # not started: nothing known, rather than "every direction determined"
     assert "time_lag not testable" in text

@@ -101,6 +101,9 @@ class Vehicle(threading.Thread):
         then waits for it to connect again.
     autopilot : str
         How its parameters are encoded (PX4 sends an integer's bytes).
+    queue : int or None
+        As ArduPilot (``param_requests`` in ``GCS_Param.cpp``): parameter requests wait in a queue of this many,
+        those that do not fit are dropped, and a few are answered between packets. None: each answered at once.
     """
 
     def __init__(
@@ -116,6 +119,7 @@ class Vehicle(threading.Thread):
         transport="udpin",
         close_at_us=None,
         autopilot="ardupilot",
+        queue=None,
     ):
         super().__init__(daemon=True)
         from pymavlink import mavutil
@@ -124,6 +128,7 @@ class Vehicle(threading.Thread):
         self.packets, self.params, self.read_only = packets, dict(params), set(read_only)
         self.drop, self.delay, self.pause_at_us = set(drop), dict(delay or {}), pause_at_us
         self.close_at_us, self.autopilot = close_at_us, autopilot
+        self.queue, self.waiting, self.dropped = queue, [], 0
         self.packer = mavlink_dialect().MAVLink(None, srcSystem=1, srcComponent=1)
         self.seq, self.boot = 0, 0
         self.requests: list[str] = []
@@ -198,13 +203,23 @@ class Vehicle(threading.Thread):
         while (msg := self.conn.recv_msg()) is not None:
             name = msg.get_type()
             self.requests.append(name)
-            if name == "PARAM_REQUEST_READ" and msg.param_id in self.params:
+            if name == "PARAM_REQUEST_READ" and self.queue is not None:
+                if len(self.waiting) < self.queue:
+                    self.waiting.append(msg.param_id)
+                else:
+                    self.dropped += 1
+            elif name == "PARAM_REQUEST_READ" and msg.param_id in self.params:
                 self._answer(msg.param_id)
             elif name == "PARAM_SET" and msg.param_id in self.params:
                 if msg.param_id not in self.read_only:
                     value = msg.param_value
                     self.params[msg.param_id] = int(value) if msg.param_type == 6 else value
                 self._answer(msg.param_id)
+
+        for name in self.waiting[:2]:  # a few answered now, the rest wait
+            if name in self.params:
+                self._answer(name)
+        del self.waiting[:2]
 
     def _answer(self, name: str) -> None:
         names = list(self.params)
@@ -618,6 +633,47 @@ def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(fl
     assert vehicle.requests.count("PARAM_REQUEST_READ") == len(ARDUPILOT_PARAMETERS) + (PARAM_ROUNDS - 1) * missing
     assert {k: source.params[k] for k in CALIBRATION} == pytest.approx(CALIBRATION, rel=1e-7)
     assert took < PARAM_ROUNDS * PARAM_ROUND_S
+
+
+def test_parameter_requests_fit_ardupilots_queue(flight):
+    """A vehicle that, as ArduPilot, queues 20 requests and drops the rest answers every one of the 51 asked in
+    the first round: the requests in flight never exceed ``PARAM_WINDOW``."""
+    port = free_udp_port()
+    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), CALIBRATION | DEFAULTS, queue=20)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
+    try:
+        source.open(timeout_s=5.0)
+        events = source.take_events()
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert vehicle.dropped == 0
+    assert vehicle.requests.count("PARAM_REQUEST_READ") == len(ARDUPILOT_PARAMETERS)
+    assert set(source.params) >= set(ARDUPILOT_PARAMETERS) and not source.missing_compass_parameters
+    assert not any("not answered" in e for e in events)
+
+
+def test_a_vehicle_that_answers_no_parameter_is_not_waited_for_window_by_window(flight):
+    """No answer to the first window in its wait: the rest of each round goes at once, so the read takes one wait
+    more than the rounds' (not one a window)."""
+    port = free_udp_port()
+    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), {})
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
+    try:
+        began = time.monotonic()
+        source.open(timeout_s=5.0)
+        took = time.monotonic() - began
+        events = source.take_events()
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert vehicle.requests.count("PARAM_REQUEST_READ") == PARAM_ROUNDS * len(ARDUPILOT_PARAMETERS)
+    assert any(e.startswith(f"{len(ARDUPILOT_PARAMETERS)} parameters not answered") for e in events)
+    assert (PARAM_ROUNDS + 1) * PARAM_ROUND_S <= took < (PARAM_ROUNDS + 2) * PARAM_ROUND_S
 
 
 def test_motor_compensation_is_undone_with_the_latest_throttle(flight):

@@ -92,3 +92,14 @@ def test_reference_columns_override_igrf():
     )
     ref = DriveLog(table).reference_ned()
     assert np.array_equal(ref, table[["ref_n", "ref_e", "ref_d"]].to_numpy())
+
+
+def test_cache_of_many_epochs_is_the_cache_of_each_in_turn():
+    """``ned_many`` over blocks of a track crossing midnight gives what ``ned`` gives epoch by epoch, with the
+    same evaluations."""
+    t, lat, lon, alt = _track(_ts(2026, 3, 1, 23, 50), 1 / 3, 1.0, kind="planar")
+    one, many = ReferenceFieldCache(max_distance_m=2000.0), ReferenceFieldCache(max_distance_m=2000.0)
+    each = np.array([one.ned(*x) for x in zip(t, lat, lon, alt)])
+    blocks = [many.ned_many(t[i : i + 7], lat[i : i + 7], lon[i : i + 7], alt[i : i + 7]) for i in range(0, len(t), 7)]
+    np.testing.assert_allclose(np.concatenate(blocks), each, rtol=1e-12, atol=1e-9)
+    assert many.evaluations == one.evaluations >= 2

@@ -14,7 +14,8 @@ import pytest
 
 from magkf.config import FilterConfig
 from magkf.effects import make_effect
-from magkf.io.drivelog import read_sample
+from magkf.errors import InputError
+from magkf.io.drivelog import read_sample, read_samples
 from magkf.io.readers import read_log
 from magkf.online import batch, chunked, prepare, realtime, run
 from magkf.online.realtime import _SAMPLE_COLUMNS, OnlineCalibrator
@@ -117,6 +118,44 @@ def test_realtime_step_prepares_by_the_log_rules(monkeypatch, log_path):
     np.testing.assert_allclose(epochs[2].data.field_body_rate[0], expected, rtol=1e-12)
 
 
+def test_realtime_blocks_prepare_by_the_log_rules(monkeypatch, log_path):
+    """The samples of a block go through ``prepare_samples``, which gives the statuses, body-frame field and heading
+    axis that ``prepare`` gives the whole log, and the rate as a backward difference across the blocks' edges."""
+    log = read_log(log_path)
+    config = FilterConfig()
+    whole = prepare.prepare(log, config)
+    blocks = []
+
+    def recorded(*args, **kwargs):
+        blocks.append(prepare.prepare_samples(*args, **kwargs))
+        return blocks[-1]
+
+    monkeypatch.setattr(realtime, "prepare_samples", recorded)
+    calibrator = OnlineCalibrator(run.calibrate_log(log, config).calibration, config)
+    rows = log.table.reset_index().to_dict("records")[:497]
+    for i in range(0, len(rows), 7):
+        calibrator.step_block(rows[i : i + 7])
+    got = prepare.concat_prepared(blocks)
+    first = whole.take(slice(0, len(rows)))
+    np.testing.assert_array_equal(got.base, first.base)
+    np.testing.assert_allclose(got.data.field_body, first.data.field_body, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.heading, first.heading, rtol=0, atol=1e-9)
+    t, body = got.time, got.data.field_body
+    expected = (body[1:] - body[:-1]) / (t[1:] - t[:-1])[:, None]
+    np.testing.assert_allclose(got.data.field_body_rate[1:], expected, rtol=1e-12)  # 7, 14, ...: across an edge
+    assert got.data.field_body_rate[0].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_prepare_samples_marks_a_missing_channel():
+    """As ``prepare_epoch``: a sample without an effect's channel is ``missing_column``."""
+    sample = {"time": 1.78e9, "mag_x": 20000.0, "mag_y": 1000.0, "mag_z": 43000.0, "roll": 1.0, "pitch": 2.0}
+    samples = [sample | {"yaw": 30.0, "temp_c": 20.0}, sample | {"time": 1.78e9 + 1, "yaw": 31.0}]
+    names = (*_SAMPLE_COLUMNS, "temp_c")
+    columns = dict(zip((*names, "time"), read_samples(samples, names).T))
+    prep = prepare.prepare_samples(columns, np.full((2, 3), [20000.0, 1000.0, 43000.0]), FilterConfig(), ("temp_c",))
+    assert prep.base.tolist() == [prepare.Status.USED, prepare.Status.MISSING_COLUMN]
+
+
 def test_prepare_epoch_marks_a_missing_channel():
     """A sample without an effect's channel is ``missing_column``, as ``mark_missing_columns`` marks a log."""
     values = read_sample(
@@ -129,3 +168,18 @@ def test_prepare_epoch_marks_a_missing_channel():
     assert used.base[0] == prepare.Status.USED
     assert missing.base[0] == prepare.Status.MISSING_COLUMN
     assert used.data.field_body_rate.tolist() == [[0.0, 0.0, 0.0]]
+
+
+def test_samples_read_together_are_read_as_each():
+    """``read_samples`` gives ``read_sample``'s values, the time last, and names the sample of a value refused."""
+    samples = [
+        {"time": 1.78e9 + i, "mag_x": 20000.0 + i, "roll": "1.5", "yaw": None, "lat": float("inf")} for i in range(3)
+    ]
+    names = _SAMPLE_COLUMNS
+    got = read_samples(samples, names)
+    expected = [[read_sample(s, names)[c] for c in (*names, "time")] for s in samples]
+    np.testing.assert_array_equal(got, np.array(expected))
+    samples[2]["pitch"] = 95.0
+    with pytest.raises(InputError, match=r"sample 2: value 95.0 outside \[-90, 90\]") as refused:
+        read_samples(samples, names)
+    assert refused.value.column == "pitch"
