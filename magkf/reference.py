@@ -14,8 +14,8 @@
 
 One ppigrf call evaluates all knots at all dates (dates are kept out of its broadcasting), so the
 cost is a few calls' worth whatever the log's length. ``ReferenceFieldCache`` serves the real-time
-path: one epoch at a time, re-evaluated only when the position has moved more than a set distance
-or the UTC date has changed.
+path: one epoch at a time (``ned``) or a burst of them (``ned_many``), re-evaluated only when the position has
+moved more than a set distance or the UTC date has changed.
 """
 
 from __future__ import annotations
@@ -172,7 +172,7 @@ def field_at(lat_deg: float, lon_deg: float, alt_m: float, time_s: float) -> dic
 
 
 class ReferenceFieldCache:
-    """IGRF for one epoch at a time, for real-time use.
+    """IGRF for one epoch at a time (or a burst of them), for real-time use.
 
     ``ned(time_s, lat, lon, alt_m)`` returns the field (3,) nT. ppigrf is called only when the position
     has moved more than ``max_distance_m`` from the last evaluation or the UTC date has changed; in

@@ -173,7 +173,7 @@ def wake_cost(blocks: int = 150, samples: int = 10, idle_s: float = 0.1) -> dict
     def run(pause: float, size: int = samples) -> list:
         calibrator = OnlineCalibrator(Calibration(R=sim.R + 0.005, b=sim.b + 80.0), FilterConfig())
         times = []
-        for i in range(0, blocks * samples, size):
+        for i in range(0, blocks * size, size):
             time.sleep(pause)
             start = time.perf_counter()
             calibrator.step_block(rows[i : i + size])
@@ -215,7 +215,7 @@ def main() -> int:
                 f"{100 * statistics.median(bares):12.2f} % {median:9.3f} ms {p99:6.3f} ms {samples:13.0f}",
                 flush=True,
             )
-    print("steps of 10 samples at 100 Hz, in this process (median / p99):")
+    print("steps at 100 Hz in this process, 10 samples (1 for the last line) a step (median / p99):")
     for how, (median, p99) in wake_cost().items():
         print(f"  {how:>28s}: {median:.3f} / {p99:.3f} ms", flush=True)
     return 0

@@ -89,9 +89,16 @@ def read_samples(samples, names) -> np.ndarray:
     """The values of ``names`` and the time in consecutive samples, as ``read_sample`` reads each: (k, len(names)
     + 1) floats, the time last (UNIX s).
 
-    Raises InputError as ``read_sample`` does, naming the sample (counted from 0) of the first value refused.
+    Raises InputError as ``read_sample`` does, naming the sample (counted from 0): one that is not a mapping,
+    else the first value beyond its range.
     """
-    values = np.array([_sample_values(sample, names, None) for sample in samples], float).reshape(-1, len(names) + 1)
+    rows = []
+    for i, sample in enumerate(samples):
+        try:
+            rows.append(_sample_values(sample, names, None))
+        except InputError as exc:
+            raise InputError(f"sample {i}: {exc.message}") from None
+    values = np.array(rows, float).reshape(-1, len(names) + 1)
     checked = [(len(names), TIME, (*TIME_RANGE_S, "s"))]
     checked += [(i, name, RANGES[name]) for i, name in enumerate(names) if name in RANGES]
     index = [i for i, _, _ in checked]

@@ -129,7 +129,7 @@ def _header(status) -> str:
     if step:
         text += f"; step {_num(step.get('median'), '.2f', 'ms')}, p99 {_num(step.get('p99'), '.2f', 'ms')}"
         if step.get("samples"):
-            text += f", {step['samples']:.0f} samples"
+            text += f", {step['samples']:.0f} sample{'s' if round(step['samples']) != 1 else ''}"
     return _line("time", text)
 
 

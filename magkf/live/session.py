@@ -63,7 +63,7 @@ CHECKPOINT_KIND = "magkf live checkpoint"
 
 
 class LiveSession:
-    """Samples fed to the online filter one at a time, and the figures an operator watches.
+    """Samples fed to the online filter as they arrive, a poll at a time, and the figures an operator watches.
 
     Parameters
     ----------
@@ -118,8 +118,8 @@ class LiveSession:
         self._next_diagnosis = math.nan
         self.diagnosis: dict | None = None
         self.events: deque = deque(maxlen=8)
-        self._step_s: deque = deque(maxlen=STEP_TIMES)  # seconds of each block's step, and its samples
-        self._step_sizes: deque = deque(maxlen=STEP_TIMES)
+        self._step_s: deque = deque(maxlen=STEP_TIMES)  # seconds each step of the stream took
+        self._step_sizes: deque = deque(maxlen=STEP_TIMES)  # and the samples it filtered
         self.field_nt = math.nan
         if init is not None:
             self._start(init)
@@ -131,11 +131,12 @@ class LiveSession:
         return self.add_many([sample])[0]
 
     def add_many(self, samples: list[dict]) -> list:
-        """Take the samples of one poll (dicts of canonical columns, ``time`` UNIX s, in time order), filtered as
-        one block (``OnlineCalibrator.step_block``, as post-processing filters a block of epochs: a poll of a
-        tenth of a second is shorter than its ``block_s``). Returns each sample's ``EpochResult``, or None while
-        it is held for the bootstrap, and for a sample not after the previous one (counted ``late``, left out:
-        a resumed session's link may repeat what it had sent)."""
+        """Take the samples of one poll (dicts of canonical columns, ``time`` UNIX s, in time order), filtered in
+        blocks of at most ``config.block_s`` seconds as post-processing filters a log (``OnlineCalibrator.
+        step_block``): a poll of a tenth of a second is one block, a backlog read at once (the link read through
+        after a stall, a replay faster than real time) several. Returns each sample's ``EpochResult``, or None
+        while it is held for the bootstrap, and for a sample not after the previous one (counted ``late``, left
+        out: a resumed session's link may repeat what it had sent)."""
         results: list = [None] * len(samples)
         taken = []
         for i, sample in enumerate(samples):
@@ -157,17 +158,27 @@ class LiveSession:
             if self.last_time >= self._next_bootstrap:
                 self._try_bootstrap(self.last_time)
             return results
-        for i, result in zip(taken, self._step([samples[i] for i in taken])):
+        for i, result in zip(taken, self._filter([samples[i] for i in taken])):
             results[i] = result
         self._diagnose_when_due(self.last_time)
         return results
 
-    def _step(self, samples: list[dict]) -> list:
+    def _filter(self, samples: list[dict], timed: bool = True) -> list:
+        """Filter ``samples`` in blocks of at most ``config.block_s`` seconds; their results. ``timed``: the steps
+        count in the step times shown (not those of the samples held for the start, filtered at once)."""
+        from ..online.run import blocks
+
+        times = np.array([sample["time"] for sample in samples], float)
+        starts, stops = blocks(times, self.config.block_s)
+        return [r for i0, i1 in zip(starts, stops) for r in self._step(samples[i0:i1], timed)]
+
+    def _step(self, samples: list[dict], timed: bool) -> list:
         """Filter ``samples`` as one block; their results, counted."""
         start = time.perf_counter()
         results = self.calibrator.step_block(samples)
-        self._step_s.append(time.perf_counter() - start)
-        self._step_sizes.append(len(samples))
+        if timed:
+            self._step_s.append(time.perf_counter() - start)
+            self._step_sizes.append(len(samples))
         used = STATUS_NAMES[Status.USED]
         for sample, result in zip(samples, results):
             self.counts[result.status] += 1
@@ -217,7 +228,6 @@ class LiveSession:
         if t - self.first_time < self.config.bootstrap_s:
             return
         from ..online.prepare import prepare, prepare_run
-        from ..online.run import blocks
 
         log = samples_log(self._held, "the samples held for the start")
         try:
@@ -230,9 +240,7 @@ class LiveSession:
         self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
         self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")
         held, self._held = self._held, []
-        times = np.array([sample["time"] for sample in held])
-        for i0, i1 in zip(*blocks(times, self.config.block_s)):  # in blocks, as post-processing filters a log
-            self._step(held[i0:i1])
+        self._filter(held, timed=False)
         self._next_diagnosis = t + self.diagnose_every_s
 
     def _drop_oldest_held(self, t: float) -> None:

@@ -21,8 +21,8 @@ Compass parameters
     Read one by one with ``PARAM_REQUEST_READ`` (``param_index`` -1, by name; the vehicle answers with
     ``PARAM_VALUE``; https://mavlink.io/en/services/parameter.html), in up to ``PARAM_ROUNDS`` rounds that ask again
     for the names not answered (a request or its answer may be lost; a firmware without a parameter does not
-    answer), ``PARAM_WINDOW`` requests in flight at a time (ArduPilot drops what its queue of 20 cannot hold; a
-    vehicle that answers none of the first window is asked the rest at once). The next requests go as soon as those
+    answer), ``PARAM_WINDOW`` requests at a time (ArduPilot drops what its queue of 20 cannot hold; a vehicle that
+    answers none of the first window is asked the rest at once). The next requests go as soon as those
     in flight are answered, else ``PARAM_ROUND_S`` after them or, once an answer has shown the link's round trip,
     ``PARAM_ROUND_TRIPS`` round trips (at least ``PARAM_MIN_S``) after them or their last answer. ArduPilot's
     ``ARDUPILOT_PARAMETERS`` (the ``COMPASS_*`` set that ``magkf.io.tlog`` undoes), PX4's ``PX4_PARAMETERS``
@@ -152,11 +152,12 @@ PARAM_ROUND_S, PARAM_ROUNDS = 1.0, 3
 #: Once an answer has shown the link's round trip, a round ends this many round trips (at least ``PARAM_MIN_S``)
 #: after its requests or its last answer, whichever is later.
 PARAM_ROUND_TRIPS, PARAM_MIN_S = 4.0, 0.2
-#: Requests in flight at most: a round asks its names this many at a time, the next ones once these are answered
-#: or their wait is over. ArduPilot queues 20 requests for all its links together and drops what does not fit
-#: (``param_requests`` in ``libraries/GCS_MAVLink/GCS_Param.cpp``); this leaves room for another ground station.
-#: A vehicle that has answered none of the first window in its wait (one that does not answer parameters: a
-#: one-way forwarded port) is asked the rest of each round at once, so that it is not waited for window by window.
+#: Requests sent together: a round asks its names this many at a time, the next ones once these are answered or their
+#: wait is over (some may then still be in the vehicle's queue: the wait is a few round trips). ArduPilot queues 20
+#: requests for all its links together and drops what does not fit (``param_requests`` in
+#: ``libraries/GCS_MAVLink/GCS_Param.cpp``); this leaves room for another ground station. A vehicle that has answered
+#: none of the first window in its wait (one that does not answer parameters: a one-way forwarded port) is asked the
+#: rest of each round at once, so that it is not waited for window by window.
 PARAM_WINDOW = 16
 #: ``MAV_CMD``s and the ``MAV_DATA_STREAM`` groups of ArduPilot asked for, with the messages magkf reads in each.
 MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE = 511, 512
@@ -349,7 +350,7 @@ class MavlinkSource:
         self._version: tuple[int, int, int] | None = None
         self._param_types: dict[str, int] = {}
         self._param_wanted: set[str] = set()
-        self._param_queue: list[str] = []  # the round's names not asked yet, and those asked last, not answered
+        self._param_queue: list[str] = []  # the round's names not asked yet
         self._param_window: set[str] = set()
         self._param_window_sent = False
         self._param_next = 0.0

@@ -11,7 +11,7 @@ The pipeline, module by module::
     run           calibrate_log: blocks of a log through the estimator, then results
     smoother      Rauch-Tung-Striebel pass over the filter's steps
     batch         solve_batch: the whole log by robust least squares
-    realtime      OnlineCalibrator: one sample at a time, constant memory
+    realtime      OnlineCalibrator: a sample (or a burst) at a time, constant memory
     results       CalibrationRun and RunSummary
     observability which directions the data did not determine
 

@@ -1,12 +1,13 @@
 """Per-log work done once and vectorised, per-epoch work of a stream, and the start of a run.
 
-``prepare`` evaluates, for every epoch of a ``DriveLog``, the reference field (IGRF or ``ref_*``), the
-attitude matrices, the body-frame reference and its rate, and the statuses known before filtering (the
-epoch rules of ``magkf.status.epoch_status``); ``prepare_epoch`` does the same for one sample of a stream (the
-real-time step). ``prepare_run`` gives the start of a run over a log, for the whole-log filter, the chunked
-filter and the batch solver alike: the statuses with the effects' missing channels (``mark_missing_columns``),
-the state layout and the initial estimate (``initial_state``: from an offline calibration, or bootstrapped
-from the log itself), the measurement model and the starting noise (``start_noise``).
+``prepare`` evaluates, for every epoch of a ``DriveLog``, the reference field (IGRF or ``ref_*``), the attitude
+matrices, the body-frame reference and its rate, and the statuses known before filtering (the epoch rules of
+``magkf.status.epoch_status``; ``prepare_arrays``, the same from the epochs' arrays); ``prepare_epoch`` does the
+same for one sample of a stream (the real-time step), ``prepare_samples`` for a burst of them
+(``OnlineCalibrator.step_block``). ``prepare_run`` gives the start of a run over a log, for the whole-log filter,
+the chunked filter and the batch solver alike: the statuses with the effects' missing channels
+(``mark_missing_columns``), the state layout and the initial estimate (``initial_state``: from an offline
+calibration, or bootstrapped from the log itself), the measurement model and the starting noise (``start_noise``).
 """
 
 from __future__ import annotations
@@ -233,6 +234,7 @@ def prepare_samples(columns: dict, refs, config: FilterConfig, channels=(), prev
     """
     m = np.column_stack([columns[c] for c in MAG])
     attitude = np.column_stack([columns[c] for c in ATTITUDE])
+    attitude[~np.isfinite(attitude).all(axis=1)] = np.nan  # a partial attitude is none (as ``prepare_epoch``)
     aux = {c: columns[c] for c in channels}
     dop = select_dop(columns)
     prep = prepare_arrays(

@@ -1,18 +1,20 @@
-"""Real-time calibration: one sample at a time, constant memory.
+"""Real-time calibration: a sample at a time (or a burst of them), constant memory.
 
     cal = OnlineCalibrator.from_file("cal.json", FilterConfig(sensor_noise_nt=40))
     for sample in stream:                     # a dict (or pandas row) with the log's column names
         result = cal.step(sample)
         use(result.field_body, result.heading_true_deg, result.status)
+    results = cal.step_block(burst)           # consecutive samples read together: one update
 
 A sample carries ``time`` (UNIX s), ``mag_x, mag_y, mag_z`` (nT), and when available ``roll, pitch,
 yaw`` (deg), ``lat, lon, alt`` (or ``ref_n, ref_e, ref_d``), ``dop`` and the auxiliary columns the
 effects need: a dict, or a pandas row (whose name is its time, as in ``log.table.iterrows()``). Missing
 keys, None or NaN values mean missing, and the epoch is prepared by the rules that prepare a whole log
 (``prepare.prepare_epoch``: the status of ``magkf.status.epoch_status``, the body-frame reference, the
-heading axis). The reference field is evaluated lazily and cached (``ReferenceFieldCache``): again only
-after the vehicle has moved ``reference_refresh_m`` or the UTC date has changed. Each step is the same gated
-update as post-processing, with a block of one epoch.
+heading axis; ``prepare.prepare_samples`` for a burst, by the same rules). The reference field is evaluated
+lazily and cached (``ReferenceFieldCache``): again only after the vehicle has moved ``reference_refresh_m`` or
+the UTC date has changed. Each step is the same gated update as post-processing, with a block of one epoch;
+``step_block`` updates once for its samples, as post-processing updates a block of them.
 """
 
 from __future__ import annotations
@@ -55,9 +57,10 @@ _SAMPLE_COLUMNS = (*MAG, *ATTITUDE, *REF, LAT, LON, ALT, DOP, PDOP, HDOP)
 
 @dataclass(frozen=True)
 class EpochResult:
-    """What ``OnlineCalibrator.step`` returns for one sample.
+    """What ``OnlineCalibrator.step`` returns for one sample (and ``step_block`` for each of its samples).
 
-    The field and headings are computed with the estimate after this step.
+    The field and headings are computed with the estimate after this step (after the block). Its arrays are the
+    result's own.
 
     Parameters
     ----------
@@ -268,22 +271,22 @@ class OnlineCalibrator:
         Raises
         ------
         InputError
-            As ``step``, for the first sample that is not valid (nothing is processed then).
+            As ``step``, for a sample that is not valid, naming it (counted from 0); nothing is processed then.
         """
         if len(samples) <= 1:  # a block of one is a step, whose scalar path costs half
             return [self.step(sample) for sample in samples]
         values = read_samples(samples, self._columns)
         columns = dict(zip((*self._columns, TIME), values.T))
         last = self._last_time
-        for t in columns[TIME].tolist():
-            last = _checked_time(t, last)
+        for i, t in enumerate(columns[TIME].tolist()):
+            last = _checked_time(t, last, f"sample {i}: ")
         est, layout = self.estimator, self.layout
         R = layout.R(est.x)
         previous = None if self._last_time is None else (self._last_time, self._last_field_body)
         prep = prepare_samples(columns, self._references(columns), self.config, self._effect_columns, previous, R)
         t = prep.time
         dt = 0.0 if self._last_time is None else float(t[-1] - self._last_time)
-        self._last_time, self._last_field_body = float(t[-1]), prep.data.field_body[-1]
+        self._last_time, self._last_field_body = float(t[-1]), prep.data.field_body[-1].copy()
         block = prep.block(slice(None), layout, est.model, R, with_data=True)
         status, updated, nis = est.process_block(t, dt, block, prep.base)
         return self._results(prep, columns, block.H, status, updated, nis)
@@ -330,11 +333,8 @@ class OnlineCalibrator:
             heading = np.where(prep.has_attitude, magnetic_heading_deg(field, columns[ROLL], columns[PITCH]), np.nan)
             true = (heading + declination_deg(prep.ref)) % 360.0
         magnitude = np.linalg.norm(field, axis=1)
-        shared = {
-            "R": _frozen(R),
-            "b": _frozen(b),
-            "std": _frozen(np.sqrt(est.P.diagonal())),
-            "x": _frozen(x),
+        std = np.sqrt(est.P.diagonal())
+        noise = {
             "noise_sensor_nt": float(est.noise.sensor_nt),
             "noise_attitude_deg": float(est.noise.attitude_deg),
             "noise_heading_deg": float(est.noise.heading_deg),
@@ -342,15 +342,19 @@ class OnlineCalibrator:
         return [
             EpochResult(
                 time=float(prep.time[i]),
-                field_body=field[i],
+                field_body=field[i].copy(),
                 magnitude_nt=float(magnitude[i]),
                 heading_mag_deg=float(heading[i]),
                 heading_true_deg=float(true[i]),
                 status=STATUS_NAMES[int(status[i])],
                 updated=bool(updated[i]),
                 nis=float(nis[i]),
-                reference_body_nt=prep.data.field_body[i],
-                **shared,
+                reference_body_nt=prep.data.field_body[i].copy(),
+                R=R.copy(),
+                b=b.copy(),
+                std=std.copy(),
+                x=x.copy(),
+                **noise,
             )
             for i in range(len(prep))
         ]
@@ -378,18 +382,12 @@ class OnlineCalibrator:
         return self.reference.ned(t, lat, lon, alt if math.isfinite(alt) else 0.0)
 
 
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """A read-only copy of ``a`` (shared by the results of one block)."""
-    out = np.array(a)
-    out.setflags(write=False)
-    return out
-
-
-def _checked_time(t: float, last: float | None) -> float:
+def _checked_time(t: float, last: float | None, which: str = "") -> float:
     """The sample's time ``t`` (UNIX s), or InputError when it is missing or not after ``last`` (the previous
-    sample's, None for the first)."""
+    sample's, None for the first); ``which`` starts the message (a block's ``"sample 3: "``)."""
     if not math.isfinite(t):
-        raise InputError("the sample has no time (give a 'time' entry, a row named by its time, or time=...)")
+        how = "" if which else ", or time=..."  # step_block takes no time argument
+        raise InputError(f"{which}the sample has no time (give a 'time' entry, a row named by its time{how})")
     if last is not None and not t > last:
-        raise InputError(f"time {t!r} s is not after the previous sample's {last!r} s", column="time")
+        raise InputError(f"{which}time {t!r} s is not after the previous sample's {last!r} s", column="time")
     return t

@@ -299,15 +299,37 @@ def test_realtime_blocks_match_post_processing_blocks():
     assert [r.status for r in results] == list(post.states["status"])
     filter_std = np.sqrt(np.diag(post.filter_P))
     assert np.all(np.abs(results[-1].x - post.filter_x) < 0.1 * filter_std)
+    # the reference at each sample (the cached IGRF, taken by block) is the one a step takes
+    stepped = OnlineCalibrator(init, config)
+    references = np.array([stepped.step(row).reference_body_nt for row in rows])
+    np.testing.assert_allclose([r.reference_body_nt for r in results], references, rtol=0, atol=1e-6)
+    assert online.reference.evaluations == stepped.reference.evaluations
+    # each result's arrays are its own
+    results[-1].reference_body_nt[:] = 0.0
+    results[-2].R[:] = 0.0
+    assert np.all(online._last_field_body != 0.0) and np.all(results[-1].R != 0.0)
 
 
 def test_realtime_block_refuses_times_out_of_order():
     sim = simulate_drive(DriveConfig(duration_s=5, rate_hz=20, noise_nt=NOISE, seed=16))
     online = OnlineCalibrator(Calibration(R=sim.R, b=sim.b), MATCHED)
     rows = sim.table.reset_index().to_dict("records")
-    with pytest.raises(InputError, match="not after the previous"):
+    with pytest.raises(InputError, match="sample 1: time .* not after the previous"):
         online.step_block([rows[1], rows[0]])
-    assert len(online.step_block(rows[:3])) == 3  # nothing was taken from the refused block
+    with pytest.raises(InputError, match=r"sample 2: value 95.0 outside \[-90, 90\]"):
+        online.step_block([rows[0], rows[1], rows[2] | {"pitch": 95.0}])
+    assert len(online.step_block(rows[:3])) == 3  # nothing was taken from the refused blocks
+
+
+def test_realtime_block_takes_a_partial_attitude_for_none():
+    """As a step does: a sample missing one of its angles is ``missing_attitude``, its reference NaN in full."""
+    sim = simulate_drive(DriveConfig(duration_s=5, rate_hz=20, noise_nt=NOISE, seed=17))
+    rows = sim.table.reset_index().to_dict("records")[:4]
+    rows[1]["roll"] = float("nan")
+    block = OnlineCalibrator(Calibration(R=sim.R, b=sim.b), MATCHED).step_block(rows)
+    single = OnlineCalibrator(Calibration(R=sim.R, b=sim.b), MATCHED).step(rows[1])
+    assert block[1].status == single.status == "missing_attitude"
+    assert np.isnan(block[1].reference_body_nt).all() and np.isnan(single.reference_body_nt).all()
 
 
 def test_realtime_ukf_makes_its_sigma_points_at_the_start():

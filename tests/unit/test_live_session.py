@@ -48,6 +48,18 @@ def test_bootstrapped_start_then_truth_within_standard_deviations(drive):
     assert status.undetermined == [] and "fits" in status.verdict
 
 
+def test_a_backlog_is_filtered_in_blocks_of_block_s(drive):
+    """A poll that brings a minute of samples at once (a link read through after a stall) is filtered as
+    post-processing filters a log, in blocks of at most ``block_s``, not in one update; each sample gets a result."""
+    session = LiveSession(CONFIG, Calibration(R=drive.R, b=drive.b), diagnose_every_s=0)
+    rows = _rows(drive)[:600]  # 60 s at 10 Hz
+    results = session.add_many(rows)
+    assert all(r is not None for r in results) and sum(session.counts.values()) == len(rows)
+    span = drive.table.index[599] - drive.table.index[0]
+    assert len(session._step_sizes) == math.ceil(span / CONFIG.block_s)
+    assert max(session._step_sizes) <= round(CONFIG.block_s * 10)
+
+
 def test_waiting_for_the_start_is_shown():
     session = LiveSession(CONFIG, None, diagnose_every_s=0)
     sim = simulate_drive(DriveConfig(duration_s=20, rate_hz=10, seed=32))
