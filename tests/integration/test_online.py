@@ -266,31 +266,16 @@ def test_smoothing_improves_the_early_estimates():
 
 
 # ---------------------------------------------------------------- real time
-def test_realtime_matches_post_processing_epoch_by_epoch():
+@pytest.mark.parametrize("block_s", [0.0, 0.5])
+def test_realtime_matches_post_processing(block_s):
+    """Sample by sample (``step``, ``block_s`` 0), or in the blocks post-processing cuts (``step_block`` over
+    ``run.blocks``), the real-time path filters as post-processing does: the same statuses, and the same last state
+    to a tenth of its standard deviation (the cached IGRF, a knot every 2 km, and a block's noise structure at the
+    current rather than the starting ``R`` are the differences; the calibration written is the whole-log
+    estimate)."""
     sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=20, noise_nt=NOISE, seed=14))
     init = Calibration(R=sim.R + 0.003, b=sim.b + 50.0)
-    config = MATCHED.replace(block_s=0)
-    post = calibrate_log(DriveLog(sim.table), config, init=init)
-    online = OnlineCalibrator(init, config)
-    rows = sim.table.reset_index().to_dict("records")
-    results = [online.step(r) for r in rows]
-    assert [r.status for r in results] == list(post.states["status"])
-    # The real-time path uses IGRF from its cache (a knot every 2 km): within 0.1 of a standard deviation of the
-    # post-processing filter's last state (the calibration it writes is the whole-log estimate).
-    filter_std = np.sqrt(np.diag(post.filter_P))
-    assert np.all(np.abs(results[-1].x - post.filter_x) < 0.1 * filter_std)
-    assert online.reference.evaluations <= 2
-    last = results[-1]
-    assert np.isfinite(last.heading_true_deg) and last.R.shape == (3, 3) and last.std.shape == (12,)
-
-
-def test_realtime_blocks_match_post_processing_blocks():
-    """``step_block`` over the blocks post-processing cuts (``run.blocks``) filters as post-processing does: the
-    same statuses, the same last state to a tenth of its standard deviation (the cached IGRF, and the block's
-    noise structure at the current rather than the starting ``R``, are the differences)."""
-    sim = simulate_drive(DriveConfig(duration_s=60, rate_hz=20, noise_nt=NOISE, seed=14))
-    init = Calibration(R=sim.R + 0.003, b=sim.b + 50.0)
-    config = MATCHED.replace(block_s=0.5)
+    config = MATCHED.replace(block_s=block_s)
     post = calibrate_log(DriveLog(sim.table), config, init=init)
     online = OnlineCalibrator(init, config)
     rows = sim.table.reset_index().to_dict("records")
@@ -299,15 +284,19 @@ def test_realtime_blocks_match_post_processing_blocks():
     assert [r.status for r in results] == list(post.states["status"])
     filter_std = np.sqrt(np.diag(post.filter_P))
     assert np.all(np.abs(results[-1].x - post.filter_x) < 0.1 * filter_std)
-    # the reference at each sample (the cached IGRF, taken by block) is the one a step takes
-    stepped = OnlineCalibrator(init, config)
-    references = np.array([stepped.step(row).reference_body_nt for row in rows])
-    np.testing.assert_allclose([r.reference_body_nt for r in results], references, rtol=0, atol=1e-6)
-    assert online.reference.evaluations == stepped.reference.evaluations
-    # each result's arrays are its own
-    results[-1].reference_body_nt[:] = 0.0
-    results[-2].R[:] = 0.0
-    assert np.all(online._last_field_body != 0.0) and np.all(results[-1].R != 0.0)
+    assert online.reference.evaluations <= 2
+    last = results[-1]
+    assert np.isfinite(last.heading_true_deg) and last.R.shape == (3, 3) and last.std.shape == (12,)
+    if block_s:
+        # the reference at each sample (the cached IGRF, taken by block) is the one a step takes
+        stepped = OnlineCalibrator(init, config)
+        references = np.array([stepped.step(row).reference_body_nt for row in rows])
+        np.testing.assert_allclose([r.reference_body_nt for r in results], references, rtol=0, atol=1e-6)
+        assert online.reference.evaluations == stepped.reference.evaluations
+        # each result's arrays are its own
+        results[-1].reference_body_nt[:] = 0.0
+        results[-2].R[:] = 0.0
+        assert np.all(online._last_field_body != 0.0) and np.all(results[-1].R != 0.0)
 
 
 def test_realtime_block_refuses_times_out_of_order():

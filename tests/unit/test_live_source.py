@@ -612,11 +612,11 @@ def test_a_connection_that_cannot_be_opened_is_an_input_error_naming_it():
     assert str(error.value).startswith(connection)
 
 
-def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(flight):
-    """The vehicle has only the CALIBRATION set: the others are asked for in PARAM_ROUNDS rounds, each ending a
-    few round trips after its last answer (on loopback, PARAM_MIN_S), not PARAM_ROUND_S; then reported."""
+def read_parameters(flight, params: dict, **vehicle_options) -> tuple:
+    """Open a source against a vehicle with ``params`` (and ``vehicle_options``) and close it: the vehicle, the
+    source, its events and the wall seconds ``open`` took (the parameter read)."""
     port = free_udp_port()
-    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), CALIBRATION)
+    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), params, **vehicle_options)
     vehicle.start()
     source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
     try:
@@ -628,6 +628,13 @@ def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(fl
         source.close()
         vehicle.stop.set()
         vehicle.join(5.0)
+    return vehicle, source, events, took
+
+
+def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(flight):
+    """The vehicle has only the CALIBRATION set: the others are asked for in PARAM_ROUNDS rounds, each ending a
+    few round trips after its last answer (on loopback, PARAM_MIN_S), not PARAM_ROUND_S; then reported."""
+    vehicle, source, events, took = read_parameters(flight, CALIBRATION)
     missing = len(ARDUPILOT_PARAMETERS) - len(CALIBRATION)
     assert any(e.startswith(f"{missing} parameters not answered after {PARAM_ROUNDS} requests") for e in events)
     assert vehicle.requests.count("PARAM_REQUEST_READ") == len(ARDUPILOT_PARAMETERS) + (PARAM_ROUNDS - 1) * missing
@@ -637,18 +644,8 @@ def test_parameters_a_vehicle_does_not_have_are_asked_in_rounds_then_reported(fl
 
 def test_parameter_requests_fit_ardupilots_queue(flight):
     """A vehicle that, as ArduPilot, queues 20 requests and drops the rest answers every one of the 51 asked in
-    the first round: the requests in flight never exceed ``PARAM_WINDOW``."""
-    port = free_udp_port()
-    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), CALIBRATION | DEFAULTS, queue=20)
-    vehicle.start()
-    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
-    try:
-        source.open(timeout_s=5.0)
-        events = source.take_events()
-    finally:
-        source.close()
-        vehicle.stop.set()
-        vehicle.join(5.0)
+    the first round: they go ``PARAM_WINDOW`` at a time."""
+    vehicle, source, events, _ = read_parameters(flight, CALIBRATION | DEFAULTS, queue=20)
     assert vehicle.dropped == 0
     assert vehicle.requests.count("PARAM_REQUEST_READ") == len(ARDUPILOT_PARAMETERS)
     assert set(source.params) >= set(ARDUPILOT_PARAMETERS) and not source.missing_compass_parameters
@@ -658,19 +655,7 @@ def test_parameter_requests_fit_ardupilots_queue(flight):
 def test_a_vehicle_that_answers_no_parameter_is_not_waited_for_window_by_window(flight):
     """No answer to the first window in its wait: the rest of each round goes at once, so the read takes one wait
     more than the rounds' (not one a window)."""
-    port = free_udp_port()
-    vehicle = Vehicle(port, vehicle_packets(flight.iloc[:10]), {})
-    vehicle.start()
-    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ)
-    try:
-        began = time.monotonic()
-        source.open(timeout_s=5.0)
-        took = time.monotonic() - began
-        events = source.take_events()
-    finally:
-        source.close()
-        vehicle.stop.set()
-        vehicle.join(5.0)
+    vehicle, _, events, took = read_parameters(flight, {})
     assert vehicle.requests.count("PARAM_REQUEST_READ") == PARAM_ROUNDS * len(ARDUPILOT_PARAMETERS)
     assert any(e.startswith(f"{len(ARDUPILOT_PARAMETERS)} parameters not answered") for e in events)
     assert (PARAM_ROUNDS + 1) * PARAM_ROUND_S <= took < (PARAM_ROUNDS + 2) * PARAM_ROUND_S
