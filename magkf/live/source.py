@@ -27,7 +27,8 @@ Compass parameters
     ``PARAM_ROUND_TRIPS`` round trips (at least ``PARAM_MIN_S``) after them or their last answer. ArduPilot's
     ``ARDUPILOT_PARAMETERS`` (the ``COMPASS_*`` set that ``magkf.io.tlog`` undoes), PX4's ``PX4_PARAMETERS``
     (``CAL_MAGn_*``). ``open`` returns once they are answered or their rounds are over; a reboot asks for them
-    again. ArduPilot's field is then uncorrected exactly as ``magkf.io.tlog`` uncorrects it (the same functions,
+    again, and the new boot's samples wait for the answers (a calibration uploaded before the reboot is in force
+    after it). ArduPilot's field is then uncorrected exactly as ``magkf.io.tlog`` uncorrects it (the same functions,
     with the values in force when the sample is handed out); where it cannot be undone it is passed as sent and
     ``provenance`` says so. Motor compensation (``COMPASS_MOTCT`` 1 or 2) is undone with the throttle
     (``VFR_HUD``) or current (``BATTERY_STATUS``) latest at or before the sample, which lags by up to their interval
@@ -359,6 +360,7 @@ class MavlinkSource:
         self._param_asked = 0
         self._param_reading = False
         self._params_read = False  # the first read is over: samples are handed out from then on
+        self._made: list[dict] = []  # samples handed out at a reboot, before the parameters are read again
         self._collect_echoes = False
         self._sequence = _SequenceCount()
         self._since_clock = 0
@@ -915,9 +917,10 @@ class MavlinkSource:
 
     def _hand_out(self) -> list[dict]:
         """The ready samples with their field in nT (calibration undone where it can be), once the parameter read
-        is over."""
+        is over (after a reboot, once the parameters in force are read again); those made at the reboot first."""
+        made, self._made = self._made, []
         if not self._ready or not self._params_read:
-            return []
+            return made
         ready, self._ready = self._ready, []
         fields = self._fields(ready)
         out = []
@@ -927,7 +930,7 @@ class MavlinkSource:
             row |= {k: float(sample[k]) for k in ("current_a", "throttle", "temp_c") if k in sample}
             out.append(row)
         self.counters["samples"] += len(out)
-        return out
+        return made + out
 
     def _fields(self, samples: list[dict]) -> np.ndarray:
         """(N, 3) nT of ``samples`` (all of one message): as sent, or with ArduPilot's calibration undone."""
@@ -1097,8 +1100,7 @@ class MavlinkSource:
         self._param_asked = 0
         self._param_reading = bool(names)
         self._param_next = time.monotonic()
-        if not names:
-            self._params_read = True
+        self._params_read = not names  # samples wait for the values in force
 
     def _parameter_round(self, now: float) -> None:
         """Ask for the next ``PARAM_WINDOW`` parameters of the round not answered yet, or start the next round
@@ -1159,6 +1161,7 @@ class MavlinkSource:
         )
         if self._pending and self._time_base_ready():
             self._finish(self._pending)
+        self._made += self._hand_out()  # the old boot's samples, with the old boot's parameters
         self._sequence.restart(self._since_clock)
         self.counters["lost"], self.counters["reordered"] = self._sequence.lost, self._sequence.reordered
         self._old_boot_end_us, self._reboot_wall = self._clock_us, time.monotonic()

@@ -45,6 +45,8 @@ SPEED = 15.0
 PAUSE_AT_S, REBOOT_AT_S = 1.5, 7.0
 #: Wall seconds of the pause, and the link timeout of the source (a pause is two timeouts long).
 PAUSE_S, LINK_TIMEOUT_S = 0.5, 0.25
+#: Wall seconds a rebooted vehicle leaves parameter requests unanswered (``Vehicle``'s ``rebooted_params``).
+MUTE_AFTER_REBOOT_S = 0.1
 #: Share of the magnetometer and between-rows attitude packets dropped.
 DROP_SHARE = 0.03
 HALF_FLOAT32_RAD = 2.0**-23
@@ -104,6 +106,9 @@ class Vehicle(threading.Thread):
     queue : int or None
         As ArduPilot (``param_requests`` in ``GCS_Param.cpp``): parameter requests wait in a queue of this many,
         those that do not fit are dropped, and a few are answered between packets. None: each answered at once.
+    rebooted_params : dict or None
+        Its parameters after the reboot (of the packets' second boot), which it leaves unanswered for
+        ``MUTE_AFTER_REBOOT_S`` wall seconds after the reboot, as a vehicle still starting.
     """
 
     def __init__(
@@ -120,6 +125,7 @@ class Vehicle(threading.Thread):
         close_at_us=None,
         autopilot="ardupilot",
         queue=None,
+        rebooted_params=None,
     ):
         super().__init__(daemon=True)
         from pymavlink import mavutil
@@ -129,6 +135,7 @@ class Vehicle(threading.Thread):
         self.drop, self.delay, self.pause_at_us = set(drop), dict(delay or {}), pause_at_us
         self.close_at_us, self.autopilot = close_at_us, autopilot
         self.queue, self.waiting, self.dropped = queue, [], 0
+        self.rebooted_params, self.muted_until = rebooted_params, -1.0
         self.packer = mavlink_dialect().MAVLink(None, srcSystem=1, srcComponent=1)
         self.seq, self.boot = 0, 0
         self.requests: list[str] = []
@@ -166,6 +173,9 @@ class Vehicle(threading.Thread):
             self._wait_until(start + (packet.time_us - first) * 1e-6 / SPEED)
             if packet.boot != self.boot:
                 self.boot, self.seq = packet.boot, 0  # the counter starts again at a reboot
+                if self.rebooted_params is not None:
+                    self.params = dict(self.rebooted_params)
+                    self.muted_until = time.monotonic() + MUTE_AFTER_REBOOT_S
             data = with_sequence(packet.data, self._next_seq())
             if i in self.delay:
                 held.append([self.delay[i], data])
@@ -203,6 +213,8 @@ class Vehicle(threading.Thread):
         while (msg := self.conn.recv_msg()) is not None:
             name = msg.get_type()
             self.requests.append(name)
+            if name == "PARAM_REQUEST_READ" and time.monotonic() < self.muted_until:
+                continue
             if name == "PARAM_REQUEST_READ" and self.queue is not None:
                 if len(self.waiting) < self.queue:
                     self.waiting.append(msg.param_id)
@@ -439,6 +451,45 @@ def test_a_reboot_is_reported_and_survived(run, flight):
     after = t > REBOOT_AT_S
     assert after.sum() > 0.9 * (DURATION_S - REBOOT_AT_S) * RATE_HZ  # the streams go on after it
     assert run["requests"].count("REQUEST_DATA_STREAM") >= 2 * 5  # asked again (five groups each time)
+
+
+def test_after_a_reboot_samples_wait_for_the_parameters_in_force(flight):
+    """The vehicle reboots at 4 s with another offset (as after a calibration uploaded) and answers parameters
+    only after a while: every sample is undone with the parameters of its own boot (within the bound of the
+    firmware's truncation), none with the old offset, 5 000 nT off."""
+    new = CALIBRATION | {"COMPASS_OFS_X": CALIBRATION["COMPASS_OFS_X"] + 50.0}
+    old_boot = vehicle_packets(flight, params=CALIBRATION, firmware="4.5.7", reboot_at_s=4.0)
+    new_boot = vehicle_packets(flight, params=new, firmware="4.5.7", reboot_at_s=4.0)
+    # the new boot's parameters only as answers (its announced PARAM_VALUEs would come before its clock says
+    # it rebooted)
+    packets = [p for p in old_boot if p.boot == 0] + [p for p in new_boot if p.boot == 1 and p.name != "PARAM_VALUE"]
+    port = free_udp_port()
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS, rebooted_params=new | DEFAULTS)
+    vehicle.start()
+    source = MavlinkSource(f"udpout:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, events = stream(source, vehicle, link_drops=1)
+        samples += source.drain()
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    assert source.counters["reboots"] == 1 and source.params["COMPASS_OFS_X"] == pytest.approx(170.0)
+    t = np.array([s["time"] for s in samples]) - flight.index[0]
+    assert (t > 4.0).sum() > 0.9 * (DURATION_S - 4.0) * RATE_HZ
+    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
+    m = np.array(
+        [
+            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
+        ]
+    )
+    bound = np.abs(np.linalg.inv(m)).sum(axis=1) * 100.0 / p["COMPASS_SCALE"]
+    got = np.array([[s["mag_x"], s["mag_y"], s["mag_z"]] for s in samples])
+    error = np.abs(got - flight[["mag_x", "mag_y", "mag_z"]].to_numpy()[rows_of(samples, flight)])
+    assert np.all(error <= bound + 1e-6)
 
 
 def test_a_link_that_pauses_is_reported_lost_and_back(run):
