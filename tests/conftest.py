@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -55,3 +56,18 @@ def refuse_processes(monkeypatch, layer: str) -> None:
     monkeypatch.setattr(subprocess, "Popen", refuse)
     monkeypatch.setattr(os, "system", refuse)
     monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refuse)
+
+
+def truncation_bound_nt(params: dict) -> np.ndarray:
+    """(3,) nT per axis: the most by which a field ArduPilot corrected with the ``COMPASS_*`` set ``params`` and
+    truncated to 1 mG per sent component, then uncorrected, can differ from the raw field: the truncation through
+    the inverse model, ``sum_j |M^-1|_ij x 1 mG / SCALE`` (the parameters as float32, as a log holds them)."""
+    p = {k: float(np.float32(v)) for k, v in params.items()}
+    m = np.array(
+        [
+            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
+            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
+            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
+        ]
+    )
+    return np.abs(np.linalg.inv(m)).sum(axis=1) * 100.0 / p["COMPASS_SCALE"]

@@ -37,6 +37,8 @@ from magkf.io.vehicle_calibration import logged_calibration
 from magkf.live.source import ARDUPILOT_PARAMETERS, PARAM_ROUND_S, PARAM_ROUNDS, PX4_PARAMETERS, MavlinkSource
 from magkf.sim import DriveConfig, simulate_drive
 
+from ..conftest import truncation_bound_nt
+
 RATE_HZ = 20.0
 DURATION_S = 10.0
 #: Vehicle seconds per wall second.
@@ -352,15 +354,7 @@ def test_every_magnetometer_packet_sent_is_one_sample_at_its_time(run, flight):
 def test_fields_match_the_flight_with_the_compass_calibration_undone(run, flight):
     samples = run["samples"]
     rows = rows_of(samples, flight)
-    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
-    m = np.array(
-        [
-            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
-            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
-            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
-        ]
-    )
-    bound = np.abs(np.linalg.inv(m)).sum(axis=1) * 100.0 / p["COMPASS_SCALE"]
+    bound = truncation_bound_nt(CALIBRATION)
     got = np.array([[s["mag_x"], s["mag_y"], s["mag_z"]] for s in samples])
     error = np.abs(got - flight[["mag_x", "mag_y", "mag_z"]].to_numpy()[rows])
     assert np.all(error <= bound + 1e-6)
@@ -478,15 +472,7 @@ def test_after_a_reboot_samples_wait_for_the_parameters_in_force(flight):
     assert source.counters["reboots"] == 1 and source.params["COMPASS_OFS_X"] == pytest.approx(170.0)
     t = np.array([s["time"] for s in samples]) - flight.index[0]
     assert (t > 4.0).sum() > 0.9 * (DURATION_S - 4.0) * RATE_HZ
-    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
-    m = np.array(
-        [
-            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
-            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
-            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
-        ]
-    )
-    bound = np.abs(np.linalg.inv(m)).sum(axis=1) * 100.0 / p["COMPASS_SCALE"]
+    bound = truncation_bound_nt(CALIBRATION)
     got = np.array([[s["mag_x"], s["mag_y"], s["mag_z"]] for s in samples])
     error = np.abs(got - flight[["mag_x", "mag_y", "mag_z"]].to_numpy()[rows_of(samples, flight)])
     assert np.all(error <= bound + 1e-6)

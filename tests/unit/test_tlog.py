@@ -32,6 +32,8 @@ from magkf.io.site import Site
 from magkf.io.tlog import STORAGE_SIGMA_NT, TelemetryLogReader, read_tlog, write_tlog
 from magkf.sim import DriveConfig, simulate_drive
 
+from ..conftest import truncation_bound_nt
+
 RATE_HZ = 20.0
 #: Rows between GPS_RAW_INT (5 Hz) and between BATTERY_STATUS/VFR_HUD (2 Hz) at 20 Hz rows.
 GPS_EVERY, AUX_EVERY = 4, 10
@@ -145,15 +147,7 @@ def test_known_calibration_is_undone(flight, tmp_path):
     write_tlog(flight, path, params=CALIBRATION, firmware="4.5.7")
     raw, provenance = read_tlog(path)
     truth = flight[["mag_x", "mag_y", "mag_z"]].to_numpy()
-    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}
-    m = np.array(
-        [
-            [p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
-            [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
-            [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]],
-        ]
-    )
-    bound = np.abs(np.linalg.inv(m)).sum(axis=1) * 100.0 / p["COMPASS_SCALE"]
+    bound = truncation_bound_nt(CALIBRATION)
     error = np.abs(raw[["mag_x", "mag_y", "mag_z"]].to_numpy() - truth)
     assert np.all(error <= bound + 1e-6)
     assert error.max() > 1.0  # the truncation is there: the comparison is not of a copy
@@ -168,6 +162,7 @@ def test_known_calibration_is_undone(flight, tmp_path):
     assert not any("correction model was assumed" in n for n in provenance["notes"])
 
     sent, as_sent = read_tlog(path, raw=False)
+    p = {k: float(np.float32(v)) for k, v in CALIBRATION.items()}  # as float32, as the log holds them
     corrected = compass_correct(
         truth / 100.0,
         *(np.array([p[f"COMPASS_{q}_{a}"] for a in "XYZ"]) for q in ("OFS", "DIA", "ODI")),
