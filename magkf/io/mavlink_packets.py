@@ -59,6 +59,8 @@ AUTOPILOT_CODES = {"ardupilot": 3, "px4": 12}
 #: ``HEARTBEAT`` of the vehicle: ``MAV_TYPE_QUADROTOR``, ``base_mode`` 81 (custom mode, stabilise, armed bits as
 #: ArduPilot reports a disarmed copter), ``MAV_STATE_STANDBY``, MAVLink 3.
 VEHICLE_TYPE, BASE_MODE, SYSTEM_STATUS, MAVLINK_VERSION = 2, 81, 4, 3
+#: ``GPS_FIX_TYPE_NO_FIX``: what a row without a position is sent with.
+NO_FIX = 1
 #: ``MAV_PARAM_TYPE`` of integer and floating-point parameters (``INT32``, ``REAL32``).
 PARAM_INT32, PARAM_REAL32 = 6, 9
 #: Ground station's system and component (``MAV_COMP_ID_MISSIONPLANNER``), for the ``HEARTBEAT`` a tlog holds.
@@ -171,6 +173,9 @@ class VehiclePackets:
         Seconds after the first row at which the vehicle reboots (see the module docstring); inside the table.
     source : str
         Names the table in errors.
+    vehicle_type : int
+        ``HEARTBEAT.type`` (``MAV_TYPE``; default 2, a quadrotor): a receiver names the firmware by it (1 a plane,
+        10 a rover, 12 a submarine).
 
     Raises
     ------
@@ -182,9 +187,9 @@ class VehiclePackets:
     -----
     The magnetometer: ArduPilot ``RAW_IMU`` (``time_usec`` boot us), PX4 ``SCALED_IMU`` (``time_boot_ms``), both
     in mG truncated to int16, ``temperature`` from ``temp_c`` (cdegC). ``GPS_RAW_INT``: ``fix_type`` (the column,
-    else 3 with a position, 1 without), ``lat, lon`` (1e-7 deg), ``alt`` and ``alt_ellipsoid`` (mm, both from
-    ``alt``), ``eph/epv`` from ``hdop/vdop`` (65535 where NaN), ``time_usec`` UNIX us for ArduPilot, boot us for
-    PX4. ``HEARTBEAT`` at 1 Hz.
+    else 3 with a position; at most 1, no fix, without one), ``lat, lon`` (1e-7 deg), ``alt`` and
+    ``alt_ellipsoid`` (mm, both from ``alt``), ``eph/epv`` from ``hdop/vdop`` (65535 where NaN), ``time_usec``
+    UNIX us for ArduPilot, boot us for PX4. ``HEARTBEAT`` at 1 Hz, of ``vehicle_type``.
     """
 
     def __init__(
@@ -205,12 +210,14 @@ class VehiclePackets:
         ground_station: bool = True,
         reboot_at_s: float | None = None,
         source: str = "table",
+        vehicle_type: int = VEHICLE_TYPE,
     ):
         if autopilot not in AUTOPILOT_CODES:
             raise InputError(f"unknown autopilot {autopilot!r}; use ardupilot or px4", source)
         frame, t = table_to_write(table, source)
         self.dialect = mavlink_dialect()
         self.autopilot, self.mavlink1, self.sysid, self.source = autopilot, mavlink1, sysid, source
+        self.vehicle_type = int(vehicle_type)
         self.params = dict(params or {})
         self.firmware = firmware
         self._version = _version_numbers(firmware, source) if firmware is not None else None
@@ -314,7 +321,7 @@ class VehiclePackets:
         rows = [int(self.log_us[i]) for i in self._every(1.0)]
         for at in sorted(set(rows) | set(self._start_rows()[1:])):
             message = self.dialect.MAVLink_heartbeat_message(
-                VEHICLE_TYPE, code, BASE_MODE, 0, SYSTEM_STATUS, MAVLINK_VERSION
+                self.vehicle_type, code, BASE_MODE, 0, SYSTEM_STATUS, MAVLINK_VERSION
             )
             self._send(at, message)
             if ground_station and at in rows:
@@ -412,6 +419,8 @@ class VehiclePackets:
             L = int(self.log_us[i])
             has = bool(np.isfinite(lat[i]) and np.isfinite(lon[i]))
             fix = int(fix_col[i]) if np.isfinite(fix_col[i]) else (3 if has else 1)
+            if not has:  # no position: no fix, whatever the column says (a fix at 0 N 0 E would be taken)
+                fix = min(fix, NO_FIX)
             time_usec = self._unix_us(L) if self.autopilot == "ardupilot" else int(self.boot_of(L))
             alt_mm = int(round(alt[i] * 1000.0)) if has and np.isfinite(alt[i]) else 0
             ellipsoid_mm = 0 if self.mavlink1 else alt_mm  # a MAVLink 1 sender drops the extension fields

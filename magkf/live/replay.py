@@ -1,7 +1,8 @@
 """Any log magkf reads, sent over a MAVLink link as a vehicle would stream it, answering what a vehicle answers.
 
 The packets are ``magkf.io.mavlink_packets.VehiclePackets``' (what each message carries and how ArduPilot or PX4
-fill it: ``magkf.io.tlog``), sent at the times of the log divided by the speed. Meanwhile the replay answers:
+fill it: ``magkf.io.tlog``; the ``HEARTBEAT`` of the vehicle an ArduPilot log's firmware names, ``log_vehicle_type``),
+sent at the times of the log divided by the speed. Meanwhile the replay answers:
 
 * ``PARAM_REQUEST_READ`` (by ``param_index``, or by ``param_id`` where the index is -1) and ``PARAM_REQUEST_LIST``
   with ``PARAM_VALUE``; ``PARAM_SET`` of a parameter the vehicle has by setting it and sending its ``PARAM_VALUE``
@@ -37,9 +38,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.mavlink_packets import AUTOPILOT_CODES, PARAM_PREFIXES, VehiclePackets, param_value_message, with_sequence
-from ..io.tlog import AUTOPILOT_COMPONENT, mavlink_dialect
+from ..io.tlog import AUTOPILOT_COMPONENT, VEHICLE_OF_TYPE, mavlink_dialect
 
-__all__ = ["ReplayStats", "replay", "log_parameters", "CONNECTION_HELP"]
+__all__ = ["ReplayStats", "replay", "log_parameters", "log_vehicle_type", "CONNECTION_HELP"]
 
 #: What ``connection`` may be.
 CONNECTION_HELP = (
@@ -56,6 +57,8 @@ POLL_S = 0.02
 #: Packets sent between two looks at the link and ``stop`` when sending as fast as possible.
 BURST = 64
 VERSION = re.compile(r"(\d+)\.(\d+)(?:\.(\d+))?")
+#: The vehicle in an ArduPilot firmware's name.
+VEHICLE_NAME = re.compile(r"(?:Ardu|APM:)(Plane|Copter|Rover|Sub)", re.IGNORECASE)
 
 
 @dataclass
@@ -183,6 +186,7 @@ def replay(
     stats = ReplayStats()
     vehicle_params, apply = log_parameters(log, autopilot, params, stats.notes)
     firmware = firmware if firmware is not None else _log_firmware(log, autopilot, stats.notes)
+    vehicle_type = log_vehicle_type(log) if autopilot == "ardupilot" else None
     packets = VehiclePackets(
         log.table,
         autopilot,
@@ -196,6 +200,7 @@ def replay(
         ground_station=False,
         reboot_at_s=reboot_at_s,
         source=log.source,
+        **({} if vehicle_type is None else {"vehicle_type": vehicle_type}),
     )
     link = _open(connection, baud, sysid)
     vehicle = _Vehicle(link, packets, autopilot, sysid, stats)
@@ -293,6 +298,20 @@ def _log_firmware(log, autopilot: str, notes: list) -> str | None:
             version = ".".join(g or "0" for g in found.groups())
             notes.append(f"firmware {version}, from the log ({text})")
             return version
+    return None
+
+
+def log_vehicle_type(log) -> int | None:
+    """``MAV_TYPE`` of the vehicle an ArduPilot log's firmware names (``ArduPlane V4.2.3``, ``APM:Copter V3.5.7``:
+    the lowest type a receiver names so, ``tlog.VEHICLE_OF_TYPE``), or None where the log does not say."""
+    provenance = getattr(log, "provenance", None) or {}
+    for text in (provenance.get("ardupilot_firmware"), provenance.get("firmware")):
+        found = VEHICLE_NAME.match(text) if isinstance(text, str) else None
+        if found:
+            kind = found.group(1).capitalize()
+            types = [t for t, k in VEHICLE_OF_TYPE.items() if k == kind]
+            if types:
+                return min(types)
     return None
 
 

@@ -124,3 +124,25 @@ def test_a_reboot_outside_the_table_and_a_bad_firmware_are_refused(flight):
         VehiclePackets(flight, firmware="four")
     with pytest.raises(InputError, match="unknown autopilot 'inav'"):
         VehiclePackets(flight, "inav")
+
+
+def test_a_row_without_a_position_is_sent_without_a_fix(flight, tmp_path):
+    """A table whose ``fix_type`` column says 3-D where the position is missing (a reader carries the fix type of
+    the message at or before an epoch, the position only between two fixes): the row goes out with no fix, not as
+    a fix at 0 N 0 E, which a receiver would take (live did: a 66 000 nT residual at that epoch of a real
+    ArduSub log replayed). Read back, the position there is missing."""
+    table = flight.assign(fix_type=3.0)
+    gone = table.index[40:60]
+    table.loc[gone, ["lat", "lon", "alt"]] = np.nan
+    packets = VehiclePackets(table, "ardupilot", apply_params=False, ground_station=False)
+    gps = [m for _, m in of_type(decoded(packets), "GPS_RAW_INT")]
+    assert any(m.lat == 0 for m in gps)  # the rows without a position were sent
+    assert all(m.fix_type <= 1 for m in gps if m.lat == 0 and m.lon == 0)
+    assert all(m.fix_type == 3 for m in gps if m.lat != 0)
+    path = tmp_path / "gap.tlog"
+    path.write_bytes(b"".join(p.stamp_us.to_bytes(STAMP_BYTES, "big") + p.data for p in packets))
+    back, _ = read_tlog(path)
+    t = back["time"].to_numpy()
+    inside = (t >= gone[0]) & (t <= gone[-1])
+    assert inside.any() and back["lat"][inside].isna().all()
+    assert np.nanmin(np.abs(back["lat"].to_numpy())) > 1.0  # no position at 0 N anywhere

@@ -290,3 +290,34 @@ def test_ardupilot_parameters_take_the_firmware_types():
     assert typed == {"COMPASS_OFS_X": 0.0, "COMPASS_DIA2_Y": 1.0, "COMPASS_ORIENT": 4, "COMPASS_MOTCT": 2,
                      "COMPASS_DEV_ID": 97539, "AHRS_ORIENTATION": 0, "COMPASS_DEC": 0.0}  # fmt: skip
     assert [type(v) for v in typed.values()] == [float, float, int, int, int, int, float]
+
+
+@pytest.mark.parametrize(
+    "firmware, mav_type",
+    [
+        ("ArduPlane V4.2.3 (55685c43)", 1),
+        ("APM:Copter V3.5.7 (b11c6af3)", 2),
+        ("ArduRover V4.5.1", 10),
+        ("ArduSub V4.1.1 BETA5 (66c674c1)", 12),
+        ("PX4 1.15.0", None),
+        (None, None),
+    ],
+)
+def test_the_heartbeat_names_the_logs_vehicle(firmware, mav_type, flight):
+    """The replay's HEARTBEAT carries the type of the vehicle the log's firmware names, by which a receiver names
+    the firmware (``tlog.VEHICLE_OF_TYPE``: an ArduPlane log was announced as ArduCopter); a quadrotor where the
+    log does not say."""
+    from types import SimpleNamespace
+
+    from magkf.io.mavlink_packets import VEHICLE_TYPE
+    from magkf.io.tlog import VEHICLE_OF_TYPE, mavlink_dialect
+    from magkf.live.replay import log_vehicle_type
+
+    found = log_vehicle_type(SimpleNamespace(provenance={"firmware": firmware}))
+    assert found == mav_type
+    packets = VehiclePackets(flight, vehicle_type=VEHICLE_TYPE if found is None else found, ground_station=False)
+    parser = mavlink_dialect().MAVLink(None)
+    beats = [m for m in (parser.decode(bytearray(p.data)) for p in packets) if m.get_type() == "HEARTBEAT"]
+    assert beats and {m.type for m in beats} == {VEHICLE_TYPE if found is None else found}
+    if firmware is not None and found is not None:
+        assert firmware.replace("APM:", "Ardu").startswith(f"Ardu{VEHICLE_OF_TYPE[found]}")
