@@ -268,7 +268,8 @@ def _compare_realtime(session, run) -> None:
     import numpy as np
 
     if session.calibrator is None:
-        print("  the real-time filter never started (no start could be bootstrapped from the samples)")
+        why = session.no_start or "no start could be bootstrapped from the samples"
+        print(f"  the real-time filter never started ({why})")
         return
     x_live = session.calibrator.estimator.x[:12]
     std = np.sqrt(np.diag(run.calibration.covariance))

@@ -44,6 +44,7 @@ from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import YAW, heading_span_deg
 from ..errors import InputError
+from ..plausibility import heading_span, start_problem
 from ..status import STATUS_NAMES, Status
 from .status import LiveStatus
 
@@ -108,6 +109,7 @@ class LiveSession:
         self.calibrator = None
         self._held: list[dict] = []  # samples waiting for the bootstrap
         self._next_bootstrap = -math.inf
+        self.no_start: str | None = None  # why the last bootstrap gave no start, in words
         self.counts: Counter = Counter()
         self.first_time = self.last_time = math.nan
         self._recent: deque = deque()  # (time, squared vector residual) of used epochs
@@ -231,17 +233,30 @@ class LiveSession:
 
         log = samples_log(self._held, "the samples held for the start")
         try:
-            setup = prepare_run(prepare(log, self.config), self.config, None, tuple(self.effects or ()))
+            prep = prepare(log, self.config)
+            setup = prepare_run(prep, self.config, None, tuple(self.effects or ()))
         except (InputError, ValueError, np.linalg.LinAlgError) as exc:  # too short, turning too little, degenerate
-            self.event(f"no start yet ({getattr(exc, 'message', exc)}); waiting for more turning")
-            self._drop_oldest_held(t)
+            self._no_start_yet(str(getattr(exc, "message", exc)), t)
             return
         R, b = setup.layout.R_b(setup.x0)
+        why = start_problem(R, b, float(np.nanmedian(prep.ref_mag))) if setup.model.needs_attitude else None
+        if why is not None:  # a stretch that turns too little: its fit is no start (``calibrate`` fits the whole log)
+            self._no_start_yet(
+                f"the samples held turn through {heading_span(log):.0f} deg of heading; their fit has {why}", t
+            )
+            return
         self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
         self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")
         held, self._held = self._held, []
         self._filter(held, timed=False)
         self._next_diagnosis = t + self.diagnose_every_s
+
+    def _no_start_yet(self, why: str, t: float) -> None:
+        """No start from the samples held, for the reason ``why`` (words): said, kept (``no_start``), and the
+        samples beyond the last ``HELD_S`` s let go."""
+        self.no_start = why
+        self.event(f"no start yet ({why}); waiting for more turning")
+        self._drop_oldest_held(t)
 
     def _drop_oldest_held(self, t: float) -> None:
         """Samples held beyond the last ``HELD_S`` s leave the bootstrap's stretch (counted ``before_start``; the

@@ -14,6 +14,8 @@ from magkf.live.recording import Recording
 from magkf.live.session import LiveSession
 from magkf.sim import DriveConfig, simulate_drive
 
+from ..conftest import DATA
+
 #: A start bootstrapped from the first minute (instead of calibrate's two).
 CONFIG = FilterConfig(bootstrap_s=60.0)
 
@@ -111,6 +113,26 @@ def test_a_straight_drive_asks_for_turning():
     words = session.status().undetermined
     assert words and words[0].startswith("turn through") and "more degrees of heading" in words[0]
     assert float(words[0].split()[2]) > 300.0
+
+
+def test_samples_that_turn_too_little_give_no_start_and_say_why():
+    """A real ArduSub log (``ardusub_small.tlog``: 48 deg of heading, roll and pitch within 3 deg, residuals of
+    1 000 nT): its samples bootstrap a fit that trades R's columns against b (sensitivities 0.0015 to 1.1 of the
+    field). The session holds the samples and says why rather than filter from that start (which left the
+    real-time estimate 46 standard deviations from the calibration written); ``calibrate`` of the recording, which
+    holds what the log does not determine, is still written at the end."""
+    from magkf.io.readers import read_log
+
+    log = read_log(DATA / "real" / "ardusub_small.tlog")
+    rows = log.table.reset_index().to_dict("records") if "time" not in log.table else log.table.to_dict("records")
+    session = LiveSession(CONFIG, None, diagnose_every_s=0)
+    for i in range(0, len(rows), 5):
+        session.add_many(rows[i : i + 5])
+    assert session.calibrator is None
+    refusals = [e for e in session.events if e.startswith("no start yet (the samples held turn through")]
+    assert refusals and "deg of heading; their fit has sensitivities" in refusals[-1]
+    assert refusals[-1] == f"no start yet ({session.no_start}); waiting for more turning"
+    assert session.status().verdict.startswith("holding")
 
 
 def test_running_diagnosis_finds_a_hidden_load_current():
