@@ -268,7 +268,12 @@ def _compare_realtime(session, run) -> None:
     import numpy as np
 
     if session.calibrator is None:
-        why = session.no_start or "no start could be bootstrapped from the samples"
+        span = session.last_time - session.first_time
+        why = session.no_start or (
+            f"the samples span {span:.0f} s; a start is bootstrapped from {session.config.bootstrap_s:g} s"
+            if span < session.config.bootstrap_s
+            else "no start could be bootstrapped from the samples"
+        )
         print(f"  the real-time filter never started ({why})")
         return
     x_live = session.calibrator.estimator.x[:12]

@@ -186,3 +186,19 @@ def test_samples_recorded_after_the_last_checkpoint_are_not_kept_twice(drive, tm
         resumed.add(r)
     times = resumed.recording.table()["time"].to_numpy()
     np.testing.assert_array_equal(times, [r["time"] for r in rows])
+
+
+def test_the_stop_says_why_the_real_time_filter_never_started(capsys):
+    """The line printed at the stop names the reason: the last bootstrap's refusal, else a stream shorter than the
+    bootstrap's stretch (a 69 s bench log replayed, for calibrate's 120 s)."""
+    from types import SimpleNamespace
+
+    from magkf.cli.live import _compare_realtime
+
+    session = LiveSession(CONFIG, None, diagnose_every_s=0)
+    session.first_time, session.last_time = 100.0, 145.0
+    _compare_realtime(session, SimpleNamespace())
+    assert "never started (the samples span 45 s; a start is bootstrapped from 60 s)" in capsys.readouterr().out
+    session.no_start = "too few usable epochs (6) to bootstrap a calibration"
+    _compare_realtime(session, SimpleNamespace())
+    assert f"never started ({session.no_start})" in capsys.readouterr().out
