@@ -89,6 +89,9 @@ class LiveSession:
         shown once it is done), else in the caller's, at the sample that makes it due.
     """
 
+    #: Why the last bootstrap gave no start, in words (a class default: a checkpoint saved before it existed loads).
+    no_start: str | None = None
+
     def __init__(
         self,
         config: FilterConfig = FilterConfig(),
@@ -109,7 +112,7 @@ class LiveSession:
         self.calibrator = None
         self._held: list[dict] = []  # samples waiting for the bootstrap
         self._next_bootstrap = -math.inf
-        self.no_start: str | None = None  # why the last bootstrap gave no start, in words
+        self.no_start = None
         self.counts: Counter = Counter()
         self.first_time = self.last_time = math.nan
         self._recent: deque = deque()  # (time, squared vector residual) of used epochs

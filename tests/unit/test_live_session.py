@@ -202,3 +202,13 @@ def test_the_stop_says_why_the_real_time_filter_never_started(capsys):
     session.no_start = "too few usable epochs (6) to bootstrap a calibration"
     _compare_realtime(session, SimpleNamespace())
     assert f"never started ({session.no_start})" in capsys.readouterr().out
+
+
+def test_a_checkpoint_saved_before_no_start_existed_loads(tmp_path):
+    """A session pickled without the ``no_start`` attribute (saved by the version before it) reads it as None, so
+    the stop's message does not fail on a resumed session."""
+    import pickle
+
+    session = LiveSession(CONFIG, None, diagnose_every_s=0)
+    del session.__dict__["no_start"]
+    assert pickle.loads(pickle.dumps(session)).no_start is None
