@@ -187,19 +187,23 @@ def start_problem(R, b, field: float) -> str | None:
     """Why a start bootstrapped from a stretch of samples, ``R`` (3, 3) and ``b`` (3,) nT for a field of ``field``
     nT, is no calibration to filter from, in words, or None: a mirror, sensitivities outside ``SENSITIVITY_WARNED``
     of the field, one direction stretched beyond ``ANISOTROPY_WARNED`` times another, or offsets beyond
-    ``OFFSET_WARNED`` fields (the bounds past which ``calibrate`` warns of a calibration it writes). A stretch that
+    ``OFFSET_WARNED`` fields (the bounds past which ``calibrate`` warns of a calibration it writes; the offsets not
+    judged without a known field), in words that finish "their fit has". A stretch that
     turns through too few headings trades ``R``'s columns against ``b``, and its fit lands anywhere: a straight
     drive's gave a start 15 000 nT off the field, a real submarine log's sensitivities of 0.0015."""
     R, b = np.asarray(R, float), np.asarray(b, float)
     if not (np.isfinite(R).all() and np.isfinite(b).all()):
-        return "it is not finite"
+        return "values that are not finite"
+    if np.linalg.det(R) <= 0:
+        return "a mirrored R (a negative determinant)"
     s = np.linalg.svd(R, compute_uv=False)
     lo, hi = SENSITIVITY_WARNED
-    mirror = np.linalg.det(R) <= 0
-    if mirror or s[-1] < lo or s[0] > hi or s[0] > ANISOTROPY_WARNED * s[-1]:
-        return f"sensitivities {s[-1]:.2g} to {s[0]:.2g} of the field{', mirrored' if mirror else ''}"
-    if np.linalg.norm(b) > OFFSET_WARNED * field:
-        return f"offsets of {np.linalg.norm(b) / field:.2g} times the field"
+    if s[-1] < lo or s[0] > hi:
+        return f"sensitivities {s[-1]:.3g} to {s[0]:.3g} of the field, outside [{lo:g}, {hi:g}]"
+    if s[0] > ANISOTROPY_WARNED * s[-1]:
+        return f"an R that stretches one direction {s[0] / s[-1]:.3g} times another (more than {ANISOTROPY_WARNED:g})"
+    if np.isfinite(field) and field > 0 and np.linalg.norm(b) > OFFSET_WARNED * field:
+        return f"offsets of {np.linalg.norm(b) / field:.3g} times the field (more than {OFFSET_WARNED:g})"
     return None
 
 

@@ -270,7 +270,7 @@ def _compare_realtime(session, run) -> None:
     if session.calibrator is None:
         span = session.last_time - session.first_time
         why = session.no_start or (
-            f"the samples span {span:.0f} s; a start is bootstrapped from {session.config.bootstrap_s:g} s"
+            f"the samples span {span:.1f} s; a start is bootstrapped from {session.config.bootstrap_s:g} s"
             if span < session.config.bootstrap_s
             else "no start could be bootstrapped from the samples"
         )

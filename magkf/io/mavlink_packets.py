@@ -34,6 +34,7 @@ from .tlog import (
     MAV_AUTOPILOT_INVALID,
     MAV_TYPE_GCS,
     UNKNOWN_U16,
+    VEHICLE_OF_TYPE,
     correction_model,
     mavlink_dialect,
 )
@@ -56,8 +57,8 @@ START_US = 10_000_000
 REBOOT_START_US = 2_000_000
 #: ``MAV_AUTOPILOT`` of each autopilot name.
 AUTOPILOT_CODES = {"ardupilot": 3, "px4": 12}
-#: ``HEARTBEAT`` of the vehicle: ``MAV_TYPE_QUADROTOR``, ``base_mode`` 81 (custom mode, stabilise, armed bits as
-#: ArduPilot reports a disarmed copter), ``MAV_STATE_STANDBY``, MAVLink 3.
+#: ``HEARTBEAT`` of the vehicle: ``MAV_TYPE_QUADROTOR`` by default, ``base_mode`` 81 (custom mode, stabilise,
+#: armed bits as ArduPilot reports a disarmed copter), ``MAV_STATE_STANDBY``, MAVLink 3.
 VEHICLE_TYPE, BASE_MODE, SYSTEM_STATUS, MAVLINK_VERSION = 2, 81, 4, 3
 #: ``GPS_FIX_TYPE_NO_FIX``: what a row without a position is sent with.
 NO_FIX = 1
@@ -149,9 +150,10 @@ class VehiclePackets:
     apply_params : bool
         ArduPilot: apply the ``COMPASS_*`` calibration of ``params`` to the magnetometer as ``correct_field``
         does (``compass_correct``; motor compensation ``COMPASS_MOT`` x ``throttle`` or ``current_a`` for
-        ``COMPASS_MOTCT`` 1 or 2; the vehicle is a quadcopter, so ``firmware`` 3.3 to 3.5 adds it before the
-        soft-iron matrix and below 4.0 there is no ``COMPASS_SCALE``). False: the table's field is sent as it
-        is (it holds the calibrated field already). PX4's ``SCALED_IMU`` is never calibrated.
+        ``COMPASS_MOTCT`` 1 or 2, before or after the soft-iron matrix as ``correction_model`` says for the
+        ``firmware`` of the vehicle of ``vehicle_type``; below 4.0 there is no ``COMPASS_SCALE``). False: the
+        table's field is sent as it is (it holds the calibrated field already). PX4's ``SCALED_IMU`` is never
+        calibrated.
     firmware : str, optional
         ``"4.5.0"`` (or ``"4.5"``): an ``AUTOPILOT_VERSION`` with that flight software version (release type 255,
         official) before the first row and after a reboot.
@@ -388,7 +390,8 @@ class VehiclePackets:
         offsets, diagonals, offdiagonals, scale = _firmware_compass(params)
         motor = _motor_sent(params, self._frame)[rows]
         version = ".".join(map(str, self._version)) if self._version is not None else None
-        first, scale_applies = correction_model(f"ArduCopter V{version}" if version else None)
+        kind = VEHICLE_OF_TYPE.get(self.vehicle_type, "Copter")  # the vehicle a receiver names by the HEARTBEAT
+        first, scale_applies = correction_model(f"Ardu{kind} V{version}" if version else None)
         return compass_correct(
             raw_mg, offsets, diagonals, offdiagonals, scale if scale_applies else 1.0, motor, motor_first=first
         )

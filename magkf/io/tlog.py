@@ -1262,14 +1262,14 @@ def write_tlog(
     * magnetometer at every row with a finite field: ArduPilot ``RAW_IMU`` (``time_usec`` boot us) with the
       ``COMPASS_*`` calibration of ``params`` applied as the firmware does (``compass_correct``; motor
       compensation ``COMPASS_MOT`` x ``throttle`` or ``current_a`` for ``COMPASS_MOTCT`` 1 or 2; the vehicle
-      is a quadcopter, so ``firmware`` 3.3 to 3.5 adds it before the soft-iron matrix and below 4.0 there is
-      no ``COMPASS_SCALE``), PX4
+      is a quadcopter, so Copter ``firmware`` 3.3 to 3.5 adds it before the soft-iron matrix and below 4.0
+      there is no ``COMPASS_SCALE``), PX4
       ``SCALED_IMU`` (``time_boot_ms``), uncalibrated; both in mG truncated to int16, ``temperature`` from
       ``temp_c``. InputError where a value does not fit in int16.
     * ``ATTITUDE`` ``attitude_per_row`` times a row (slerp between rows), radians as float32.
-    * ``GPS_RAW_INT`` every ``gps_period_s``: ``fix_type`` (the column, else 3 with a position, 1 without),
-      ``lat, lon`` (1e-7 deg), ``alt`` and ``alt_ellipsoid`` (mm, both from ``alt``), ``eph/epv`` from
-      ``hdop/vdop`` (65535 where NaN); ``time_usec`` UNIX us for ArduPilot, boot us for PX4.
+    * ``GPS_RAW_INT`` every ``gps_period_s``: ``fix_type`` (the column, else 3 with a position; at most 1,
+      no fix, without one), ``lat, lon`` (1e-7 deg), ``alt`` and ``alt_ellipsoid`` (mm, both from ``alt``),
+      ``eph/epv`` from ``hdop/vdop`` (65535 where NaN); ``time_usec`` UNIX us for ArduPilot, boot us for PX4.
     * ``SYSTEM_TIME`` at 1 Hz (``system_time``); ``BATTERY_STATUS`` (``current_a``) and ``VFR_HUD``
       (``throttle``) every ``aux_period_s`` where the table has them.
 

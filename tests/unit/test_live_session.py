@@ -130,7 +130,7 @@ def test_samples_that_turn_too_little_give_no_start_and_say_why():
         session.add_many(rows[i : i + 5])
     assert session.calibrator is None
     refusals = [e for e in session.events if e.startswith("no start yet (the samples held turn through")]
-    assert refusals and "deg of heading; their fit has sensitivities" in refusals[-1]
+    assert refusals and "deg of heading; their fit has a mirrored R" in refusals[-1]
     assert refusals[-1] == f"no start yet ({session.no_start}); waiting for more turning"
     assert session.status().verdict.startswith("holding")
 
@@ -198,7 +198,7 @@ def test_the_stop_says_why_the_real_time_filter_never_started(capsys):
     session = LiveSession(CONFIG, None, diagnose_every_s=0)
     session.first_time, session.last_time = 100.0, 145.0
     _compare_realtime(session, SimpleNamespace())
-    assert "never started (the samples span 45 s; a start is bootstrapped from 60 s)" in capsys.readouterr().out
+    assert "never started (the samples span 45.0 s; a start is bootstrapped from 60 s)" in capsys.readouterr().out
     session.no_start = "too few usable epochs (6) to bootstrap a calibration"
     _compare_realtime(session, SimpleNamespace())
     assert f"never started ({session.no_start})" in capsys.readouterr().out

@@ -29,7 +29,7 @@ from magkf.io.autopilot import export_instance
 from magkf.io.dataflash import compass_correct, compass_uncorrect
 from magkf.io.readers import detect_format, magnetometer_instances, read_log
 from magkf.io.site import Site
-from magkf.io.tlog import STORAGE_SIGMA_NT, TelemetryLogReader, read_tlog, write_tlog
+from magkf.io.tlog import STAMP_BYTES, STORAGE_SIGMA_NT, TelemetryLogReader, read_tlog, write_tlog
 from magkf.sim import DriveConfig, simulate_drive
 
 from ..conftest import truncation_bound_nt
@@ -632,3 +632,26 @@ def test_per_motor_compensation_is_not_undone_and_said(flight, tmp_path):
     _, provenance = read_tlog(path)
     assert "per-motor compensation (COMPASS_PMOT_EN) not undone" in provenance["raw_reconstruction"]
     assert any(note.startswith("COMPASS_PMOT_EN = 1: the first compass's motor") for note in provenance["notes"])
+
+
+@pytest.mark.parametrize("vehicle_type", [1, 2, 10, 12])
+def test_the_correction_sent_is_the_one_the_reader_undoes_for_each_vehicle(flight, tmp_path, vehicle_type):
+    """ArduPilot 3.7 adds motor compensation before the soft-iron matrix on a plane, a rover and a sub, after it on
+    a copter (``correction_model``). The packets apply the model of the vehicle their HEARTBEAT names, which the
+    reader names from it and undoes: the raw field comes back within the bound of the motor test above (truncation
+    and the current's interpolation; the diagonal of 1.05 shrinks both). With the copter's model sent for a plane,
+    the field came back 585 nT off."""
+    from magkf.io.mavlink_packets import VehiclePackets
+
+    t = flight.index.to_numpy()
+    smooth = flight.iloc[:400].assign(current_a=10.0 + 5.0 * np.sin(2 * np.pi * (t[:400] - t[0]) / 20.0))
+    params = {"COMPASS_MOTCT": 2, "COMPASS_MOT_X": 12.0, "COMPASS_MOT_Y": -7.0, "COMPASS_MOT_Z": 4.0}
+    params |= {"COMPASS_DIA_X": 1.05, "COMPASS_DIA_Y": 1.05, "COMPASS_DIA_Z": 1.05, "COMPASS_OFS_X": 40.0}
+    packets = VehiclePackets(smooth, params=params, firmware="3.7.0", vehicle_type=vehicle_type)
+    path = tmp_path / "vehicle.tlog"
+    path.write_bytes(b"".join(p.stamp_us.to_bytes(STAMP_BYTES, "big") + p.data for p in packets))
+    raw, _ = read_tlog(path)
+    error = np.abs(raw[["mag_x", "mag_y", "mag_z"]].to_numpy() - smooth[["mag_x", "mag_y", "mag_z"]].to_numpy())
+    known = np.isfinite(error).all(axis=1)
+    assert known.sum() > 300
+    assert np.all(error[known] <= (1.0 + 12.0 * (0.0154 + 0.005)) * 100.0)
