@@ -48,6 +48,7 @@ __all__ = [
     "OFFSET_REFUSED",
     "OFFSET_WARNED",
     "start_problem",
+    "FULL_TURN_DEG",
     "OFFSET_STD_REFUSED",
     "OFFSET_STD_WARNED",
     "EARTH_FIELD_NT",
@@ -95,6 +96,9 @@ OFFSET_STD_WARNED = 0.01
 EARTH_FIELD_NT = (22_000.0, 67_000.0)
 FEW_EPOCHS = 300
 MOVED_SIGMA = 5.0
+#: Degrees of heading past which a bootstrapped start is judged by the refusal bounds alone (``start_problem``): half
+#: a circle fixes the first two columns of ``R``.
+FULL_TURN_DEG = 180.0
 #: A fit to a known field leaving a residual RMS above these shares of the field is refused, or warned.
 RESIDUAL_REFUSED = 0.05
 RESIDUAL_WARNED = 0.01
@@ -183,27 +187,35 @@ def check_calibration(
     return warnings
 
 
-def start_problem(R, b, field: float) -> str | None:
+def start_problem(R, b, field: float, turned: bool = False) -> str | None:
     """Why a start bootstrapped from a stretch of samples, ``R`` (3, 3) and ``b`` (3,) nT for a field of ``field``
     nT, is no calibration to filter from, in words, or None: a mirror, sensitivities outside ``SENSITIVITY_WARNED``
     of the field, one direction stretched beyond ``ANISOTROPY_WARNED`` times another, or offsets beyond
     ``OFFSET_WARNED`` fields (the bounds past which ``calibrate`` warns of a calibration it writes; the offsets not
     judged without a known field), in words that finish "their fit has". A stretch that
     turns through too few headings trades ``R``'s columns against ``b``, and its fit lands anywhere: a straight
-    drive's gave a start 15 000 nT off the field, a real submarine log's sensitivities of 0.0015."""
+    drive's gave a start 15 000 nT off the field, a real submarine log's sensitivities of 0.0015. ``turned``: the
+    samples turn through ``FULL_TURN_DEG`` of heading or more, so the fit is what the sensor does, and only the
+    bounds past which ``calibrate`` refuses a calibration apply (``SENSITIVITY_REFUSED``, ``ANISOTROPY_REFUSED``,
+    ``OFFSET_REFUSED``): a vehicle's large hard iron is no reason to hold its samples."""
     R, b = np.asarray(R, float), np.asarray(b, float)
+    sensitivity, stretch, offset = (
+        (SENSITIVITY_REFUSED, ANISOTROPY_REFUSED, OFFSET_REFUSED)
+        if turned
+        else (SENSITIVITY_WARNED, ANISOTROPY_WARNED, OFFSET_WARNED)
+    )
     if not (np.isfinite(R).all() and np.isfinite(b).all()):
         return "values that are not finite"
     if np.linalg.det(R) <= 0:
         return "a mirrored R (a negative determinant)"
     s = np.linalg.svd(R, compute_uv=False)
-    lo, hi = SENSITIVITY_WARNED
+    lo, hi = sensitivity
     if s[-1] < lo or s[0] > hi:
         return f"sensitivities {s[-1]:.3g} to {s[0]:.3g} of the field, outside [{lo:g}, {hi:g}]"
-    if s[0] > ANISOTROPY_WARNED * s[-1]:
-        return f"an R that stretches one direction {s[0] / s[-1]:.3g} times another (more than {ANISOTROPY_WARNED:g})"
-    if np.isfinite(field) and field > 0 and np.linalg.norm(b) > OFFSET_WARNED * field:
-        return f"offsets of {np.linalg.norm(b) / field:.3g} times the field (more than {OFFSET_WARNED:g})"
+    if s[0] > stretch * s[-1]:
+        return f"an R that stretches one direction {s[0] / s[-1]:.3g} times another (more than {stretch:g})"
+    if np.isfinite(field) and field > 0 and np.linalg.norm(b) > offset * field:
+        return f"offsets of {np.linalg.norm(b) / field:.3g} times the field (more than {offset:g})"
     return None
 
 

@@ -44,7 +44,7 @@ from ..calibration import Calibration
 from ..config import FilterConfig
 from ..conventions import YAW, heading_span_deg
 from ..errors import InputError
-from ..plausibility import heading_span, start_problem
+from ..plausibility import FULL_TURN_DEG, heading_span, start_problem
 from ..status import STATUS_NAMES, Status
 from .status import LiveStatus
 
@@ -242,11 +242,12 @@ class LiveSession:
             self._no_start_yet(str(getattr(exc, "message", exc)), t)
             return
         R, b = setup.layout.R_b(setup.x0)
-        why = start_problem(R, b, float(np.nanmedian(prep.ref_mag))) if setup.model.needs_attitude else None
+        turned = heading_span(log)
+        field = float(np.nanmedian(prep.ref_mag))
+        # the magnitude alone: its ellipsoid bootstrap is judged by its own plausibility rule (``bootstrap``)
+        why = start_problem(R, b, field, turned >= FULL_TURN_DEG) if setup.model.needs_attitude else None
         if why is not None:  # a stretch that turns too little: its fit is no start (``calibrate`` fits the whole log)
-            self._no_start_yet(
-                f"the samples held turn through {heading_span(log):.0f} deg of heading; their fit has {why}", t
-            )
+            self._no_start_yet(f"the samples held turn through {turned:.0f} deg of heading; their fit has {why}", t)
             return
         self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
         self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")

@@ -68,3 +68,7 @@ def test_a_start_is_judged_by_the_bounds_calibrate_warns_at():
     assert "offsets of 3.2 times the field" in start_problem(np.eye(3), big, field)
     assert start_problem(np.eye(3), big, float("nan")) is None
     assert start_problem(np.full((3, 3), np.nan), np.zeros(3), field) == "values that are not finite"
+    # samples that turned through half a circle: only the refusal bounds (a large hard iron is the sensor's)
+    assert start_problem(np.eye(3), big, field, turned=True) is None
+    assert start_problem(np.diag([1.0, 1.0, 0.45]), np.zeros(3), field, turned=True) is None
+    assert "outside [0.2, 5]" in start_problem(np.diag([1.0, 1.0, 0.1]), np.zeros(3), field, turned=True)
