@@ -113,6 +113,7 @@ __all__ = [
     "DataFlashWriter",
     "compass_correct",
     "compass_uncorrect",
+    "firmware_vehicle",
     "magnetometer_instances",
     "read_dataflash",
     "write_dataflash",
@@ -600,13 +601,20 @@ _MOTOR_FIRST = {
 }
 
 
+def firmware_vehicle(firmware: str | None) -> str | None:
+    """The vehicle an ArduPilot firmware's banner names (``ArduPlane V4.2.3``, ``APM:Copter V3.5.7``): ``"Copter"``,
+    ``"Plane"``, ``"Rover"`` or ``"Sub"``; None for any other text or None."""
+    found = re.match(r"(?:Ardu|APM:)(Copter|Plane|Rover|Sub)", firmware) if isinstance(firmware, str) else None
+    return found.group(1) if found else None
+
+
 def _motor_first(firmware: str) -> bool:
     """Whether the firmware added the motor compensation before the soft-iron matrix (``_MOTOR_FIRST``)."""
     version = _version(firmware)
-    vehicle = re.match(r"(?:Ardu|APM:)(Copter|Plane|Rover|Sub)", firmware)
+    vehicle = firmware_vehicle(firmware)
     if version is None or vehicle is None:
         return False
-    first, until = _MOTOR_FIRST[vehicle.group(1)]
+    first, until = _MOTOR_FIRST[vehicle]
     return first <= version < until
 
 

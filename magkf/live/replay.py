@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.dataflash import firmware_vehicle
 from ..io.mavlink_packets import AUTOPILOT_CODES, PARAM_PREFIXES, VehiclePackets, param_value_message, with_sequence
 from ..io.tlog import AUTOPILOT_COMPONENT, VEHICLE_OF_TYPE, mavlink_dialect
 
@@ -57,8 +58,6 @@ POLL_S = 0.02
 #: Packets sent between two looks at the link and ``stop`` when sending as fast as possible.
 BURST = 64
 VERSION = re.compile(r"(\d+)\.(\d+)(?:\.(\d+))?")
-#: The vehicle in an ArduPilot firmware's name.
-VEHICLE_NAME = re.compile(r"(?:Ardu|APM:)(Plane|Copter|Rover|Sub)", re.IGNORECASE)
 
 
 @dataclass
@@ -302,16 +301,14 @@ def _log_firmware(log, autopilot: str, notes: list) -> str | None:
 
 
 def log_vehicle_type(log) -> int | None:
-    """``MAV_TYPE`` of the vehicle an ArduPilot log's firmware names (``ArduPlane V4.2.3``, ``APM:Copter V3.5.7``:
-    the lowest type a receiver names so, ``tlog.VEHICLE_OF_TYPE``), or None where the log does not say."""
+    """``MAV_TYPE`` of the vehicle an ArduPilot log's firmware names (``ArduPlane V4.2.3``, ``APM:Copter V3.5.7``;
+    ``dataflash.firmware_vehicle``): the lowest type a receiver names so (``tlog.VEHICLE_OF_TYPE``), or None where
+    the log does not say."""
     provenance = getattr(log, "provenance", None) or {}
     for text in (provenance.get("ardupilot_firmware"), provenance.get("firmware")):
-        found = VEHICLE_NAME.match(text) if isinstance(text, str) else None
-        if found:
-            kind = found.group(1).capitalize()
-            types = [t for t, k in VEHICLE_OF_TYPE.items() if k == kind]
-            if types:
-                return min(types)
+        kind = firmware_vehicle(text)
+        if kind is not None:
+            return min(t for t, k in VEHICLE_OF_TYPE.items() if k == kind)
     return None
 
 
