@@ -123,6 +123,8 @@ UNIT_STATED_SUFFIXES = (".bin", ".log", ".ulg", ".tlog", ".bag", ".db3", ".mcap"
 #: whole-log estimate of ``ardupilot_box_center_0003.bin --init logged``, standard deviations given R of 330 to
 #: 392 nT against the start's 300; a simulated straight flight logged by ArduPilot, 2 to 10 nT (determined).
 _AT_PRIOR = 0.1
+#: What a bootstrapped start's samples lack when its fit is refused (``start_problem``).
+_FEW_HEADINGS = "samples that turn through too few headings"
 #: Default words for what data that do not determine ``R`` lack.
 _UNDETERMINED = (
     "data that do not determine R (turn the sensor through every heading, a full circle, with some pitch and roll)"
@@ -189,34 +191,21 @@ def check_calibration(
 
 def start_problem(R, b, field: float, turned: bool = False) -> str | None:
     """Why a start bootstrapped from a stretch of samples, ``R`` (3, 3) and ``b`` (3,) nT for a field of ``field``
-    nT, is no calibration to filter from, in words, or None: a mirror, sensitivities outside ``SENSITIVITY_WARNED``
-    of the field, one direction stretched beyond ``ANISOTROPY_WARNED`` times another, or offsets beyond
-    ``OFFSET_WARNED`` fields (the bounds past which ``calibrate`` warns of a calibration it writes; the offsets not
-    judged without a known field), in words that finish "their fit has". A stretch that
-    turns through too few headings trades ``R``'s columns against ``b``, and its fit lands anywhere: a straight
-    drive's gave a start 15 000 nT off the field, a real submarine log's sensitivities of 0.0015. ``turned``: the
-    samples turn through ``FULL_TURN_DEG`` of heading or more, so the fit is what the sensor does, and only the
-    bounds past which ``calibrate`` refuses a calibration apply (``SENSITIVITY_REFUSED``, ``ANISOTROPY_REFUSED``,
-    ``OFFSET_REFUSED``): a vehicle's large hard iron is no reason to hold its samples."""
-    R, b = np.asarray(R, float), np.asarray(b, float)
-    sensitivity, stretch, offset = (
-        (SENSITIVITY_REFUSED, ANISOTROPY_REFUSED, OFFSET_REFUSED)
-        if turned
-        else (SENSITIVITY_WARNED, ANISOTROPY_WARNED, OFFSET_WARNED)
-    )
-    if not (np.isfinite(R).all() and np.isfinite(b).all()):
-        return "values that are not finite"
-    if np.linalg.det(R) <= 0:
-        return "a mirrored R (a negative determinant)"
-    s = np.linalg.svd(R, compute_uv=False)
-    lo, hi = sensitivity
-    if s[-1] < lo or s[0] > hi:
-        return f"sensitivities {s[-1]:.3g} to {s[0]:.3g} of the field, outside [{lo:g}, {hi:g}]"
-    if s[0] > stretch * s[-1]:
-        return f"an R that stretches one direction {s[0] / s[-1]:.3g} times another (more than {stretch:g})"
-    if np.isfinite(field) and field > 0 and np.linalg.norm(b) > offset * field:
-        return f"offsets of {np.linalg.norm(b) / field:.3g} times the field (more than {offset:g})"
-    return None
+    nT, is no calibration to filter from, in words, or None: what ``check_calibration`` refuses, and, unless the
+    samples ``turned`` through ``FULL_TURN_DEG`` of heading or more, the first thing it warns of (sensitivities
+    outside ``SENSITIVITY_WARNED``, a stretch beyond ``ANISOTROPY_WARNED``, offsets beyond ``OFFSET_WARNED``
+    fields). Without a known ``field`` (NaN), neither sensitivities nor offsets are judged: the readings are in nT,
+    not in units of the field. A stretch that turns through too few headings trades ``R``'s
+    columns against ``b``, and its fit lands anywhere: a straight drive's gave a start 15 000 nT off the field, a
+    real submarine log's sensitivities of 0.0015. Once the samples have turned, the fit is what the sensor does: a
+    vehicle's large hard iron is no reason to hold its samples."""
+    known = bool(np.isfinite(field) and field > 0)
+    b = np.asarray(b, float) / field if known else np.zeros(3)
+    try:
+        warnings = check_calibration(R, b, "the start", known, lacks=_FEW_HEADINGS, unit_option=False)
+    except InputError as exc:
+        return reason(exc)
+    return None if turned or not warnings else warnings[0]
 
 
 def check_offset_std(b_std, field: float, source: str, lacks: str | None = None) -> list[str]:

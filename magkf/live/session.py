@@ -247,7 +247,7 @@ class LiveSession:
         # the magnitude alone: its ellipsoid bootstrap is judged by its own plausibility rule (``bootstrap``)
         why = start_problem(R, b, field, turned >= FULL_TURN_DEG) if setup.model.needs_attitude else None
         if why is not None:  # a stretch that turns too little: its fit is no start (``calibrate`` fits the whole log)
-            self._no_start_yet(f"the samples held turn through {turned:.0f} deg of heading; their fit has {why}", t)
+            self._no_start_yet(f"the samples held turn through {turned:.0f} deg of heading; their fit: {why}", t)
             return
         self._start(Calibration(R=R, b=b, covariance=setup.P0[:12, :12]))
         self.event(f"started: {setup.how}; filtering the {len(self._held)} samples held")

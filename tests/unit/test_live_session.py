@@ -130,7 +130,7 @@ def test_samples_that_turn_too_little_give_no_start_and_say_why():
         session.add_many(rows[i : i + 5])
     assert session.calibrator is None
     refusals = [e for e in session.events if e.startswith("no start yet (the samples held turn through")]
-    assert refusals and "deg of heading; their fit has a mirrored R" in refusals[-1]
+    assert refusals and "deg of heading; their fit: R is mirrored" in refusals[-1]
     assert refusals[-1] == f"no start yet ({session.no_start}); waiting for more turning"
     assert session.status().verdict.startswith("holding")
 

@@ -55,19 +55,19 @@ def test_a_residual_that_does_not_match_the_field_is_refused():
 
 def test_a_start_is_judged_by_the_bounds_calibrate_warns_at():
     """A bootstrapped start within the warned bounds is one; a mirror, a sensitivity or a stretch beyond them, or
-    offsets beyond three fields, is not, and the words name the rule and the value; without a known field the
-    offsets are not judged."""
+    offsets beyond three fields, is not, and the words are ``check_calibration``'s, naming the rule and the value;
+    without a known field the offsets are not judged."""
     field = 50_000.0
     assert start_problem(np.diag([1.1, 0.9, 1.0]), np.array([3000.0, -2000.0, 500.0]), field) is None
-    assert start_problem(np.diag([1.0, 1.0, -1.0]), np.zeros(3), field).startswith("a mirrored R")
+    assert start_problem(np.diag([1.0, 1.0, -1.0]), np.zeros(3), field).startswith("R is mirrored")
     assert "sensitivities 0.497 to 1 of the field, outside [0.5, 2]" in start_problem(
         np.diag([1.0, 1.0, 0.497]), np.zeros(3), field
     )
     assert "stretches one direction 2.17 times another" in start_problem(np.diag([0.6, 1.3, 1.3]), np.zeros(3), field)
     big = np.array([160_000.0, 0.0, 0.0])
-    assert "offsets of 3.2 times the field" in start_problem(np.eye(3), big, field)
+    assert "3.2 times the field" in start_problem(np.eye(3), big, field)
     assert start_problem(np.eye(3), big, float("nan")) is None
-    assert start_problem(np.full((3, 3), np.nan), np.zeros(3), field) == "values that are not finite"
+    assert start_problem(np.full((3, 3), np.nan), np.zeros(3), field) == "the calibration is not finite"
     # samples that turned through half a circle: only the refusal bounds (a large hard iron is the sensor's)
     assert start_problem(np.eye(3), big, field, turned=True) is None
     assert start_problem(np.diag([1.0, 1.0, 0.45]), np.zeros(3), field, turned=True) is None
