@@ -309,17 +309,21 @@ def diagnose(
 
 def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wander_s, say):
     """The model and the epochs it is judged on: ``(run, layout, x, problem, channels)``, ``problem`` the
-    ``EpochSet`` of ``_model``'s epochs, ``channels`` the names of the log's auxiliary channels. The log's
-    prepared arrays are let go once the diagnosed epochs are copied out of them."""
+    ``EpochSet`` of ``_model``'s epochs, ``channels`` the names of the log's auxiliary channels. The run is made
+    first (its prepared arrays let go at its end); the log prepared again gives the epochs judged and the reference
+    field, and is let go once the ``EpochSet`` holds those (its epochs prepared again a chunk at a time when
+    read)."""
     stored = list(restore_effects(cal)) if cal is not None else []
+    check_columns(stored + list(effects), log.auxiliary, log.source)  # naming the calibration file
+    run = _run(log, config, cal, effects, stored, run, say)  # the run's own prepared arrays let go at its end
     prep = prepare(log, config)
-    check_columns(stored + list(effects), prep.data.columns, log.source)  # naming the calibration file
-    run, layout, x, used = _model(log, config, cal, effects, stored, run, prep, say)
+    layout, x, used = _model(cal, effects, stored, run, prep)
     noise = _learned_noise(run, config)
     if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be
         noise, used = _gated_as_calibrate(prep, config, layout, x, used)
-    problem = EpochSet.of(prep, used, config, noise, wander_s)
+    problem = EpochSet.of(log, prep.ref, used, config, noise, wander_s)
     channels = list(prep.data.columns)
+    del prep  # the diagnosed epochs are prepared again a chunk at a time when read
     if len(problem) < 10:
         raise InputError(
             f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
@@ -327,15 +331,21 @@ def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wan
     return run, layout, x, problem, channels
 
 
-def _model(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list, run, prep, say):
-    """The model diagnosed, ``(run, layout, x, used)``: the run (the filter's, made here unless ``run`` is given or
-    ``cal`` with its ``stored`` effects is the model as it is; None then), the state layout, the state (n,) and
-    the epochs judged (mask (N,)): those the run used or its innovation gate refused, else the epochs the
-    calibration can use, with every column the model's effects read."""
+def _run(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list, run, say):
+    """The run the model comes from: ``run`` when given, else the filter's over ``log`` (started from ``cal``)
+    unless ``cal`` with its ``stored`` effects is the model as it is (None then)."""
     adds = [e for e in effects if e.label not in {s.label for s in stored}]
     if run is None and (cal is None or adds):
         say("calibrating")
-        run = calibrate_log(log, config, init=cal, effects=effects or stored, prepared=prep)
+        run = calibrate_log(log, config, init=cal, effects=effects or stored)
+    return run
+
+
+def _model(cal, effects: list, stored: list, run, prep):
+    """The model diagnosed, ``(layout, x, used)``: the state layout, the state (n,) (``run``'s, or ``cal``'s with
+    its ``stored`` effects when there is no run) and the epochs judged (mask (N,) of the prepared log ``prep``):
+    those the run used or its innovation gate refused, else the epochs the calibration can use, with every column
+    the model's effects read."""
     if run is not None:
         x = run.x
         layout = StateLayout.with_core(effects or stored)
@@ -353,7 +363,7 @@ def _model(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list
     for effect in layout.extra():
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
-    return run, layout, x, used
+    return layout, x, used
 
 
 def _gated_as_calibrate(prep, config: FilterConfig, layout: StateLayout, x, used) -> tuple[NoiseLevels, np.ndarray]:
@@ -424,16 +434,14 @@ def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residua
     ``run`` the mean NIS of the epochs the filter updated with."""
     n = len(problem)
     data = replace(problem.data, R0=layout.R(x))  # the model as it is
-    stretches = [slice(a, a + CHUNK) for a in range(0, n, CHUNK)]
-    terms = np.concatenate(
-        [layout.extra_terms(x, layout.linear_jacobian(data, rows=s), data, rows=s) for s in stretches]
-    )
-    c = layout.calibrated(x, problem.m, terms)
-    del terms
-    ned = body_to_ned(data.c_nb, c) - data.field_ned
-    body = c - data.field_body
-    mag = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned, axis=1)
-    del c, data
+    ned, body, mag = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+    for a in range(0, n, CHUNK):
+        chunk = data.take(slice(a, a + CHUNK))
+        terms = layout.extra_terms(x, layout.linear_jacobian(chunk), chunk)
+        c = layout.calibrated(x, problem.m[a : a + CHUNK], terms)
+        ned[a : a + CHUNK] = body_to_ned(chunk.c_nb, c) - chunk.field_ned
+        body[a : a + CHUNK] = c - chunk.field_body
+        mag[a : a + CHUNK] = np.linalg.norm(c, axis=1) - np.linalg.norm(chunk.field_ned, axis=1)
     rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
     axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
     axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}
@@ -907,18 +915,23 @@ class _Selection:
 
 # ---------------------------------------------------------------- residual against signals
 def signal_values(data) -> dict:
-    """Candidate explanatory signals (N,) at the used epochs: name -> values."""
-    c = data.c_nb
-    yaw = np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0
-    pitch = np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1)))
-    roll = np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))
+    """Candidate explanatory signals (N,) at the used epochs: name -> values (the attitude's read a chunk at a
+    time)."""
     t = data.time
+    n = len(t)
+    yaw, pitch, roll, field_rate = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    for a in range(0, n, CHUNK):
+        c = data.c_nb[a : a + CHUNK]
+        yaw[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0
+        pitch[a : a + CHUNK] = np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1)))
+        roll[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))
+        field_rate[a : a + CHUNK] = np.linalg.norm(data.field_body_rate[a : a + CHUNK], axis=1)
     out = {"heading_deg": yaw, "roll_deg": roll, "pitch_deg": pitch, "time_s": t - t[0]}
     if len(t) > 2:
         out["yaw_rate_dps"] = np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi
-    out["field_rate_nt_s"] = np.linalg.norm(data.field_body_rate, axis=1)
+    out["field_rate_nt_s"] = field_rate
     for name, values in data.columns.items():
-        out[name] = values
+        out[name] = np.asarray(values)
     return out
 
 

@@ -10,7 +10,7 @@ effect has pulled off.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -18,6 +18,7 @@ import numpy as np
 from ..online.determined import CHUNK, DETERMINED, WANDER_BLOCK_S, ChunkCache, HeadingWander, whitened_gram, whitening
 from ..online.determined import model_jacobian as _jacobian
 from ..online.determined import wander_chunks as _chunks
+from ..online.prepared_rows import PreparedRows
 from ..online.state import StateLayout
 
 __all__ = [
@@ -249,58 +250,56 @@ class Linearised:
 
 
 class EpochSet:
-    """Epochs and how a model is fitted to them: the raw readings ``m`` (n, 3) nT, the effect data
-    (``EpochData``), the heading axes (n, 3) and the measurement settings whose whitening weighs the
-    residuals."""
+    """Epochs and how a model is fitted to them: the epochs' rows of the log (``PreparedRows``: prepared a chunk
+    at a time when read), whence the raw readings ``m`` (n, 3) nT, the effect data (``data``, an ``EpochData``
+    read a chunk at a time) and the heading axes ``heading`` (n, 3), and the measurement settings whose
+    whitening weighs the residuals."""
 
-    def __init__(self, data, m, heading, config, noise=None, wander_s=None):
-        self.data, self.m, self.heading = data, m, heading
-        self.config, self.noise, self.wander_s = config, noise, wander_s
+    def __init__(self, rows: PreparedRows, config, noise=None, wander_s=None):
+        self.rows, self.config, self.noise, self.wander_s = rows, config, noise, wander_s
 
     @classmethod
-    def of(cls, prep, used, config, noise=None, wander_s=None) -> EpochSet:
-        """The epochs ``used`` (mask) of a ``PreparedLog``, weighed with ``noise`` (a ``NoiseLevels``; None:
-        the configured noise), with the heading's error a nuisance over stretches of ``wander_s`` seconds
-        (None: the logged heading taken as it is)."""
-        data = prep.data.take(used)
-        m = data.mag if data.mag is not None else prep.m[used]  # the reading, held once
-        return cls(data, m, prep.heading[used], config, noise, wander_s)
+    def of(cls, log, ref, used, config, noise=None, wander_s=None) -> EpochSet:
+        """The epochs ``used`` (mask (N,)) of ``log``, with its reference field ``ref`` (N, 3) NED nT
+        (``PreparedLog.ref``), weighed with ``noise`` (a ``NoiseLevels``; None: the configured noise), with the
+        heading's error a nuisance over stretches of ``wander_s`` seconds (None: the logged heading taken as it
+        is)."""
+        return cls(PreparedRows(log, ref, np.flatnonzero(used), config), config, noise, wander_s)
+
+    @property
+    def data(self):
+        """The epochs' ``EpochData`` (a ``LazyEpochData``: read a chunk at a time)."""
+        return self.rows.data()
+
+    @property
+    def m(self):
+        """(n, 3) nT the raw readings (a ``ChunkedArray``)."""
+        return self.rows.array("m")
+
+    @property
+    def heading(self):
+        """(n, 3) the heading axes in the body frame (a ``ChunkedArray``)."""
+        return self.rows.array("heading")
 
     def with_wander(self, wander_s) -> EpochSet:
         """The same epochs with the heading wander modelled over ``wander_s`` s (None: not modelled)."""
-        return EpochSet(self.data, self.m, self.heading, self.config, self.noise, wander_s)
+        return EpochSet(self.rows, self.config, self.noise, wander_s)
 
     def take(self, keep) -> EpochSet:
         """The epochs ``keep`` (mask or index) of this set."""
-        data = self.data.take(keep)
-        m = data.mag if self.m is self.data.mag else self.m[keep]  # the reading, held once
-        return EpochSet(data, m, self.heading[keep], self.config, self.noise, self.wander_s)
+        return EpochSet(self.rows.subset(keep), self.config, self.noise, self.wander_s)
 
     def keep_only(self, keep) -> EpochSet:
-        """This set cut to its epochs ``keep`` (mask or index) in place, and returned: each array replaced by its
-        kept epochs before the next is cut, so that the set is not held twice (as ``take`` holds it while the
-        original lives)."""
-        kind = type(self.data)
-        arrays = {f.name: getattr(self.data, f.name) for f in fields(self.data)}
-        shared = self.m is self.data.mag
-        self.data = None
-        columns = arrays.pop("columns")
-        for name, values in list(columns.items()):
-            columns[name] = values[keep]
-        for name, values in arrays.items():
-            if isinstance(values, np.ndarray) and values.ndim and name != "R0":
-                arrays[name] = values = values[keep]
-        self.data = kind(**arrays, columns=columns)
-        self.m = self.data.mag if shared else self.m[keep]
-        self.heading = self.heading[keep]
+        """This set cut to its epochs ``keep`` (mask or index) in place, and returned."""
+        self.rows = self.rows.subset(keep)
         return self
 
     def less(self, terms) -> EpochSet:
         """The same epochs with ``terms`` (n, 3) nT taken off the readings (effects held fixed)."""
-        return EpochSet(self.data, self.m - terms, self.heading, self.config, self.noise, self.wander_s)
+        return EpochSet(self.rows.less(terms), self.config, self.noise, self.wander_s)
 
     def __len__(self):
-        return len(self.m)
+        return len(self.rows)
 
     def _whitening(self, layout: StateLayout, x):
         """``(data, W, wander)`` at state ``x`` (``determined.whitening``)."""

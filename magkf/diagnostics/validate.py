@@ -57,7 +57,7 @@ from ..io.drivelog import DriveLog
 from ..online.prepare import prepare
 from ..online.state import StateLayout
 from ..status import Status
-from .fitting import WANDER_BLOCK_S, EpochSet, inliers
+from .fitting import CHUNK, WANDER_BLOCK_S, EpochSet, inliers
 from .inference import BLOCK_TAUS, HeldOut, high_passed, integrated_time, score_test, walk_rate
 
 __all__ = ["POWER", "MAX_BLOCKS", "EffectCheck", "WanderCheck", "Validation", "validation_edges", "validate"]
@@ -191,8 +191,8 @@ def validate(
     stored = epochs.with_wander(None).at(layout, x)
     as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))
     held = tuple(e for e in effects if not e.wanders)
-    contributions = {e: e.contribution(x[sl], stored.data) for e, sl in layout.blocks() if e in held}
-    fixed = epochs.less(sum(contributions.values(), np.zeros_like(epochs.m)))
+    contributions = {e: _contribution(e, x[sl], stored.data) for e, sl in layout.blocks() if e in held}
+    fixed = epochs.less(sum(contributions.values(), np.zeros((len(epochs), 3))))
     fit = fixed.fit(StateLayout.with_core(), x[:12])
     plain = fixed.with_wander(None).at(fit.layout, fit.x) if fit.wander is not None else fit
     n = len(epochs)
@@ -228,7 +228,8 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
     for effect in effects:
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
-    epochs = EpochSet.of(prep, used, config, wander_s=wander_s)
+    epochs = EpochSet.of(log, prep.ref, used, config, wander_s=wander_s)
+    del prep  # the epochs are prepared again a chunk at a time when read
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
     raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
@@ -384,7 +385,7 @@ def _rate_check(epochs: EpochSet, contributions: dict, effect, x, wander_s) -> W
     refitted without a heading nuisance (the effects that hold a value held), its residual in sensor axes
     averaged over stretches of ``wander_s`` s (``_stretch_means``)."""
     stretch_s = wander_s or WANDER_BLOCK_S
-    plain = epochs.with_wander(None).less(sum(contributions.values(), np.zeros_like(epochs.m)))
+    plain = epochs.with_wander(None).less(sum(contributions.values(), np.zeros((len(epochs), 3))))
     fit = plain.fit(StateLayout.with_core(), x[:12])
     found = walk_rate(*_stretch_means(fit, epochs.heading, stretch_s, bool(wander_s)), confidence=RATE_CONFIDENCE)
     stored = float(np.sqrt(np.mean(np.square(effect.random_walk())))) if effect.size else 0.0
@@ -419,16 +420,26 @@ def _stretch_means(fit, heading: np.ndarray, stretch_s: float, drop_heading: boo
     ends = np.r_[t[starts[1:] - 1], t[-1]] + float(np.median(np.diff(t)))
     drop = None
     if drop_heading:
-        axis = np.add.reduceat(heading @ fit.layout.R(fit.x_fit).T, starts, axis=0)[keep]
+        axis = np.add.reduceat(np.asarray(heading) @ fit.layout.R(fit.x_fit).T, starts, axis=0)[keep]
         drop = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
     return means[keep], t[starts][keep], ends[keep], counts[keep], drop
 
 
 def _ned(fit, residual_w, x=None) -> np.ndarray:
     """Whitened residuals (n, 3) as NED residuals (n, 3) nT at the fit's (or ``x``'s) calibration ``R``."""
-    raw = fit.unwhitened(residual_w)
-    R = fit.layout.R(fit.x_fit if x is None else x)
-    return body_to_ned(fit.data.c_nb, raw @ np.linalg.inv(R).T)
+    body = fit.unwhitened(residual_w) @ np.linalg.inv(fit.layout.R(fit.x_fit if x is None else x)).T
+    c_nb = fit.data.c_nb
+    for a in range(0, len(body), CHUNK):  # the attitude read a chunk at a time
+        body[a : a + CHUNK] = body_to_ned(c_nb[a : a + CHUNK], body[a : a + CHUNK])
+    return body
+
+
+def _contribution(effect, theta, data) -> np.ndarray:
+    """``effect.contribution(theta, data)`` (n, 3) nT, evaluated a chunk at a time."""
+    n = len(data)
+    return np.concatenate(
+        [effect.contribution(theta, data, rows=slice(a, min(a + CHUNK, n))) for a in range(0, n, CHUNK)]
+    )
 
 
 def _rms(ned: np.ndarray) -> float:
