@@ -409,7 +409,7 @@ def _without_outliers(problem: EpochSet, layout: StateLayout, x, pool: list, log
     # A wandering effect's flexible basis would absorb the bursts, so it is left out of the screening.
     keep = inliers(_screening_residual(problem.with_wander(None).at(layout, x), [e for e in pool if not e.wanders]))
     if not keep.all():
-        problem = problem.keep_only(keep)  # cut in place: the epochs not held twice
+        problem = problem.keep_only(keep)
     n = len(problem)
     if n < 10:
         raise InputError(f"too few usable epochs ({n}) to diagnose once outliers are left out", log.source)
@@ -435,13 +435,14 @@ def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residua
     n = len(problem)
     data = replace(problem.data, R0=layout.R(x))  # the model as it is
     ned, body, mag = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
-    for a in range(0, n, CHUNK):
-        chunk = data.take(slice(a, a + CHUNK))
-        terms = layout.extra_terms(x, layout.linear_jacobian(chunk), chunk)
-        c = layout.calibrated(x, problem.m[a : a + CHUNK], terms)
-        ned[a : a + CHUNK] = body_to_ned(chunk.c_nb, c) - chunk.field_ned
-        body[a : a + CHUNK] = c - chunk.field_body
-        mag[a : a + CHUNK] = np.linalg.norm(c, axis=1) - np.linalg.norm(chunk.field_ned, axis=1)
+    for a in range(0, n, CHUNK):  # the epochs read a chunk at a time; the effects see the whole set (``rows``)
+        s = slice(a, min(a + CHUNK, n))
+        c = layout.calibrated(
+            x, problem.m[s], layout.extra_terms(x, layout.linear_jacobian(data, rows=s), data, rows=s)
+        )
+        ned[s] = body_to_ned(data.c_nb[s], c) - data.field_ned[s]
+        body[s] = c - data.field_body[s]
+        mag[s] = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned[s], axis=1)
     rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
     axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
     axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}

@@ -1,7 +1,8 @@
 """A model fitted to a set of epochs at its own best fit: the diagnosis's and the validation's workhorse (the
 heading's wander, the whitening and what the data determine are ``magkf.online.determined``'s, shared with the run).
 
-``EpochSet`` holds the raw readings and effect data of the epochs; ``EpochSet.at(layout, x)`` whitens the
+``EpochSet`` holds the epochs as their rows of the log (``magkf.online.prepared_rows.PreparedRows``: the raw
+readings and the effect data made a chunk at a time when read); ``EpochSet.at(layout, x)`` whitens the
 vector measurement and linearises the model at state ``x`` (a Gauss-Newton step for nonlinear effects) and
 ``EpochSet.fit`` iterates that to the whole-set least-squares estimate, so that the whitening and the
 effects' linearisation (``EpochData.R0``) follow the estimate instead of a starting value that a missing

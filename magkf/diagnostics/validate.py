@@ -234,7 +234,7 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
     raw = epochs.with_wander(None).at(layout, x)  # gross outliers judged before the wander is taken out
     keep = inliers(raw.residual(x).reshape(-1, 3))
-    del raw  # its data would hold the epochs' arrays while they are cut
+    del raw  # its caches are let go before the cut set's are made
     return epochs.keep_only(keep)
 
 

@@ -102,7 +102,7 @@ def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
     where the epoch's own value or both its neighbours are missing."""
     if len(time_s) < 2:
         return np.zeros_like(values)
-    rate = np.gradient(values, time_s, axis=0)
+    rate = _gradient(time_s, values)
     beside_gap = ~np.isfinite(rate) & np.isfinite(values)
     if beside_gap.any():
         step = np.diff(values, axis=0) / np.diff(time_s)[:, None]  # (N - 1, 3): from each epoch to the next
@@ -111,6 +111,23 @@ def rate_of_change(time_s: np.ndarray, values: np.ndarray) -> np.ndarray:
         one_sided = np.where(np.isfinite(backward), backward, forward)
         rate[beside_gap] = one_sided[beside_gap]
     return rate
+
+
+def _gradient(t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """``np.gradient(f, t, axis=0)`` (N >= 2 rows) by its formula for uneven steps whatever the steps: second-order
+    central differences inside, one-sided at the ends. numpy takes another formula where every step of ``t`` is
+    equal, which rounds differently: a few rows of a log with even steps would then differ in their last bits from
+    the same rows of the whole log (``online.prepared_rows`` prepares a log's rows in parts)."""
+    out = np.empty(np.shape(f))
+    dt = np.diff(t)[:, None]
+    out[0], out[-1] = (f[1] - f[0]) / dt[0], (f[-1] - f[-2]) / dt[-1]
+    if len(t) > 2:
+        dx1, dx2 = dt[:-1], dt[1:]
+        a = -dx2 / (dx1 * (dx1 + dx2))
+        b = (dx2 - dx1) / (dx1 * dx2)
+        c = dx1 / (dx2 * (dx1 + dx2))
+        out[1:-1] = a * f[:-2] + b * f[1:-1] + c * f[2:]
+    return out
 
 
 #: Largest value (nT, or nT per unit of a parameter) a user's effect may give on a log, as on its test epochs.
@@ -192,7 +209,7 @@ def _check_finite(effect, name: str, out, data: EpochData, rows, args) -> None:
             effect_file(type(effect)),
         ) from None
     for column in effect.columns:
-        known &= np.isfinite(at_rows(np.asarray(data.columns[column], float), rows))
+        known &= np.isfinite(np.asarray(at_rows(data.columns[column], rows), float))
     with np.errstate(invalid="ignore"):
         absurd = (np.abs(per_epoch) > VALUE_MAX).any(axis=1)
     bad = absurd | np.isinf(per_epoch).any(axis=1) | (np.isnan(per_epoch).any(axis=1) & known)

@@ -56,6 +56,8 @@ DETERMINED = 1.0
 #: chunks of a longer one, and bounds what a log of any length holds beyond its vectors of a few values an epoch
 #: (a fleet's worker: 128 MB more per process at most, whatever the logs' length); 256 MB took a 1-hour log's
 #: diagnosis to half the time of none kept, for 740 bytes an epoch more at its peak. Set it to 0 to keep nothing.
+#: (Those figures were measured while the diagnosed epochs were held prepared; a set too long to be held
+#: (``prepared_rows.HELD_BYTES``) is now prepared again for each chunk made, which a chunk kept saves too.)
 CACHE_BYTES = 128 * 2**20
 
 

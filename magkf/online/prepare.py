@@ -37,6 +37,8 @@ __all__ = [
     "PreparedLog",
     "prepare",
     "prepare_arrays",
+    "body_arrays",
+    "field_rates",
     "prepare_samples",
     "PreparedEpoch",
     "prepare_epoch",
@@ -190,21 +192,33 @@ def prepare_arrays(
     PreparedLog
     """
     has_att = np.all(np.isfinite(attitude), axis=1)
-    c_nb = euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
-    field_body = ned_to_body(c_nb, ref)
+    c_nb, field_body, heading = body_arrays(attitude, ref)
     base = epoch_status(m, ref, has_att, dop, config.dop_max)
     ref_mag = np.linalg.norm(ref, axis=1)
     if previous is None:
-        rate = rate_of_change(t, field_body)
-        accel = rate_of_change(t, rate)
+        rate, accel = field_rates(t, field_body)
     else:
         rate, accel = _backward_rates(t, field_body, previous), None
     data = EpochData(
         t, field_body, ref, columns, mag=m, c_nb=c_nb, field_body_rate=rate, field_body_accel=accel,
         R0=np.eye(3) if R0 is None else R0,
     )  # fmt: skip
-    heading = np.nan_to_num(heading_axis(c_nb, ref))
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
+
+
+def body_arrays(attitude: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(c_nb, field_body, heading)`` of epochs with ``attitude`` (N, 3) roll, pitch, yaw deg and reference field
+    ``ref`` (N, 3) NED nT: the attitude matrices (N, 3, 3), the reference field in the body frame (N, 3) nT and the
+    heading axis in the body frame (N, 3) (``measurements.heading_axis``; zero without attitude)."""
+    c_nb = euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
+    return c_nb, ned_to_body(c_nb, ref), np.nan_to_num(heading_axis(c_nb, ref))
+
+
+def field_rates(t: np.ndarray, field_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rate, accel)`` (N, 3) nT/s and nT/s^2 of the body-frame field (N, 3) nT at ``t`` (N,) s, by central
+    differences over a whole log (``effects.base.rate_of_change``)."""
+    rate = rate_of_change(t, field_body)
+    return rate, rate_of_change(t, rate)
 
 
 def prepare_samples(columns: dict, refs, config: FilterConfig, channels=(), previous=None, R0=None) -> PreparedLog:

@@ -6,12 +6,13 @@ simulated log of 3 000 epochs, shorter than the default chunk (one pass over the
 with chunks of a prime number of epochs: with the heading's wander taken out the chunks are cut at its stretches
 (each chunk one stretch of 10 s, so that the chunk edges fall inside the held-out folds), and with the logged
 heading taken as exact the edges fall anywhere (inside the folds and the 10 s stretches alike). The ranking, the
-decisions and every statistic must agree to the issue's 1e-6 relative. Chunked sums differ from whole ones only
-in the order in which the same products are added (about 1e-16 relative each); the normal equations' condition
-(nested candidates, a heading wander that mimics part of an effect) amplifies that, and on this log the largest
-difference seen is 1e-7 relative (a held-out residual), ten times inside the bound. A parameter's estimate near
-zero is compared to 1e-6 of its standard deviation instead (a relative figure of a value that is noise about zero
-says nothing).
+decisions and every statistic must agree to the issue's 1e-6 relative; the chunked diagnosis also prepares its
+epochs again from the log for each chunk it reads, where the whole one holds them prepared. Chunked sums differ
+from whole ones only in the order in which the same products are added (about 1e-16 relative each); the normal
+equations' condition (nested candidates, a heading wander that mimics part of an effect) amplifies that, and on
+this log the largest difference seen is 1e-7 relative (a held-out residual), ten times inside the bound. A
+parameter's estimate near zero is compared to 1e-6 of its standard deviation instead (a relative figure of a value
+that is noise about zero says nothing).
 """
 
 import math
@@ -21,6 +22,7 @@ import pytest
 
 import magkf.diagnostics.diagnose as diagnose_module
 import magkf.online.determined as determined
+import magkf.online.prepared_rows as prepared_rows
 from magkf import Calibration
 from magkf.diagnostics.diagnose import diagnose
 from magkf.diagnostics.validate import validate
@@ -49,9 +51,12 @@ def hidden():
 
 
 def _chunked(monkeypatch, size):
-    """Passes over ``size`` epochs at a time in the diagnosis (the whitened rows, the gate and the residuals)."""
+    """Passes over ``size`` epochs at a time in the diagnosis (the whitened rows, the gate and the residuals), its
+    epochs prepared again from the log for each chunk read rather than held (``prepared_rows.HELD_BYTES``)."""
     monkeypatch.setattr(determined, "CHUNK", size)
     monkeypatch.setattr(diagnose_module, "CHUNK", size)
+    monkeypatch.setattr(prepared_rows, "CHUNK", size)
+    monkeypatch.setattr(prepared_rows, "HELD_BYTES", 0)
 
 
 def _agree(whole, chunked, path=""):
