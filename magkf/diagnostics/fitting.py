@@ -265,7 +265,7 @@ class EpochSet:
         (``PreparedLog.ref``), weighed with ``noise`` (a ``NoiseLevels``; None: the configured noise), with the
         heading's error a nuisance over stretches of ``wander_s`` seconds (None: the logged heading taken as it
         is)."""
-        return cls(PreparedRows(log, ref, np.flatnonzero(used), config), config, noise, wander_s)
+        return cls(PreparedRows(log, ref, np.flatnonzero(used)), config, noise, wander_s)
 
     @property
     def data(self):

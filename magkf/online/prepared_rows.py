@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import FilterConfig
 from ..conventions import ATTITUDE, MAG
 from ..effects.base import EpochData
 from ..io.drivelog import DriveLog
@@ -60,14 +59,12 @@ class PreparedRows:
         (N, 3) NED nT the log's reference field (``PreparedLog.ref``; held).
     index : ndarray
         (n,) int the epochs of the set, positions in ``log``, increasing.
-    config : FilterConfig
-        The run's settings (kept with the set).
     m : ndarray or None
         (n, 3) nT readings to use instead of the log's (``EpochSet.less``); None: the log's.
     """
 
-    def __init__(self, log: DriveLog, ref: np.ndarray, index, config: FilterConfig, m=None, _columns=None):
-        self.log, self.ref, self.config, self.m = log, ref, config, m
+    def __init__(self, log: DriveLog, ref: np.ndarray, index, m=None, _columns=None):
+        self.log, self.ref, self.m = log, ref, m
         self.index = np.asarray(index, np.int64)
         if len(self.index) > 1 and np.any(np.diff(self.index) <= 0):
             raise ValueError("the epochs of a PreparedRows set must be increasing positions in the log")
@@ -76,7 +73,6 @@ class PreparedRows:
             table = log.table
             arrays = {c: table[c].to_numpy(dtype=float) for c in (*MAG, *ATTITUDE, *self.columns) if c in table}
             _columns = (arrays, table.index.to_numpy(dtype=float))
-        self._columns = _columns
         self.arrays, self.log_time = _columns
         self.time = self.log_time[self.index]
         self.held = len(self.index) * (PREPARED_BYTES + 8 * len(self.columns)) <= HELD_BYTES
@@ -90,11 +86,12 @@ class PreparedRows:
     def subset(self, keep) -> PreparedRows:
         """The epochs ``keep`` (mask or increasing index) of this set."""
         m = None if self.m is None else self.m[keep]
-        return PreparedRows(self.log, self.ref, self.index[keep], self.config, m, self._columns)
+        return PreparedRows(self.log, self.ref, self.index[keep], m, (self.arrays, self.log_time))
 
     def less(self, terms: np.ndarray) -> PreparedRows:
         """The same epochs with ``terms`` (n, 3) nT taken off the readings."""
-        return PreparedRows(self.log, self.ref, self.index, self.config, self.whole("m") - terms, self._columns)
+        m = self.whole("m") - terms
+        return PreparedRows(self.log, self.ref, self.index, m, (self.arrays, self.log_time))
 
     def chunk(self, start: int, stop: int) -> Chunk:
         """The set's epochs ``start`` to ``stop`` (a ``Chunk``): of a set ``held`` (its prepared arrays within
@@ -357,9 +354,9 @@ class LazyEpochData:
         chosen = np.arange(len(self))[slice(None) if index is None else index]
         return EpochData(
             self.time[chosen],
-            *(np.asarray(self.rows.array(f))[chosen] for f in ("field_body", "field_ned")),
-            {c: np.asarray(self.rows.array(c, column=True))[chosen] for c in self.rows.columns},
-            *(np.asarray(self.rows.array(f))[chosen] for f in ("mag", "c_nb", "field_body_rate")),
+            *(self.rows.whole(f)[chosen] for f in ("field_body", "field_ned")),
+            {c: self.rows.whole(c, column=True)[chosen] for c in self.rows.columns},
+            *(self.rows.whole(f)[chosen] for f in ("mag", "c_nb", "field_body_rate")),
             self.R0,
-            np.asarray(self.rows.array("field_body_accel"))[chosen],
+            self.rows.whole("field_body_accel")[chosen],
         )

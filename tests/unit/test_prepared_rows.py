@@ -51,7 +51,7 @@ def _expected(log, index):
 
 
 def _rows(log, index):
-    return PreparedRows(log, prepare(log, FilterConfig()).ref, index, FilterConfig())
+    return PreparedRows(log, prepare(log, FilterConfig()).ref, index)
 
 
 @pytest.mark.parametrize("every", [1, 3, 20])
@@ -104,7 +104,7 @@ def test_a_subset_and_replaced_readings(log):
     np.testing.assert_array_equal(np.asarray(less.array("mag")), np.asarray(part.array("mag")))
     np.testing.assert_array_equal(np.asarray(less.subset(keep[keep]).array("m")), np.asarray(less.array("m")))
     with pytest.raises(ValueError, match="increasing"):
-        PreparedRows(log, prepare(log, FilterConfig()).ref, [5, 3], FilterConfig())
+        PreparedRows(log, prepare(log, FilterConfig()).ref, [5, 3])
 
 
 def test_lazy_data_takes_as_epoch_data_does(log):
@@ -112,7 +112,7 @@ def test_lazy_data_takes_as_epoch_data_does(log):
     are read-only, so that no use changes what the next pass reads."""
     prep = prepare(log, FilterConfig())
     R0 = np.diag([1.0, 1.1, 0.9])
-    data = PreparedRows(log, prep.ref, np.arange(len(log)), FilterConfig()).data(R0)
+    data = PreparedRows(log, prep.ref, np.arange(len(log))).data(R0)
     for chosen in (slice(40, 77), np.array([2, 3, 500, 998])):
         got, want = data.take(chosen), prep.data.take(chosen)
         for name in ("time", *EPOCH_ARRAYS):
