@@ -83,8 +83,10 @@ def _files(args) -> tuple[dict, list]:
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 done, 2 bad input or usage, 1 internal error)."""
+    from ..allocator import pin_mmap_threshold
     from ..interruption import restore, stop_on_signals
 
+    pin_mmap_threshold()  # freed chunk arrays of a long log given back to the system (``magkf.allocator``)
     previous = stop_on_signals()
     streams = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = _ReaderMayLeave(sys.stdout), _ReaderMayLeave(sys.stderr)

@@ -536,7 +536,7 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
     block (``HeldOut`` over a single block of the whole log) without being copied side by side, except for
     the pass that ``gram_svd`` may make."""
 
-    cache = ChunkCache()  # the candidates' whitened regressors, made once if the budget allows
+    cache = ChunkCache(len(fit.y) // 3)  # the candidates' whitened regressors, made once if the budget allows
 
     def whitened(j, effect, a, b):
         return cache.get((j, a, b), lambda: fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b))
@@ -775,7 +775,7 @@ class _Selection:
         q = finite_regressors(effect, fit.data, slice(0, 1)).shape[2]
         names = effect.parameter_names if q == effect.size else [f"g{j + 1}" for j in range(q)]
 
-        cache = ChunkCache()  # kept for the trial's passes within ``CACHE_BYTES``, made again beyond
+        cache = ChunkCache(len(fit.y) // 3)  # kept for the trial's passes on a short set, made again beyond
 
         def whitened(a, b):
             return cache.get((a, b), lambda: fit.whitened(finite_regressors(effect, fit.data, slice(a, b)), a, b))

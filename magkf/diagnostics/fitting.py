@@ -177,8 +177,8 @@ class Linearised:
     rows an epoch and p columns is held) and ``span`` (p, k) the coefficients of an orthonormal basis
     ``A @ span`` of the directions the data determine (``A`` the whitened Jacobian); ``y`` (3n,) the whitened
     reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares estimate (kept at ``x``
-    in directions the data do not determine). ``cache`` keeps the rows made, a chunk at a time, within
-    ``determined.CACHE_BYTES`` (``ChunkCache``): a short log's are made once, a long log's beyond the budget
+    in directions the data do not determine). ``cache`` keeps the rows made, a chunk at a time (``ChunkCache``):
+    a short set's within ``determined.CACHE_BYTES``, made once; a longer set's (``determined.CACHED_EPOCHS``)
     made again at each pass."""
 
     layout: StateLayout
@@ -321,7 +321,7 @@ class EpochSet:
         n, p = len(self.m), layout.size
         chunks = _chunks(n, wander)
         y, kept = np.empty(3 * n), np.empty((3 * n, keep))
-        gram, moment, cache = 0.0, 0.0, ChunkCache()
+        gram, moment, cache = 0.0, 0.0, ChunkCache(n)
         for a, b in chunks:  # whitened a chunk at a time, with the wander taken out stretch by stretch
             H, offset = _jacobian(layout, x, data, slice(a, b))
             ya = np.einsum("nij,nj->ni", W[a:b], self.m[a:b] - offset).ravel()

@@ -29,6 +29,8 @@ __all__ = [
     "DETERMINED",
     "HeadingWander",
     "CACHE_BYTES",
+    "CACHED_EPOCHS",
+    "WHITENING_CACHE_BYTES",
     "ChunkCache",
     "ChunkWhitening",
     "wander_chunks",
@@ -47,54 +49,65 @@ CHUNK = 8192
 #: A direction of the parameters counts as determined by the data when its standard error (noise as whitened)
 #: is below this share of its prior spread: the data then say more about it than the prior does.
 DETERMINED = 1.0
-#: Bytes of chunks made for a pass (whitenings, a linearised model's whitened Jacobian, a candidate's whitened
-#: regressors) that may be kept for the next passes, over all the ``ChunkCache``s of a process alive together.
-#: A diagnosis reads each of them on several passes (a candidate's test: two to four; the model's Jacobian: on
-#: every candidate's), and made again they cost about half its time; kept whole they are about 1.1 kB an epoch
-#: (98 MB on a 15-minute 100 Hz drive). 128 MB keeps all of them for a log of up to about 20 minutes at 100 Hz
-#: (on the 15-minute drive, 64, 128 and 256 MB each gave 0.51 to 0.52 of the time with none kept), the first
-#: chunks of a longer one, and bounds what a log of any length holds beyond its vectors of a few values an epoch
-#: (a fleet's worker: 128 MB more per process at most, whatever the logs' length); 256 MB took a 1-hour log's
-#: diagnosis to half the time of none kept, for 740 bytes an epoch more at its peak. Set it to 0 to keep nothing.
-#: (Those figures were measured while the diagnosed epochs were held prepared; a set too long to be held
-#: (``prepared_rows.HELD_BYTES``) is now prepared again for each chunk made, which a chunk kept saves too.)
+#: Bytes of chunks made for a pass (a linearised model's whitened Jacobian rows, a candidate's whitened
+#: regressors, inverse whitenings) that may be kept for the next passes, over all the ``ChunkCache``s of a process
+#: alive together, when the set they are made for is short (``CACHED_EPOCHS``). A diagnosis reads each of them on
+#: several passes (a candidate's test: two to four; the model's Jacobian: on every candidate's), and made again
+#: they cost about half its time; kept whole they are about 1.1 kB an epoch (98 MB on a 15-minute 100 Hz drive).
+#: 128 MB keeps all of them for a log of up to about 20 minutes at 100 Hz (on the 15-minute drive, 64, 128 and
+#: 256 MB each gave 0.51 to 0.52 of the time with none kept). Set it to 0 to keep nothing.
 CACHE_BYTES = 128 * 2**20
+#: Epochs of a set whose chunks other than its whitenings are kept within ``CACHE_BYTES`` (131 072: 22 minutes at
+#: 100 Hz, where all of them fit). A longer set's are made again at each read: each is read on two to five passes
+#: only, for 2 to 20 MB a chunk, and on a 1-hour 100 Hz diagnosis the 128 MB that held a third of them saved
+#: 0.02 s a MB kept, for 373 bytes an epoch more at its peak.
+CACHED_EPOCHS = 2**17
+#: Bytes of whitenings' chunks (``ChunkWhitening``: 72 bytes an epoch) that may be kept, over all of a process,
+#: whatever the set's length: a 1-hour 100 Hz diagnosis reads each 20 to 70 times, and keeping them saved 0.11 s a
+#: MB kept, five times the Jacobian rows'. 32 MB holds a 1-hour log's whitening at one model.
+WHITENING_CACHE_BYTES = 32 * 2**20
 
 
 class _Budget:
-    """The bytes held by every ``ChunkCache`` of the process (``CACHE_BYTES`` at most)."""
+    """The bytes held by a kind of ``ChunkCache`` over the process: at most the module's setting ``limit`` names
+    (``CACHE_BYTES`` or ``WHITENING_CACHE_BYTES``, read when bytes are taken)."""
 
-    lock = threading.Lock()
-    used = 0
+    def __init__(self, limit: str):
+        self.limit, self.lock, self.used = limit, threading.Lock(), 0
 
-    @classmethod
-    def take(cls, nbytes: int) -> bool:
-        """Whether ``nbytes`` more fit in ``CACHE_BYTES``; if so, they are counted held."""
-        with cls.lock:
-            if cls.used + nbytes > CACHE_BYTES:
+    def take(self, nbytes: int) -> bool:
+        """Whether ``nbytes`` more fit in the limit; if so, they are counted held."""
+        with self.lock:
+            if self.used + nbytes > globals()[self.limit]:
                 return False
-            cls.used += nbytes
+            self.used += nbytes
             return True
 
-    @classmethod
-    def give_back(cls, held: list) -> None:
+    def give_back(self, held: list) -> None:
         """``held[0]`` bytes no longer held (a cache let go)."""
-        with cls.lock:
-            cls.used -= held[0]
+        with self.lock:
+            self.used -= held[0]
             held[0] = 0
 
 
-class ChunkCache:
-    """Arrays made a chunk at a time for a pass over a set of epochs, kept (read-only) for the next passes as
-    long as every cache of the process holds at most ``CACHE_BYTES`` together; beyond, made again each time
-    they are asked for (the last one made kept still, outside the budget, for the next read of the same chunk).
-    What a cache holds is given back to the budget when the cache is let go."""
+_CHUNKS, _WHITENINGS = _Budget("CACHE_BYTES"), _Budget("WHITENING_CACHE_BYTES")
 
-    def __init__(self):
+
+class ChunkCache:
+    """Arrays made a chunk at a time for a pass over a set of ``epochs`` epochs, kept (read-only) for the next
+    passes: a short set's (``CACHED_EPOCHS`` at most) as long as every such cache of the process holds at most
+    ``CACHE_BYTES`` together; a ``whitening`` cache's (``ChunkWhitening``) within ``WHITENING_CACHE_BYTES``, whatever
+    the set's length. Beyond, they are made again each time they are asked for (the last one made kept still,
+    outside the budget, for the next read of the same chunk). What a cache holds is given back to its budget when
+    the cache is let go."""
+
+    def __init__(self, epochs: int = 0, whitening: bool = False):
+        self._budget = _WHITENINGS if whitening else _CHUNKS if epochs <= CACHED_EPOCHS else None
         self._store: dict = {}
         self._last = (None, None)
         self._held = [0]
-        weakref.finalize(self, _Budget.give_back, self._held)
+        if self._budget is not None:
+            weakref.finalize(self, self._budget.give_back, self._held)
 
     def get(self, key, make) -> np.ndarray:
         """The array of ``key`` (a chunk's edges, and what is made of it): kept, or ``make()`` (and kept if the
@@ -106,7 +119,7 @@ class ChunkCache:
             return self._last[1]
         value = make()
         value.flags.writeable = False
-        if _Budget.take(value.nbytes):
+        if self._budget is not None and self._budget.take(value.nbytes):
             self._held[0] += value.nbytes
             self._store[key] = value
         else:
@@ -132,9 +145,9 @@ class HeadingWander:
     What is lost: the part of an effect that looks like a heading change within a stretch, notably a
     constant field anomaly across the horizontal field (the same thing as a heading offset).
 
-    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing. Held: ``Z``,
-    each epoch's time within its stretch and the stretch's index (32 bytes an epoch); the two regressors of each
-    stretch, ``Z`` and ``Z`` times that time, are made for the rows asked (``regressors``).
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing. Held: ``Z`` and
+    the stretch's index (28 bytes an epoch), and ``time`` as given; the two regressors of each stretch, ``Z`` and
+    ``Z`` times the time within the stretch, are made for the rows asked (``regressors``).
     """
 
     def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):
@@ -143,8 +156,8 @@ class HeadingWander:
         self.starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
         # index of each epoch's stretch (int32: a stretch a second, 68 years of them)
         self.block = np.cumsum(np.r_[False, np.diff(block) != 0], dtype=np.int32)
-        centre = (np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)]))[self.block]
-        self.Z, self.s = np.asarray(Z, float), 2.0 * (t - centre) / block_s
+        self.centre = np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)])  # (stretches,) s
+        self.Z, self.time, self.block_s = np.asarray(Z, float), t, block_s
         normal = np.zeros((len(self.starts), 2, 2))
         for a, b in wander_chunks(len(t), None):  # whole stretches summed over consecutive chunks
             Zab = self.regressors(a, b)
@@ -157,7 +170,8 @@ class HeadingWander:
         """The wander's two regressors (stop - start, 3, 2) of epochs ``start`` to ``stop``: ``Z`` and ``Z`` times
         the time within the stretch (-1 at its start, 1 at its end)."""
         Z = self.Z[start:stop]
-        return np.stack([Z, Z * self.s[start:stop, None]], axis=2)
+        s = 2.0 * (self.time[start:stop] - self.centre[self.block[start:stop]]) / self.block_s
+        return np.stack([Z, Z * s[:, None]], axis=2)
 
     def remove(self, X: np.ndarray, start: int = 0, stop: int | None = None) -> np.ndarray:
         """``X`` (3m,) or (3m, k), epoch-major, the rows of epochs ``start`` to ``stop`` (default: all; both at
@@ -183,11 +197,11 @@ class ChunkWhitening:
     (``W[a:b]``, a slice of consecutive epochs) instead of held for the whole set: ``model.whitening`` of the
     epochs' ``field_body`` (n, 3) nT and ``heading`` (n, 3) axes, epoch by epoch, so that each chunk's values
     are those of the whole set's. The chunks made are kept for the next reads of the same epochs within
-    ``CACHE_BYTES`` (``ChunkCache``; 72 bytes an epoch)."""
+    ``WHITENING_CACHE_BYTES`` (``ChunkCache``; 72 bytes an epoch)."""
 
     def __init__(self, model, field_body: np.ndarray, R: np.ndarray, heading: np.ndarray):
         self.model, self.field_body, self.R, self.heading = model, field_body, R, heading
-        self._cache = ChunkCache()
+        self._cache = ChunkCache(len(field_body), whitening=True)
 
     def __len__(self) -> int:
         return len(self.field_body)

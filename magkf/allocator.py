@@ -1,0 +1,50 @@
+"""How the process's memory allocator gives freed arrays back to the system (glibc's ``malloc``, on Linux).
+
+glibc serves a request of at least its mmap threshold by a mapping of its own, unmapped when freed, and a
+smaller one from its heap, whose freed space stays resident unless it lies at the heap's top. The threshold
+starts at 128 KiB and rises, each time a mapped block is freed, to that block's size, up to 32 MiB on 64-bit
+systems; the heap's trim threshold follows at twice it (glibc manual, "Malloc Tunable Parameters";
+``M_MMAP_THRESHOLD``, ``M_TRIM_THRESHOLD``). A long log's diagnosis makes and frees arrays of a chunk of epochs
+(one to tens of MB) again and again, between vectors held for the whole log: once the threshold has risen past
+them they come from the heap, and what they leave free there stays resident. ``pin_mmap_threshold`` fixes the
+threshold, which turns the rise off: on a 1-hour 100 Hz log, ``magkf diagnose`` peaked 40 to 60 MB lower
+(``scripts/bench_floor.py``).
+
+The command line pins it when it starts (``magkf.cli.main``); a program that calls magkf from Python may call
+``pin_mmap_threshold`` itself. Dask's worker processes start with ``MALLOC_TRIM_THRESHOLD_`` set, which turns the
+rise off too.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import platform
+
+__all__ = ["MMAP_THRESHOLD", "pin_mmap_threshold"]
+
+#: Bytes from which an array is mapped on its own and unmapped when freed. A chunk's whitened regressors and
+#: Jacobian rows (8 192 epochs, three rows each, tens of columns) are a few MB: under it they come from the
+#: heap and are reused there without new page faults; the vectors held for a whole log of an hour (360 000
+#: epochs, 8.6 MB for three values an epoch) are above it.
+MMAP_THRESHOLD = 8 * 2**20
+#: ``mallopt``'s parameter number of the mmap threshold (glibc's ``malloc.h``).
+_M_MMAP_THRESHOLD = -3
+#: The environment variables by which a user sets glibc's thresholds: set, they are left as the user set them.
+_USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
+
+
+def pin_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
+    """Fix glibc's mmap threshold at ``nbytes`` for the rest of the process. Returns whether it was set: not
+    outside glibc, nor where the environment already sets a threshold (``MALLOC_MMAP_THRESHOLD_``,
+    ``MALLOC_TRIM_THRESHOLD_`` or ``GLIBC_TUNABLES``)."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    if any(name in os.environ for name in _USER_SETTINGS):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+    except (OSError, AttributeError):
+        return False
