@@ -11,14 +11,13 @@ threshold, which turns the rise off: on a 1-hour 100 Hz log, ``magkf diagnose`` 
 (``scripts/bench_floor.py``).
 
 The command line pins it when it starts (``magkf.cli.main``); a program that calls magkf from Python may call
-``pin_mmap_threshold`` itself. Dask's worker processes start with ``MALLOC_TRIM_THRESHOLD_`` set, which turns the
-rise off too.
+``pin_mmap_threshold`` itself. The local cluster's workers keep glibc's default (``magkf.cluster.WORKER_ENVIRON``:
+a fleet's logs are short, and a low threshold there cost page faults).
 """
 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import platform
 
@@ -44,7 +43,7 @@ def pin_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
     if any(name in os.environ for name in _USER_SETTINGS):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+        process = ctypes.CDLL(None)  # the symbols the process has loaded, glibc's among them
+        return bool(process.mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
     except (OSError, AttributeError):
         return False
