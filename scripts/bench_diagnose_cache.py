@@ -8,8 +8,12 @@ time over ``--repeat`` rounds and its ratio to budget 0's, the tracemalloc peak 
 above what the log and the run hold), and whether the candidates (ranking, statistics, estimates) are those of
 budget 0 (largest relative difference).
 
+The budget applies to sets of at most ``determined.CACHED_EPOCHS`` epochs (22 minutes at 100 Hz); a longer log's
+chunks other than its whitenings are made again whatever the budget, unless ``--cached-epochs`` raises that
+bound for the run (the whitenings have a budget of their own, ``determined.WHITENING_CACHE_BYTES``).
+
     python scripts/bench_diagnose_cache.py [--minutes 15] [--rate 100] [--repeat 3] [--budgets-mb 0 64 256]
-                                           [--log FILE]
+                                           [--log FILE] [--cached-epochs N]
 """
 
 from __future__ import annotations
@@ -54,7 +58,10 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--budgets-mb", type=float, nargs="+", default=[0.0, 64.0, 256.0])
     parser.add_argument("--log", help="a log file to diagnose instead of the simulated drive")
+    parser.add_argument("--cached-epochs", type=int, help="determined.CACHED_EPOCHS for the run")
     args = parser.parse_args()
+    if args.cached_epochs is not None:
+        determined.CACHED_EPOCHS = args.cached_epochs
     if args.log:
         log = read_log(args.log)
     else:

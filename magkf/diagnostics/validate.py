@@ -258,7 +258,9 @@ class _Comparison:
         for a, b in fit.chunks:
             held.add(fit.rows(a, b), a, b)
         beta = held.coefficients()
-        tested = np.concatenate([held.residual(fit.rows(a, b), a, b, beta) for a, b in fit.chunks])
+        tested = np.empty_like(y)  # filled a chunk at a time: no list of the chunks' residuals beside it
+        for a, b in fit.chunks:
+            tested[3 * a : 3 * b] = held.residual(fit.rows(a, b), a, b, beta)
         if plain is fit:
             return tested, tested
         truly = np.empty_like(y_plain)
@@ -274,7 +276,10 @@ class _Comparison:
         fit, chunks = self.fit, self.fit.chunks
         moment = sum(fit.rows(a, b).T @ y[3 * a : 3 * b] for a, b in chunks)
         coef = fit.span @ (fit.span.T @ moment)
-        return y - np.concatenate([fit.rows(a, b) @ coef for a, b in chunks])
+        out = np.empty_like(y)
+        for a, b in chunks:
+            out[3 * a : 3 * b] = y[3 * a : 3 * b] - fit.rows(a, b) @ coef
+        return out
 
     def whitened(self, contribution: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """An effect's contribution (n, 3) nT to the raw reading, whitened as the reading is (3n,), with the heading
