@@ -412,9 +412,9 @@ def _field_views(log: DriveLog, run, comparison: Comparison) -> list[str]:
     deviation against heading (compass swing) of each."""
     from ..apply import apply_calibration
 
+    ref = np.linalg.norm(log.reference_ned(), axis=1)  # before the calibrated table: not held while IGRF runs
     after = apply_calibration(log, run.calibration)
     before = _raw_as_field(log, after)
-    ref = np.linalg.norm(log.reference_ned(), axis=1)
     names = (_as_read_label(log), MAGKF_LABEL)
     views = dict(zip(names, (log.mag, after[["field_x", "field_y", "field_z"]].to_numpy(float))))
     projections = _projections(views, float(np.nanmedian(ref)))
