@@ -7,8 +7,8 @@ systems; the heap's trim threshold follows at twice it (glibc manual, "Malloc Tu
 ``M_MMAP_THRESHOLD``, ``M_TRIM_THRESHOLD``). A long log's diagnosis makes and frees arrays of a chunk of epochs
 (one to tens of MB) again and again, between vectors held for the whole log: once the threshold has risen past
 them they come from the heap, and what they leave free there stays resident. ``pin_mmap_threshold`` fixes the
-threshold, which turns the rise off: on a 1-hour 100 Hz log, ``magkf diagnose`` peaked 40 to 60 MB lower
-(``scripts/bench_floor.py``).
+threshold, which turns the rise off: on a 1-hour 100 Hz log, ``magkf diagnose`` peaked 45 to 60 MB lower and
+``magkf calibrate`` 35 MB lower (``scripts/bench_floor.py``, and single runs of each).
 
 The command line pins it when it starts (``magkf.cli.main``); a program that calls magkf from Python may call
 ``pin_mmap_threshold`` itself. The local cluster's workers keep glibc's default (``magkf.cluster.WORKER_ENVIRON``:

@@ -58,13 +58,14 @@ DETERMINED = 1.0
 #: 256 MB each gave 0.51 to 0.52 of the time with none kept). Set it to 0 to keep nothing.
 CACHE_BYTES = 128 * 2**20
 #: Epochs of a set whose chunks other than its whitenings are kept within ``CACHE_BYTES`` (131 072: 22 minutes at
-#: 100 Hz, where all of them fit). A longer set's are made again at each read: each is read on two to five passes
-#: only, for 2 to 20 MB a chunk, and on a 1-hour 100 Hz diagnosis the 128 MB that held a third of them saved
-#: 0.02 s a MB kept, for 373 bytes an epoch more at its peak.
+#: 100 Hz, about where all of them fit). A longer set's are made again at each read, so that what a diagnosis holds grows
+#: by no more than its vectors of a few values an epoch: on a 1-hour 100 Hz log, the 128 MB kept (most of the
+#: model's Jacobian rows, read on every candidate's passes) were 373 bytes an epoch at its peak, for a third of
+#: its time.
 CACHED_EPOCHS = 2**17
 #: Bytes of whitenings' chunks (``ChunkWhitening``: 72 bytes an epoch) that may be kept, over all of a process,
-#: whatever the set's length: a 1-hour 100 Hz diagnosis reads each 20 to 70 times, and keeping them saved 0.11 s a
-#: MB kept, five times the Jacobian rows'. 32 MB holds a 1-hour log's whitening at one model.
+#: whatever the set's length: a 1-hour 100 Hz diagnosis reads its 43 chunks' whitenings 3 139 times, at a few
+#: models; 32 MB, a whole whitening of the hour, took the chunks made again from 1 247 to 767.
 WHITENING_CACHE_BYTES = 32 * 2**20
 
 
