@@ -10,9 +10,10 @@ them they come from the heap, and what they leave free there stays resident. ``p
 threshold, which turns the rise off: on a 1-hour 100 Hz log, ``magkf diagnose`` peaked 45 to 60 MB lower and
 ``magkf calibrate`` 35 MB lower (``scripts/bench_floor.py``, and single runs of each).
 
-The command line pins it when it starts (``magkf.cli.main``); a program that calls magkf from Python may call
-``pin_mmap_threshold`` itself. The local cluster's workers keep glibc's default (``magkf.cluster.WORKER_ENVIRON``:
-a fleet's logs are short, and a low threshold there cost page faults).
+The command line pins it when it starts (``magkf.cli.main``; ``magkf fleet --workers 0`` runs its logs in that
+process); a program that calls magkf from Python may call ``pin_mmap_threshold`` itself. The local cluster's
+workers are new processes that do not call it, and keep glibc's default: its threshold pinned there has not been
+measured (``magkf.cluster.WORKER_ENVIRON`` leaves out the low trim threshold Dask sets, which cost page faults).
 """
 
 from __future__ import annotations
@@ -30,20 +31,40 @@ __all__ = ["MMAP_THRESHOLD", "pin_mmap_threshold"]
 MMAP_THRESHOLD = 8 * 2**20
 #: ``mallopt``'s parameter number of the mmap threshold (glibc's ``malloc.h``).
 _M_MMAP_THRESHOLD = -3
-#: The environment variables by which a user sets glibc's thresholds: set, they are left as the user set them.
+#: The environment variables by which a user sets glibc's thresholds: set, they are left as the user set them
+#: (``GLIBC_TUNABLES`` where it sets any of ``glibc.malloc``'s).
 _USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
+#: The largest threshold glibc takes on 64-bit systems (``HEAP_MAX_SIZE / 2``).
+_LARGEST = 32 * 2**20
 
 
 def pin_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
-    """Fix glibc's mmap threshold at ``nbytes`` for the rest of the process. Returns whether it was set: not
-    outside glibc, nor where the environment already sets a threshold (``MALLOC_MMAP_THRESHOLD_``,
-    ``MALLOC_TRIM_THRESHOLD_`` or ``GLIBC_TUNABLES``)."""
+    """Fix glibc's mmap threshold at ``nbytes`` (1 to 32 MiB) for the rest of the process. Returns whether it was
+    set: not outside glibc, nor where the environment already sets glibc's allocator (``MALLOC_MMAP_THRESHOLD_``,
+    ``MALLOC_TRIM_THRESHOLD_``, or ``glibc.malloc`` tunables in ``GLIBC_TUNABLES``).
+
+    Raises
+    ------
+    ValueError
+        ``nbytes`` outside 1 byte to 32 MiB, which glibc would not take.
+    """
+    if not 0 < nbytes <= _LARGEST:
+        raise ValueError(f"an mmap threshold of {nbytes} bytes: glibc takes 1 byte to {_LARGEST} bytes")
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return False
-    if any(name in os.environ for name in _USER_SETTINGS):
+    if _user_set():
         return False
     try:
-        process = ctypes.CDLL(None)  # the symbols the process has loaded, glibc's among them
-        return bool(process.mallopt(_M_MMAP_THRESHOLD, int(nbytes)))
+        mallopt = ctypes.CDLL(None).mallopt  # among the symbols the process has loaded, glibc's
     except (OSError, AttributeError):
         return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return mallopt(_M_MMAP_THRESHOLD, int(nbytes)) == 1
+
+
+def _user_set() -> bool:
+    """Whether the environment sets glibc's allocator."""
+    tunables = os.environ.get("GLIBC_TUNABLES")
+    if tunables is not None and "glibc.malloc." in tunables:
+        return True
+    return any(name in os.environ for name in _USER_SETTINGS[:2])

@@ -2,11 +2,11 @@
 
 A simulated drive (default 15 minutes at 100 Hz, 3-D motion, seed 1) is calibrated once, then diagnosed given
 that run (``diagnose(log, run=run)``) with the cache's budget set to each of ``--budgets-mb`` in turn, the budgets
-alternated within each round so that a busy machine's load falls on all of them alike; budget 0 keeps nothing
-(every pass makes its rows again, as the diagnosis did without the cache). Printed per budget: the median wall
-time over ``--repeat`` rounds and its ratio to budget 0's, the tracemalloc peak of a further run (bytes an epoch
-above what the log and the run hold), and whether the candidates (ranking, statistics, estimates) are those of
-budget 0 (largest relative difference).
+alternated within each round so that a busy machine's load falls on all of them alike; budget 0 keeps nothing but
+the whitenings, which have a budget of their own (every pass makes its Jacobian rows and regressors again).
+Printed per budget: the median wall time over ``--repeat`` rounds and its ratio to budget 0's, the tracemalloc
+peak of a further run (bytes an epoch above what the log and the run hold), and whether the candidates (ranking,
+statistics, estimates) are those of budget 0 (largest relative difference).
 
 The budget applies to sets of at most ``determined.CACHED_EPOCHS`` epochs (22 minutes at 100 Hz); a longer log's
 chunks other than its whitenings are made again whatever the budget, unless ``--cached-epochs`` raises that

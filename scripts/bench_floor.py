@@ -167,9 +167,11 @@ def end_to_end(path: Path, out: Path, tmp: Path, n: int, args, ekf_phases: list)
     checkouts = {"after": None} if not args.baseline else {"before": Path(args.baseline), "after": None}
     child(["calibrate", str(path), "-o", str(out), "--quiet"])  # the calibration apply and validate read
     todo = commands(path, out, tmp, args.skip_slow)
-    # as the command line does when it starts (``magkf.allocator``), where the checkout has it
-    pin = "import importlib, importlib.util as u; "
-    pin += "u.find_spec('magkf.allocator') and importlib.import_module('magkf.allocator').pin_mmap_threshold(); "
+    # as the command line does when it starts (``magkf.allocator``), where the checkout has it: looked for in the
+    # imported package's own folder (an editable install would find this checkout's for an older checkout)
+    pin = "import importlib, importlib.machinery as m, magkf; "
+    pin += "m.PathFinder.find_spec('allocator', magkf.__path__) and "
+    pin += "importlib.import_module('magkf.allocator').pin_mmap_threshold(); "
     read_only = pin + f"from magkf.io.readers import read_log; log = read_log({str(path)!r}); "
     results = {(k, c): [] for c in checkouts for k in ["floor", "read only", *todo]}
     for _ in range(args.repeat):

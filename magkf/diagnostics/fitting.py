@@ -191,7 +191,7 @@ class Linearised:
     r: np.ndarray
     x_fit: np.ndarray
     wander: HeadingWander | None = None
-    cache: ChunkCache = field(default_factory=ChunkCache, compare=False, repr=False)
+    cache: ChunkCache = field(default_factory=lambda: ChunkCache(None), compare=False, repr=False)
 
     def unwhitened(self, residual_w: np.ndarray, start: int | None = None, stop: int | None = None) -> np.ndarray:
         """Whitened residuals (m, 3) of the epochs ``start`` to ``stop`` (default: all, a chunk at a time) taken

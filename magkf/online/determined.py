@@ -53,15 +53,16 @@ DETERMINED = 1.0
 #: regressors, inverse whitenings) that may be kept for the next passes, over all the ``ChunkCache``s of a process
 #: alive together, when the set they are made for is short (``CACHED_EPOCHS``). A diagnosis reads each of them on
 #: several passes (a candidate's test: two to four; the model's Jacobian: on every candidate's), and made again
-#: they cost about half its time; kept whole they are about 1.1 kB an epoch (98 MB on a 15-minute 100 Hz drive).
-#: 128 MB keeps all of them for a log of up to about 20 minutes at 100 Hz (on the 15-minute drive, 64, 128 and
-#: 256 MB each gave 0.51 to 0.52 of the time with none kept). Set it to 0 to keep nothing.
+#: they cost about half its time; kept whole they are about 1 kB an epoch (with the whitenings, 98 MB on a
+#: 15-minute 100 Hz drive). 128 MB keeps all of them for a log of up to about 20 minutes at 100 Hz (on the
+#: 15-minute drive, 64, 128 and 256 MB each gave 0.51 to 0.52 of the time with none kept). Set it and
+#: ``WHITENING_CACHE_BYTES`` to 0 to keep nothing.
 CACHE_BYTES = 128 * 2**20
 #: Epochs of a set whose chunks other than its whitenings are kept within ``CACHE_BYTES`` (131 072: 22 minutes at
-#: 100 Hz, about where all of them fit). A longer set's are made again at each read, so that what a diagnosis holds grows
-#: by no more than its vectors of a few values an epoch: on a 1-hour 100 Hz log, the 128 MB kept (most of the
-#: model's Jacobian rows, read on every candidate's passes) were 373 bytes an epoch at its peak, for a third of
-#: its time.
+#: 100 Hz, about where all of them fit). A longer set's are made again at each read, so that what a diagnosis
+#: holds grows by no more than its vectors of a few values an epoch: on a 1-hour 100 Hz log, the 128 MB kept
+#: (most of the model's Jacobian rows, read on every candidate's passes) were 373 bytes an epoch at its peak,
+#: for a third of its time.
 CACHED_EPOCHS = 2**17
 #: Bytes of whitenings' chunks (``ChunkWhitening``: 72 bytes an epoch) that may be kept, over all of a process,
 #: whatever the set's length: a 1-hour 100 Hz diagnosis reads its 43 chunks' whitenings 3 139 times, at a few
@@ -95,15 +96,16 @@ _CHUNKS, _WHITENINGS = _Budget("CACHE_BYTES"), _Budget("WHITENING_CACHE_BYTES")
 
 
 class ChunkCache:
-    """Arrays made a chunk at a time for a pass over a set of ``epochs`` epochs, kept (read-only) for the next
-    passes: a short set's (``CACHED_EPOCHS`` at most) as long as every such cache of the process holds at most
-    ``CACHE_BYTES`` together; a ``whitening`` cache's (``ChunkWhitening``) within ``WHITENING_CACHE_BYTES``, whatever
-    the set's length. Beyond, they are made again each time they are asked for (the last one made kept still,
-    outside the budget, for the next read of the same chunk). What a cache holds is given back to its budget when
-    the cache is let go."""
+    """Arrays made a chunk at a time for a pass over a set of ``epochs`` epochs (None: unknown, taken as long), kept
+    (read-only) for the next passes: a short set's (``CACHED_EPOCHS`` at most) as long as every such cache of the
+    process holds at most ``CACHE_BYTES`` together; a ``whitening`` cache's (``ChunkWhitening``) within
+    ``WHITENING_CACHE_BYTES``, whatever the set's length. Beyond, they are made again each time they are asked for
+    (the last one made kept still, outside the budget, for the next read of the same chunk). What a cache holds is
+    given back to its budget when the cache is let go."""
 
-    def __init__(self, epochs: int = 0, whitening: bool = False):
-        self._budget = _WHITENINGS if whitening else _CHUNKS if epochs <= CACHED_EPOCHS else None
+    def __init__(self, epochs: int | None, whitening: bool = False):
+        short = epochs is not None and epochs <= CACHED_EPOCHS  # None: a set of unknown length, taken as long
+        self._budget = _WHITENINGS if whitening else _CHUNKS if short else None
         self._store: dict = {}
         self._last = (None, None)
         self._held = [0]
@@ -146,9 +148,10 @@ class HeadingWander:
     What is lost: the part of an effect that looks like a heading change within a stretch, notably a
     constant field anomaly across the horizontal field (the same thing as a heading offset).
 
-    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing. Held: ``Z`` and
-    the stretch's index (28 bytes an epoch), and ``time`` as given; the two regressors of each stretch, ``Z`` and
-    ``Z`` times the time within the stretch, are made for the rows asked (``regressors``).
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing, not changed while
+    the wander is used. Held: ``Z`` and the stretch's index (28 bytes an epoch), and ``time`` (the array given when
+    it is of float64, as the set's times are; a float64 copy otherwise); the two regressors of each stretch, ``Z``
+    and ``Z`` times the time within the stretch, are made for the rows asked (``regressors``).
     """
 
     def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):

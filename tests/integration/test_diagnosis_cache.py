@@ -1,4 +1,5 @@
-"""The diagnosis with its chunk cache full, partly full or empty (``determined.CACHE_BYTES``) gives the same result.
+"""The diagnosis with its chunk cache full, partly full or empty (``determined.CACHE_BYTES``), or its set taken as
+long (``CACHED_EPOCHS``: only the whitenings kept, within ``WHITENING_CACHE_BYTES``), gives the same result.
 
 A cached chunk is the array the pass made for it, read again; a chunk beyond the budget is made again by the same
 code from the same inputs. So the ranking, the decisions and every number of the diagnosis must agree exactly
@@ -40,13 +41,18 @@ def _numbers(result) -> tuple[list, list]:
 
 @pytest.mark.slow
 def test_same_diagnosis_whatever_the_budget(log, monkeypatch):
-    """Budget 0 (every pass makes its rows again), 100 kB (a few chunks kept) and the default give the same result
-    bit for bit (NaN where a candidate was not testable, at the same places)."""
+    """Budget 0 (every pass makes its rows again), 100 kB (a few chunks kept) and the default, and a set taken as long
+    with some or none of its whitenings kept, give the same result bit for bit (NaN where a candidate was not
+    testable, at the same places)."""
     monkeypatch.setattr(determined, "CHUNK", SMALL_CHUNK)
     monkeypatch.setattr(diagnose_module, "CHUNK", SMALL_CHUNK)
     results = []
     for budget in (0, 100_000, determined.CACHE_BYTES):
         monkeypatch.setattr(determined, "CACHE_BYTES", budget)
+        results.append(_numbers(diagnose(log)[0]))
+    monkeypatch.setattr(determined, "CACHED_EPOCHS", 100)  # a long set: its whitenings kept, the rest made again
+    for whitenings in (20_000, 0):  # some of the whitenings kept, then none
+        monkeypatch.setattr(determined, "WHITENING_CACHE_BYTES", whitenings)
         results.append(_numbers(diagnose(log)[0]))
     for names, values in results[1:]:
         assert names == results[0][0]

@@ -20,8 +20,29 @@ def test_pinned_on_glibc(no_user_settings):
     assert allocator.pin_mmap_threshold() is ON_GLIBC
 
 
-@pytest.mark.parametrize("name", allocator._USER_SETTINGS)
-def test_a_users_setting_is_left_alone(no_user_settings, monkeypatch, name):
-    """A threshold the environment sets (as Dask's workers' ``MALLOC_TRIM_THRESHOLD_``) is not overridden."""
-    monkeypatch.setenv(name, "65536")
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("MALLOC_MMAP_THRESHOLD_", "65536"),
+        ("MALLOC_TRIM_THRESHOLD_", "65536"),
+        ("GLIBC_TUNABLES", "glibc.pthread.rseq=0:glibc.malloc.trim_threshold=65536"),
+    ],
+)
+def test_a_users_setting_is_left_alone(no_user_settings, monkeypatch, name, value):
+    """A threshold the environment sets is not overridden."""
+    monkeypatch.setenv(name, value)
     assert allocator.pin_mmap_threshold() is False
+
+
+def test_tunables_of_other_parts_of_glibc_do_not_count(no_user_settings, monkeypatch):
+    """``GLIBC_TUNABLES`` that sets nothing of the allocator (a container's ``glibc.pthread.rseq=0``) does not stop
+    the pinning."""
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.pthread.rseq=0")
+    assert allocator.pin_mmap_threshold() is ON_GLIBC
+
+
+@pytest.mark.parametrize("nbytes", [0, -1, 32 * 2**20 + 1, 2**32 + 4096])
+def test_a_threshold_glibc_would_not_take_is_refused(nbytes):
+    """Outside 1 byte to 32 MiB (a value past 32 bits would be cut silently by the C call) it is a ValueError."""
+    with pytest.raises(ValueError, match="mmap threshold"):
+        allocator.pin_mmap_threshold(nbytes)

@@ -21,7 +21,7 @@ class _Maker:
 def test_kept_within_the_budget_and_given_back_when_let_go():
     """Asked twice, a chunk is made once and read-only; the budget counts its bytes while the cache lives."""
     before = determined._CHUNKS.used
-    make, cache = _Maker(), ChunkCache()
+    make, cache = _Maker(), ChunkCache(10)
     first = cache.get(1, lambda: make(1))
     again = cache.get(1, lambda: make(1))
     assert make.calls == 1 and again is first and not again.flags.writeable
@@ -35,7 +35,7 @@ def test_made_again_beyond_the_budget(monkeypatch):
     """With room for two chunks of four, passes over them make the other two again each time (the last chunk made
     is still read twice without being made twice), and every value is the one made."""
     monkeypatch.setattr(determined, "CACHE_BYTES", determined._CHUNKS.used + 2 * 384)
-    make, cache = _Maker(), ChunkCache()
+    make, cache = _Maker(), ChunkCache(10)
     for _ in range(3):  # three passes over four chunks
         for key in range(4):
             assert np.array_equal(cache.get(key, lambda key=key: make(key)), np.full((24, 2), float(key)))
@@ -82,3 +82,12 @@ def test_whitenings_beyond_their_budget_are_made_again(monkeypatch):
 def cache_read(cache: ChunkCache, key, make: _Maker) -> np.ndarray:
     """``cache``'s array of chunk ``key``, made by ``make`` if it is not kept."""
     return cache.get(key, lambda: make(key))
+
+
+def test_a_set_of_unknown_length_is_taken_as_long():
+    """``ChunkCache(None)`` (a set whose length the caller does not give) keeps nothing of ``CACHE_BYTES``."""
+    before = determined._CHUNKS.used
+    make, cache = _Maker(), ChunkCache(None)
+    for key in (0, 1, 0, 1):
+        cache_read(cache, key, make)
+    assert make.calls == 4 and determined._CHUNKS.used == before
