@@ -31,9 +31,9 @@ __all__ = ["MMAP_THRESHOLD", "pin_mmap_threshold"]
 MMAP_THRESHOLD = 8 * 2**20
 #: ``mallopt``'s parameter number of the mmap threshold (glibc's ``malloc.h``).
 _M_MMAP_THRESHOLD = -3
-#: The environment variables by which a user sets glibc's thresholds: set, they are left as the user set them
-#: (``GLIBC_TUNABLES`` where it sets any of ``glibc.malloc``'s).
-_USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
+#: The environment variables by which a user sets glibc's thresholds (and ``GLIBC_TUNABLES``, where it sets any of
+#: ``glibc.malloc``'s): set, they are left as the user set them.
+_THRESHOLD_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
 #: The largest threshold glibc takes on 64-bit systems (``HEAP_MAX_SIZE / 2``).
 _LARGEST = 32 * 2**20
 
@@ -64,7 +64,5 @@ def pin_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
 
 def _user_set() -> bool:
     """Whether the environment sets glibc's allocator."""
-    tunables = os.environ.get("GLIBC_TUNABLES")
-    if tunables is not None and "glibc.malloc." in tunables:
-        return True
-    return any(name in os.environ for name in _USER_SETTINGS[:2])
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    return "glibc.malloc." in tunables or any(name in os.environ for name in _THRESHOLD_VARIABLES)

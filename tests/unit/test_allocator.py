@@ -11,7 +11,7 @@ ON_GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
 @pytest.fixture
 def no_user_settings(monkeypatch):
-    for name in allocator._USER_SETTINGS:
+    for name in (*allocator._THRESHOLD_VARIABLES, "GLIBC_TUNABLES"):
         monkeypatch.delenv(name, raising=False)
 
 
