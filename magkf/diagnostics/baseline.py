@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from ..conventions import body_to_ned, declination_deg, wrap_deg
+from ..conventions import ATTITUDE, MAG, body_to_ned, declination_deg, euler_to_dcm, wrap_deg
 from ..io.drivelog import DriveLog
 
 __all__ = [
@@ -87,6 +87,11 @@ class Baseline:
         (``compare_calibrations`` with ``used``; else None).
     n_compared : int
         The epochs of ``compared``.
+    fields : dict
+        Name -> (k, 3) nT the field corrected with that calibration at the epochs ``sample`` given to
+        ``compare_calibrations`` (NaN where it lacks a reading or an effect's input); empty arrays without one.
+    reference_median_nt : float
+        The median magnitude of the reference field over the log's epochs, nT (NaN where none has one).
     """
 
     time: np.ndarray
@@ -99,6 +104,8 @@ class Baseline:
     vector_error_nt: dict = field(default_factory=dict)
     used_figures: dict | None = None
     n_compared: int = 0
+    fields: dict = field(default_factory=dict)
+    reference_median_nt: float = float("nan")
 
     @property
     def names(self) -> list:
@@ -106,11 +113,14 @@ class Baseline:
         return list(self.summary.index)
 
 
-def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None, per_epoch: bool = True) -> Baseline:
+def compare_calibrations(
+    log: DriveLog, calibrations: dict, prep=None, used=None, per_epoch: bool = True, sample=None
+) -> Baseline:
     """Every epoch's magnitude and heading error with each calibration of ``calibrations``.
 
     The log is gone through ``CHUNK`` epochs at a time: besides what is returned, nothing of the log's length is
-    held but the terms of a calibration's stored effects.
+    held but the reference field (24 bytes an epoch, when ``prep`` is not given) and the terms of a calibration's
+    stored effects.
 
     Parameters
     ----------
@@ -129,6 +139,9 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
         False: only the figures (``summary``, ``used_figures``, ``n_compared``) and the epochs compared (one byte
         an epoch) are kept, not the per-epoch errors (their dicts are empty, ``time`` and ``heading_deg`` None): a
         command that prints figures holds little of the log's length.
+    sample : array_like or None, optional
+        (k,) int increasing epochs (positions in ``log``) at which ``Baseline.fields`` keeps each calibration's
+        corrected field (what a plot of the field draws); None: none kept.
 
     Returns
     -------
@@ -143,37 +156,53 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
     """
     if not calibrations:
         raise ValueError("compare_calibrations needs at least one calibration (None: the raw reading)")
-    if prep is None:
-        from ..config import FilterConfig
-        from ..online.prepare import prepare
-
-        prep = prepare(log, FilterConfig())
+    epochs = _Epochs(log, prep)
     terms = {name: _terms(log, cal) for name, cal in calibrations.items()}
     sums = _Sums(list(calibrations), used is not None)
-    n = len(log.mag)
+    n = len(log.table)
     errors = {name: {kind: np.empty(n) for kind in _KINDS} for name in calibrations} if per_epoch else None
-    compared = np.empty(n, bool)
+    sample = np.zeros(0, np.int64) if sample is None else np.asarray(sample, np.int64)
+    fields = {name: np.empty((len(sample), 3)) for name in calibrations}
+    compared, has_mag, has_attitude = np.empty(n, bool), np.empty(n, bool), np.empty(n, bool)
+    logged_heading = np.empty(n) if per_epoch else None
     for a in range(0, n, CHUNK):
         at = slice(a, min(a + CHUNK, n))
-        chunk = {name: _errors(log, cal, prep, at, terms[name]) for name, cal in calibrations.items()}
+        chunk_epochs = epochs.at(at)
+        chunk = {name: _errors(chunk_epochs, cal, _at(terms[name], at)) for name, cal in calibrations.items()}
         on = np.all([np.isfinite(e["heading"]) for e in chunk.values()], axis=0)
         sums.add(chunk, on, None if used is None else np.asarray(used[at], bool))
         compared[at] = on
-        if per_epoch:
-            for name, e in chunk.items():
+        drawn = np.searchsorted(sample, [at.start, at.stop])
+        for name, e in chunk.items():
+            fields[name][drawn[0] : drawn[1]] = e.pop("field")[sample[drawn[0] : drawn[1]] - a]
+            if per_epoch:
                 for kind in _KINDS:
                     errors[name][kind][at] = e[kind]
+        if per_epoch:
+            has_mag[at] = np.all(np.isfinite(chunk_epochs.mag), axis=1)
+            has_attitude[at] = np.all(np.isfinite(chunk_epochs.attitude), axis=1)
+            logged_heading[at] = np.where(has_attitude[at], chunk_epochs.attitude[:, 2] % 360.0, np.nan)
+    reference = _median_magnitude(epochs.ref)
     if not per_epoch:
-        return Baseline(None, None, {}, {}, {}, compared, sums.summary(), {}, sums.used_figures(), sums.n_compared)
-    has_ref, has_mag = np.all(np.isfinite(prep.ref), axis=1), np.all(np.isfinite(log.mag), axis=1)
-    status = {
-        name: _status(has_mag, np.all(np.isfinite(terms[name]), axis=1), has_ref, prep.has_attitude)
-        for name in calibrations
-    }
+        return Baseline(
+            None,
+            None,
+            {},
+            {},
+            {},
+            compared,
+            sums.summary(),
+            {},
+            sums.used_figures(),
+            sums.n_compared,
+            fields,
+            reference,
+        )
+    has_ref = np.all(np.isfinite(epochs.ref), axis=1)
+    status = {name: _status(has_mag, _finite_rows(terms[name], n), has_ref, has_attitude) for name in calibrations}
     magnitude, heading, vector = ({name: errors[name][kind] for name in calibrations} for kind in _KINDS)
-    logged_heading = np.where(prep.has_attitude, log.attitude[:, 2] % 360.0, np.nan)
     return Baseline(
-        prep.time,
+        log.time,
         logged_heading,
         magnitude,
         heading,
@@ -183,7 +212,16 @@ def compare_calibrations(log: DriveLog, calibrations: dict, prep=None, used=None
         vector,
         sums.used_figures(),
         int(compared.sum()),
+        fields,
+        reference,
     )
+
+
+def _median_magnitude(ref: np.ndarray) -> float:
+    """The median magnitude (nT) of the finite rows of ``ref`` (N, 3) NED nT; NaN for none."""
+    magnitude = np.linalg.norm(ref, axis=1)
+    magnitude = magnitude[np.isfinite(magnitude)]
+    return float(np.median(magnitude)) if magnitude.size else float("nan")
 
 
 #: Epochs taken at once by ``compare_calibrations``.
@@ -192,25 +230,79 @@ CHUNK = 65_536
 _KINDS = ("magnitude", "heading", "vector")
 
 
-def _terms(log: DriveLog, cal) -> np.ndarray:
+@dataclass(frozen=True)
+class _Chunk:
+    """Consecutive epochs of a log as ``compare_calibrations`` reads them: the readings ``mag`` (k, 3) nT, the
+    attitude (k, 3) roll, pitch, yaw deg (NaN where missing), its matrices ``c_nb`` (k, 3, 3), the reference field
+    ``ref`` (k, 3) NED nT and its magnitude ``ref_mag`` (k,) nT."""
+
+    mag: np.ndarray
+    attitude: np.ndarray
+    c_nb: np.ndarray
+    ref: np.ndarray
+    ref_mag: np.ndarray
+
+
+class _Epochs:
+    """A log's epochs as ``compare_calibrations`` reads them, a ``_Chunk`` at a time: the readings and attitude from
+    the log's table; the attitude matrices and reference field from ``prep`` (``magkf.online.prepare.prepare`` of
+    the log) when given, else the reference field computed once (``ref``, (N, 3) NED nT, as ``prepare`` computes it)
+    and each chunk's attitude matrices and reference magnitude made from it by ``prepare``'s rules: the same
+    values, without a prepared log's 250 bytes an epoch."""
+
+    def __init__(self, log: DriveLog, prep=None):
+        self.table, self.prep, self.has_attitude = log.table, prep, log.has_attitude
+        if prep is not None:
+            self.ref = prep.ref
+        else:
+            from ..config import FilterConfig
+
+            self.ref = log.reference_ned(knot_spacing_m=FilterConfig().reference_refresh_m)
+
+    def at(self, at: slice) -> _Chunk:
+        """The epochs ``at``."""
+        rows = self.table.iloc[at]
+        mag = rows[list(MAG)].to_numpy(dtype=float)
+        attitude = rows[list(ATTITUDE)].to_numpy(dtype=float) if self.has_attitude else np.full((len(rows), 3), np.nan)
+        if self.prep is not None:
+            return _Chunk(mag, attitude, self.prep.c_nb[at], self.prep.ref[at], self.prep.ref_mag[at])
+        ref = self.ref[at]
+        c_nb = euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
+        return _Chunk(mag, attitude, c_nb, ref, np.linalg.norm(ref, axis=1))
+
+
+def _terms(log: DriveLog, cal) -> np.ndarray | None:
     """The terms (N, 3) nT of ``cal``'s stored effects over the whole log (a nonlinear one looks at neighbouring
-    epochs), zeros for the raw reading (None)."""
-    if cal is None:
-        return np.zeros((len(log.mag), 3))
+    epochs); None for the raw reading (``cal`` None) and a calibration that stores no effect."""
+    if cal is None or not cal.effects:
+        return None
     from ..apply import effect_terms
 
     return effect_terms(log, cal)
 
 
-def _errors(log: DriveLog, cal, prep, at: slice, terms) -> dict:
-    """The errors (``_KINDS``, (k,) each) of the epochs ``at`` corrected with ``cal`` (None: the raw reading)."""
-    mag = log.mag[at]
-    corrected = mag if cal is None else cal.correct(mag - terms[at])
-    c_nb, ref = prep.c_nb[at], prep.ref[at]
-    heading = heading_error_deg(corrected, c_nb, ref)
-    vector = np.linalg.norm(body_to_ned(c_nb, corrected) - ref, axis=1)
+def _at(terms: np.ndarray | None, at: slice) -> np.ndarray | None:
+    """The ``terms`` (``_terms``) of the epochs ``at``; None for none."""
+    return None if terms is None else terms[at]
+
+
+def _finite_rows(terms: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) bool: where every term of ``terms`` (``_terms``; None: no term) is finite."""
+    return np.ones(n, bool) if terms is None else np.all(np.isfinite(terms), axis=1)
+
+
+def _errors(epochs: _Chunk, cal, terms) -> dict:
+    """The errors (``_KINDS``, (k,) each) of the ``epochs`` corrected with ``cal`` (None: the raw reading) less its
+    effects' ``terms`` (k, 3) nT (None: none), and the corrected field (``"field"``, (k, 3) nT)."""
+    if cal is None:
+        corrected = epochs.mag
+    else:
+        corrected = cal.correct(epochs.mag if terms is None else epochs.mag - terms)
+    heading = heading_error_deg(corrected, epochs.c_nb, epochs.ref)
+    vector = np.linalg.norm(body_to_ned(epochs.c_nb, corrected) - epochs.ref, axis=1)
     vector[~np.isfinite(heading)] = np.nan
-    return {"magnitude": np.linalg.norm(corrected, axis=1) - prep.ref_mag[at], "heading": heading, "vector": vector}
+    magnitude = np.linalg.norm(corrected, axis=1) - epochs.ref_mag
+    return {"magnitude": magnitude, "heading": heading, "vector": vector, "field": corrected}
 
 
 class _Sums:
@@ -434,12 +526,8 @@ def declination_note(log: DriveLog, base: Baseline, prep=None) -> str:
     logged = logged_declination_deg(log)
     if logged is None or not base.compared.any():
         return ""
-    if prep is None:
-        from ..config import FilterConfig
-        from ..online.prepare import prepare
-
-        prep = prepare(log, FilterConfig())
-    reference = float(np.median(declination_deg(prep.ref[base.compared])))
+    ref = _Epochs(log, prep).ref
+    reference = float(np.median(declination_deg(ref[base.compared])))
     difference = float(wrap_deg(logged[0] - reference))
     if abs(difference) <= DECLINATION_NOTE_DEG:
         return ""

@@ -189,10 +189,17 @@ def dct_head(x: np.ndarray, m: int) -> np.ndarray:
     chirp, shift = _turn(head * head, n, -1.0), _turn(head, n, -1.0)  # Bluestein's chirp of X_k; exp(-i pi k / 2n)
     norms = np.linalg.norm(x, axis=0)
     scale = np.exp2(np.round(np.log2(np.where(norms > 0, norms, 1.0))))
-    out = np.empty((m, k))
-    for c in range(0, k, 2):  # two columns at a time: a few complex arrays of the FFTs' length held at once
-        z = x[:, c] / scale[c] + (1j * x[:, c + 1] / scale[c + 1] if c + 1 < k else 0.0)
-        conv = fft.ifft(fft.fft(z * down, n=size) * spectrum)
+    out, z = np.empty((m, k)), np.empty(n, complex)
+    for c in range(0, k, 2):  # two columns at a time, in place: two complex arrays of the FFTs' length held at once
+        np.divide(x[:, c], scale[c], out=z.real)
+        if c + 1 < k:
+            np.divide(x[:, c + 1], scale[c + 1], out=z.imag)
+        else:
+            z.imag = 0.0
+        z *= down
+        conv = fft.fft(z, n=size)
+        conv *= spectrum
+        conv = fft.ifft(conv, overwrite_x=True)
         ahead, behind = chirp * conv[:m], np.conj(chirp * conv[-head % size])  # Z_k, conj Z_-k
         out[:, c] = scale[c] * (shift * (ahead + behind)).real
         if c + 1 < k:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from ..allocator import release_free_memory
 from ..blas import one_thread
 from ..config import FilterConfig
 from ..effects.channels import channel_unit
@@ -405,55 +406,54 @@ def _estimate_table(run) -> str:
     return _table(rows, ["parameter", "value", "standard deviation", "unit"])
 
 
-def _field_views(log: DriveLog, run, comparison: Comparison) -> list[str]:
+def _field_views(log: DriveLog, comparison: Comparison) -> list[str]:
     """The "Field before and after calibration" section: raw (no calibration, unless the log was read calibrated),
     the vehicle's own calibration and magkf's compared (``comparison``); then the field as read and with magkf's
     calibration in three projections with the reference sphere, the magnitude error of each, and the heading
-    deviation against heading (compass swing) of each."""
-    from ..apply import apply_calibration
+    deviation against heading (compass swing) of each, all from the comparison's errors (``_as_read``)."""
+    from .baseline import MAGKF
 
-    ref = np.linalg.norm(log.reference_ned(), axis=1)  # before the calibrated table: not held while IGRF runs
-    after = apply_calibration(log, run.calibration)
-    before = _raw_as_field(log, after)
+    base, (before, read) = comparison.base, _as_read(log, comparison)
     names = (_as_read_label(log), MAGKF_LABEL)
-    views = dict(zip(names, (log.mag, after[["field_x", "field_y", "field_z"]].to_numpy(float))))
-    projections = _projections(views, float(np.nanmedian(ref)))
-    histogram = _magnitude_errors(before, after, ref, names)
-    yaw = log.attitude[:, 2] % 360.0
-    ok = (after["status"] == "ok").to_numpy()
+    views = dict(zip(names, (before.fields[read], base.fields[MAGKF])))
+    projections = _projections(views, base.reference_median_nt)
+    errors = (before.magnitude_error_nt[read], base.magnitude_error_nt[MAGKF])
+    histogram = _magnitude_errors(errors, names)
     head = [
         "<h2>Field before and after calibration</h2>",
         f"<p>Before: {names[0]}; after: {names[1]}.</p>",
         *_baseline_part(comparison),
         f"<h3>The field: {names[0]} and {names[1]}</h3>",
     ]
+    ok = base.compared & before.compared
     if not ok.any():
         return [*head, projections, histogram]
-    return [*head, projections, histogram, _compass_swing(before, after, yaw, ok, names)]
+    deviations = (before.heading_error_deg[read], base.heading_error_deg[MAGKF])
+    return [*head, projections, histogram, _compass_swing(deviations, base.heading_deg, ok, names)]
 
 
 #: What the report calls the field corrected with magkf's calibration.
 MAGKF_LABEL = "magkf's calibration"
 
 
+def _as_read(log: DriveLog, comparison: Comparison) -> tuple:
+    """``(baseline, name)``: the field as read (the raw reading, or the autopilot's calibrated field of a log read
+    calibrated) compared as the calibration ``name`` of ``baseline``: ``comparison.base`` itself when it holds the
+    identity (raw, or the vehicle's calibration of a log read calibrated, ``logged-as-read``); else
+    ``compare_calibrations`` of the identity alone, its field kept at the same epochs drawn."""
+    from .baseline import RAW, VEHICLE, compare_calibrations
+
+    base = comparison.base
+    if RAW in base.names:
+        return base, RAW
+    if comparison.vehicle is not None and comparison.vehicle.method == "logged-as-read":
+        return base, VEHICLE
+    return compare_calibrations(log, {"as read": None}, sample=_sample(len(log.table))), "as read"
+
+
 def _as_read_label(log: DriveLog) -> str:
     """What the log's field as read is: the raw reading (no calibration), or the autopilot's calibrated field."""
     return "as logged (the autopilot's calibration)" if _read_calibrated(log) else "raw reading (no calibration)"
-
-
-def _raw_as_field(log: DriveLog, after: pd.DataFrame) -> pd.DataFrame:
-    """The raw reading taken as the field: its magnitude (nT) and true heading (deg, with the declination that
-    the calibrated frame ``after`` found), indexed as ``after``."""
-    from ..conventions import magnetic_heading_deg
-
-    att = log.attitude
-    return pd.DataFrame(
-        {
-            "magnitude_nt": np.linalg.norm(log.mag, axis=1),
-            "heading_true_deg": (magnetic_heading_deg(log.mag, att[:, 0], att[:, 1]) + after["declination_deg"]) % 360,
-        },
-        index=after.index,
-    )
 
 
 def _projections(views: dict, radius: float) -> str:
@@ -481,41 +481,38 @@ def _projections(views: dict, radius: float) -> str:
     )
 
 
-def _magnitude_errors(before: pd.DataFrame, after: pd.DataFrame, ref: np.ndarray, names) -> str:
-    """Histograms of the field magnitude less the reference magnitude ``ref`` (N,) nT, as read and calibrated
-    (``names``: what each is)."""
+def _magnitude_errors(errors: tuple, names) -> str:
+    """Histograms of the field magnitude less the reference magnitude, (N,) nT each of ``errors`` (NaN where
+    unknown), as read and calibrated (``names``: what each is)."""
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), constrained_layout=True)
-    for ax, name, frame in zip(axes, names, (before, after)):
-        error = (frame["magnitude_nt"].to_numpy(float) - ref)[np.isfinite(ref)]
+    for ax, name, error, calibrated in zip(axes, names, errors, (False, True)):
         error = error[np.isfinite(error)]
         rms = float(np.sqrt(np.mean(error**2))) if error.size else float("nan")
         span = np.percentile(error, [0.5, 99.5]) if error.size else (-1.0, 1.0)
         beyond = int(np.sum((error < span[0]) | (error > span[1])))
-        ax.hist(error, bins=60, range=tuple(span), color="tab:blue" if frame is after else "tab:gray")
+        ax.hist(error, bins=60, range=tuple(span), color="tab:blue" if calibrated else "tab:gray")
         ax.axvline(0, color="k", lw=0.8)
         ax.set(
             xlabel=f"|field| - |reference|, nT ({beyond} beyond the axis)",
             ylabel="epochs",
-            title=f"{name}: RMS {rms:.0f} nT over every epoch",
+            title=f"{name}:\nRMS {rms:.0f} nT over every epoch",
         )
     fig.suptitle(f"magnitude error: {names[0]} and {names[1]}")
     return _png(fig, f"histograms of the field magnitude less the reference magnitude in nT, {names[0]} and {names[1]}")
 
 
-def _compass_swing(before: pd.DataFrame, after: pd.DataFrame, yaw: np.ndarray, ok: np.ndarray, names) -> str:
-    """The true heading less the logged ``yaw`` (N,) deg against heading over the epochs ``ok`` (mask (N,)), as read
-    and calibrated (``names``: what each is), with means per 10 deg."""
+def _compass_swing(deviations: tuple, heading: np.ndarray, ok: np.ndarray, names) -> str:
+    """The compass heading less the logged heading, (N,) deg each of ``deviations`` (``Baseline.heading_error_deg``),
+    against the logged heading ``heading`` (N,) deg over the epochs ``ok`` (mask (N,)), as read and calibrated
+    (``names``: what each is), with means per 10 deg."""
     import matplotlib.pyplot as plt
-
-    from ..conventions import wrap_deg
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), constrained_layout=True)
     edges = np.arange(0.0, 361.0, 10.0)
-    for ax, name, frame in zip(axes, names, (before, after)):
-        deviation = wrap_deg(frame["heading_true_deg"].to_numpy(float) - yaw)[ok]
-        h = yaw[ok]
+    for ax, name, deviation in zip(axes, names, deviations):
+        deviation, h = deviation[ok], heading[ok]
         pick = _sample(len(h))
         ax.plot(h[pick], deviation[pick], ".", ms=1.5, color="tab:gray", alpha=0.4, label="epochs")
         which = np.digitize(h, edges) - 1
@@ -591,7 +588,7 @@ def _compare(log: DriveLog, run) -> Comparison:
     if vehicle is not None:
         cals[VEHICLE] = vehicle
     cals[MAGKF] = run.calibration
-    base = compare_calibrations(log, cals)
+    base = compare_calibrations(log, cals, sample=_sample(len(log.table)))
     return Comparison(base, vehicle, words, as_read, declination_note(log, base))
 
 
@@ -857,16 +854,7 @@ def build_report(
     InputError
         A log that cannot be calibrated or diagnosed (as ``diagnose``).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    with matplotlib.rc_context(FIGURE_STYLE):
-        return _page(log, config, cal, effects, alpha, wander_s, progress or (lambda text: None))
-
-
-def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
-    """The report's HTML page: the run with ``effects`` added and its diagnosis, section by section, and before and
-    after adding the effects when there are any."""
+    say = progress or (lambda text: None)
     say("calibrating")
     run = calibrate_log(log, config, init=cal, effects=effects)
     judged = judge(run, log, cal)
@@ -874,6 +862,18 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
     if not judged.withheld:
         diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
     say("drawing the plots")
+    release_free_memory()  # what the diagnosis left free in the heap, not kept resident while the plots are drawn
+    import matplotlib  # imported once the diagnosis is done: its 10 MB are not held through the diagnosis's peak
+
+    matplotlib.use("Agg")
+    with matplotlib.rc_context(FIGURE_STYLE):
+        return _page(log, config, cal, effects, alpha, wander_s, run, judged, diag)
+
+
+def _page(log, config, cal, effects, alpha, wander_s, run, judged: Judgement, diag) -> str:
+    """The report's HTML page: the ``run`` with ``effects`` added (``judged``) and its diagnosis ``diag`` (None for
+    a calibration refused by its own R and b), section by section, and before and after adding the effects when
+    there are any."""
     t0 = log.time[0]
     comparison = _compare(log, run)
     parts = _overview(log, run, diag, comparison, judged)
@@ -883,7 +883,7 @@ def _page(log, config, cal, effects, alpha, wander_s, say) -> str:
         verdict = retold(run.summary.verdict, next_step(diag.recommended, judged, _lacks(run)))
         parts += _noise_section(run, t0, verdict, judged.refusal is None)
     if judged.refusal is None:
-        parts += [*_gates_and_estimate(run, t0), *_field_views(log, run, comparison), *_residuals_section(diag, t0)]
+        parts += [*_gates_and_estimate(run, t0), *_field_views(log, comparison), *_residuals_section(diag, t0)]
         parts += _candidates_section(diag, judged, _lacks(run), fitting=fits(run.summary.verdict))
         if effects:
             parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)

@@ -98,3 +98,23 @@ def test_fleet_command_prints_the_improvement_per_vehicle(fleet, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "  V1: magkf's calibration improves on the calibration the vehicle flies by" in proc.stdout
     assert "  V2: no calibrated log gives the calibration the vehicle flies" in proc.stdout
+
+
+def test_the_report_s_field_as_read_is_the_comparison_s_identity_or_compared_alone():
+    """The report draws the field as read from the comparison's identity (raw); a log read calibrated whose vehicle's
+    calibration is unknown has none there, and the field as read is compared alone, at the same epochs drawn."""
+    from magkf.diagnostics.baseline import MAGKF
+    from magkf.diagnostics.report import Comparison, _as_read, _sample
+    from magkf.io.drivelog import from_table
+
+    sim = simulate_drive(DriveConfig(duration_s=120.0, rate_hz=10, seed=2, disturbances=0))
+    log = from_table(sim.table.reset_index(), "sim2")
+    drawn = _sample(len(log.table))
+    with_raw = compare_calibrations(log, {RAW: None, MAGKF: sim.calibration}, sample=drawn)
+    assert _as_read(log, Comparison(with_raw, None, "", False)) == (with_raw, RAW)
+    magkf_only = compare_calibrations(log, {MAGKF: sim.calibration}, sample=drawn)
+    before, name = _as_read(log, Comparison(magkf_only, None, "", True))
+    assert name not in magkf_only.names
+    assert np.array_equal(before.magnitude_error_nt[name], with_raw.magnitude_error_nt[RAW], equal_nan=True)
+    assert np.array_equal(before.heading_error_deg[name], with_raw.heading_error_deg[RAW], equal_nan=True)
+    assert np.array_equal(before.fields[name], log.mag[drawn])

@@ -337,3 +337,35 @@ def test_figures_without_the_per_epoch_errors_are_the_same(drive):
             for key, value in expected[name].items():
                 assert got[name][key] == pytest.approx(value, rel=1e-12)
         assert (got["n_used"], got["n_compared"]) == (expected["n_used"], expected["n_compared"])
+
+
+def test_the_log_prepared_a_chunk_at_a_time_gives_the_prepared_log_s_errors_and_the_fields_drawn(drive):
+    """Without a prepared log, ``compare_calibrations`` makes each chunk's attitude matrices and reference magnitude
+    from the reference field computed once: the same errors, statuses and summary, bit for bit, as from
+    ``prepare``'s arrays, with chunks of 97 epochs too; ``sample`` keeps each calibration's corrected field at those
+    epochs, and the reference's median magnitude is the prepared log's."""
+    from magkf.config import FilterConfig
+    from magkf.diagnostics import baseline
+    from magkf.online.prepare import prepare
+
+    sim, log = drive
+    cals = {RAW: None, MAGKF: replace(sim.calibration, b=sim.calibration.b + 200.0)}
+    prep = prepare(log, FilterConfig())
+    sample = np.sort(np.random.default_rng(8).choice(len(log.mag), 500, replace=False))
+    exact = baseline.compare_calibrations(log, cals, prep)
+    for chunk in (baseline.CHUNK, 97):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(baseline, "CHUNK", chunk)
+            lean = baseline.compare_calibrations(log, cals, sample=sample)
+        for kind in ("magnitude_error_nt", "heading_error_deg", "vector_error_nt"):
+            for name in cals:
+                assert np.array_equal(getattr(lean, kind)[name], getattr(exact, kind)[name], equal_nan=True)
+        for name in cals:
+            assert np.array_equal(np.asarray(lean.status[name]), np.asarray(exact.status[name]))
+        assert np.array_equal(lean.heading_deg, exact.heading_deg, equal_nan=True)
+        assert np.array_equal(lean.compared, exact.compared)
+        pd.testing.assert_frame_equal(lean.summary, exact.summary)
+        assert np.array_equal(lean.fields[RAW], log.mag[sample])
+        assert np.array_equal(lean.fields[MAGKF], cals[MAGKF].correct(log.mag[sample]))
+    assert lean.reference_median_nt == np.median(prep.ref_mag)
+    assert exact.fields[RAW].shape == (0, 3)
