@@ -91,7 +91,8 @@ class Baseline:
         Name -> (k, 3) nT the field corrected with that calibration at the epochs ``sample`` given to
         ``compare_calibrations`` (NaN where it lacks a reading or an effect's input); empty arrays without one.
     reference_median_nt : float
-        The median magnitude of the reference field over the log's epochs, nT (NaN where none has one).
+        The median magnitude of the reference field over the log's epochs, nT (NaN where none has one, and without
+        the per-epoch errors).
     """
 
     time: np.ndarray
@@ -120,7 +121,7 @@ def compare_calibrations(
 
     The log is gone through ``CHUNK`` epochs at a time: besides what is returned, nothing of the log's length is
     held but the reference field (24 bytes an epoch, when ``prep`` is not given) and the terms of a calibration's
-    stored effects.
+    stored effects (which are computed over the whole log, prepared for them: ``magkf.apply.effect_terms``).
 
     Parameters
     ----------
@@ -156,15 +157,16 @@ def compare_calibrations(
     """
     if not calibrations:
         raise ValueError("compare_calibrations needs at least one calibration (None: the raw reading)")
-    epochs = _Epochs(log, prep)
-    terms = {name: _terms(log, cal) for name, cal in calibrations.items()}
-    sums = _Sums(list(calibrations), used is not None)
     n = len(log.table)
-    errors = {name: {kind: np.empty(n) for kind in _KINDS} for name in calibrations} if per_epoch else None
-    sample = np.zeros(0, np.int64) if sample is None else np.asarray(sample, np.int64)
+    sample = _drawn(sample, n)
+    terms = {name: _terms(log, cal) for name, cal in calibrations.items()}  # a stored effect's prepare let go first
+    epochs = _Epochs(log, prep)
+    sums = _Sums(list(calibrations), used is not None)
     fields = {name: np.empty((len(sample), 3)) for name in calibrations}
-    compared, has_mag, has_attitude = np.empty(n, bool), np.empty(n, bool), np.empty(n, bool)
-    logged_heading = np.empty(n) if per_epoch else None
+    compared = np.empty(n, bool)
+    if per_epoch:
+        errors = {name: {kind: np.empty(n) for kind in _KINDS} for name in calibrations}
+        has_mag, has_attitude, logged_heading = np.empty(n, bool), np.empty(n, bool), np.empty(n)
     for a in range(0, n, CHUNK):
         at = slice(a, min(a + CHUNK, n))
         chunk_epochs = epochs.at(at)
@@ -182,21 +184,9 @@ def compare_calibrations(
             has_mag[at] = np.all(np.isfinite(chunk_epochs.mag), axis=1)
             has_attitude[at] = np.all(np.isfinite(chunk_epochs.attitude), axis=1)
             logged_heading[at] = np.where(has_attitude[at], chunk_epochs.attitude[:, 2] % 360.0, np.nan)
-    reference = _median_magnitude(epochs.ref)
     if not per_epoch:
         return Baseline(
-            None,
-            None,
-            {},
-            {},
-            {},
-            compared,
-            sums.summary(),
-            {},
-            sums.used_figures(),
-            sums.n_compared,
-            fields,
-            reference,
+            None, None, {}, {}, {}, compared, sums.summary(), {}, sums.used_figures(), sums.n_compared, fields
         )
     has_ref = np.all(np.isfinite(epochs.ref), axis=1)
     status = {name: _status(has_mag, _finite_rows(terms[name], n), has_ref, has_attitude) for name in calibrations}
@@ -213,8 +203,19 @@ def compare_calibrations(
         sums.used_figures(),
         int(compared.sum()),
         fields,
-        reference,
+        _median_magnitude(epochs.ref),
     )
+
+
+def _drawn(sample, n: int) -> np.ndarray:
+    """``compare_calibrations``'s ``sample`` as int64 positions (none for None); ValueError unless they increase
+    strictly within the ``n`` epochs of the log."""
+    if sample is None:
+        return np.zeros(0, np.int64)
+    sample = np.asarray(sample, np.int64).reshape(-1)
+    if sample.size and (sample[0] < 0 or sample[-1] >= n or np.any(np.diff(sample) <= 0)):
+        raise ValueError(f"the epochs to keep the field at must increase strictly within the log's {n} epochs")
+    return sample
 
 
 def _median_magnitude(ref: np.ndarray) -> float:

@@ -425,7 +425,7 @@ def _field_views(log: DriveLog, comparison: Comparison) -> list[str]:
         *_baseline_part(comparison),
         f"<h3>The field: {names[0]} and {names[1]}</h3>",
     ]
-    ok = base.compared & before.compared
+    ok = np.isfinite(before.heading_error_deg[read]) & np.isfinite(base.heading_error_deg[MAGKF])  # as each has it
     if not ok.any():
         return [*head, projections, histogram]
     deviations = (before.heading_error_deg[read], base.heading_error_deg[MAGKF])
@@ -885,7 +885,9 @@ def _page(log, config, cal, effects, alpha, wander_s, run, judged: Judgement, di
     if judged.refusal is None:
         parts += [*_gates_and_estimate(run, t0), *_field_views(log, comparison), *_residuals_section(diag, t0)]
         parts += _candidates_section(diag, judged, _lacks(run), fitting=fits(run.summary.verdict))
-        if effects:
+        if effects:  # the model without them calibrated and diagnosed again: the comparison's errors let go first
+            del comparison
+            release_free_memory()
             parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)
     else:
         parts += _refused_sections(run, diag, judged)

@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 
+from magkf.calibration import Calibration
 from magkf.diagnostics.baseline import RAW, VEHICLE, compare_calibrations, vehicle_calibration
 from magkf.fleet import BASELINE_COLUMNS, find_logs, improvement_lines, run_fleet
 from magkf.io.readers import read_log
@@ -111,10 +112,15 @@ def test_the_report_s_field_as_read_is_the_comparison_s_identity_or_compared_alo
     log = from_table(sim.table.reset_index(), "sim2")
     drawn = _sample(len(log.table))
     with_raw = compare_calibrations(log, {RAW: None, MAGKF: sim.calibration}, sample=drawn)
-    assert _as_read(log, Comparison(with_raw, None, "", False)) == (with_raw, RAW)
+    base, name = _as_read(log, Comparison(with_raw, None, "", False))
+    assert base is with_raw and name == RAW
     magkf_only = compare_calibrations(log, {MAGKF: sim.calibration}, sample=drawn)
     before, name = _as_read(log, Comparison(magkf_only, None, "", True))
     assert name not in magkf_only.names
     assert np.array_equal(before.magnitude_error_nt[name], with_raw.magnitude_error_nt[RAW], equal_nan=True)
     assert np.array_equal(before.heading_error_deg[name], with_raw.heading_error_deg[RAW], equal_nan=True)
     assert np.array_equal(before.fields[name], log.mag[drawn])
+    as_read = Calibration(np.eye(3), np.zeros(3), method="logged-as-read")  # a log read calibrated: the identity
+    with_vehicle = compare_calibrations(log, {VEHICLE: as_read, MAGKF: sim.calibration}, sample=drawn)
+    base, name = _as_read(log, Comparison(with_vehicle, as_read, "", True))
+    assert base is with_vehicle and name == VEHICLE

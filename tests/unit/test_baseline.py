@@ -339,23 +339,41 @@ def test_figures_without_the_per_epoch_errors_are_the_same(drive):
         assert (got["n_used"], got["n_compared"]) == (expected["n_used"], expected["n_compared"])
 
 
-def test_the_log_prepared_a_chunk_at_a_time_gives_the_prepared_log_s_errors_and_the_fields_drawn(drive):
+def _with_gaps_and_igrf(seed=7):
+    """A simulated log without its own reference (IGRF is computed) and with gaps: no reading, no roll, no
+    position at some epochs."""
+    config = DriveConfig(duration_s=120, rate_hz=10, seed=seed, noise_nt=NOISE_NT, disturbances=0)
+    sim = simulate_drive(config)
+    table = sim.table.reset_index()
+    table.loc[10:19, "mag_x"] = np.nan
+    table.loc[96:99, "roll"] = np.nan
+    table.loc[300:310, "lat"] = np.nan
+    return sim, from_table(table, f"sim{seed}-gaps")
+
+
+@pytest.mark.parametrize("which", ["own reference", "IGRF, gaps"])
+def test_the_log_prepared_a_chunk_at_a_time_gives_the_prepared_log_s_errors_and_the_fields_drawn(drive, which):
     """Without a prepared log, ``compare_calibrations`` makes each chunk's attitude matrices and reference magnitude
     from the reference field computed once: the same errors, statuses and summary, bit for bit, as from
-    ``prepare``'s arrays, with chunks of 97 epochs too; ``sample`` keeps each calibration's corrected field at those
-    epochs, and the reference's median magnitude is the prepared log's."""
+    ``prepare``'s arrays in chunks of the same size (the default, and 97 epochs); ``sample`` keeps each
+    calibration's corrected field at those epochs (chunk edges among them), and the reference's median magnitude
+    is the prepared log's. A calibration with a stored effect is compared the same way."""
     from magkf.config import FilterConfig
     from magkf.diagnostics import baseline
     from magkf.online.prepare import prepare
 
-    sim, log = drive
-    cals = {RAW: None, MAGKF: replace(sim.calibration, b=sim.calibration.b + 200.0)}
+    sim, log = drive if which == "own reference" else _with_gaps_and_igrf()
+    n = len(log.mag)
+    stored = (stored_effect(CurrentField(), np.array([8.0, -5.0, 4.0]), np.ones(3)),)
+    off = replace(sim.calibration, b=sim.calibration.b + 200.0)
+    cals = {RAW: None, MAGKF: off, "with effect": replace(off, effects=stored)}
     prep = prepare(log, FilterConfig())
-    sample = np.sort(np.random.default_rng(8).choice(len(log.mag), 500, replace=False))
-    exact = baseline.compare_calibrations(log, cals, prep)
+    rng = np.random.default_rng(8)
+    sample = np.unique(np.r_[0, 96, 97, 193, 194, n - 1, rng.choice(n, 300, replace=False)])
     for chunk in (baseline.CHUNK, 97):
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(baseline, "CHUNK", chunk)
+            exact = baseline.compare_calibrations(log, cals, prep)
             lean = baseline.compare_calibrations(log, cals, sample=sample)
         for kind in ("magnitude_error_nt", "heading_error_deg", "vector_error_nt"):
             for name in cals:
@@ -364,8 +382,17 @@ def test_the_log_prepared_a_chunk_at_a_time_gives_the_prepared_log_s_errors_and_
             assert np.array_equal(np.asarray(lean.status[name]), np.asarray(exact.status[name]))
         assert np.array_equal(lean.heading_deg, exact.heading_deg, equal_nan=True)
         assert np.array_equal(lean.compared, exact.compared)
-        pd.testing.assert_frame_equal(lean.summary, exact.summary)
-        assert np.array_equal(lean.fields[RAW], log.mag[sample])
-        assert np.array_equal(lean.fields[MAGKF], cals[MAGKF].correct(log.mag[sample]))
-    assert lean.reference_median_nt == np.median(prep.ref_mag)
+        pd.testing.assert_frame_equal(lean.summary, exact.summary, check_exact=True)
+        assert np.array_equal(lean.fields[RAW], log.mag[sample], equal_nan=True)
+        assert np.array_equal(lean.fields[MAGKF], off.correct(log.mag[sample]), equal_nan=True)
+        assert lean.reference_median_nt == np.median(prep.ref_mag[np.isfinite(prep.ref_mag)])
     assert exact.fields[RAW].shape == (0, 3)
+    assert 0 < lean.compared.sum() < n if which != "own reference" else lean.compared.all()
+
+
+@pytest.mark.parametrize("sample", [[5, 3], [-1, 4], [0, 10_000_000], [2, 2]])
+def test_epochs_to_draw_that_do_not_increase_within_the_log_are_refused(drive, sample):
+    from magkf.diagnostics.baseline import compare_calibrations
+
+    with pytest.raises(ValueError, match="increase strictly"):
+        compare_calibrations(drive[1], {RAW: None}, sample=sample)
