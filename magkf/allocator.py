@@ -54,16 +54,8 @@ def pin_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
     """
     if not 0 < nbytes <= _LARGEST:
         raise ValueError(f"an mmap threshold of {nbytes} bytes: glibc takes 1 byte to {_LARGEST} bytes")
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
-        return False
-    if _user_set():
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt  # among the symbols the process has loaded, glibc's
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return mallopt(_M_MMAP_THRESHOLD, int(nbytes)) == 1
+    mallopt = None if _user_set() else _glibc("mallopt", (ctypes.c_int, ctypes.c_int))
+    return mallopt is not None and mallopt(_M_MMAP_THRESHOLD, int(nbytes)) == 1
 
 
 def _user_set() -> bool:
@@ -75,12 +67,21 @@ def _user_set() -> bool:
 def release_free_memory() -> bool:
     """Give the heap's free pages back to the system (glibc's ``malloc_trim(0)``, which walks the heap once: a
     few ms). Returns whether it was called: not outside glibc."""
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    malloc_trim = _glibc("malloc_trim", (ctypes.c_size_t,))
+    if malloc_trim is None:
         return False
-    try:
-        malloc_trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return False
-    malloc_trim.argtypes, malloc_trim.restype = (ctypes.c_size_t,), ctypes.c_int
     malloc_trim(0)
     return True
+
+
+def _glibc(name: str, argtypes: tuple):
+    """glibc's function ``name`` (returning an int) with its C argument types ``argtypes`` declared, so that a
+    Python int is never cut silently; None outside glibc or where the process has no such symbol."""
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        function = getattr(ctypes.CDLL(None), name)  # among the symbols the process has loaded, glibc's
+    except (OSError, AttributeError):
+        return None
+    function.argtypes, function.restype = argtypes, ctypes.c_int
+    return function

@@ -19,12 +19,12 @@ attitude and a reference where every calibration gives both), so that the rows c
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 
-from ..conventions import ATTITUDE, MAG, body_to_ned, declination_deg, euler_to_dcm, wrap_deg
+from ..conventions import body_to_ned, declination_deg, wrap_deg
 from ..io.drivelog import DriveLog
 
 __all__ = [
@@ -170,7 +170,7 @@ def compare_calibrations(
     for a in range(0, n, CHUNK):
         at = slice(a, min(a + CHUNK, n))
         chunk_epochs = epochs.at(at)
-        chunk = {name: _errors(chunk_epochs, cal, _at(terms[name], at)) for name, cal in calibrations.items()}
+        chunk = {name: _errors(chunk_epochs, cal, terms[name][at]) for name, cal in calibrations.items()}
         on = np.all([np.isfinite(e["heading"]) for e in chunk.values()], axis=0)
         sums.add(chunk, on, None if used is None else np.asarray(used[at], bool))
         compared[at] = on
@@ -189,7 +189,9 @@ def compare_calibrations(
             None, None, {}, {}, {}, compared, sums.summary(), {}, sums.used_figures(), sums.n_compared, fields
         )
     has_ref = np.all(np.isfinite(epochs.ref), axis=1)
-    status = {name: _status(has_mag, _finite_rows(terms[name], n), has_ref, has_attitude) for name in calibrations}
+    status = {
+        name: _status(has_mag, np.all(np.isfinite(terms[name]), axis=1), has_ref, has_attitude) for name in calibrations
+    }
     magnitude, heading, vector = ({name: errors[name][kind] for name in calibrations} for kind in _KINDS)
     return Baseline(
         log.time,
@@ -246,59 +248,52 @@ class _Chunk:
 
 class _Epochs:
     """A log's epochs as ``compare_calibrations`` reads them, a ``_Chunk`` at a time: the readings and attitude from
-    the log's table; the attitude matrices and reference field from ``prep`` (``magkf.online.prepare.prepare`` of
-    the log) when given, else the reference field computed once (``ref``, (N, 3) NED nT, as ``prepare`` computes it)
-    and each chunk's attitude matrices and reference magnitude made from it by ``prepare``'s rules: the same
-    values, without a prepared log's 250 bytes an epoch."""
+    the log's rows; the attitude matrices and reference field from ``prep`` (``magkf.online.prepare.prepare`` of
+    the log) when given, else the reference field computed once (``ref``, (N, 3) NED nT, ``_reference``) and each
+    chunk's attitude matrices and reference magnitude made from it by ``prepare``'s rules: the same values, without
+    a prepared log's 250 bytes an epoch."""
 
     def __init__(self, log: DriveLog, prep=None):
-        self.table, self.prep, self.has_attitude = log.table, prep, log.has_attitude
-        if prep is not None:
-            self.ref = prep.ref
-        else:
-            from ..config import FilterConfig
-
-            self.ref = log.reference_ned(knot_spacing_m=FilterConfig().reference_refresh_m)
+        self.log, self.prep, self.ref = log, prep, _reference(log, prep)
 
     def at(self, at: slice) -> _Chunk:
         """The epochs ``at``."""
-        rows = self.table.iloc[at]
-        mag = rows[list(MAG)].to_numpy(dtype=float)
-        attitude = rows[list(ATTITUDE)].to_numpy(dtype=float) if self.has_attitude else np.full((len(rows), 3), np.nan)
+        from ..online.prepare import attitude_matrices
+
+        rows = replace(self.log, table=self.log.table.iloc[at])  # the log's own readers, on these rows
+        mag, attitude = rows.mag, rows.attitude
         if self.prep is not None:
             return _Chunk(mag, attitude, self.prep.c_nb[at], self.prep.ref[at], self.prep.ref_mag[at])
         ref = self.ref[at]
-        c_nb = euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
-        return _Chunk(mag, attitude, c_nb, ref, np.linalg.norm(ref, axis=1))
+        return _Chunk(mag, attitude, attitude_matrices(attitude), ref, np.linalg.norm(ref, axis=1))
 
 
-def _terms(log: DriveLog, cal) -> np.ndarray | None:
+def _reference(log: DriveLog, prep=None) -> np.ndarray:
+    """The reference field (N, 3) NED nT of every epoch of ``log``: ``prep``'s, or computed as ``prepare`` computes
+    it."""
+    if prep is not None:
+        return prep.ref
+    from ..config import FilterConfig
+    from ..online.prepare import reference_field
+
+    return reference_field(log, FilterConfig())
+
+
+def _terms(log: DriveLog, cal) -> np.ndarray:
     """The terms (N, 3) nT of ``cal``'s stored effects over the whole log (a nonlinear one looks at neighbouring
-    epochs); None for the raw reading (``cal`` None) and a calibration that stores no effect."""
+    epochs); zeros, a read-only view of one row that holds nothing an epoch, for the raw reading (``cal`` None) and
+    a calibration that stores no effect."""
     if cal is None or not cal.effects:
-        return None
+        return np.broadcast_to(np.zeros(3), (len(log.table), 3))
     from ..apply import effect_terms
 
     return effect_terms(log, cal)
 
 
-def _at(terms: np.ndarray | None, at: slice) -> np.ndarray | None:
-    """The ``terms`` (``_terms``) of the epochs ``at``; None for none."""
-    return None if terms is None else terms[at]
-
-
-def _finite_rows(terms: np.ndarray | None, n: int) -> np.ndarray:
-    """(n,) bool: where every term of ``terms`` (``_terms``; None: no term) is finite."""
-    return np.ones(n, bool) if terms is None else np.all(np.isfinite(terms), axis=1)
-
-
 def _errors(epochs: _Chunk, cal, terms) -> dict:
     """The errors (``_KINDS``, (k,) each) of the ``epochs`` corrected with ``cal`` (None: the raw reading) less its
-    effects' ``terms`` (k, 3) nT (None: none), and the corrected field (``"field"``, (k, 3) nT)."""
-    if cal is None:
-        corrected = epochs.mag
-    else:
-        corrected = cal.correct(epochs.mag if terms is None else epochs.mag - terms)
+    effects' ``terms`` (k, 3) nT, and the corrected field (``"field"``, (k, 3) nT)."""
+    corrected = epochs.mag if cal is None else cal.correct(epochs.mag - terms)
     heading = heading_error_deg(corrected, epochs.c_nb, epochs.ref)
     vector = np.linalg.norm(body_to_ned(epochs.c_nb, corrected) - epochs.ref, axis=1)
     vector[~np.isfinite(heading)] = np.nan
@@ -527,8 +522,7 @@ def declination_note(log: DriveLog, base: Baseline, prep=None) -> str:
     logged = logged_declination_deg(log)
     if logged is None or not base.compared.any():
         return ""
-    ref = _Epochs(log, prep).ref
-    reference = float(np.median(declination_deg(ref[base.compared])))
+    reference = float(np.median(declination_deg(_reference(log, prep)[base.compared])))
     difference = float(wrap_deg(logged[0] - reference))
     if abs(difference) <= DECLINATION_NOTE_DEG:
         return ""

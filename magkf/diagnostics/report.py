@@ -425,10 +425,10 @@ def _field_views(log: DriveLog, comparison: Comparison) -> list[str]:
         *_baseline_part(comparison),
         f"<h3>The field: {names[0]} and {names[1]}</h3>",
     ]
-    ok = np.isfinite(before.heading_error_deg[read]) & np.isfinite(base.heading_error_deg[MAGKF])  # as each has it
+    deviations = (before.heading_error_deg[read], base.heading_error_deg[MAGKF])
+    ok = np.isfinite(deviations[0]) & np.isfinite(deviations[1])  # where each has a heading
     if not ok.any():
         return [*head, projections, histogram]
-    deviations = (before.heading_error_deg[read], base.heading_error_deg[MAGKF])
     return [*head, projections, histogram, _compass_swing(deviations, base.heading_deg, ok, names)]
 
 

@@ -152,7 +152,7 @@ def concat_prepared(parts) -> PreparedLog:
 
 def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
     """Reference field, attitude and the statuses known before filtering, for every epoch."""
-    ref = log.reference_ned(knot_spacing_m=config.reference_refresh_m)
+    ref = reference_field(log, config)
     columns = {c: log.column(c) for c in log.auxiliary}
     return prepare_arrays(log.time, log.mag, ref, log.attitude, log.dop, columns, config)
 
@@ -206,11 +206,23 @@ def prepare_arrays(
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
 
 
+def reference_field(log: DriveLog, config: FilterConfig) -> np.ndarray:
+    """The reference field (N, 3) NED nT of every epoch of ``log``, as ``prepare`` takes it: the log's own, else
+    IGRF refreshed every ``config.reference_refresh_m``."""
+    return log.reference_ned(knot_spacing_m=config.reference_refresh_m)
+
+
+def attitude_matrices(attitude: np.ndarray) -> np.ndarray:
+    """The attitude matrices ``C_nb`` (N, 3, 3), body FRD to NED, of ``attitude`` (N, 3) roll, pitch, yaw deg (NaN
+    where it is missing)."""
+    return euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
+
+
 def body_arrays(attitude: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(c_nb, field_body, heading)`` of epochs with ``attitude`` (N, 3) roll, pitch, yaw deg and reference field
     ``ref`` (N, 3) NED nT: the attitude matrices (N, 3, 3), the reference field in the body frame (N, 3) nT and the
     heading axis in the body frame (N, 3) (``measurements.heading_axis``; zero without attitude)."""
-    c_nb = euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
+    c_nb = attitude_matrices(attitude)
     return c_nb, ned_to_body(c_nb, ref), np.nan_to_num(heading_axis(c_nb, ref))
 
 
