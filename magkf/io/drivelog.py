@@ -518,13 +518,11 @@ def whole_log_checks(
     reading the same value at every epoch; ``UnitWarning`` for magnitudes that look like another unit (``fix``:
     what to do about it, ``{unit}`` the unit they look like; None: the reader has warned already) and for
     attitude that looks like radians."""
-    attitude = [c for c in ATTITUDE if c in table]
-    mag = table[list(MAG)].to_numpy(dtype=float)
-    complete = np.all(np.isfinite(mag), axis=1)
-    if same_value and complete.sum() > 1 and np.all(np.ptp(mag[complete], axis=0) == 0):
+    scan = _WholeLogScan(table, ATTITUDE if all(c in table for c in ATTITUDE) else ())
+    if same_value and scan.complete > 1 and np.all(scan.mag_high == scan.mag_low):
         raise InputError("the magnetometer reads the same value at every epoch: no sensor to calibrate", name)
-    if complete.any():
-        median = float(np.median(np.linalg.norm(mag[complete], axis=1)))
+    if scan.complete:
+        median = scan.median_norm()
         guess = likely_unit(median)
         if guess is not None and guess != mag_unit and fix is not None:
             warnings.warn(
@@ -533,13 +531,11 @@ def whole_log_checks(
                 UnitWarning,
                 stacklevel=4,
             )
-    if attitude and len(table) >= RADIANS_MIN_EPOCHS:
-        angles = np.abs(table[list(ATTITUDE)].to_numpy(dtype=float))
-        yaw = table[YAW].to_numpy(dtype=float)
+    if scan.attitude and len(table) >= RADIANS_MIN_EPOCHS:
         if (
-            np.nanmax(angles[:, :2], initial=0.0) <= np.pi / 2 + 1e-9
-            and np.nanmax(angles[:, 2], initial=0.0) <= 2 * np.pi + 1e-9
-            and np.nanmax(yaw, initial=0.0) - np.nanmin(yaw, initial=0.0) > 1.0
+            max(scan.largest_angle[:2]) <= np.pi / 2 + 1e-9
+            and scan.largest_angle[2] <= 2 * np.pi + 1e-9
+            and scan.yaw_high - scan.yaw_low > 1.0
         ):
             warnings.warn(
                 f"{name}: roll, pitch and yaw never leave +-pi/2, +-pi/2 and +-2 pi while yaw turns: they look like "
@@ -547,6 +543,49 @@ def whole_log_checks(
                 UnitWarning,
                 stacklevel=4,
             )
+
+
+#: Rows ``whole_log_checks`` looks at a time.
+_SCAN_ROWS = 1 << 16
+
+
+class _WholeLogScan:
+    """What ``whole_log_checks`` looks at, gathered ``_SCAN_ROWS`` rows at a time (no copy of the table's
+    columns is made): over the rows with all three magnetometer axes, their number ``complete``, each axis's
+    least and largest value ``mag_low``, ``mag_high`` (3,) and the magnitudes ``norms`` (complete,); with
+    ``attitude`` (roll, pitch, yaw: all three columns, else empty), the largest absolute angle of each
+    ``largest_angle`` (3,) and yaw's least and largest value (degrees or radians as read; NaN cells left out,
+    0 where a column has no value)."""
+
+    def __init__(self, table: pd.DataFrame, attitude):
+        mag = [table[c].to_numpy(dtype=float) for c in MAG]
+        self.attitude = list(attitude)
+        angles = [table[c].to_numpy(dtype=float) for c in self.attitude]
+        self.norms = np.empty(len(table))
+        self.complete = 0
+        self.mag_low, self.mag_high = np.full(3, np.inf), np.full(3, -np.inf)
+        self.largest_angle, self.yaw_low, self.yaw_high = np.zeros(3), 0.0, 0.0
+        for a in range(0, len(table), _SCAN_ROWS):
+            m = np.column_stack([v[a : a + _SCAN_ROWS] for v in mag])
+            m = m[np.all(np.isfinite(m), axis=1)]
+            if len(m):
+                self.mag_low = np.minimum(self.mag_low, m.min(axis=0))
+                self.mag_high = np.maximum(self.mag_high, m.max(axis=0))
+                self.norms[self.complete : self.complete + len(m)] = np.linalg.norm(m, axis=1)
+                self.complete += len(m)
+            if angles:
+                chunk = np.column_stack([v[a : a + _SCAN_ROWS] for v in angles])
+                self.largest_angle = np.fmax(self.largest_angle, np.nanmax(np.abs(chunk), axis=0, initial=0.0))
+                self.yaw_low = min(self.yaw_low, np.nanmin(chunk[:, 2], initial=0.0))
+                self.yaw_high = max(self.yaw_high, np.nanmax(chunk[:, 2], initial=0.0))
+        self.norms = self.norms[: self.complete]
+
+    def median_norm(self) -> float:
+        """The median of ``norms`` (as ``np.median``), found by partitioning them in place (no copy)."""
+        k = len(self.norms) // 2
+        middle = [k - 1, k] if len(self.norms) % 2 == 0 else [k]
+        self.norms.partition(middle)
+        return float(np.mean(self.norms[middle]))
 
 
 def read_drive_log(path, mag_unit: str = "nT", site=None) -> DriveLog:

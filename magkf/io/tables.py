@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..allocator import release_free_memory
 from ..errors import InputError
 
 __all__ = [
@@ -20,6 +21,8 @@ __all__ = [
     "file_row",
     "table_rows",
     "read_csv",
+    "csv_chunks",
+    "parquet_chunks",
     "read_parquet",
     "check_layout",
     "record_lines",
@@ -67,18 +70,77 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     if path.suffix.lower() in PARQUET_SUFFIXES:  # the Parquet twin of a CSV file is read alike
         return read_parquet(path, required, text_columns)
     _check_is_file(path, name)
-    rows = check_layout(path, name, required)
+    required, text_columns = tuple(required), tuple(text_columns)
+    lines = record_lines(path, name, required)  # the records' lines where blank lines lie among them, else None
+    chunks = csv_chunks(path, name, READ_ROWS, required, text_columns, lines)
+    table = _joined_chunks(chunks, text_columns, name, "the file has a header but no data rows")
+    if lines is not None:
+        table.attrs["rows"] = lines.at(np.arange(len(table)))  # blank lines (which pandas skips) among the records
+    return table
+
+
+#: Records ``read_csv`` and ``read_parquet`` convert at a time: the parser's working memory is a chunk's, not the
+#: file's (a 24-hour log at 100 Hz, 8.64 million records of 14 columns, peaked at 3.4 GB read whole as CSV for
+#: a table of 0.97 GB).
+READ_ROWS = 1 << 17
+
+
+def csv_chunks(path, name: str, rows: int, required=(), text_columns=(), lines=None):
+    """The CSV file ``path`` parsed ``rows`` records at a time, each chunk checked as ``checked_table`` checks a
+    whole table (InputError naming ``name``, the row and the column), its records' file lines in
+    ``attrs["rows"]`` (``lines``, a ``RecordLines``, where blank lines lie among the records; None: every line
+    after the header is a record)."""
     try:
-        table = pd.read_csv(
-            path, keep_default_na=False, na_values=[""], skipinitialspace=True, dtype={c: str for c in text_columns}
-        )
+        with pd.read_csv(
+            path,
+            keep_default_na=False,
+            na_values=[""],
+            skipinitialspace=True,
+            dtype={c: str for c in text_columns},
+            chunksize=rows,
+        ) as chunks:
+            offset = 0
+            for chunk in chunks:
+                index = np.arange(offset, offset + len(chunk))
+                chunk.attrs["rows"] = index + HEADER_ROWS + 1 if lines is None else lines.at(index)
+                offset += len(chunk)
+                yield checked_table(chunk, name, required, text_columns, "the file has a header but no data rows")
     except pd.errors.EmptyDataError:
         raise InputError("the file is empty", name) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise InputError(f"not a readable CSV file ({' '.join(str(exc).split())})", name) from None
-    if rows is not None and len(rows) == len(table) and np.any(rows != np.arange(len(rows)) + HEADER_ROWS + 1):
-        table.attrs["rows"] = rows  # blank lines (which pandas skips) among the records
-    return checked_table(table, name, required, text_columns, "the file has a header but no data rows")
+
+
+def _joined_chunks(chunks, text_columns, name: str, empty: str) -> pd.DataFrame:
+    """One table of the checked ``chunks`` (DataFrames), a column at a time: each chunk's columns copied out (the
+    chunk's own block let go), then each column's pieces joined (``_joined``), so that the table's memory is
+    held once and one column's twice at most. InputError ``empty`` naming ``name`` where there is no chunk."""
+    columns: dict = {}
+    for chunk in chunks:
+        for column in chunk.columns:
+            piece = chunk[column]
+            if column in text_columns:  # a Series, which keeps the text's dtype
+                piece = piece.reset_index(drop=True)
+                piece.attrs = {}  # not the chunk's rows
+            else:
+                piece = np.array(piece.to_numpy(), copy=True)
+            columns.setdefault(column, []).append(piece)
+    if not columns:
+        raise InputError(empty, name)
+    return pd.DataFrame({c: _joined(columns.pop(c)) for c in list(columns)}, copy=False)
+
+
+def _joined(pieces: list):
+    """A column's ``pieces`` (arrays, or Series of text) joined into one; the pieces' memory, freed, is given back
+    to the system (``release_free_memory``): a chunk's column (1 MiB) lies under the allocator's mmap threshold,
+    and the heap would keep the pieces of every column resident beside the joined table (a 24-hour log at 100 Hz
+    peaked at 2.1 GB read, for a table of 0.97 GB)."""
+    if len(pieces) == 1:
+        return pieces[0]
+    joined = pd.concat(pieces, ignore_index=True) if isinstance(pieces[0], pd.Series) else np.concatenate(pieces)
+    pieces.clear()
+    release_free_memory()
+    return joined
 
 
 def _check_is_file(path: Path, name: str) -> None:
@@ -95,11 +157,36 @@ def read_parquet(path, required: Iterable[str] = (), text_columns: Iterable[str]
     path = Path(path)
     name = str(path)
     _check_is_file(path, name)
+    required, text_columns = tuple(required), tuple(text_columns)
+    chunks = parquet_chunks(path, name, READ_ROWS, required, text_columns)
+    return _joined_chunks(chunks, text_columns, name, "the file has no rows")
+
+
+def parquet_chunks(path, name: str, rows: int, required=(), text_columns=()):
+    """The Parquet file ``path`` converted ``rows`` records at a time, each chunk checked as ``checked_table``
+    checks a whole table (InputError naming ``name``, the row and the column), its rows named as the CSV twin's
+    would be in ``attrs["rows"]`` (record i is row i + 2, the header being row 1). A file without rows is checked
+    as an empty table (its columns first)."""
+    import pyarrow.parquet as pq
+
     try:
-        table = pd.read_parquet(path)
+        # without pre-buffering, which reads ahead and keeps the row groups still to come (on a 4-hour 100 Hz log
+        # 225 MB of Arrow buffers at the peak, against 42 MB without)
+        file = pq.ParquetFile(path, pre_buffer=False)
+        offset = 0
+        for batch in file.iter_batches(batch_size=rows):
+            chunk = batch.to_pandas()
+            chunk.attrs["rows"] = np.arange(offset, offset + len(chunk)) + HEADER_ROWS + 1
+            offset += len(chunk)
+            yield checked_table(chunk, name, required, text_columns, "the file has no rows")
+        if offset == 0:
+            checked_table(
+                file.schema_arrow.empty_table().to_pandas(), name, required, text_columns, "the file has no rows"
+            )
+    except InputError:
+        raise
     except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
         raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
-    return checked_table(table, name, required, text_columns, "the file has no rows").reset_index(drop=True)
 
 
 #: Bytes of a CSV file scanned at a time for its field counts.

@@ -50,7 +50,7 @@ from ..conventions import MAG, TIME
 from ..errors import InputError
 from ..files import temporary_folder
 from ..io.drivelog import MAX_GAP_S, MIN_EPOCHS, DriveLog, TimeBaseWarning, from_table, whole_log_checks, write_frames
-from ..io.tables import HEADER_ROWS, PARQUET_SUFFIXES, checked_table, record_lines
+from ..io.tables import PARQUET_SUFFIXES, csv_chunks, parquet_chunks, record_lines
 from ..status import Status
 from ..timing import NO_PHASES
 from .prepare import (
@@ -148,40 +148,12 @@ class ChunkedLog:
             raise InputError("no such file", name)
         required = (TIME, *MAG)
         if self.parquet:
-            import pyarrow.parquet as pq
-
-            try:
-                # without pre-buffering, which reads ahead and keeps the row groups still to come (on a 4-hour
-                # 100 Hz log 225 MB of Arrow buffers at the peak, against 42 MB without)
-                batches = pq.ParquetFile(self.path, pre_buffer=False).iter_batches(batch_size=self.rows)
-                offset = 0
-                for batch in batches:
-                    table = batch.to_pandas()
-                    table.attrs["rows"] = np.arange(offset, offset + len(table)) + HEADER_ROWS + 1
-                    offset += len(table)
-                    yield checked_table(table, name, required, (), "the file has no rows")
-            except InputError:
-                raise
-            except Exception as exc:  # pyarrow raises several types for a damaged or foreign file
-                raise InputError(f"not a readable Parquet file ({' '.join(str(exc).split())[:200]})", name) from None
+            yield from parquet_chunks(self.path, name, self.rows, required)
             return
         # the layout checked on the first reading, the record lines kept as runs between blank lines (one number
         # a record held up to 33 bytes a record at the peak of the check); None: a record's line is its number
         lines = None if self.checked else record_lines(self.path, name, required)
-        try:
-            reader = pd.read_csv(
-                self.path, keep_default_na=False, na_values=[""], skipinitialspace=True, chunksize=self.rows
-            )
-            offset = 0
-            for table in reader:
-                rows = np.arange(offset, offset + len(table)) + HEADER_ROWS + 1
-                table.attrs["rows"] = rows if lines is None else lines.at(rows - HEADER_ROWS - 1)
-                offset += len(table)
-                yield checked_table(table, name, required, (), "the file has a header but no data rows")
-        except pd.errors.EmptyDataError:
-            raise InputError("the file is empty", name) from None
-        except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-            raise InputError(f"not a readable CSV file ({' '.join(str(exc).split())})", name) from None
+        yield from csv_chunks(self.path, name, self.rows, required, lines=lines)
 
     def __iter__(self) -> Iterator[tuple[int, DriveLog]]:
         if self.checked and self.cache is not None:
