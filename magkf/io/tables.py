@@ -82,7 +82,7 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
 #: Records ``read_csv`` and ``read_parquet`` convert at a time: the parser's working memory is a chunk's, not the
 #: file's (a 24-hour log at 100 Hz, 8.64 million records of 14 columns, peaked at 3.4 GB read whole as CSV for
 #: a table of 0.97 GB).
-READ_ROWS = 1 << 17
+READ_ROWS = 1 << 15
 
 
 def csv_chunks(path, name: str, rows: int, required=(), text_columns=(), lines=None):
