@@ -134,6 +134,10 @@ def rot_z(angle_rad) -> np.ndarray:
     return np.stack([np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1), np.stack([zero, zero, one], -1)], -2)
 
 
+#: Epochs ``euler_to_dcm`` turns into matrices at a time (its sines, cosines and products are 18 values an epoch).
+DCM_CHUNK = 65_536
+
+
 def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
     """``C_nb`` (body FRD to NED) from ZYX Euler angles in degrees; shape ``yaw.shape + (3, 3)``.
 
@@ -145,7 +149,13 @@ def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
         cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
         cr, sr = math.cos(roll), math.sin(roll)
     else:
-        yaw, pitch, roll = (np.radians(np.asarray(a, dtype=float)) for a in (yaw_deg, pitch_deg, roll_deg))
+        yaw, pitch, roll = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (yaw_deg, pitch_deg, roll_deg)))
+        if yaw.ndim == 1 and len(yaw) > DCM_CHUNK:  # a log's attitude: its working arrays a chunk's, not the log's
+            out = np.empty((len(yaw), 3, 3))
+            for a in range(0, len(yaw), DCM_CHUNK):
+                out[a : a + DCM_CHUNK] = euler_to_dcm(*(v[a : a + DCM_CHUNK] for v in (yaw, pitch, roll)))
+            return out
+        yaw, pitch, roll = np.radians(yaw), np.radians(pitch), np.radians(roll)
         cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
     rows = (
         (cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),

@@ -129,7 +129,8 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
     ok = np.isfinite(time_s) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
     if not ok.any():
         return out
-    t, la, lo, al = time_s[ok], lat[ok], lon[ok], alt[ok]
+    every = ok.all()  # then the arrays themselves, not copies
+    t, la, lo, al = (v if every else v[ok] for v in (time_s, lat, lon, alt))
     _check_times(t)
     dates = np.concatenate(
         [
@@ -139,8 +140,8 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
         ]
     )
     knot = _knots(la, lo, al, knot_spacing_m)
-    first = np.flatnonzero(np.diff(np.concatenate([[-1], knot])))  # first epoch of each knot
-    group = np.cumsum(np.diff(np.concatenate([[-1], knot])) != 0) - 1  # knot number of each epoch
+    first = np.flatnonzero(np.diff(knot, prepend=knot[0] - 1))  # first epoch of each knot
+    del knot
     kp = np.column_stack([la[first], lo[first], al[first]])
     # The knot and its three offset neighbours, all in one ppigrf call.
     places = np.concatenate([kp] + [kp + np.eye(3)[i] * GRADIENT_STEP for i in range(3)])
@@ -148,15 +149,25 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
     k = len(first)
     base = field[:, :k]
     grad = np.stack([(field[:, (i + 1) * k : (i + 2) * k] - base) / GRADIENT_STEP[i] for i in range(3)], axis=-1)
-    offset = np.column_stack([la - kp[group, 0], (lo - kp[group, 1] + 180.0) % 360.0 - 180.0, al - kp[group, 2]])
-    lo_i, w = _time_weights(t, dates)
-    hi_i = np.minimum(lo_i + 1, len(dates) - 1)
+    rows = np.flatnonzero(ok)
+    for a in range(0, len(t), INTERPOLATION_CHUNK):  # a chunk of epochs at a time: (k, 3, 3) arrays of a chunk's
+        s = slice(a, a + INTERPOLATION_CHUNK)
+        group = np.searchsorted(first, np.arange(a, a + len(t[s])), side="right") - 1  # each epoch's knot
+        offset = np.column_stack(
+            [la[s] - kp[group, 0], (lo[s] - kp[group, 1] + 180.0) % 360.0 - 180.0, al[s] - kp[group, 2]]
+        )
+        lo_i, w = _time_weights(t[s], dates)
+        hi_i = np.minimum(lo_i + 1, len(dates) - 1)
 
-    def at(date_index):
-        return base[date_index, group] + np.einsum("nij,nj->ni", grad[date_index, group], offset)
+        def at(date_index, group=group, offset=offset):
+            return base[date_index, group] + np.einsum("nij,nj->ni", grad[date_index, group], offset)
 
-    out[ok] = at(lo_i) * (1 - w)[:, None] + at(hi_i) * w[:, None]
+        out[rows[s]] = at(lo_i) * (1 - w)[:, None] + at(hi_i) * w[:, None]
     return out
+
+
+#: Epochs ``igrf_ned`` interpolates at a time.
+INTERPOLATION_CHUNK = 65_536
 
 
 def field_at(lat_deg: float, lon_deg: float, alt_m: float, time_s: float) -> dict:
