@@ -4,7 +4,8 @@ The log (default 24 hours at 100 Hz: 8.64 million epochs) is simulated an hour a
 (``magkf.sim.simulate_drive``, 3-D motion, disturbances, bad DOP; hour ``i`` with seed ``i``, its times
 following the previous hour's) and appended to one canonical CSV file, so that the generator never holds
 more than an hour. Each length in ``--hours`` is the first hours of that file (one simulation serves all).
-On each, in fresh processes: ``calibrate --smooth --states S.parquet`` through the chunked path
+On each, in fresh processes: the log read (``read_log``, with the command line's imports: the table every command
+holds, or reads in chunks), ``calibrate --smooth --states S.parquet`` through the chunked path
 (``magkf.online.chunked``, which ``calibrate`` takes from ``CHUNKED_EPOCHS`` epochs on), ``calibrate --batch``,
 ``apply`` and ``convert`` to Parquet, ``diagnose``, ``validate`` and ``report``; ``--whole`` adds the whole-log
 calibration. Printed: wall time, peak resident memory (``VmHWM`` of the child's own process) and the peak per
@@ -115,7 +116,8 @@ def _resident_mb(pid: int) -> float:
 
 
 def commands(path: Path, folder: Path, whole: bool) -> dict:
-    """Every command measured on the log ``path``, as Python code run in a fresh process: the chunked calibration
+    """Every command measured on the log ``path``, as Python code run in a fresh process: reading the log (the
+    command line's imports and ``read_log``, what the commands' memory is above), the chunked calibration
     (with smoothing and its states), ``--batch``, ``apply`` and ``convert`` to Parquet, ``diagnose``, ``validate``
     and ``report`` (each as its command, through ``magkf.cli.main``); ``whole`` adds the whole-log calibration."""
     log, cal = str(path), str(folder / "cal.json")
@@ -124,6 +126,8 @@ def commands(path: Path, folder: Path, whole: bool) -> dict:
         return f"from magkf.cli import main; main({[*argv]!r})"
 
     bodies = {
+        # what every other command's peak is to be read against: the imports and the log's table
+        "read the log (read_log)": f"import magkf.cli; from magkf.io.readers import read_log; read_log({log!r})",
         "calibrate --smooth --states (chunked)": (
             "from magkf.online.chunked import calibrate_file; "
             f"calibrate_file({log!r}, smooth=True, states={str(folder / 'states.parquet')!r}).calibration.save({cal!r})"
