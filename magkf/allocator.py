@@ -23,6 +23,7 @@ measured (``magkf.cluster.WORKER_ENVIRON`` leaves out the low trim threshold Das
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import platform
 
@@ -74,9 +75,11 @@ def release_free_memory() -> bool:
     return True
 
 
+@functools.cache
 def _glibc(name: str, argtypes: tuple):
     """glibc's function ``name`` (returning an int) with its C argument types ``argtypes`` declared, so that a
-    Python int is never cut silently; None outside glibc or where the process has no such symbol."""
+    Python int is never cut silently; None outside glibc or where the process has no such symbol. Looked up once
+    (``platform.libc_ver`` reads the interpreter's file)."""
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return None
     try:

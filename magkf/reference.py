@@ -123,12 +123,15 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
 
     Epochs with a missing (NaN) time or position get NaN.
     """
-    time_s = np.asarray(time_s, float)
-    lat, lon, alt = np.broadcast_arrays(*(np.asarray(a, float) for a in (lat_deg, lon_deg, alt_m)))
-    out = np.full(time_s.shape + (3,), np.nan)
+    shape = np.shape(time_s)
+    # every input flat, at the times' shape (a view where it is already flat: no copy of a log's columns)
+    time_s, lat, lon, alt = (
+        np.broadcast_to(np.asarray(a, float), shape).reshape(-1) for a in (time_s, lat_deg, lon_deg, alt_m)
+    )
+    out = np.full((len(time_s), 3), np.nan)
     ok = np.isfinite(time_s) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
     if not ok.any():
-        return out
+        return out.reshape(shape + (3,))
     every = ok.all()  # then the arrays themselves, not copies
     t, la, lo, al = (v if every else v[ok] for v in (time_s, lat, lon, alt))
     _check_times(t)
@@ -163,7 +166,7 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
             return base[date_index, group] + np.einsum("nij,nj->ni", grad[date_index, group], offset)
 
         out[rows[s]] = at(lo_i) * (1 - w)[:, None] + at(hi_i) * w[:, None]
-    return out
+    return out.reshape(shape + (3,))
 
 
 #: Epochs ``igrf_ned`` interpolates at a time.

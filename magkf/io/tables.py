@@ -63,7 +63,9 @@ def read_csv(path, required: Iterable[str] = (), text_columns: Iterable[str] = (
     Raises
     ------
     InputError
-        Missing file, missing or duplicated column, non-numeric or non-finite cell, no data rows.
+        Missing file, missing or duplicated column, non-numeric or non-finite cell, no data rows. The file is
+        converted ``READ_ROWS`` records at a time, and the cell named is the first bad one of the first chunk
+        that has one (in that chunk, column by column).
     """
     path = Path(path)
     name = str(path)
@@ -132,7 +134,7 @@ def _joined_chunks(chunks, text_columns, name: str, empty: str) -> pd.DataFrame:
 
 def _joined(pieces: list):
     """A column's ``pieces`` (arrays, or Series of text) joined into one; the pieces' memory, freed, is given back
-    to the system (``release_free_memory``): a chunk's column (1 MiB) lies under the allocator's mmap threshold,
+    to the system (``release_free_memory``): a chunk's column (256 KiB) lies under the allocator's mmap threshold,
     and the heap would keep the pieces of every column resident beside the joined table (a 24-hour log at 100 Hz
     peaked at 2.1 GB read, for a table of 0.97 GB)."""
     if len(pieces) == 1:
@@ -334,11 +336,10 @@ def numeric_column(values: pd.Series, source: str, column: str, row_of=file_row)
         bad = np.isnan(out) & present
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
+            cell = values.iloc[i]
+            cell = str(cell) if isinstance(cell, bool | np.bool_) else cell  # as written, in a column of booleans too
             raise InputError(
-                f"not a number: {values.iloc[i]!r} (leave the cell empty for a missing value)",
-                source,
-                row_of(i),
-                column,
+                f"not a number: {cell!r} (leave the cell empty for a missing value)", source, row_of(i), column
             )
     infinite = np.isinf(out)
     if infinite.any():

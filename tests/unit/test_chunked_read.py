@@ -137,3 +137,13 @@ def test_the_whole_log_checks_in_chunks(monkeypatch):
     table[["mag_x", "mag_y", "mag_z"]] = [1.0, 2.0, 3.0]
     with pytest.raises(InputError, match="the same value at every epoch"):
         whole_log_checks(table, "log.csv")
+
+
+def test_a_chunk_of_booleans_is_named_as_written(tmp_path, small_chunks):
+    """A chunk whose cells are all True or False (pandas reads it as booleans): the cell is named as written."""
+    lines = ["time,mag_x"] + [f"{1.7e9 + i},{i}" for i in range(14)] + [f"{1.7e9 + 14 + i},True" for i in range(7)]
+    path = tmp_path / "bool.csv"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="not a number: 'True'") as caught:
+        read_csv(path)
+    assert (caught.value.row, caught.value.column) == (16, "mag_x")
