@@ -152,20 +152,20 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
     k = len(first)
     base = field[:, :k]
     grad = np.stack([(field[:, (i + 1) * k : (i + 2) * k] - base) / GRADIENT_STEP[i] for i in range(3)], axis=-1)
+
+    def at(date_index, group, offset):  # the field at the dates' knots, moved along their gradients by ``offset``
+        return base[date_index, group] + np.einsum("nij,nj->ni", grad[date_index, group], offset)
+
     rows = np.flatnonzero(ok)
     for a in range(0, len(t), INTERPOLATION_CHUNK):  # a chunk of epochs at a time: (k, 3, 3) arrays of a chunk's
-        s = slice(a, a + INTERPOLATION_CHUNK)
-        group = np.searchsorted(first, np.arange(a, a + len(t[s])), side="right") - 1  # each epoch's knot
+        s = slice(a, min(a + INTERPOLATION_CHUNK, len(t)))
+        group = np.searchsorted(first, np.arange(s.start, s.stop), side="right") - 1  # each epoch's knot
         offset = np.column_stack(
             [la[s] - kp[group, 0], (lo[s] - kp[group, 1] + 180.0) % 360.0 - 180.0, al[s] - kp[group, 2]]
         )
         lo_i, w = _time_weights(t[s], dates)
         hi_i = np.minimum(lo_i + 1, len(dates) - 1)
-
-        def at(date_index, group=group, offset=offset):
-            return base[date_index, group] + np.einsum("nij,nj->ni", grad[date_index, group], offset)
-
-        out[rows[s]] = at(lo_i) * (1 - w)[:, None] + at(hi_i) * w[:, None]
+        out[rows[s]] = at(lo_i, group, offset) * (1 - w)[:, None] + at(hi_i, group, offset) * w[:, None]
     return out.reshape(shape + (3,))
 
 

@@ -24,7 +24,6 @@ __all__ = [
     "csv_chunks",
     "parquet_chunks",
     "read_parquet",
-    "check_layout",
     "record_lines",
     "RecordLines",
     "checked_table",
@@ -193,15 +192,6 @@ def parquet_chunks(path, name: str, rows: int, required=(), text_columns=()):
 
 #: Bytes of a CSV file scanned at a time for its field counts.
 SCAN_BYTES = 1 << 22
-
-
-def check_layout(path: Path, name: str, required=()) -> np.ndarray | None:
-    """Raise InputError for a header naming a column twice or lacking a ``required`` one, or a row with fewer
-    or more fields than the header (pandas would fill a short row with empty cells, or take a long row's
-    first field as an index). Files with quoted fields are left to the parser (None is returned); otherwise
-    the line numbers of the records (the lines after the header that are not blank)."""
-    scan = _FieldScan(name, _check_header(path, name, required))
-    return scan.records() if _scanned(path, scan) else None
 
 
 def _scanned(path: Path, scan) -> bool:
@@ -427,8 +417,10 @@ class _RunScan(_FieldScan):
 
 
 def record_lines(path, name: str, required=()) -> RecordLines | None:
-    """``io.tables.check_layout`` of the CSV file ``path`` (InputError naming ``name``, the row and the column for
-    a header or a row out of shape) with its records' lines as runs; None for a file with quoted fields (left to
+    """Check the layout of the CSV file ``path`` and give its records' lines (the lines after the header that are
+    not blank) as runs. Raises InputError naming ``name``, the row and the column for a header naming a column twice
+    or lacking a ``required`` one, or a row with fewer or more fields than the header (pandas would fill a short row
+    with empty cells, or take a long row's first field as an index). None for a file with quoted fields (left to
     the parser) or whose records are every line after the header."""
     scan = _RunScan(name, _check_header(path, name, required))
     if not _scanned(path, scan):
