@@ -48,6 +48,7 @@ __all__ = [
     "rot_y",
     "rot_z",
     "euler_to_dcm",
+    "AttitudeMatrices",
     "dcm_to_euler",
     "quaternion_to_euler",
     "euler_to_quaternion",
@@ -169,6 +170,49 @@ def euler_to_dcm(yaw_deg, pitch_deg, roll_deg) -> np.ndarray:
         for j, value in enumerate(row):
             out[..., i, j] = value
     return out
+
+
+class AttitudeMatrices(np.lib.mixins.NDArrayOperatorsMixin):
+    """The attitude matrices ``C_nb`` (N, 3, 3) of ``attitude`` (N, 3) roll, pitch, yaw deg (NaN where missing),
+    made when read rather than held: 24 bytes an epoch (the angles, held, not copied) instead of 72.
+
+    ``a[index]`` (a slice, an integer array, a boolean mask or one position) is ``euler_to_dcm`` of those epochs'
+    angles, bit for bit the rows of the whole stack; ``np.asarray(a)`` the whole stack, made for that use and not
+    kept. A log's prepared epochs (``online.prepare.PreparedLog.c_nb``) hold it: a run reads the matrices of a
+    block or a chunk at a time, which is a few multiplications and six sines and cosines an epoch.
+    """
+
+    ndim = 3
+    dtype = np.dtype(float)
+
+    def __init__(self, attitude: np.ndarray):
+        self.attitude = attitude
+
+    def __len__(self) -> int:
+        return len(self.attitude)
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self.attitude), 3, 3)
+
+    def __getitem__(self, index) -> np.ndarray:
+        if isinstance(index, tuple):  # an index into the matrices' own axes: of the whole stack
+            return np.asarray(self)[index]
+        angles = self.attitude[index]
+        return euler_to_dcm(angles[..., 2], angles[..., 1], angles[..., 0])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        whole = self[:]
+        return whole if dtype is None else whole.astype(dtype, copy=False)
+
+    def __getattr__(self, name: str):  # an array's attribute (``a.T``): of the whole stack
+        if name.startswith("__") or name == "attitude":
+            raise AttributeError(name)
+        return getattr(np.asarray(self), name)
+
+    def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):  # arithmetic: on the whole stack
+        inputs = tuple(np.asarray(v) if isinstance(v, AttitudeMatrices) else v for v in inputs)
+        return getattr(ufunc, method)(*inputs, **kwargs)
 
 
 def dcm_to_euler(c_nb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -310,7 +310,8 @@ def _calibrate_one(args, log, config, init, added, output, states):
     from ..online.run import calibrate_log, terminal_progress
     from ..plausibility import check_against_start, check_run, log_field_nt
 
-    prep = names_the_log(prepare)(log, config)  # the reference field and attitude, once for runs and comparisons
+    # the reference field and attitude, once for runs and comparisons; the field's rates only for added effects
+    prep = names_the_log(prepare)(log, config, rates=bool(added))
 
     def run_with(effect_list):
         if args.batch:

@@ -52,6 +52,10 @@ class Bootstrap:
     span_s: float
 
 
+#: Epochs whose regressors ``vector_least_squares`` makes at a time.
+FIT_CHUNK = 8192
+
+
 def vector_least_squares(m, field_body, noise_nt: float, prior_mean=None, prior_std=None, extra=None):
     """Robust least squares of ``m = R B + b + G theta``; returns ``(x (12+k,), cov, weights (N,))``.
 
@@ -62,21 +66,31 @@ def vector_least_squares(m, field_body, noise_nt: float, prior_mean=None, prior_
     from ..effects.core import core_jacobian
 
     m = np.asarray(m, float)
-    A = core_jacobian(field_body)
-    if extra is not None:
-        A = np.concatenate([A, extra], axis=2)
-    p = A.shape[2]
+
+    def regressors(at: slice) -> np.ndarray:  # (k, 3, p), made a chunk at a time: 288 bytes an epoch and more
+        A = core_jacobian(field_body[at])
+        return A if extra is None else np.concatenate([A, extra[at]], axis=2)
+
+    p = 12 + (0 if extra is None else extra.shape[2])
     if prior_mean is None:
         prior_mean, prior_std = np.zeros(p), np.full(p, np.inf)
     info_prior = 1.0 / np.asarray(prior_std, float) ** 2
-    w = np.ones(len(m))
+    n = len(m)
+    w = np.ones(n)
+    chunks = [slice(a, a + FIT_CHUNK) for a in range(0, n, FIT_CHUNK)]
     for _ in range(8):
-        Aw = A * w[:, None, None]
-        info = np.einsum("nki,nkj->ij", Aw, A) / noise_nt**2 + np.diag(info_prior)
-        rhs = np.einsum("nki,nk->i", Aw, m) / noise_nt**2 + info_prior * prior_mean
+        info, rhs = np.diag(info_prior), info_prior * prior_mean
+        for at in chunks:
+            A = regressors(at)
+            Aw = A * w[at, None, None]
+            info = info + np.einsum("nki,nkj->ij", Aw, A) / noise_nt**2
+            rhs = rhs + np.einsum("nki,nk->i", Aw, m[at]) / noise_nt**2
         cov = np.linalg.inv(info)
         x = cov @ rhs
-        r = np.linalg.norm(m - np.einsum("nki,i->nk", A, x), axis=1) / (noise_nt * np.sqrt(3))
+        r = np.empty(n)
+        for at in chunks:
+            r[at] = np.linalg.norm(m[at] - np.einsum("nki,i->nk", regressors(at), x), axis=1)
+        r /= noise_nt * np.sqrt(3)
         w_new = np.minimum(1.0, HUBER_K / np.maximum(r, 1e-12))
         if np.allclose(w_new, w, atol=1e-4):
             break

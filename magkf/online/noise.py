@@ -251,7 +251,7 @@ class NoiseLearner:
         z[np.abs(z).max(axis=1) > CLIP_SIGMA] = 0.0
         converged = rows[:, 6] == 1.0
         if converged.all():
-            self._pending.append((rows[:, 0], z))
+            self._pending.append((rows[:, 0].copy(), z))  # not a view: the rows (64 bytes an epoch) are let go
         elif converged.any():
             self._pending.append((rows[converged, 0], z[converged]))
 
@@ -285,26 +285,29 @@ class NoiseLearner:
         accumulated before decays by the time since it."""
         if not self._pending:
             return
-        times = np.concatenate([t for t, _ in self._pending])
-        z = np.concatenate([z for _, z in self._pending])
-        self._pending = []
+        pending, self._pending = self._pending, []
         memory = CORRELATION_WINDOWS * self.window_s
-        end = float(times[-1])
-        weight = np.exp(-(end - times) / memory)
+        end = float(pending[-1][0][-1])
         decay = 1.0 if self._t_products is None else math.exp(-max(end - self._t_products, 0.0) / memory)
         self._t_products = end
         self._prod *= decay
-        self._sq = decay * self._sq + np.einsum("kc,k->c", z**2, weight)
-        for start in range(0, len(z), _CHUNK):  # in pieces: a whole log's products would not fit
-            piece = z[start : start + _CHUNK]
-            # The ring starts as zeros, so a partner from before the first innovation adds nothing.
-            history = np.concatenate([self._ring, piece])
-            k, n = len(piece), len(history)
-            weighted = piece * weight[start : start + _CHUNK, None]
-            for j, lag in enumerate(_LAG_LIST):  # each lag's partners are one slice of the history
-                self._prod[:, j] += np.einsum("kc,kc->c", weighted, history[n - k - lag : n - lag])
-            self._count += k
-            self._ring[...] = history[-len(self._ring) :]  # in place: constant memory
+        self._sq *= decay
+        # In pieces, each let go once counted: a whole log's products (and its pending innovations joined) would
+        # not fit.
+        while pending:
+            times, z = pending.pop(0)
+            for start in range(0, len(z), _CHUNK):
+                piece = z[start : start + _CHUNK]
+                weight = np.exp(-(end - times[start : start + _CHUNK]) / memory)
+                self._sq += np.einsum("kc,k->c", piece**2, weight)
+                # The ring starts as zeros, so a partner from before the first innovation adds nothing.
+                history = np.concatenate([self._ring, piece])
+                k, n = len(piece), len(history)
+                weighted = piece * weight[:, None]
+                for j, lag in enumerate(_LAG_LIST):  # each lag's partners are one slice of the history
+                    self._prod[:, j] += np.einsum("kc,kc->c", weighted, history[n - k - lag : n - lag])
+                self._count += k
+                self._ring[...] = history[-len(self._ring) :]  # in place: constant memory
 
     def correlation(self) -> np.ndarray:
         """The autocorrelation (3, len(LAGS)) of the standardised innovations along the field, along ``h`` and

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..config import FilterConfig
-from ..conventions import ATTITUDE, MAG, TIME, calibrated_field, euler_to_dcm, ned_to_body
+from ..conventions import ATTITUDE, MAG, TIME, AttitudeMatrices, calibrated_field, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
 from ..effects.core import SoftHardIron
 from ..errors import InputError
@@ -59,10 +59,10 @@ __all__ = [
 @dataclass(frozen=True)
 class PreparedLog:
     """Per-epoch arrays of a log, computed once: ``m`` (N, 3) nT, ``ref`` (N, 3) NED nT, ``ref_mag`` (N,),
-    ``c_nb`` (N, 3, 3), ``has_attitude`` (N,), ``dop`` (N,), ``base`` (N,) status before filtering (codes of
-    ``magkf.status.Status``), ``data`` (``EpochData`` for the effects and the models) and ``heading``
-    (N, 3) nT the heading axis in the body frame (``measurements.heading_axis``; zero without attitude; None
-    once a run no longer needs it)."""
+    ``c_nb`` (N, 3, 3) (``prepare``'s an ``AttitudeMatrices``: made from the attitude when read),
+    ``has_attitude`` (N,), ``dop`` (N,), ``base`` (N,) status before filtering (codes of ``magkf.status.Status``),
+    ``data`` (``EpochData`` for the effects and the models) and ``heading`` (N, 3) nT the heading axis in the
+    body frame (``measurements.heading_axis``; zero without attitude; None once a run no longer needs it)."""
 
     m: np.ndarray
     ref: np.ndarray
@@ -127,9 +127,14 @@ class PreparedLog:
 
 
 def _joined(values):
-    """The arrays ``values`` (one per piece) end to end, or None when the pieces hold none (the first says)."""
+    """The arrays ``values`` (one per piece) end to end, or None when the pieces hold none (the first says);
+    attitude matrices made when read stay so."""
     values = list(values)
-    return None if values[0] is None else np.concatenate(values)
+    if values[0] is None:
+        return None
+    if all(isinstance(v, AttitudeMatrices) for v in values):
+        return AttitudeMatrices(np.concatenate([v.attitude for v in values]))
+    return np.concatenate(values)
 
 
 def concat_prepared(parts) -> PreparedLog:
@@ -146,19 +151,21 @@ def concat_prepared(parts) -> PreparedLog:
     )
     fields = ("m", "ref", "ref_mag", "c_nb", "has_attitude", "dop", "base")
     return PreparedLog(
-        *(np.concatenate([getattr(p, f) for p in parts]) for f in fields), data, _joined(p.heading for p in parts)
+        *(_joined(getattr(p, f) for p in parts) for f in fields), data, _joined(p.heading for p in parts)
     )
 
 
-def prepare(log: DriveLog, config: FilterConfig) -> PreparedLog:
-    """Reference field, attitude and the statuses known before filtering, for every epoch."""
+def prepare(log: DriveLog, config: FilterConfig, rates: bool = True) -> PreparedLog:
+    """Reference field, attitude and the statuses known before filtering, for every epoch; without ``rates``, not
+    the field's rates (``EpochData.field_body_rate`` and ``field_body_accel`` None: 48 bytes an epoch that only
+    added effects read)."""
     ref = reference_field(log, config)
     columns = {c: log.column(c) for c in log.auxiliary}
-    return prepare_arrays(log.time, log.mag, ref, log.attitude, log.dop, columns, config)
+    return prepare_arrays(log.time, log.mag, ref, log.attitude, log.dop, columns, config, rates=rates)
 
 
 def prepare_arrays(
-    t, m, ref, attitude, dop, columns: dict, config: FilterConfig, previous=None, R0=None
+    t, m, ref, attitude, dop, columns: dict, config: FilterConfig, previous=None, R0=None, rates: bool = True
 ) -> PreparedLog:
     """The epochs given as arrays, prepared by the epoch rules (``prepare`` of a log, ``prepare_samples`` of a
     stream's samples).
@@ -186,16 +193,21 @@ def prepare_arrays(
         acceleration), zero where it cannot be taken.
     R0 : ndarray or None
         (3, 3) the calibration the effects' data carry (``EpochData.R0``; None: the identity).
+    rates : bool
+        Whether to compute the field's rates (False: None, for a run without added effects).
 
     Returns
     -------
     PreparedLog
     """
     has_att = np.all(np.isfinite(attitude), axis=1)
-    c_nb, field_body, heading = body_arrays(attitude, ref)
+    c_nb = AttitudeMatrices(attitude)
+    field_body, heading = body_fields(c_nb, ref)
     base = epoch_status(m, ref, has_att, dop, config.dop_max)
     ref_mag = np.linalg.norm(ref, axis=1)
-    if previous is None:
+    if not rates:
+        rate, accel = None, None
+    elif previous is None:
         rate, accel = field_rates(t, field_body)
     else:
         rate, accel = _backward_rates(t, field_body, previous), None
@@ -224,6 +236,20 @@ def body_arrays(attitude: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.n
     heading axis in the body frame (N, 3) (``measurements.heading_axis``; zero without attitude)."""
     c_nb = attitude_matrices(attitude)
     return c_nb, ned_to_body(c_nb, ref), np.nan_to_num(heading_axis(c_nb, ref))
+
+
+def body_fields(c_nb, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(field_body, heading)`` (N, 3) nT each, as ``body_arrays`` gives them, of attitude matrices ``c_nb`` (an
+    ``AttitudeMatrices``, read ``CHUNK`` epochs at a time) and reference field ``ref`` (N, 3) NED nT: the working
+    arrays are a chunk's, not the log's."""
+    n = len(ref)
+    field_body, heading = np.empty((n, 3)), np.empty((n, 3))
+    for a in range(0, n, CHUNK):
+        at = slice(a, a + CHUNK)
+        matrices = c_nb[at]
+        field_body[at] = ned_to_body(matrices, ref[at])
+        heading[at] = np.nan_to_num(heading_axis(matrices, ref[at]))
+    return field_body, heading
 
 
 def field_rates(t: np.ndarray, field_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
