@@ -49,6 +49,7 @@ __all__ = [
     "rot_z",
     "euler_to_dcm",
     "AttitudeMatrices",
+    "epochs_of",
     "dcm_to_euler",
     "quaternion_to_euler",
     "euler_to_quaternion",
@@ -201,6 +202,10 @@ class AttitudeMatrices(np.lib.mixins.NDArrayOperatorsMixin):
         angles = self.attitude[index]
         return euler_to_dcm(angles[..., 2], angles[..., 1], angles[..., 0])
 
+    def take(self, index) -> AttitudeMatrices:
+        """The matrices of the epochs ``index`` (as ``a[index]`` takes them), still made when read."""
+        return AttitudeMatrices(self.attitude[index])
+
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         whole = self[:]
         return whole if dtype is None else whole.astype(dtype, copy=False)
@@ -213,6 +218,12 @@ class AttitudeMatrices(np.lib.mixins.NDArrayOperatorsMixin):
     def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):  # arithmetic: on the whole stack
         inputs = tuple(np.asarray(v) if isinstance(v, AttitudeMatrices) else v for v in inputs)
         return getattr(ufunc, method)(*inputs, **kwargs)
+
+
+def epochs_of(values, index):
+    """``values[index]``, the epochs ``index`` of a per-epoch array; of ``AttitudeMatrices``, still made when read
+    (``AttitudeMatrices.take``)."""
+    return values.take(index) if isinstance(values, AttitudeMatrices) else values[index]
 
 
 def dcm_to_euler(c_nb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..conventions import epochs_of
 from ..errors import InputError
 
 __all__ = [
@@ -75,7 +76,7 @@ class EpochData:
             return self
 
         def cut(a):
-            return None if a is None else a[index]
+            return None if a is None else epochs_of(a, index)
 
         return EpochData(
             self.time[index],

@@ -706,7 +706,7 @@ class Vector(MeasurementModel):
 
     def field_function(self, blk):
         """``f(c) -> (k, q)``: the batch residuals of calibrated fields ``c`` (k, 3) nT at the block's epochs."""
-        ref, c_nb = blk.data.field_ned, blk.data.c_nb
+        ref, c_nb = blk.data.field_ned, np.asarray(blk.data.c_nb)  # made once: f is called several times
         sigma = self._sigma_cross(blk.ref_mag)[:, None]
         return lambda c: (body_to_ned(c_nb, c) - ref) / sigma
 
@@ -738,7 +738,7 @@ class Both(Vector):
         """The total-field residual (``Magnitude.field_function``) and the NED residual's two components across
         the reference field, along ``h`` and ``v`` (``field_frame``), each over its standard deviation."""
         total = self.fallback.field_function(blk)
-        ref, c_nb, ref_mag = blk.data.field_ned, blk.data.c_nb, blk.ref_mag
+        ref, c_nb, ref_mag = blk.data.field_ned, np.asarray(blk.data.c_nb), blk.ref_mag  # made once
         basis = field_frame(ref, heading_axis_ned(ref))[:, 1:]
         var_h, var_v = self.noise.across_vars(ref_mag**2, ref[:, 0] ** 2 + ref[:, 1] ** 2)
         sigma = np.sqrt(np.column_stack([var_h, var_v]))

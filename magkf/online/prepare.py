@@ -20,7 +20,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..config import FilterConfig
-from ..conventions import ATTITUDE, MAG, TIME, AttitudeMatrices, calibrated_field, euler_to_dcm, ned_to_body
+from ..conventions import ATTITUDE, MAG, TIME, AttitudeMatrices, calibrated_field, epochs_of, euler_to_dcm, ned_to_body
 from ..effects.base import EpochData, rate_of_change
 from ..effects.core import SoftHardIron
 from ..errors import InputError
@@ -88,7 +88,7 @@ class PreparedLog:
             self.m[index],
             self.ref[index],
             self.ref_mag[index],
-            self.c_nb[index],
+            epochs_of(self.c_nb, index),
             self.has_attitude[index],
             self.dop[index],
             self.base[index],

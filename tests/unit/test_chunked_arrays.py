@@ -44,3 +44,96 @@ def test_dcm_in_chunks_is_dcm_in_one_piece(monkeypatch):
     monkeypatch.setattr(conventions, "DCM_CHUNK", 7)
     np.testing.assert_array_equal(conventions.euler_to_dcm(yaw, pitch, roll), whole)
     np.testing.assert_array_equal(conventions.euler_to_dcm(yaw, 12.5, roll), broadcast)
+
+
+def test_attitude_matrices_made_when_read_are_the_held_ones():
+    """``AttitudeMatrices`` gives, for a slice, a mask, an index array, one position and the whole stack, bit for bit
+    the matrices ``euler_to_dcm`` makes of all epochs at once (NaN rows where the attitude is missing); an array's
+    attribute, arithmetic and a NumPy function take the whole stack."""
+    rng = np.random.default_rng(9)
+    n = 200_000  # several of euler_to_dcm's chunks
+    attitude = np.column_stack([rng.uniform(-180, 180, n), rng.uniform(-90, 90, n), rng.uniform(0, 360, n)])
+    attitude[[3, 70_000, n - 1]] = np.nan
+    held = conventions.euler_to_dcm(attitude[:, 2], attitude[:, 1], attitude[:, 0])
+    lazy = conventions.AttitudeMatrices(attitude)
+    assert len(lazy) == n and lazy.shape == held.shape
+    mask = rng.random(n) < 0.3
+    index = np.flatnonzero(mask)[::-1]
+    for key in (slice(None), slice(65_530, 131_080), mask, index, 70_000, 5):
+        np.testing.assert_array_equal(lazy[key], held[key])
+    np.testing.assert_array_equal(np.asarray(lazy), held)
+    np.testing.assert_array_equal(lazy.T, held.T)
+    np.testing.assert_array_equal(2.0 * lazy, 2.0 * held)
+    np.testing.assert_array_equal(np.swapaxes(lazy, -1, -2), np.swapaxes(held, -1, -2))
+    np.testing.assert_array_equal(lazy[:, 2, 0], held[:, 2, 0])
+
+
+def test_a_prepared_log_holds_its_attitude_not_its_matrices():
+    """``prepare`` holds the attitude matrices as ``AttitudeMatrices`` (the angles), whose rows are those the
+    whole-stack ``body_arrays`` makes, and so are the body field and the heading axis made a chunk at a time;
+    without ``rates`` no rates; pieces joined (``concat_prepared``) stay made when read. Traced, preparing 200 000
+    epochs without the rates holds less than the arrays it keeps (138 bytes an epoch: the reading, the field in two
+    frames and its magnitude, the angles, the heading axis, the DOP and the statuses) and 40 bytes an epoch of
+    working arrays and one chunk; the matrices held (72 bytes an epoch) would not fit."""
+    import tracemalloc
+
+    from magkf.config import FilterConfig
+    from magkf.io.drivelog import DriveLog
+    from magkf.online import prepare as prep_module
+    from magkf.sim.drive import DriveConfig, simulate_drive
+
+    table = simulate_drive(DriveConfig(duration_s=4000.0, rate_hz=50.0, seed=3)).table
+    kept = ("mag_x", "mag_y", "mag_z", "roll", "pitch", "yaw", "lat", "lon", "alt", "dop")
+    log = DriveLog(table[[c for c in table if c in kept]], "sim.csv")  # no auxiliary channels
+    config = FilterConfig()
+    prep = prep_module.prepare(log, config)
+    assert isinstance(prep.c_nb, conventions.AttitudeMatrices)
+    c_nb, field_body, heading = prep_module.body_arrays(log.attitude, prep.ref)
+    np.testing.assert_array_equal(np.asarray(prep.c_nb), c_nb)
+    np.testing.assert_array_equal(prep.data.field_body, field_body)
+    np.testing.assert_array_equal(prep.heading, heading)
+    lean = prep_module.prepare(log, config, rates=False)
+    assert lean.data.field_body_rate is None and lean.data.field_body_accel is None
+    np.testing.assert_array_equal(lean.data.field_body, prep.data.field_body)
+    joined = prep_module.concat_prepared([prep.take(slice(0, 1000)), prep.take(slice(1000, None))])
+    assert isinstance(joined.c_nb, conventions.AttitudeMatrices)
+    np.testing.assert_array_equal(np.asarray(joined.c_nb), c_nb)
+    del prep, joined, c_nb, field_body, heading, lean
+
+    n = len(log.table)
+    tracemalloc.start()
+    try:
+        held = prep_module.prepare(log, config, rates=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(held) == n
+    chunk = prep_module.CHUNK * 3 * 3 * 8 * 4  # a chunk's matrices and their products
+    assert peak < (138 + 40) * n + chunk, peak / n
+
+
+def test_vector_least_squares_in_chunks_is_the_one_piece_fit(monkeypatch):
+    """The bootstrap's robust least squares made of regressors a chunk at a time (7 epochs) gives the fit of
+    regressors made at once, with an added linear effect's regressors and a prior, to rounding; and the fit finds
+    the calibration of noise-free readings with a few gross outliers down-weighted."""
+    from magkf.online import bootstrap
+
+    rng = np.random.default_rng(12)
+    n = 500
+    B = rng.normal(size=(n, 3)) * 30_000.0
+    R = np.eye(3) + rng.normal(0, 0.02, (3, 3))
+    b = np.array([300.0, -200.0, 500.0])
+    extra = rng.normal(size=(n, 3, 2))
+    theta = np.array([40.0, -25.0])
+    m = B @ R.T + b + extra @ theta + rng.normal(0, 20.0, (n, 3))
+    m[[10, 250, 499]] += 5_000.0
+    prior = (np.concatenate([np.eye(3).ravel(), np.zeros(5)]), np.concatenate([np.full(9, 0.1), np.full(5, 5e3)]))
+    whole = bootstrap.vector_least_squares(m, B, 20.0, *prior, extra=extra)
+    monkeypatch.setattr(bootstrap, "FIT_CHUNK", 7)
+    chunked = bootstrap.vector_least_squares(m, B, 20.0, *prior, extra=extra)
+    for got, want in zip(chunked, whole):
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
+    x, cov, w = chunked
+    truth = np.concatenate([R.ravel(), b, theta])
+    assert np.all(np.abs(x - truth) < 5 * np.sqrt(np.diag(cov)))
+    assert w[[10, 250, 499]].max() < 0.1

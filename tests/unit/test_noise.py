@@ -101,3 +101,28 @@ def test_a_heading_error_is_told_from_a_tilt():
         )
     assert learner.levels.heading_deg == pytest.approx(0.3, rel=0.1)
     assert learner.levels.attitude_deg == pytest.approx(0.05, rel=0.12)
+
+
+def test_correlation_in_pieces_is_the_correlation_of_all(monkeypatch):
+    """The lagged products are summed piece by piece as the pending innovations come, each piece let go once
+    counted: observed at one instant (as ``robust_start`` gives a whole log's residuals) in 9 bursts (pending in 9
+    pieces, their products cut at 4 099 epochs) or in one, the correlation is the same to rounding."""
+    from magkf.online import noise
+
+    rng = np.random.default_rng(11)
+    n = 9 * 9000  # each burst beyond the ring (BUFFER), so each goes to the pending list as it comes
+    along = coloured(rng.normal(size=(n, 1)), RATE, 0.8)[:, 0] * 30.0
+    cross = coloured(rng.normal(size=(n, 2)), RATE, 0.5) * 40.0
+    field2 = np.full(n, FIELD2)
+
+    def learned(bursts: int) -> np.ndarray:
+        learner = NoiseLearner(START, adapt=False)
+        for part in np.array_split(np.arange(n), bursts):
+            learner.observe(np.zeros(len(part)), along[part], cross[part], field2[part])
+        assert len(learner._pending) == bursts
+        return learner.correlation()
+
+    whole = learned(1)
+    assert np.abs(whole[0, 1:4]).min() > 0.3  # the coloured noise's correlation is there to be measured
+    monkeypatch.setattr(noise, "_CHUNK", 4099)
+    np.testing.assert_allclose(learned(9), whole, rtol=1e-12, atol=1e-15)
