@@ -251,7 +251,7 @@ class _Epochs:
     the log's rows; the attitude matrices and reference field from ``prep`` (``magkf.online.prepare.prepare`` of
     the log) when given, else the reference field computed once (``ref``, (N, 3) NED nT, ``_reference``) and each
     chunk's attitude matrices and reference magnitude made from it by ``prepare``'s rules: the same values, without
-    a prepared log's 250 bytes an epoch."""
+    a prepared log's 180 bytes an epoch."""
 
     def __init__(self, log: DriveLog, prep=None):
         self.log, self.prep, self.ref = log, prep, _reference(log, prep)

@@ -1,7 +1,7 @@
 """A set of a log's epochs prepared a chunk at a time when read, rather than held prepared.
 
-``prepare`` gives every epoch's arrays at once: about 250 bytes an epoch (the attitude matrix, the field in two
-frames, its rate and acceleration, the heading axis). A diagnosis reads its epochs a chunk at a time on each pass,
+``prepare`` gives every epoch's arrays at once: about 180 bytes an epoch (the attitude, from which its matrices are
+made when read, the field in two frames, its rate and acceleration, the heading axis). A diagnosis reads its epochs a chunk at a time on each pass,
 so ``PreparedRows`` holds only where its epochs are in the log and their times (16 bytes an epoch of the set) and the
 log's reference field (24 bytes an epoch of the log), and makes a chunk's arrays again from the log when they are
 read (``Chunk``): the log's own columns read at the epochs, the others by ``prepare``'s rules
