@@ -192,6 +192,7 @@ def validate(
     as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))
     held = tuple(e for e in effects if not e.wanders)
     contributions = {e: _contribution(e, x[sl], stored.data) for e, sl in layout.blocks() if e in held}
+    del stored  # its whitened reading and residual (48 bytes an epoch) are let go before the fits are made
     fixed = epochs.less(sum(contributions.values(), np.zeros((len(epochs), 3))))
     fit = fixed.fit(StateLayout.with_core(), x[:12])
     plain = fixed.with_wander(None).at(fit.layout, fit.x) if fit.wander is not None else fit
@@ -248,19 +249,23 @@ class _Comparison:
         self.fit, self.plain, self.edges = fit, plain, edges
         self.with_tested, self.with_held = self.held_out(fit.y, plain.y)
 
-    def held_out(self, y: np.ndarray, y_plain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def held_out(self, y: np.ndarray, y_plain: np.ndarray, tested: bool = True) -> tuple:
         """Held-out residuals (3n,) of the whitened reading ``y`` (3n; the heading nuisance taken out) and
         ``y_plain`` (3n,; the same reading without): each block's by the core fitted on the others (with the
-        nuisance). The first has the nuisance fitted on the block itself taken out too (what the test reads);
-        the second is truly held out, nothing fitted on the block (the headline)."""
+        nuisance). The first has the nuisance fitted on the block itself taken out too (what the test reads;
+        None unless ``tested``, where there is a nuisance); the second is truly held out, nothing fitted on the
+        block (the headline)."""
         fit, plain = self.fit, self.plain
         held = HeldOut(y, self.edges)
         for a, b in fit.chunks:
             held.add(fit.rows(a, b), a, b)
         beta = held.coefficients()
-        tested = np.empty_like(y)  # filled a chunk at a time: no list of the chunks' residuals beside it
-        for a, b in fit.chunks:
-            tested[3 * a : 3 * b] = held.residual(fit.rows(a, b), a, b, beta)
+        if tested or plain is fit:
+            tested = np.empty_like(y)  # filled a chunk at a time: no list of the chunks' residuals beside it
+            for a, b in fit.chunks:
+                tested[3 * a : 3 * b] = held.residual(fit.rows(a, b), a, b, beta)
+        else:
+            tested = None
         if plain is fit:
             return tested, tested
         truly = np.empty_like(y_plain)
@@ -292,8 +297,10 @@ class _Comparison:
         y, y_plain = self.fit.y.copy(), self.plain.y.copy()
         for contribution in contributions:
             g, g_plain = self.whitened(contribution)
-            y, y_plain = y + g, y_plain + g_plain
-        return self.held_out(y, y_plain)[1], self.in_sample(y)
+            y += g
+            y_plain += g_plain
+            del g, g_plain  # in place, each let go: vectors of three values an epoch
+        return self.held_out(y, y_plain, tested=False)[1], self.in_sample(y)
 
     def check(self, label: str, contribution: np.ndarray, alpha: float) -> EffectCheck:
         """The paired held-out comparison of one effect whose contribution (n, 3) nT is held (module's docstring)."""

@@ -1,13 +1,13 @@
 """A set of a log's epochs prepared a chunk at a time when read, rather than held prepared.
 
 ``prepare`` gives every epoch's arrays at once: about 180 bytes an epoch (the attitude, from which its matrices are
-made when read, the field in two frames, its rate and acceleration, the heading axis). A diagnosis reads its epochs a chunk at a time on each pass,
-so ``PreparedRows`` holds only where its epochs are in the log and their times (16 bytes an epoch of the set) and the
-log's reference field (24 bytes an epoch of the log), and makes a chunk's arrays again from the log when they are
-read (``Chunk``): the log's own columns read at the epochs, the others by ``prepare``'s rules
-(``prepare.body_arrays``, ``prepare.field_rates``) on the log's rows around the epochs with ``MARGIN`` rows either
-side, so that the rates by central differences are the whole log's to the last bit. A set small enough
-(``HELD_BYTES``) is made once and held.
+made when read, the field in two frames, its rate and acceleration, the heading axis). A diagnosis reads its epochs
+a chunk at a time on each pass, so ``PreparedRows`` holds only where its epochs are in the log and their times (16
+bytes an epoch of the set) and the log's reference field (24 bytes an epoch of the log), and makes a chunk's arrays
+again from the log when they are read (``Chunk``): the log's own columns read at the epochs, the others by
+``prepare``'s rules (``prepare.body_arrays``, ``prepare.field_rates``) on the log's rows around the epochs with
+``MARGIN`` rows either side, so that the rates by central differences are the whole log's to the last bit. A set
+small enough (``HELD_BYTES``) is made once and held.
 
 ``LazyEpochData`` is the ``EpochData`` of such a set: its per-epoch arrays are ``ChunkedArray`` s, which give the
 chunk's values for a slice of consecutive epochs (``a[i:j]``, what the effects read with ``rows``) and the whole
