@@ -222,8 +222,9 @@ class AttitudeMatrices(np.lib.mixins.NDArrayOperatorsMixin):
 
 def epochs_of(values, index):
     """``values[index]``, the epochs ``index`` of a per-epoch array; of ``AttitudeMatrices``, still made when read
-    (``AttitudeMatrices.take``)."""
-    return values.take(index) if isinstance(values, AttitudeMatrices) else values[index]
+    (``AttitudeMatrices.take``), except one epoch's matrix (an integer ``index``), made."""
+    lazy = isinstance(values, AttitudeMatrices) and not isinstance(index, (int, np.integer))
+    return values.take(index) if lazy else values[index]
 
 
 def dcm_to_euler(c_nb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -69,14 +69,17 @@ class EpochData:
     def __len__(self) -> int:
         return len(self.time)
 
-    def take(self, index) -> EpochData:
+    def take(self, index, lazy: bool = False) -> EpochData:
         """The same data at the epochs ``index`` (an integer array, a slice or a boolean mask; None: all, this
-        data itself)."""
+        data itself). Attitude matrices made when read (``conventions.AttitudeMatrices``) are made here for these
+        epochs (a block's or a chunk's, which its users read several times), or with ``lazy`` stay so."""
         if index is None:
             return self
 
         def cut(a):
-            return None if a is None else epochs_of(a, index)
+            if a is None:
+                return None
+            return epochs_of(a, index) if lazy else a[index]
 
         return EpochData(
             self.time[index],

@@ -83,7 +83,7 @@ class PreparedLog:
         return self.data.time
 
     def take(self, index) -> PreparedLog:
-        """The same arrays at the epochs ``index`` (a slice gives views)."""
+        """The same arrays at the epochs ``index`` (a slice gives views; attitude matrices made when read stay so)."""
         return PreparedLog(
             self.m[index],
             self.ref[index],
@@ -92,7 +92,7 @@ class PreparedLog:
             self.has_attitude[index],
             self.dop[index],
             self.base[index],
-            self.data.take(index),
+            self.data.take(index, lazy=True),
             None if self.heading is None else self.heading[index],
         )
 
@@ -102,7 +102,8 @@ class PreparedLog:
         calibration ``R`` (3, 3), computed for these epochs only (a long log is never held whole in them);
         ``with_data`` keeps the epochs' ``EpochData`` (for nonlinear effects). Needs the heading axis (a
         ``PreparedLog`` whose ``heading`` was let go cannot make blocks)."""
-        data = self.data.take(index)
+        # the matrices made once for the block where the model or the effects read them
+        data = self.data.take(index, lazy=not (with_data or layout.has_extra))
         heading = self.heading[index]
         structure = model.structure(np.nan_to_num(data.field_body), R, heading)
         G, Gh, RRt, frame = structure if structure is not None else (None, None, None, None)

@@ -97,7 +97,23 @@ def test_a_prepared_log_holds_its_attitude_not_its_matrices():
     np.testing.assert_array_equal(lean.data.field_body, prep.data.field_body)
     joined = prep_module.concat_prepared([prep.take(slice(0, 1000)), prep.take(slice(1000, None))])
     assert isinstance(joined.c_nb, conventions.AttitudeMatrices)
+    assert isinstance(joined.data.c_nb, conventions.AttitudeMatrices)
     np.testing.assert_array_equal(np.asarray(joined.c_nb), c_nb)
+    assert prep.take(5).c_nb.shape == (3, 3)  # one epoch's matrix, made
+    # a block's matrices are made once where the model reads its data (a plug-in model may read them per sigma
+    # point) or the effects do; the core alone does not read them
+    from magkf.online.estimator import run_model
+    from magkf.online.state import StateLayout
+
+    layout = StateLayout.with_core()
+    x0 = layout.prior()[0]
+    x0[:9] = np.eye(3).ravel()
+    model = run_model(config, layout, x0)
+    block = prep.block(slice(100, 150), layout, model, np.eye(3), with_data=True)
+    assert type(block.data.c_nb) is np.ndarray
+    np.testing.assert_array_equal(block.data.c_nb, c_nb[100:150])
+    assert isinstance(prep.data.take(slice(100, 150), lazy=True).c_nb, conventions.AttitudeMatrices)
+    assert type(prep.data.take(slice(100, 150)).c_nb) is np.ndarray
     del prep, joined, c_nb, field_body, heading, lean
 
     n = len(log.table)
