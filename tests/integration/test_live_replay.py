@@ -63,8 +63,8 @@ def flight(tmp_path_factory):
 
 def live_run(flight, name: str, *replay_options, live_options=(), stop_after_s=None):
     """``live`` fed by ``replay`` at 20 times real time, stopped by SIGINT once the replay has ended (or after
-    ``stop_after_s`` of wall time, SIGKILL: a session that dies; with ``--duration`` among ``live_options``, by
-    itself while the replay still answers); returns (live's process, replay's, the output
+    ``stop_after_s`` of wall time and its first checkpoint, SIGKILL: a session that dies; with ``--duration`` among
+    ``live_options``, by itself while the replay still answers); returns (live's process, replay's, the output
     folder). The replay listens and starts once live has spoken (as SITL does), so no packet goes before live
     listens."""
     out = flight["folder"] / name
@@ -78,6 +78,11 @@ def live_run(flight, name: str, *replay_options, live_options=(), stop_after_s=N
     try:
         if stop_after_s is not None:
             time.sleep(stop_after_s)
+            # and not before its first checkpoint: on a loaded machine the session's start (imports, the link)
+            # can take longer than the wait, and a session killed before it has one has nothing to resume
+            deadline = time.monotonic() + TIMEOUT_S
+            while not (out / "s.live").exists() and live.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.1)
             live.kill()
             live.communicate(timeout=TIMEOUT_S)
             return live, replay, out
