@@ -14,7 +14,7 @@ from __future__ import annotations
 import signal
 from contextlib import contextmanager
 
-__all__ = ["Interrupted", "SIGNALS", "stop_on_signals", "restore", "held", "exit_status"]
+__all__ = ["Interrupted", "SIGNALS", "stop_on_signals", "restore", "held", "stopping", "exit_status"]
 
 #: The signals that stop a command cleanly (those the platform has).
 SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
@@ -31,13 +31,14 @@ class Interrupted(KeyboardInterrupt):
 _holding = 0  # depth of held() blocks
 _pending: int | None = None  # a signal that arrived within held()
 _stopping = False  # an Interrupted has been raised
+_stopped_by: int | None = None  # the signal it was raised for
 _ignored = 0  # signals ignored while stopping
 #: The signal, counting the first, that stops a command even while it is stopping (the third Ctrl-C).
 FORCE = 3
 
 
 def _handler(signum, frame) -> None:
-    global _pending, _stopping, _ignored
+    global _pending, _stopping, _ignored, _stopped_by
     if _stopping:
         _ignored += 1
         if _ignored + 1 >= FORCE:
@@ -47,15 +48,15 @@ def _handler(signum, frame) -> None:
     if _holding:
         _pending = _pending or signum
         return
-    _stopping = True
+    _stopping, _stopped_by = True, signum
     raise Interrupted(signum)
 
 
 def stop_on_signals() -> dict:
     """Make SIGINT, SIGTERM and SIGHUP raise ``Interrupted`` (call from the main thread); returns the
     handlers they had, for ``restore``."""
-    global _pending, _stopping, _ignored
-    _pending, _stopping, _ignored = None, False, 0
+    global _pending, _stopping, _ignored, _stopped_by
+    _pending, _stopping, _ignored, _stopped_by = None, False, 0, None
     return {signum: signal.signal(signum, _handler) for signum in SIGNALS}
 
 
@@ -69,7 +70,7 @@ def restore(handlers: dict) -> None:
 def held():
     """Within the block, a stopping signal waits: ``Interrupted`` is raised when the block ends (unless the
     command is stopping already). Blocks may nest."""
-    global _holding, _pending, _stopping
+    global _holding, _pending, _stopping, _stopped_by
     _holding += 1
     try:
         yield
@@ -77,8 +78,15 @@ def held():
         _holding -= 1
     if not _holding and _pending is not None and not _stopping:
         signum, _pending = _pending, None
-        _stopping = True
+        _stopping, _stopped_by = True, signum
         raise Interrupted(signum)
+
+
+def stopping() -> Interrupted | None:
+    """The stop under way (an ``Interrupted`` of the signal that began it), or None. An error that the stop's
+    unwinding raised in place of ``Interrupted`` is the stop's: a signal that arrives while an extension module
+    initialises (a command's imports) comes out of the import as ``ImportError: initialization failed``."""
+    return Interrupted(_stopped_by) if _stopping and _stopped_by is not None else None
 
 
 def exit_status(exc: KeyboardInterrupt) -> int:

@@ -199,6 +199,10 @@ def _run(args, pending: list) -> int:
     except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM, SIGHUP: the outputs' temporaries are removed
         return _interrupted(exc)
     except Exception as exc:  # a defect of magkf: one line, the traceback on request
+        from ..interruption import stopping
+
+        if stopping() is not None:  # raised in place of the stop's Interrupted (``interruption.stopping``)
+            return _interrupted(stopping())
         if args.debug:
             raise
         print(

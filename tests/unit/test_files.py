@@ -230,3 +230,42 @@ def test_the_third_signal_stops_even_a_stopping_command(signals):
     with pytest.raises(interruption.Interrupted) as err:
         signal.raise_signal(signal.SIGTERM)
     assert err.value.signum == signal.SIGTERM
+
+
+def test_an_error_raised_in_place_of_the_stop_is_the_stop(monkeypatch, capsys):
+    """A SIGTERM that arrives while an extension module initialises comes out of the import as ``ImportError:
+    initialization failed``: the command still stops as interrupted (128 + 15, "interrupted (SIGTERM)"), not with an
+    internal error; an error with no stop under way is one."""
+    from magkf import cli
+
+    def imports_when_stopped(args):
+        try:
+            signal.raise_signal(signal.SIGTERM)
+        except interruption.Interrupted:
+            raise ImportError("initialization failed") from None
+
+    def imports_badly(args):
+        raise ImportError("initialization failed")
+
+    parser = cli.build_parser()
+    for func, status, words in (
+        (imports_when_stopped, 128 + signal.SIGTERM, "magkf: interrupted (SIGTERM)"),
+        (imports_badly, 1, "magkf: internal error: ImportError"),
+    ):
+        monkeypatch.setattr(cli, "build_parser", lambda func=func: _with_func(parser, func))
+        assert cli.main(["check", "x.csv"]) == status
+        assert words in capsys.readouterr().err
+    assert interruption.stopping() is None  # main puts the handlers back; the next stop_on_signals starts afresh
+
+
+def _with_func(parser, func):
+    """``parser`` whose parsed arguments run ``func``."""
+    parse = parser.parse_args
+
+    def parse_args(argv):
+        args = parse(argv)
+        args.func = func
+        return args
+
+    parser.parse_args = parse_args
+    return parser
