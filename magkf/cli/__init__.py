@@ -201,8 +201,9 @@ def _run(args, pending: list) -> int:
     except Exception as exc:  # a defect of magkf: one line, the traceback on request
         from ..interruption import stopping
 
-        if stopping() is not None:  # raised in place of the stop's Interrupted (``interruption.stopping``)
-            return _interrupted(stopping())
+        stop = stopping()
+        if stop is not None:  # raised in place of the stop's Interrupted (``interruption.stopping``)
+            return _interrupted(stop)
         if args.debug:
             raise
         print(

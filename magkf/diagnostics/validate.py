@@ -260,20 +260,19 @@ class _Comparison:
         for a, b in fit.chunks:
             held.add(fit.rows(a, b), a, b)
         beta = held.coefficients()
+        residual = None
         if tested or plain is fit:
-            tested = np.empty_like(y)  # filled a chunk at a time: no list of the chunks' residuals beside it
+            residual = np.empty_like(y)  # filled a chunk at a time: no list of the chunks' residuals beside it
             for a, b in fit.chunks:
-                tested[3 * a : 3 * b] = held.residual(fit.rows(a, b), a, b, beta)
-        else:
-            tested = None
+                residual[3 * a : 3 * b] = held.residual(fit.rows(a, b), a, b, beta)
         if plain is fit:
-            return tested, tested
+            return residual, residual
         truly = np.empty_like(y_plain)
         for a, b in plain.chunks:
             X = plain.rows(a, b)
             for f, rows, sl in held.pieces(a, b):
                 truly[sl] = y_plain[sl] - X[rows] @ beta[f]
-        return tested, truly
+        return residual, truly
 
     def in_sample(self, y: np.ndarray) -> np.ndarray:
         """The residual (3n,) of ``y`` (3n,) with the core (and the heading nuisance) fitted on all epochs (in the

@@ -203,7 +203,7 @@ def prepare_arrays(
     """
     has_att = np.all(np.isfinite(attitude), axis=1)
     c_nb = AttitudeMatrices(attitude)
-    field_body, heading = body_fields(c_nb, ref)
+    field_body, heading = body_fields(attitude, ref)
     base = epoch_status(m, ref, has_att, dop, config.dop_max)
     ref_mag = np.linalg.norm(ref, axis=1)
     if not rates:
@@ -239,17 +239,14 @@ def body_arrays(attitude: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.n
     return c_nb, ned_to_body(c_nb, ref), np.nan_to_num(heading_axis(c_nb, ref))
 
 
-def body_fields(c_nb, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(field_body, heading)`` (N, 3) nT each, as ``body_arrays`` gives them, of attitude matrices ``c_nb`` (an
-    ``AttitudeMatrices``, read ``CHUNK`` epochs at a time) and reference field ``ref`` (N, 3) NED nT: the working
-    arrays are a chunk's, not the log's."""
+def body_fields(attitude: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(field_body, heading)`` (N, 3) nT each of ``body_arrays``, made ``CHUNK`` epochs at a time: the attitude
+    matrices and the working arrays are a chunk's, not the log's."""
     n = len(ref)
     field_body, heading = np.empty((n, 3)), np.empty((n, 3))
     for a in range(0, n, CHUNK):
         at = slice(a, a + CHUNK)
-        matrices = c_nb[at]
-        field_body[at] = ned_to_body(matrices, ref[at])
-        heading[at] = np.nan_to_num(heading_axis(matrices, ref[at]))
+        _, field_body[at], heading[at] = body_arrays(attitude[at], ref[at])
     return field_body, heading
 
 
