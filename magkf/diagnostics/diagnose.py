@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..allocator import release_free_memory
 from ..blas import one_thread
 from ..calibration import Calibration
 from ..config import FilterConfig
@@ -295,12 +296,19 @@ def diagnose(
     say = progress or (lambda text: None)
     if not 0.0 < alpha < 1.0:
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
+    # Between the stages, what each left free in the heap is given back (``release_free_memory``): the run's and
+    # the tests' chunks would otherwise stay resident under the next stage's peak.
+    release_free_memory()  # a run given, made just before
     run, layout, x, problem, channels = _diagnosed(log, config, cal, list(effects), run, wander_s, say)
+    release_free_memory()
     present = {e.label for e in layout.extra()}
     pool = _pool(candidates, problem, present)
     problem = _without_outliers(problem, layout, x, pool, log)
+    release_free_memory()
     tests = _tested(problem, layout, x, pool, alpha, say)
+    release_free_memory()
     residuals = _model_residuals(problem, layout, x, run)  # made after the tests: not held while they run
+    release_free_memory()
     from ..effects import untried_columns
 
     untried = untried_columns(channels) if candidates is None else []
@@ -476,8 +484,10 @@ def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float,
     dt = float(np.median(np.diff(problem.data.time))) if n > 1 else 1.0
     say(f"fitting the model to {n} epochs")
     null = problem.fit(layout, x)  # the model at its own best fit over the log
-    tau = integrated_time(null.r.reshape(n, 3))
-    edges = fold_edges(n, integrated_time(high_passed(null.r.reshape(n, 3))))
+    r = null.r.reshape(n, 3)
+    tau = integrated_time(r)
+    edges = fold_edges(n, integrated_time(high_passed(r)))
+    del r
     baseline = _held_out_nt(null, edges)
     selection = _Selection(problem, pool, edges, dt, alpha, say)
     results = selection.run(null, baseline)
@@ -712,7 +722,7 @@ def _constancy_scores(effect, null: Linearised) -> np.ndarray:
             np.einsum(
                 "nik,ni->nk",
                 null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b).reshape(b - a, 3, -1),
-                null.r[3 * a : 3 * b].reshape(b - a, 3),
+                null.r_of(a, b).reshape(b - a, 3),
             )
             for a, b in null.chunks
         ]
@@ -915,34 +925,47 @@ class _Selection:
 
 
 # ---------------------------------------------------------------- residual against signals
-def signal_values(data) -> dict:
-    """Candidate explanatory signals (N,) at the used epochs: name -> values (the attitude's read a chunk at a
-    time)."""
+def signal_values(data):
+    """Candidate explanatory signals (N,) at the used epochs, ``(name, values)`` made one after another (the
+    attitude's angles together, from its matrices read a chunk at a time): not all held at once."""
     t = data.time
     n = len(t)
-    yaw, pitch, roll, field_rate = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    yaw, pitch, roll = np.empty(n), np.empty(n), np.empty(n)
     for a in range(0, n, CHUNK):
         c = data.c_nb[a : a + CHUNK]
         yaw[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0
         pitch[a : a + CHUNK] = np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1)))
         roll[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))
-        field_rate[a : a + CHUNK] = np.linalg.norm(data.field_body_rate[a : a + CHUNK], axis=1)
-    out = {"heading_deg": yaw, "roll_deg": roll, "pitch_deg": pitch, "time_s": t - t[0]}
+    yield "heading_deg", yaw
+    yield "roll_deg", roll
+    del roll
+    yield "pitch_deg", pitch
+    del pitch
+    yield "time_s", t - t[0]
     if len(t) > 2:
-        out["yaw_rate_dps"] = np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi
-    out["field_rate_nt_s"] = field_rate
+        yield "yaw_rate_dps", np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi
+    del yaw
+    field_rate = np.empty(n)
+    for a in range(0, n, CHUNK):
+        field_rate[a : a + CHUNK] = np.linalg.norm(data.field_body_rate[a : a + CHUNK], axis=1)
+    yield "field_rate_nt_s", field_rate
+    del field_rate
     for name, values in data.columns.items():
-        out[name] = np.asarray(values)
-    return out
+        yield name, np.asarray(values)
 
 
 def _bins(name: str, v: np.ndarray) -> np.ndarray:
+    """The bin (N,) int of each value of the signal ``name`` (``v`` (N,), finite): ``BINS`` equal sectors of
+    the heading, else ``BINS`` bins between the signal's quantiles (fewer where they coincide); made in place."""
     if name == "heading_deg":
-        return np.floor(v / (360.0 / BINS)).astype(int) % BINS
+        out = np.floor(v / (360.0 / BINS)).astype(int)
+        return np.remainder(out, BINS, out=out)
     edges = np.unique(np.nanquantile(v, np.linspace(0, 1, BINS + 1)))
     if len(edges) < 3:
         return np.zeros(len(v), int)
-    return np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 2)
+    out = np.searchsorted(edges, v, side="right")
+    out -= 1
+    return np.clip(out, 0, len(edges) - 2, out=out)
 
 
 def _signals(data, ned, mag, alpha, tau: float = 1.0):
@@ -951,30 +974,41 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
     The residual is correlated over ``tau`` epochs (its integrated autocorrelation time), so each bin's
     mean varies about ``tau`` times more than independent epochs would make it: the F statistic is divided
     by ``tau`` and the denominator's degrees of freedom are those of ``n / tau`` independent epochs, and the
-    95 % band of each binned mean is widened by ``sqrt(tau)``."""
+    95 % band of each binned mean is widened by ``sqrt(tau)``. The signals are made one at a time, and the
+    epochs a signal bins are picked from the residuals only where some are left out (not finite, or alone in
+    their bin)."""
     components = {"north": ned[:, 0], "east": ned[:, 1], "down": ned[:, 2], "magnitude": mag}
-    values = signal_values(data)
-    tests = len(values) * len(components)
-    out, binned = [], {}
-    for name, v in values.items():
+    out, binned, tests = [], {}, 0
+    for name, v in signal_values(data):
+        tests += len(components)
         ok = np.isfinite(v)
         if ok.sum() < 2 * BINS:
             continue
-        b = _bins(name, v[ok])
+        picked = None if ok.all() else np.flatnonzero(ok)
+        v = v if picked is None else v[picked]
+        b = _bins(name, v)
         best = None
         binned[name] = {}
         counts = np.bincount(b)
         keys = np.flatnonzero(counts > 1)  # bins of more than one epoch
         inside = counts[b] > 1
-        group, sizes, k = np.searchsorted(keys, b[inside]), counts[keys], len(keys)
-        centres = np.bincount(group, v[ok][inside], minlength=k) / sizes
+        if not inside.all():
+            picked = np.flatnonzero(inside) if picked is None else picked[inside]
+            v, b = v[inside], b[inside]
+        del inside
+        group = b if len(keys) == len(counts) else np.searchsorted(keys, b)  # every bin kept: its index
+        sizes, k = counts[keys], len(keys)
+        centres = np.bincount(group, v, minlength=k) / sizes
         for comp, r in components.items():
             if k < 2:
                 continue
-            x = r[ok][inside]
+            x = np.ascontiguousarray(r) if picked is None else r[picked]
             # one-way analysis of variance from the bins' sums (as scipy.stats.f_oneway)
             means = np.bincount(group, x, minlength=k) / sizes
-            within = np.bincount(group, (x - means[group]) ** 2, minlength=k)
+            spread = x - means[group]
+            spread *= spread
+            within = np.bincount(group, spread, minlength=k)
+            del spread
             total = len(x)
             between = float(np.sum(sizes * (means - x.mean()) ** 2))
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -992,9 +1026,11 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
                     "component": best[0],
                     "p_value": best[1],
                     "binned_range_nt": best[2],
-                    "significant": best[1] < alpha / tests,
+                    "significant": None,  # once every signal's tests are counted
                 }
             )
+    for entry in out:
+        entry["significant"] = entry["p_value"] < alpha / tests
     out.sort(key=lambda s: s["p_value"])
     return out, binned
 

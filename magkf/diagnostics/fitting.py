@@ -176,8 +176,9 @@ class Linearised:
     (``EpochSet.at`` keeps none: ``rows`` makes all p of them again a chunk at a time, so that nothing of three
     rows an epoch and p columns is held) and ``span`` (p, k) the coefficients of an orthonormal basis
     ``A @ span`` of the directions the data determine (``A`` the whitened Jacobian); ``y`` (3n,) the whitened
-    reading and ``r`` (3n,) what that basis leaves of it; ``x_fit`` the least-squares estimate (kept at ``x``
-    in directions the data do not determine). ``cache`` keeps the rows made, a chunk at a time (``ChunkCache``):
+    reading and ``coef`` (p,) the coefficients of its projection on that basis, whose residual ``r`` (3n,) is made
+    when asked (``r``, ``r_of``) rather than held; ``x_fit`` the least-squares estimate (kept at ``x`` in
+    directions the data do not determine). ``cache`` keeps the rows made, a chunk at a time (``ChunkCache``):
     a short set's within ``determined.CACHE_BYTES``, made once; a longer set's (``determined.CACHED_EPOCHS``)
     made again at each pass."""
 
@@ -188,10 +189,19 @@ class Linearised:
     kept: np.ndarray
     span: np.ndarray
     y: np.ndarray
-    r: np.ndarray
+    coef: np.ndarray
     x_fit: np.ndarray
     wander: HeadingWander | None = None
     cache: ChunkCache = field(default_factory=lambda: ChunkCache(None), compare=False, repr=False)
+
+    @property
+    def r(self) -> np.ndarray:
+        """(3n,) what the basis of the determined directions leaves of ``y``: made a chunk at a time when asked."""
+        return self.residual(self.coef)
+
+    def r_of(self, start: int, stop: int) -> np.ndarray:
+        """``r`` of the epochs ``start`` to ``stop`` (the edges of ``chunks``) (3 (stop - start),)."""
+        return self.y[3 * start : 3 * stop] - self.rows(start, stop) @ self.coef
 
     def unwhitened(self, residual_w: np.ndarray, start: int | None = None, stop: int | None = None) -> np.ndarray:
         """Whitened residuals (m, 3) of the epochs ``start`` to ``stop`` (default: all, a chunk at a time) taken
@@ -342,9 +352,8 @@ class EpochSet:
         rank = determined(sv)
         span = spread[:, None] * (vt[:rank].T / sv[:rank])  # A @ span: orthonormal
         along = span.T @ moment
-        r = fitted.residual(span @ along)
         step = spread * (vt[:rank].T @ ((along - span.T @ (gram @ x)) / sv[:rank]))
-        return replace(fitted, span=span, r=r, x_fit=x + step)
+        return replace(fitted, span=span, coef=span @ along, x_fit=x + step)
 
     def fit(self, layout: StateLayout, x, keep: int = 0) -> Linearised:
         """``at`` iterated until the estimate stops moving: the model at its own best fit (``keep`` as ``at``)."""

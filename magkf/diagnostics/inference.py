@@ -36,7 +36,6 @@ J. Policy Modeling 14 (1992) 517-533.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 from scipy import fft, special
@@ -111,8 +110,10 @@ def integrated_time(x: np.ndarray) -> float:
     if n < 8:
         return 1.0
     out = 1.0
-    for column in x.T:
-        column = column - column.mean()
+    for k in range(x.shape[1]):
+        padded = np.zeros(fft.next_fast_len(2 * n))  # the column centred, zero-padded for the FFT (no lag wraps)
+        column = padded[:n]
+        np.subtract(x[:, k], x[:, k].mean(), out=column)
         variance = column @ column
         if not variance > 0:
             continue
@@ -120,9 +121,21 @@ def integrated_time(x: np.ndarray) -> float:
         acf = np.array([variance] + [column[:-lag] @ column[lag:] for lag in range(1, short + 1)])
         tau = _sokal(acf, more=short < n - 1)
         if tau is None:  # the window lies further out
-            tau = _sokal(fft.irfft(np.abs(fft.rfft(column, n=fft.next_fast_len(2 * n))) ** 2)[:n])
+            del column
+            tau = _sokal(_autocovariance(padded, n))
         out = max(out, tau)
     return out
+
+
+def _autocovariance(padded: np.ndarray, n: int) -> np.ndarray:
+    """The sums ``sum_j x_j x_(j+l)`` (n,) at every lag ``l`` of a series ``x`` (n,) given zero-padded to at least
+    2n points (``padded``, let go here: at most two arrays of its length are held at once)."""
+    size = len(padded)
+    power = fft.rfft(padded)
+    padded.resize(0, refcheck=False)
+    power = np.abs(power)
+    power *= power
+    return fft.irfft(power, n=size)[:n]
 
 
 def _sokal(acf: np.ndarray, more: bool = False) -> float | None:
@@ -148,20 +161,31 @@ def _turn(r: np.ndarray, n: int, sign: float) -> np.ndarray:
     return np.exp((sign * 1j) * _angle(r, n))
 
 
-@lru_cache(maxsize=2)
-def _chirps(n: int, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """``dct_head``'s chirps for n points and FFTs of ``size``: ``exp(-i pi j^2 / (2n))`` (n,) that multiplies
-    the data, and the FFT (size,) of ``exp(+i pi d^2 / (2n))`` laid on a circle of ``size`` points that they
-    are convolved with, ``d = p`` at the first ``h = (size - n + 2) // 2`` positions ``p`` and ``p - size`` after
-    them: every lag ``d = k - j`` (``j < n``, ``|k| < m``) has its own position when ``size >= n + 2m - 2``.
-    Kept for the next columns and candidates, which have the same n (read-only)."""
-    j = np.arange(n, dtype=np.int64)
-    down = _turn(j * j, n, -1.0)
-    p = np.arange(size, dtype=np.int64)
-    d = np.where(p < (size - n + 2) // 2, p, p - size)
-    spectrum = fft.fft(_turn(d * d, n, 1.0))
-    down.flags.writeable = spectrum.flags.writeable = False
-    return down, spectrum
+#: Points of ``dct_head``'s chirp made at a time: it is made again for each pair of columns, into the transform's
+#: own buffer, rather than held (16 bytes a point).
+CHIRP_PIECE = 65536
+
+
+def _chirp_into(out: np.ndarray, n: int, sign: float, first: int = 0) -> None:
+    """``out[p] *= exp(sign i pi d^2 / (2n))`` with ``d = first + p`` at each position ``p`` of ``out``, made
+    ``CHIRP_PIECE`` points at a time."""
+    for a in range(0, len(out), CHIRP_PIECE):
+        j = np.arange(first + a, first + min(a + CHIRP_PIECE, len(out)), dtype=np.int64)
+        out[a : a + CHIRP_PIECE] *= _turn(j * j, n, sign)
+
+
+def _spectrum(n: int, size: int) -> np.ndarray:
+    """The FFT (size,) of ``exp(+i pi d^2 / (2n))`` laid on a circle of ``size`` points, that ``dct_head``'s
+    chirped data are convolved with: ``d = p`` at the first ``h = (size - n + 2) // 2`` positions ``p`` and
+    ``p - size`` after them, so that every lag ``d = k - j`` (``j < n``, ``|k| < m``) has its own position when
+    ``size >= n + 2m - 2``. Made for each transform (about two FFTs' time) rather than kept between them: a
+    diagnosis's largest test holds its scores and the autocorrelation's FFT at once, and a kept spectrum of the
+    hour (5.4 MB) would add to that peak."""
+    h = (size - n + 2) // 2
+    out = np.ones(size, complex)
+    _chirp_into(out[:h], n, 1.0)
+    _chirp_into(out[h:][::-1], n, 1.0, first=1)  # d = p - size: the chirp at -d = 1, 2, .. from the end back
+    return fft.fft(out, overwrite_x=True)
 
 
 def dct_head(x: np.ndarray, m: int) -> np.ndarray:
@@ -173,34 +197,37 @@ def dct_head(x: np.ndarray, m: int) -> np.ndarray:
     slower than at 360 000: ``y_k = 2 Re(exp(-i pi k / (2n)) X_k)`` with ``X_k = sum_j x_j exp(-i pi j k / n)``,
     made by Bluestein's chirp-z transform (``jk = (j^2 + k^2 - (k - j)^2) / 2`` turns the sum into a
     convolution) with FFTs of ``next_fast_len(n + 2m - 2)`` points, whose cost does not depend on n's factors.
-    Two columns go through one complex transform, ``z = x1 + i x2`` at ``k`` and ``-k``: ``X1_k = (Z_k +
-    conj Z_-k) / 2`` and ``X2_k = (Z_k - conj Z_-k) / 2i`` as the columns are real; each column scaled first by
-    a power of two near its norm (exactly), so that neither's rounding is the other's. The chirps' phases are
-    reduced in integers (``_turn``); the rounding error is that of FFTs of that length (seen: 1e-15 of the
-    largest coefficient, below 1e-12 of the data's 2-norm at a million points)."""
+    Two columns go through one complex transform, ``z = x1 + i x2`` at ``k`` and ``-k``: ``X1_k = (Z_k + conj
+    Z_-k) / 2`` and ``X2_k = (Z_k - conj Z_-k) / 2i`` as the columns are real; each column scaled first by a power
+    of two near its norm (exactly), so that neither's rounding is the other's. The chirps' phases are reduced in
+    integers (``_turn``); the rounding error is that of FFTs of that length (seen: 1e-15 of the largest
+    coefficient, below 1e-12 of the data's 2-norm at a million points). One complex buffer of the FFTs' length
+    is transformed in place, and the spectrum it is multiplied by (``_spectrum``) is of the same length: 32
+    bytes a point in all."""
     x = np.asarray(x, float).reshape(len(x), -1)
     n, k = x.shape
     m = min(int(m), n)
     if fft.next_fast_len(n, real=True) == n:
         return fft.dct(np.ascontiguousarray(x.T), type=2)[:, :m].T  # made along contiguous rows (faster)
     size = fft.next_fast_len(n + max(2 * m - 2, 0))
-    down, spectrum = _chirps(n, size)
+    spectrum = _spectrum(n, size)
     head = np.arange(m, dtype=np.int64)
     chirp, shift = _turn(head * head, n, -1.0), _turn(head, n, -1.0)  # Bluestein's chirp of X_k; exp(-i pi k / 2n)
-    norms = np.linalg.norm(x, axis=0)
+    norms = np.sqrt(np.einsum("ij,ij->j", x, x))  # (np.linalg.norm would square a copy of x)
     scale = np.exp2(np.round(np.log2(np.where(norms > 0, norms, 1.0))))
-    out, z = np.empty((m, k)), np.empty(n, complex)
-    for c in range(0, k, 2):  # two columns at a time, in place: two complex arrays of the FFTs' length held at once
-        np.divide(x[:, c], scale[c], out=z.real)
+    out, z = np.empty((m, k)), np.empty(size, complex)
+    for c in range(0, k, 2):  # two columns at a time, in place in one buffer
+        z[n:] = 0.0
+        np.divide(x[:, c], scale[c], out=z[:n].real)
         if c + 1 < k:
-            np.divide(x[:, c + 1], scale[c + 1], out=z.imag)
+            np.divide(x[:, c + 1], scale[c + 1], out=z[:n].imag)
         else:
-            z.imag = 0.0
-        z *= down
-        conv = fft.fft(z, n=size)
-        conv *= spectrum
-        conv = fft.ifft(conv, overwrite_x=True)
-        ahead, behind = chirp * conv[:m], np.conj(chirp * conv[-head % size])  # Z_k, conj Z_-k
+            z[:n].imag = 0.0
+        _chirp_into(z[:n], n, -1.0)
+        z = fft.fft(z, overwrite_x=True)  # in place (scipy transforms a complex array in place when let)
+        z *= spectrum
+        z = fft.ifft(z, overwrite_x=True)
+        ahead, behind = chirp * z[:m], np.conj(chirp * z[-head % size])  # Z_k, conj Z_-k
         out[:, c] = scale[c] * (shift * (ahead + behind)).real
         if c + 1 < k:
             out[:, c + 1] = scale[c + 1] * (shift * (ahead - behind)).imag

@@ -33,6 +33,7 @@ __all__ = [
     "WHITENING_CACHE_BYTES",
     "ChunkCache",
     "ChunkWhitening",
+    "WhitenedHeading",
     "wander_chunks",
     "model_jacobian",
     "whitening",
@@ -44,8 +45,10 @@ __all__ = [
 #: Stretches (s) over which the logged heading's error is let be a straight line in time (``HeadingWander``).
 WANDER_BLOCK_S = 10.0
 #: Epochs per chunk of a pass over a set of epochs (cut where a stretch of the heading wander starts): whitened
-#: rows are made and reduced a chunk at a time, never held for the whole log.
-CHUNK = 8192
+#: rows are made and reduced a chunk at a time, never held for the whole log. A chunk's arrays are a few MB (three
+#: rows an epoch, up to about 50 columns with a slow drift's); 4 096 rather than 8 192 took a 1-hour 100 Hz
+#: diagnosis's peak 8 MB lower, in the same time.
+CHUNK = 4096
 #: A direction of the parameters counts as determined by the data when its standard error (noise as whitened)
 #: is below this share of its prior spread: the data then say more about it than the prior does.
 DETERMINED = 1.0
@@ -65,9 +68,10 @@ CACHE_BYTES = 128 * 2**20
 #: for a third of its time.
 CACHED_EPOCHS = 2**17
 #: Bytes of whitenings' chunks (``ChunkWhitening``: 72 bytes an epoch) that may be kept, over all of a process,
-#: whatever the set's length: a 1-hour 100 Hz diagnosis reads its 43 chunks' whitenings 3 139 times, at a few
-#: models; 32 MB, a whole whitening of the hour, took the chunks made again from 1 247 to 767.
-WHITENING_CACHE_BYTES = 32 * 2**20
+#: whatever the set's length. A 1-hour 100 Hz diagnosis reads its chunks' whitenings thousands of times, at a few
+#: models; 8 MB keeps a quarter of the hour's, and took its peak 20 MB lower than 32 MB (a whole whitening of the
+#: hour) in the same time (``scripts/bench_floor.py``).
+WHITENING_CACHE_BYTES = 8 * 2**20
 
 
 class _Budget:
@@ -148,10 +152,12 @@ class HeadingWander:
     What is lost: the part of an effect that looks like a heading change within a stretch, notably a
     constant field anomaly across the horizontal field (the same thing as a heading offset).
 
-    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch; ``time`` (n,) s, increasing, not changed while
-    the wander is used. Held: ``Z`` and the stretch's index (28 bytes an epoch), and ``time`` (the array given when
-    it is of float64, as the set's times are; a float64 copy otherwise); the two regressors of each stretch, ``Z``
-    and ``Z`` times the time within the stretch, are made for the rows asked (``regressors``).
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch: an array, or made for the epochs asked (an
+    object read a slice of consecutive epochs at a time, ``Z[a:b]``, such as ``WhitenedHeading``); ``time`` (n,) s,
+    increasing, not changed while the wander is used. Held: the stretch's index (4 bytes an epoch), ``Z`` as given,
+    and ``time`` (the array given when it is of float64, as the set's times are; a float64 copy otherwise); the two
+    regressors of each stretch, ``Z`` and ``Z`` times the time within the stretch, are made for the rows asked
+    (``regressors``).
     """
 
     def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):
@@ -161,7 +167,7 @@ class HeadingWander:
         # index of each epoch's stretch (int32: a stretch a second, 68 years of them)
         self.block = np.cumsum(np.r_[False, np.diff(block) != 0], dtype=np.int32)
         self.centre = np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)])  # (stretches,) s
-        self.Z, self.time, self.block_s = np.asarray(Z, float), t, block_s
+        self.Z, self.time, self.block_s = Z if isinstance(Z, WhitenedHeading) else np.asarray(Z, float), t, block_s
         normal = np.zeros((len(self.starts), 2, 2))
         for a, b in wander_chunks(len(t), None):  # whole stretches summed over consecutive chunks
             Zab = self.regressors(a, b)
@@ -217,6 +223,23 @@ class ChunkWhitening:
         return self._cache.get((a, b), lambda: self.model.whitening(self.field_body[a:b], self.R, self.heading[a:b]))
 
 
+class WhitenedHeading:
+    """The whitened heading direction ``W R h`` (n, 3) of a set's epochs (``HeadingWander``'s ``Z``), made for the
+    epochs asked (``Z[a:b]``, a slice of consecutive epochs) from the whitening ``W`` (a ``ChunkWhitening``, whose
+    chunk a pass has just made for its rows) and the heading axes ``heading`` (n, 3) at calibration ``R`` (3, 3),
+    rather than held (24 bytes an epoch)."""
+
+    def __init__(self, W: ChunkWhitening, heading, R: np.ndarray):
+        self.W, self.heading, self.R = W, heading, R
+
+    def __len__(self) -> int:
+        return len(self.W)
+
+    def __getitem__(self, index: slice) -> np.ndarray:
+        a, b, _ = index.indices(len(self))
+        return np.einsum("nij,nj->ni", self.W[a:b], self.heading[a:b] @ self.R.T)
+
+
 def wander_chunks(n: int, wander: HeadingWander | None) -> list:
     """``(start, stop)`` of the chunks of ``CHUNK`` epochs of ``n``, cut at the ``wander``'s stretches."""
     edges = wander.cuts(CHUNK) if wander is not None else np.unique(np.r_[np.arange(0, n, CHUNK), n])
@@ -253,11 +276,7 @@ def whitening(data, heading, config, noise, wander_s, layout: StateLayout, x):
     if noise is not None:
         model.set_noise(noise)
     W = ChunkWhitening(model, data.field_body, R, heading)
-    wander = None
-    if wander_s:
-        chunks = wander_chunks(len(W), None)
-        Z = np.concatenate([np.einsum("nij,nj->ni", W[a:b], heading[a:b] @ R.T) for a, b in chunks])
-        wander = HeadingWander(Z, data.time, wander_s)
+    wander = HeadingWander(WhitenedHeading(W, heading, R), data.time, wander_s) if wander_s else None
     return data, W, wander
 
 

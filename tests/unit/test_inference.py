@@ -116,3 +116,54 @@ def test_whitened_leaves_zero_columns_zero_and_the_others_as_made_in_full():
         got = fit.whitened(G)
         assert np.array_equal(got, dense)
         assert not got[:, [0, 2, 3]].any()
+
+
+def test_dct_head_holds_one_buffer_and_its_spectrum():
+    """``dct_head`` of many columns at a length of a large prime factor holds, beyond its output, no more than its
+    one complex buffer and the spectrum (16 bytes a point each) and a piece of the chirp at a time (traced): no copy
+    of the data (``np.linalg.norm`` of all columns made one), no chirp of the whole length kept between calls."""
+    import tracemalloc
+
+    from magkf.diagnostics import inference
+
+    n, q, m = 2 * 50021, 9, 400  # 50 021 is prime: the chirp-z path
+    x = np.random.default_rng(8).normal(size=(n, q))
+    size = fft.next_fast_len(n + 2 * m - 2)
+    tracemalloc.start()
+    try:
+        got = dct_head(x, m)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    piece = inference.CHIRP_PIECE * (3 * 8 + 16)  # a piece's integers, angles and complex chirp
+    assert peak <= 2 * 16 * size + 2 * piece + got.nbytes + 64 * m + 4096
+    assert peak < x.nbytes  # a copy of the data would not fit
+    np.testing.assert_allclose(got, fft.dct(x, type=2, axis=0)[:m], rtol=0, atol=_fft_rounding(n) * np.sqrt(n))
+
+
+def test_heading_wander_made_a_chunk_at_a_time_is_the_held_one():
+    """A ``HeadingWander`` whose whitened heading axis is made for the epochs asked (``WhitenedHeading``, from a
+    ``ChunkWhitening``) takes the wander out of rows exactly as one built from the whole axis held, chunk by chunk
+    and whole."""
+    from magkf.config import FilterConfig
+    from magkf.online.determined import ChunkWhitening, WhitenedHeading, wander_chunks
+    from magkf.online.measurements import measurement_model
+    from magkf.online.state import StateLayout
+
+    rng = np.random.default_rng(11)
+    n = 3000
+    t = np.arange(n) * 0.01
+    layout = StateLayout.with_core()
+    x = layout.prior()[0]
+    R = layout.R(x)
+    field = 2e4 * rng.normal(size=(n, 3))
+    heading = rng.normal(size=(n, 3))
+    heading /= np.linalg.norm(heading, axis=1, keepdims=True)
+    W = ChunkWhitening(measurement_model(FilterConfig(), layout, x), field, R, heading)
+    lazy = HeadingWander(WhitenedHeading(W, heading, R), t, 10.0)
+    held = HeadingWander(np.einsum("nij,nj->ni", W[0:n], heading @ R.T), t, 10.0)
+    assert np.array_equal(lazy.inverse, held.inverse)
+    X = rng.normal(size=(3 * n, 4))
+    for a, b in wander_chunks(n, held):
+        assert np.array_equal(lazy.remove(X[3 * a : 3 * b], a, b), held.remove(X[3 * a : 3 * b], a, b))
+    assert np.array_equal(lazy.remove(X), held.remove(X))
