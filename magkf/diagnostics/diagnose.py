@@ -926,32 +926,34 @@ class _Selection:
 
 # ---------------------------------------------------------------- residual against signals
 def signal_values(data):
-    """Candidate explanatory signals (N,) at the used epochs, ``(name, values)`` made one after another (the
-    attitude's angles together, from its matrices read a chunk at a time): not all held at once."""
+    """Candidate explanatory signals (N,) at the used epochs, ``(name, values)`` made one after another rather than
+    all held at once: the attitude's angles and the field's rate from one pass over the epochs a chunk at a time,
+    then the log's own columns (a column named as one of these signals takes its place, as a dict's key would)."""
     t = data.time
     n = len(t)
-    yaw, pitch, roll = np.empty(n), np.empty(n), np.empty(n)
+    columns = data.columns
+    yaw, pitch, roll, field_rate = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     for a in range(0, n, CHUNK):
         c = data.c_nb[a : a + CHUNK]
         yaw[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0
         pitch[a : a + CHUNK] = np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1)))
         roll[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))
-    yield "heading_deg", yaw
-    yield "roll_deg", roll
-    del roll
-    yield "pitch_deg", pitch
-    del pitch
-    yield "time_s", t - t[0]
-    if len(t) > 2:
-        yield "yaw_rate_dps", np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi
-    del yaw
-    field_rate = np.empty(n)
-    for a in range(0, n, CHUNK):
         field_rate[a : a + CHUNK] = np.linalg.norm(data.field_body_rate[a : a + CHUNK], axis=1)
-    yield "field_rate_nt_s", field_rate
-    del field_rate
-    for name, values in data.columns.items():
-        yield name, np.asarray(values)
+    made = {
+        "heading_deg": lambda: yaw,
+        "roll_deg": lambda: roll,
+        "pitch_deg": lambda: pitch,
+        "time_s": lambda: t - t[0],
+        "yaw_rate_dps": lambda: np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi,
+        "field_rate_nt_s": lambda: field_rate,
+    }
+    if n <= 2:
+        del made["yaw_rate_dps"]
+    for name, make in made.items():
+        yield name, np.asarray(columns[name]) if name in columns else make()
+    for name, values in columns.items():
+        if name not in made:
+            yield name, np.asarray(values)
 
 
 def _bins(name: str, v: np.ndarray) -> np.ndarray:

@@ -192,7 +192,7 @@ def validate(
     as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))
     held = tuple(e for e in effects if not e.wanders)
     contributions = {e: _contribution(e, x[sl], stored.data) for e, sl in layout.blocks() if e in held}
-    del stored  # its whitened reading and residual (48 bytes an epoch) are let go before the fits are made
+    del stored  # its whitened reading (24 bytes an epoch) is let go before the fits are made
     fixed = epochs.less(sum(contributions.values(), np.zeros((len(epochs), 3))))
     fit = fixed.fit(StateLayout.with_core(), x[:12])
     plain = fixed.with_wander(None).at(fit.layout, fit.x) if fit.wander is not None else fit

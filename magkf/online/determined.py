@@ -152,8 +152,8 @@ class HeadingWander:
     What is lost: the part of an effect that looks like a heading change within a stretch, notably a
     constant field anomaly across the horizontal field (the same thing as a heading offset).
 
-    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch: an array, or made for the epochs asked (an
-    object read a slice of consecutive epochs at a time, ``Z[a:b]``, such as ``WhitenedHeading``); ``time`` (n,) s,
+    ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch: an array, or a ``WhitenedHeading`` (made for
+    the epochs asked); ``time`` (n,) s,
     increasing, not changed while the wander is used. Held: the stretch's index (4 bytes an epoch), ``Z`` as given,
     and ``time`` (the array given when it is of float64, as the set's times are; a float64 copy otherwise); the two
     regressors of each stretch, ``Z`` and ``Z`` times the time within the stretch, are made for the rows asked
@@ -169,7 +169,8 @@ class HeadingWander:
         self.centre = np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)])  # (stretches,) s
         self.Z, self.time, self.block_s = Z if isinstance(Z, WhitenedHeading) else np.asarray(Z, float), t, block_s
         normal = np.zeros((len(self.starts), 2, 2))
-        for a, b in wander_chunks(len(t), None):  # whole stretches summed over consecutive chunks
+        edges = self.cuts(CHUNK)  # the chunks of the passes (``wander_chunks``), whose whitenings are then kept
+        for a, b in zip(edges[:-1], edges[1:]):  # whole stretches summed over consecutive chunks
             Zab = self.regressors(a, b)
             first = np.searchsorted(self.starts, a, side="right") - 1
             cuts = np.unique(np.r_[0, self.starts[(self.starts > a) & (self.starts < b)] - a])

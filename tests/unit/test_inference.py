@@ -167,3 +167,18 @@ def test_heading_wander_made_a_chunk_at_a_time_is_the_held_one():
     for a, b in wander_chunks(n, held):
         assert np.array_equal(lazy.remove(X[3 * a : 3 * b], a, b), held.remove(X[3 * a : 3 * b], a, b))
     assert np.array_equal(lazy.remove(X), held.remove(X))
+
+
+@pytest.mark.parametrize("n", [13, 40, 1001])
+def test_autocovariance_by_fft_is_the_direct_sums(n):
+    """The autocovariance the FFT gives (``_autocovariance``, zero-padded to ``next_fast_len(2n)`` points, odd at
+    n = 13 and 40) equals the direct sums at every lag, to rounding: the inverse transform is of the padded length
+    itself (at an odd length, one point fewer had shifted every lag)."""
+    from magkf.diagnostics.inference import _autocovariance
+
+    x = np.random.default_rng(n).normal(size=n)
+    padded = np.zeros(fft.next_fast_len(2 * n))
+    padded[:n] = x
+    got = _autocovariance(padded, n)
+    expected = np.array([x[: n - lag] @ x[lag:] for lag in range(n)])
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * (x @ x))
