@@ -111,9 +111,7 @@ def integrated_time(x: np.ndarray) -> float:
         return 1.0
     out = 1.0
     for k in range(x.shape[1]):
-        padded = np.zeros(fft.next_fast_len(2 * n))  # the column centred, zero-padded for the FFT (no lag wraps)
-        column = padded[:n]
-        np.subtract(x[:, k], x[:, k].mean(), out=column)
+        column = x[:, k] - x[:, k].mean()
         variance = column @ column
         if not variance > 0:
             continue
@@ -121,18 +119,22 @@ def integrated_time(x: np.ndarray) -> float:
         acf = np.array([variance] + [column[:-lag] @ column[lag:] for lag in range(1, short + 1)])
         tau = _sokal(acf, more=short < n - 1)
         if tau is None:  # the window lies further out
+            padded = np.zeros(fft.next_fast_len(2 * n))  # zero-padded for the FFT: no lag wraps round
+            padded[:n] = column
             del column
             tau = _sokal(_autocovariance(padded, n))
+            del padded
         out = max(out, tau)
     return out
 
 
 def _autocovariance(padded: np.ndarray, n: int) -> np.ndarray:
     """The sums ``sum_j x_j x_(j+l)`` (n,) at every lag ``l`` of a series ``x`` (n,) given zero-padded to at least
-    2n points (``padded``, let go here: at most two arrays of its length are held at once)."""
+    2n points (``padded``, the caller's, let go once transformed: at most two arrays of its length are held at
+    once)."""
     size = len(padded)
     power = fft.rfft(padded)
-    padded.resize(0, refcheck=False)
+    padded.resize(0, refcheck=False)  # the caller holds no view of it
     power = np.abs(power)
     power *= power
     return fft.irfft(power, n=size)[:n]
