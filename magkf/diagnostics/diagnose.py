@@ -298,7 +298,6 @@ def diagnose(
         raise InputError(f"alpha must lie strictly between 0 and 1, got {alpha:g}")
     # Between the stages, what each left free in the heap is given back (``release_free_memory``): the run's and
     # the tests' chunks would otherwise stay resident under the next stage's peak.
-    release_free_memory()  # a run given, made just before
     run, layout, x, problem, channels = _diagnosed(log, config, cal, list(effects), run, wander_s, say)
     release_free_memory()
     present = {e.label for e in layout.extra()}

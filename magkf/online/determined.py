@@ -153,11 +153,10 @@ class HeadingWander:
     constant field anomaly across the horizontal field (the same thing as a heading offset).
 
     ``Z`` (n, 3) the whitened heading direction ``W R h`` per epoch: an array, or a ``WhitenedHeading`` (made for
-    the epochs asked); ``time`` (n,) s,
-    increasing, not changed while the wander is used. Held: the stretch's index (4 bytes an epoch), ``Z`` as given,
-    and ``time`` (the array given when it is of float64, as the set's times are; a float64 copy otherwise); the two
-    regressors of each stretch, ``Z`` and ``Z`` times the time within the stretch, are made for the rows asked
-    (``regressors``).
+    the epochs asked); ``time`` (n,) s, increasing, not changed while the wander is used. Held: the stretch's index
+    (4 bytes an epoch), ``Z`` as given, and ``time`` (the array given when it is of float64, as the set's times
+    are; a float64 copy otherwise); the two regressors of each stretch, ``Z`` and ``Z`` times the time within the
+    stretch, are made for the rows asked (``regressors``).
     """
 
     def __init__(self, Z: np.ndarray, time: np.ndarray, block_s: float = WANDER_BLOCK_S):
@@ -169,8 +168,8 @@ class HeadingWander:
         self.centre = np.add.reduceat(t, self.starts) / np.diff(np.r_[self.starts, len(t)])  # (stretches,) s
         self.Z, self.time, self.block_s = Z if isinstance(Z, WhitenedHeading) else np.asarray(Z, float), t, block_s
         normal = np.zeros((len(self.starts), 2, 2))
-        edges = self.cuts(CHUNK)  # the chunks of the passes (``wander_chunks``), whose whitenings are then kept
-        for a, b in zip(edges[:-1], edges[1:]):  # whole stretches summed over consecutive chunks
+        # whole stretches summed over the passes' own chunks, whose whitenings are then kept for the passes
+        for a, b in wander_chunks(len(t), self):
             Zab = self.regressors(a, b)
             first = np.searchsorted(self.starts, a, side="right") - 1
             cuts = np.unique(np.r_[0, self.starts[(self.starts > a) & (self.starts < b)] - a])
@@ -237,7 +236,9 @@ class WhitenedHeading:
         return len(self.W)
 
     def __getitem__(self, index: slice) -> np.ndarray:
-        a, b, _ = index.indices(len(self))
+        a, b, step = index.indices(len(self))
+        if step != 1:
+            raise IndexError("WhitenedHeading is read a slice of consecutive epochs at a time")
         return np.einsum("nij,nj->ni", self.W[a:b], self.heading[a:b] @ self.R.T)
 
 
