@@ -37,6 +37,7 @@ __all__ = [
     "GRADIENT_STEP",
     "ppigrf_ned",
     "igrf_ned",
+    "IgrfTrack",
     "field_at",
     "ReferenceFieldCache",
 ]
@@ -93,13 +94,23 @@ def _ppigrf_at_dates(lat, lon, alt_m, dates_s) -> np.ndarray:
     return np.stack([bn, be, -bu], axis=-1).reshape(len(dates_s), -1, 3)
 
 
-def _knots(lat, lon, alt, spacing_m: float) -> np.ndarray:
-    """Knot index (N,) of each epoch: a new knot starts whenever the path from the last knot exceeds the spacing."""
-    dn = np.radians(np.diff(lat)) * EARTH_RADIUS_M
-    de = np.radians((np.diff(lon) + 180.0) % 360.0 - 180.0) * EARTH_RADIUS_M * np.cos(np.radians(lat[1:]))
-    step = np.sqrt(dn**2 + de**2 + np.diff(alt) ** 2)
-    path = np.concatenate([[0.0], np.cumsum(step)])
-    return np.floor(path / spacing_m).astype(np.int64)
+def _knot_starts(lat, lon, alt, spacing_m: float) -> np.ndarray:
+    """The first epoch (K,) int of each knot of the epochs at ``lat``, ``lon`` (N,) deg and ``alt`` (N,) m: a new
+    knot starts whenever the path from the start, in whole ``spacing_m``, goes up. The path is summed in order over
+    ``INTERPOLATION_CHUNK`` epochs at a time, carried from one to the next: the sum over the whole log, bit for bit,
+    without the log's length of working arrays."""
+    starts, path = [np.zeros(1, np.int64)], 0.0
+    for a in range(1, len(lat), INTERPOLATION_CHUNK):  # the steps into epochs a .. b - 1
+        b = min(a + INTERPOLATION_CHUNK, len(lat))
+        dn = np.radians(lat[a:b] - lat[a - 1 : b - 1]) * EARTH_RADIUS_M
+        de = np.radians((lon[a:b] - lon[a - 1 : b - 1] + 180.0) % 360.0 - 180.0) * EARTH_RADIUS_M
+        de *= np.cos(np.radians(lat[a:b]))
+        step = np.sqrt(dn**2 + de**2 + (alt[a:b] - alt[a - 1 : b - 1]) ** 2)
+        paths = np.cumsum(np.concatenate([[path], step]))  # from the last epoch's path, as one sum would go on
+        knots = np.floor(paths / spacing_m).astype(np.int64)
+        starts.append(a + np.flatnonzero(np.diff(knots)))
+        path = paths[-1]
+    return np.concatenate(starts)
 
 
 def _time_weights(time_s: np.ndarray, dates_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -125,52 +136,101 @@ def igrf_ned(time_s, lat_deg, lon_deg, alt_m=0.0, knot_spacing_m: float = 2000.0
     """
     shape = np.shape(time_s)
     # every input flat, at the times' shape (a view where it is already flat: no copy of a log's columns)
-    time_s, lat, lon, alt = (
-        np.broadcast_to(np.asarray(a, float), shape).reshape(-1) for a in (time_s, lat_deg, lon_deg, alt_m)
-    )
-    out = np.full((len(time_s), 3), np.nan)
-    ok = np.isfinite(time_s) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
-    if not ok.any():
-        return out.reshape(shape + (3,))
-    every = ok.all()  # then the arrays themselves, not copies
-    t, la, lo, al = (v if every else v[ok] for v in (time_s, lat, lon, alt))
-    _check_times(t)
-    dates = np.concatenate(
-        [
-            [t.min()],
-            IGRF_EPOCHS_S[(IGRF_EPOCHS_S > t.min()) & (IGRF_EPOCHS_S < t.max())],
-            [t.max()] if t.max() > t.min() else [],
-        ]
-    )
-    knot = _knots(la, lo, al, knot_spacing_m)
-    first = np.flatnonzero(np.diff(knot, prepend=knot[0] - 1))  # first epoch of each knot
-    del knot
-    kp = np.column_stack([la[first], lo[first], al[first]])
-    # The knot and its three offset neighbours, all in one ppigrf call.
-    places = np.concatenate([kp] + [kp + np.eye(3)[i] * GRADIENT_STEP for i in range(3)])
-    field = _ppigrf_at_dates(places[:, 0], places[:, 1], places[:, 2], dates)  # (D, 4K, 3)
-    k = len(first)
-    base = field[:, :k]
-    grad = np.stack([(field[:, (i + 1) * k : (i + 2) * k] - base) / GRADIENT_STEP[i] for i in range(3)], axis=-1)
+    flat = (np.broadcast_to(np.asarray(a, float), shape).reshape(-1) for a in (time_s, lat_deg, lon_deg, alt_m))
+    return IgrfTrack(*flat, knot_spacing_m=knot_spacing_m)[:].reshape(shape + (3,))
 
-    def at(date_index, group, offset):  # the field at the dates' knots, moved along their gradients by ``offset``
-        return base[date_index, group] + np.einsum("nij,nj->ni", grad[date_index, group], offset)
 
-    rows = np.flatnonzero(ok)
-    for a in range(0, len(t), INTERPOLATION_CHUNK):  # a chunk of epochs at a time: (k, 3, 3) arrays of a chunk's
-        s = slice(a, min(a + INTERPOLATION_CHUNK, len(t)))
-        group = np.searchsorted(first, np.arange(s.start, s.stop), side="right") - 1  # each epoch's knot
-        offset = np.column_stack(
-            [la[s] - kp[group, 0], (lo[s] - kp[group, 1] + 180.0) % 360.0 - 180.0, al[s] - kp[group, 2]]
+class IgrfTrack:
+    """The IGRF-14 field in NED along a log's track (``igrf_ned``), made for the epochs asked when read.
+
+    What it holds is a few numbers a knot (the knots' places, the field and its gradient there at each date) and
+    the positions of the epochs without a time or a position; ``track[rows]`` (a slice or increasing positions)
+    is ``igrf_ned`` of those epochs, bit for bit the rows of the whole log's array, made ``INTERPOLATION_CHUNK``
+    epochs at a time. A diagnosis reads its epochs' reference field this way instead of holding 24 bytes an
+    epoch of the log.
+
+    Parameters
+    ----------
+    time_s, lat_deg, lon_deg, alt_m : numpy.ndarray
+        (N,) UNIX s, deg, deg, m: the log's columns (held, not copied).
+    knot_spacing_m : float
+        Path length between evaluation knots, m.
+    """
+
+    def __init__(self, time_s, lat_deg, lon_deg, alt_m, knot_spacing_m: float = 2000.0):
+        self.columns = time_s, lat_deg, lon_deg, alt_m
+        ok = np.isfinite(time_s) & np.isfinite(lat_deg) & np.isfinite(lon_deg) & np.isfinite(alt_m)
+        self.missing = np.flatnonzero(~ok)  # the epochs without a time or a position: NaN
+        self.knots = None
+        if not ok.any():
+            return
+        # the epochs with a time and a position (the columns themselves where every epoch has them)
+        t, la, lo, al = (v if not len(self.missing) else v[ok] for v in self.columns)
+        del ok
+        _check_times(t)
+        self.dates = np.concatenate(
+            [
+                [t.min()],
+                IGRF_EPOCHS_S[(IGRF_EPOCHS_S > t.min()) & (IGRF_EPOCHS_S < t.max())],
+                [t.max()] if t.max() > t.min() else [],
+            ]
         )
-        lo_i, w = _time_weights(t[s], dates)
-        hi_i = np.minimum(lo_i + 1, len(dates) - 1)
-        out[rows[s]] = at(lo_i, group, offset) * (1 - w)[:, None] + at(hi_i, group, offset) * w[:, None]
-    return out.reshape(shape + (3,))
+        self.first = _knot_starts(la, lo, al, knot_spacing_m)  # in the count of epochs with a position
+        kp = np.column_stack([la[self.first], lo[self.first], al[self.first]])
+        del t, la, lo, al
+        # The knot and its three offset neighbours, all in one ppigrf call.
+        places = np.concatenate([kp] + [kp + np.eye(3)[i] * GRADIENT_STEP for i in range(3)])
+        field = _ppigrf_at_dates(places[:, 0], places[:, 1], places[:, 2], self.dates)  # (D, 4K, 3)
+        k = len(self.first)
+        self.base = field[:, :k]
+        self.grad = np.stack(
+            [(field[:, (i + 1) * k : (i + 2) * k] - self.base) / GRADIENT_STEP[i] for i in range(3)], axis=-1
+        )
+        self.knots = kp
+
+    def __len__(self) -> int:
+        return len(self.columns[0])
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self), 3)
+
+    def __getitem__(self, rows) -> np.ndarray:
+        """The field (k, 3) NED nT at the epochs ``rows`` (a slice or increasing positions (k,)); NaN at those
+        without a time or a position."""
+        rows = np.arange(len(self))[rows] if isinstance(rows, slice) else np.asarray(rows, np.int64).reshape(-1)
+        out = np.full((len(rows), 3), np.nan)
+        if self.knots is None:
+            return out
+        where = np.arange(len(rows))
+        if len(self.missing):  # each epoch's place among those with a position, those without left out
+            behind = np.searchsorted(self.missing, rows)
+            has = (behind == len(self.missing)) | (self.missing[np.minimum(behind, len(self.missing) - 1)] != rows)
+            rows, behind, where = rows[has], behind[has], where[has]
+        for a in range(0, len(rows), INTERPOLATION_CHUNK):
+            s = slice(a, a + INTERPOLATION_CHUNK)
+            rank = rows[s] if not len(self.missing) else rows[s] - behind[s]
+            out[where[s]] = self._at(rows[s], rank)
+        return out
+
+    def _at(self, rows: np.ndarray, rank: np.ndarray) -> np.ndarray:
+        """The field (k, 3) at the epochs ``rows`` (k,), each with a position and ``rank`` (k,) among those that
+        have one: the first-order value from its knot, linear in time between the dates."""
+        t, lat, lon, alt = (np.broadcast_to(v, len(self))[rows] for v in self.columns)
+        kp = self.knots
+        group = np.searchsorted(self.first, rank, side="right") - 1  # each epoch's knot
+        offset = np.column_stack([lat - kp[group, 0], (lon - kp[group, 1] + 180.0) % 360.0 - 180.0, alt - kp[group, 2]])
+        lo_i, w = _time_weights(t, self.dates)
+        hi_i = np.minimum(lo_i + 1, len(self.dates) - 1)
+        return self._moved(lo_i, group, offset) * (1 - w)[:, None] + self._moved(hi_i, group, offset) * w[:, None]
+
+    def _moved(self, date_index, group, offset) -> np.ndarray:
+        """The field at the dates' knots, moved along their gradients by ``offset`` (k, 3)."""
+        return self.base[date_index, group] + np.einsum("nij,nj->ni", self.grad[date_index, group], offset)
 
 
 #: Epochs ``igrf_ned`` interpolates at a time.
-INTERPOLATION_CHUNK = 65_536
+INTERPOLATION_CHUNK = 16_384
 
 
 def field_at(lat_deg: float, lon_deg: float, alt_m: float, time_s: float) -> dict:

@@ -81,7 +81,8 @@ class Baseline:
         ``magnitude_mean_nt`` and ``heading_mean_deg`` (their means), ``n_compared`` (epochs), ``n_magnitude`` and
         ``n_heading`` (epochs where that calibration has each error).
     vector_error_nt : dict
-        Name -> (N,) ``|C_nb corrected - reference|``, nT; NaN where the heading error is.
+        Name -> (N,) ``|C_nb corrected - reference|``, nT; NaN where the heading error is (empty where
+        ``compare_calibrations`` was asked not to keep them).
     used_figures : dict or None
         Name -> ``{"vector_rms_nt", "magnitude_rms_nt"}`` over the epochs a run used, and ``n_used``
         (``compare_calibrations`` with ``used``; else None).
@@ -115,7 +116,7 @@ class Baseline:
 
 
 def compare_calibrations(
-    log: DriveLog, calibrations: dict, prep=None, used=None, per_epoch: bool = True, sample=None
+    log: DriveLog, calibrations: dict, prep=None, used=None, per_epoch: bool = True, sample=None, vector: bool = True
 ) -> Baseline:
     """Every epoch's magnitude and heading error with each calibration of ``calibrations``.
 
@@ -143,6 +144,9 @@ def compare_calibrations(
     sample : array_like or None, optional
         (k,) int increasing epochs (positions in ``log``) at which ``Baseline.fields`` keeps each calibration's
         corrected field (what a plot of the field draws); None: none kept.
+    vector : bool, optional
+        False: the per-epoch vector errors are not kept (``vector_error_nt`` empty; the figures of ``summary``
+        still have them), 8 bytes an epoch and calibration less for a caller that draws only the other two.
 
     Returns
     -------
@@ -164,9 +168,12 @@ def compare_calibrations(
     sums = _Sums(list(calibrations), used is not None)
     fields = {name: np.empty((len(sample), 3)) for name in calibrations}
     compared = np.empty(n, bool)
+    kept = _KINDS if vector else _KINDS[:2]
     if per_epoch:
-        errors = {name: {kind: np.empty(n) for kind in _KINDS} for name in calibrations}
+        errors = {name: {kind: np.empty(n) for kind in kept} for name in calibrations}
         has_mag, has_attitude, logged_heading = np.empty(n, bool), np.empty(n, bool), np.empty(n)
+        has_ref, ref_magnitude = np.empty(n, bool), np.empty(n)
+    chunk_epochs = None
     for a in range(0, n, CHUNK):
         at = slice(a, min(a + CHUNK, n))
         chunk_epochs = epochs.at(at)
@@ -178,9 +185,11 @@ def compare_calibrations(
         for name, e in chunk.items():
             fields[name][drawn[0] : drawn[1]] = e.pop("field")[sample[drawn[0] : drawn[1]] - a]
             if per_epoch:
-                for kind in _KINDS:
+                for kind in kept:
                     errors[name][kind][at] = e[kind]
         if per_epoch:
+            ref_magnitude[at] = np.linalg.norm(chunk_epochs.ref, axis=1)
+            has_ref[at] = np.all(np.isfinite(chunk_epochs.ref), axis=1)
             has_mag[at] = np.all(np.isfinite(chunk_epochs.mag), axis=1)
             has_attitude[at] = np.all(np.isfinite(chunk_epochs.attitude), axis=1)
             logged_heading[at] = np.where(has_attitude[at], chunk_epochs.attitude[:, 2] % 360.0, np.nan)
@@ -188,11 +197,13 @@ def compare_calibrations(
         return Baseline(
             None, None, {}, {}, {}, compared, sums.summary(), {}, sums.used_figures(), sums.n_compared, fields
         )
-    has_ref = np.all(np.isfinite(epochs.ref), axis=1)
+    del epochs, chunk_epochs  # the reference field: not held while the statuses are made
     status = {
         name: _status(has_mag, np.all(np.isfinite(terms[name]), axis=1), has_ref, has_attitude) for name in calibrations
     }
-    magnitude, heading, vector = ({name: errors[name][kind] for name in calibrations} for kind in _KINDS)
+    magnitude, heading, vector = (
+        {name: errors[name][kind] for name in calibrations if kind in kept} for kind in _KINDS
+    )
     return Baseline(
         log.time,
         logged_heading,
@@ -205,7 +216,7 @@ def compare_calibrations(
         sums.used_figures(),
         int(compared.sum()),
         fields,
-        _median_magnitude(epochs.ref),
+        _median(ref_magnitude),
     )
 
 
@@ -220,15 +231,14 @@ def _drawn(sample, n: int) -> np.ndarray:
     return sample
 
 
-def _median_magnitude(ref: np.ndarray) -> float:
-    """The median magnitude (nT) of the finite rows of ``ref`` (N, 3) NED nT; NaN for none."""
-    magnitude = np.linalg.norm(ref, axis=1)
+def _median(magnitude: np.ndarray) -> float:
+    """The median (nT) of the finite values of ``magnitude`` (N,) nT; NaN for none."""
     magnitude = magnitude[np.isfinite(magnitude)]
-    return float(np.median(magnitude)) if magnitude.size else float("nan")
+    return float(np.median(magnitude, overwrite_input=True)) if magnitude.size else float("nan")
 
 
 #: Epochs taken at once by ``compare_calibrations``.
-CHUNK = 65_536
+CHUNK = 16_384
 #: The per-epoch errors ``compare_calibrations`` computes: ``|B| - |B_ref|``, the heading error, ``|C_nb B - B_ref|``.
 _KINDS = ("magnitude", "heading", "vector")
 
@@ -397,10 +407,12 @@ def heading_error_deg(field_body, c_nb, ref_ned) -> np.ndarray:
 def _status(has_mag, has_terms, has_ref, has_attitude) -> np.ndarray:
     """Each epoch's status (``STATUSES``, a ``pandas.Categorical``) from what it has: a reading, the effects' terms,
     a reference and attitude, (N,) bool each."""
-    missing = [~has_mag, ~has_terms, ~has_ref, ~np.asarray(has_attitude, bool)]
-    codes = [STATUSES.index(name) for name in ("missing_mag", "missing_effect_input", "missing_position")]
-    codes.append(STATUSES.index("missing_attitude"))
-    return pd.Categorical.from_codes(np.select(missing, codes, 0).astype(np.int8), STATUSES)
+    has = [has_mag, has_terms, has_ref, np.asarray(has_attitude, bool)]
+    names = ("missing_mag", "missing_effect_input", "missing_position", "missing_attitude")
+    codes = np.zeros(len(has_mag), np.int8)  # ok
+    for present, name in reversed(list(zip(has, names))):  # the first missing one written last: it applies
+        codes[~present] = STATUSES.index(name)
+    return pd.Categorical.from_codes(codes, STATUSES)
 
 
 def _rms(values) -> float:

@@ -48,7 +48,7 @@ from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
 from ..online.determined import ChunkCache
 from ..online.noise import NoiseLevels
-from ..online.prepare import prepare
+from ..online.prepare import prepare, reference_track
 from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
@@ -328,7 +328,7 @@ def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wan
     noise = _learned_noise(run, config)
     if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be
         noise, used = _gated_as_calibrate(prep, config, layout, x, used)
-    problem = EpochSet.of(log, prep.ref, used, config, noise, wander_s)
+    problem = EpochSet.of(log, reference_track(log, config), used, config, noise, wander_s)
     channels = list(prep.data.columns)
     del prep  # the diagnosed epochs are prepared again a chunk at a time when read
     if len(problem) < 10:

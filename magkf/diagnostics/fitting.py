@@ -272,9 +272,9 @@ class EpochSet:
     @classmethod
     def of(cls, log, ref, used, config, noise=None, wander_s=None) -> EpochSet:
         """The epochs ``used`` (mask (N,)) of ``log``, with its reference field ``ref`` (N, 3) NED nT
-        (``PreparedLog.ref``), weighed with ``noise`` (a ``NoiseLevels``; None: the configured noise), with the
-        heading's error a nuisance over stretches of ``wander_s`` seconds (None: the logged heading taken as it
-        is)."""
+        (``PreparedLog.ref``, or ``prepare.reference_track``'s, made for the rows read), weighed with ``noise`` (a
+        ``NoiseLevels``; None: the configured noise), with the heading's error a nuisance over stretches of
+        ``wander_s`` seconds (None: the logged heading taken as it is)."""
         return cls(PreparedRows(log, ref, np.flatnonzero(used)), config, noise, wander_s)
 
     @property

@@ -18,7 +18,6 @@ import io
 from dataclasses import dataclass
 
 import numpy as np
-import pandas as pd
 
 from ..allocator import release_free_memory
 from ..blas import one_thread
@@ -170,27 +169,35 @@ def _states_plot(run, t0):
 def _status_plot(run, t0):
     import matplotlib.pyplot as plt
 
-    status = run.states["status"]
-    counts = status.value_counts()
+    from ..online.states_table import status_codes
+    from ..status import STATUS_NAMES
+
+    # from the run's status codes (one byte an epoch, held by the table), not a column of names
+    every = status_codes(run.states)
+    counts = np.bincount(every[every >= 0], minlength=len(STATUS_NAMES))
+    order = [k for k in np.argsort(-counts, kind="stable") if counts[k] > 0]  # most epochs first
+    names = [STATUS_NAMES[k] for k in order]
     fig, (ax1, ax2) = plt.subplots(
         1, 2, figsize=(10, 2.8), constrained_layout=True, gridspec_kw={"width_ratios": [1, 2]}
     )
-    names = list(counts.index)
     colours = plt.get_cmap("tab10")
-    ax1.barh(names, counts.to_numpy(), color=[colours(k % 10) for k in range(len(names))])
+    ax1.barh(names, counts[order], color=[colours(k % 10) for k in range(len(names))])
     ax1.set(xlabel="epochs", title="epoch statuses")
-    t = run.states.index.to_numpy() - t0
+    time = run.states.index.to_numpy()
     # each stretch of one status as a bar (every epoch shown, however long the log)
-    codes = pd.Categorical(status, categories=names).codes  # from the column itself: no Python string an epoch
+    rank = np.full(len(STATUS_NAMES) + 1, -1, np.int8)  # the last for code -1 (a name that is not a status)
+    rank[order] = np.arange(len(order))
+    codes = rank[every]
     change = np.flatnonzero(codes[1:] != codes[:-1]) + 1
     first, last = np.r_[0, change], np.r_[change, len(codes)] - 1
-    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    step = float(np.median(np.diff(time), overwrite_input=True)) if len(time) > 1 else 1.0
     for k in range(len(names) if len(codes) else 0):
-        runs = codes[first] == k
-        spans = list(zip(t[first[runs]], t[last[runs]] - t[first[runs]] + step))
+        runs = first[codes[first] == k]
+        ends = last[codes[first] == k]
+        spans = list(zip(time[runs] - t0, time[ends] - time[runs] + step))
         ax2.broken_barh(spans, (k - 0.4, 0.8), color=colours(k % 10))
     ax2.set(
-        xlim=(t[0], t[-1] + step) if len(t) else None,
+        xlim=(time[0] - t0, time[-1] - t0 + step) if len(time) else None,
         yticks=range(len(names)),
         yticklabels=names,
         xlabel="time since start, s",
@@ -448,7 +455,7 @@ def _as_read(log: DriveLog, comparison: Comparison) -> tuple:
         return base, RAW
     if comparison.vehicle is not None and comparison.vehicle.method == "logged-as-read":
         return base, VEHICLE
-    return compare_calibrations(log, {"as read": None}, sample=_sample(len(log.table))), "as read"
+    return compare_calibrations(log, {"as read": None}, sample=_sample(len(log.table)), vector=False), "as read"
 
 
 def _as_read_label(log: DriveLog) -> str:
@@ -588,7 +595,7 @@ def _compare(log: DriveLog, run) -> Comparison:
     if vehicle is not None:
         cals[VEHICLE] = vehicle
     cals[MAGKF] = run.calibration
-    base = compare_calibrations(log, cals, sample=_sample(len(log.table)))
+    base = compare_calibrations(log, cals, sample=_sample(len(log.table)), vector=False)  # no vector error drawn
     return Comparison(base, vehicle, words, as_read, declination_note(log, base))
 
 
@@ -876,6 +883,7 @@ def _page(log, config, cal, effects, alpha, wander_s, run, judged: Judgement, di
     there are any."""
     t0 = log.time[0]
     comparison = _compare(log, run)
+    release_free_memory()  # the comparison's working chunks given back before the plots are drawn
     parts = _overview(log, run, diag, comparison, judged)
     if judged.withheld:  # no figure of a calibration no magnetometer has, the learned noise's included
         parts.append("<p><b>Verdict:</b> none: the figures of this calibration measure its refusal.</p>")

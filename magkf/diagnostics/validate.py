@@ -54,7 +54,7 @@ from ..conventions import body_to_ned
 from ..effects import check_columns, restore_effects
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
-from ..online.prepare import prepare
+from ..online.prepare import prepare, reference_track
 from ..online.state import StateLayout
 from ..status import Status
 from .fitting import CHUNK, WANDER_BLOCK_S, EpochSet, inliers
@@ -229,7 +229,7 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
     for effect in effects:
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
-    epochs = EpochSet.of(log, prep.ref, used, config, wander_s=wander_s)
+    epochs = EpochSet.of(log, reference_track(log, config), used, config, wander_s=wander_s)
     del prep  # the epochs are prepared again a chunk at a time when read
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)

@@ -268,9 +268,29 @@ class DriveLog:
         """
         if self.has_reference:
             return self.table[list(REF)].to_numpy(dtype=float)
-        from ..reference import igrf_ned
+        return self.reference_track(**kwargs)[:]
 
-        return igrf_ned(self.time, *self.position.T, **kwargs)
+    def reference_track(self, **kwargs):
+        """The reference field of ``reference_ned``, made for the epochs asked when read: ``track[rows]`` (a slice
+        or increasing positions) is ``reference_ned()[rows]``, bit for bit.
+
+        Parameters
+        ----------
+        **kwargs
+            Passed to ``magkf.reference.IgrfTrack`` (``knot_spacing_m``) when IGRF is evaluated.
+
+        Returns
+        -------
+        numpy.ndarray or magkf.reference.IgrfTrack
+            The log's ``ref_*`` columns (N, 3) NED nT as an array, else the IGRF field along the log's track (a few
+            numbers a knot, not 24 bytes an epoch).
+        """
+        if self.has_reference:
+            return self.reference_ned()
+        from ..reference import IgrfTrack
+
+        position = self.column(LAT), self.column(LON), self.column(ALT, 0.0)  # the columns, not a copy of them
+        return IgrfTrack(self.time, *position, **kwargs)
 
 
 #: The time base a log must have: UNIX seconds between these dates (1990-01-01 and 2100-01-01 UTC).

@@ -225,6 +225,12 @@ def reference_field(log: DriveLog, config: FilterConfig) -> np.ndarray:
     return log.reference_ned(knot_spacing_m=config.reference_refresh_m)
 
 
+def reference_track(log: DriveLog, config: FilterConfig):
+    """``reference_field(log, config)`` made for the epochs asked when read (``DriveLog.reference_track``):
+    ``track[rows]`` (k, 3) NED nT."""
+    return log.reference_track(knot_spacing_m=config.reference_refresh_m)
+
+
 def attitude_matrices(attitude: np.ndarray) -> np.ndarray:
     """The attitude matrices ``C_nb`` (N, 3, 3), body FRD to NED, of ``attitude`` (N, 3) roll, pitch, yaw deg (NaN
     where it is missing)."""

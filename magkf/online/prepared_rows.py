@@ -3,7 +3,8 @@
 ``prepare`` gives every epoch's arrays at once: about 180 bytes an epoch (the attitude, from which its matrices are
 made when read, the field in two frames, its rate and acceleration, the heading axis). A diagnosis reads its epochs
 a chunk at a time on each pass, so ``PreparedRows`` holds only where its epochs are in the log and their times (16
-bytes an epoch of the set) and the log's reference field (24 bytes an epoch of the log), and makes a chunk's arrays
+bytes an epoch of the set) and the log's reference field (an ``IgrfTrack``, a few numbers a knot, where the field
+is IGRF's; 24 bytes an epoch of the log where the log gives it), and makes a chunk's arrays
 again from the log when they are read (``Chunk``): the log's own columns read at the epochs, the others by
 ``prepare``'s rules (``prepare.body_arrays``, ``prepare.field_rates``) on the log's rows around the epochs with
 ``MARGIN`` rows either side, so that the rates by central differences are the whole log's to the last bit. A set
@@ -55,8 +56,9 @@ class PreparedRows:
     ----------
     log : DriveLog
         The log (held, not copied).
-    ref : ndarray
-        (N, 3) NED nT the log's reference field (``PreparedLog.ref``; held).
+    ref : ndarray or IgrfTrack
+        (N, 3) NED nT the log's reference field (``PreparedLog.ref``), or what makes it for the rows read
+        (``prepare.reference_track``: a few numbers a knot); held.
     index : ndarray
         (n,) int the epochs of the set, positions in ``log``, increasing.
     m : ndarray or None

@@ -21,7 +21,7 @@ import pandas as pd
 
 from ..status import STATUS_NAMES, status_names
 
-__all__ = ["NOISE_COLUMNS", "RESIDUAL_COLUMNS", "StatesTable", "states_frame"]
+__all__ = ["NOISE_COLUMNS", "RESIDUAL_COLUMNS", "StatesTable", "states_frame", "status_codes"]
 
 #: Names of the learned-noise columns of the per-epoch table.
 NOISE_COLUMNS = ("noise_sensor_nt", "noise_attitude_deg", "noise_heading_deg", "noise_inflation")
@@ -51,6 +51,15 @@ def _status_array(codes):
     from the names' own array: no Python string a value)."""
     names = pd.Series(list(STATUS_NAMES)).array  # the string type pandas gives a column of names
     return names.take(np.asarray(codes, np.intp))
+
+
+def status_codes(states) -> np.ndarray:
+    """(N,) int8 the epochs' status codes (positions in ``STATUS_NAMES``) of a run's per-epoch table ``states``: a
+    ``StatesTable``'s own array (not a copy: a column of names made into a ``pandas.Categorical`` costs tens of
+    bytes an epoch while it is made), or those of a DataFrame's ``status`` column of names (-1: not a status)."""
+    if isinstance(states, StatesTable):
+        return states.codes
+    return pd.Index(STATUS_NAMES).get_indexer(states["status"]).astype(np.int8)  # -1: not a status
 
 
 class StatesTable:
@@ -106,6 +115,13 @@ class StatesTable:
 
     def __contains__(self, name) -> bool:
         return name in self._sources
+
+    @property
+    def codes(self) -> np.ndarray:
+        """(N,) int8 the status codes (positions in ``STATUS_NAMES``), the array the table holds (read only)."""
+        codes = self._status.view()
+        codes.flags.writeable = False
+        return codes
 
     def __iter__(self):
         return iter(self.columns)

@@ -215,16 +215,16 @@ class _Problem:
         seen = 0
         for prep, used in self.parts():
             idx = np.flatnonzero(used)
-            fold = (FOLDS * (seen + np.arange(len(idx)))) // max(self.n_used, 1)
-            batch = np.minimum(np.floor((prep.time[idx] - self.t0) / self.batch_s).astype(np.int64), self.n_batches - 1)
-            seen += len(idx)
             with_att = prep.has_attitude[idx] if self.vector else np.zeros(len(idx), bool)
             chunk = max(len(idx), 1) if self.layout.nonlinear else CHUNK
             for vector in (True, False):
                 pick = np.flatnonzero(with_att == vector)
                 for i in range(0, len(pick), chunk):
-                    k = pick[i : i + chunk]
-                    yield prep, vector, idx[k], fold[k], batch[k]
+                    k = pick[i : i + chunk]  # the folds and batches of a chunk's epochs, not of the part's
+                    fold = (FOLDS * (seen + k)) // max(self.n_used, 1)
+                    batch = np.floor((prep.time[idx[k]] - self.t0) / self.batch_s).astype(np.int64)
+                    yield prep, vector, idx[k], fold, np.minimum(batch, self.n_batches - 1)
+            seen += len(idx)
 
     def residuals(self, x, prep, vector: bool, epochs) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (k, q) nT and Jacobian (k, q, n) of the ``epochs`` (k,) of ``prep`` at ``x`` (n,): vector
@@ -276,7 +276,8 @@ class _Problem:
         taus = [0.5 * max(f, 1.0) * step_s for f in noise.inflations]
         widths = [max(tau / 8.0, step_s) for tau in taus]
         counts = [int(np.floor((self.span_s) / w)) + 1 for w in widths]
-        batches = [np.zeros((k, n)) for k in counts]
+        # a batch sum a width, for the components kernel-summed only (a log's length of them each)
+        batches = [np.zeros((k, n)) if tau >= 2.0 * step_s else None for k, tau in zip(counts, taus)]
         white = np.zeros((n, n))
         for prep, vector, epochs, _, _ in self.chunks():
             _, J = self.residuals(x, prep, vector, epochs)
@@ -703,10 +704,10 @@ def _covariance(
     batch-means sandwich."""
     H = T.T @ (s.A + problem.omega) @ T
     Hi = np.linalg.inv(H)
-    scores = s.scores @ T
     used_batches = np.any(s.scores != 0, axis=1)
     k = int(used_batches.sum())
-    scores = scores[used_batches] - scores[used_batches].mean(axis=0)
+    scores = s.scores[used_batches] @ T  # two batches' lengths of scores at a time, not four
+    scores -= scores.mean(axis=0)
     meat = scores.T @ scores * (k / max(k - 1, 1))
     dof = max(s.count - T.shape[1], 1)
     white = Hi * (s.ss / dof)

@@ -35,6 +35,50 @@ def test_igrf_in_chunks_is_igrf_in_one_piece(monkeypatch):
     np.testing.assert_array_equal(grid.reshape(-1, 3), chunked)
 
 
+def test_the_track_made_for_the_epochs_read_is_the_whole_field(monkeypatch):
+    """``IgrfTrack[rows]`` (positions with and without a position among them, a slice, none) is ``igrf_ned``'s rows
+    bit for bit, read in chunks of 997 across a date and many knots."""
+    rng = np.random.default_rng(10)
+    n = 3000
+    t = 1735689600.0 - 1500.0 + np.arange(n) * 1.0
+    lat = 48.1 + np.cumsum(rng.normal(0, 2e-4, n))
+    lon = 11.6 + np.cumsum(rng.normal(0, 2e-4, n))
+    alt = 500.0 + np.cumsum(rng.normal(0, 1.0, n))
+    lat[[0, 5, 996, 997, 2999]] = np.nan
+    whole = reference.igrf_ned(t, lat, lon, alt)
+    monkeypatch.setattr(reference, "INTERPOLATION_CHUNK", 997)
+    track = reference.IgrfTrack(t, lat, lon, alt)
+    rows = np.sort(rng.choice(n, 1200, replace=False))
+    rows = np.union1d(rows, [0, 5, 996, 2999])
+    np.testing.assert_array_equal(track[rows], whole[rows])
+    np.testing.assert_array_equal(track[1000:2500], whole[1000:2500])
+    np.testing.assert_array_equal(track[:], whole)
+    assert track[np.zeros(0, int)].shape == (0, 3)
+    assert len(track) == n and track.shape == (n, 3)
+    nowhere = reference.IgrfTrack(t, np.full(n, np.nan), lon, alt)
+    assert np.isnan(nowhere[rows]).all()
+
+
+def test_knots_summed_in_chunks_start_where_the_whole_path_says(monkeypatch):
+    """The knots' first epochs, the path summed a chunk at a time (chunks of 997 and 1, across the date line), are
+    where the path summed over the whole track in one ``cumsum`` passes each whole spacing."""
+    rng = np.random.default_rng(9)
+    n = 3000
+    lat = 48.1 + np.cumsum(rng.normal(0, 2e-4, n))
+    lon = (179.9 + np.cumsum(rng.normal(0, 2e-4, n)) + 180.0) % 360.0 - 180.0
+    alt = 500.0 + np.cumsum(rng.normal(0, 1.0, n))
+    dn = np.radians(np.diff(lat)) * reference.EARTH_RADIUS_M
+    de = np.radians((np.diff(lon) + 180.0) % 360.0 - 180.0) * reference.EARTH_RADIUS_M * np.cos(np.radians(lat[1:]))
+    path = np.concatenate([[0.0], np.cumsum(np.sqrt(dn**2 + de**2 + np.diff(alt) ** 2))])
+    knot = np.floor(path / 500.0).astype(np.int64)
+    expected = np.flatnonzero(np.diff(knot, prepend=-1))
+    assert 50 < len(expected) < n  # many knots, several epochs to one
+    for chunk in (997, 1):
+        monkeypatch.setattr(reference, "INTERPOLATION_CHUNK", chunk)
+        np.testing.assert_array_equal(reference._knot_starts(lat, lon, alt, 500.0), expected)
+    np.testing.assert_array_equal(reference._knot_starts(lat[:1], lon[:1], alt[:1], 500.0), [0])
+
+
 def test_dcm_in_chunks_is_dcm_in_one_piece(monkeypatch):
     """Attitude of many epochs, and a scalar pitch broadcast: the same matrices in chunks of 7."""
     rng = np.random.default_rng(8)

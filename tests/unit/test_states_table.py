@@ -18,7 +18,7 @@ from magkf.config import FilterConfig
 from magkf.io.drivelog import DriveLog, write_drive_log
 from magkf.online.results import RunTrace
 from magkf.online.run import calibrate_log
-from magkf.online.states_table import NOISE_COLUMNS, StatesTable, states_frame
+from magkf.online.states_table import NOISE_COLUMNS, StatesTable, states_frame, status_codes
 from magkf.sim import DriveConfig, simulate_drive
 from magkf.status import Status
 
@@ -84,6 +84,18 @@ def test_holds_the_blocks_not_the_epochs():
     standard deviations, the block's end, four float32 noise values): nothing else."""
     table, _ = _parts()
     assert table.nbytes == 22 * N + (8 * len(NAMES) + 24) * 4
+
+
+def test_status_codes_of_the_table_and_of_its_frame():
+    """The table's own codes (its array, read only) and those of its DataFrame's column of names are the same; a
+    name that is no status is -1."""
+    table, frame = _parts()
+    codes = status_codes(table)
+    assert codes.dtype == np.int8 and not codes.flags.writeable
+    np.testing.assert_array_equal(codes, table._status)
+    np.testing.assert_array_equal(status_codes(frame), codes)
+    odd = frame.assign(status=["no such status"] + list(frame["status"].iloc[1:]))
+    np.testing.assert_array_equal(status_codes(odd), np.r_[-1, codes[1:]])
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".parquet"])
