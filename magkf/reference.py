@@ -226,7 +226,9 @@ class IgrfTrack:
 
     def _moved(self, date_index, group, offset) -> np.ndarray:
         """The field at the dates' knots, moved along their gradients by ``offset`` (k, 3)."""
-        return self.base[date_index, group] + np.einsum("nij,nj->ni", self.grad[date_index, group], offset)
+        at = date_index * len(self.first) + group  # (date, knot) as one index into the flattened arrays
+        grad = np.take(self.grad.reshape(-1, 3, 3), at, axis=0)  # (k, 3, 3)
+        return np.take(self.base.reshape(-1, 3), at, axis=0) + np.einsum("nij,nj->ni", grad, offset)
 
 
 #: Epochs ``igrf_ned`` interpolates at a time.

@@ -60,6 +60,7 @@ from .prepare import (
     configured_noise,
     effect_spread,
     fit_positions,
+    horizontal_squared,
     magnitude_residuals,
     mark_missing_columns,
     prepare,
@@ -658,7 +659,7 @@ def _start_noise(log, config, scan: _Scan, layout, x0, R0, attitude: bool):
         seen += len(usable)
     parts = np.concatenate(parts)
     along, cross = (parts[:, 0], parts[:, 1:]) if attitude else (parts, None)
-    return start_levels(along, cross, np.concatenate(ref_mag), np.concatenate(ref), config), x
+    return start_levels(along, cross, np.concatenate(ref_mag), horizontal_squared(np.concatenate(ref)), config), x
 
 
 def _smooth(folder, xs_file: Spill, Ps_file: Spill, dt, q_rate) -> tuple[Spill, Spill]:

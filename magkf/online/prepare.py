@@ -784,7 +784,7 @@ def start_noise(
         if usable.sum() < 10:
             return start, x0
         along, cross, x = magnitude_residuals(prep.take(usable), x0), None, x0
-    return start_levels(along, cross, prep.ref_mag[usable], prep.ref[usable], config), x
+    return start_levels(along, cross, prep.ref_mag[usable], horizontal_squared(prep.ref, usable), config), x
 
 
 def effect_spread(layout: StateLayout) -> np.ndarray:
@@ -840,11 +840,10 @@ def magnitude_residuals(prep: PreparedLog, x0) -> np.ndarray:
     return prep.ref_mag - np.linalg.norm(calibrated_field(*c, prep.m), axis=1)
 
 
-def start_levels(along, cross, ref_mag, ref, config: FilterConfig) -> NoiseLevels:
+def start_levels(along, cross, ref_mag, horizontal2, config: FilterConfig) -> NoiseLevels:
     """The starting noise (``noise.robust_start``) from the residuals ``along`` (k,) the field and ``cross`` (k, 2)
-    across it (None: without attitude) at epochs of reference field ``ref`` (k, 3) NED nT, of magnitude
-    ``ref_mag`` (k,) nT."""
-    ref = np.asarray(ref, float)
+    across it (None: without attitude) at epochs of reference field magnitude ``ref_mag`` (k,) nT and horizontal
+    part squared ``horizontal2`` (k,) nT^2 (``horizontal_squared``)."""
     return robust_start(
         along,
         cross,
@@ -852,8 +851,20 @@ def start_levels(along, cross, ref_mag, ref, config: FilterConfig) -> NoiseLevel
         config.reference_nt,
         config.noise_floor_nt,
         configured_noise(config).attitude_rad,
-        np.sum(ref[:, :2] ** 2, axis=1),
+        np.asarray(horizontal2, float),
     )
+
+
+def horizontal_squared(ref, rows=None) -> np.ndarray:
+    """The horizontal part squared (k,) nT^2 of the reference field ``ref`` (N, 3) NED nT at the epochs ``rows``
+    (k,) (None: every epoch), ``CHUNK`` at a time: no copy of those epochs' field."""
+    rows = np.arange(len(ref)) if rows is None else np.asarray(rows)
+    if rows.dtype == bool:
+        rows = np.flatnonzero(rows)
+    out = np.empty(len(rows))
+    for i in range(0, len(rows), CHUNK):
+        out[i : i + CHUNK] = np.sum(ref[rows[i : i + CHUNK], :2] ** 2, axis=1)
+    return out
 
 
 #: Epochs taken at once where a whole log is gone through (the starting noise's Jacobians, the per-epoch table).
