@@ -67,10 +67,11 @@ Faults (each an event, none fatal)
       parameters are asked for again; the sequence counting is redone over the packets since the last clock message
       so that the new boot's counter starting at 0 is not counted as loss; for ``REBOOT_STALE_S`` after it, a clock
       message of the old boot delayed past the reboot is dropped (a magnetometer one counted ``late``);
-    * a link that drops: no packet for ``link_timeout_s`` (this computer's clock), or a TCP connection closed by
-      its other end: "link lost", and the samples waiting are handed out; reading goes on (a TCP connection is
-      opened again every ``RECONNECT_S``: one attempt, which can block for the system's connect timeout where the
-      host does not answer); "link back" when packets come again, and the streams are asked for again.
+    * a link that drops: no packet for ``link_timeout_s`` (this computer's clock) with none waiting to be read (a
+      poll that comes late reads what waited first), or a TCP connection closed by its other end: "link lost", and
+      the samples waiting are handed out; reading goes on (a TCP connection is opened again every ``RECONNECT_S``:
+      one attempt, which can block for the system's connect timeout where the host does not answer); "link back"
+      when packets come again, and the streams are asked for again.
 """
 
 from __future__ import annotations
@@ -497,8 +498,8 @@ class MavlinkSource:
         end = time.monotonic() + max(timeout_s, 0.0)
         burst = 0
         while True:
-            self._housekeeping()
             msg = self._receive()
+            self._housekeeping(idle=msg is None)
             if msg is not None:
                 burst += 1
                 self._handle(msg)
@@ -528,15 +529,19 @@ class MavlinkSource:
         except (OSError, struct.error, ValueError):
             return None
 
-    def _housekeeping(self) -> None:
-        """The ground station's heartbeat, the link's state, parameter rounds, a TCP reconnection."""
+    def _housekeeping(self, idle: bool) -> None:
+        """The ground station's heartbeat, parameter rounds and, when nothing is waiting to be read (``idle``: the
+        last read found no message), the link's state and a TCP reconnection. A silence is judged only then: after
+        this computer was too busy to read for a while, the packets waiting in the socket are read, not dropped
+        with a connection opened again."""
         now = time.monotonic()
         if now - self._last_heartbeat >= HEARTBEAT_S and self._conn is not None:
             self._last_heartbeat = now
             self._send("heartbeat_send", MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        if not self._link_down and self._vehicle is not None and now - self._last_packet > self.link_timeout_s:
+        if idle and not self._link_down and self._vehicle is not None and now - self._last_packet > self.link_timeout_s:
             self._link_lost(f"no packet for {now - self._last_packet:.1f} s; still listening")
-        if (self._link_down or self._peer_closed) and self._is_tcp and now - self._last_reconnect >= RECONNECT_S:
+        reopen = (self._link_down or self._peer_closed) and self._is_tcp and now - self._last_reconnect >= RECONNECT_S
+        if idle and reopen:
             self._reconnect(now)
         if self._param_reading and now >= self._param_next:
             self._parameter_round(now)

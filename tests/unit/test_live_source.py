@@ -19,6 +19,7 @@ Precision of what the messages carry (the bounds below):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import socket
 import threading
@@ -195,12 +196,31 @@ class Vehicle(threading.Thread):
         """Close the ground station's TCP connection; wait (bounded) for it to connect and send again. Returns the
         wall seconds this took."""
         began, asked = time.monotonic(), len(self.requests)
-        self.conn.port.close()
+        self._close_gracefully(self.conn.port)
         self.conn.port, self.conn.fd = None, self.conn.listen.fileno()  # pymavlink's tcpin accepts again
         while len(self.requests) == asked and not self._over():
             self._serve()
             time.sleep(0.002)
         return time.monotonic() - began
+
+    def _close_gracefully(self, port) -> None:
+        """Close the connection as a vehicle's TCP stack does: the end of what was sent (FIN) after the packets sent,
+        then what the ground station still sends read and left unanswered until it closes its end (at most 2 s).
+        Closed at once with its bytes unread, the socket would reset the connection, and the ground station's
+        system would drop the packets it had received but not yet handed to it: a loss that a busy machine makes
+        likely, and not one the source can prevent."""
+        with contextlib.suppress(OSError):
+            port.shutdown(socket.SHUT_WR)
+        until = time.monotonic() + 2.0
+        while time.monotonic() < until and not self._over():
+            try:
+                if not port.recv(4096):
+                    break  # the ground station closed its end
+            except BlockingIOError:
+                time.sleep(0.002)
+            except OSError:
+                break
+        port.close()
 
     def _wait_until(self, when: float) -> None:
         while time.monotonic() < when and not self._over():
@@ -614,6 +634,36 @@ def test_a_tcp_connection_closed_by_the_vehicle_is_opened_again(flight):
     assert link == ["link lost", "link back", "link lost"]
     assert "closed by the other end" in next(e for e in events if e.startswith("link lost"))
     assert len(samples) == len(table)  # nothing was lost: the vehicle waited for the new connection
+
+
+def test_a_ground_station_too_busy_to_read_for_a_while_loses_nothing(flight):
+    """The source not polled for four link timeouts mid-stream (this computer busy): over TCP, the packets waiting in
+    the socket are read when it polls again, not dropped with a connection opened again; the link is lost only at
+    the stream's end."""
+    table = flight.iloc[:80]
+    packets = vehicle_packets(table, params=CALIBRATION)
+    port = free_tcp_port()
+    vehicle = Vehicle(port, packets, CALIBRATION | DEFAULTS, transport="tcpin")
+    vehicle.start()
+    source = MavlinkSource(f"tcp:127.0.0.1:{port}", rate_hz=RATE_HZ, link_timeout_s=LINK_TIMEOUT_S)
+    try:
+        source.open(timeout_s=5.0)
+        samples, events = [], []
+        while len(samples) < len(table) // 3:  # a third of the stream read, then nothing read for a while
+            samples += source.poll(POLL_S)
+            events += source.take_events()
+        time.sleep(4 * LINK_TIMEOUT_S)
+        more, later = stream(source, vehicle, link_drops=1)
+        rates = source.rates_hz
+    finally:
+        source.close()
+        vehicle.stop.set()
+        vehicle.join(5.0)
+    events += later
+    sending = {"RAW_IMU": RATE_HZ, "ATTITUDE": 2 * RATE_HZ, "GPS_RAW_INT": 5.0, "SYSTEM_TIME": 1.0, "VFR_HUD": 2.0}
+    assert {name: rates[name] for name in sending} == pytest.approx(sending, rel=1e-9)
+    assert [e.split(":")[0] for e in events if e.startswith("link ")] == ["link lost"]  # the end's alone
+    assert len(samples + more) == len(table)
 
 
 def test_without_attitude_samples_go_after_wait_s_and_the_missing_stream_is_reported(flight):
