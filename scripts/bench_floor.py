@@ -22,6 +22,7 @@ Printed:
   printed beside this checkout's: before and after, in one run.
 
     python scripts/bench_floor.py [--repeat 3] [--hours 1] [--rate 100] [--skip-slow] [--baseline DIR]
+                                  [--only COMMAND ...]
 """
 
 from __future__ import annotations
@@ -167,6 +168,8 @@ def end_to_end(path: Path, out: Path, tmp: Path, n: int, args, ekf_phases: list)
     checkouts = {"after": None} if not args.baseline else {"before": Path(args.baseline), "after": None}
     child(["calibrate", str(path), "-o", str(out), "--quiet"])  # the calibration apply and validate read
     todo = commands(path, out, tmp, args.skip_slow)
+    if args.only:
+        todo = {name: argv for name, argv in todo.items() if name in args.only}
     # as the command line does when it starts (``magkf.allocator``), where the checkout has it: looked for in the
     # imported package's own folder (an editable install would find this checkout's for an older checkout)
     pin = "import importlib, importlib.machinery as m, magkf; "
@@ -200,6 +203,8 @@ def end_to_end(path: Path, out: Path, tmp: Path, n: int, args, ekf_phases: list)
     print("  (B/epoch: peak resident memory above a process that imports the same modules and reads the log)")
     print_markdown(["floor", "read only", *todo], checkouts, wall, peak, n, args.repeat)
     # What the filter loop's speed alone can gain: the EKF's end-to-end time less its loop (in the process).
+    if "calibrate (EKF)" not in todo:
+        return
     loop = median_phases(ekf_phases)["filter loop"]
     rest = wall[("calibrate (EKF)", "after")] - loop
     print(
@@ -251,12 +256,23 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=100.0)
     parser.add_argument("--skip-slow", action="store_true", help="leave out --batch, diagnose, validate and report")
     parser.add_argument(
+        "--only",
+        nargs="+",
+        metavar="COMMAND",
+        help="end to end, only these commands (their names in the table, e.g. diagnose report 'calibrate (EKF)'), "
+        "beside the floor and the read; in this process, only the EKF's phases",
+    )
+    parser.add_argument(
         "--baseline",
         metavar="DIR",
         help="a checkout of an earlier magkf (e.g. made by git worktree add): every command end to end is run with "
         "it too (before) and printed beside this one (after)",
     )
     args = parser.parse_args()
+    names = commands(Path("log.csv"), Path("cal.json"), Path("."), args.skip_slow)
+    unknown = sorted(set(args.only or ()) - set(names))
+    if unknown:
+        parser.error(f"--only: no command named {', '.join(unknown)}; the names are {', '.join(names)}")
     from magkf.sim import DriveConfig, simulate_drive
 
     sim = simulate_drive(DriveConfig(duration_s=args.hours * 3600, rate_hz=args.rate, motion="3d", seed=1))
@@ -275,6 +291,8 @@ def main() -> int:
             floor(path, timings)
             floors.append(timings)
             runs["ekf"].append(magkf_phases(path, out, "ekf"))
+            if args.only:
+                continue
             runs["ukf"].append(magkf_phases(path, out, "ukf"))
             runs["ekf --smooth"].append(magkf_phases(path, out, "ekf", smooth=True))
             if not args.skip_slow:

@@ -199,8 +199,6 @@ class Chunk:
         at = _positions(rows.index[epochs])
         if name == "mag":
             return np.column_stack([rows.arrays[c][at] for c in MAG])
-        if name == "field_ned":
-            return rows.ref[at]
         parts = [self._window(k, name)[take] for k, (_, _, take) in enumerate(self.segments)]
         if len(parts) == 1:
             return parts[0]
@@ -217,7 +215,9 @@ class Chunk:
 
             lo, hi, _ = self.segments[k]
             rows = self.rows
-            if name in ("field_body_rate", "field_body_accel"):
+            if name == "field_ned":  # the reference field: made once for the window, whence its epochs' and the rest
+                self._made[key] = rows.ref[lo:hi]
+            elif name in ("field_body_rate", "field_body_accel"):
                 rates = field_rates(rows.log_time[lo:hi], self._window(k, "field_body"))
                 for part, values in zip(("field_body_rate", "field_body_accel"), rates):
                     self._made[("window", k, part)] = values
@@ -226,7 +226,8 @@ class Chunk:
                     attitude = np.column_stack([rows.arrays[c][lo:hi] for c in ATTITUDE])
                 else:
                     attitude = np.full((hi - lo, 3), np.nan)
-                for part, values in zip(("c_nb", "field_body", "heading"), body_arrays(attitude, rows.ref[lo:hi])):
+                ref = self._window(k, "field_ned")
+                for part, values in zip(("c_nb", "field_body", "heading"), body_arrays(attitude, ref)):
                     self._made[("window", k, part)] = values
         return self._made[key]
 

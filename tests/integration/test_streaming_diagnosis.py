@@ -22,8 +22,9 @@ import pytest
 
 import magkf.diagnostics.diagnose as diagnose_module
 import magkf.online.determined as determined
+import magkf.online.prepare as prepare_module
 import magkf.online.prepared_rows as prepared_rows
-from magkf import Calibration
+from magkf import Calibration, reference
 from magkf.diagnostics.diagnose import diagnose
 from magkf.diagnostics.validate import validate
 from magkf.effects import BUILTIN, stored_effect
@@ -52,11 +53,15 @@ def hidden():
 
 def _chunked(monkeypatch, size):
     """Passes over ``size`` epochs at a time in the diagnosis (the whitened rows, the gate and the residuals), its
-    epochs prepared again from the log for each chunk read rather than held (``prepared_rows.HELD_BYTES``)."""
+    epochs prepared again from the log for each chunk read rather than held (``prepared_rows.HELD_BYTES``), their
+    reference field made for the rows read (``prepare.REFERENCE_HELD_EPOCHS``, in pieces of ``size``) as a long log's
+    is."""
     monkeypatch.setattr(determined, "CHUNK", size)
     monkeypatch.setattr(diagnose_module, "CHUNK", size)
     monkeypatch.setattr(prepared_rows, "CHUNK", size)
     monkeypatch.setattr(prepared_rows, "HELD_BYTES", 0)
+    monkeypatch.setattr(prepare_module, "REFERENCE_HELD_EPOCHS", 0)
+    monkeypatch.setattr(reference, "INTERPOLATION_CHUNK", size)
 
 
 def _agree(whole, chunked, path=""):
