@@ -328,7 +328,7 @@ def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wan
     noise = _learned_noise(run, config)
     if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be
         noise, used = _gated_as_calibrate(prep, config, layout, x, used)
-    problem = EpochSet.of(log, reference_track(log, config), used, config, noise, wander_s)
+    problem = EpochSet.of(log, reference_track(log, config, prep), used, config, noise, wander_s)
     channels = list(prep.data.columns)
     del prep  # the diagnosed epochs are prepared again a chunk at a time when read
     if len(problem) < 10:

@@ -229,7 +229,7 @@ def _epochs(log: DriveLog, config: FilterConfig, effects, layout: StateLayout, x
     for effect in effects:
         for column in effect.columns:
             used &= np.isfinite(prep.data.columns[column])
-    epochs = EpochSet.of(log, reference_track(log, config), used, config, wander_s=wander_s)
+    epochs = EpochSet.of(log, reference_track(log, config, prep), used, config, wander_s=wander_s)
     del prep  # the epochs are prepared again a chunk at a time when read
     if len(epochs) < 50:
         raise InputError(f"too few usable epochs ({len(epochs)}) to validate on", log.source)
