@@ -192,8 +192,8 @@ def _status_plot(run, t0):
     first, last = np.r_[0, change], np.r_[change, len(codes)] - 1
     step = float(np.median(np.diff(time), overwrite_input=True)) if len(time) > 1 else 1.0
     for k in range(len(names) if len(codes) else 0):
-        runs = first[codes[first] == k]
-        ends = last[codes[first] == k]
+        own = codes[first] == k
+        runs, ends = first[own], last[own]
         spans = list(zip(time[runs] - t0, time[ends] - time[runs] + step))
         ax2.broken_barh(spans, (k - 0.4, 0.8), color=colours(k % 10))
     ax2.set(

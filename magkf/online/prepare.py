@@ -233,12 +233,12 @@ def reference_field(log: DriveLog, config: FilterConfig) -> np.ndarray:
 REFERENCE_HELD_EPOCHS = 1_000_000
 
 
-def reference_track(log: DriveLog, config: FilterConfig, prep: PreparedLog | None = None):
-    """``reference_field(log, config)`` as a diagnosis reads it, ``track[rows]`` (k, 3) NED nT: the array for a log of
-    up to ``REFERENCE_HELD_EPOCHS`` epochs (``prep.ref`` itself where the log's prepared arrays ``prep`` are given),
-    else made for the epochs asked when read (``DriveLog.reference_track``)."""
+def reference_track(log: DriveLog, config: FilterConfig, prep: PreparedLog):
+    """``reference_field(log, config)`` as a diagnosis reads it, ``track[rows]`` (k, 3) NED nT: for a log of up to
+    ``REFERENCE_HELD_EPOCHS`` epochs the array of its prepared arrays ``prep`` (``prep.ref`` itself), else made for the
+    epochs asked when read (``DriveLog.reference_track``)."""
     if len(log.table) <= REFERENCE_HELD_EPOCHS:
-        return reference_field(log, config) if prep is None else prep.ref
+        return prep.ref
     return log.reference_track(knot_spacing_m=config.reference_refresh_m)
 
 
