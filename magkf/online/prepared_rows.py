@@ -77,6 +77,10 @@ class PreparedRows:
             _columns = (arrays, table.index.to_numpy(dtype=float))
         self.arrays, self.log_time = _columns
         self.time = self.log_time[self.index]
+        # what the chunks read of the set: they hold it and not the set, whose cache holds them, so that a set let
+        # go is freed at once with its chunks rather than by the cycle collector later (a diagnosis's trials let
+        # go sets of a few chunks each, 24 MB on the hour's log)
+        self._source = _Source(self.index, self.time, self.log_time, self.arrays, self.m, self.ref, self.columns)
         self.held = len(self.index) * (PREPARED_BYTES + 8 * len(self.columns)) <= HELD_BYTES
         self._whole = None  # a held set's chunk of every epoch, made at the first read
         self._kept: OrderedDict = OrderedDict()
@@ -102,14 +106,14 @@ class PreparedRows:
         if self.held:
             with self._lock:
                 if self._whole is None:
-                    self._whole = Chunk(self, 0, len(self))
+                    self._whole = Chunk(self._source, 0, len(self))
             return self._whole.part(start, stop)
         key = (start, stop)
         with self._lock:
             if key in self._kept:
                 self._kept.move_to_end(key)
                 return self._kept[key]
-        made = Chunk(self, start, stop)
+        made = Chunk(self._source, start, stop)
         with self._lock:
             self._kept[key] = made
             while len(self._kept) > KEPT_CHUNKS:
@@ -148,15 +152,28 @@ def _runs(rows: np.ndarray) -> list:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-class Chunk:
-    """The epochs ``start`` to ``stop`` of a ``PreparedRows`` set, each array made when it is first read and kept
-    (``get``, read-only): the log's columns read at the epochs; the attitude matrices, the body-frame field, the
-    heading axis and the field's rates by ``prepare``'s rules (``prepare.body_arrays``, ``prepare.field_rates``) on
-    the log's rows from each run of epochs' first to its last with ``MARGIN`` rows either side (a sparse set is not
-    prepared over the rows between its runs), then taken at the epochs. An array no pass reads (the field's rates,
-    where no effect uses them) is not made."""
+@dataclass(frozen=True)
+class _Source:
+    """What a ``Chunk`` reads of its ``PreparedRows`` set (the set's attributes of the same names)."""
 
-    def __init__(self, rows: PreparedRows, start: int, stop: int):
+    index: np.ndarray
+    time: np.ndarray
+    log_time: np.ndarray
+    arrays: dict
+    m: np.ndarray | None
+    ref: object
+    columns: tuple
+
+
+class Chunk:
+    """The epochs ``start`` to ``stop`` of a ``PreparedRows`` set (read through its ``_Source``), each array made
+    when it is first read and kept (``get``, read-only): the log's columns read at the epochs; the attitude
+    matrices, the body-frame field, the heading axis and the field's rates by ``prepare``'s rules
+    (``prepare.body_arrays``, ``prepare.field_rates``) on the log's rows from each run of epochs' first to its last
+    with ``MARGIN`` rows either side (a sparse set is not prepared over the rows between its runs), then taken at
+    the epochs. An array no pass reads (the field's rates, where no effect uses them) is not made."""
+
+    def __init__(self, rows: _Source, start: int, stop: int):
         self.rows, self.start, self.stop, self._parent = rows, start, stop, None
         self._made: dict = {}
         at = rows.index[start:stop]
