@@ -943,7 +943,7 @@ def signal_values(data):
         "roll_deg": lambda: roll,
         "pitch_deg": lambda: pitch,
         "time_s": lambda: t - t[0],
-        "yaw_rate_dps": lambda: np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi,
+        "yaw_rate_dps": lambda: yaw_rate(yaw, t),
         "field_rate_nt_s": lambda: field_rate,
     }
     if n <= 2:
@@ -953,6 +953,51 @@ def signal_values(data):
     for name, values in columns.items():
         if name not in made:
             yield name, np.asarray(values)
+
+
+def yaw_rate(yaw: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The heading's rate (N,) deg/s of ``yaw`` (N,) deg at ``t`` (N,) s (N >= 2), to the last bit
+    ``np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi``, made ``CHUNK`` epochs at a time: the whole-array
+    expression holds some ten working arrays of the log's length (28 MB on the hour's log, the peak of the signals'
+    stage). The unwrapping's running sum of corrections is carried from chunk to chunk as one ``cumsum`` adds it up,
+    and the rate takes numpy's formula for even steps where every step of ``t`` is equal, else its formula for
+    uneven steps (``effects.base._gradient``'s)."""
+    n = len(yaw)
+    unwrapped = np.empty(n)
+    carried = 0.0  # the sum of the corrections up to the chunk's first epoch
+    unwrapped[0] = np.radians(yaw[0])
+    for a in range(1, n, CHUNK):
+        p = np.radians(yaw[a - 1 : a + CHUNK])
+        dd = np.diff(p)
+        wrapped = np.mod(dd + np.pi, 2 * np.pi) - np.pi  # np.unwrap's steps into [-pi, pi)
+        np.copyto(wrapped, np.pi, where=(wrapped == -np.pi) & (dd > 0))
+        correction = wrapped - dd
+        np.copyto(correction, 0, where=np.abs(dd) < np.pi)
+        sums = np.cumsum(np.concatenate([[carried], correction]))[1:]
+        unwrapped[a : a + CHUNK] = p[1:] + sums
+        carried = sums[-1]
+    even = all(np.all(np.diff(t[a : a + CHUNK + 1]) == t[1] - t[0]) for a in range(0, n - 1, CHUNK))
+    out = np.empty(n)
+    for a in range(0, n, CHUNK):
+        lo, hi = max(a - 1, 0), min(a + CHUNK + 1, n)  # the chunk and a neighbour either side
+        f, dt = unwrapped[lo:hi], np.diff(t[lo:hi])
+        rate = np.empty(hi - lo)
+        if even:
+            rate[1:-1] = (f[2:] - f[:-2]) / (2.0 * (t[1] - t[0]))
+        else:
+            dx1, dx2 = dt[:-1], dt[1:]
+            rate[1:-1] = (
+                -dx2 / (dx1 * (dx1 + dx2)) * f[:-2]
+                + (dx2 - dx1) / (dx1 * dx2) * f[1:-1]
+                + dx1 / (dx2 * (dx1 + dx2)) * f[2:]
+            )
+        if lo == 0:
+            rate[0] = (f[1] - f[0]) / (t[1] - t[0])
+        if hi == n:
+            rate[-1] = (f[-1] - f[-2]) / (t[-1] - t[-2])
+        first = a - lo
+        out[a : a + CHUNK] = rate[first : first + min(CHUNK, n - a)] * 180 / np.pi
+    return out
 
 
 def _bins(name: str, v: np.ndarray) -> np.ndarray:
