@@ -910,9 +910,14 @@ def robust_linear_fit(m, H, x0, noise_var: float, iterations: int = 6, prior_std
         pull = np.where(np.isfinite(std), noise_var / std**2, pull)
     w = np.ones(len(m))
     x = x0
+    pieces = [slice(a, a + 3 * CHUNK) for a in range(0, len(y), 3 * CHUNK)]  # whole epochs: CHUNK of them a piece
     for i in range(iterations + REJECT_ITERATIONS):
-        weighted = rows * np.repeat(w, 3)[:, None]
-        x = np.linalg.solve(rows.T @ weighted + np.diag(pull), weighted.T @ y + pull * x0)
+        normal, rhs = np.diag(pull), pull * x0
+        for at in pieces:  # the normal equations summed a piece at a time: no weighted copy of the rows
+            weighted = rows[at] * np.repeat(w[at.start // 3 : at.stop // 3], 3)[:, None]
+            normal = normal + rows[at].T @ weighted
+            rhs = rhs + weighted.T @ y[at]
+        x = np.linalg.solve(normal, rhs)
         r = np.linalg.norm((y - rows @ x).reshape(-1, 3), axis=1)
         s = 1.4826 * np.median(r) + 1e-9
         w = np.minimum(1.0, ROBUST_SCALES * s / np.maximum(r, 1e-12))

@@ -89,7 +89,7 @@ def calibrate_log(
     """
     started = _time.perf_counter()
     with phases("reference field and attitude"):
-        prep = prepare(log, config) if prepared is None else prepared
+        prep = prepare(log, config, rates=bool(effects)) if prepared is None else prepared
     with phases("start (bootstrap, noise)"):
         setup = prepare_run(prep, config, init, effects, log.source)
         est = setup.estimator(config)
