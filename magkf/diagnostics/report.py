@@ -13,6 +13,7 @@ residuals or candidate tests shown at all (they would measure the refusal).
 from __future__ import annotations
 
 import base64
+import gc
 import html
 import io
 from dataclasses import dataclass
@@ -50,6 +51,12 @@ def _png(fig, alt: str) -> str:
     import matplotlib.pyplot as plt
 
     plt.close(fig)
+    # A closed figure is a cycle of objects (figure, canvas, axes, artists) that holds its data until the cycle
+    # collector next runs, and what it leaves free in the heap stays resident: on the hour's log the page's peak
+    # was 329 MiB with the figures left to the collector, 312 with each collected and given back here.
+    del fig
+    gc.collect()
+    release_free_memory()
     data = base64.b64encode(buffer.getvalue()).decode()
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
 
@@ -865,6 +872,7 @@ def build_report(
     say("calibrating")
     run = calibrate_log(log, config, init=cal, effects=effects)
     judged = judge(run, log, cal)
+    release_free_memory()  # the judgement's working arrays (11 MB on the hour) not resident under the diagnosis
     diag = None  # a calibration refused by its own R and b is not diagnosed: its residuals measure the refusal
     if not judged.withheld:
         diag, _ = diagnose(log, config, cal, effects, alpha=alpha, run=run, wander_s=wander_s, progress=say)
