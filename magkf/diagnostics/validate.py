@@ -189,7 +189,7 @@ def validate(
     epochs = _epochs(log, config, effects, layout, x, wander_s)
     # as stored: nothing fitted on this log, not even the heading's slow error (exact for nonlinear effects too)
     stored = epochs.with_wander(None).at(layout, x)
-    as_stored = _rms(_ned(stored, stored.residual(x).reshape(-1, 3), x))
+    as_stored = _ned_rms(stored, _residual_of(stored, x), x)
     held = tuple(e for e in effects if not e.wanders)
     contributions = {e: _contribution(e, x[sl], stored.data) for e, sl in layout.blocks() if e in held}
     del stored  # its whitened reading (24 bytes an epoch) is let go before the fits are made
@@ -200,7 +200,11 @@ def validate(
     tau = integrated_time(high_passed(fit.r.reshape(n, 3)))
     compare = _Comparison(fit, plain, validation_edges(n, tau))
     checks = [compare.check(e.label, contributions[e], alpha) for e in held]
+    with_held_nt = _ned_rms(fit, compare.with_held)
+    compare.with_tested = compare.with_held = None  # the checks are made: not held beside the next residuals
     core_held, core_in = compare.less_all([contributions[e] for e in held])
+    core_held_nt, core_in_nt = _ned_rms(fit, core_held), _ned_rms(fit, core_in)
+    del core_held, core_in
     wandering = [_rate_check(epochs, contributions, e, x, wander_s) for e in effects if e.wanders]
     result = Validation(
         log.source,
@@ -210,10 +214,10 @@ def validate(
         len(compare.edges) - 1,
         alpha,
         as_stored,
-        _rms(_ned(fit, compare.with_held.reshape(-1, 3))),
-        _rms(_ned(fit, core_held.reshape(-1, 3))),
-        _rms(_ned(fit, fit.r.reshape(-1, 3))),
-        _rms(_ned(fit, core_in.reshape(-1, 3))),
+        with_held_nt,
+        core_held_nt,
+        _ned_rms(fit, fit.r_of),
+        core_in_nt,
         checks,
         wandering,
     )
@@ -299,7 +303,9 @@ class _Comparison:
             y += g
             y_plain += g_plain
             del g, g_plain  # in place, each let go: vectors of three values an epoch
-        return self.held_out(y, y_plain, tested=False)[1], self.in_sample(y)
+        truly = self.held_out(y, y_plain, tested=False)[1]
+        del y_plain
+        return truly, self.in_sample(y)
 
     def check(self, label: str, contribution: np.ndarray, alpha: float) -> EffectCheck:
         """The paired held-out comparison of one effect whose contribution (n, 3) nT is held (module's docstring)."""
@@ -310,7 +316,7 @@ class _Comparison:
         fall = np.sum((r_without**2 - r_with**2).reshape(-1, 3), axis=1)
         per_block = np.add.reduceat(fall, self.edges[:-1])
         fit = self.fit
-        w, wo = _rms(_ned(fit, r_with.reshape(-1, 3))), _rms(_ned(fit, r_without.reshape(-1, 3)))
+        w, wo = _ned_rms(fit, r_with), _ned_rms(fit, r_without)
         in_with = fit.r
         in_without = in_with + self.in_sample(g)
         return EffectCheck(
@@ -318,8 +324,8 @@ class _Comparison:
             w,
             wo,
             (w - wo) / wo,
-            _rms(_ned(fit, in_with.reshape(-1, 3))),
-            _rms(_ned(fit, in_without.reshape(-1, 3))),
+            _ned_rms(fit, in_with),
+            _ned_rms(fit, in_without),
             **score,
             blocks=len(per_block),
             blocks_helped=int(np.sum(per_block > 0)),
@@ -436,13 +442,23 @@ def _stretch_means(fit, heading: np.ndarray, stretch_s: float, drop_heading: boo
     return means[keep], t[starts][keep], ends[keep], counts[keep], drop
 
 
-def _ned(fit, residual_w, x=None) -> np.ndarray:
-    """Whitened residuals (n, 3) as NED residuals (n, 3) nT at the fit's (or ``x``'s) calibration ``R``."""
-    body = fit.unwhitened(residual_w) @ np.linalg.inv(fit.layout.R(fit.x_fit if x is None else x)).T
+def _residual_of(fit, x):
+    """``(a, b) -> fit.residual(x)`` of the epochs ``a`` to ``b`` (3 (b - a),), made for those epochs alone."""
+    return lambda a, b: fit.y[3 * a : 3 * b] - fit.rows(a, b) @ x
+
+
+def _ned_rms(fit, residual_w, x=None) -> float:
+    """The RMS (nT) of the NED residuals of the whitened residuals ``residual_w`` (3n,), or ``residual_w(a, b)`` of
+    the epochs ``a`` to ``b`` of each of ``fit.chunks``, at the fit's (or ``x``'s) calibration ``R``: made a chunk at
+    a time, holding only each epoch's squared norm (8 bytes an epoch instead of the residuals' 48)."""
+    inverse = np.linalg.inv(fit.layout.R(fit.x_fit if x is None else x)).T
     c_nb = fit.data.c_nb
-    for a in range(0, len(body), CHUNK):  # the attitude read a chunk at a time
-        body[a : a + CHUNK] = body_to_ned(c_nb[a : a + CHUNK], body[a : a + CHUNK])
-    return body
+    squares = np.empty(len(fit.y) // 3)
+    for a, b in fit.chunks:
+        r = residual_w(a, b) if callable(residual_w) else residual_w[3 * a : 3 * b]
+        ned = body_to_ned(c_nb[a:b], fit.unwhitened(r.reshape(-1, 3), a, b) @ inverse)
+        squares[a:b] = np.sum(ned**2, axis=1)
+    return float(np.sqrt(np.mean(squares)))
 
 
 def _contribution(effect, theta, data) -> np.ndarray:
@@ -451,10 +467,6 @@ def _contribution(effect, theta, data) -> np.ndarray:
     return np.concatenate(
         [effect.contribution(theta, data, rows=slice(a, min(a + CHUNK, n))) for a in range(0, n, CHUNK)]
     )
-
-
-def _rms(ned: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
 
 
 def _with_text(v: Validation) -> Validation:
