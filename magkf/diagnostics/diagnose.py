@@ -323,7 +323,8 @@ def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wan
     stored = list(restore_effects(cal)) if cal is not None else []
     check_columns(stored + list(effects), log.auxiliary, log.source)  # naming the calibration file
     run = _run(log, config, cal, effects, stored, run, say)  # the run's own prepared arrays let go at its end
-    prep = prepare(log, config)
+    # the field's rates (48 bytes an epoch) only where the calibration's own effects are weighed here without a run
+    prep = prepare(log, config, rates=run is None and bool(stored))
     layout, x, used = _model(cal, effects, stored, run, prep)
     noise = _learned_noise(run, config)
     if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be
