@@ -165,7 +165,7 @@ def _turn(r: np.ndarray, n: int, sign: float) -> np.ndarray:
 
 #: Points of ``dct_head``'s chirp made at a time: it is made again for each pair of columns, into the transform's
 #: own buffer, rather than held (16 bytes a point).
-CHIRP_PIECE = 65536
+CHIRP_PIECE = 16384
 
 
 def _chirp_into(out: np.ndarray, n: int, sign: float, first: int = 0) -> None:
@@ -176,17 +176,23 @@ def _chirp_into(out: np.ndarray, n: int, sign: float, first: int = 0) -> None:
         out[a : a + CHIRP_PIECE] *= _turn(j * j, n, sign)
 
 
-def _spectrum(n: int, size: int) -> np.ndarray:
-    """The FFT (size,) of ``exp(+i pi d^2 / (2n))`` laid on a circle of ``size`` points, that ``dct_head``'s
-    chirped data are convolved with: ``d = p`` at the first ``h = (size - n + 2) // 2`` positions ``p`` and
-    ``p - size`` after them, so that every lag ``d = k - j`` (``j < n``, ``|k| < m``) has its own position when
-    ``size >= n + 2m - 2``. Made for each transform (about two FFTs' time) rather than kept between them: a
-    diagnosis's largest test holds its scores and the autocorrelation's FFT at once, and a kept spectrum of the
-    hour (5.4 MB) would add to that peak."""
-    h = (size - n + 2) // 2
+#: Points of the data ``dct_head`` convolves at a time (at least ``DCT_BLOCK_HEADS`` times the coefficients asked):
+#: its buffers are a block's, not the data's length (on the hour's 350 906 points, 8 in place of 22 MB).
+DCT_BLOCK = 65536
+DCT_BLOCK_HEADS = 8
+
+
+def _kernel_spectrum(n: int, first: int, length: int, m: int, size: int) -> np.ndarray:
+    """The FFT (size,) of the chirp ``exp(+i pi d^2 / (2n))`` at the lags ``d`` that ``dct_head``'s coefficients
+    ``-m < k < m`` take from the data points ``first`` to ``first + length``: ``d = e - (m - 1) - (first + length -
+    1)`` at positions ``e < length + 2m - 2``, the rest of the ``size`` points zero."""
+    lags = length + 2 * m - 2
+    lowest = -(m - 1) - (first + length - 1)  # the lag at position 0
+    negative = min(lags, -lowest)  # positions of negative lags, whose chirp is that of -d
     out = np.ones(size, complex)
-    _chirp_into(out[:h], n, 1.0)
-    _chirp_into(out[h:][::-1], n, 1.0, first=1)  # d = p - size: the chirp at -d = 1, 2, .. from the end back
+    out[lags:] = 0.0
+    _chirp_into(out[:negative][::-1], n, 1.0, first=-(lowest + negative - 1))  # -d from the last of them back
+    _chirp_into(out[negative:lags], n, 1.0, first=lowest + negative)
     return fft.fft(out, overwrite_x=True)
 
 
@@ -198,38 +204,48 @@ def dct_head(x: np.ndarray, m: int) -> np.ndarray:
     scipy. Any other, such as the hour's n = 2 x 175 453, for which pocketfft's cosine transform is seven times
     slower than at 360 000: ``y_k = 2 Re(exp(-i pi k / (2n)) X_k)`` with ``X_k = sum_j x_j exp(-i pi j k / n)``,
     made by Bluestein's chirp-z transform (``jk = (j^2 + k^2 - (k - j)^2) / 2`` turns the sum into a
-    convolution) with FFTs of ``next_fast_len(n + 2m - 2)`` points, whose cost does not depend on n's factors.
-    Two columns go through one complex transform, ``z = x1 + i x2`` at ``k`` and ``-k``: ``X1_k = (Z_k + conj
-    Z_-k) / 2`` and ``X2_k = (Z_k - conj Z_-k) / 2i`` as the columns are real; each column scaled first by a power
-    of two near its norm (exactly), so that neither's rounding is the other's. The chirps' phases are reduced in
-    integers (``_turn``); the rounding error is that of FFTs of that length (seen: 1e-15 of the largest
-    coefficient, below 1e-12 of the data's 2-norm at a million points). One complex buffer of the FFTs' length
-    is transformed in place, and the spectrum it is multiplied by (``_spectrum``) is of the same length: 32
-    bytes a point in all."""
+    convolution), the data convolved a block of ``DCT_BLOCK`` points at a time (overlap-save: each block's
+    contribution to the ``2m - 1`` coefficients ``-m < k < m`` from one circular convolution of
+    ``next_fast_len(block + 2m - 2)`` points, its kernel's spectrum made once for all columns), whose cost does not
+    depend on n's factors. Two columns go through one complex transform, ``z = x1 + i x2`` at ``k`` and ``-k``:
+    ``X1_k = (Z_k + conj Z_-k) / 2`` and ``X2_k = (Z_k - conj Z_-k) / 2i`` as the columns are real; each column
+    scaled first by a power of two near its norm (exactly), so that neither's rounding is the other's. The chirps'
+    phases are reduced in integers (``_turn``); the rounding error is that of FFTs of that length (seen: 1e-15 of
+    the largest coefficient, below 1e-12 of the data's 2-norm at a million points). It holds the block's buffer,
+    its kernel's spectrum and the sums of the coefficients: 32 bytes a point of a block, not of the data."""
     x = np.asarray(x, float).reshape(len(x), -1)
     n, k = x.shape
     m = min(int(m), n)
     if fft.next_fast_len(n, real=True) == n:
         return fft.dct(np.ascontiguousarray(x.T), type=2)[:, :m].T  # made along contiguous rows (faster)
-    size = fft.next_fast_len(n + max(2 * m - 2, 0))
-    spectrum = _spectrum(n, size)
-    head = np.arange(m, dtype=np.int64)
-    chirp, shift = _turn(head * head, n, -1.0), _turn(head, n, -1.0)  # Bluestein's chirp of X_k; exp(-i pi k / 2n)
+    block = min(n, max(DCT_BLOCK, DCT_BLOCK_HEADS * m))
+    size = fft.next_fast_len(block + 2 * m - 2)
     norms = np.sqrt(np.einsum("ij,ij->j", x, x))  # (np.linalg.norm would square a copy of x)
     scale = np.exp2(np.round(np.log2(np.where(norms > 0, norms, 1.0))))
-    out, z = np.empty((m, k)), np.empty(size, complex)
-    for c in range(0, k, 2):  # two columns at a time, in place in one buffer
-        z[n:] = 0.0
-        np.divide(x[:, c], scale[c], out=z[:n].real)
-        if c + 1 < k:
-            np.divide(x[:, c + 1], scale[c + 1], out=z[:n].imag)
-        else:
-            z[:n].imag = 0.0
-        _chirp_into(z[:n], n, -1.0)
-        z = fft.fft(z, overwrite_x=True)  # in place (scipy transforms a complex array in place when let)
-        z *= spectrum
-        z = fft.ifft(z, overwrite_x=True)
-        ahead, behind = chirp * z[:m], np.conj(chirp * z[-head % size])  # Z_k, conj Z_-k
+    pairs = range(0, k, 2)
+    sums = np.zeros((len(pairs), 2 * m - 1), complex)  # Z_k of each pair of columns, k = -(m - 1) .. m - 1
+    z = np.empty(size, complex)
+    for first in range(0, n, block):
+        length = min(block, n - first)
+        spectrum = _kernel_spectrum(n, first, length, m, size)
+        for p, c in enumerate(pairs):  # two columns at a time, in place in one buffer
+            z[length:] = 0.0
+            np.divide(x[first : first + length, c], scale[c], out=z[:length].real)
+            if c + 1 < k:
+                np.divide(x[first : first + length, c + 1], scale[c + 1], out=z[:length].imag)
+            else:
+                z[:length].imag = 0.0
+            _chirp_into(z[:length], n, -1.0, first=first)
+            z = fft.fft(z, overwrite_x=True)  # in place (scipy transforms a complex array in place when let)
+            z *= spectrum
+            z = fft.ifft(z, overwrite_x=True)
+            sums[p] += z[length - 1 : length + 2 * m - 2]
+        del spectrum
+    head = np.arange(m, dtype=np.int64)
+    chirp, shift = _turn(head * head, n, -1.0), _turn(head, n, -1.0)  # Bluestein's chirp of X_k; exp(-i pi k / 2n)
+    out = np.empty((m, k))
+    for p, c in enumerate(pairs):
+        ahead, behind = chirp * sums[p, m - 1 + head], np.conj(chirp * sums[p, m - 1 - head])  # Z_k, conj Z_-k
         out[:, c] = scale[c] * (shift * (ahead + behind)).real
         if c + 1 < k:
             out[:, c + 1] = scale[c + 1] * (shift * (ahead - behind)).imag

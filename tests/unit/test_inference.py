@@ -118,17 +118,47 @@ def test_whitened_leaves_zero_columns_zero_and_the_others_as_made_in_full():
         assert not got[:, [0, 2, 3]].any()
 
 
-def test_dct_head_holds_one_buffer_and_its_spectrum():
-    """``dct_head`` of many columns at a length of a large prime factor holds, beyond its output, no more than its
-    one complex buffer and the spectrum (16 bytes a point each) and a piece of the chirp at a time (traced): no copy
-    of the data (``np.linalg.norm`` of all columns made one), no chirp of the whole length kept between calls."""
+def _blocked_rounding(n: int, block: int, m: int) -> float:
+    """``_fft_rounding``'s bound for a transform convolved ``block`` points at a time: each block's error within its
+    own transform's bound (length ``block + 2m``) relative to the block's norm, and the blocks' norms summing to at
+    most ``sqrt(blocks)`` times the data's (Cauchy-Schwarz)."""
+    size, blocks = block + 2 * m, -(-n // block)
+    return 2.0 * np.finfo(float).eps * np.log2(size) * np.sqrt(size) * np.sqrt(blocks)
+
+
+@pytest.mark.parametrize("block", [1, 7, 64, 4096])
+@pytest.mark.parametrize("n", [97, 10007])
+def test_dct_head_convolved_in_blocks_is_scipy_dct(monkeypatch, n, block):
+    """The chirp-z transform convolved a block at a time (``DCT_BLOCK``) gives ``scipy.fft.dct``'s coefficients for
+    blocks of one point, of a prime number of points, shorter and longer than the coefficients asked (300) and
+    longer than the data, within the rounding of its blocks' transforms."""
+    from magkf.diagnostics import inference
+
+    monkeypatch.setattr(inference, "DCT_BLOCK", block)
+    monkeypatch.setattr(inference, "DCT_BLOCK_HEADS", 0)
+    rng = np.random.default_rng(n + block)
+    x = np.c_[5.0 + np.cumsum(rng.normal(size=n)), 1e-6 * rng.normal(size=n), rng.normal(size=n)]
+    m = min(n, 300)
+    got = dct_head(x, m)
+    expected = fft.dct(x, type=2, axis=0)[:m]
+    assert np.max(np.abs(got - expected) / np.linalg.norm(x, axis=0)) < _blocked_rounding(n, block, m)
+
+
+def test_dct_head_holds_a_block_not_the_data(monkeypatch):
+    """``dct_head`` of many columns at a length of a large prime factor holds, beyond its output and the sums of
+    its coefficients, no more than one complex buffer of a block and its kernel's spectrum (16 bytes a point each)
+    and a piece of a chirp at a time (traced): no copy of the data (``np.linalg.norm`` of all columns made one),
+    no buffer of the data's length (one would not fit)."""
     import tracemalloc
 
     from magkf.diagnostics import inference
 
-    n, q, m = 2 * 50021, 9, 400  # 50 021 is prime: the chirp-z path
+    monkeypatch.setattr(inference, "DCT_BLOCK", 8192)
+    n, q, m = 200003, 9, 400  # a prime: the chirp-z path
     x = np.random.default_rng(8).normal(size=(n, q))
-    size = fft.next_fast_len(n + 2 * m - 2)
+    block = max(inference.DCT_BLOCK, inference.DCT_BLOCK_HEADS * m)
+    size = fft.next_fast_len(block + 2 * m - 2)
+    sums = 16 * (2 * m - 1) * -(-q // 2)
     tracemalloc.start()
     try:
         got = dct_head(x, m)
@@ -136,9 +166,10 @@ def test_dct_head_holds_one_buffer_and_its_spectrum():
     finally:
         tracemalloc.stop()
     piece = inference.CHIRP_PIECE * (3 * 8 + 16)  # a piece's integers, angles and complex chirp
-    assert peak <= 2 * 16 * size + 2 * piece + got.nbytes + 64 * m + 4096
-    assert peak < x.nbytes  # a copy of the data would not fit
-    np.testing.assert_allclose(got, fft.dct(x, type=2, axis=0)[:m], rtol=0, atol=_fft_rounding(n) * np.sqrt(n))
+    assert peak <= 2 * 16 * size + 2 * piece + got.nbytes + sums + 64 * m + 4096
+    assert peak < 16 * n  # one complex buffer of the data's length would not fit
+    expected = fft.dct(x, type=2, axis=0)[:m]
+    np.testing.assert_allclose(got, expected, rtol=0, atol=_blocked_rounding(n, block, m) * np.sqrt(n))
 
 
 def test_heading_wander_made_a_chunk_at_a_time_is_the_held_one():
