@@ -704,18 +704,19 @@ def _covariance(
     batch-means sandwich."""
     H = T.T @ (s.A + problem.omega) @ T
     Hi = np.linalg.inv(H)
-    used_batches = np.any(s.scores != 0, axis=1)
-    k = int(used_batches.sum())
-    scores = s.scores[used_batches] @ T  # two batches' lengths of scores at a time, not four
-    scores -= scores.mean(axis=0)
-    meat = scores.T @ scores * (k / max(k - 1, 1))
     dof = max(s.count - T.shape[1], 1)
     white = Hi * (s.ss / dof)
-    sandwich = Hi @ meat @ Hi
     # never below independent epochs' covariance: a correlation cannot make the estimate better than white noise
-    P_theta = _at_least(white, sandwich)
     if noise is not None:  # the learned noise model's correlation, in place of the batches (see the docstring)
         P_theta = _at_least(white, Hi @ (T.T @ problem.model_meat(x, *noise) @ T) @ Hi)
+    else:
+        used_batches = np.any(s.scores != 0, axis=1)
+        k = int(used_batches.sum())
+        scores = s.scores[used_batches] @ T  # two batches' lengths of scores at a time, not four
+        scores -= scores.mean(axis=0)
+        meat = scores.T @ scores * (k / max(k - 1, 1))
+        del scores
+        P_theta = _at_least(white, Hi @ meat @ Hi)
     core_held = fam.held()
     effect_held = np.zeros((len(x) - CORE_SIZE, 0)) if held_effects is None else held_effects.held_basis
     N = np.zeros((len(x), core_held.shape[1] + effect_held.shape[1]))
