@@ -49,6 +49,7 @@ __all__ = [
     "rot_z",
     "euler_to_dcm",
     "AttitudeMatrices",
+    "ColumnStack",
     "epochs_of",
     "dcm_to_euler",
     "quaternion_to_euler",
@@ -218,6 +219,35 @@ class AttitudeMatrices(np.lib.mixins.NDArrayOperatorsMixin):
     def __array_ufunc__(self, ufunc, method, *inputs, **kwargs):  # arithmetic: on the whole stack
         inputs = tuple(np.asarray(v) if isinstance(v, AttitudeMatrices) else v for v in inputs)
         return getattr(ufunc, method)(*inputs, **kwargs)
+
+
+class ColumnStack:
+    """Columns (N,) each read as one array (N, k) of them side by side, held as the columns themselves (a table's, not
+    copied): ``s[index]`` (rows: a slice, an integer array, a mask or one position) is ``np.stack`` of the columns'
+    rows, made when read; ``np.asarray(s)`` the whole stack, made for that use. A log's attitude angles are held so
+    by its prepared epochs (``AttitudeMatrices``), 24 bytes an epoch that a stacked copy would take."""
+
+    ndim = 2
+    dtype = np.dtype(float)
+
+    def __init__(self, *columns: np.ndarray):
+        self.columns = columns
+
+    def __len__(self) -> int:
+        return len(self.columns[0])
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self), len(self.columns))
+
+    def __getitem__(self, index) -> np.ndarray:
+        if isinstance(index, tuple):  # an index into the columns' axis too: of the whole stack
+            return np.asarray(self)[index]
+        return np.stack([c[index] for c in self.columns], axis=-1)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        whole = self[:]
+        return whole if dtype is None else whole.astype(dtype, copy=False)
 
 
 def epochs_of(values, index):

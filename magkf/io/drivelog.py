@@ -32,6 +32,7 @@ from ..conventions import (
     ROLL,
     TIME,
     YAW,
+    ColumnStack,
     likely_unit,
     to_nanotesla,
 )
@@ -190,6 +191,14 @@ class DriveLog:
         if not self.has_attitude:
             return np.full((len(self), 3), np.nan)
         return self.table[list(ATTITUDE)].to_numpy(dtype=float)
+
+    @property
+    def attitude_columns(self):
+        """``attitude`` as the table's own columns read side by side (``conventions.ColumnStack``, not copied), or the
+        same NaN array where the log has none."""
+        if not self.has_attitude:
+            return self.attitude
+        return ColumnStack(*(self.table[c].to_numpy(dtype=float) for c in ATTITUDE))
 
     @property
     def has_reference(self) -> bool:

@@ -162,7 +162,7 @@ def prepare(log: DriveLog, config: FilterConfig, rates: bool = True) -> Prepared
     added effects read)."""
     ref = reference_field(log, config)
     columns = {c: log.column(c) for c in log.auxiliary}
-    return prepare_arrays(log.time, log.mag, ref, log.attitude, log.dop, columns, config, rates=rates)
+    return prepare_arrays(log.time, log.mag, ref, log.attitude_columns, log.dop, columns, config, rates=rates)
 
 
 def prepare_arrays(
@@ -179,8 +179,9 @@ def prepare_arrays(
         (N, 3) raw magnetometer, nT.
     ref : ndarray
         (N, 3) the reference field, NED nT (NaN where unknown).
-    attitude : ndarray
-        (N, 3) roll, pitch, yaw, deg (NaN where missing).
+    attitude : ndarray or ColumnStack
+        (N, 3) roll, pitch, yaw, deg (NaN where missing); a ``conventions.ColumnStack`` of a log's columns is held as
+        it is (``AttitudeMatrices``) and read a chunk at a time.
     dop : ndarray
         (N,) the dilution of precision gated (NaN where not logged).
     columns : dict
@@ -201,7 +202,9 @@ def prepare_arrays(
     -------
     PreparedLog
     """
-    has_att = np.all(np.isfinite(attitude), axis=1)
+    has_att = np.empty(len(attitude), bool)
+    for a in range(0, len(attitude), CHUNK):  # the angles read a chunk at a time (a ColumnStack is not copied whole)
+        has_att[a : a + CHUNK] = np.all(np.isfinite(attitude[a : a + CHUNK]), axis=1)
     c_nb = AttitudeMatrices(attitude)
     field_body, heading = body_fields(attitude, ref)
     base = epoch_status(m, ref, has_att, dop, config.dop_max)
