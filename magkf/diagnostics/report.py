@@ -899,11 +899,12 @@ def _page(log, config, cal, effects, alpha, wander_s, run, judged: Judgement, di
         verdict = retold(run.summary.verdict, next_step(diag.recommended, judged, _lacks(run)))
         parts += _noise_section(run, t0, verdict, judged.refusal is None)
     if judged.refusal is None:
-        parts += [*_gates_and_estimate(run, t0), *_field_views(log, comparison), *_residuals_section(diag, t0)]
+        parts += [*_gates_and_estimate(run, t0), *_field_views(log, comparison)]
+        del comparison  # its per-epoch errors (40 bytes an epoch) let go once the field's views are drawn
+        release_free_memory()
+        parts += _residuals_section(diag, t0)
         parts += _candidates_section(diag, judged, _lacks(run), fitting=fits(run.summary.verdict))
-        if effects:  # the model without them calibrated and diagnosed again: the comparison's errors let go first
-            del comparison
-            release_free_memory()
+        if effects:  # the model without them calibrated and diagnosed again
             parts += _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0)
     else:
         parts += _refused_sections(run, diag, judged)
