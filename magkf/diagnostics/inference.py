@@ -218,6 +218,8 @@ def dct_head(x: np.ndarray, m: int) -> np.ndarray:
     m = min(int(m), n)
     if fft.next_fast_len(n, real=True) == n:
         return fft.dct(np.ascontiguousarray(x.T), type=2)[:, :m].T  # made along contiguous rows (faster)
+    if m == 0:
+        return np.empty((0, k))
     block = min(n, max(DCT_BLOCK, DCT_BLOCK_HEADS * m))
     size = fft.next_fast_len(block + 2 * m - 2)
     norms = np.sqrt(np.einsum("ij,ij->j", x, x))  # (np.linalg.norm would square a copy of x)

@@ -195,7 +195,8 @@ class DriveLog:
     @property
     def attitude_columns(self):
         """``attitude`` as the table's own columns read side by side (``conventions.ColumnStack``, not copied), or the
-        same NaN array where the log has none."""
+        same NaN array where the log has none. What holds it (a prepared log) sees the table's columns themselves: a
+        table changed in place afterwards would change its attitude too (magkf changes no log's table)."""
         if not self.has_attitude:
             return self.attitude
         return ColumnStack(*(self.table[c].to_numpy(dtype=float) for c in ATTITUDE))

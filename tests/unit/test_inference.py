@@ -142,6 +142,7 @@ def test_dct_head_convolved_in_blocks_is_scipy_dct(monkeypatch, n, block):
     got = dct_head(x, m)
     expected = fft.dct(x, type=2, axis=0)[:m]
     assert np.max(np.abs(got - expected) / np.linalg.norm(x, axis=0)) < _blocked_rounding(n, block, m)
+    assert dct_head(x, 0).shape == (0, 3)
 
 
 def test_dct_head_holds_a_block_not_the_data(monkeypatch):
