@@ -44,6 +44,7 @@ from ..config import FilterConfig
 from ..conventions import body_to_ned
 from ..effects import Effect, LinearEffect, check_columns, restore_effects
 from ..effects import candidates as default_candidates
+from ..effects.base import _gradient
 from ..errors import InputError, names_the_log
 from ..io.drivelog import DriveLog
 from ..online.determined import ChunkCache
@@ -961,8 +962,8 @@ def yaw_rate(yaw: np.ndarray, t: np.ndarray) -> np.ndarray:
     ``np.gradient(np.unwrap(np.radians(yaw)), t) * 180 / np.pi``, made ``CHUNK`` epochs at a time: the whole-array
     expression holds some ten working arrays of the log's length (28 MB on the hour's log, the peak of the signals'
     stage). The unwrapping's running sum of corrections is carried from chunk to chunk as one ``cumsum`` adds it up,
-    and the rate takes numpy's formula for even steps where every step of ``t`` is equal, else its formula for
-    uneven steps (``effects.base._gradient``'s)."""
+    and the rate takes numpy's formula for even steps (``np.gradient`` at one step) where every step of ``t`` is
+    equal, else its formula for uneven steps (``effects.base._gradient``), whatever a chunk's own steps."""
     n = len(yaw)
     unwrapped = np.empty(n)
     carried = 0.0  # the sum of the corrections up to the chunk's first epoch
@@ -981,21 +982,8 @@ def yaw_rate(yaw: np.ndarray, t: np.ndarray) -> np.ndarray:
     out = np.empty(n)
     for a in range(0, n, CHUNK):
         lo, hi = max(a - 1, 0), min(a + CHUNK + 1, n)  # the chunk and a neighbour either side
-        f, dt = unwrapped[lo:hi], np.diff(t[lo:hi])
-        rate = np.empty(hi - lo)
-        if even:
-            rate[1:-1] = (f[2:] - f[:-2]) / (2.0 * (t[1] - t[0]))
-        else:
-            dx1, dx2 = dt[:-1], dt[1:]
-            rate[1:-1] = (
-                -dx2 / (dx1 * (dx1 + dx2)) * f[:-2]
-                + (dx2 - dx1) / (dx1 * dx2) * f[1:-1]
-                + dx1 / (dx2 * (dx1 + dx2)) * f[2:]
-            )
-        if lo == 0:
-            rate[0] = (f[1] - f[0]) / (t[1] - t[0])
-        if hi == n:
-            rate[-1] = (f[-1] - f[-2]) / (t[-1] - t[-2])
+        f = unwrapped[lo:hi]
+        rate = np.gradient(f, t[1] - t[0]) if even else _gradient(t[lo:hi], f[:, None])[:, 0]
         first = a - lo
         out[a : a + CHUNK] = rate[first : first + min(CHUNK, n - a)] * 180 / np.pi
     return out

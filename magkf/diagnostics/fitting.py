@@ -201,7 +201,11 @@ class Linearised:
 
     def r_of(self, start: int, stop: int) -> np.ndarray:
         """``r`` of the epochs ``start`` to ``stop`` (the edges of ``chunks``) (3 (stop - start),)."""
-        return self.y[3 * start : 3 * stop] - self.rows(start, stop) @ self.coef
+        return self.residual_at(self.coef, start, stop)
+
+    def residual_at(self, x, start: int, stop: int) -> np.ndarray:
+        """``residual(x)`` of the epochs ``start`` to ``stop`` (the edges of ``chunks``) (3 (stop - start),)."""
+        return self.y[3 * start : 3 * stop] - self.rows(start, stop) @ x
 
     def unwhitened(self, residual_w: np.ndarray, start: int | None = None, stop: int | None = None) -> np.ndarray:
         """Whitened residuals (m, 3) of the epochs ``start`` to ``stop`` (default: all, a chunk at a time) taken
@@ -256,7 +260,7 @@ class Linearised:
         effects too)."""
         out = np.empty_like(self.y)
         for a, b in self.chunks:
-            out[3 * a : 3 * b] = self.y[3 * a : 3 * b] - self.rows(a, b) @ x
+            out[3 * a : 3 * b] = self.residual_at(x, a, b)
         return out
 
 

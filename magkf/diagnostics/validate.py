@@ -43,6 +43,7 @@ rate A's file stores is either inside it or not (``WanderCheck``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from scipy import special
@@ -189,7 +190,7 @@ def validate(
     epochs = _epochs(log, config, effects, layout, x, wander_s)
     # as stored: nothing fitted on this log, not even the heading's slow error (exact for nonlinear effects too)
     stored = epochs.with_wander(None).at(layout, x)
-    as_stored = _ned_rms(stored, _residual_of(stored, x), x)
+    as_stored = _ned_rms(stored, partial(stored.residual_at, x), x)
     held = tuple(e for e in effects if not e.wanders)
     contributions = {e: _contribution(e, x[sl], stored.data) for e, sl in layout.blocks() if e in held}
     del stored  # its whitened reading (24 bytes an epoch) is let go before the fits are made
@@ -440,11 +441,6 @@ def _stretch_means(fit, heading: np.ndarray, stretch_s: float, drop_heading: boo
         axis = np.add.reduceat(np.asarray(heading) @ fit.layout.R(fit.x_fit).T, starts, axis=0)[keep]
         drop = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
     return means[keep], t[starts][keep], ends[keep], counts[keep], drop
-
-
-def _residual_of(fit, x):
-    """``(a, b) -> fit.residual(x)`` of the epochs ``a`` to ``b`` (3 (b - a),), made for those epochs alone."""
-    return lambda a, b: fit.y[3 * a : 3 * b] - fit.rows(a, b) @ x
 
 
 def _ned_rms(fit, residual_w, x=None) -> float:
