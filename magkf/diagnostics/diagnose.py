@@ -33,6 +33,7 @@ the model used:
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -46,7 +47,9 @@ from ..effects import Effect, LinearEffect, check_columns, restore_effects
 from ..effects import candidates as default_candidates
 from ..effects.base import _gradient
 from ..errors import InputError, names_the_log
+from ..files import temporary_folder
 from ..io.drivelog import DriveLog
+from ..online.chunked import Spill
 from ..online.determined import ChunkCache
 from ..online.noise import NoiseLevels
 from ..online.prepare import prepare, reference_track
@@ -68,6 +71,7 @@ from .fitting import (
 )
 from .inference import (
     HeldOut,
+    RobustTest,
     constancy_test,
     f_sf,
     fold_edges,
@@ -487,7 +491,7 @@ def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float,
     null = problem.fit(layout, x)  # the model at its own best fit over the log
     r = null.r.reshape(n, 3)
     tau = integrated_time(r)
-    edges = fold_edges(n, integrated_time(high_passed(r)))
+    edges = fold_edges(n, integrated_time(high_passed(r, held=False)))
     del r
     baseline = _held_out_nt(null, edges)
     selection = _Selection(problem, pool, edges, dt, alpha, say)
@@ -692,42 +696,63 @@ class _Split:
         A, G = self.rows(a, b) if X is None else X
         return G / self.norms - A @ self.proj
 
-    def residuals(self, effect, to_u, theta, model: Linearised):
+    def residuals(self, effect, to_u, theta, model: Linearised, scores=None):
         """The second pass over the rows, with the regressors' orthonormal directions ``part @ to_u`` (q, rank) at
         coefficients ``theta`` (rank,): the NED residual RMS (nT) in sample and on held-out blocks (each chunk's
-        residual reduced to its sum of squares as it is made), and the per-epoch scores (n, rank) of the test
-        (None for a wandering effect, which is tested on scores of its own)."""
+        residual reduced to its sum of squares as it is made); the per-epoch scores (n, rank) of the test written
+        to ``scores`` (``_score_rows``; None: not made, as for a wandering effect, tested on scores of its own)."""
         y, rank = model.y, to_u.shape[1]
         D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
         beta = self.held.coefficients(None if D is None else np.hstack([np.zeros((len(D), self.p)), D]))
         nT, in_sample, held_out = _InNanotesla(model), 0.0, 0.0
-        scores = None if effect.wanders else np.empty((len(y) // 3, rank))
         for a, b in model.chunks:
             X = self.rows(a, b)
             U = self.part(a, b, X) @ to_u
             e = y[3 * a : 3 * b] - X[0] @ self.fitted - U @ theta
             in_sample += nT.squares(e, a, b)
             if scores is not None:
-                scores[a:b] = np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3))
+                _put(scores, a, np.einsum("nik,ni->nk", U.reshape(b - a, 3, rank), e.reshape(b - a, 3)))
             held_out += nT.squares(self.held.residual(X, a, b, beta), a, b)
         n = len(y) // 3
-        return float(np.sqrt(in_sample / n)), float(np.sqrt(held_out / n)), scores
+        return float(np.sqrt(in_sample / n)), float(np.sqrt(held_out / n))
 
 
-def _constancy_scores(effect, null: Linearised) -> np.ndarray:
-    """The scores (n, q) of a wandering effect's constancy test (``inference.constancy_test``): its whitened
-    Jacobian at its prior mean against the whitened residual of the model ``null`` without it, epoch by epoch."""
+#: A test's per-epoch scores beyond this many bytes (8 a score: 72 bytes an epoch for nine parameters, some 600 MB
+#: on a day at 100 Hz) are kept in a file while the test reads them a block at a time, not in memory.
+SCORES_IN_MEMORY_BYTES = 8 << 20
+
+
+@contextmanager
+def _score_rows(n: int, q: int):
+    """Where a test's per-epoch scores (n, q) are written in order, a chunk at a time (``_put``), for the test to
+    read (``inference.score_test``, ``constancy_test``): an array, or beyond ``SCORES_IN_MEMORY_BYTES`` a ``Spill``
+    of (q,) rows in a temporary folder, removed with it when the block ends."""
+    if 8 * n * q <= SCORES_IN_MEMORY_BYTES:
+        yield np.empty((n, q))
+        return
+    with temporary_folder() as folder:
+        yield Spill(folder, "scores", float, (q,))
+
+
+def _put(scores, a: int, rows: np.ndarray) -> None:
+    """Write the scores ``rows`` (k, q) of epochs ``a`` on into ``scores`` (``_score_rows``), after those before."""
+    if isinstance(scores, np.ndarray):
+        scores[a : a + len(rows)] = rows
+    else:
+        scores.append(rows)
+
+
+def _constancy_test(effect, null: Linearised) -> RobustTest | None:
+    """A wandering effect's constancy test (``inference.constancy_test``) on its scores (n, q): its whitened
+    Jacobian at its prior mean against the whitened residual of the model ``null`` without it, epoch by epoch,
+    written a chunk at a time (``_score_rows``)."""
     prior = effect.prior()[0]
-    return np.concatenate(
-        [
-            np.einsum(
-                "nik,ni->nk",
-                null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b).reshape(b - a, 3, -1),
-                null.r_of(a, b).reshape(b - a, 3),
-            )
-            for a, b in null.chunks
-        ]
-    )
+    q = effect.jacobian(prior, null.data, rows=slice(0, 1)).shape[2]
+    with _score_rows(len(null.y) // 3, q) as scores:
+        for a, b in null.chunks:
+            G = null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b)
+            _put(scores, a, np.einsum("nik,ni->nk", G.reshape(b - a, 3, q), null.r_of(a, b).reshape(b - a, 3)))
+        return constancy_test(scores)
 
 
 def _estimate(effect, test, split: _Split, to_u, names, model: Linearised) -> tuple[dict, str]:
@@ -836,9 +861,13 @@ class _Selection:
             return _Trial(effect, None, float("nan"), float("nan"), {}, 0, "contained in the model")
         to_u = vt[:rank].T / s[:rank]  # U = part @ to_u: orthonormal
         theta = to_u.T @ (split.moment / split.norms)  # U^T r (the span's basis is orthogonal to r)
-        in_sample, held_out, scores = split.residuals(effect, to_u, theta, model)
-        test = constancy_test(_constancy_scores(effect, null)) if effect.wanders else score_test(scores, theta)
-        del scores
+        if effect.wanders:
+            in_sample, held_out = split.residuals(effect, to_u, theta, model)
+            test = _constancy_test(effect, null)
+        else:
+            with _score_rows(len(y) // 3, rank) as scores:
+                in_sample, held_out = split.residuals(effect, to_u, theta, model, scores)
+                test = score_test(scores, theta)
         estimate, note = _estimate(effect, test, split, to_u, names, model)
         return _Trial(effect, test, held_out, in_sample, estimate, rank, note)
 

@@ -98,20 +98,60 @@ def f_sf(F, dof: float, dof_denominator: float):
 #: ends within them when the correlation time is below ``SHORT_LAGS / SOKAL_C`` epochs.
 SHORT_LAGS = 32
 
+#: Rows of a series read at a time from a file (``_Series``); ``high_passed``'s blocks of ``_COSINE_ROWS`` are the same.
+READ_ROWS = 65536
 
-def integrated_time(x: np.ndarray) -> float:
+
+class _Series:
+    """A series of ``n`` vectors of ``k`` numbers, read ``READ_ROWS`` rows at a time: given as an (n, k) array (or
+    (n,)), or as rows kept in a file (``magkf.online.chunked.Spill``: ``rows`` the count, ``read(a, b)`` rows ``a``
+    to ``b``), such as a long log's scores, which are then never held whole (``in_memory`` False)."""
+
+    def __init__(self, x):
+        self.in_memory = not hasattr(x, "read")
+        if self.in_memory:
+            self.array = np.asarray(x, float).reshape(len(x), -1)
+            self.n, self.k = self.array.shape
+        else:
+            self.file, self.n, self.k = x, int(x.rows), int(np.prod(x.shape, dtype=np.int64))
+
+    def read(self, a: int, b: int) -> np.ndarray:
+        """Rows ``a`` to ``b`` (b - a, k)."""
+        if self.in_memory:
+            return self.array[a:b]
+        return self.file.read(a, b).reshape(-1, self.k)
+
+    def pieces(self, rows: int = READ_ROWS):
+        """``(a, b, rows a to b)`` in order, ``rows`` at a time."""
+        for a in range(0, self.n, rows):
+            b = min(a + rows, self.n)
+            yield a, b, self.read(a, b)
+
+    def column(self, j: int) -> np.ndarray:
+        """The column ``j`` (n,) (a view of an array given; from a file, one column held)."""
+        if self.in_memory:
+            return self.array[:, j]
+        out = np.empty(self.n)
+        for a, b, piece in self.pieces():
+            out[a:b] = piece[:, j]
+        return out
+
+
+def integrated_time(x) -> float:
     """Integrated autocorrelation time (epochs, 1 for white) of a series (n,) or the largest over the
-    columns of (n, k): ``1 + 2 sum rho(l)`` up to Sokal's window, a column at a time. The autocorrelation is
+    columns of (n, k) (an array, or rows kept in a file: ``_Series``): ``1 + 2 sum rho(l)`` up to Sokal's
+    window, a column at a time. The autocorrelation is
     summed lag by lag up to ``SHORT_LAGS`` (a few products of n, where the window of a nearly white series
     ends), else taken from the FFT (the zero-padded transform of all columns at once would hold several
     times their size); the window found within the first lags is the same either way."""
-    x = np.asarray(x, float).reshape(len(x), -1)
-    n = len(x)
+    x = _Series(x)
+    n = x.n
     if n < 8:
         return 1.0
     out = 1.0
-    for k in range(x.shape[1]):
-        column = x[:, k] - x[:, k].mean()
+    for k in range(x.k):
+        column = x.column(k)
+        column = column - column.mean()
         variance = column @ column
         if not variance > 0:
             continue
@@ -196,7 +236,7 @@ def _kernel_spectrum(n: int, first: int, length: int, m: int, size: int) -> np.n
     return fft.fft(out, overwrite_x=True)
 
 
-def dct_head(x: np.ndarray, m: int) -> np.ndarray:
+def dct_head(x, m: int) -> np.ndarray:
     """The first ``m`` coefficients (m, k) of the type-II cosine transform of the columns of ``x`` (n, k), as
     ``scipy.fft.dct(x, type=2, axis=0)[:m]``: ``y_k = 2 sum_j x_j cos(pi k (2j + 1) / (2n))`` (at most n).
 
@@ -212,29 +252,34 @@ def dct_head(x: np.ndarray, m: int) -> np.ndarray:
     scaled first by a power of two near its norm (exactly), so that neither's rounding is the other's. The chirps'
     phases are reduced in integers (``_turn``); the rounding error is that of FFTs of that length (seen: 1e-15 of
     the largest coefficient, below 1e-12 of the data's 2-norm at a million points). It holds the block's buffer,
-    its kernel's spectrum and the sums of the coefficients: 32 bytes a point of a block, not of the data."""
-    x = np.asarray(x, float).reshape(len(x), -1)
-    n, k = x.shape
+    its kernel's spectrum and the sums of the coefficients: 32 bytes a point of a block, not of the data. ``x`` may
+    also be rows kept in a file (``_Series``), read a block at a time: always transformed by blocks then."""
+    x = _Series(x)
+    n, k = x.n, x.k
     m = min(int(m), n)
-    if fft.next_fast_len(n, real=True) == n:
-        return fft.dct(np.ascontiguousarray(x.T), type=2)[:, :m].T  # made along contiguous rows (faster)
+    if x.in_memory and fft.next_fast_len(n, real=True) == n:
+        return fft.dct(np.ascontiguousarray(x.array.T), type=2)[:, :m].T  # made along contiguous rows (faster)
     if m == 0:
         return np.empty((0, k))
     block = min(n, max(DCT_BLOCK, DCT_BLOCK_HEADS * m))
     size = fft.next_fast_len(block + 2 * m - 2)
-    norms = np.sqrt(np.einsum("ij,ij->j", x, x))  # (np.linalg.norm would square a copy of x)
+    if x.in_memory:
+        norms = np.sqrt(np.einsum("ij,ij->j", x.array, x.array))  # (np.linalg.norm would square a copy of x)
+    else:
+        norms = np.sqrt(sum(np.einsum("ij,ij->j", piece, piece) for _, _, piece in x.pieces()))
     scale = np.exp2(np.round(np.log2(np.where(norms > 0, norms, 1.0))))
     pairs = range(0, k, 2)
     sums = np.zeros((len(pairs), 2 * m - 1), complex)  # Z_k of each pair of columns, k = -(m - 1) .. m - 1
     z = np.empty(size, complex)
     for first in range(0, n, block):
         length = min(block, n - first)
+        data = x.read(first, first + length)
         spectrum = _kernel_spectrum(n, first, length, m, size)
         for p, c in enumerate(pairs):  # two columns at a time, in place in one buffer
             z[length:] = 0.0
-            np.divide(x[first : first + length, c], scale[c], out=z[:length].real)
+            np.divide(data[:, c], scale[c], out=z[:length].real)
             if c + 1 < k:
-                np.divide(x[first : first + length, c + 1], scale[c + 1], out=z[:length].imag)
+                np.divide(data[:, c + 1], scale[c + 1], out=z[:length].imag)
             else:
                 z[:length].imag = 0.0
             _chirp_into(z[:length], n, -1.0, first=first)
@@ -242,7 +287,7 @@ def dct_head(x: np.ndarray, m: int) -> np.ndarray:
             z *= spectrum
             z = fft.ifft(z, overwrite_x=True)
             sums[p] += z[length - 1 : length + 2 * m - 2]
-        del spectrum
+        del spectrum, data
     head = np.arange(m, dtype=np.int64)
     chirp, shift = _turn(head * head, n, -1.0), _turn(head, n, -1.0)  # Bluestein's chirp of X_k; exp(-i pi k / 2n)
     out = np.empty((m, k))
@@ -271,10 +316,12 @@ def robust_test(U: np.ndarray, residual: np.ndarray) -> RobustTest | None:
     return score_test(np.einsum("nik,ni->nk", U, e), theta)
 
 
-def score_test(scores: np.ndarray, theta: np.ndarray) -> RobustTest | None:
+def score_test(scores, theta: np.ndarray) -> RobustTest | None:
     """``robust_test`` from its per-epoch scores ``s_t = U_t^T e_t`` (n, q), ``e`` the residual with the
-    regressors, and the coefficients ``theta = U^T residual`` (q,)."""
-    n, q = scores.shape
+    regressors, and the coefficients ``theta = U^T residual`` (q,). The scores may be kept in a file
+    (``_Series``): they are then read a block at a time."""
+    series = _Series(scores)
+    n, q = series.n, series.k
     tau = integrated_time(scores)
     K = cosine_terms(n, tau)
     if K < q + 2:
@@ -331,10 +378,10 @@ def _constancy_null(q: int, K: int) -> np.ndarray:
 
 
 #: Epochs per block of ``high_passed``'s cosines (a few MB of them at a time).
-_COSINE_ROWS = 65536
+_COSINE_ROWS = READ_ROWS
 
 
-def high_passed(x: np.ndarray) -> np.ndarray:
+def high_passed(x, held: bool = True):
     """``x`` (n, k) without its mean and ``CONSTANCY_TERMS`` lowest cosine frequencies (periods longer than a
     quarter of the log): what its correlation time is measured on where a wander would otherwise dominate it.
 
@@ -343,30 +390,58 @@ def high_passed(x: np.ndarray) -> np.ndarray:
     squared norms n for k = 0 and n / 2 above): O(n k CONSTANCY_TERMS) work whatever n's factors, the
     cosines made a block of ``_COSINE_ROWS`` epochs at a time by Chebyshev's recurrence
     ``cos(k t) = 2 cos(t) cos((k - 1) t) - cos((k - 2) t)`` from ``cos(t)`` (a rounding error growing as k^2:
-    1e-14 at k = 8)."""
+    1e-14 at k = 8).
+
+    Rows kept in a file (``_Series``), or an array with ``held`` False, give rows read as the data's less those
+    frequencies, made when read (a ``_LowFrequenciesOff``, which ``integrated_time`` and ``dct_head`` take): no copy
+    of the data is held."""
+    if hasattr(x, "read") or not held:
+        return _LowFrequenciesOff(_Series(x))
     x = np.asarray(x, float)
     n = len(x)
     terms = min(CONSTANCY_TERMS + 1, n)  # above n - 1 the cosines repeat
     weight = np.where(np.arange(terms) == 0, 1.0 / n, 2.0 / n)  # inverse squared norms
     blocks = [(a, min(a + _COSINE_ROWS, n)) for a in range(0, n, _COSINE_ROWS)]
 
-    def cosines(a, b):  # (b - a, terms)
-        out = np.empty((b - a, terms))
-        out[:, 0] = 1.0
-        if terms > 1:
-            out[:, 1] = np.cos((np.pi / (2 * n)) * (2 * np.arange(a, b) + 1))
-        for k in range(2, terms):
-            out[:, k] = 2.0 * out[:, 1] * out[:, k - 1] - out[:, k - 2]
-        return out
-
-    coef = weight[:, None] * sum(cosines(a, b).T @ x[a:b] for a, b in blocks)
+    coef = weight[:, None] * sum(_cosines(n, terms, a, b).T @ x[a:b] for a, b in blocks)
     out = np.empty_like(x)
     for a, b in blocks:
-        out[a:b] = x[a:b] - cosines(a, b) @ coef
+        out[a:b] = x[a:b] - _cosines(n, terms, a, b) @ coef
     return out
 
 
-def constancy_test(scores: np.ndarray) -> RobustTest | None:
+def _cosines(n: int, terms: int, a: int, b: int) -> np.ndarray:
+    """``cos(pi k (2j + 1) / (2n))`` (b - a, terms) at epochs ``j = a .. b - 1``, ``k = 0 .. terms - 1``, by
+    Chebyshev's recurrence (``high_passed``)."""
+    out = np.empty((b - a, terms))
+    out[:, 0] = 1.0
+    if terms > 1:
+        out[:, 1] = np.cos((np.pi / (2 * n)) * (2 * np.arange(a, b) + 1))
+    for k in range(2, terms):
+        out[:, k] = 2.0 * out[:, 1] * out[:, k - 1] - out[:, k - 2]
+    return out
+
+
+class _LowFrequenciesOff:
+    """``high_passed`` made when read, of ``series`` (a ``_Series``: rows kept in a file or an array): the rows
+    (``rows`` of ``shape``) read as the series' less their mean and ``CONSTANCY_TERMS`` lowest cosine frequencies,
+    whose coefficients are found here in one reading; each ``read`` of ``_COSINE_ROWS``-aligned blocks gives
+    ``high_passed``'s numbers for them."""
+
+    def __init__(self, series: _Series):
+        n = series.n
+        self.series, self.rows, self.shape = series, n, (series.k,)
+        self.terms = min(CONSTANCY_TERMS + 1, n)
+        weight = np.where(np.arange(self.terms) == 0, 1.0 / n, 2.0 / n)
+        self.coef = weight[:, None] * sum(
+            _cosines(n, self.terms, a, b).T @ piece for a, b, piece in series.pieces(_COSINE_ROWS)
+        )
+
+    def read(self, a: int, b: int) -> np.ndarray:
+        return self.series.read(a, b) - _cosines(self.series.n, self.terms, a, b) @ self.coef
+
+
+def constancy_test(scores) -> RobustTest | None:
     """Nyblom's test that parameters with per-epoch ``scores`` (n, q) are constant against a random walk,
     robust to the scores' correlation; the scores sum to zero (the parameters fitted).
 
@@ -376,11 +451,13 @@ def constancy_test(scores: np.ndarray) -> RobustTest | None:
     correlation time measured above those lowest frequencies (``high_passed``), where a wander would
     dominate it. On AR(1) scores with 160 independent stretches the size at 5 % is 5.7 %; with 45 it is
     8 % (the band then reaches where the spectrum falls): the test is meant for long logs. Its p-value is
-    from the exact null distribution of that ratio (``_constancy_null``). Returned as a ``RobustTest``
-    whose ``F`` is the statistic, ``dof`` q and ``dof_denominator`` K (``theta`` and ``cov`` empty); None
-    when ``K < q + 2``.
+    from the exact null distribution of that ratio (``_constancy_null``). The scores may be kept in a file
+    (``_Series``): they are then read a block at a time, and their high-passed series made when read. Returned
+    as a ``RobustTest`` whose ``F`` is the statistic, ``dof`` q and ``dof_denominator`` K (``theta`` and ``cov``
+    empty); None when ``K < q + 2``.
     """
-    n, q = scores.shape
+    series = _Series(scores)
+    n, q = series.n, series.k
     tau = integrated_time(high_passed(scores))
     K = cosine_terms(n, tau)
     if K < q + 2:

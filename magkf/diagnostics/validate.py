@@ -198,7 +198,7 @@ def validate(
     fit = fixed.fit(StateLayout.with_core(), x[:12])
     plain = fixed.with_wander(None).at(fit.layout, fit.x) if fit.wander is not None else fit
     n = len(epochs)
-    tau = integrated_time(high_passed(fit.r.reshape(n, 3)))
+    tau = integrated_time(high_passed(fit.r.reshape(n, 3), held=False))
     compare = _Comparison(fit, plain, validation_edges(n, tau))
     checks = [compare.check(e.label, contributions[e], alpha) for e in held]
     with_held_nt = _ned_rms(fit, compare.with_held)

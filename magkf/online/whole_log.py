@@ -192,12 +192,14 @@ class _Problem:
                 continue
             n_used += len(idx)
             times += [prep.time[idx[0]], prep.time[idx[-1]]]
-            field += float(prep.ref_mag[idx].sum())
-            values = prep.data.field_body[idx[prep.has_attitude[idx]]] if vector else prep.m[idx]
-            moments += [values.sum(axis=0), (values**2).sum(axis=0)]
-            n_moments += len(values)
             if step is None and len(idx) > 1:
                 step = float(np.median(np.diff(prep.time[idx])))
+            for a in range(0, len(idx), CHUNK):  # summed a chunk at a time: no copy of the used epochs' fields
+                piece = idx[a : a + CHUNK]
+                field += float(prep.ref_mag[piece].sum())
+                values = prep.data.field_body[piece[prep.has_attitude[piece]]] if vector else prep.m[piece]
+                moments += [values.sum(axis=0), (values**2).sum(axis=0)]
+                n_moments += len(values)
         self.n_used = n_used
         self.t0 = times[0] if times else 0.0
         span = (times[-1] - times[0]) if times else 1.0

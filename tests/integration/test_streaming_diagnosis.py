@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import magkf.diagnostics.diagnose as diagnose_module
+import magkf.diagnostics.inference as inference
 import magkf.online.determined as determined
 import magkf.online.prepare as prepare_module
 import magkf.online.prepared_rows as prepared_rows
@@ -55,7 +56,11 @@ def _chunked(monkeypatch, size):
     """Passes over ``size`` epochs at a time in the diagnosis (the whitened rows, the gate and the residuals), its
     epochs prepared again from the log for each chunk read rather than held (``prepared_rows.HELD_BYTES``), their
     reference field made for the rows read (``prepare.REFERENCE_HELD_EPOCHS``, in pieces of ``size``) as a long log's
-    is."""
+    is; each candidate's scores kept in a file and read back ``size`` rows at a time
+    (``diagnose.SCORES_IN_MEMORY_BYTES``, ``inference.READ_ROWS``)."""
+    monkeypatch.setattr(diagnose_module, "SCORES_IN_MEMORY_BYTES", 0)
+    monkeypatch.setattr(inference, "READ_ROWS", size)
+    monkeypatch.setattr(inference, "_COSINE_ROWS", size)
     monkeypatch.setattr(determined, "CHUNK", size)
     monkeypatch.setattr(diagnose_module, "CHUNK", size)
     monkeypatch.setattr(prepared_rows, "CHUNK", size)

@@ -214,3 +214,72 @@ def test_autocovariance_by_fft_is_the_direct_sums(n):
     got = _autocovariance(padded, n)
     expected = np.array([x[: n - lag] @ x[lag:] for lag in range(n)])
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * (x @ x))
+
+
+def _kept_in_a_file(folder, x, piece: int = 5000):
+    """The rows of ``x`` (n, q) appended to a ``Spill`` in ``folder`` ``piece`` rows at a time, as the diagnosis
+    writes a candidate's scores."""
+    from magkf.online.chunked import Spill
+
+    spill = Spill(folder, "scores", float, (x.shape[1],))
+    for a in range(0, len(x), piece):
+        spill.append(x[a : a + piece])
+    return spill
+
+
+@pytest.mark.parametrize("n", [97, 70001, 200003])
+def test_series_kept_in_a_file_give_the_held_ones_statistics(tmp_path, monkeypatch, n):
+    """Scores kept in a file and read a block at a time (``_Series``) give what the held array gives: the same
+    integrated time, also above the short lags (an AR(1) of correlation time 20 epochs, taken by the FFT), the
+    same high-passed series, the same cosine coefficients of a length of a large prime factor (each path convolves
+    by the same blocks; blocks of 4 096 rows so that 200 003 points span many), and so the same score and constancy
+    tests, to the bit."""
+    from magkf.diagnostics import inference
+    from magkf.diagnostics.inference import constancy_test, score_test
+
+    monkeypatch.setattr(inference, "READ_ROWS", 4096)
+    monkeypatch.setattr(inference, "_COSINE_ROWS", 4096)
+    rng = np.random.default_rng(n)
+    white = rng.normal(size=(n, 3))
+    x = np.empty_like(white)
+    x[0] = white[0]
+    for t in range(1, n):  # AR(1), phi = 0.9: integrated time 19 epochs
+        x[t] = 0.9 * x[t - 1] + white[t]
+    x += np.array([0.5, -2.0, 0.0])
+    spill = _kept_in_a_file(tmp_path, x)
+    assert integrated_time(spill) == integrated_time(x)
+    assert integrated_time(x) > SHORT_LAGS / SOKAL_C  # beyond the lags summed directly
+    lazy = high_passed(spill)
+    assert np.array_equal(inference._Series(lazy).read(0, n), high_passed(x))
+    assert integrated_time(lazy) == integrated_time(high_passed(x))
+    assert integrated_time(high_passed(x, held=False)) == integrated_time(high_passed(x))
+    assert fft.next_fast_len(n, real=True) != n
+    m = min(n, 300)
+    assert np.array_equal(dct_head(spill, m), dct_head(x, m))
+    theta = x.sum(axis=0)
+    held, kept = score_test(x, theta), score_test(spill, theta)
+    if held is None:
+        assert kept is None
+    else:
+        assert (kept.F, kept.terms, kept.tau, kept.p_value) == (held.F, held.terms, held.tau, held.p_value)
+    centred = x - x.mean(axis=0)
+    (tmp_path / "centred").mkdir()
+    held, kept = constancy_test(centred), constancy_test(_kept_in_a_file(tmp_path / "centred", centred))
+    if held is None:
+        assert kept is None
+    else:
+        assert (kept.F, kept.terms, kept.tau, kept.p_value) == (held.F, held.terms, held.tau, held.p_value)
+
+
+def test_dct_head_of_a_fast_length_kept_in_a_file_is_scipy_dct(tmp_path):
+    """At a length scipy transforms whole (360 000 points), rows kept in a file are convolved by blocks instead
+    (nothing of the length held): scipy's coefficients within the blocks' rounding."""
+    from magkf.diagnostics import inference
+
+    n, m = 360000, 2000
+    rng = np.random.default_rng(5)
+    x = np.c_[5.0 + np.cumsum(rng.normal(size=n)), 1e-6 * rng.normal(size=n), rng.normal(size=n)]
+    got = dct_head(_kept_in_a_file(tmp_path, x, 65536), m)
+    expected = fft.dct(x, type=2, axis=0)[:m]
+    block = max(inference.DCT_BLOCK, inference.DCT_BLOCK_HEADS * m)
+    assert np.max(np.abs(got - expected) / np.linalg.norm(x, axis=0)) < _blocked_rounding(n, block, m)
