@@ -351,21 +351,28 @@ def _robust_scale(values) -> float:
     """Standard deviation of zero-mean normal values among outliers: 1.4826 times the median absolute value,
     then again over the values within ``CLIP_SIGMA`` of that first scale (the first pass is moved by the
     share of outliers, the second is not)."""
-    a = np.abs(np.asarray(values, float))
-    a = a[np.isfinite(a)]
+    a = np.abs(np.asarray(values, float))  # a new array, its own to reorder (``_median(in_place=True)``)
+    finite = np.isfinite(a)
+    if not finite.all():
+        a = a[finite]
+    del finite
     if not a.size:
         return 0.0
-    first = 1.4826 * _median(a)
+    first = 1.4826 * _median(a, in_place=True)
     inside = a[a <= CLIP_SIGMA * first]
-    return 1.4826 * _median(inside) if inside.size else first
+    del a
+    return 1.4826 * _median(inside, in_place=True) if inside.size else first
 
 
-def _median(a: np.ndarray) -> float:
+def _median(a: np.ndarray, in_place: bool = False) -> float:
     """The median of a non-empty 1-D array (``np.partition`` directly: ``np.median``'s own handling costs
-    more than the partition on the learner's few thousand values)."""
+    more than the partition on the learner's few thousand values); ``in_place``: ``a`` reordered by the
+    partition rather than copied (the same values, so the same median)."""
     n = len(a)
     hi = n // 2
-    p = np.partition(a, hi)
+    if in_place:
+        a.partition(hi)
+    p = a if in_place else np.partition(a, hi)
     # the lower middle value of an even count is the largest below the upper one: one selection, not two
     lo = float(p[:hi].max()) if n % 2 == 0 else float(p[hi])
     return 0.5 * (lo + float(p[hi]))
