@@ -415,10 +415,14 @@ def robust_start(
     """Starting levels from the residuals of a first fit: ``along`` (N,) nT along the field, ``cross`` (N, 2)
     nT along ``h`` and ``v`` (None: keep ``attitude_rad``), ``field2`` (N,) and ``horizontal2`` (N,, default
     ``field2``) the field and its horizontal part squared, nT^2 (``estimate_levels`` of the residuals less
-    their medians); their correlation measured the way the learner measures it."""
-    along = np.asarray(along, float) - np.median(along)
+    their medians); their correlation measured the way the learner measures it. ``along`` and ``cross`` are
+    the caller's working arrays (float64), centred in place: a long log's residuals are not copied."""
+    along = np.asarray(along, float)
+    along -= np.median(along)
     if cross is not None:
-        cross = np.asarray(cross, float) - np.median(cross, axis=0)
+        cross = np.asarray(cross, float)
+        for j in range(cross.shape[1]):  # a column's median at a time: one column's working copy
+            cross[:, j] -= np.median(cross[:, j])
     horizontal2 = field2 if horizontal2 is None else horizontal2
     prior = NoiseLevels(floor_nt, attitude_rad, reference_nt)
     levels = estimate_levels(along, cross, field2, horizontal2, prior, floor_nt)

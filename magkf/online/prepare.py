@@ -857,7 +857,8 @@ def magnitude_residuals(prep: PreparedLog, x0) -> np.ndarray:
 def start_levels(along, cross, ref_mag, horizontal2, config: FilterConfig) -> NoiseLevels:
     """The starting noise (``noise.robust_start``) from the residuals ``along`` (k,) the field and ``cross`` (k, 2)
     across it (None: without attitude) at epochs of reference field magnitude ``ref_mag`` (k,) nT and horizontal
-    part squared ``horizontal2`` (k,) nT^2 (``horizontal_squared``)."""
+    part squared ``horizontal2`` (k,) nT^2 (``horizontal_squared``). ``along`` and ``cross`` are the caller's
+    working arrays: they are centred in place."""
     return robust_start(
         along,
         cross,

@@ -117,7 +117,8 @@ class WholeLogFit:
 class _Sums:
     """The normal equations of the data at one state: ``A`` (n, n), ``g`` (n,), the sum of squares ``ss``, and
     the same per fold (``A_k`` (F, n, n), ``g_k`` (F, n), ``ss_k`` (F,)), each batch's gradient ``scores``
-    (K, n), and the vector and magnitude sums of squares and counts."""
+    (K, n; None where not summed: ``_Problem.with_scores``), and the vector and magnitude sums of squares and
+    counts."""
 
     A: np.ndarray
     g: np.ndarray
@@ -125,7 +126,7 @@ class _Sums:
     A_k: np.ndarray
     g_k: np.ndarray
     ss_k: np.ndarray
-    scores: np.ndarray
+    scores: np.ndarray | None
     vec: list
     mag: list
 
@@ -135,8 +136,8 @@ class _Sums:
         return self.vec[0] * 3 + self.mag[0]
 
     @classmethod
-    def empty(cls, n: int, batches: int) -> _Sums:
-        """Zero sums over ``n`` parameters and ``batches`` batches."""
+    def empty(cls, n: int, batches: int | None) -> _Sums:
+        """Zero sums over ``n`` parameters and ``batches`` batches (None: no batch scores)."""
         return cls(
             np.zeros((n, n)),
             np.zeros(n),
@@ -144,7 +145,7 @@ class _Sums:
             np.zeros((FOLDS, n, n)),
             np.zeros((FOLDS, n)),
             np.zeros(FOLDS),
-            np.zeros((batches, n)),
+            None if batches is None else np.zeros((batches, n)),
             [0, 0.0],
             [0, 0.0],
         )
@@ -165,8 +166,9 @@ class _Sums:
             self.ss_k[f] += float(ss_e[own].sum())
         self.g += g_e.sum(axis=0)
         self.ss += float(ss_e.sum())
-        starts = np.flatnonzero(np.diff(batch, prepend=-1))
-        self.scores[batch[starts]] += np.add.reduceat(g_e, starts, axis=0)
+        if self.scores is not None:
+            starts = np.flatnonzero(np.diff(batch, prepend=-1))
+            self.scores[batch[starts]] += np.add.reduceat(g_e, starts, axis=0)
         acc = self.vec if r.shape[1] == 3 else self.mag
         acc[0] += len(r)
         acc[1] += float(ss_e.sum())
@@ -254,13 +256,20 @@ class _Problem:
         dmdx[:, :, self.layout.CORE] = core_jacobian(field)
         return dmdx
 
-    def sums(self, x) -> _Sums:
-        """The data's normal equations and sums (``_Sums``) at ``x`` (n,), one pass over the parts."""
-        s = _Sums.empty(len(x), self.n_batches)
+    def sums(self, x, scores: bool = False) -> _Sums:
+        """The data's normal equations and sums (``_Sums``) at ``x`` (n,), one pass over the parts; with ``scores``,
+        each batch's gradient too (12 parameters' worth, 8 bytes each, a batch of a few epochs: about 19 bytes an
+        epoch at 100 Hz, twice while a step is tried, which the fit's own passes do without)."""
+        s = _Sums.empty(len(x), self.n_batches if scores else None)
         for prep, vector, epochs, fold, batch in self.chunks():
             r, J = self.residuals(x, prep, vector, epochs)
             s.add(r, J, fold, batch)
         return s
+
+    def with_scores(self, x, s: _Sums) -> _Sums:
+        """``s``, the sums at ``x``, with its batch scores: made again with them by one more pass where it has none
+        (the same passes in the same order: the same sums)."""
+        return s if s.scores is not None else self.sums(x, scores=True)
 
     def model_meat(self, x, noise, field_aligned: bool) -> np.ndarray:
         """The covariance (n, n) of the gradient ``sum J^T r`` at ``x`` were the residuals' noise the filter's
@@ -461,6 +470,7 @@ def fit_whole_log_parts(
     problem.weigh_prior(s.ss / max(s.count, 1))
     problem.prior_x[:CORE_SIZE] = x[:CORE_SIZE]
     x, s = problem.minimise(x, families[first].state_basis(n))
+    s = problem.with_scores(x, s)  # the residuals' correlation by batch means (``_correlation_factor``)
     candidates = _candidates(problem, x, s, core_ref, field_nt, families)
     chosen = first
     if model == "auto":
@@ -470,6 +480,8 @@ def fit_whole_log_parts(
         if chosen != first:
             x, s = _fit_family(problem, families[chosen], x, core_ref)
     fam = families[chosen]
+    if noise is None:  # the batch-means sandwich
+        s = problem.with_scores(x, s)
     P, given = _covariance(problem, x, s, fam.state_basis(n), fam, held_std, noise, held_effects)
     record = _record(fam, model, held_how, core_ref, candidates, chosen)
     record |= _notes(fam, given, float(np.sqrt(s.ss / max(s.count, 1))), field_nt, held_effects)
