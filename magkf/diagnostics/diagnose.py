@@ -350,7 +350,7 @@ def _run(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list, 
     adds = [e for e in effects if e.label not in {s.label for s in stored}]
     if run is None and (cal is None or adds):
         say("calibrating")
-        run = calibrate_log(log, config, init=cal, effects=effects or stored)
+        run = calibrate_log(log, config, init=cal, effects=effects or stored, fit_residuals=False)  # not read here
     return run
 
 
@@ -489,10 +489,11 @@ def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float,
     dt = float(np.median(np.diff(problem.data.time))) if n > 1 else 1.0
     say(f"fitting the model to {n} epochs")
     null = problem.fit(layout, x)  # the model at its own best fit over the log
-    r = null.r.reshape(n, 3)
-    tau = integrated_time(r)
-    edges = fold_edges(n, integrated_time(high_passed(r, held=False)))
-    del r
+    with _epoch_rows(n, 3) as r:  # its residual, written a chunk at a time
+        for a, b in null.chunks:
+            _put(r, a, null.r_of(a, b).reshape(b - a, 3))
+        tau = integrated_time(r)
+        edges = fold_edges(n, integrated_time(high_passed(r, held=False)))
     baseline = _held_out_nt(null, edges)
     selection = _Selection(problem, pool, edges, dt, alpha, say)
     results = selection.run(null, baseline)
@@ -700,7 +701,7 @@ class _Split:
         """The second pass over the rows, with the regressors' orthonormal directions ``part @ to_u`` (q, rank) at
         coefficients ``theta`` (rank,): the NED residual RMS (nT) in sample and on held-out blocks (each chunk's
         residual reduced to its sum of squares as it is made); the per-epoch scores (n, rank) of the test written
-        to ``scores`` (``_score_rows``; None: not made, as for a wandering effect, tested on scores of its own)."""
+        to ``scores`` (``_epoch_rows``; None: not made, as for a wandering effect, tested on scores of its own)."""
         y, rank = model.y, to_u.shape[1]
         D = effect.increments()  # a wander's steps, given a prior so held-out blocks are interpolated
         beta = self.held.coefficients(None if D is None else np.hstack([np.zeros((len(D), self.p)), D]))
@@ -717,38 +718,39 @@ class _Split:
         return float(np.sqrt(in_sample / n)), float(np.sqrt(held_out / n))
 
 
-#: A test's per-epoch scores beyond this many bytes (8 a score: 72 bytes an epoch for nine parameters, some 600 MB
-#: on a day at 100 Hz) are kept in a file while the test reads them a block at a time, not in memory.
-SCORES_IN_MEMORY_BYTES = 8 << 20
+#: Per-epoch rows beyond this many bytes (a test's scores, 8 bytes a score: 72 bytes an epoch for nine parameters,
+#: some 600 MB on a day at 100 Hz; the tests' residual, 24 bytes an epoch) are kept in a file while the statistics
+#: read them a block at a time, not in memory.
+ROWS_IN_MEMORY_BYTES = 8 << 20
 
 
 @contextmanager
-def _score_rows(n: int, q: int):
-    """Where a test's per-epoch scores (n, q) are written in order, a chunk at a time (``_put``), for the test to
-    read (``inference.score_test``, ``constancy_test``): an array, or beyond ``SCORES_IN_MEMORY_BYTES`` a ``Spill``
-    of (q,) rows in a temporary folder, removed with it when the block ends."""
-    if 8 * n * q <= SCORES_IN_MEMORY_BYTES:
+def _epoch_rows(n: int, q: int):
+    """Where per-epoch rows (n, q) are written in order, a chunk at a time (``_put``), for the statistics of
+    ``inference`` to read (``integrated_time``, ``score_test``, ``constancy_test``): an array, or beyond
+    ``ROWS_IN_MEMORY_BYTES`` a ``Spill`` of (q,) rows in a temporary folder, removed with it when the block ends."""
+    if 8 * n * q <= ROWS_IN_MEMORY_BYTES:
         yield np.empty((n, q))
         return
     with temporary_folder() as folder:
         yield Spill(folder, "scores", float, (q,))
 
 
-def _put(scores, a: int, rows: np.ndarray) -> None:
-    """Write the scores ``rows`` (k, q) of epochs ``a`` on into ``scores`` (``_score_rows``), after those before."""
-    if isinstance(scores, np.ndarray):
-        scores[a : a + len(rows)] = rows
+def _put(out, a: int, rows: np.ndarray) -> None:
+    """Write the ``rows`` (k, q) of epochs ``a`` on into ``out`` (``_epoch_rows``), after those before."""
+    if isinstance(out, np.ndarray):
+        out[a : a + len(rows)] = rows
     else:
-        scores.append(rows)
+        out.append(rows)
 
 
 def _constancy_test(effect, null: Linearised) -> RobustTest | None:
     """A wandering effect's constancy test (``inference.constancy_test``) on its scores (n, q): its whitened
     Jacobian at its prior mean against the whitened residual of the model ``null`` without it, epoch by epoch,
-    written a chunk at a time (``_score_rows``)."""
+    written a chunk at a time (``_epoch_rows``)."""
     prior = effect.prior()[0]
     q = effect.jacobian(prior, null.data, rows=slice(0, 1)).shape[2]
-    with _score_rows(len(null.y) // 3, q) as scores:
+    with _epoch_rows(len(null.y) // 3, q) as scores:
         for a, b in null.chunks:
             G = null.whitened(effect.jacobian(prior, null.data, rows=slice(a, b)), a, b)
             _put(scores, a, np.einsum("nik,ni->nk", G.reshape(b - a, 3, q), null.r_of(a, b).reshape(b - a, 3)))
@@ -865,7 +867,7 @@ class _Selection:
             in_sample, held_out = split.residuals(effect, to_u, theta, model)
             test = _constancy_test(effect, null)
         else:
-            with _score_rows(len(y) // 3, rank) as scores:
+            with _epoch_rows(len(y) // 3, rank) as scores:
                 in_sample, held_out = split.residuals(effect, to_u, theta, model, scores)
                 test = score_test(scores, theta)
         estimate, note = _estimate(effect, test, split, to_u, names, model)

@@ -151,7 +151,10 @@ def integrated_time(x) -> float:
     out = 1.0
     for k in range(x.k):
         column = x.column(k)
-        column = column - column.mean()
+        if x.in_memory:
+            column = column - column.mean()
+        else:  # read from the file: its own array, centred in place
+            column -= column.mean()
         variance = column @ column
         if not variance > 0:
             continue

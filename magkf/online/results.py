@@ -183,7 +183,8 @@ class CalibrationRun:
         Every effect's parameters by name, as in ``RunSummary.effects``.
     fit : pandas.DataFrame or None, optional
         Indexed by time, the residuals with the final estimate (with the smoothed per-epoch estimate when
-        smoothed): ``fit_n, fit_e, fit_d`` (NED, nT) and ``fit_mag`` (nT).
+        smoothed): ``fit_n, fit_e, fit_d`` (NED, nT) and ``fit_mag`` (nT); None where the run was made without
+        them (``calibrate_log(fit_residuals=False)``, as the diagnosis makes its run).
     filter_x, filter_P : numpy.ndarray or None, optional
         (n,) and (n, n): the filter's state at the end of the log and its covariance, where ``x`` is the
         whole-log estimate (None: ``x`` is the filter's, or a batch solution).
@@ -397,7 +398,9 @@ def epoch_residuals(part, block, layout: StateLayout, trace: RunTrace, x0, own: 
     return ned_i, mag_i, ned_f, mag_f
 
 
-def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -> CalibrationRun:
+def build_run(
+    log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace, fit_residuals: bool = True
+) -> CalibrationRun:
     """Assemble a ``CalibrationRun`` from the start ``x0`` (n,), ``P0`` (n, n) and what the run went through.
 
     The residuals are computed ``CHUNK`` epochs at a time, so that nothing of the size of a long log is held
@@ -405,7 +408,8 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     built when read. The states, their standard deviations, the residuals, the NIS and the learned noise are
     float32: 7 significant digits, 0.01 nT of a 100 000 nT residual, and a rounding of a state below a
     hundredth of its standard deviation unless the standard deviation is below 6e-6 of the value. The
-    calibration, ``x`` and ``P`` keep float64."""
+    calibration, ``x`` and ``P`` keep float64. Without ``fit_residuals`` the run's ``fit`` is None: the residuals
+    with the final estimate are summed a chunk at a time and not kept (16 bytes an epoch)."""
     status, updated, nis = trace.status, trace.updated, trace.nis
     n_ep = len(status)
     # The residuals before each epoch use the estimate before its block (the start's for the first block),
@@ -416,11 +420,13 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     own = trace.smoothed or (trace.method or config.filter) == "batch"
     chunk = max(n_ep, 1) if layout.nonlinear else CHUNK
     # residuals before each epoch and with the final estimate: north, east, down, magnitude
-    before, final = np.empty((n_ep, 4), np.float32), np.empty((n_ep, 4), np.float32)
+    before = np.empty((n_ep, 4), np.float32)
+    final = np.empty((n_ep, 4), np.float32) if fit_residuals else None
     sums = FitSums(rows=trace.nis_rows)
     for start in range(0, n_ep, chunk):
         epochs = slice(start, min(start + chunk, n_ep))
-        before[epochs, :3], before[epochs, 3], final[epochs, :3], final[epochs, 3] = epoch_residuals(
+        with_final = final[epochs] if final is not None else np.empty((epochs.stop - epochs.start, 4), np.float32)
+        before[epochs, :3], before[epochs, 3], with_final[:, :3], with_final[:, 3] = epoch_residuals(
             prep.take(epochs), trace.block_of(epochs), layout, trace, x0, own
         )
         sums.add(
@@ -428,8 +434,8 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
             updated[epochs],
             nis[epochs],
             prep.has_attitude[epochs],
-            final[epochs, :3],
-            final[epochs, 3],
+            with_final[:, :3],
+            with_final[:, 3],
             before[epochs, :3],
         )
     index = log.table.index
@@ -439,7 +445,8 @@ def build_run(log, prep, config, layout: StateLayout, x0, P0, trace: RunTrace) -
     counts = np.diff(trace.stops, prepend=0) if trace.stops is not None else np.ones(n_ep, np.int64)
     summary, cal, effects = summarise(log.source, config, layout, P0, trace, sums, counts)
     cal = replace(cal, magnetometer=log.magnetometer, site=log.site)
-    fit = pd.DataFrame(final, columns=["fit_n", "fit_e", "fit_d", "fit_mag"], index=index, copy=False)
+    columns = ["fit_n", "fit_e", "fit_d", "fit_mag"]
+    fit = None if final is None else pd.DataFrame(final, columns=columns, index=index, copy=False)
     return CalibrationRun(
         calibration=cal,
         x=trace.x,

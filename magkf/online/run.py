@@ -44,6 +44,7 @@ def calibrate_log(
     phases=NO_PHASES,
     prepared: PreparedLog | None = None,
     reference: Calibration | None = None,
+    fit_residuals: bool = True,
 ) -> CalibrationRun:
     """Run the online calibration over a log.
 
@@ -74,6 +75,9 @@ def calibrate_log(
         The calibration whose values the parameters the log does not determine are held at (the vehicle's
         own, ``magkf.io.vehicle_calibration``); None: ``init``, else the vehicle's calibration the log
         records, else the identity.
+    fit_residuals : bool, optional
+        Keep the per-epoch residuals with the final estimate (``CalibrationRun.fit``, 16 bytes an epoch); False:
+        ``fit`` is None, the run's figures the same.
 
     Returns
     -------
@@ -130,7 +134,7 @@ def calibrate_log(
     )
     prep = replace(prep, heading=None)  # the heading axis is the filter's alone: not kept for the table
     with phases("per-epoch table and summary"):
-        return build_run(log, prep, config, setup.layout, setup.x0, setup.P0, trace)
+        return build_run(log, prep, config, setup.layout, setup.x0, setup.P0, trace, fit_residuals)
 
 
 def filter_trace(

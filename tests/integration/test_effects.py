@@ -48,7 +48,8 @@ def test_hidden_effect_found_added_and_estimated(name, motion):
     effect = BUILTIN[name]()
     sim = _sim([(effect, TRUTH[name])], motion)
     log = DriveLog(sim.table, f"{name}-{motion}")
-    found, run0 = diagnose(log, MATCHED)
+    run0 = calibrate_log(log, MATCHED)  # the model without the effect, with its residuals (``run.fit``)
+    found, _ = diagnose(log, MATCHED, run=run0)
     assert found.candidates[0].effect == effect.label and found.candidates[0].significant, found.text
     drift = name == "bias_drift"
     config = MATCHED.replace(b_walk=0.0)

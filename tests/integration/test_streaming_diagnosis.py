@@ -56,9 +56,9 @@ def _chunked(monkeypatch, size):
     """Passes over ``size`` epochs at a time in the diagnosis (the whitened rows, the gate and the residuals), its
     epochs prepared again from the log for each chunk read rather than held (``prepared_rows.HELD_BYTES``), their
     reference field made for the rows read (``prepare.REFERENCE_HELD_EPOCHS``, in pieces of ``size``) as a long log's
-    is; each candidate's scores kept in a file and read back ``size`` rows at a time
-    (``diagnose.SCORES_IN_MEMORY_BYTES``, ``inference.READ_ROWS``)."""
-    monkeypatch.setattr(diagnose_module, "SCORES_IN_MEMORY_BYTES", 0)
+    is; each candidate's scores and the tests' residual kept in a file and read back ``size`` rows at a time
+    (``diagnose.ROWS_IN_MEMORY_BYTES``, ``inference.READ_ROWS``)."""
+    monkeypatch.setattr(diagnose_module, "ROWS_IN_MEMORY_BYTES", 0)
     monkeypatch.setattr(inference, "READ_ROWS", size)
     monkeypatch.setattr(inference, "_COSINE_ROWS", size)
     monkeypatch.setattr(determined, "CHUNK", size)
