@@ -443,7 +443,7 @@ def _calibrate_registered(task: LogTask, folder: Path) -> dict:
     for path in s.effect_files:
         load_effect_file(path)
     effects = [make_effect(spec) for spec in s.effects]
-    run = calibrate_log(log, s.config, effects=effects)
+    run = calibrate_log(log, s.config, effects=effects, fit_residuals=False)  # the fleet keeps its states
     checks = check_run(run, task.path, log_field_nt(log), log=log)
     for text in checks:
         warnings.warn(text, UserWarning, stacklevel=1)

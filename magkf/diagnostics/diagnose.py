@@ -733,7 +733,7 @@ def _epoch_rows(n: int, q: int):
         yield np.empty((n, q))
         return
     with temporary_folder() as folder:
-        yield Spill(folder, "scores", float, (q,))
+        yield Spill(folder, "rows", float, (q,))
 
 
 def _put(out, a: int, rows: np.ndarray) -> None:

@@ -871,7 +871,7 @@ def build_report(
     """
     say = progress or (lambda text: None)
     say("calibrating")
-    run = calibrate_log(log, config, init=cal, effects=effects)
+    run = calibrate_log(log, config, init=cal, effects=effects, fit_residuals=False)  # the page reads none
     judged = judge(run, log, cal)
     release_free_memory()  # the judgement's working arrays (11 MB on the hour) not resident under the diagnosis
     diag = None  # a calibration refused by its own R and b is not diagnosed: its residuals measure the refusal
@@ -1069,7 +1069,7 @@ def _before_after(log, config, cal, effects, alpha, wander_s, run, diag, t0: flo
     """The "Before and after" section: the model without any effect (``cal``'s core, or the filter's start)
     calibrated and diagnosed again, compared with ``run`` and its diagnosis ``diag`` on the epochs both used."""
     core = cal.without_effects() if cal is not None else None  # the model without any effect
-    before = calibrate_log(log, config, init=core)
+    before = calibrate_log(log, config, init=core, fit_residuals=False)
     diag0, _ = diagnose(log, config, core, (), alpha=alpha, run=before, wander_s=wander_s)
     ba = compare_runs(before, run)
     signal_of = [c for e in effects for c in e.columns] or [x["signal"] for x in diag0.signals[:2]]
