@@ -398,19 +398,15 @@ def high_passed(x, held: bool = True):
     Rows kept in a file (``_Series``), or an array with ``held`` False, give rows read as the data's less those
     frequencies, made when read (a ``_LowFrequenciesOff``, which ``integrated_time`` and ``dct_head`` take): no copy
     of the data is held."""
-    if hasattr(x, "read") or not held:
-        return _LowFrequenciesOff(_Series(x))
-    x = np.asarray(x, float)
-    n = len(x)
-    terms = min(CONSTANCY_TERMS + 1, n)  # above n - 1 the cosines repeat
-    weight = np.where(np.arange(terms) == 0, 1.0 / n, 2.0 / n)  # inverse squared norms
-    blocks = [(a, min(a + _COSINE_ROWS, n)) for a in range(0, n, _COSINE_ROWS)]
-
-    coef = weight[:, None] * sum(_cosines(n, terms, a, b).T @ x[a:b] for a, b in blocks)
-    out = np.empty_like(x)
-    for a, b in blocks:
-        out[a:b] = x[a:b] - _cosines(n, terms, a, b) @ coef
-    return out
+    series = _Series(x)
+    lazy = _LowFrequenciesOff(series)
+    if not (held and series.in_memory):
+        return lazy
+    out = np.empty_like(series.array)
+    for a in range(0, series.n, _COSINE_ROWS):
+        b = min(a + _COSINE_ROWS, series.n)
+        out[a:b] = lazy.read(a, b)
+    return out.reshape(np.shape(x))
 
 
 def _cosines(n: int, terms: int, a: int, b: int) -> np.ndarray:
@@ -434,8 +430,8 @@ class _LowFrequenciesOff:
     def __init__(self, series: _Series):
         n = series.n
         self.series, self.rows, self.shape = series, n, (series.k,)
-        self.terms = min(CONSTANCY_TERMS + 1, n)
-        weight = np.where(np.arange(self.terms) == 0, 1.0 / n, 2.0 / n)
+        self.terms = min(CONSTANCY_TERMS + 1, n)  # above n - 1 the cosines repeat
+        weight = np.where(np.arange(self.terms) == 0, 1.0 / n, 2.0 / n)  # inverse squared norms
         self.coef = weight[:, None] * sum(
             _cosines(n, self.terms, a, b).T @ piece for a, b, piece in series.pieces(_COSINE_ROWS)
         )

@@ -370,9 +370,8 @@ def _median(a: np.ndarray, in_place: bool = False) -> float:
     partition rather than copied (the same values, so the same median)."""
     n = len(a)
     hi = n // 2
-    if in_place:
-        a.partition(hi)
-    p = a if in_place else np.partition(a, hi)
+    p = a if in_place else a.copy()
+    p.partition(hi)
     # the lower middle value of an even count is the largest below the upper one: one selection, not two
     lo = float(p[:hi].max()) if n % 2 == 0 else float(p[hi])
     return 0.5 * (lo + float(p[hi]))
