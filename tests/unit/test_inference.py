@@ -258,17 +258,14 @@ def test_series_kept_in_a_file_give_the_held_ones_statistics(tmp_path, monkeypat
     assert np.array_equal(dct_head(spill, m), dct_head(x, m))
     theta = x.sum(axis=0)
     held, kept = score_test(x, theta), score_test(spill, theta)
-    if held is None:
-        assert kept is None
+    if n == 97:  # 97 epochs correlated over 19 leave too few cosine terms for three parameters: no test either way
+        assert held is None and kept is None
     else:
         assert (kept.F, kept.terms, kept.tau, kept.p_value) == (held.F, held.terms, held.tau, held.p_value)
     centred = x - x.mean(axis=0)
     (tmp_path / "centred").mkdir()
     held, kept = constancy_test(centred), constancy_test(_kept_in_a_file(tmp_path / "centred", centred))
-    if held is None:
-        assert kept is None
-    else:
-        assert (kept.F, kept.terms, kept.tau, kept.p_value) == (held.F, held.terms, held.tau, held.p_value)
+    assert (kept.F, kept.terms, kept.tau, kept.p_value) == (held.F, held.terms, held.tau, held.p_value)
 
 
 def test_dct_head_of_a_fast_length_kept_in_a_file_is_scipy_dct(tmp_path):
