@@ -52,7 +52,7 @@ from ..io.drivelog import DriveLog
 from ..online.chunked import Spill
 from ..online.determined import ChunkCache
 from ..online.noise import NoiseLevels
-from ..online.prepare import prepare, reference_track
+from ..online.prepare import attitude_known, prepare, reference_track
 from ..online.results import CalibrationRun
 from ..online.run import calibrate_log
 from ..online.state import StateLayout
@@ -321,27 +321,25 @@ def diagnose(
 
 def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wander_s, say):
     """The model and the epochs it is judged on: ``(run, layout, x, problem, channels)``, ``problem`` the
-    ``EpochSet`` of ``_model``'s epochs, ``channels`` the names of the log's auxiliary channels. The run is made
-    first (its prepared arrays let go at its end); the log prepared again gives the epochs judged and the reference
-    field, and is let go once the ``EpochSet`` holds those (its epochs prepared again a chunk at a time when
-    read)."""
+    ``EpochSet`` of the model's epochs, ``channels`` the names of the log's auxiliary channels. The run is made
+    first (its prepared arrays let go at its end). The epochs judged are a run's (``_run_model``: its statuses and
+    the log's columns, no epoch prepared), or a calibration's as it is (``_calibration_model``: the log prepared
+    again, and let go once the ``EpochSet`` holds what it needs); the ``EpochSet`` prepares them again a chunk at a
+    time when read."""
     stored = list(restore_effects(cal)) if cal is not None else []
     check_columns(stored + list(effects), log.auxiliary, log.source)  # naming the calibration file
     run = _run(log, config, cal, effects, stored, run, say)  # the run's own prepared arrays let go at its end
-    # the field's rates (48 bytes an epoch) only where the calibration's own effects are weighed here without a run
-    prep = prepare(log, config, rates=run is None and bool(stored))
-    layout, x, used = _model(cal, effects, stored, run, prep)
-    noise = _learned_noise(run, config)
-    if run is None:  # the calibration as it is: gated and weighed as a run of the filter would be
-        noise, used = _gated_as_calibrate(prep, config, layout, x, used)
-    problem = EpochSet.of(log, reference_track(log, config, prep), used, config, noise, wander_s)
-    channels = list(prep.data.columns)
-    del prep  # the diagnosed epochs are prepared again a chunk at a time when read
+    if run is not None:
+        layout, x, used, noise = _run_model(run, effects or stored, log, config)
+        ref = reference_track(log, config)
+    else:
+        layout, x, used, noise, ref = _calibration_model(cal, stored, log, config)
+    problem = EpochSet.of(log, ref, used, config, noise, wander_s)
     if len(problem) < 10:
         raise InputError(
             f"too few usable epochs ({len(problem)}) to diagnose; the log needs attitude and a reference", log.source
         )
-    return run, layout, x, problem, channels
+    return run, layout, x, problem, list(log.auxiliary)
 
 
 def _run(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list, run, say):
@@ -354,29 +352,44 @@ def _run(log: DriveLog, config: FilterConfig, cal, effects: list, stored: list, 
     return run
 
 
-def _model(cal, effects: list, stored: list, run, prep):
-    """The model diagnosed, ``(layout, x, used)``: the state layout, the state (n,) (``run``'s, or ``cal``'s with
-    its ``stored`` effects when there is no run) and the epochs judged (mask (N,) of the prepared log ``prep``):
-    those the run used or its innovation gate refused, else the epochs the calibration can use, with every column
-    the model's effects read."""
-    if run is not None:
-        x = run.x
-        layout = StateLayout.with_core(effects or stored)
-        if len(x) != layout.size:
-            raise ValueError(
-                f"the run's state has {len(x)} parameters; the model with {layout.names[12:]} has {layout.size}"
-            )
-        # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
-        # the epochs where it is largest, and leaving them out would bias the diagnosis.
-        used = run.states["status"].isin(["used", "gated_innovation"]).to_numpy() & prep.has_attitude
-    else:
-        layout = StateLayout.with_core(stored)
-        x = cal.full_state
-        used = prep.base == Status.USED
+def _run_model(run, effects: list, log: DriveLog, config: FilterConfig):
+    """The model of ``run`` (with ``effects``), ``(layout, x, used, noise)``: the state layout, the run's state
+    (n,), the epochs judged (mask (N,) of ``log``: those the run used or its innovation gate refused, with attitude
+    and every column the effects read) and the noise the run learned (None: the configured noise)."""
+    x = run.x
+    layout = StateLayout.with_core(effects)
+    if len(x) != layout.size:
+        raise ValueError(
+            f"the run's state has {len(x)} parameters; the model with {layout.names[12:]} has {layout.size}"
+        )
+    # The epochs the innovation gate refused are kept: where an effect is missing, the gate refuses
+    # the epochs where it is largest, and leaving them out would bias the diagnosis.
+    used = attitude_known(log.attitude_columns)
+    used &= run.states["status"].isin(["used", "gated_innovation"]).to_numpy()
+    return layout, x, _with_columns(used, layout, log.column), _learned_noise(run, config)
+
+
+def _calibration_model(cal, stored: list, log: DriveLog, config: FilterConfig):
+    """The calibration ``cal`` with its ``stored`` effects as it is, ``(layout, x, used, noise, ref)``: the state
+    layout, ``cal``'s state (n,), the epochs it can use (mask (N,) of ``log``, with every column its effects read)
+    less those the filter's magnitude gate refuses, the noise learned from the log at it (``_gated_as_calibrate``)
+    and the reference field (``reference_track``). The log is prepared whole for these (the field's rates, 48
+    bytes an epoch, only where the effects may read them), and let go."""
+    prep = prepare(log, config, rates=bool(stored))
+    layout = StateLayout.with_core(stored)
+    x = cal.full_state
+    used = _with_columns(prep.base == Status.USED, layout, lambda column: prep.data.columns[column])
+    noise, used = _gated_as_calibrate(prep, config, layout, x, used)
+    return layout, x, used, noise, reference_track(log, config, prep)
+
+
+def _with_columns(used: np.ndarray, layout: StateLayout, column) -> np.ndarray:
+    """``used`` (N,) bool, in place, less the epochs where a column the effects of ``layout`` read (``column(name)``
+    (N,)) is not finite."""
     for effect in layout.extra():
-        for column in effect.columns:
-            used &= np.isfinite(prep.data.columns[column])
-    return layout, x, used
+        for name in effect.columns:
+            used &= np.isfinite(column(name))
+    return used
 
 
 def _gated_as_calibrate(prep, config: FilterConfig, layout: StateLayout, x, used) -> tuple[NoiseLevels, np.ndarray]:

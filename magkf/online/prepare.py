@@ -202,9 +202,7 @@ def prepare_arrays(
     -------
     PreparedLog
     """
-    has_att = np.empty(len(attitude), bool)
-    for a in range(0, len(attitude), CHUNK):  # the angles read a chunk at a time (a ColumnStack is not copied whole)
-        has_att[a : a + CHUNK] = np.all(np.isfinite(attitude[a : a + CHUNK]), axis=1)
+    has_att = attitude_known(attitude)
     c_nb = AttitudeMatrices(attitude)
     field_body, heading = body_fields(attitude, ref)
     base = epoch_status(m, ref, has_att, dop, config.dop_max)
@@ -222,6 +220,15 @@ def prepare_arrays(
     return PreparedLog(m, ref, ref_mag, c_nb, has_att, dop, base, data, heading)
 
 
+def attitude_known(attitude) -> np.ndarray:
+    """Mask (N,) of the epochs whose ``attitude`` (N, 3) roll, pitch, yaw (an array or a ``ColumnStack``) is known
+    (every angle finite), read a chunk at a time (a ``ColumnStack`` is not copied whole)."""
+    known = np.empty(len(attitude), bool)
+    for a in range(0, len(attitude), CHUNK):
+        known[a : a + CHUNK] = np.all(np.isfinite(attitude[a : a + CHUNK]), axis=1)
+    return known
+
+
 def reference_field(log: DriveLog, config: FilterConfig) -> np.ndarray:
     """The reference field (N, 3) NED nT of every epoch of ``log``, as ``prepare`` takes it: the log's own, else
     IGRF refreshed every ``config.reference_refresh_m``."""
@@ -236,12 +243,12 @@ def reference_field(log: DriveLog, config: FilterConfig) -> np.ndarray:
 REFERENCE_HELD_EPOCHS = 1_000_000
 
 
-def reference_track(log: DriveLog, config: FilterConfig, prep: PreparedLog):
+def reference_track(log: DriveLog, config: FilterConfig, prep: PreparedLog | None = None):
     """``reference_field(log, config)`` as a diagnosis reads it, ``track[rows]`` (k, 3) NED nT: for a log of up to
-    ``REFERENCE_HELD_EPOCHS`` epochs the array of its prepared arrays ``prep`` (``prep.ref`` itself), else made for the
-    epochs asked when read (``DriveLog.reference_track``)."""
+    ``REFERENCE_HELD_EPOCHS`` epochs an array (that of its prepared arrays ``prep``, ``prep.ref`` itself, or made
+    here without ``prep``), else made for the epochs asked when read (``DriveLog.reference_track``)."""
     if len(log.table) <= REFERENCE_HELD_EPOCHS:
-        return prep.ref
+        return reference_field(log, config) if prep is None else prep.ref
     return log.reference_track(knot_spacing_m=config.reference_refresh_m)
 
 
