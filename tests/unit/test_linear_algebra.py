@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from magkf.diagnostics.fitting import GRAM_CONDITION, gram_svd, tall_svd
+from magkf.diagnostics.fitting import GRAM_CONDITION, OUTLIER_SIGMA, gram_svd, inliers, tall_svd
 from magkf.diagnostics.inference import _wishart_bartlett, held_out_residual
 
 
@@ -78,3 +78,16 @@ def test_bartlett_draws_are_wishart():
     assert np.allclose(W.var(axis=0), var, rtol=4 * 3 / np.sqrt(draws))
     det = np.linalg.det(W)
     assert abs(det.mean() - K * (K - 1) * (K - 2)) < 4 * det.std() / np.sqrt(draws)
+
+
+@pytest.mark.parametrize("n", [1, 2, 11, 1000, 100_001])
+def test_inliers_one_component_at_a_time_are_the_whole_arrays_rule(n):
+    """The outlier rule centred in place one component at a time keeps the epochs the rule on the whole (n, 3)
+    array keeps (median, 1.4826 times the median absolute deviation, ``OUTLIER_SIGMA`` of it), on heavy-tailed
+    residuals of unequal scales and on an all-zero residual (the scale's floor)."""
+    rng = np.random.default_rng(n)
+    for residual in (rng.standard_t(2, (n, 3)) * rng.uniform(0.1, 10.0, 3), np.zeros((n, 3))):
+        centred = residual - np.median(residual, axis=0)
+        scale = np.maximum(1.4826 * np.median(np.abs(centred), axis=0), 1e-12)
+        expected = np.all(np.abs(centred) <= OUTLIER_SIGMA * scale, axis=1)
+        np.testing.assert_array_equal(inliers(residual.copy()), expected)
