@@ -972,33 +972,44 @@ class _Selection:
 # ---------------------------------------------------------------- residual against signals
 def signal_values(data):
     """Candidate explanatory signals (N,) at the used epochs, ``(name, values)`` made one after another rather than
-    all held at once: the attitude's angles and the field's rate from one pass over the epochs a chunk at a time,
-    then the log's own columns (a column named as one of these signals takes its place, as a dict's key would)."""
+    all held at once: each of the attitude's angles and the field's rate from a pass of its own over the epochs a
+    chunk at a time (the heading held until its rate is made), then the log's own columns (a column named as one of
+    these signals takes its place, as a dict's key would)."""
     t = data.time
     n = len(t)
     columns = data.columns
-    yaw, pitch, roll, field_rate = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    for a in range(0, n, CHUNK):
-        c = data.c_nb[a : a + CHUNK]
-        yaw[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0
-        pitch[a : a + CHUNK] = np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1)))
-        roll[a : a + CHUNK] = np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))
-        field_rate[a : a + CHUNK] = np.linalg.norm(data.field_body_rate[a : a + CHUNK], axis=1)
-    made = {
-        "heading_deg": lambda: yaw,
-        "roll_deg": lambda: roll,
-        "pitch_deg": lambda: pitch,
-        "time_s": lambda: t - t[0],
-        "yaw_rate_dps": lambda: yaw_rate(yaw, t),
-        "field_rate_nt_s": lambda: field_rate,
-    }
-    if n <= 2:
-        del made["yaw_rate_dps"]
-    for name, make in made.items():
-        yield name, np.asarray(columns[name]) if name in columns else make()
+
+    def signal(name: str, make):
+        return name, np.asarray(columns[name]) if name in columns else make()
+
+    yaw = _along(data, "c_nb", lambda c: np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0)
+    yield signal("heading_deg", lambda: yaw)
+    yield signal("roll_deg", lambda: _along(data, "c_nb", lambda c: np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))))
+    yield signal(
+        "pitch_deg", lambda: _along(data, "c_nb", lambda c: np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1))))
+    )
+    yield signal("time_s", lambda: t - t[0])
+    if n > 2:
+        yield signal("yaw_rate_dps", lambda: yaw_rate(yaw, t))
+    yaw = None  # not held beyond its rate
+    yield signal("field_rate_nt_s", lambda: _along(data, "field_body_rate", lambda r: np.linalg.norm(r, axis=1)))
     for name, values in columns.items():
-        if name not in made:
+        if name not in MADE_SIGNALS:
             yield name, np.asarray(values)
+
+
+#: The signals ``signal_values`` makes from the epochs (a log's column of the same name is taken instead).
+MADE_SIGNALS = ("heading_deg", "roll_deg", "pitch_deg", "time_s", "yaw_rate_dps", "field_rate_nt_s")
+
+
+def _along(data, name: str, value) -> np.ndarray:
+    """``value`` (k,) of the array ``name`` of ``data`` (an ``EpochData``) over its epochs, ``CHUNK`` at a time."""
+    n = len(data.time)
+    out = np.empty(n)
+    array = getattr(data, name)
+    for a in range(0, n, CHUNK):
+        out[a : a + CHUNK] = value(array[a : a + CHUNK])
+    return out
 
 
 def yaw_rate(yaw: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -1084,7 +1095,8 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
             x = np.ascontiguousarray(r) if picked is None else r[picked]
             # one-way analysis of variance from the bins' sums (as scipy.stats.f_oneway)
             means = np.bincount(group, x, minlength=k) / sizes
-            spread = x - means[group]
+            spread = means[group]
+            np.subtract(x, spread, out=spread)
             spread *= spread
             within = np.bincount(group, spread, minlength=k)
             del spread
