@@ -469,7 +469,7 @@ def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residua
         ned[s] = body_to_ned(data.c_nb[s], c) - data.field_ned[s]
         body[s] = c - data.field_body[s]
         mag[s] = np.linalg.norm(c, axis=1) - np.linalg.norm(data.field_ned[s], axis=1)
-    rms = float(np.sqrt(np.mean(np.sum(ned**2, axis=1))))
+    rms = float(np.sqrt(np.mean(_squared_norms(ned))))
     axis_rms = {a: float(np.sqrt(np.mean(ned[:, k] ** 2))) for k, a in enumerate(("north", "east", "down"))}
     axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}
     axis_rms["magnitude"] = float(np.sqrt(np.mean(mag**2)))
@@ -1126,10 +1126,19 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
     return out, binned
 
 
+def _squared_norms(v: np.ndarray) -> np.ndarray:
+    """The squared norm (n,) of each row of ``v`` (n, 3), ``np.sum(v**2, axis=1)`` to the bit, made ``CHUNK`` rows at
+    a time (the squares of a chunk, not of the whole array, are held beside it)."""
+    out = np.empty(len(v))
+    for a in range(0, len(v), CHUNK):
+        out[a : a + CHUNK] = np.sum(v[a : a + CHUNK] ** 2, axis=1)
+    return out
+
+
 def _largest(t: np.ndarray, ned: np.ndarray, count: int = 3) -> list:
     """The ``count`` stretches of ``WINDOW_S`` seconds with the largest RMS residual norm."""
     window = np.floor((t - t[0]) / WINDOW_S).astype(int)
-    norm2 = np.sum(ned**2, axis=1)
+    norm2 = _squared_norms(ned)
     sums = np.bincount(window, norm2)
     counts = np.bincount(window)
     rms = np.sqrt(sums / np.maximum(counts, 1))
