@@ -47,6 +47,7 @@ __all__ = [
     "written",
     "output_text",
     "committed",
+    "uncommitted",
     "main_output",
     "temporary_folder",
     "read_input",
@@ -303,6 +304,19 @@ def committed(last=()):
             commit.discard()
             where = str(exc.filename2 or exc.filename) if exc.filename else None  # the target, if known
             raise InputError(f"cannot write: {exc.strerror or exc}", where) from None
+
+
+@contextmanager
+def uncommitted():
+    """Within the block, ``written`` moves each complete temporary onto its target at once, as outside
+    ``committed()``: for the scratch files a command writes and reads back itself (in a ``temporary_folder``),
+    which are not its outputs."""
+    global _commit
+    outer, _commit = _commit, None
+    try:
+        yield
+    finally:
+        _commit = outer
 
 
 def main_output(path) -> None:

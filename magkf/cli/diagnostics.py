@@ -61,10 +61,11 @@ def run_diagnose(args) -> int:
     args.file = args.file[0]
     config = common.filter_config(args)
     cal = common.load_calibration(args.cal)
+    run = _run_in_chunks(args, config) if cal is None and not args.effect else None
     log = common.open_log(args)
     common.judge_calibration(cal, log)
     added = common.effects(args, cal)  # user code runs once the inputs are read
-    result, summary = _diagnosed(args, args.file, log, config, cal, added)
+    result, summary = _diagnosed(args, args.file, log, config, cal, added, run)
     if common.write_json_result(args, summary):
         return 0
     model = ", ".join(result.model_effects) or "core only"
@@ -125,9 +126,27 @@ def _print_diagnosis(args, name: str, log, result, summary: dict, model: str) ->
     print(f"  verdict: {summary['verdict']}")
 
 
-def _diagnosed(args, name: str, log, config, cal, added) -> tuple:
-    """The diagnosis of the log ``name`` and its summary with the run's verdict and the calibration's warnings
-    (each also issued as a warning naming the log)."""
+def _run_in_chunks(args, config):
+    """The run the diagnosis of a long canonical log starts from, made in chunks before the log is read whole
+    (``diagnose.run_in_chunks``), where ``calibrate`` would calibrate that log in chunks (``online._chunked``'s
+    rule); None otherwise (the run made whole by ``diagnose``)."""
+    from ..diagnostics.diagnose import run_in_chunks
+    from ..online import chunked
+    from ..online.run import terminal_progress
+    from .long_logs import read_in_chunks
+
+    if not read_in_chunks(args, chunked.CHUNKED_EPOCHS):
+        return None
+    say = common.stages(args)
+    if say is not None:
+        say("calibrating in chunks")
+    return run_in_chunks(args.file, config, args.mag_unit, None if args.quiet else terminal_progress())
+
+
+def _diagnosed(args, name: str, log, config, cal, added, run=None) -> tuple:
+    """The diagnosis of the log ``name`` (from ``run`` when given, else the run ``diagnose`` makes) and its
+    summary with the run's verdict and the calibration's warnings (each also issued as a warning naming the
+    log)."""
     from ..diagnostics.diagnose import diagnose
     from ..diagnostics.judgement import judge
 
@@ -140,7 +159,7 @@ def _diagnosed(args, name: str, log, config, cal, added) -> tuple:
                 args.cal,
             )
     result, run = diagnose(
-        log, config, cal, added, alpha=args.alpha, wander_s=args.heading_wander, progress=common.stages(args)
+        log, config, cal, added, alpha=args.alpha, run=run, wander_s=args.heading_wander, progress=common.stages(args)
     )
     judged = judge(run, log, cal, cal=cal)
     summary = result.summary()

@@ -122,3 +122,32 @@ def test_validate_in_small_chunks_gives_the_whole_log_results(hidden, monkeypatc
     assert whole.effects[0].verdict == "helps beyond chance"
     _chunked(monkeypatch, SMALL_CHUNK)
     _agree(whole.summary(), validate(log, cal).summary())
+
+
+def test_long_log_diagnosed_from_the_run_calibrate_makes_in_chunks(tmp_path, monkeypatch):
+    """``magkf diagnose`` of a canonical log that ``calibrate`` takes in chunks (``CHUNKED_EPOCHS`` lowered) starts
+    from the chunked run, made before the log is read whole, not from a whole-log run. With the log's own reference
+    field both runs do the same arithmetic (``tests/integration/test_chunked.py``), so the diagnosis is the one
+    made from the whole-log run: every figure to ``RELATIVE`` (the NIS is read back from the states file as
+    float32: 6e-8 relative)."""
+    import json
+
+    import magkf.online.chunked as chunked
+    from magkf.cli import main
+
+    path = tmp_path / "log.csv"
+    simulate_drive(DriveConfig(duration_s=120, rate_hz=50, seed=3, write_reference=True)).write(path)
+
+    def diagnosed():  # written to a file: within the command's outputs' commit (``magkf.files.committed``)
+        out = tmp_path / "diagnosis.json"
+        assert main(["diagnose", str(path), "--quiet", "--json", "-o", str(out)]) == 0
+        return json.loads(out.read_text())
+
+    whole = diagnosed()
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a long log's diagnosis made a whole-log run")
+
+    monkeypatch.setattr(chunked, "CHUNKED_EPOCHS", 1_000)
+    monkeypatch.setattr(diagnose_module, "calibrate_log", refused)
+    _agree(whole, diagnosed())

@@ -47,6 +47,21 @@ def test_written_replaces_once_complete(tmp_path, fresh):
     assert target.read_text() == "new" and _leftovers(tmp_path) == []
 
 
+def test_uncommitted_scratch_lands_at_once_inside_a_commit(tmp_path, fresh):
+    """A scratch file the command reads back itself (``uncommitted``) is in place when its block ends, inside the
+    command's commit, whose own outputs still wait for the command's end."""
+    output, scratch = tmp_path / "diagnosis.json", tmp_path / "states.parquet"
+    with files.committed():
+        files.output_text(output, "new")
+        with files.uncommitted():
+            files.output_text(scratch, "scratch")
+        assert scratch.read_text() == "scratch" and not output.exists()
+        files.output_text(tmp_path / "later.txt", "later")  # the commit is the command's again
+        assert not (tmp_path / "later.txt").exists()
+    assert output.read_text() == "new" and (tmp_path / "later.txt").read_text() == "later"
+    assert _leftovers(tmp_path) == []
+
+
 def test_long_names_fit(tmp_path, fresh):
     """A 244-byte name (the limit is 255) is written: the temporary's name does not grow with it."""
     target = tmp_path / ("a" * 240 + ".csv")
