@@ -481,7 +481,9 @@ def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residua
     ``run`` the mean NIS of the epochs the filter updated with."""
     n = len(problem)
     data = replace(problem.data, R0=layout.R(x))  # the model as it is
-    ned, body, mag = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+    # the NED residual's components side by side in memory (column-major): each is binned against the signals
+    # as a contiguous array, not copied from every third value
+    ned, body, mag = np.empty((n, 3), order="F"), np.empty((n, 3)), np.empty(n)
     for a in range(0, n, CHUNK):  # the epochs read a chunk at a time; the effects see the whole set (``rows``)
         s = slice(a, min(a + CHUNK, n))
         c = layout.calibrated(
