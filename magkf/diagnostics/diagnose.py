@@ -75,7 +75,7 @@ from .inference import (
     constancy_test,
     f_sf,
     fold_edges,
-    held_out_residual,
+    held_out_residuals,
     high_passed,
     integrated_time,
     score_test,
@@ -531,25 +531,25 @@ def _tested(problem: EpochSet, layout: StateLayout, x, pool: list, alpha: float,
         tau = integrated_time(r)
         edges = fold_edges(n, integrated_time(high_passed(r, held=False)))
     baseline = _held_out_nt(null, edges)
+    start = (null.layout, null.x_fit)  # refitted with the logged heading taken as exact, below
     selection = _Selection(problem, pool, edges, dt, alpha, say)
-    results = selection.run(null, baseline)
+    selection.final, null = null, None  # moved on by the selection, and let go once a candidate is taken
+    results = selection.run(baseline)
+    final, selection.final = selection.final, None  # its whitening and reading are not held beyond the tests
     unwandered = None
     if problem.wander_s and any(c.significant for c in results):
-        unwandered = _without_wander(problem, null, selection.final, edges)
-    selection.final = None  # its whitening and residuals are not held beyond the tests
+        final = (final.layout, final.x_fit)  # the model itself let go before the refits
+        unwandered = _without_wander(problem, start, final, edges)
     return _Tests(selection, results, tau, dt, baseline, unwandered)
 
 
-def _without_wander(problem: EpochSet, null: Linearised, final: Linearised, edges) -> tuple[float, float]:
+def _without_wander(problem: EpochSet, null: tuple, final: tuple, edges) -> tuple[float, float]:
     """The held-out residual RMS (nT) of the model ``null`` and of the model with the candidates taken (``final``),
-    each refitted with the logged heading taken as exact: how much the candidates explain when the heading's wander,
-    a nuisance fitted jointly with them, does not take up part of it (a time lag on a car looks like a heading error
-    within each stretch)."""
+    each ``(layout, x)`` refitted with the logged heading taken as exact (one at a time): how much the candidates
+    explain when the heading's wander, a nuisance fitted jointly with them, does not take up part of it (a time lag
+    on a car looks like a heading error within each stretch)."""
     exact = problem.with_wander(None)
-    return (
-        _held_out_nt(exact.fit(null.layout, null.x_fit), edges),
-        _held_out_nt(exact.fit(final.layout, final.x_fit), edges),
-    )
+    return _held_out_nt(exact.fit(*null), edges), _held_out_nt(exact.fit(*final), edges)
 
 
 def _diagnosis(problem: EpochSet, res: _Residuals, tests: _Tests, untried: list, model_effects: list, wander_s):
@@ -615,7 +615,9 @@ def _screening_residual(fit: Linearised, pool) -> np.ndarray:
 
 def _held_out_nt(fit: Linearised, edges) -> float:
     """The NED residual RMS (nT) of ``fit``'s model on held-out blocks between ``edges``."""
-    return _InNanotesla(fit).rms(held_out_residual(fit.rows, fit.y, edges, fit.chunks))
+    nT = _InNanotesla(fit)  # each chunk's residual reduced to its squares as it is made, none held for the log
+    total = sum(nT.squares(r, a, b) for a, b, r in held_out_residuals(fit.rows, fit.y, edges, fit.chunks))
+    return float(np.sqrt(total / (len(fit.y) // 3)))
 
 
 class _InNanotesla:
@@ -632,12 +634,6 @@ class _InNanotesla:
         ``residual_w`` (3 (b - a),) (the rotation to NED keeps the norm)."""
         raw = self.fit.unwhitened(residual_w.reshape(b - a, 3), a, b)
         return float(np.sum((raw @ self.Rinv.T) ** 2))
-
-    def rms(self, residual_w: np.ndarray) -> float:
-        """The RMS (nT) of the NED residual of every epoch, whitened ``residual_w`` (3n,): un-whitened a chunk at
-        a time."""
-        total = sum(self.squares(residual_w[3 * a : 3 * b], a, b) for a, b in self.fit.chunks)
-        return float(np.sqrt(total / (len(residual_w) // 3)))
 
 
 @dataclass
@@ -842,7 +838,7 @@ class _Selection:
         self.alpha = alpha
         self.m = 0
         self.level = float("nan")
-        self.final = None  # the model with the candidates taken, once ``run`` is done
+        self.final = None  # the model ``run`` starts from, then the one with the candidates taken
 
     def trial(self, effect, fit: Linearised) -> _Trial:
         """Screen ``effect`` added to the model ``fit``: its regressors at ``fit``'s linearisation."""
@@ -912,10 +908,11 @@ class _Selection:
     def significant(self, trial: _Trial) -> bool:
         return trial.test is not None and trial.test.p_value < self.level
 
-    def run(self, null: Linearised, held_out_nt: float) -> list[Candidate]:
-        """The candidates, taken ones first, starting from the model ``null`` whose held-out residual (nT) is
-        ``held_out_nt``."""
-        fit, current = null, held_out_nt
+    def run(self, held_out_nt: float) -> list[Candidate]:
+        """The candidates, taken ones first, starting from the model ``final`` (a ``Linearised``) whose held-out
+        residual (nT) is ``held_out_nt``; ``final`` is then the model with the candidates taken (the one it started
+        from not held once a candidate is taken: three rows an epoch)."""
+        fit, current, self.final = self.final, held_out_nt, None
         remaining = list(self.pool)
         self.say(f"testing {len(remaining)} candidates")
         trials = {e.label: self.trial(e, fit) for e in remaining}

@@ -53,7 +53,7 @@ __all__ = [
     "constancy_test",
     "high_passed",
     "fold_edges",
-    "held_out_residual",
+    "held_out_residuals",
     "HeldOut",
     "f_sf",
     "WALK_RATIOS",
@@ -562,17 +562,16 @@ class HeldOut:
         return out
 
 
-def held_out_residual(rows, y: np.ndarray, edges: np.ndarray, chunks) -> np.ndarray:
-    """``HeldOut``'s residual (3n,) of ``y`` on the regressors ``rows(a, b)`` (3 (b - a), p) of each chunk
-    ``(a, b)`` of ``chunks`` (consecutive epochs, first to last), made twice a chunk at a time."""
+def held_out_residuals(rows, y: np.ndarray, edges: np.ndarray, chunks):
+    """``HeldOut``'s residual of ``y`` on the regressors ``rows(a, b)`` (3 (b - a), p) of each chunk ``(a, b)`` of
+    ``chunks`` (consecutive epochs, first to last), a chunk at a time: ``(a, b, residual (3 (b - a),))`` in order,
+    the rows made twice (their normal equations per block first)."""
     held = HeldOut(y, edges)
     for a, b in chunks:
         held.add(rows(a, b), a, b)
     beta = held.coefficients()
-    out = np.empty_like(y)
     for a, b in chunks:
-        out[3 * a : 3 * b] = held.residual(rows(a, b), a, b, beta)
-    return out
+        yield a, b, held.residual(rows(a, b), a, b, beta)
 
 
 #: Ratios of a random walk's variance over the whole stretch of data to the noise variance of one stretch
