@@ -1115,11 +1115,7 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
             x = np.ascontiguousarray(r) if picked is None else r[picked]
             # one-way analysis of variance from the bins' sums (as scipy.stats.f_oneway)
             means = np.bincount(group, x, minlength=k) / sizes
-            spread = means[group]
-            np.subtract(x, spread, out=spread)
-            spread *= spread
-            within = np.bincount(group, spread, minlength=k)
-            del spread
+            within = _within_squares(group, x, means)
             total = len(x)
             between = float(np.sum(sizes * (means - x.mean()) ** 2))
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -1152,6 +1148,19 @@ def _squared_norms(v: np.ndarray) -> np.ndarray:
     out = np.empty(len(v))
     for a in range(0, len(v), CHUNK):
         out[a : a + CHUNK] = np.sum(v[a : a + CHUNK] ** 2, axis=1)
+    return out
+
+
+def _within_squares(group: np.ndarray, x: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """Each bin's sum of squares (k,) about its mean ``means`` (k,) of the values ``x`` (n,) in bins ``group`` (n,),
+    ``np.bincount(group, (x - means[group]) ** 2)`` to the bit (``np.add.at`` adds each value to its bin in the same
+    order), made ``CHUNK`` values at a time: the squares of a chunk, not of every value, are held."""
+    out = np.zeros(len(means))
+    for a in range(0, len(x), CHUNK):
+        g = group[a : a + CHUNK]
+        d = x[a : a + CHUNK] - means[g]
+        d *= d
+        np.add.at(out, g, d)
     return out
 
 

@@ -91,3 +91,17 @@ def test_inliers_one_component_at_a_time_are_the_whole_arrays_rule(n):
         scale = np.maximum(1.4826 * np.median(np.abs(centred), axis=0), 1e-12)
         expected = np.all(np.abs(centred) <= OUTLIER_SIGMA * scale, axis=1)
         np.testing.assert_array_equal(inliers(residual.copy()), expected)
+
+
+@pytest.mark.parametrize("n", [5, 4096, 4097, 100_003])
+def test_within_bin_squares_a_chunk_at_a_time_are_bincounts(n):
+    """The binned signals' within-bin sums of squares, added a chunk at a time, are ``np.bincount``'s of the whole
+    array to the bit (heavy-tailed values, chunk edges at and beside ``CHUNK``)."""
+    from magkf.diagnostics.diagnose import _within_squares
+
+    rng = np.random.default_rng(n)
+    k = min(n, 12)
+    group, x = rng.integers(0, k, n), 50.0 * rng.standard_t(3, n)
+    means = np.bincount(group, x, minlength=k) / np.maximum(np.bincount(group, minlength=k), 1)
+    expected = np.bincount(group, (x - means[group]) ** 2, minlength=k)
+    np.testing.assert_array_equal(_within_squares(group, x, means), expected)
