@@ -1068,7 +1068,8 @@ def _bins(name: str, v: np.ndarray) -> np.ndarray:
     """The bin (N,) int of each value of the signal ``name`` (``v`` (N,), finite): ``BINS`` equal sectors of
     the heading, else ``BINS`` bins between the signal's quantiles (fewer where they coincide); made in place."""
     if name == "heading_deg":
-        out = np.floor(v / (360.0 / BINS)).astype(int)
+        sectors = v / (360.0 / BINS)
+        out = np.floor(sectors, out=sectors).astype(int)
         return np.remainder(out, BINS, out=out)
     edges = np.unique(np.nanquantile(v, np.linspace(0, 1, BINS + 1)))
     if len(edges) < 3:
@@ -1101,11 +1102,12 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
         binned[name] = {}
         counts = np.bincount(b)
         keys = np.flatnonzero(counts > 1)  # bins of more than one epoch
-        inside = counts[b] > 1
-        if not inside.all():
-            picked = np.flatnonzero(inside) if picked is None else picked[inside]
-            v, b = v[inside], b[inside]
-        del inside
+        if len(keys) < len(counts):  # some epochs alone in their bin (or bins empty): those epochs left out
+            inside = counts[b] > 1
+            if not inside.all():
+                picked = np.flatnonzero(inside) if picked is None else picked[inside]
+                v, b = v[inside], b[inside]
+            del inside
         group = b if len(keys) == len(counts) else np.searchsorted(keys, b)  # every bin kept: its index
         sizes, k = counts[keys], len(keys)
         centres = np.bincount(group, v, minlength=k) / sizes
