@@ -47,7 +47,7 @@ from ..effects import Effect, LinearEffect, check_columns, restore_effects
 from ..effects import candidates as default_candidates
 from ..effects.base import _gradient
 from ..errors import InputError, names_the_log
-from ..files import temporary_folder, uncommitted
+from ..files import temporary_folder
 from ..io.drivelog import DriveLog
 from ..online.chunked import Spill
 from ..online.determined import ChunkCache
@@ -89,7 +89,6 @@ __all__ = [
     "Candidate",
     "Diagnosis",
     "diagnose",
-    "run_in_chunks",
     "signal_values",
     "compare_runs",
 ]
@@ -318,26 +317,6 @@ def diagnose(
 
     untried = untried_columns(channels) if candidates is None else []
     return _diagnosis(problem, residuals, tests, untried, sorted(present), wander_s), run
-
-
-def run_in_chunks(path, config: FilterConfig = FilterConfig(), mag_unit: str = "nT", progress=None) -> CalibrationRun:
-    """The filter's run over the canonical CSV or Parquet log ``path``, made in chunks as ``magkf calibrate`` makes
-    it for a log of ``online.chunked.CHUNKED_EPOCHS`` rows or more (``chunked.calibrate_file``), for
-    ``diagnose(log, config, run=...)``: the diagnosis of a long log then judges the calibration ``calibrate``
-    writes for it, and the run is made before the log is read whole rather than beside it (on a day at 100 Hz the
-    whole log's run took 1.5 GB above the log). Its per-epoch table is written to a temporary file, whence only
-    the columns a diagnosis reads are kept: ``status`` (categorical) and ``nis`` (float32, as the file holds it),
-    one row an epoch of the log (5 bytes an epoch). ``progress`` as ``calibrate_file`` takes it."""
-    import pyarrow.parquet as pq
-
-    from ..online.chunked import calibrate_file
-
-    with temporary_folder() as folder, uncommitted():  # read back here, not an output of the command
-        states = f"{folder}/states.parquet"
-        run = calibrate_file(path, config, states=states, states_parquet=True, mag_unit=mag_unit, progress=progress)
-        kept = pq.read_table(states, columns=["status", "nis"], read_dictionary=["status"]).to_pandas()
-    release_free_memory()  # what the passes over the file left free, before the log is read whole
-    return replace(run, states=kept)
 
 
 def _diagnosed(log: DriveLog, config: FilterConfig, cal, effects: list, run, wander_s, say):
