@@ -158,7 +158,7 @@ def _main(argv) -> int:
     warnings.simplefilter("ignore", RuntimeWarning)
     status = _run(args, pending)
     if status == 0:
-        for kind, text in dict.fromkeys(pending):  # each once: a long log's run and its reading may both warn
+        for kind, text in pending:
             print(f"magkf: {kind}: {text}", file=sys.stderr)
     return status
 

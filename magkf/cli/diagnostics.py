@@ -127,9 +127,9 @@ def _print_diagnosis(args, name: str, log, result, summary: dict, model: str) ->
 
 
 def _run_in_chunks(args, config):
-    """The run the diagnosis of a long canonical log starts from, made in chunks in a process of its own before the
-    log is read whole (``chunked_run.run_in_chunks``), where ``calibrate`` would calibrate that log in chunks
-    (``online._chunked``'s rule); None otherwise (the run made whole by ``diagnose``)."""
+    """The run the diagnosis of one long canonical log starts from, made in chunks before the log is read whole
+    (``chunked_run.run_in_chunks``), where ``calibrate`` would calibrate that log in chunks (``cli.online._chunked``'s
+    rule); None otherwise (the run made whole by ``diagnose``)."""
     from ..diagnostics.chunked_run import run_in_chunks
     from ..online import chunked
     from ..online.run import terminal_progress
@@ -140,8 +140,7 @@ def _run_in_chunks(args, config):
     say = common.stages(args)
     if say is not None:
         say("calibrating in chunks")
-    # made apart: what the run leaves loaded and allocated ends with its process (about 200 MiB after a day)
-    return run_in_chunks(args.file, config, args.mag_unit, None if args.quiet else terminal_progress(), apart=True)
+    return run_in_chunks(args.file, config, args.mag_unit, None if args.quiet else terminal_progress())
 
 
 def _diagnosed(args, name: str, log, config, cal, added, run=None) -> tuple:

@@ -476,7 +476,7 @@ def _model_residuals(problem: EpochSet, layout: StateLayout, x, run) -> _Residua
     axis_rms |= {f"body_{a}": float(np.sqrt(np.mean(body[:, k] ** 2))) for k, a in enumerate("xyz")}
     axis_rms["magnitude"] = float(np.sqrt(np.mean(mag**2)))
     if run is not None:  # normalised innovations of the filter, on the epochs it updated with
-        nis = run.states["nis"].to_numpy()[(run.states["status"] == "used").to_numpy()]
+        nis = run.states["nis"].to_numpy(dtype=float)[(run.states["status"] == "used").to_numpy()]  # a file's float32
         axis_rms["nis_mean"] = float(np.nanmean(nis)) if np.isfinite(nis).any() else float("nan")
     return _Residuals(ned, body, mag, rms, axis_rms)
 
@@ -988,7 +988,7 @@ def signal_values(data):
         "pitch_deg", lambda: _along(data, "c_nb", lambda c: np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1))))
     )
     yield signal("time_s", lambda: t - t[0])
-    if n > 2:
+    if n > 2 or "yaw_rate_dps" in columns:  # a rate needs three epochs; a column of that name is taken as it is
         yield signal("yaw_rate_dps", lambda: yaw_rate(yaw, t))
     yaw = None  # not held beyond its rate
     yield signal("field_rate_nt_s", lambda: _along(data, "field_body_rate", lambda r: np.linalg.norm(r, axis=1)))

@@ -1,13 +1,8 @@
-"""The run a long log's diagnosis starts from, made in chunks in a process of its own
-(``magkf.diagnostics.chunked_run``): its warnings and errors reach the process that asked, as a run made in it
-gives them."""
+"""The run a long log's diagnosis starts from, made in chunks (``magkf.diagnostics.chunked_run``): a bad cell
+late in the log is the command's one-line error."""
 
-import numpy as np
 import pytest
 
-from magkf.config import FilterConfig
-from magkf.diagnostics.chunked_run import run_in_chunks
-from magkf.io.drivelog import TimeBaseWarning
 from magkf.sim import DriveConfig, simulate_drive
 
 
@@ -22,21 +17,9 @@ def log_with_a_gap(tmp_path_factory):
     return path
 
 
-def test_the_run_apart_is_the_run_here_with_its_warnings(log_with_a_gap):
-    """The run made apart gives the run made in this process (the same arithmetic: its estimate and statuses to
-    the bit), and the clock's jump it warns of is warned of here."""
-    with pytest.warns(TimeBaseWarning, match="the clock jumps by 30 s at row 3002"):
-        apart = run_in_chunks(log_with_a_gap, FilterConfig(), apart=True)
-    with pytest.warns(TimeBaseWarning, match="the clock jumps by 30 s at row 3002"):
-        here = run_in_chunks(log_with_a_gap, FilterConfig())
-    np.testing.assert_array_equal(apart.x, here.x)
-    assert apart.states["status"].tolist() == here.states["status"].tolist()
-    assert len(apart.states) == 6000
-
-
 def test_a_bad_cell_is_one_line_naming_file_row_and_column(log_with_a_gap, tmp_path, monkeypatch, capsys):
-    """``magkf diagnose`` of a long log with a bad cell in a late row: the error of the run made apart is the
-    command's one line naming the file, the row and the column, exit status 2, no traceback."""
+    """``magkf diagnose`` of a long log with a bad cell in a late row: the chunked run's error is the command's one
+    line naming the file, the row and the column, exit status 2, no traceback."""
     import magkf.online.chunked as chunked
     from magkf.cli import main
 
