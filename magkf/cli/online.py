@@ -269,7 +269,14 @@ def _calibrate_chunked(args, config, init) -> None:
             )
     with written(states) if states else nullcontext() as tmp:  # put in place once the run passed the rule
         run = calibrate_file(
-            args.file, config, init, smooth=args.smooth, states=tmp, states_parquet=parquet, progress=progress
+            args.file,
+            config,
+            init,
+            smooth=args.smooth,
+            states=tmp,
+            states_parquet=parquet,
+            mag_unit=args.mag_unit,
+            progress=progress,
         )
         summary = run.summary.as_dict()
         summary["warnings"] = check_run(run, args.file, log_field_nt(first), init)

@@ -151,6 +151,31 @@ def test_cli_takes_the_chunked_path_for_long_logs(logs, tmp_path, monkeypatch, c
     assert len(pd.read_csv(tmp_path / "states.csv")) == 6000
 
 
+def test_cli_chunked_path_reads_the_magnetometer_in_the_unit_given(logs, tmp_path, monkeypatch, capsys):
+    """``magkf calibrate --mag-unit uT`` of a long log in microtesla: the chunked path reads the columns in that unit,
+    as the whole-log path does (the same calibration in nT as the log in nT gives)."""
+    import json
+
+    import magkf.online.chunked as chunked
+    from magkf.cli import main
+
+    table = read_log(logs[True]).table.copy()
+    table[["mag_x", "mag_y", "mag_z"]] /= 1000.0
+    micro = tmp_path / "micro.csv"
+    table.reset_index().to_csv(micro, index=False, float_format="%.17g")
+
+    def calibrate(path, *extra):
+        capsys.readouterr()
+        assert main(["calibrate", str(path), "--quiet", "--json", *extra]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    whole = calibrate(logs[True])
+    monkeypatch.setattr(chunked, "CHUNKED_EPOCHS", 1_000)
+    long = calibrate(micro, "--mag-unit", "uT")
+    np.testing.assert_allclose(long["b"], whole["b"], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(long["R"], whole["R"], rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("n", [5, 1000, 1001, 7777])
 def test_median_read_in_pieces_is_numpys(tmp_path, n):
     """The median time step of a long log, read from disk in pieces (``SpilledMedian``, as the chunked scan keeps
