@@ -981,17 +981,19 @@ def signal_values(data):
     def signal(name: str, make):
         return name, np.asarray(columns[name]) if name in columns else make()
 
-    yaw = _along(data, "c_nb", lambda c: np.degrees(np.arctan2(c[:, 1, 0], c[:, 0, 0])) % 360.0)
+    def angle(of):  # an angle (deg) of the attitude matrices, in a pass of its own
+        return _chunkwise(data.c_nb, n, lambda c: np.degrees(of(c)))
+
+    yaw = angle(lambda c: np.arctan2(c[:, 1, 0], c[:, 0, 0]))
+    yaw %= 360.0
     yield signal("heading_deg", lambda: yaw)
-    yield signal("roll_deg", lambda: _along(data, "c_nb", lambda c: np.degrees(np.arctan2(c[:, 2, 1], c[:, 2, 2]))))
-    yield signal(
-        "pitch_deg", lambda: _along(data, "c_nb", lambda c: np.degrees(np.arcsin(np.clip(-c[:, 2, 0], -1, 1))))
-    )
+    yield signal("roll_deg", lambda: angle(lambda c: np.arctan2(c[:, 2, 1], c[:, 2, 2])))
+    yield signal("pitch_deg", lambda: angle(lambda c: np.arcsin(np.clip(-c[:, 2, 0], -1, 1))))
     yield signal("time_s", lambda: t - t[0])
     if n > 2 or "yaw_rate_dps" in columns:  # a rate needs three epochs; a column of that name is taken as it is
         yield signal("yaw_rate_dps", lambda: yaw_rate(yaw, t))
     yaw = None  # not held beyond its rate
-    yield signal("field_rate_nt_s", lambda: _along(data, "field_body_rate", lambda r: np.linalg.norm(r, axis=1)))
+    yield signal("field_rate_nt_s", lambda: _chunkwise(data.field_body_rate, n, lambda r: np.linalg.norm(r, axis=1)))
     for name, values in columns.items():
         if name not in MADE_SIGNALS:
             yield name, np.asarray(values)
@@ -1001,11 +1003,10 @@ def signal_values(data):
 MADE_SIGNALS = ("heading_deg", "roll_deg", "pitch_deg", "time_s", "yaw_rate_dps", "field_rate_nt_s")
 
 
-def _along(data, name: str, value) -> np.ndarray:
-    """``value`` (k,) of the array ``name`` of ``data`` (an ``EpochData``) over its epochs, ``CHUNK`` at a time."""
-    n = len(data.time)
+def _chunkwise(array, n: int, value) -> np.ndarray:
+    """``value(rows)`` (k,) of each ``CHUNK`` rows of the first ``n`` of ``array`` (an array, or one read a chunk at
+    a time such as an ``EpochData``'s), side by side (n,): a chunk's working arrays, not the whole array's."""
     out = np.empty(n)
-    array = getattr(data, name)
     for a in range(0, n, CHUNK):
         out[a : a + CHUNK] = value(array[a : a + CHUNK])
     return out
@@ -1126,10 +1127,7 @@ def _signals(data, ned, mag, alpha, tau: float = 1.0):
 def _squared_norms(v: np.ndarray) -> np.ndarray:
     """The squared norm (n,) of each row of ``v`` (n, 3), ``np.sum(v**2, axis=1)`` to the bit, made ``CHUNK`` rows at
     a time (the squares of a chunk, not of the whole array, are held beside it)."""
-    out = np.empty(len(v))
-    for a in range(0, len(v), CHUNK):
-        out[a : a + CHUNK] = np.sum(v[a : a + CHUNK] ** 2, axis=1)
-    return out
+    return _chunkwise(v, len(v), lambda rows: np.sum(rows**2, axis=1))
 
 
 def _within_squares(group: np.ndarray, x: np.ndarray, means: np.ndarray) -> np.ndarray:
